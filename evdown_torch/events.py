@@ -1,0 +1,324 @@
+"""The one event container the kernels see, and the conversions at the edge.
+
+Kernels take and return :class:`Events`: four 1-D tensors of equal length on one device,
+
+* ``x``, ``y``: ``torch.int64`` pixel coordinates, ``0 <= x < W``, ``0 <= y < H``;
+* ``t``: timestamps, ``torch.int64`` (microseconds in Tonic datasets) or ``torch.float64``;
+* ``p``: ``torch.bool`` polarity, ``True`` for ON.
+
+Users hand transforms one of three kinds, and get the same kind back:
+
+* a Tonic structured array with fields ``x``, ``y``, ``t``, ``p`` in any order (``x``/``y``
+  any integer dtype, ``t`` integer or float, ``p`` bool, 0/1 or -1/+1): the result has the
+  same dtype and field order, and polarity in the same encoding;
+* a ``torch.Tensor`` of shape ``(N, 4)`` whose columns are ``(x, y, t, p)``: the result has
+  the same dtype and device (an int64 tensor keeps exact int64 timestamps; a float32 tensor
+  cannot hold microsecond timestamps past 16.7 s, use int64 or float64 for long recordings);
+* an :class:`Events` tuple.
+
+:func:`to_events` validates and converts the input (never modifying it), :func:`from_events`
+converts a result back to the caller's kind.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, NamedTuple, Union
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["Events", "EventFormat", "EventsLike", "to_events", "from_events"]
+
+FIELDS = ("x", "y", "t", "p")
+
+
+class Events(NamedTuple):
+    """A stream of events as four 1-D tensors of equal length ``N`` on one device.
+
+    Attributes:
+        x: ``(N,)`` int64 column index.
+        y: ``(N,)`` int64 row index.
+        t: ``(N,)`` int64 or float64 timestamps (microseconds for Tonic datasets).
+        p: ``(N,)`` bool polarity, ``True`` for ON.
+
+    Example:
+        >>> import torch
+        >>> ev = Events.from_columns([0, 1], [2, 3], [10, 20], [True, False])
+        >>> ev.num_events, ev.t.dtype
+        (2, torch.int64)
+    """
+
+    x: Tensor
+    y: Tensor
+    t: Tensor
+    p: Tensor
+
+    @property
+    def num_events(self) -> int:
+        """Number of events ``N``."""
+        return int(self.t.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        """Device the tensors live on."""
+        return self.t.device
+
+    def select(self, index: Tensor) -> Events:
+        """Return the events picked (and ordered) by an index or boolean mask tensor."""
+        return Events(self.x[index], self.y[index], self.t[index], self.p[index])
+
+    @staticmethod
+    def empty(
+        t_dtype: torch.dtype = torch.int64, device: torch.device | str | None = None
+    ) -> Events:
+        """An empty stream with timestamps of ``t_dtype`` on ``device``."""
+        i = torch.empty(0, dtype=torch.int64, device=device)
+        return Events(i, i.clone(), torch.empty(0, dtype=t_dtype, device=device),
+                      torch.empty(0, dtype=torch.bool, device=device))
+
+    @staticmethod
+    def from_columns(x, y, t, p, device: torch.device | str | None = None) -> Events:
+        """Build events from array-likes; ``t`` keeps integer (int64) or float (float64) type.
+
+        ``p`` is ON where it is ``> 0``.
+        """
+        t = torch.as_tensor(np.asarray(t), device=device)
+        t = t.to(torch.float64) if t.is_floating_point() else t.to(torch.int64)
+        p = torch.as_tensor(np.asarray(p), device=device) > 0
+        return Events(
+            torch.as_tensor(np.asarray(x), device=device).to(torch.int64).reshape(-1),
+            torch.as_tensor(np.asarray(y), device=device).to(torch.int64).reshape(-1),
+            t.reshape(-1),
+            p.reshape(-1),
+        )
+
+
+EventsLike = Union[np.ndarray, Tensor, Events]
+
+
+@dataclass(frozen=True)
+class EventFormat:
+    """How the caller handed events over, so that results go back in the same form.
+
+    Attributes:
+        kind: ``"numpy"`` (structured array), ``"tensor"`` (``(N, 4)`` tensor) or ``"events"``.
+        dtype: the structured dtype or the tensor dtype (``None`` for ``"events"``).
+        polarity: ``"bool"``, ``"binary"`` (OFF 0, ON 1) or ``"signed"`` (OFF -1, ON +1).
+        device: the device of a tensor input.
+    """
+
+    kind: Literal["numpy", "tensor", "events"]
+    dtype: np.dtype | torch.dtype | None
+    polarity: Literal["bool", "binary", "signed"]
+    device: torch.device
+
+    @property
+    def integer_time(self) -> bool:
+        """Whether timestamps are integers (so crossing times are rounded)."""
+        if self.kind == "numpy":
+            return bool(np.issubdtype(self.dtype["t"], np.integer))
+        if self.kind == "tensor":
+            return not self.dtype.is_floating_point
+        return True  # decided by Events.t's dtype
+
+
+def _polarity_encoding(p: Tensor) -> Literal["bool", "binary", "signed"]:
+    """Detect the polarity encoding of a numeric polarity column and validate its values."""
+    if p.dtype == torch.bool:
+        return "bool"
+    if p.numel() == 0:
+        return "binary"
+    if bool((p < 0).any()):
+        ok = bool(((p == 1) | (p == -1)).all())
+        encoding = "signed"
+    else:
+        ok = bool(((p == 0) | (p == 1)).all())
+        encoding = "binary"
+    if not ok:
+        values = torch.unique(p)
+        shown = ", ".join(str(v) for v in values[:6].tolist())
+        more = ", ..." if values.numel() > 6 else ""
+        raise ValueError(
+            "polarity p must take two values, as bool, 0/1 or -1/+1; "
+            f"got values {{{shown}{more}}}"
+        )
+    return encoding
+
+
+def _check_integral(name: str, column: Tensor) -> None:
+    if column.is_floating_point():
+        if not bool(torch.isfinite(column).all()) or not bool((column == column.round()).all()):
+            raise ValueError(f"event coordinate {name} must hold whole numbers")
+
+
+def _validate(events: Events, sensor_size: tuple[int, int, int] | None) -> None:
+    """Check timestamps are finite and coordinates lie inside the sensor."""
+    if events.num_events == 0:
+        return
+    if events.t.is_floating_point() and not bool(torch.isfinite(events.t).all()):
+        raise ValueError("event timestamps t must be finite, got NaN or infinite values")
+    if sensor_size is None:
+        return
+    w, h, _ = sensor_size
+    for name, column, size in (("x", events.x, w), ("y", events.y, h)):
+        lo, hi = int(column.min()), int(column.max())
+        if lo < 0 or hi >= size:
+            raise ValueError(
+                f"event coordinate {name} must lie in [0, {size - 1}] for sensor_size "
+                f"{tuple(sensor_size)}, got values from {lo} to {hi}"
+            )
+
+
+def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat]:
+    names = data.dtype.names
+    missing = [f for f in FIELDS if f not in names]
+    if missing:
+        raise ValueError(
+            f"events are missing field(s) {missing}; a structured array needs fields "
+            f"{list(FIELDS)} in any order, got {list(names)}"
+        )
+    extra = [f for f in names if f not in FIELDS]
+    if extra:
+        raise ValueError(
+            f"events have field(s) {extra} that a downscaler cannot carry over; "
+            f"expected only {list(FIELDS)}"
+        )
+    if data.ndim != 1:
+        raise ValueError(f"a structured event array must be 1-D, got shape {data.shape}")
+    kinds = {f: data.dtype[f] for f in FIELDS}
+    for f in ("x", "y"):
+        if not np.issubdtype(kinds[f], np.integer):
+            raise TypeError(f"event field {f} must have an integer dtype, got {kinds[f]}")
+    if not (np.issubdtype(kinds["t"], np.integer) or np.issubdtype(kinds["t"], np.floating)):
+        raise TypeError(f"event field t must have an integer or float dtype, got {kinds['t']}")
+    if not (kinds["p"] == np.bool_ or np.issubdtype(kinds["p"], np.number)):
+        raise TypeError(f"event field p must be bool, integer or float, got {kinds['p']}")
+    t_np = np.ascontiguousarray(data["t"])
+    t = torch.from_numpy(
+        t_np.astype(np.float64) if np.issubdtype(t_np.dtype, np.floating) else t_np.astype(np.int64)
+    )
+    p_raw = torch.from_numpy(np.ascontiguousarray(data["p"]).copy())
+    encoding = _polarity_encoding(p_raw)
+    p = p_raw if encoding == "bool" else p_raw > 0
+    events = Events(
+        torch.from_numpy(data["x"].astype(np.int64)),
+        torch.from_numpy(data["y"].astype(np.int64)),
+        t,
+        p,
+    )
+    return events, EventFormat("numpy", data.dtype, encoding, torch.device("cpu"))
+
+
+def _from_tensor(data: Tensor) -> tuple[Events, EventFormat]:
+    if data.ndim != 2 or data.shape[1] != 4:
+        raise ValueError(
+            f"an event tensor must have shape (N, 4) with columns (x, y, t, p), "
+            f"got shape {tuple(data.shape)}"
+        )
+    if data.dtype == torch.bool or data.is_complex():
+        raise TypeError(f"an event tensor must be integer or float, got dtype {data.dtype}")
+    x, y, t, p = data.unbind(1)
+    _check_integral("x", x)
+    _check_integral("y", y)
+    encoding = _polarity_encoding(p)
+    floating = data.is_floating_point()
+    events = Events(
+        x.to(torch.int64, copy=True),
+        y.to(torch.int64, copy=True),
+        t.to(torch.float64 if floating else torch.int64, copy=True),
+        p > 0,
+    )
+    return events, EventFormat("tensor", data.dtype, encoding, data.device)
+
+
+def _from_events(data: Events) -> tuple[Events, EventFormat]:
+    n = data.t.shape[0]
+    for name, column in zip(FIELDS, data):
+        if not isinstance(column, Tensor) or column.ndim != 1 or column.shape[0] != n:
+            raise ValueError(f"Events.{name} must be a 1-D tensor of the same length as t")
+        if column.device != data.t.device:
+            raise ValueError("Events tensors must all be on one device")
+    if data.x.dtype != torch.int64 or data.y.dtype != torch.int64:
+        raise TypeError(f"Events.x and Events.y must be int64, got {data.x.dtype}, {data.y.dtype}")
+    if data.t.dtype not in (torch.int64, torch.float64):
+        raise TypeError(f"Events.t must be int64 or float64, got {data.t.dtype}")
+    if data.p.dtype != torch.bool:
+        raise TypeError(f"Events.p must be bool, got {data.p.dtype}")
+    return data, EventFormat("events", None, "bool", data.t.device)
+
+
+def to_events(
+    data: EventsLike, sensor_size: tuple[int, int, int] | None = None
+) -> tuple[Events, EventFormat]:
+    """Validate events of any accepted kind and convert them to :class:`Events`.
+
+    The input is never modified: the returned tensors never share memory with it, except
+    for an :class:`Events` input, which is returned as it is (kernels never write to it).
+
+    Args:
+        data: a Tonic structured array, an ``(N, 4)`` tensor ``(x, y, t, p)`` or Events.
+        sensor_size: ``(W, H, P)``; when given, coordinates must lie inside it.
+
+    Returns:
+        The events and the :class:`EventFormat` that :func:`from_events` needs.
+
+    Raises:
+        TypeError: for an unsupported container or dtype.
+        ValueError: for missing fields, a wrong shape, non-finite timestamps, coordinates
+            outside the sensor or polarity values other than bool, 0/1 or -1/+1.
+
+    Example:
+        >>> import numpy as np
+        >>> dtype = np.dtype([("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "?")])
+        >>> arr = np.array([(5, 1, 2, True)], dtype=dtype)
+        >>> events, fmt = to_events(arr, (4, 4, 2))
+        >>> events.x.tolist(), events.t.tolist(), fmt.kind
+        ([1], [5], 'numpy')
+    """
+    if isinstance(data, Events):
+        events, fmt = _from_events(data)
+    elif isinstance(data, np.ndarray) and data.dtype.names is not None:
+        events, fmt = _from_structured(data)
+    elif isinstance(data, Tensor):
+        events, fmt = _from_tensor(data)
+    elif isinstance(data, np.ndarray):
+        raise TypeError(
+            "a NumPy event array must be structured with fields x, y, t, p "
+            f"(as Tonic's), got a plain array of dtype {data.dtype} and shape {data.shape}"
+        )
+    else:
+        raise TypeError(
+            "events must be a Tonic structured array, a torch.Tensor of shape (N, 4) or "
+            f"evdown_torch.Events, got {type(data).__name__}"
+        )
+    _validate(events, sensor_size)
+    return events, fmt
+
+
+def from_events(events: Events, fmt: EventFormat) -> EventsLike:
+    """Convert kernel output back to the caller's kind, dtype, field order and polarity encoding.
+
+    Args:
+        events: the kernel's result.
+        fmt: the format :func:`to_events` returned for the input.
+
+    Returns:
+        A structured array, an ``(N, 4)`` tensor or Events, matching ``fmt``.
+    """
+    if fmt.kind == "events":
+        return events
+    if fmt.polarity == "bool":
+        p = events.p
+    elif fmt.polarity == "binary":
+        p = events.p.to(torch.int8)
+    else:
+        p = events.p.to(torch.int8) * 2 - 1
+    if fmt.kind == "tensor":
+        columns = (events.x, events.y, events.t, p)
+        return torch.stack([c.to(device=fmt.device, dtype=fmt.dtype) for c in columns], dim=1)
+    out = np.empty(events.num_events, dtype=fmt.dtype)
+    for name, column in zip(FIELDS, (events.x, events.y, events.t, p)):
+        out[name] = column.cpu().numpy()
+    return out

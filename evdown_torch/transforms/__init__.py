@@ -1,0 +1,6 @@
+"""Downscaling transforms, usable alone or inside ``tonic.transforms.Compose``."""
+
+from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms.downsample import Downsample, EventFunnelling
+
+__all__ = ["Downscaler", "Downsample", "EventFunnelling"]

@@ -1,0 +1,59 @@
+"""The shape every downscaling transform shares."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from evdown_torch.checks import check_factor, check_sensor_size, output_size
+from evdown_torch.events import Events, EventsLike, from_events, to_events
+
+
+@dataclass(frozen=True)
+class Downscaler:
+    """Base of the downscaling transforms: settings, validation and the edge conversions.
+
+    Subclasses are frozen dataclasses that implement :meth:`kernel`; ``__call__`` validates
+    the events, converts them to :class:`~evdown_torch.events.Events`, calls the kernel and
+    converts the result back to the caller's kind. Neither the input nor the transform is
+    ever modified.
+
+    Attributes:
+        sensor_size: input sensor size ``(W, H, P)``.
+        factor: a positive integer or a pair ``(fx, fy)``; pixel ``(x, y)`` goes to region
+            ``(x // fx, y // fy)``.
+    """
+
+    sensor_size: tuple[int, int, int]
+    factor: int | tuple[int, int] = 2
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "sensor_size", check_sensor_size(self.sensor_size))
+        check_factor(self.factor, self.sensor_size)
+
+    @property
+    def factor_xy(self) -> tuple[int, int]:
+        """The factor as a pair ``(fx, fy)``."""
+        return check_factor(self.factor)
+
+    @property
+    def output_sensor_size(self) -> tuple[int, int, int]:
+        """Output sensor size ``(ceil(W / fx), ceil(H / fy), P)``, for the next transform."""
+        return output_size(self.sensor_size, self.factor_xy)
+
+    def kernel(self, events: Events) -> Events:  # pragma: no cover - abstract
+        """Downscale validated events; implemented by each method."""
+        raise NotImplementedError
+
+    def __call__(self, events: EventsLike) -> EventsLike:
+        """Downscale events of any accepted kind and return the same kind.
+
+        Args:
+            events: a Tonic structured array (fields x, y, t, p in any order), a tensor of
+                shape ``(N, 4)`` with columns ``(x, y, t, p)``, or Events.
+
+        Returns:
+            The downscaled events, sorted by ``t``, in the input's kind, dtype and polarity
+            encoding, with coordinates inside :attr:`output_sensor_size`.
+        """
+        ev, fmt = to_events(events, self.sensor_size)
+        return from_events(self.kernel(ev), fmt)

@@ -1,0 +1,6 @@
+"""Pure, keyword-only, device-agnostic kernels on :class:`~evdown_torch.events.Events`."""
+
+from evdown_torch.transforms.functional.downsample import downsample
+from evdown_torch.transforms.functional.funnelling import event_funnelling
+
+__all__ = ["downsample", "event_funnelling"]

@@ -1,0 +1,42 @@
+"""Machinery shared by the kernels: time ordering and region indexing."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from evdown_torch.events import Events
+
+
+def time_order(t: Tensor) -> Tensor | None:
+    """Stable permutation that sorts ``t``, or ``None`` when ``t`` is already sorted.
+
+    Args:
+        t: ``(N,)`` timestamps.
+
+    Returns:
+        ``(N,)`` int64 indices (ties keep input order), or ``None`` for a sorted input.
+    """
+    if t.shape[0] < 2 or bool((t[1:] >= t[:-1]).all()):
+        return None
+    return torch.sort(t, stable=True).indices
+
+
+def sort_by_time(events: Events) -> Events:
+    """Events in stable time order (the input itself when already sorted)."""
+    order = time_order(events.t)
+    return events if order is None else events.select(order)
+
+
+def _divide(values: Tensor, divisor: int) -> Tensor:
+    """``values // divisor`` for non-negative int64 values, as a new tensor."""
+    if divisor == 1:
+        return values.clone()
+    if divisor & (divisor - 1) == 0:  # a power of two: a shift is exact and cheaper
+        return values >> (divisor.bit_length() - 1)
+    return torch.div(values, divisor, rounding_mode="floor")
+
+
+def region_of(events: Events, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """Region coordinates ``(x // fx, y // fy)`` of every event, as new int64 tensors."""
+    return _divide(events.x, factor[0]), _divide(events.y, factor[1])

@@ -1,0 +1,27 @@
+"""Downsample kernel: divide coordinates, keep every event."""
+
+from __future__ import annotations
+
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._common import region_of, sort_by_time
+
+
+def downsample(events: Events, *, factor: tuple[int, int]) -> Events:
+    """Map every event to its region ``(x // fx, y // fy)``; no event is dropped.
+
+    Args:
+        events: ``N`` events (any order).
+        factor: ``(fx, fy)``, positive integers.
+
+    Returns:
+        ``N`` events in stable time order, with coordinates in the output sensor.
+
+    Example:
+        >>> ev = Events.from_columns([0, 3, 5], [1, 1, 7], [30, 10, 20], [1, 0, 1])
+        >>> out = downsample(ev, factor=(2, 4))
+        >>> out.x.tolist(), out.y.tolist(), out.t.tolist()
+        ([1, 2, 0], [0, 1, 0], [10, 20, 30])
+    """
+    events = sort_by_time(events)
+    x, y = region_of(events, factor)
+    return Events(x, y, events.t.clone(), events.p.clone())

@@ -1,0 +1,45 @@
+"""Event funnelling kernel: downsample, then drop repeated events."""
+
+from __future__ import annotations
+
+import torch
+
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._common import region_of, sort_by_time
+
+
+def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
+    """Downsample, then drop every event equal in ``(x', y', t, p)`` to an earlier one.
+
+    Args:
+        events: ``N`` events (any order).
+        factor: ``(fx, fy)``, positive integers.
+
+    Returns:
+        The first event of each distinct ``(x', y', t, p)``, in stable time order.
+
+    Example:
+        >>> ev = Events.from_columns([0, 1, 2, 0], [0, 1, 0, 0], [5, 5, 5, 6], [1, 1, 1, 1])
+        >>> out = event_funnelling(ev, factor=(2, 2))
+        >>> out.x.tolist(), out.t.tolist()
+        ([0, 1, 0], [5, 5, 6])
+    """
+    events = sort_by_time(events)
+    n = events.num_events
+    x, y = region_of(events, factor)
+    if n < 2:
+        return Events(x, y, events.t.clone(), events.p.clone())
+    # Dense rank of t (t is sorted), then one int64 key per (t, x', y', p), built in place.
+    new_time = torch.ones(n, dtype=torch.int64, device=events.device)
+    torch.ne(events.t[1:], events.t[:-1], out=new_time[1:])
+    key = torch.cumsum(new_time, 0)
+    width = int(x.max()) + 1
+    height = int(y.max()) + 1
+    key.mul_(height).add_(y).mul_(width).add_(x).mul_(2).add_(events.p)
+    # Equal keys share t, so they lie in one run of equal t; a stable sort of the keys puts
+    # the first occurrence of each first.
+    sorted_key, order = torch.sort(key, stable=True)
+    first = torch.ones(n, dtype=torch.bool, device=events.device)
+    torch.ne(sorted_key[1:], sorted_key[:-1], out=first[1:])
+    keep = torch.sort(order[first]).values
+    return Events(x[keep], y[keep], events.t[keep], events.p[keep])

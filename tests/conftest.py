@@ -1,0 +1,45 @@
+"""Shared fixtures: devices (absent ones skip), seeded generators and the real recording."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+NMNIST_FILE = SHARED_DATA / "sample_nmnist.bin"
+
+DEVICES = [
+    "cpu",
+    pytest.param(
+        "cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+    ),
+]
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> torch.device:
+    """Every available device; CUDA skips when absent."""
+    return torch.device(request.param)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A fresh, seeded NumPy generator for each test."""
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture
+def nmnist():
+    """The real N-MNIST sample as a Tonic structured array (skips without tonic or file)."""
+    tonic = pytest.importorskip("tonic")
+    if not NMNIST_FILE.exists():
+        pytest.skip(f"{NMNIST_FILE} is absent")
+    return tonic.io.read_mnist_file(str(NMNIST_FILE), dtype=tonic.datasets.NMNIST.dtype)
+
+
+@pytest.fixture(autouse=True)
+def _doctest_seed(doctest_namespace):
+    torch.manual_seed(0)
