@@ -2,5 +2,12 @@
 
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
+from evdown_torch.transforms.event_count import EventCount, EventCountSession
 
-__all__ = ["Downscaler", "Downsample", "EventFunnelling"]
+__all__ = [
+    "Downscaler",
+    "Downsample",
+    "EventCount",
+    "EventCountSession",
+    "EventFunnelling",
+]

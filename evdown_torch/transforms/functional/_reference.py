@@ -1,0 +1,168 @@
+"""The DVS reference rule and region grouping, shared by the log-luminance kernels.
+
+A downscaled pixel watches a level ``M(t)`` with contrast threshold ``theta`` and keeps a
+reference index ``q``: it emits ON and increments ``q`` whenever ``M`` reaches
+``theta * (q + 1)``, OFF and decrements whenever ``M`` reaches ``theta * (q - 1)``.
+
+The kernels sample ``M`` at the end of monotone *steps* (one input event for EventCount, one
+monotone piece of the interpolated curve for the linear and cubic methods). Write
+``u = M / theta`` at the end of a step. After the step, ``q`` always lies in
+``[floor(u), ceil(u)]``:
+
+* on a level (``u`` an integer), ``q = u``;
+* strictly inside a cell ``(m, m + 1)``, ``q`` is ``m + 1`` if the walk entered the cell from
+  above and ``m`` if it entered from below, and it keeps that value while it stays in the cell.
+
+So ``q`` after every step follows from each step's ``(floor(u), u is an integer)`` and its
+predecessor's, with a forward fill over runs of steps in one cell: no sequential scan. This is
+the clamp recurrence ``q_k = clamp(q_{k-1}, floor(u_k), ceil(u_k))`` solved in closed form.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+
+class RegionGroups(NamedTuple):
+    """Events (already in time order) grouped by output region, time order kept inside groups.
+
+    Attributes:
+        order: ``(N,)`` int64, position in time order of each grouped event.
+        region: ``(N,)`` int64 region id ``ry * Wo + rx`` of each grouped event.
+        first: ``(N,)`` bool, the event is its region's first.
+    """
+
+    order: Tensor
+    region: Tensor
+    first: Tensor
+
+
+def group_by_region(rx: Tensor, ry: Tensor, out_width: int) -> RegionGroups:
+    """Stable grouping of time-ordered events by region.
+
+    Args:
+        rx: ``(N,)`` int64 region column of each event, in time order.
+        ry: ``(N,)`` int64 region row of each event, in time order.
+        out_width: ``Wo``, the output sensor width.
+
+    Returns:
+        The :class:`RegionGroups`.
+    """
+    region_id = ry * out_width + rx
+    region, order = torch.sort(region_id, stable=True)
+    first = torch.ones_like(region, dtype=torch.bool)
+    torch.ne(region[1:], region[:-1], out=first[1:])
+    return RegionGroups(order, region, first)
+
+
+def region_pixel_count(
+    region: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+) -> Tensor:
+    """``n_r``: number of sensor pixels in each region (fewer in the last column/row).
+
+    Args:
+        region: int64 region ids ``ry * Wo + rx``.
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+
+    Returns:
+        int64 tensor of the shape of ``region``.
+    """
+    w, h, _ = sensor_size
+    fx, fy = factor
+    out_w = -(-w // fx)
+    rx = region % out_w
+    ry = region // out_w
+    nx = torch.clamp(w - rx * fx, max=fx)
+    ny = torch.clamp(h - ry * fy, max=fy)
+    return nx * ny
+
+
+def reference_index(floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: Tensor) -> Tensor:
+    """Reference index ``q`` after each step, for steps grouped by region in time order.
+
+    Args:
+        floor_u: ``(N,)`` int64 ``floor(M / theta)`` at the end of each step.
+        on_level: ``(N,)`` bool, ``M / theta`` is an integer at the end of the step.
+        first: ``(N,)`` bool, the step is the first of its region.
+        q_start: ``(N,)`` int64, the region's ``q`` before its first step (read where
+            ``first``; 0 for a fresh pixel).
+
+    Returns:
+        ``(N,)`` int64 reference index after each step.
+
+    Example:
+        >>> import torch
+        >>> u = torch.tensor([0.5, 1.0, 0.5, -0.5, 0.5])  # M / theta after each step
+        >>> fl = torch.floor(u).long()
+        >>> q = reference_index(fl, u == fl, torch.tensor([True, False, False, False, False]),
+        ...                     torch.zeros(5, dtype=torch.long))
+        >>> q.tolist()
+        [0, 1, 1, 0, 0]
+    """
+    n = floor_u.shape[0]
+    if n == 0:
+        return floor_u.clone()
+    prev_floor = torch.empty_like(floor_u)
+    prev_floor[1:] = floor_u[:-1]
+    prev_floor[:1] = 0
+    prev_on = torch.ones_like(on_level)
+    prev_on[1:] = on_level[:-1]
+    # Value where a run starts: on a level, q = u; entering a cell, from above or below.
+    entered = torch.where(prev_floor > floor_u, floor_u + 1, floor_u)
+    start_value = torch.where(
+        first, torch.minimum(torch.maximum(q_start, floor_u), floor_u + 1), entered
+    )
+    start_value = torch.where(on_level, floor_u, start_value)
+    starts = first | on_level | prev_on | (prev_floor != floor_u)
+    index = torch.arange(n, device=floor_u.device)
+    last_start = torch.cummax(torch.where(starts, index, 0), 0).values
+    return start_value[last_start]
+
+
+class Crossings(NamedTuple):
+    """Level crossings of all steps, in step order and, inside a step, in time order.
+
+    Attributes:
+        step: ``(K,)`` int64 index of the step that crossed the level.
+        level: ``(K,)`` int64 level index ``j`` crossed (the level is ``theta * j``).
+        on: ``(K,)`` bool, ON (upward) crossing.
+    """
+
+    step: Tensor
+    level: Tensor
+    on: Tensor
+
+
+def crossings(q_before: Tensor, q_after: Tensor) -> Crossings:
+    """Expand each step's change of reference index into one crossing per level.
+
+    A step taking ``q`` from ``a`` to ``b > a`` crosses levels ``a + 1, ..., b`` upward (ON);
+    from ``a`` to ``b < a`` it crosses ``a - 1, ..., b`` downward (OFF).
+
+    Args:
+        q_before: ``(N,)`` int64 index before each step.
+        q_after: ``(N,)`` int64 index after each step.
+
+    Returns:
+        The :class:`Crossings`, ``K = sum |q_after - q_before|``.
+
+    Example:
+        >>> import torch
+        >>> c = crossings(torch.tensor([0, 2, 2]), torch.tensor([2, 2, 1]))
+        >>> c.step.tolist(), c.level.tolist(), c.on.tolist()
+        ([0, 0, 2], [1, 2, 1], [True, True, False])
+    """
+    delta = q_after - q_before
+    count = delta.abs()
+    steps = torch.arange(delta.shape[0], device=delta.device)
+    step = torch.repeat_interleave(steps, count)
+    offsets = torch.cumsum(count, 0) - count
+    within = torch.arange(step.shape[0], device=delta.device) - offsets[step]
+    on = delta[step] > 0
+    base = q_before[step]
+    level = torch.where(on, base + 1 + within, base - 1 - within)
+    return Crossings(step, level, on)
