@@ -148,9 +148,10 @@ def _polarity_encoding(p: Tensor) -> Literal["bool", "binary", "signed"]:
 
 
 def _check_integral(name: str, column: Tensor) -> None:
-    if column.is_floating_point():
-        if not bool(torch.isfinite(column).all()) or not bool((column == column.round()).all()):
-            raise ValueError(f"event coordinate {name} must hold whole numbers")
+    if column.is_floating_point() and not (
+        bool(torch.isfinite(column).all()) and bool((column == column.round()).all())
+    ):
+        raise ValueError(f"event coordinate {name} must hold whole numbers")
 
 
 def _validate(events: Events, sensor_size: tuple[int, int, int] | None) -> None:
@@ -195,11 +196,9 @@ def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat]:
         raise TypeError(f"event field t must have an integer or float dtype, got {kinds['t']}")
     if not (kinds["p"] == np.bool_ or np.issubdtype(kinds["p"], np.number)):
         raise TypeError(f"event field p must be bool, integer or float, got {kinds['p']}")
-    t_np = np.ascontiguousarray(data["t"])
-    t = torch.from_numpy(
-        t_np.astype(np.float64) if np.issubdtype(t_np.dtype, np.floating) else t_np.astype(np.int64)
-    )
-    p_raw = torch.from_numpy(np.ascontiguousarray(data["p"]).copy())
+    t_dtype = np.float64 if np.issubdtype(kinds["t"], np.floating) else np.int64
+    t = torch.from_numpy(np.array(data["t"], dtype=t_dtype))  # always a copy
+    p_raw = torch.from_numpy(np.array(data["p"]))
     encoding = _polarity_encoding(p_raw)
     p = p_raw if encoding == "bool" else p_raw > 0
     events = Events(

@@ -76,7 +76,8 @@ def test_events_input_returns_events():
 @pytest.mark.parametrize(
     ("data", "error", "match"),
     [
-        (np.zeros(3, dtype=[("x", "<i2"), ("y", "<i2"), ("t", "<i8")]), ValueError, r"missing.*'p'"),
+        (np.zeros(3, dtype=[("x", "<i2"), ("y", "<i2"), ("t", "<i8")]), ValueError,
+         r"missing.*'p'"),
         (np.zeros(3, dtype=[("x", "<f4"), ("y", "<i2"), ("t", "<i8"), ("p", "?")]), TypeError,
          "field x must have an integer dtype"),
         (np.zeros((3, 4)), TypeError, "structured"),

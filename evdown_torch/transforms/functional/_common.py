@@ -37,6 +37,23 @@ def _divide(values: Tensor, divisor: int) -> Tensor:
     return torch.div(values, divisor, rounding_mode="floor")
 
 
+def floor_divide_exact(values: Tensor, divisor: int | Tensor) -> tuple[Tensor, Tensor]:
+    """``floor(values / divisor)`` and whether the division is exact, for int64 values.
+
+    Args:
+        values: int64 tensor (any sign).
+        divisor: a positive int, or a positive int64 tensor broadcastable to ``values``.
+
+    Returns:
+        ``(quotient, exact)``: int64 floor quotient and a bool tensor.
+    """
+    if isinstance(divisor, int) and divisor & (divisor - 1) == 0:
+        shift = divisor.bit_length() - 1  # arithmetic shift floors negative values too
+        return values >> shift, (values & (divisor - 1)) == 0
+    quotient = torch.div(values, divisor, rounding_mode="floor")
+    return quotient, quotient * divisor == values
+
+
 def region_of(events: Events, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:
     """Region coordinates ``(x // fx, y // fy)`` of every event, as new int64 tensors."""
     return _divide(events.x, factor[0]), _divide(events.y, factor[1])

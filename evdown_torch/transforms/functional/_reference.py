@@ -51,8 +51,12 @@ def group_by_region(rx: Tensor, ry: Tensor, out_width: int) -> RegionGroups:
     Returns:
         The :class:`RegionGroups`.
     """
-    region_id = ry * out_width + rx
+    region_id = ry * out_width
+    region_id += rx
+    if region_id.shape[0] and int(region_id.max()) < 2**31:
+        region_id = region_id.to(torch.int32)  # sorts about three times faster than int64
     region, order = torch.sort(region_id, stable=True)
+    region = region.to(torch.int64)
     first = torch.ones_like(region, dtype=torch.bool)
     torch.ne(region[1:], region[:-1], out=first[1:])
     return RegionGroups(order, region, first)
@@ -89,7 +93,7 @@ def reference_index(floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: T
         on_level: ``(N,)`` bool, ``M / theta`` is an integer at the end of the step.
         first: ``(N,)`` bool, the step is the first of its region.
         q_start: ``(N,)`` int64, the region's ``q`` before its first step (read where
-            ``first``; 0 for a fresh pixel).
+            ``first``), or a 0-d int64 tensor for all regions (0 for fresh pixels).
 
     Returns:
         ``(N,)`` int64 reference index after each step.
@@ -98,29 +102,29 @@ def reference_index(floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: T
         >>> import torch
         >>> u = torch.tensor([0.5, 1.0, 0.5, -0.5, 0.5])  # M / theta after each step
         >>> fl = torch.floor(u).long()
-        >>> q = reference_index(fl, u == fl, torch.tensor([True, False, False, False, False]),
-        ...                     torch.zeros(5, dtype=torch.long))
-        >>> q.tolist()
+        >>> first = torch.tensor([True, False, False, False, False])
+        >>> reference_index(fl, u == fl, first, torch.tensor(0)).tolist()
         [0, 1, 1, 0, 0]
     """
-    n = floor_u.shape[0]
-    if n == 0:
+    if floor_u.shape[0] == 0:
         return floor_u.clone()
-    prev_floor = torch.empty_like(floor_u)
-    prev_floor[1:] = floor_u[:-1]
-    prev_floor[:1] = 0
-    prev_on = torch.ones_like(on_level)
-    prev_on[1:] = on_level[:-1]
-    # Value where a run starts: on a level, q = u; entering a cell, from above or below.
-    entered = torch.where(prev_floor > floor_u, floor_u + 1, floor_u)
-    start_value = torch.where(
-        first, torch.minimum(torch.maximum(q_start, floor_u), floor_u + 1), entered
-    )
-    start_value = torch.where(on_level, floor_u, start_value)
-    starts = first | on_level | prev_on | (prev_floor != floor_u)
-    index = torch.arange(n, device=floor_u.device)
-    last_start = torch.cummax(torch.where(starts, index, 0), 0).values
-    return start_value[last_start]
+    prev_floor = floor_u.roll(1)
+    # A run of steps sharing one value starts at a region's first step, on a level, right
+    # after a level, or on entering another cell; element 0 is always a region's first.
+    starts = prev_floor != floor_u
+    starts |= on_level
+    starts |= on_level.roll(1)
+    starts |= first
+    at = starts.nonzero().squeeze(1)
+    m = floor_u[at]
+    value = m + (prev_floor[at] > m)  # entered from above: m + 1; from below: m
+    first_at = first[at]
+    q0 = q_start[at] if q_start.ndim else q_start.expand_as(m)
+    value = torch.where(first_at, torch.minimum(torch.maximum(q0, m), m + 1), value)
+    value = torch.where(on_level[at], m, value)
+    run = torch.cumsum(starts, 0)
+    run -= 1
+    return value[run]
 
 
 class Crossings(NamedTuple):
@@ -157,12 +161,13 @@ def crossings(q_before: Tensor, q_after: Tensor) -> Crossings:
         ([0, 0, 2], [1, 2, 1], [True, True, False])
     """
     delta = q_after - q_before
+    changed = delta.nonzero().squeeze(1)
+    delta = delta[changed]
     count = delta.abs()
-    steps = torch.arange(delta.shape[0], device=delta.device)
-    step = torch.repeat_interleave(steps, count)
+    pick = torch.repeat_interleave(torch.arange(changed.shape[0], device=delta.device), count)
     offsets = torch.cumsum(count, 0) - count
-    within = torch.arange(step.shape[0], device=delta.device) - offsets[step]
-    on = delta[step] > 0
-    base = q_before[step]
+    within = torch.arange(pick.shape[0], device=delta.device) - offsets[pick]
+    on = delta[pick] > 0
+    base = q_before[changed][pick]
     level = torch.where(on, base + 1 + within, base - 1 - within)
-    return Crossings(step, level, on)
+    return Crossings(changed[pick], level, on)

@@ -10,7 +10,11 @@ from torch import Tensor
 
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import region_of, sort_by_time
+from evdown_torch.transforms.functional._common import (
+    floor_divide_exact,
+    region_of,
+    sort_by_time,
+)
 from evdown_torch.transforms.functional._reference import (
     crossings,
     group_by_region,
@@ -103,36 +107,39 @@ def event_count(
         return Events.empty(events.t.dtype, device), state
     fraction = threshold_fraction(threshold)
     a, b = fraction.numerator, fraction.denominator
-    out_w = output_size(sensor_size, factor)[0]
+    out_w, out_h, _ = output_size(sensor_size, factor)
     rx, ry = region_of(events, factor)
     groups = group_by_region(rx, ry, out_w)
     region = groups.region
+    del rx, ry
 
-    # Running level sum of each region after each of its events (exact int64).
-    step = events.p[groups.order].to(torch.int64) * 2 - 1
-    running = torch.cumsum(step, 0)
-    start_index = torch.cummax(
-        torch.where(groups.first, torch.arange(n, device=device), 0), 0
-    ).values
-    base = (running - step)[start_index]
-    level_sum = running - base + state.level_sum[region]
+    # Level sum S of each region after each of its events (exact int64): a running sum over
+    # the grouped events, minus its value before the region's first event, plus the state.
+    step = events.p[groups.order].to(torch.int64)
+    step.mul_(2).sub_(1)
+    level_sum = torch.cumsum(step, 0)
+    firsts = groups.first.nonzero().squeeze(1)
+    offset = state.level_sum.clone()
+    offset[region[firsts]] -= level_sum[firsts] - step[firsts]
+    level_sum += offset[region]
 
-    # u = M / theta = b * S / (a * n_r): floor and integrality, in integers.
-    numerator = level_sum * b
-    denominator = region_pixel_count(region, sensor_size, factor) * a
-    floor_u = torch.div(numerator, denominator, rounding_mode="floor")
-    on_level = floor_u * denominator == numerator
-    q = reference_index(floor_u, on_level, groups.first, state.index[region])
+    # u = M / theta = b * S / (a * n_r), compared in integers.
+    pixels = region_pixel_count(torch.arange(out_w * out_h, device=device), sensor_size, factor)
+    uniform = bool((pixels == pixels[0]).all())
+    denominator = int(pixels[0]) * a if uniform else (pixels * a)[region]
+    numerator = level_sum * b if b != 1 else level_sum
+    floor_u, on_level = floor_divide_exact(numerator, denominator)
+    fresh = not bool(state.index.any())
+    q_start = torch.zeros((), dtype=torch.int64, device=device) if fresh else state.index[region]
+    q = reference_index(floor_u, on_level, groups.first, q_start)
 
-    q_before = torch.empty_like(q)
-    q_before[1:] = q[:-1]
-    q_before = torch.where(groups.first, state.index[region], q_before)
+    q_before = q.roll(1)
+    q_before[firsts] = state.index[region[firsts]]
     cross = crossings(q_before, q)
 
     # Back to time order: crossings of one step keep their level order.
-    source = groups.order[cross.step]
-    source, by_time = torch.sort(source, stable=True)
-    out_region = region[cross.step][by_time]
+    source, by_time = torch.sort(groups.order[cross.step], stable=True)
+    out_region = region[cross.step[by_time]]
     out = Events(
         out_region % out_w,
         torch.div(out_region, out_w, rounding_mode="floor"),
@@ -141,10 +148,9 @@ def event_count(
     )
 
     # New state: each touched region's last sum and index.
-    last = torch.ones_like(groups.first)
-    last[:-1] = groups.first[1:]
+    lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
     new_sum = state.level_sum.clone()
     new_index = state.index.clone()
-    new_sum[region[last]] = level_sum[last]
-    new_index[region[last]] = q[last]
+    new_sum[region[lasts]] = level_sum[lasts]
+    new_index[region[lasts]] = q[lasts]
     return out, EventCountState(new_sum, new_index, events.t[-1].clone())

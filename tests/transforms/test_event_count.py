@@ -1,0 +1,186 @@
+"""EventCount against a slow exact reference, hand-computed cases, invariants and streaming."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import torch
+
+from evdown_torch import EventCount, Events
+from tests.helpers import DVS_DTYPE, as_tuples, random_stream
+
+SENSOR = (10, 7, 2)
+
+
+def event_count_reference(arr: np.ndarray, sensor, factor, threshold) -> list[tuple]:
+    """Event by event, in Fractions: the reference rule on each region's mean level."""
+    theta = Fraction(threshold).limit_denominator(10**6)
+    w, h, _ = sensor
+    fx, fy = (factor, factor) if isinstance(factor, int) else factor
+    level_sum, q, out = defaultdict(int), defaultdict(int), []
+    for i in np.argsort(arr["t"], kind="stable"):
+        rx, ry = int(arr["x"][i]) // fx, int(arr["y"][i]) // fy
+        n_r = min(fx, w - rx * fx) * min(fy, h - ry * fy)
+        level_sum[rx, ry] += 1 if arr["p"][i] > 0 else -1
+        mean = Fraction(level_sum[rx, ry], n_r)
+        while mean >= theta * (q[rx, ry] + 1):
+            q[rx, ry] += 1
+            out.append((rx, ry, arr["t"][i].item(), True))
+        while mean <= theta * (q[rx, ry] - 1):
+            q[rx, ry] -= 1
+            out.append((rx, ry, arr["t"][i].item(), False))
+    return out
+
+
+def rows(out: np.ndarray) -> list[tuple]:
+    return list(zip(out["x"].tolist(), out["y"].tolist(), out["t"].tolist(),
+                    (out["p"] > 0).tolist()))
+
+
+def test_hand_computed_region():
+    # One 2x2 region, theta 0.5: a region threshold of 2 events. ON, ON -> ON at t=2;
+    # ON, OFF, OFF -> the mean falls back to 0.25 (no event), then 0 -> OFF at t=5.
+    ev = np.array(
+        [(0, 0, True, 1), (1, 0, True, 2), (0, 1, True, 3), (1, 1, False, 4), (1, 1, False, 5),
+         (0, 0, False, 5)],
+        dtype=DVS_DTYPE,
+    )
+    out = EventCount((2, 2, 2), factor=2, threshold=0.5)(ev)
+    assert out.tolist() == [(0, 0, True, 2), (0, 0, False, 5)]
+
+
+def test_several_levels_at_one_instant_and_no_event_after_reversal():
+    # theta 0.25 on a 1x2 region: each event moves the mean by 0.5, crossing two levels.
+    ev = torch.tensor([[0, 0, 1, 1], [0, 1, 2, 1], [0, 1, 3, 0]])
+    out = EventCount((1, 2, 2), factor=(1, 2), threshold=0.25)(ev)
+    assert out.tolist() == [[0, 0, 1, 1], [0, 0, 1, 1], [0, 0, 2, 1], [0, 0, 2, 1],
+                            [0, 0, 3, 0], [0, 0, 3, 0]]
+
+
+@pytest.mark.parametrize("factor", [1, 2, 3, 4, (2, 3), (10, 7), (3, 1)])
+@pytest.mark.parametrize("threshold", [0.01, 0.3, 1.0, 2.5, 100.0])
+def test_matches_exact_reference(factor, threshold, rng):
+    arr = random_stream(rng, 1500, SENSOR, t_max=400, sort=False)
+    out = EventCount(SENSOR, factor=factor, threshold=threshold)(arr)
+    assert rows(out) == event_count_reference(arr, SENSOR, factor, threshold)
+
+
+def test_factor_one_threshold_one_returns_input(rng):
+    arr = random_stream(rng, 800, SENSOR, t_max=100_000)
+    assert as_tuples(EventCount(SENSOR, factor=1, threshold=1.0)(arr)) == as_tuples(arr)
+
+
+@pytest.mark.parametrize("factor", [2, (3, 2)])
+def test_invariants_flip_shift_sorted_inside(factor, rng):
+    arr = random_stream(rng, 1000, SENSOR, t_max=1000, sort=False)
+    before = arr.copy()
+    transform = EventCount(SENSOR, factor=factor, threshold=0.25)
+    out = transform(arr)
+    np.testing.assert_array_equal(arr, before)
+    w, h, _ = transform.output_sensor_size
+    assert np.all(np.diff(out["t"]) >= 0)
+    assert out["x"].max() < w and out["y"].max() < h and out["x"].min() >= 0
+    flipped = arr.copy()
+    flipped["p"] = ~flipped["p"]
+    out_flipped = transform(flipped)
+    np.testing.assert_array_equal(out_flipped["p"], ~out["p"])
+    np.testing.assert_array_equal(out_flipped[["x", "y", "t"]], out[["x", "y", "t"]])
+    shifted = arr.copy()
+    shift = 1_700_000_000_000_000 + 10**12
+    shifted["t"] += shift
+    out_shifted = transform(shifted)
+    np.testing.assert_array_equal(out_shifted["t"] - shift, out["t"])
+    np.testing.assert_array_equal(out_shifted[["x", "y", "p"]], out[["x", "y", "p"]])
+
+
+def test_causal_prefix(rng):
+    arr = random_stream(rng, 600, SENSOR, t_max=600)
+    transform = EventCount(SENSOR, factor=2, threshold=0.2)
+    full = transform(arr)
+    cut = 300
+    prefix = transform(arr[arr["t"] <= cut])
+    np.testing.assert_array_equal(prefix, full[full["t"] <= cut])
+
+
+def test_burst_at_one_pixel_and_timestamp():
+    n = 5000
+    burst = np.zeros(n, dtype=DVS_DTYPE)
+    burst["x"], burst["y"], burst["t"], burst["p"] = 3, 4, 1_700_000_000_000_000, True
+    out = EventCount(SENSOR, factor=2, threshold=0.01)(burst)
+    # Region (1, 2) has 4 pixels: a sum of 5000 is a mean of 1250, i.e. 125000 levels of 0.01.
+    assert len(out) == 125_000
+    assert set(out["x"].tolist()) == {1} and set(out["y"].tolist()) == {2}
+    assert out["p"].all() and (out["t"] == 1_700_000_000_000_000).all()
+
+
+def test_float_timestamps_and_single_event():
+    ev = torch.tensor([[2.0, 3.0, 0.125, 1.0], [3.0, 3.0, 0.5, 1.0]], dtype=torch.float64)
+    out = EventCount(SENSOR, factor=2, threshold=0.5)(ev)
+    assert out.dtype == torch.float64 and out.tolist() == [[1.0, 1.0, 0.5, 1.0]]
+    single = np.array([(9, 6, False, 7)], dtype=DVS_DTYPE)
+    out = EventCount(SENSOR, factor=(10, 7), threshold=1 / 70)(single)
+    assert out.tolist() == [(0, 0, False, 7)]
+
+
+def test_empty_stream_keeps_kind():
+    transform = EventCount(SENSOR, factor=2)
+    assert transform(np.empty(0, dtype=DVS_DTYPE)).dtype == DVS_DTYPE
+    out = transform(torch.empty(0, 4, dtype=torch.float32))
+    assert out.shape == (0, 4) and out.dtype == torch.float32
+    assert transform(Events.empty()).num_events == 0
+
+
+def test_device_and_tensor_kind(device):
+    data = torch.tensor([[0, 0, 10, 1], [1, 1, 20, 1], [0, 1, 30, -1], [1, 0, 40, -1]],
+                        device=device)
+    out = EventCount((2, 2, 2), factor=2, threshold=0.5)(data)
+    assert out.device == data.device
+    assert out.tolist() == [[0, 0, 20, 1], [0, 0, 40, -1]]
+
+
+@pytest.mark.parametrize("threshold", [0.07, 1.0])
+def test_streaming_session_equals_whole_stream(threshold, rng):
+    arr = random_stream(rng, 3000, SENSOR, t_max=500)  # many equal timestamps
+    transform = EventCount(SENSOR, factor=3, threshold=threshold)
+    whole = transform(arr)
+    cuts = np.sort(rng.choice(np.arange(1, len(arr)), size=12, replace=False))
+    session = transform.session()
+    parts = [session(chunk) for chunk in np.split(arr, cuts)]
+    parts.append(session(np.empty(0, dtype=DVS_DTYPE)))
+    np.testing.assert_array_equal(np.concatenate(parts), whole)
+    session.reset()
+    np.testing.assert_array_equal(session(arr), whole)
+
+
+def test_streaming_rejects_chunks_out_of_order():
+    session = EventCount(SENSOR, factor=2).session()
+    session(torch.tensor([[0, 0, 100, 1]]))
+    with pytest.raises(ValueError, match="follow each other in time"):
+        session(torch.tensor([[0, 0, 99, 1]]))
+
+
+@pytest.mark.parametrize(
+    ("threshold", "error"),
+    [(0, ValueError), (-1.0, ValueError), (float("nan"), ValueError), (float("inf"), ValueError),
+     ("1", TypeError), (1e-9, ValueError)],
+)
+def test_bad_threshold(threshold, error):
+    with pytest.raises(error, match="threshold"):
+        EventCount(SENSOR, factor=2, threshold=threshold)
+
+
+def test_tonic_compose_on_nmnist(nmnist):
+    tonic = pytest.importorskip("tonic")
+    sensor = tonic.datasets.NMNIST.sensor_size
+    down = EventCount(sensor, factor=4, threshold=0.25)
+    window = float(nmnist["t"].max() - nmnist["t"].min() + 1)
+    frames = tonic.transforms.Compose(
+        [down, tonic.transforms.ToFrame(sensor_size=down.output_sensor_size, time_window=window)]
+    )(nmnist)
+    out = down(nmnist)
+    assert frames.shape == (1, 2, 9, 9) and int(frames.sum()) == len(out)
+    assert 0 < len(out) < len(nmnist) and out.dtype == nmnist.dtype
+    assert rows(out) == event_count_reference(nmnist, sensor, 4, 0.25)
