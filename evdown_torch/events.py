@@ -23,7 +23,7 @@ converts a result back to the caller's kind.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, NamedTuple, Union
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -95,7 +95,7 @@ class Events(NamedTuple):
         )
 
 
-EventsLike = Union[np.ndarray, Tensor, Events]
+EventsLike = np.ndarray | Tensor | Events
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,60 @@
+"""The downscaling methods by name, for the command line, the evaluation and the benchmarks."""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from typing import Any
+
+from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms.downsample import Downsample, EventFunnelling
+from evdown_torch.transforms.event_count import EventCount
+
+#: Method name -> transform class, in the paper's order.
+METHODS: dict[str, type[Downscaler]] = {
+    "downsample": Downsample,
+    "funnelling": EventFunnelling,
+    "event_count": EventCount,
+}
+
+
+def method_settings(name: str) -> tuple[str, ...]:
+    """Names of the settings a method takes besides ``sensor_size`` and ``factor``."""
+    cls = _method_class(name)
+    return tuple(f.name for f in fields(cls) if f.name not in ("sensor_size", "factor"))
+
+
+def _method_class(name: str) -> type[Downscaler]:
+    if not isinstance(name, str) or name not in METHODS:
+        raise ValueError(f"unknown method {name!r}; expected one of {sorted(METHODS)}")
+    return METHODS[name]
+
+
+def make_method(
+    name: str, sensor_size: tuple[int, int, int], factor: int | tuple[int, int], **settings: Any
+) -> Downscaler:
+    """Build a downscaling transform by name.
+
+    Args:
+        name: one of :data:`METHODS`.
+        sensor_size: input ``(W, H, P)``.
+        factor: a positive integer or a pair ``(fx, fy)``.
+        **settings: the method's own settings (e.g. ``threshold``); see :func:`method_settings`.
+
+    Returns:
+        The transform.
+
+    Raises:
+        ValueError: for an unknown method or a setting the method does not take.
+
+    Example:
+        >>> make_method("event_count", (34, 34, 2), 2, threshold=0.5).output_sensor_size
+        (17, 17, 2)
+    """
+    cls = _method_class(name)
+    allowed = method_settings(name)
+    unknown = sorted(set(settings) - set(allowed))
+    if unknown:
+        raise ValueError(
+            f"method {name!r} does not take setting(s) {unknown}; it takes {list(allowed)}"
+        )
+    return cls(sensor_size, factor, **settings)
