@@ -4,6 +4,9 @@ Subcommands:
 
 * ``evdown downscale IN OUT --method NAME --factor F [--threshold T] [--set KEY=VALUE ...]``:
   downscale a ``.npy`` structured event array (Tonic's format) into another.
+* ``evdown bench --out DIR [--short] [--input FILE.npy ...]``: benchmark every method against
+  its peers (Tonic), with scaling curves and peak memory; writes a Markdown report, JSON and
+  PNG plots (see :mod:`evdown_torch.bench`).
 """
 
 from __future__ import annotations
@@ -92,6 +95,12 @@ def _downscale(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench(args: argparse.Namespace) -> int:
+    from evdown_torch import bench
+
+    return bench.run_from_args(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``evdown`` argument parser."""
     parser = argparse.ArgumentParser(
@@ -112,6 +121,26 @@ def build_parser() -> argparse.ArgumentParser:
     down.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
                       help="input sensor size (default: from the largest coordinates)")
     down.set_defaults(run=_downscale)
+    bench = commands.add_parser(
+        "bench", help="benchmark every method against its peers; write a report and plots"
+    )
+    bench.add_argument("--out", required=True, metavar="DIR",
+                       help="folder for report.md, results.json and the PNG plots")
+    bench.add_argument("--short", action="store_true",
+                       help="small inputs and two points per sweep (under 2 minutes)")
+    bench.add_argument("--input", action="append", metavar="FILE.npy",
+                       help="a structured event array to add to the method table (repeatable)")
+    bench.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
+                       help="sensor of the --input files (default: from the largest coordinates)")
+    bench.add_argument("--events", type=int, metavar="N",
+                       help="cap every stream at N events (quick checks)")
+    bench.add_argument("--repeats", type=int, metavar="R",
+                       help="timed calls per measurement of the method table (default 5)")
+    bench.add_argument("--methods", nargs="+", metavar="NAME",
+                       help="only these methods and peers (default: all)")
+    bench.add_argument("--no-scaling", action="store_true", help="skip the scaling sweeps")
+    bench.add_argument("--no-memory", action="store_true", help="skip peak-memory measurements")
+    bench.set_defaults(run=_bench)
     return parser
 
 

@@ -1,0 +1,254 @@
+"""The benchmark harness: its inputs, timing, memory measurement and the report's structure.
+
+Speed is not tested here (the numbers only have to be there and parse); one short run with
+tiny streams exercises ``evdown bench`` end to end.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+
+from evdown_torch import bench
+from evdown_torch.cli import main
+from evdown_torch.transforms.registry import METHODS, make_method
+from tests.conftest import NMNIST_FILE
+from tests.helpers import random_stream
+
+TONIC = bench._tonic_available()
+PEER_LABELS = list(bench.PEERS.values()) if TONIC else []
+
+
+def _tables(markdown: str) -> dict[str, list[list[dict[str, str]]]]:
+    """Markdown tables by the heading above them: a list of tables of row dicts."""
+    tables: dict[str, list[list[dict[str, str]]]] = {}
+    heading, lines = "", markdown.splitlines()
+    i = 0
+    while i < len(lines):
+        line = lines[i]
+        if line.startswith("#"):
+            heading = line.lstrip("#").strip()
+        if line.startswith("|") and i + 1 < len(lines) and lines[i + 1].startswith("|---"):
+            head = [c.strip() for c in line.strip("|").split("|")]
+            rows = []
+            i += 2
+            while i < len(lines) and lines[i].startswith("|"):
+                cells = [c.strip() for c in lines[i].strip("|").split("|")]
+                assert len(cells) == len(head), lines[i]
+                rows.append(dict(zip(head, cells)))
+                i += 1
+            tables.setdefault(heading, []).append(rows)
+            continue
+        i += 1
+    return tables
+
+
+def _number(cell: str) -> float | None:
+    """A numeric cell: a float, or None for the words that mark a missing figure."""
+    if cell in ("n/a", "skipped"):
+        return None
+    return float(cell)
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    """One short benchmark run with tiny streams and one user file, through the CLI."""
+    root = tmp_path_factory.mktemp("bench")
+    user = root / "mine.npy"
+    np.save(user, random_stream(np.random.default_rng(7), 600, (20, 10, 2), t_max=50_000))
+    out = root / "out"
+    code = main(["bench", "--out", str(out), "--short", "--events", "3000", "--input",
+                 str(user), "--sensor-size", "20", "10", "2"])
+    assert code == 0
+    return out
+
+
+def test_report_files_are_written(report):
+    assert (report / "report.md").is_file()
+    data = json.loads((report / "results.json").read_text())
+    assert {"plan", "machine", "inputs", "measurements", "goals"} <= set(data)
+    pytest.importorskip("matplotlib")
+    for sweep in ("events", "sensor", "duration"):
+        png = report / f"scaling_{sweep}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert f"]({png.name})" in (report / "report.md").read_text()
+
+
+def test_method_tables_have_every_method_and_peer_at_every_factor(report):
+    tables = _tables((report / "report.md").read_text())
+    labels = [cls.__name__ for cls in METHODS.values()] + PEER_LABELS
+    expected_inputs = {"gesture": (2, 4), "mine": (2, 4), "large": (4,)}
+    if NMNIST_FILE.exists():
+        expected_inputs["nmnist"] = (2, 4)
+    for name, factors in expected_inputs.items():
+        [heading] = [h for h in tables if h.startswith(f"{name}:")]
+        [rows] = tables[heading]
+        assert sorted((r["method"], int(r["factor"])) for r in rows) == sorted(
+            (label, f) for label in labels for f in factors)
+        for row in rows:
+            assert int(row["events in"]) > 0
+            timed = _number(row["M events/s"])
+            if timed is None:  # only a peer may be skipped, and it says why
+                assert row["method"] in PEER_LABELS and row["note"].startswith("skipped")
+                continue
+            assert int(row["runs"]) >= 5
+            assert _number(row["median ms"]) > 0
+            assert int(row["events out"]) >= 0 and _number(row["out / in"]) >= 0
+            added, total = _number(row["peak added MB"]), _number(row["peak process MB"])
+            assert 0 <= added < total, row
+            for label in PEER_LABELS:
+                ratio = _number(row[f"x {label}"])
+                assert ratio is None or ratio > 0
+            if row["method"] in PEER_LABELS:  # a peer against itself
+                assert _number(row[f"x {row['method']}"]) == pytest.approx(1.0)
+
+
+def test_sweep_tables_cover_every_candidate_and_point(report):
+    tables = _tables((report / "report.md").read_text())
+    labels = [cls.__name__ for cls in METHODS.values()] + PEER_LABELS
+    for title in ("Cost against the number of events", "Cost against the sensor size",
+                  "Cost against the recording duration"):
+        rate, memory = tables[title]
+        for table in (rate, memory):
+            assert [r["method"] for r in table] == labels
+            points = [k for k in table[0] if k != "method"]
+            assert len(points) == 2
+            for row in table:
+                values = [_number(row[p]) for p in points]
+                if row["method"] not in PEER_LABELS:
+                    assert all(v is not None and v >= 0 for v in values), row
+
+
+def test_goals_table_names_every_measured_method_with_a_goal(report):
+    tables = _tables((report / "report.md").read_text())
+    [rows] = tables["Goals"]
+    goals = {(g.method, g.kind) for g in bench.GOALS if g.method in METHODS}
+    if not TONIC:
+        goals.discard(("downsample", "peer"))
+    assert len(rows) == len(goals)
+    for row in rows:
+        assert row["method"] in METHODS
+        assert re.match(r"(met|missed by \d+%)", row["status"]), row
+        assert "indicative" in row["status"]  # 3,000 events are not the goal's stream
+        assert re.match(r"[\d.]+ (M events/s|GB)|[\d.]+x", row["measured"])
+
+
+def test_inputs_table_lists_the_streams(report):
+    tables = _tables((report / "report.md").read_text())
+    [rows] = tables["Inputs"]
+    names = {r["input"]: r for r in rows}
+    assert int(names["gesture"]["events"]) == 3000 and names["gesture"]["sensor"] == "128x128"
+    assert names["mine"]["sensor"] == "20x10" and int(names["mine"]["events"]) == 600
+    assert names["large"]["sensor"] == "1280x720"
+    assert {n.split("-")[0] for n in names} >= {"events", "sensor", "duration"}
+
+
+def test_bench_settings_are_settings_of_their_methods():
+    for name, settings in bench.BENCH_SETTINGS.items():
+        if name in METHODS:
+            make_method(name, (34, 34, 2), 2, **settings)
+
+
+def test_dvs_like_stream_is_seeded_sorted_and_inside_the_sensor():
+    a = bench.dvs_like_stream(5000, (40, 30, 2), duration_us=20_000, seed=3)
+    b = bench.dvs_like_stream(5000, (40, 30, 2), duration_us=20_000, seed=3)
+    c = bench.dvs_like_stream(5000, (40, 30, 2), duration_us=20_000, seed=4)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+    assert a.dtype == bench.DVS_DTYPE and len(a) == 5000
+    assert (np.diff(a["t"]) >= 0).all() and a["t"].min() >= 0 and a["t"].max() < 20_000
+    assert a["x"].min() >= 0 and a["x"].max() < 40 and a["y"].min() >= 0 and a["y"].max() < 30
+    assert 0.3 < a["p"].mean() < 0.7
+    # moving edges, not noise: events pile up on a small share of the pixels
+    counts = np.bincount(a["y"].astype(int) * 40 + a["x"], minlength=1200)
+    assert np.sort(counts)[::-1][:300].sum() > 0.7 * 5000
+    assert len(bench.dvs_like_stream(0, (4, 4, 2))) == 0
+    with pytest.raises(ValueError, match="noise"):
+        bench.dvs_like_stream(10, (4, 4, 2), noise=2.0)
+
+
+def test_with_pauses_keeps_order_and_bursts():
+    ev = bench.dvs_like_stream(2000, (32, 32, 2), duration_us=1000, seed=0)
+    out = bench.with_pauses(ev, 100_000, bursts=10)
+    np.testing.assert_array_equal(out[["x", "y", "p"]], ev[["x", "y", "p"]])
+    assert (np.diff(out["t"]) >= 0).all() and out["t"].max() < 100_000
+    gaps = np.diff(out["t"])
+    assert (gaps > 9000).sum() == 9  # nine pauses between ten bursts
+    np.testing.assert_array_equal(gaps[gaps <= 9000], np.diff(ev["t"])[gaps <= 9000])
+    with pytest.raises(ValueError, match="span"):
+        bench.with_pauses(ev, 10)
+
+
+def test_read_nmnist_matches_tonic_and_handles_overflow(tmp_path):
+    # two events, an overflow marker between them: the second gains 2**13 us
+    raw = bytes([3, 4, 0x80 | 0x01, 0x02, 0x03, 0, 240, 0, 0, 0, 5, 6, 0x00, 0x00, 0x10])
+    path = tmp_path / "two.bin"
+    path.write_bytes(raw)
+    ev = bench.read_nmnist(path)
+    assert ev.tolist() == [(3, 4, True, 0x010203), (5, 6, False, 0x10 + 2**13)]
+    if not NMNIST_FILE.exists():
+        pytest.skip("the N-MNIST sample is absent")
+    ours = bench.read_nmnist(NMNIST_FILE)
+    assert len(ours) == 4325
+    tonic = pytest.importorskip("tonic")
+    theirs = tonic.io.read_mnist_file(str(NMNIST_FILE), dtype=tonic.datasets.NMNIST.dtype)
+    for name in ("x", "y", "t", "p"):
+        np.testing.assert_array_equal(ours[name].astype(np.int64), theirs[name].astype(np.int64))
+    (tmp_path / "bad.bin").write_bytes(b"1234")
+    with pytest.raises(ValueError, match="not an N-MNIST file"):
+        bench.read_nmnist(tmp_path / "bad.bin")
+
+
+def test_load_npy_events_rejects_what_is_not_an_event_array(tmp_path):
+    with pytest.raises(ValueError, match="does not exist"):
+        bench.load_npy_events(tmp_path / "nope.npy")
+    np.save(tmp_path / "plain.npy", np.zeros((3, 4)))
+    with pytest.raises(ValueError, match="fields x, y, t, p"):
+        bench.load_npy_events(tmp_path / "plain.npy")
+
+
+def test_cli_reports_a_missing_input_without_running(tmp_path, capsys):
+    code = main(["bench", "--out", str(tmp_path / "o"), "--input", str(tmp_path / "no.npy")])
+    assert code == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_time_call_counts_runs_and_returns_the_warm_up_result():
+    calls = []
+    seconds, runs, result = bench.time_call(lambda v: calls.append(v) or v * 2, 21, repeats=5)
+    assert (runs, result, len(calls)) == (5, 42, 6) and seconds >= 0
+    _, runs, _ = bench.time_call(lambda: None, repeats=5, min_seconds=1.0, max_repeats=50)
+    assert runs == 50
+
+
+def test_plan_caps_and_candidates():
+    plan = bench.make_plan(short=True, events=3000, repeats=7)
+    assert plan.headline_events == plan.large_events == plan.sweep_events == 3000
+    assert plan.events_sweep == (300, 3000) and plan.repeats == 7
+    full = bench.make_plan()
+    assert full.events_sweep == (10_000, 100_000, 1_000_000, 10_000_000)
+    assert full.large_events == 10_000_000 and full.repeats >= 5
+    assert [c.name for c in bench.candidates()][: len(METHODS)] == list(METHODS)
+    with pytest.raises(ValueError, match="unknown method or peer"):
+        bench.candidates(["nope"])
+
+
+def test_memory_measurement_sees_the_call_in_both_modes(tmp_path):
+    n = 1_000_000
+    path = tmp_path / "big.npy"
+    np.save(path, bench.dvs_like_stream(n, (128, 128, 2), duration_us=1_000_000, seed=1))
+    job = bench.MemoryJob("downsample", str(path), (128, 128, 2), 4)
+    bad = bench.MemoryJob("downsample", str(path), (8, 8, 2), 4)  # events outside the sensor
+    results = bench.measure_memory([job, bad])
+    inline = bench.measure_memory([job], fork=False) if hasattr(bench.os, "fork") else results
+    output_bytes = n * bench.DVS_DTYPE.itemsize  # the call returns a new array this size
+    for result in (results[0], inline[0]):
+        assert output_bytes < result["added"] < 40 * output_bytes, result
+        assert result["total"] > result["added"] + 50e6  # interpreter, torch and the input
+    assert "ValueError" in results[1]["error"]
+    assert math.isfinite(results[0]["total"])
