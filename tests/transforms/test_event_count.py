@@ -184,3 +184,13 @@ def test_tonic_compose_on_nmnist(nmnist):
     assert frames.shape == (1, 2, 9, 9) and int(frames.sum()) == len(out)
     assert 0 < len(out) < len(nmnist) and out.dtype == nmnist.dtype
     assert rows(out) == event_count_reference(nmnist, sensor, 4, 0.25)
+
+
+def test_long_streams_in_chunks_equal_one_pass(rng, monkeypatch):
+    import evdown_torch.transforms.functional._common as common
+
+    arr = random_stream(rng, 2000, SENSOR, t_max=300)
+    transform = EventCount(SENSOR, factor=3, threshold=0.2)
+    whole = transform(arr)
+    monkeypatch.setattr(common, "CHUNK_EVENTS", 37)
+    np.testing.assert_array_equal(transform(arr), whole)
