@@ -8,6 +8,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evdown_torch import EventCount, Events
 from tests.helpers import DVS_DTYPE, as_tuples, random_stream
@@ -194,3 +196,23 @@ def test_long_streams_in_chunks_equal_one_pass(rng, monkeypatch):
     whole = transform(arr)
     monkeypatch.setattr(common, "CHUNK_EVENTS", 37)
     np.testing.assert_array_equal(transform(arr), whole)
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(
+    st.lists(
+        st.tuples(st.integers(0, 4), st.integers(0, 2), st.integers(0, 20), st.booleans()),
+        max_size=60,
+    ),
+    st.sampled_from([1, 2, 3, (5, 1), (2, 3)]),
+    st.sampled_from([0.05, 0.5, 1.0, 1.5]),
+)
+def test_property_matches_reference_and_flips(rows_in, factor, threshold):
+    sensor = (5, 3, 2)
+    arr = np.array([(x, y, p, t) for x, y, t, p in rows_in], dtype=DVS_DTYPE)
+    transform = EventCount(sensor, factor=factor, threshold=threshold)
+    out = transform(arr)
+    assert rows(out) == event_count_reference(arr, sensor, factor, threshold)
+    flipped = arr.copy()
+    flipped["p"] = ~flipped["p"]
+    np.testing.assert_array_equal(transform(flipped)["p"], ~out["p"])
