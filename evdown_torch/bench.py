@@ -546,7 +546,6 @@ def _forked_measurement(job: MemoryJob, base_rss: int) -> dict[str, Any]:
             events = np.load(job.path)
             fn = _build(job)
             _warm_up(fn, events)
-            gc.collect()
             _reset_peak()
             before = _proc_status_kib()["VmRSS"]
             fn(events)
@@ -595,6 +594,7 @@ def _memory_worker(spec_path: str) -> None:
     for job in jobs:  # build once here so that lazy imports happen before the baseline
         _build(job)
     gc.collect()
+    gc.freeze()  # forked children then never touch (copy) the imported objects
     fork = spec["fork"]
     base_rss = _proc_status_kib()["VmRSS"] * 1024 if fork else 0
     for job in jobs:
