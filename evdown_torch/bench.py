@@ -28,8 +28,8 @@ What is measured:
   recording duration at a fixed count (events arrive in bursts at a fixed rate; the pauses
   between bursts grow), so the curves show what the cost follows.
 
-Inputs: the package's synthetic gesture generator when present (else
-:func:`dvs_like_stream`, edges of bars moving like arms), a large 1280x720 stream, the real
+Inputs: a DVS-Gesture-like stream (:func:`dvs_like_stream`, edges of bars turning like
+arms), a large 1280x720 stream, the real
 N-MNIST sample in ``shared/data`` when present, and any ``.npy`` structured arrays named.
 """
 
@@ -283,15 +283,6 @@ def load_npy_events(path: str | Path) -> np.ndarray:
             "expected a 1-D structured event array with fields x, y, t, p (Tonic's format)"
         )
     return events
-
-
-def _synthetic_gestures(num_events: int, seed: int) -> tuple[np.ndarray, str] | None:
-    """The package's gesture generator (issue 4) when it is there, else ``None``."""
-    try:
-        from evdown_torch import synthetic  # noqa: F401
-    except ImportError:
-        return None
-    return None  # wired in once the generator's API is merged
 
 
 def _stream_duration_s(events: np.ndarray) -> float:
@@ -834,9 +825,6 @@ class _Runner:
 
 
 def _headline_stream(plan: Plan, seed: int) -> tuple[np.ndarray, str]:
-    synthetic = _synthetic_gestures(plan.headline_events, seed)
-    if synthetic is not None:
-        return synthetic
     duration = max(int(plan.headline_events / HEADLINE_RATE * 1e6), 1)
     return (dvs_like_stream(plan.headline_events, (128, 128, 2), duration_us=duration, seed=seed),
             f"evdown_torch.bench.dvs_like_stream, {duration / 1e6:.2f} s, seed {seed}")
