@@ -61,7 +61,7 @@ from evdown_torch.checks import (
     check_sensor_size,
     output_size,
 )
-from evdown_torch.transforms.registry import METHODS, make_method
+from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
 __all__ = [
     "BENCH_SETTINGS",
@@ -1170,8 +1170,8 @@ def _markdown(results: BenchResults, plots: list[Path], notes: list[str], comman
         f"differentiator (differentiator_time_bins={PEER_DIFFERENTIATOR_BINS}). "
         "EventDownsampling builds dense frames of duration / dt steps; a run whose frames "
         f"would exceed {PEER_MEMORY_BUDGET / 1e9:.0f} GB is skipped.",
-        "- **Method settings**: defaults, except "
-        + (", ".join(f"`{k}`: {v}" for k, v in BENCH_SETTINGS.items()) or "none") + ".",
+        "- **Method settings** (the defaults, except those in `BENCH_SETTINGS`): "
+        + "; ".join(f"{name}: {text}" for name, text in _settings_text(results)) + ".",
     ]
     if notes:
         lines += ["", "Notes:", *[f"- {n}" for n in notes]]
@@ -1205,6 +1205,17 @@ def _markdown(results: BenchResults, plots: list[Path], notes: list[str], comman
         if plot is not None:
             lines += ["", f"![{title}]({plot.name})"]
     return "\n".join(lines) + "\n"
+
+
+def _settings_text(results: BenchResults) -> list[tuple[str, str]]:
+    out = []
+    for name, _, peer in results.candidates:
+        if peer:
+            continue
+        transform = _method_builder(name)((128, 128, 2), 4)
+        values = [f"{key}={getattr(transform, key)!r}" for key in method_settings(name)]
+        out.append((name, ", ".join(values) or "no settings"))
+    return out
 
 
 def _plots(results: BenchResults, out: Path) -> list[Path]:

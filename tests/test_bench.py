@@ -252,3 +252,15 @@ def test_memory_measurement_sees_the_call_in_both_modes(tmp_path):
         assert result["total"] > result["added"] + 50e6  # interpreter, torch and the input
     assert "ValueError" in results[1]["error"]
     assert math.isfinite(results[0]["total"])
+
+
+def test_new_methods_in_the_registry_are_benchmarked(monkeypatch):
+    from evdown_torch.transforms import registry
+    from evdown_torch.transforms.downsample import Downsample
+
+    monkeypatch.setitem(registry.METHODS, "zz_copy", Downsample)
+    names = [c.name for c in bench.candidates(peers=False)]
+    assert names == [*METHODS]  # the same dict object, now with the new entry
+    assert names[-1] == "zz_copy"
+    [cand] = bench.candidates(["zz_copy"])
+    assert cand.build((8, 8, 2), 2).output_sensor_size == (4, 4, 2)
