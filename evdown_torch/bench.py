@@ -1163,7 +1163,10 @@ def _markdown(results: BenchResults, plots: list[Path], notes: list[str], comman
         "worker that has only imported the libraries: *added* is the peak resident set during "
         "the one call minus the resident set just before it (input loaded); *process* is the "
         "peak resident set of a fresh process that imports, loads the input and runs the "
-        "method once (interpreter and libraries included).",
+        "method once (interpreter and libraries included; the worker imports torch and "
+        "Tonic for every candidate, so a peer's figure includes torch too). Both are taken "
+        "after a warm-up call on the first 1000 events, so one-time initialisation is not "
+        "counted as the call's.",
         f"- **Peers**: `tonic.transforms.Downsample(spatial_factor=1/f)`; "
         f"`tonic.transforms.EventDownsampling(sensor_size, target_size=ceil(size/f), "
         f"dt={PEER_DT_MS:g} ms, noise_threshold={PEER_NOISE_THRESHOLD})`, integrator and "
