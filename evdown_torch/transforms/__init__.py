@@ -2,5 +2,6 @@
 
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
+from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
 
-__all__ = ["Downscaler", "Downsample", "EventFunnelling"]
+__all__ = ["Downscaler", "Downsample", "EventFunnelling", "LIFPooling", "calibrate_weight"]

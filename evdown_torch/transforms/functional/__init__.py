@@ -2,5 +2,6 @@
 
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.funnelling import event_funnelling
+from evdown_torch.transforms.functional.lif import lif_pooling
 
-__all__ = ["downsample", "event_funnelling"]
+__all__ = ["downsample", "event_funnelling", "lif_pooling"]

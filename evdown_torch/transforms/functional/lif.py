@@ -1,0 +1,263 @@
+"""LIF pooling kernel: event stream -> time steps -> spiking pooling -> event stream.
+
+The kernel runs exactly the arithmetic of :class:`~evdown_torch.models.SpikingPooling`
+(``snntorch.Leaky``) on the time steps that hold events, with the membrane kept as one float32
+vector of ``2 * Ho * Wo`` neurons, and jumps over the steps in between:
+
+- the input current of a step is a scatter-add (``bincount``) of its events into
+  ``(polarity, region)``, computed for a chunk of active steps at a time, so memory follows the
+  chunk, never ``T x H x W`` nor ``T x Ho x Wo`` over the recording;
+- over ``g`` empty steps a membrane at or below threshold only decays, by ``beta ** g``; a
+  membrane above threshold keeps firing there (snntorch's reset acts one step later and
+  subtract removes one threshold per step), so those neurons are stepped through the empty
+  steps one by one, with the module's arithmetic, until they stop firing. That loop runs once
+  per step that emits a spike, so the cost follows the active steps plus the output.
+
+The spikes equal those of the module run on the dense binned stream, step by step; the only
+difference is that ``beta ** g`` is one rounding where stepping applies ``g`` (bit-identical
+when ``beta`` is 0, 1 or a power of two), which changes a spike only if a membrane lands within
+float32 rounding of the threshold.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._common import region_of, sort_by_time
+
+__all__ = ["lif_pooling", "step_end_time", "step_index"]
+
+#: Dense per-chunk work is at most this many (step, neuron) cells (16 MiB of float32).
+DEFAULT_CHUNK_CELLS = 1 << 22
+#: A chunk holds at most this many input events (at least one whole step).
+DEFAULT_CHUNK_EVENTS = 1 << 22
+
+
+def step_index(relative_t: Tensor, dt: float) -> Tensor:
+    """Time step of each event, ``floor((t - t_start) / dt)``, as int64.
+
+    Args:
+        relative_t: ``(N,)`` ``t - t_start``, int64 or float64, non-negative.
+        dt: step length in the stream's time unit.
+
+    Returns:
+        ``(N,)`` int64 step indices (exact integer division when ``t`` is an integer and ``dt``
+        a whole number).
+    """
+    if not relative_t.is_floating_point() and float(dt).is_integer():
+        return torch.div(relative_t, int(dt), rounding_mode="floor")
+    return torch.floor(relative_t.to(torch.float64) / dt).to(torch.int64)
+
+
+def step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -> Tensor:
+    """Output timestamp ``t_start + (k + 1) * dt`` of steps ``k``, clipped to ``t_end``.
+
+    Integer timestamps stay int64: with a whole ``dt`` the sum is exact; otherwise the offset
+    ``(k + 1) * dt`` is rounded to the nearest integer, halves upward, before it is added.
+    """
+    if not t_start.is_floating_point():
+        if float(dt).is_integer():
+            offset = (steps + 1) * int(dt)
+        else:
+            offset = torch.floor((steps + 1).to(torch.float64) * dt + 0.5).to(torch.int64)
+    else:
+        offset = (steps + 1).to(torch.float64) * dt
+    return torch.minimum(t_start + offset, t_end)
+
+
+class _Neurons:
+    """The membrane of all neurons and snntorch.Leaky's update, on a flat float32 vector."""
+
+    def __init__(
+        self, count: int, *, beta: float, threshold: float, reset_mechanism: str, device
+    ) -> None:
+        # 0-dim float32 tensors, as in snntorch.Leaky, so every operation rounds the same way.
+        self.beta = torch.tensor(beta, dtype=torch.float32, device=device)
+        self.threshold = torch.tensor(threshold, dtype=torch.float32, device=device)
+        self.beta_value = float(self.beta)
+        self.reset = reset_mechanism
+        self.mem = torch.zeros(count, dtype=torch.float32, device=device)
+        self.fired = torch.zeros(count, dtype=torch.bool, device=device)  # U_{k-1} > threshold
+        self.scratch = torch.empty(count, dtype=torch.float32, device=device)
+
+    def step(self, current: Tensor, spikes_out: Tensor) -> None:
+        """One step with input ``current``; writes ``U_k > threshold`` into ``spikes_out``."""
+        mem, reset = self.mem, self.fired
+        if self.reset == "zero":
+            mem.masked_fill_(reset, 0.0)
+        torch.mul(self.beta, mem, out=mem)
+        mem.add_(current)
+        if self.reset == "subtract":
+            torch.mul(reset, self.threshold, out=self.scratch)
+            mem.sub_(self.scratch)
+        torch.gt(mem, self.threshold, out=spikes_out)
+        self.fired = spikes_out
+
+    def skip(self, gap: int, first_step: int) -> tuple[Tensor, Tensor] | None:
+        """Advance through ``gap`` steps without input.
+
+        Returns:
+            ``(steps, neurons)`` of the spikes emitted in those steps (the first one being
+            ``first_step``), or ``None`` when there are none.
+        """
+        firing = self.fired.nonzero().squeeze(1) if bool(self.fired.any()) else None
+        above = None if firing is None else self.mem[firing]
+        self.mem.mul_(self.beta_value**gap)  # U <= threshold: decay only
+        self.fired = torch.zeros_like(self.fired)
+        if firing is None:
+            return None
+        if self.reset == "zero":  # reset to zero, then no input: nothing more to emit
+            self.mem[firing] = 0.0
+            return None
+        if self.reset == "none" and self.beta_value == 1.0:  # fires in every empty step
+            self.mem[firing] = above
+            self.fired[firing] = True
+            steps = torch.arange(first_step, first_step + gap, device=firing.device)
+            return steps.repeat_interleave(firing.numel()), firing.repeat(gap)
+        out_steps, out_neurons = [], []
+        j = 0
+        while firing.numel() and j < gap:
+            j += 1
+            above = self.beta * above  # the module adds a zero current: exact
+            if self.reset == "subtract":
+                above = above - self.threshold
+            spiking = above > self.threshold
+            out_neurons.append(firing[spiking])
+            out_steps.append(torch.full_like(out_neurons[-1], first_step + j - 1))
+            quiet = ~spiking
+            self.mem[firing[quiet]] = above[quiet] * self.beta_value ** (gap - j)
+            firing, above = firing[spiking], above[spiking]
+        if firing.numel():  # still firing at the end of the gap
+            self.mem[firing] = above
+            self.fired[firing] = True
+        return torch.cat(out_steps), torch.cat(out_neurons)
+
+
+def lif_pooling(
+    events: Events,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    dt: float,
+    beta: float,
+    threshold: float,
+    weight: float,
+    mutual_inhibition: float = 0.0,
+    reset_mechanism: str = "subtract",
+    chunk_cells: int = DEFAULT_CHUNK_CELLS,
+    chunk_events: int = DEFAULT_CHUNK_EVENTS,
+) -> Events:
+    """Downscale a stream through one leaky integrate-and-fire neuron per region and polarity.
+
+    The stream is binned into steps of ``dt`` from ``t_start`` (its first timestamp); the
+    events of a step are pooled as :class:`~evdown_torch.models.SpikingPooling` pools a
+    ``ToFrame`` tensor (weight ``+weight`` from the same polarity, ``-mutual_inhibition`` from
+    the other), then ``snntorch.Leaky`` semantics run over every step from 0 to the step of
+    ``t_end``. A spike of the neuron of polarity ``c`` and region ``(i, j)`` in step ``k``
+    becomes the event ``(x=j, y=i, t=t_start + (k + 1) * dt clipped to t_end, p=c)``.
+
+    Args:
+        events: ``N`` events (any order); ``t`` int64 or float64.
+        sensor_size: input sensor ``(W, H, P)``.
+        factor: ``(fx, fy)``, positive integers.
+        dt: step length, in the unit of ``t`` (microseconds for Tonic), positive.
+        beta: membrane decay per step in ``[0, 1]`` (``exp(-dt / tau)``).
+        threshold: firing threshold, positive (fires when the membrane exceeds it).
+        weight: weight of each same-polarity input event, positive.
+        mutual_inhibition: weight of each opposite-polarity input event, subtracted, ``>= 0``.
+        reset_mechanism: ``"subtract"``, ``"zero"`` or ``"none"``.
+        chunk_cells: at most this many ``(active step, neuron)`` cells are dense at once.
+        chunk_events: at most about this many events are processed at once (whole steps).
+
+    Returns:
+        Output events sorted by ``t`` (within a step: OFF before ON, then row-major region),
+        ``t`` of the input's dtype, on the input's device.
+
+    Example:
+        >>> ev = Events.from_columns([0, 1, 0, 1, 3], [0, 0, 1, 1, 0], [0, 1, 2, 3, 9],
+        ...                          [1, 1, 1, 1, 0])
+        >>> out = lif_pooling(ev, sensor_size=(4, 2, 2), factor=(2, 2), dt=2, beta=1.0,
+        ...                   threshold=1.0, weight=0.3)
+        >>> out.x.tolist(), out.y.tolist(), out.t.tolist(), out.p.tolist()
+        ([0], [0], [4], [True])
+    """
+    events = sort_by_time(events)
+    device = events.device
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, device)
+    fx, fy = factor
+    wo, ho = -(-sensor_size[0] // fx), -(-sensor_size[1] // fy)
+    plane = wo * ho
+    count = 2 * plane
+    t_start, t_end = events.t[0], events.t[-1]
+    steps = step_index(events.t - t_start, dt)
+    active, per_step = torch.unique_consecutive(steps, return_counts=True)
+    del steps
+    step_end = torch.cumsum(per_step, 0)
+    step_begin = step_end - per_step
+    active_list = active.tolist()
+    begin_list, end_list = step_begin.tolist(), step_end.tolist()
+    n_active = len(active_list)
+
+    dtype = torch.float32
+    weight_t = torch.tensor(weight, dtype=dtype, device=device)
+    inhibition_t = torch.tensor(mutual_inhibition, dtype=dtype, device=device)
+    neurons = _Neurons(
+        count, beta=beta, threshold=threshold, reset_mechanism=reset_mechanism, device=device
+    )
+    max_steps = max(1, chunk_cells // count)
+    spikes = torch.empty(max_steps, count, dtype=torch.bool, device=device)
+    out_steps, out_neurons = [], []
+    previous = -1
+    a0 = 0
+    while a0 < n_active:
+        a1 = min(a0 + max_steps, n_active)
+        if end_list[a1 - 1] - begin_list[a0] > chunk_events:
+            limit = begin_list[a0] + chunk_events
+            a1 = max(a0 + 1, int(torch.searchsorted(step_end[a0:a1], limit, right=True)) + a0)
+        e0, e1 = begin_list[a0], end_list[a1 - 1]
+        chunk = Events(events.x[e0:e1], events.y[e0:e1], events.t[e0:e1], events.p[e0:e1])
+        rx, ry = region_of(chunk, factor)
+        key = torch.repeat_interleave(
+            torch.arange(0, (a1 - a0) * count, count, device=device), per_step[a0:a1]
+        )
+        key += ry.mul_(wo).add_(rx).add_(chunk.p.to(torch.int64) * plane)
+        del rx, ry
+        counts = torch.bincount(key, minlength=(a1 - a0) * count).view(a1 - a0, 2, plane)
+        del key
+        counts = counts.to(dtype)
+        current = (weight_t * counts - inhibition_t * counts.flip(1)).view(a1 - a0, count)
+        del counts
+        gap_steps, gap_neurons = [], []
+        for a in range(a0, a1):
+            k = active_list[a]
+            gap = k - previous - 1
+            if gap > 0:
+                emitted = neurons.skip(gap, previous + 1)
+                if emitted is not None:
+                    gap_steps.append(emitted[0])
+                    gap_neurons.append(emitted[1])
+            neurons.step(current[a - a0], spikes[a - a0])
+            previous = k
+        rows, cols = spikes[: a1 - a0].nonzero(as_tuple=True)
+        step_of_spike = active[a0:a1][rows]
+        if gap_steps:
+            step_of_spike = torch.cat([step_of_spike, *gap_steps])
+            cols = torch.cat([cols, *gap_neurons])
+            order = torch.sort(step_of_spike * count + cols).indices
+            step_of_spike, cols = step_of_spike[order], cols[order]
+        out_steps.append(step_of_spike)
+        out_neurons.append(cols)
+        # `spikes` is reused by the next chunk: the neurons must not keep a view of it.
+        neurons.fired = neurons.fired.clone()
+        a0 = a1
+
+    step_of_spike = torch.cat(out_steps)
+    neuron = torch.cat(out_neurons)
+    polarity = neuron >= plane
+    cell = neuron - polarity.to(torch.int64) * plane
+    t = step_end_time(step_of_spike, t_start=t_start, t_end=t_end, dt=dt)
+    return Events(cell % wo, torch.div(cell, wo, rounding_mode="floor"), t, polarity)
+
