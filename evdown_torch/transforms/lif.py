@@ -123,9 +123,9 @@ class LIFPooling(Downscaler):
     def to_module(self) -> SpikingPooling:
         """The :class:`~evdown_torch.models.SpikingPooling` with these settings.
 
-        Run on ``ToFrame(sensor_size, time_window=dt)`` frames (as ``(T, 1, 2, H, W)`` floats)
-        of a stream starting at a step boundary, it gives the spikes this transform turns into
-        events.
+        Run on the stream's frames ``ToFrame(sensor_size, time_window=dt,
+        include_incomplete=True)`` (windows from the first event on, as a ``(T, 1, 2, H, W)``
+        float tensor), it gives exactly the spikes that this transform turns into events.
         """
         return SpikingPooling(
             self.factor_xy,
