@@ -262,6 +262,8 @@ class SpikingPooling(nn.Module):
                 f"state must have shape {tuple(current.shape[1:])} (B, 2, Ho, Wo) for input "
                 f"of shape {tuple(x.shape)}, got {tuple(state.shape)}"
             )
+        if x.shape[0] == 0:
+            return torch.zeros_like(current), state
         spikes = []
         for k in range(x.shape[0]):
             spike, state = self.neuron(current[k], state)

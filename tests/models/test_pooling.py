@@ -177,6 +177,13 @@ def test_state_dict_round_trip_and_device(device, rng):
     assert learnable.weight.item() == pytest.approx(0.9)
 
 
+def test_empty_time_axis_returns_the_state():
+    pool = SpikingPooling(2, beta=0.5)
+    state = torch.full((3, 2, 2, 2), 0.25)
+    spikes, out_state = pool(torch.zeros(0, 3, 2, 4, 3), state)
+    assert spikes.shape == (0, 3, 2, 2, 2) and torch.equal(out_state, state)
+
+
 def test_integer_and_bool_input():
     pool = SpikingPooling(2, beta=1.0, weight=0.6)
     x = torch.zeros(3, 1, 2, 2, 2, dtype=torch.int16)

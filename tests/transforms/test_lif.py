@@ -8,6 +8,8 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evdown_torch import Events, LIFPooling
 from evdown_torch.transforms import calibrate_weight
@@ -215,6 +217,37 @@ def test_int64_timestamps_at_large_magnitude_and_shift_invariance(rng):
     shifted["t"] += 1_700_000_000_000_000
     t = pool(shifted)["t"]
     assert np.all(((t - t0) % 13 == 0) | (t == t1))
+
+
+def test_flipping_polarity_flips_the_output(rng):
+    arr = bursty_stream(rng, 15, (12, 10, 2), gap_max=400, burst=80)
+    pool = LIFPooling((12, 10, 2), (3, 2), dt=9, tau=60.0, weight=0.5, mutual_inhibition=0.2)
+    flipped = arr.copy()
+    flipped["p"] = ~flipped["p"]
+    expected = [(x, y, t, not p) for x, y, t, p in tuples(pool(arr))]
+    assert len(expected) > 0 and tuples(pool(flipped)) == sorted(expected)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    events=st.lists(
+        st.tuples(st.integers(0, 6), st.integers(0, 4), st.integers(0, 400), st.booleans()),
+        min_size=1,
+        max_size=60,
+    ),
+    dt=st.integers(1, 50),
+    beta=st.sampled_from([0.0, 0.5, 0.8, 1.0]),
+    weight=st.sampled_from([0.3, 0.5, 1.0, 2.5]),
+    inhibition=st.sampled_from([0.0, 0.25, 0.5]),
+    reset=st.sampled_from(["subtract", "zero", "none"]),
+    factor=st.sampled_from([1, 2, 3, (2, 5)]),
+)
+def test_property_matches_module(events, dt, beta, weight, inhibition, reset, factor):
+    arr = np.array([(x, y, p, t) for x, y, t, p in events], dtype=DVS_DTYPE)
+    tau = math.inf if beta == 1.0 else (1e-9 if beta == 0.0 else -dt / math.log(beta))
+    pool = LIFPooling((7, 5, 2), factor, dt=dt, tau=tau, weight=weight,
+                      mutual_inhibition=inhibition, reset_mechanism=reset)
+    assert tuples(pool(arr)) == dense_reference(arr, pool)
 
 
 def test_float_timestamps_and_fractional_dt():

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import region_of, sort_by_time
+from evdown_torch.transforms.functional._common import sort_by_time
 
 __all__ = ["active_steps", "lif_pooling", "step_end_time", "step_index"]
 
@@ -71,10 +71,19 @@ def active_steps(
             counts[-1][-1:] += count[0]
             active, count = active[1:], count[1:]
         if active.numel():
-            actives.append(active)
-            counts.append(count)
+            # clone: unique_consecutive's results may keep the block-sized storage alive
+            actives.append(active.clone())
+            counts.append(count.clone())
             last = int(active[-1])
     return torch.cat(actives), torch.cat(counts)
+
+
+def _divide_into(values: Tensor, divisor: int, out: Tensor) -> None:
+    """``out = values // divisor`` for non-negative int64 values."""
+    if divisor & (divisor - 1) == 0:  # a power of two (1 included): a shift
+        torch.bitwise_right_shift(values, divisor.bit_length() - 1, out=out)
+    else:
+        torch.div(values, divisor, rounding_mode="floor", out=out)
 
 
 def step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -> Tensor:
@@ -93,19 +102,24 @@ def step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -
     return torch.minimum(t_start + offset, t_end)
 
 
-def _nonzero_flat(values: Tensor) -> Tensor:
+def _nonzero_flat(values: Tensor, mask: Tensor) -> Tensor:
     """Increasing flat indices of the nonzero entries of a contiguous tensor of sparse 0/1.
 
     Same as ``values.reshape(-1).nonzero()[:, 0]``, several times faster on CPU for sparse
     input: the bool mask is scanned 8 entries (one int64 word) at a time.
+
+    Args:
+        values: the tensor, ``n`` entries.
+        mask: a bool workspace of at least ``n`` entries rounded up to a multiple of 8.
     """
-    mask = values.reshape(-1).to(torch.bool)
-    pad = -mask.numel() % 8
-    if pad:
-        mask = torch.cat([mask, mask.new_zeros(pad)])
-    words = mask.view(torch.int64).nonzero()[:, 0]
-    hits = mask.view(-1, 8)[words].nonzero()
-    return words[hits[:, 0]] * 8 + hits[:, 1]
+    n = values.numel()
+    words = -(-n // 8)
+    mask = mask[: 8 * words]
+    mask[n:] = False
+    mask[:n].copy_(values.reshape(-1))
+    hit_words = mask.view(torch.int64).nonzero()[:, 0]
+    hits = mask.view(words, 8)[hit_words].nonzero()
+    return hit_words[hits[:, 0]] * 8 + hits[:, 1]
 
 
 class _Neurons:
@@ -124,14 +138,23 @@ class _Neurons:
         self.threshold_value = float(self.threshold)  # exactly the float32 value
         self.reset = reset_mechanism
         self.mem = torch.zeros(count, dtype=torch.float32, device=device)
-        # R = [U_{k-1} > threshold] as float 0/1 (snntorch's reset signal).
+        # R = [U_{k-1} > threshold] as float 0/1 (snntorch's reset signal): a view of the last
+        # step's row of spikes, or one of these two buffers.
         self.fired = torch.zeros(count, dtype=torch.float32, device=device)
+        self._gap_fired = torch.zeros_like(self.fired)
+        self._carried = self.fired
+
+    def detach_from_spikes(self) -> None:
+        """Copy ``fired`` out of the spike rows, before they are reused."""
+        if self.fired is not self._carried:
+            self._carried.copy_(self.fired)
+            self.fired = self._carried
 
     def step(self, current: Tensor, spikes_out: Tensor) -> None:
         """One step with input ``current``; writes ``U_k > threshold`` (0/1) to ``spikes_out``."""
         mem, reset = self.mem, self.fired
         if self.reset == "zero":
-            mem.mul_(1.0 - reset)  # (1 - R) U
+            mem.addcmul_(mem, reset, value=-1.0)  # (1 - R) U: U - U = +0 or U - 0 = U, exact
         torch.mul(self.beta, mem, out=mem)
         mem.add_(current)
         if self.reset == "subtract":
@@ -149,7 +172,7 @@ class _Neurons:
         firing = self.fired.nonzero().squeeze(1)
         above = self.mem[firing]
         self.mem.mul_(self.beta_value**gap)  # U <= threshold: it only decays
-        self.fired = torch.zeros_like(self.fired)
+        self.fired = self._gap_fired.zero_()
         if firing.numel() == 0:
             return None
         if self.reset == "zero":  # reset to zero, then no input: nothing more to emit
@@ -245,14 +268,22 @@ def lif_pooling(
 
     dtype = torch.float32
     weight_t = torch.tensor(weight, dtype=dtype, device=device)
+    inhibition = mutual_inhibition != 0
     inhibition_t = torch.tensor(mutual_inhibition, dtype=dtype, device=device)
     neurons = _Neurons(
         count, beta=beta, threshold=threshold, reset_mechanism=reset_mechanism, device=device
     )
     max_steps = max(1, min(chunk_cells // count, n_active))
-    pooled = torch.empty(max_steps * count, dtype=dtype, device=device)
+    cells = max_steps * count
+    # Workspaces, allocated once: a long recording churns no large allocations.
+    pooled = torch.empty(cells, dtype=dtype, device=device)
     spikes = torch.empty(max_steps, count, dtype=dtype, device=device)
-    ones = torch.ones(min(chunk_events, events.num_events), dtype=dtype, device=device)
+    mask = torch.empty(-(-cells // 8) * 8, dtype=torch.bool, device=device)
+    inhibit = torch.empty(max_steps, 2, plane, dtype=dtype, device=device) if inhibition else None
+    capacity = min(chunk_events, events.num_events)
+    key = torch.empty(capacity, dtype=torch.int64, device=device)
+    part = torch.empty(capacity, dtype=torch.int64, device=device)
+    ones = torch.ones(capacity, dtype=dtype, device=device)
     out_steps, out_neurons = [], []
     previous = -1
     a0 = 0
@@ -262,42 +293,47 @@ def lif_pooling(
             limit = begin_list[a0] + chunk_events
             a1 = max(a0 + 1, int(torch.searchsorted(step_end[a0:a1], limit, right=True)) + a0)
         e0, e1 = begin_list[a0], end_list[a1 - 1]
-        rows = a1 - a0
+        rows, size = a1 - a0, e1 - e0
+        if size > capacity:  # one step with more events than chunk_events
+            capacity = size
+            key = torch.empty(size, dtype=torch.int64, device=device)
+            part = torch.empty(size, dtype=torch.int64, device=device)
+            ones = torch.ones(size, dtype=dtype, device=device)
         # Cell of each event: (active step within the chunk, polarity, region).
-        chunk = Events(events.x[e0:e1], events.y[e0:e1], events.t[e0:e1], events.p[e0:e1])
-        rx, ry = region_of(chunk, factor)
-        key = torch.repeat_interleave(
-            torch.arange(0, rows * count, count, device=device), per_step[a0:a1]
-        )
-        key.add_(ry, alpha=wo).add_(rx).add_(chunk.p.to(torch.int64), alpha=plane)
-        del rx, ry
+        cell, tmp = key[:size], part[:size]
+        cell.zero_()
+        cell[step_begin[a0 + 1 : a1] - e0] = 1
+        torch.cumsum(cell, 0, out=tmp)  # row of the event's step within the chunk
+        torch.mul(tmp, count, out=cell)
+        _divide_into(events.x[e0:e1], fx, tmp)
+        cell.add_(tmp)
+        _divide_into(events.y[e0:e1], fy, tmp)
+        cell.add_(tmp, alpha=wo).add_(events.p[e0:e1], alpha=plane)
         # Events per cell, summed exactly in float32 (as the module's sum pooling of counts).
         counts = pooled[: rows * count].zero_()
-        if e1 - e0 > ones.numel():
-            ones = torch.ones(e1 - e0, dtype=dtype, device=device)
-        counts.index_add_(0, key, ones[: e1 - e0])
-        del key
+        counts.index_add_(0, cell, ones[:size])
         counts = counts.view(rows, 2, plane)
-        if mutual_inhibition:
-            current = weight_t * counts - inhibition_t * counts.flip(1)
+        if inhibit is not None:  # w * S - w_inh * S', as the module computes it
+            opposite = inhibit[:rows]
+            torch.mul(counts[:, 1], inhibition_t, out=opposite[:, 0])
+            torch.mul(counts[:, 0], inhibition_t, out=opposite[:, 1])
+            counts.mul_(weight_t).sub_(opposite)
         else:  # w * S - 0 * S' == w * S exactly
-            current = counts.mul_(weight_t)
-        current = current.view(rows, count)
+            counts.mul_(weight_t)
+        current = counts.view(rows, count)
         gap_steps, gap_neurons = [], []
         for a in range(a0, a1):
-            k = active_list[a]
-            gap = k - previous - 1
+            step = active_list[a]
+            gap = step - previous - 1
             if gap > 0:
                 emitted = neurons.skip(gap, previous + 1)
                 if emitted is not None:
                     gap_steps.append(emitted[0])
                     gap_neurons.append(emitted[1])
             neurons.step(current[a - a0], spikes[a - a0])
-            previous = k
-        del current, counts
-        # `spikes` is reused by the next chunk: the neurons must not keep a view of it.
-        neurons.fired = neurons.fired.clone()
-        flat = _nonzero_flat(spikes[:rows])
+            previous = step
+        neurons.detach_from_spikes()  # the spike rows are reused by the next chunk
+        flat = _nonzero_flat(spikes[:rows], mask)
         cols = flat % count
         step_of_spike = active[a0:a1][torch.div(flat, count, rounding_mode="floor")]
         if gap_steps:
@@ -310,9 +346,12 @@ def lif_pooling(
         a0 = a1
 
     step_of_spike = torch.cat(out_steps)
-    neuron = torch.cat(out_neurons)
-    polarity = neuron >= plane
-    cell = neuron - polarity.to(torch.int64) * plane
+    del out_steps
     t = step_end_time(step_of_spike, t_start=t_start, t_end=t_end, dt=dt)
-    return Events(cell % wo, torch.div(cell, wo, rounding_mode="floor"), t, polarity)
-
+    del step_of_spike
+    neuron = torch.cat(out_neurons)
+    del out_neurons
+    polarity = neuron >= plane
+    neuron.add_(polarity, alpha=-plane)  # the region's index in its polarity's plane
+    y = torch.div(neuron, wo, rounding_mode="floor")
+    return Events(neuron.remainder_(wo), y, t, polarity)
