@@ -85,9 +85,17 @@ def _memory_kib(field: str) -> int:
     raise RuntimeError(f"{field} not in /proc/self/status")
 
 
+def _reset_peak() -> int:
+    """Reset the peak resident size (Linux ``VmHWM``) to the current one and return it, bytes."""
+    with open("/proc/self/clear_refs", "w") as refs:
+        refs.write("5")
+    return _memory_kib("VmRSS") * 1024
+
+
 def peak_memory_child(seconds: float, rate: float) -> None:
-    """Child process: print events, input bytes, RSS before, peak RSS during one call, ..."""
+    """Child process: print events, input bytes, RSS before, peak RSS of the call, ..."""
     from evdown_torch import LIFPooling
+    from evdown_torch.events import to_events
 
     torch.set_num_threads(1)
     per_second = int(rate)
@@ -95,14 +103,19 @@ def peak_memory_child(seconds: float, rate: float) -> None:
         gesture_stream(per_second, sensor=(1280, 720), rate=rate, seed=s, t0=s * 1_000_000)
         for s in range(int(seconds))
     ])
-    before = _memory_kib("VmRSS") * 1024
-    with open("/proc/self/clear_refs", "w") as refs:  # reset the peak (VmHWM) to VmRSS
-        refs.write("5")
+    pool = LIFPooling((1280, 720, 2), factor=4)
+    before = _reset_peak()
     start = time.perf_counter()
-    out = LIFPooling((1280, 720, 2), factor=4)(data)
+    out = pool(data)
     elapsed = time.perf_counter() - start
     peak = _memory_kib("VmHWM") * 1024
-    print(len(data), data.nbytes, before, peak, len(out), elapsed)
+    n_out = len(out)
+    del out
+    events, _ = to_events(data, pool.sensor_size)  # the kernel alone, after the conversion
+    kernel_before = _reset_peak()
+    pool.kernel(events)
+    kernel_peak = _memory_kib("VmHWM") * 1024
+    print(len(data), data.nbytes, before, peak, n_out, elapsed, kernel_peak - kernel_before)
 
 
 def main() -> None:
@@ -140,16 +153,17 @@ def main() -> None:
     if args.long_seconds > 0:
         cmd = [sys.executable, __file__, "--child", "--long-seconds", str(args.long_seconds),
                "--long-rate", str(args.long_rate)]
-        n, nbytes, before, peak, n_out, elapsed = (
+        n, nbytes, before, peak, n_out, elapsed, kernel = (
             float(v) for v in subprocess.check_output(cmd, text=True).split()
         )
         mib = 2**20
         print(f"\nlong recording: 1280x720, {args.long_seconds:.0f} s, {n:.0f} events "
-              f"({nbytes / mib:.0f} MiB structured array), factor 4, dt = 1 ms")
-        print(f"  RSS before the call {before / mib:.0f} MiB, peak {peak / mib:.0f} MiB "
+              f"({nbytes / mib:.0f} MiB structured array), factor 4, dt = 1 ms, defaults")
+        print(f"  whole call: RSS {before / mib:.0f} MiB before, peak {peak / mib:.0f} MiB "
               f"(+{(peak - before) / mib:.0f} MiB = {(peak - before) / n:.1f} bytes/event), "
-              f"{n_out:.0f} output events, {elapsed:.1f} s "
-              f"({n / elapsed / 1e6:.2f} Mev/s)")
+              f"{n_out:.0f} output events, {elapsed:.1f} s ({n / elapsed / 1e6:.2f} Mev/s)")
+        print(f"  kernel alone (after the conversion to Events): peak +{kernel / mib:.0f} MiB "
+              f"({kernel / n:.1f} bytes/event)")
 
 
 if __name__ == "__main__":
