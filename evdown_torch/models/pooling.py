@@ -101,6 +101,8 @@ class SpikingPooling(nn.Module):
     Constants live in buffers (``weight``, ``mutual_inhibition`` here and ``neuron.beta``,
     ``neuron.threshold`` in the Leaky), so ``state_dict``, ``.to(device)`` and ``torch.compile``
     work; with ``learnable=True``, ``weight`` and ``mutual_inhibition`` are ``nn.Parameter``\ s.
+    (snntorch picks the reset rule when the Leaky is built, so load a state dict into a module
+    built with the same ``reset_mechanism``.)
 
     Args:
         factor: ``f`` or ``(fx, fy)``, positive integers: block width and height.
