@@ -12,8 +12,11 @@ from typing import Any
 
 __all__ = [
     "check_factor",
+    "check_nonnegative_float",
+    "check_nonnegative_int",
     "check_positive_float",
     "check_positive_int",
+    "check_probability",
     "check_sensor_size",
     "output_size",
 ]
@@ -111,3 +114,30 @@ def check_positive_int(name: str, value: Any) -> int:
     if value <= 0:
         raise ValueError(f"{name} must be a positive integer, got {value!r}")
     return int(value)
+
+
+def check_nonnegative_float(name: str, value: Any) -> float:
+    """Validate a finite real number ``>= 0`` and return it as a float."""
+    if not isinstance(value, numbers.Real) or isinstance(value, bool):
+        raise TypeError(f"{name} must be a non-negative number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value) or value < 0:
+        raise ValueError(f"{name} must be a non-negative finite number, got {value!r}")
+    return value
+
+
+def check_nonnegative_int(name: str, value: Any) -> int:
+    """Validate an integer ``>= 0`` and return it as an int."""
+    if not _is_int(value):
+        raise TypeError(f"{name} must be a non-negative integer, got {value!r}")
+    if value < 0:
+        raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+    return int(value)
+
+
+def check_probability(name: str, value: Any) -> float:
+    """Validate a real number in ``[0, 1]`` and return it as a float."""
+    value = check_nonnegative_float(name, value)
+    if value > 1:
+        raise ValueError(f"{name} must lie in [0, 1], got {value!r}")
+    return value
