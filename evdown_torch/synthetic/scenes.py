@@ -219,10 +219,10 @@ class GestureScene:
         if label == 10:
             arms = []
             for sign in (-1.0, 1.0):
-                centre = (sign * u(0.12, 0.38), u(-0.1, 0.32))
+                centre = (sign * u(0.1, 0.35), u(-0.25, 0.15))
                 parts: list[float] = list(centre)
                 for _ in range(3):
-                    parts += [u(0.25, 0.9), u(0.02, 0.08), u(0.02, 0.08),
+                    parts += [u(0.2, 0.6), u(0.03, 0.1), u(0.03, 0.1),
                               u(0, 2 * math.pi), u(0, 2 * math.pi)]
                 arms.append(tuple(parts))
             wander = tuple(arms)
