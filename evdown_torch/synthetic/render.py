@@ -281,19 +281,24 @@ def _rows(part: _Part, s0: int, s1: int, width: int, height: int):
     return step, row, i0.to(torch.int64), count, k1, c1, k2, c2
 
 
+def _step_bits(s0: int, s1: int) -> int:
+    """Bits that hold a step of ``s0..s1`` relative to ``s0`` (keys are ``pixel << bits``)."""
+    return max(1, (s1 - s0).bit_length())
+
+
 def _rasterise(part: _Part, s0: int, s1: int, width: int, height: int, scale: float):
     """Fragments of a moving capsule at steps ``s0..s1``.
 
-    Returns ``(key, alpha, colour)``: ``key = pixel * n_steps + step`` (``pixel = j * W + i``,
-    ``step`` relative to ``s0``), coverage in ``[0, 1]`` and linear intensity relative to the
-    background's mean (float32).
+    Returns ``(key, alpha, colour)``: ``key = (pixel << bits) | step`` (``pixel = j * W + i``,
+    ``step`` relative to ``s0``, ``bits`` from :func:`_step_bits`), coverage in ``[0, 1]``
+    and linear intensity relative to the background's mean (float32).
     """
-    n_steps = s1 - s0 + 1
+    bits = _step_bits(s0, s1)
     step, row, i0, count, k1, c1, k2, c2 = _rows(part, s0, s1, width, height)
     owner = torch.repeat_interleave(torch.arange(count.numel()), count)
     starts = torch.cumsum(count, 0) - count
     col = torch.arange(owner.numel()) + (i0 - starts).index_select(0, owner)
-    key = col * n_steps + ((row * width) * n_steps + step).index_select(0, owner)
+    key = (col << bits) + (((row * width) << bits) + step).index_select(0, owner)
     x = col.to(torch.float32) + 0.5
     s_raw = x * k1.index_select(0, owner) + c1.index_select(0, owner)
     perp = x * k2.index_select(0, owner) + c2.index_select(0, owner)
@@ -328,7 +333,7 @@ def _composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, sc
         ``(pixel, step, value)``: int64 sensor pixel, int64 step relative to ``s0`` and
         float32 linear intensity.
     """
-    n_steps = s1 - s0 + 1
+    bits = _step_bits(s0, s1)
     pieces = [_rasterise(p, s0, s1, width, height, scale) for p in parts]
     if not pieces:
         empty = torch.empty(0, dtype=torch.int64)
@@ -337,13 +342,13 @@ def _composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, sc
     key, order = _sort_keys(key)
     alpha = alpha.index_select(0, order)
     colour = colour.index_select(0, order) * mean
-    pixel = key // n_steps
+    pixel = key >> bits
     value = static.index_select(0, pixel) * (1 - alpha) + alpha * colour
     repeat = torch.zeros(key.shape, dtype=torch.bool)
     repeat[1:] = key[1:] == key[:-1]
     later = _nonzero(repeat)
     if later.numel() == 0:
-        return pixel, key - pixel * n_steps, value
+        return pixel, key & ((1 << bits) - 1), value
     index = torch.arange(key.numel())
     owner = torch.cummax(index * ~repeat, 0).values.index_select(0, later)
     rank = later - owner
@@ -354,7 +359,7 @@ def _composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, sc
         value.index_copy_(0, g, value.index_select(0, g) * (1 - a) + a * colour.index_select(0, d))
     starts = _nonzero(~repeat)
     pixel, key, value = (c.index_select(0, starts) for c in (pixel, key, value))
-    return pixel, key - pixel * n_steps, value
+    return pixel, key & ((1 << bits) - 1), value
 
 
 class _Grid:
@@ -387,14 +392,14 @@ class _Grid:
         absolute, int64; intensity float32); pixels absent at a step sit at their static
         value.
         """
-        n_steps = s1 - s0 + 1
+        bits = _step_bits(s0, s1)
         pixel, step, value = _composite(parts, s0, s1, self.width, self.height, self.scale,
                                         self.static_flat, self.mean)
         if self.factor != (1, 1):
             fx, fy = self.factor
             delta = value - self.static_flat.index_select(0, pixel)
             block = (pixel // self.width) // fy * self.out_w + (pixel % self.width) // fx
-            key, order = _sort_keys(block * n_steps + step)
+            key, order = _sort_keys((block << bits) + step)
             delta = delta.index_select(0, order)
             new = torch.ones(key.shape, dtype=torch.bool)
             new[1:] = key[1:] != key[:-1]
@@ -402,8 +407,8 @@ class _Grid:
             sums = torch.zeros(int(group[-1]) + 1 if group.numel() else 0,
                                dtype=delta.dtype).index_add_(0, group, delta)
             key = key[new]
-            pixel = key // n_steps
-            step = key - pixel * n_steps
+            pixel = key >> bits
+            step = key & ((1 << bits) - 1)
             value = (self.sum_out.index_select(0, pixel) + sums) / self.count.index_select(0, pixel)
         return pixel, step + s0, value
 
@@ -450,7 +455,9 @@ def _chunks(parts: list[_Part], n_steps: int, n_pixels: int, max_fragments: int)
     for p in parts:
         reach = 2 * p.radius + 3
         per_step += int(reach * (p.length + reach))
-    span = max(1, min(max_fragments // per_step, (2**31 - 1) // max(n_pixels, 1) - 2))
+    # keys (pixel << bits) | step stay below 2**31 (int32 sorts) when possible
+    room = 31 - max(n_pixels - 1, 1).bit_length()
+    span = max(1, min(max_fragments // per_step, (1 << max(room, 1)) - 1))
     return [(s0, min(s0 + span, n_steps)) for s0 in range(0, max(n_steps, 1), span)]
 
 
@@ -578,7 +585,7 @@ def swept_mask(
     for s0, s1 in _chunks(parts, times.numel() - 1, width * height, MAX_FRAGMENTS):
         for part in parts:
             key, _, _ = _rasterise(part, s0, s1, width, height, scene.scale)
-            pixel = key // (s1 - s0 + 1)
+            pixel = key >> _step_bits(s0, s1)
             mask[(pixel // width) // factor[1] * out_w + (pixel % width) // factor[0]] = True
     return mask.reshape(out_h, out_w)
 
