@@ -47,7 +47,7 @@ class PixelModelConfig:
 
     Attributes:
         threshold: contrast threshold ``theta``, natural-log units, for ON and OFF alike
-            (0.25, a 28 % change of photocurrent).
+            (0.2, a 22 % change of photocurrent).
         threshold_mismatch: standard deviation of the per-pixel threshold around
             ``threshold``, natural-log units (0.03); per-pixel thresholds are clipped to at
             least ``threshold / 4``.
@@ -58,9 +58,9 @@ class PixelModelConfig:
         hot_pixel_fraction: probability that a pixel is hot (2e-4, about three pixels of a
             128 x 128 sensor).
         hot_pixel_rate_hz: firing rate of each hot pixel, events per second (20.0).
-        max_step_px: simulation step bound, pixels: between two samples of the scene no body
-            part moves more than this (0.5); log intensity is linear between samples.
-        max_step_us: simulation step bound, microseconds (5000), for slow motions.
+        max_step_px: simulation step bound, pixels: between two samples of the scene no
+            joint moves more than this (1.0); log intensity is linear between samples.
+        max_step_us: simulation step bound, microseconds (20000), for slow motions.
 
     Example:
         >>> PixelModelConfig(threshold=0.3).refractory_us

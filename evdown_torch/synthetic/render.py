@@ -195,8 +195,9 @@ def _shade(px: Tensor, py: Tensor, a: Tensor, b: Tensor, radius: float, look: Lo
     return alpha, colour
 
 
-def _static_image(scene: GestureScene) -> Tensor:
-    """Background with the static capsules composited over it, ``(H, W)`` float32."""
+def _static_image(scene: GestureScene) -> tuple[Tensor, float]:
+    """Background with the static capsules over it, ``(H, W)`` float32, and the background's
+    mean (the unit of every part's intensity)."""
     w, h, _ = scene.sensor_size
     image = _background(scene)
     mean = float(image.mean())
@@ -212,9 +213,9 @@ def _static_image(scene: GestureScene) -> Tensor:
         alpha, colour = _shade(ii.reshape(-1).float() + 0.5, jj.reshape(-1).float() + 0.5,
                                a.float(), b.float(), radius, look, scene.scale)
         patch = image[j0:j1, i0:i1].reshape(-1)
-        image[j0:j1, i0:i1] = (patch * (1 - alpha) + alpha * mean * colour).reshape(j1 - j0,
-                                                                                   i1 - i0)
-    return image
+        image[j0:j1, i0:i1] = (patch * (1 - alpha) + alpha * (colour * mean)).reshape(
+            j1 - j0, i1 - i0)
+    return image, mean
 
 
 def _nonzero(mask: Tensor) -> Tensor:
@@ -369,8 +370,7 @@ class _Grid:
         self.width, self.height, _ = scene.sensor_size
         self.factor = factor
         self.out_w, self.out_h, _ = output_size(scene.sensor_size, factor)
-        self.static = _static_image(scene)
-        self.mean = float(self.static.mean())
+        self.static, self.mean = _static_image(scene)
         self.static_flat = self.static.reshape(-1)
         self.scale = scene.scale
         fx, fy = factor
@@ -508,6 +508,8 @@ def render_events(
         >>> ev.num_events > 0, bool((ev.t[1:] >= ev.t[:-1]).all())
         (True, True)
     """
+    if not isinstance(scene, GestureScene):
+        raise TypeError(f"scene must be a GestureScene, got {type(scene).__name__}")
     config = PixelModelConfig() if config is None else config
     if not isinstance(config, PixelModelConfig):
         raise TypeError(f"config must be a PixelModelConfig, got {type(config).__name__}")
@@ -572,8 +574,17 @@ def swept_mask(
 ) -> Tensor:
     """Output pixels that a moving part covers at some simulation step.
 
+    Only these pixels can emit events other than noise. Covering means a coverage above 0
+    at a pixel of the block (``factor`` as in :func:`render_events`).
+
     Returns:
         ``(H', W')`` bool tensor (``W' = ceil(W / fx)``, ``H' = ceil(H / fy)``).
+
+    Example:
+        >>> scene = GestureScene.sample(1, seed=0, sensor_size=(32, 32, 2), duration_us=200_000)
+        >>> mask = swept_mask(scene)
+        >>> mask.shape, 0 < int(mask.sum()) < 32 * 32
+        (torch.Size([32, 32]), True)
     """
     config = PixelModelConfig() if config is None else config
     factor = check_factor(factor, scene.sensor_size)
@@ -611,16 +622,14 @@ def intensity_frame(
     factor = check_factor(factor, scene.sensor_size)
     grid = _Grid(scene, (1, 1))
     times = torch.tensor([float(t_us)], dtype=torch.float64)
-    image = grid.static.clone()
+    image = grid.static.reshape(-1).clone()
     width, height = grid.width, grid.height
+    jj, ii = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    px, py = ii.reshape(-1).float() + 0.5, jj.reshape(-1).float() + 0.5
     for part in _moving_parts(scene, times):
-        a, b = part.a[0], part.b[0]
-        jj, ii = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
-        look = part.look
-        alpha, colour = _shade(ii.reshape(-1).float() + 0.5, jj.reshape(-1).float() + 0.5, a, b,
-                               part.radius, look, scene.scale)
-        image = (image.reshape(-1) * (1 - alpha) + alpha * grid.mean * colour).reshape(height,
-                                                                                     width)
+        alpha, colour = _shade(px, py, part.a[0], part.b[0], part.radius, part.look, scene.scale)
+        image = image * (1 - alpha) + alpha * (colour * grid.mean)
+    image = image.reshape(height, width)
     if factor == (1, 1):
         return image
     fx, fy = factor
