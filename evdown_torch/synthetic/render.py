@@ -103,22 +103,38 @@ def step_times(scene: GestureScene, config: PixelModelConfig) -> Tensor:
     return torch.linspace(0, duration, steps + 1, dtype=torch.float64)
 
 
+def _part_moves(scene: GestureScene) -> list[list[bool]]:
+    """Whether each arm part (upper arm, forearm, hand of the right, then the left arm) moves.
+
+    Judged on a fine grid of times: a part whose endpoints stay put is drawn once, into the
+    static image (a waving arm's upper arm, say).
+    """
+    probe = torch.linspace(0, scene.duration_us, 2001, dtype=torch.float64)
+    out = []
+    for moving, points in zip(scene.moving_arms, scene.arm_keypoints(probe), strict=True):
+        drift = (points - points[:1]).abs().amax(dim=(0, 2))  # per keypoint, pixels
+        out.append([moving and bool(max(drift[k], drift[k + 1]) > 1e-6) for k in range(3)])
+    return out
+
+
+_RADII = (RADIUS_UPPER, RADIUS_FORE, RADIUS_HAND)
+_LENGTHS = (UPPER_ARM, FOREARM, HAND)
+
+
 def _moving_parts(scene: GestureScene, times: Tensor) -> list[_Part]:
+    """The moving capsules, in compositing order, with their endpoints at ``times``."""
     parts = []
-    radii = (RADIUS_UPPER, RADIUS_FORE, RADIUS_HAND)
-    lengths = (UPPER_ARM, FOREARM, HAND)
-    looks = scene.looks[2:]
-    for moving, points in zip(scene.moving_arms, scene.arm_keypoints(times), strict=True):
-        if moving:
-            points = points.to(torch.float32)
-            for k in range(3):
-                parts.append(_Part(points[:, k], points[:, k + 1], radii[k] * scene.scale,
-                                   lengths[k] * scene.scale, looks[k]))
+    for moves, points in zip(_part_moves(scene), scene.arm_keypoints(times), strict=True):
+        points = points.to(torch.float32)
+        for k in range(3):
+            if moves[k]:
+                parts.append(_Part(points[:, k], points[:, k + 1], _RADII[k] * scene.scale,
+                                   _LENGTHS[k] * scene.scale, scene.looks[2 + k]))
     return parts
 
 
 def _static_parts(scene: GestureScene) -> list[tuple[Tensor, Tensor, float, Look]]:
-    """Capsules that never move: body, then resting arms; endpoints in pixels."""
+    """Capsules that never move: body, then arm parts at rest; endpoints in pixels."""
     origin = torch.tensor(scene.origin, dtype=torch.float64)
     out = []
     for _, a, b, radius, look in BODY:
@@ -126,11 +142,10 @@ def _static_parts(scene: GestureScene) -> list[tuple[Tensor, Tensor, float, Look
                     origin + scene.scale * torch.tensor(b, dtype=torch.float64),
                     radius * scene.scale, scene.looks[look]))
     zero = torch.zeros(1, dtype=torch.float64)
-    radii = (RADIUS_UPPER, RADIUS_FORE, RADIUS_HAND)
-    for moving, points in zip(scene.moving_arms, scene.arm_keypoints(zero), strict=True):
-        if not moving:
-            for k in range(3):
-                out.append((points[0, k], points[0, k + 1], radii[k] * scene.scale,
+    for moves, points in zip(_part_moves(scene), scene.arm_keypoints(zero), strict=True):
+        for k in range(3):
+            if not moves[k]:
+                out.append((points[0, k], points[0, k + 1], _RADII[k] * scene.scale,
                             scene.looks[2 + k]))
     return out
 

@@ -198,7 +198,7 @@ class GestureScene:
         scale = min(w, h) * u(0.62, 0.76)
         tempo = (u(0.0, 0.4), u(0.1, 0.3), u(0.0, 2 * math.pi))
         rest = tuple(float(v) for v in u(-0.02, 0.02, 4))
-        shirt, skin = u(0.6, 1.3), u(0.7, 1.5)
+        shirt, skin = u(0.7, 1.4), u(0.8, 1.6)
 
         def look(gain_log: float) -> Look:
             return Look(math.exp(gain_log), u(-0.3, 0.3), u(0.3, 0.6), u(0.15, 0.4),
@@ -278,7 +278,7 @@ class GestureScene:
             return at(-opening, y), at(opening, y)
         if label in (1, 2):  # wave: forearm up, swinging about the elbow
             side = -1.0 if label == 1 else 1.0
-            swing = 0.15 + 0.5 * a * torch.sin(phase)
+            swing = 0.15 + 0.6 * a * torch.sin(phase)
             ex = side * (SHOULDER_X + UPPER_ARM * math.cos(math.radians(10)))
             ey = UPPER_ARM * math.sin(math.radians(10))
             wrist = at(ex + side * FOREARM * torch.sin(swing), ey - FOREARM * torch.cos(swing))
@@ -305,7 +305,7 @@ class GestureScene:
             left = at(0.15 + drift, 0.22 + 0.07 * a * stroke(phase + math.pi))
             return right, left
         if label == 9:  # air guitar: right hand strums at the hip, left hand on the neck
-            right = at(-0.05 + 0.02 * torch.sin(phase), 0.30 + 0.06 * a * torch.sin(phase))
+            right = at(-0.05 + 0.02 * torch.sin(phase), 0.30 + 0.08 * a * torch.sin(phase))
             slow = 0.31 * phase
             left = at(0.46 + 0.03 * torch.sin(slow), 0.10 + 0.02 * torch.sin(slow + 1.0))
             return right, left
