@@ -14,6 +14,7 @@ __all__ = [
     "check_choice",
     "check_factor",
     "check_non_negative_float",
+    "check_non_negative_int",
     "check_positive_float",
     "check_positive_int",
     "check_sensor_size",
@@ -154,3 +155,12 @@ def check_time_constant(name: str, value: Any) -> float:
     if not value > 0:  # also rejects NaN
         raise ValueError(f"{name} must be a positive number (math.inf for no leak), got {value!r}")
     return value
+
+
+def check_non_negative_int(name: str, value: Any) -> int:
+    """Validate an integer ``>= 0`` and return it as an int."""
+    if not _is_int(value):
+        raise TypeError(f"{name} must be a non-negative integer, got {value!r}")
+    if value < 0:
+        raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+    return int(value)
