@@ -1,58 +1,33 @@
 """Synthetic gesture rendering speed, one thread: 6 s at 128x128, ground truth, and 1280x720.
 
-Run: ``python benchmarks/bench_synthetic.py [--repeats R] [--big-duration-us D]``.
+Run: ``python benchmarks/bench_synthetic.py [--repeats R] [--big-duration-us D] [--skip-big]``.
+Timing and memory come from the shared harness :mod:`evdown_torch.bench`
+(:func:`~evdown_torch.bench.time_call`, :func:`~evdown_torch.bench.measure_memory`).
 
 * every class, a 6 s 128x128 sample through ``SyntheticGestures[i]`` (scene, rendering,
   noise, refractory, structured array): events, median wall and CPU seconds over the
   repeats, events per CPU second;
-* the same samples' low-resolution ground truth at factors 2 and 4;
+* the same samples' low-resolution ground truth at factors 2 and 4 (CPU seconds, one run);
 * one 1280x720 sample (right arm circles, the busiest class), in a fresh process so that its
-  peak resident memory is its own: seconds, events, events/s, peak RSS.
+  peak resident memory is its own: seconds, events, events/s, peak memory.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import resource
 import statistics
-import subprocess
-import sys
-import time
 
 import torch
 
+from evdown_torch.bench import MemoryJob, measure_memory, time_call
 from evdown_torch.synthetic import GESTURE_CLASSES, SyntheticGestures
 
 
-def median_seconds(fn, repeats: int) -> tuple[float, float, object]:
-    """Median wall-clock and median CPU seconds of ``fn()`` (after a warm-up), and its result.
-
-    On a shared machine the wall clock also counts waiting for a core; the process's CPU
-    time does not, so it is the better figure of the work itself.
-    """
-    out = fn()  # warm-up
-    wall, cpu = [], []
-    for _ in range(repeats):
-        start, start_cpu = time.perf_counter(), time.process_time()
-        out = fn()
-        wall.append(time.perf_counter() - start)
-        cpu.append(time.process_time() - start_cpu)
-    return statistics.median(wall), statistics.median(cpu), out
-
-
-def big(duration_us: int) -> None:
-    """Render one 1280x720 sample and print a JSON line (run in its own process)."""
-    torch.set_num_threads(1)
+def prepare_big(duration_us: int):
+    """Memory job: a 1280x720 dataset; the measured call renders sample 3 (right arm cw)."""
     data = SyntheticGestures(samples_per_class=1, duration_us=duration_us,
                              sensor_size=(1280, 720, 2))
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    start, start_cpu = time.perf_counter(), time.process_time()
-    events, _ = data[3]
-    seconds, cpu = time.perf_counter() - start, time.process_time() - start_cpu
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    print(json.dumps({"seconds": seconds, "cpu": cpu, "events": len(events),
-                      "peak_rss_mib": peak / 1024, "rss_before_mib": before / 1024}))
+    return lambda: len(data[3][0])
 
 
 def main() -> None:
@@ -60,11 +35,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--big-duration-us", type=int, default=6_000_000)
     parser.add_argument("--skip-big", action="store_true")
-    parser.add_argument("--big-only", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.big_only:
-        big(args.big_duration_us)
-        return
     torch.set_num_threads(1)
     data = SyntheticGestures(samples_per_class=1, duration_us=6_000_000)
     print(f"6 s, 128x128, one thread, median of {args.repeats} (SyntheticGestures[i])")
@@ -72,28 +43,30 @@ def main() -> None:
           f"{'f=2 cpu':>8} {'f=4 cpu':>8}")
     walls, cpus, rates = [], [], []
     for index, name in enumerate(GESTURE_CLASSES):
-        wall, cpu, (events, _) = median_seconds(lambda i=index: data[i], args.repeats)
-        _, gt2, _ = median_seconds(lambda i=index: data.ground_truth(i, 2), 1)
-        _, gt4, _ = median_seconds(lambda i=index: data.ground_truth(i, 4), 1)
-        walls.append(wall)
-        cpus.append(cpu)
-        rates.append(len(events) / cpu)
-        print(f"{name:<18} {len(events):>8} {wall:7.3f} {cpu:6.3f} {len(events) / cpu / 1e6:6.2f} "
-              f"{gt2:8.3f} {gt4:8.3f}")
+        timing, (events, _) = time_call(data.__getitem__, index, repeats=args.repeats)
+        gt2, _ = time_call(data.ground_truth, index, 2, repeats=1)
+        gt4, _ = time_call(data.ground_truth, index, 4, repeats=1)
+        walls.append(timing.seconds)
+        cpus.append(timing.cpu_seconds)
+        rates.append(len(events) / timing.cpu_seconds)
+        print(f"{name:<18} {len(events):>8} {timing.seconds:7.3f} {timing.cpu_seconds:6.3f} "
+              f"{rates[-1] / 1e6:6.2f} {gt2.cpu_seconds:8.3f} {gt4.cpu_seconds:8.3f}")
     print(f"over classes: wall median {statistics.median(walls):.3f} s (max {max(walls):.3f}), "
           f"cpu median {statistics.median(cpus):.3f} s (max {max(cpus):.3f}), "
           f"{statistics.median(rates) / 1e6:.2f} M events per cpu second")
     if args.skip_big:
         return
-    result = subprocess.run(
-        [sys.executable, __file__, "--big-only", "--big-duration-us", str(args.big_duration_us)],
-        capture_output=True, text=True, check=True,
-    )
-    stats = json.loads(result.stdout.strip().splitlines()[-1])
-    print(f"1280x720, {args.big_duration_us / 1e6:g} s, right arm cw, one thread: "
-          f"{stats['events']} events in {stats['seconds']:.1f} s wall, {stats['cpu']:.1f} s cpu "
-          f"({stats['events'] / stats['cpu'] / 1e6:.2f} M events per cpu second), "
-          f"peak RSS {stats['peak_rss_mib']:.0f} MiB (process start {stats['rss_before_mib']:.0f})")
+    [big] = measure_memory([MemoryJob(f"{__file__}:prepare_big",
+                                      {"duration_us": args.big_duration_us})])
+    if "error" in big:
+        raise SystemExit(f"1280x720 sample: {big['error']}")
+    mib = 2**20
+    print(f"1280x720, {args.big_duration_us / 1e6:g} s, right arm cw, one thread, fresh "
+          f"process: {big['result']:,} events in {big['seconds']:.1f} s wall, "
+          f"{big['cpu_seconds']:.1f} s cpu "
+          f"({big['result'] / big['cpu_seconds'] / 1e6:.2f} M events per cpu second), peak memory "
+          f"+{big['added'] / mib:.0f} MiB during the call, process peak "
+          f"{big['total'] / mib:.0f} MiB")
 
 
 if __name__ == "__main__":

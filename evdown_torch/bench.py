@@ -12,36 +12,42 @@ What is measured:
 * **Time**: wall-clock time of one call of the transform on a Tonic structured array in
   memory (validation, conversion to tensors and back included, as a user calls it), with
   ``torch.set_num_threads(1)``; the median of at least ``repeats`` calls after one warm-up call
-  (more calls for inputs that take under 0.2 s in all). **Throughput** is input events divided
-  by that median.
+  (more calls for inputs that take only milliseconds), with the median CPU time of the same
+  calls beside it. **Throughput** is input events divided by the median wall-clock time.
 * **Peak memory**, per method and input, in a fresh process: one worker process imports
   everything (interpreter, NumPy, torch, evdown_torch, Tonic) and, for every measurement,
-  forks a child that loads the input, builds the transform and calls it once. *Added* is the
-  child's peak resident set (``VmHWM``) during the call minus its resident set just before
-  (the input loaded); *process* is the worker's resident set after imports plus the child's
-  growth up to its peak, i.e. the peak of a fresh process that imports, loads the input and
-  runs the method once. Without ``fork`` or ``/proc`` (not Linux), each measurement runs in
-  its own fresh interpreter and *added* is the growth of the peak resident set
-  (``ru_maxrss``) over the call.
+  forks a child that loads the input, builds the transform, warms it up on 1000 events and
+  calls it once. *Added* is the child's peak resident set (``VmHWM``) during the call minus
+  its resident set just before (the input loaded); *process* is the worker's resident set
+  after imports plus the child's growth up to its peak, i.e. the peak of a fresh process
+  that imports, loads the input and runs the method once. Without ``fork`` or ``/proc`` (not
+  Linux), each measurement runs in its own fresh interpreter and *added* is the growth of the
+  peak resident set (``ru_maxrss``) over the call.
 * **Scaling curves** (factor 4) of throughput and added peak memory against the number of
   events at a fixed event rate, the sensor size at a fixed count and duration, and the
   recording duration at a fixed count (events arrive in bursts at a fixed rate; the pauses
   between bursts grow), so the curves show what the cost follows.
 
-Inputs: a DVS-Gesture-like stream (:func:`dvs_like_stream`, edges of bars turning like
-arms), a large 1280x720 stream, the real
-N-MNIST sample in ``shared/data`` when present, and any ``.npy`` structured arrays named.
+Inputs: synthetic DVS128-Gesture-like recordings (:func:`gesture_stream`, from
+:mod:`evdown_torch.synthetic`) for the method table and the goals; streams of moving bar edges
+(:func:`dvs_like_stream`, whose count, sensor and duration are set exactly) for the large
+1280x720 input and the sweeps; the real N-MNIST sample in ``shared/data`` when present; and
+any ``.npy`` structured arrays named.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import contextlib
 import gc
+import importlib
+import importlib.util
 import json
 import math
 import os
 import platform
+import re
 import statistics
 import subprocess
 import sys
@@ -72,13 +78,21 @@ __all__ = [
     "Candidate",
     "Goal",
     "Measurement",
+    "MemoryJob",
+    "Timing",
+    "candidate",
+    "candidate_job",
     "candidates",
     "dvs_like_stream",
+    "gesture_stream",
     "load_npy_events",
     "measure_memory",
+    "parse_spec",
+    "prepare_candidate_call",
     "read_nmnist",
     "run_benchmark",
     "time_call",
+    "with_pauses",
     "write_report",
 ]
 
@@ -108,7 +122,6 @@ PAPER_SECONDS_PER_100K = {"event_count": 0.8, "linear": 2.6, "cubic": 2.9}
 _SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NMNIST_FILE = _SHARED_DATA / "sample_nmnist.bin"
 
-HEADLINE_RATE = 1_000_000 / 6.0  # events per second of the DVS-Gesture-like headline stream
 LARGE_RATE = 2_000_000.0  # events per second of the 1280x720 stream
 EVENTS_SWEEP_RATE = 500_000.0  # events per second in the events sweep
 
@@ -128,14 +141,17 @@ def dvs_like_stream(
     seed: int = 0,
     num_objects: int = 4,
     noise: float = 0.05,
+    start_us: int = 0,
 ) -> np.ndarray:
     """A DVS-like random stream: edges of bars sweeping round like arms, plus background noise.
 
     Each object is a bar along a radius of a circle, turning at 1 to 4 turns per second; its
     leading edge emits one polarity and its trailing edge the other (bright or dark bars),
     with half a pixel of jitter. A share ``noise`` of the events is uniform background
-    activity. Event times are uniform over ``[0, duration_us)``, sorted; several events can
-    share a timestamp when the rate exceeds one per microsecond.
+    activity. Event times are uniform over ``[start_us, start_us + duration_us)``, sorted;
+    several events can share a timestamp when the rate exceeds one per microsecond. The bars
+    depend on ``seed`` only, so consecutive pieces (same seed, ``start_us`` advancing by
+    ``duration_us``) continue one recording: long streams can be made piece by piece.
 
     Args:
         num_events: number of events ``N`` (>= 0).
@@ -144,6 +160,7 @@ def dvs_like_stream(
         seed: seed of the NumPy generator; the same seed gives the same stream.
         num_objects: number of moving bars (> 0).
         noise: share of background events, in ``[0, 1]``.
+        start_us: time of the piece's start, microseconds (>= 0).
 
     Returns:
         ``(N,)`` structured array of :data:`DVS_DTYPE` (``t`` int64 microseconds), sorted by
@@ -163,6 +180,8 @@ def dvs_like_stream(
     k = check_positive_int("num_objects", num_objects)
     if not 0.0 <= float(noise) <= 1.0:
         raise ValueError(f"noise must be a share in [0, 1], got {noise!r}")
+    if not isinstance(start_us, (int, np.integer)) or isinstance(start_us, bool) or start_us < 0:
+        raise ValueError(f"start_us must be a non-negative integer, got {start_us!r}")
     rng = np.random.default_rng(seed)
     n = int(num_events)
     size = min(w, h)
@@ -175,7 +194,8 @@ def dvs_like_stream(
     phase = rng.uniform(0, 2 * np.pi, k)
     bright = rng.random(k) < 0.5
 
-    t = np.sort(rng.integers(0, duration_us, n))
+    rng = np.random.default_rng([seed, int(start_us)])  # this piece's events
+    t = np.sort(rng.integers(start_us, start_us + duration_us, n))
     obj = rng.integers(0, k, n)
     angle = phase[obj] + omega[obj] * t
     cos, sin = np.cos(angle), np.sin(angle)
@@ -198,6 +218,35 @@ def dvs_like_stream(
     out["p"] = p
     out["t"] = t
     return out
+
+
+def gesture_stream(num_events: int, *, seed: int = 0,
+                   sensor_size: tuple[int, int, int] = (128, 128, 2)) -> np.ndarray:
+    """``num_events`` events of synthetic DVS128-Gesture-like recordings, one after another.
+
+    Renders 6 s recordings of the 11 classes in turn with :mod:`evdown_torch.synthetic`
+    (class ``k % 11``, seed ``seed + k``), each starting 6 s after the previous one, until
+    there are enough events, and keeps the first ``num_events``.
+
+    Returns:
+        Structured array of :data:`DVS_DTYPE`, sorted by ``t`` (int64 microseconds).
+
+    Example:
+        >>> ev = gesture_stream(1000, sensor_size=(32, 32, 2))
+        >>> len(ev), bool((np.diff(ev["t"]) >= 0).all())
+        (1000, True)
+    """
+    from evdown_torch.synthetic import render_gesture
+
+    n = check_positive_int("num_events", num_events)
+    parts, total, k = [], 0, 0
+    while total < n:
+        part = render_gesture(k % 11, seed + k, sensor_size=sensor_size, duration_us=6_000_000)
+        part["t"] += k * 6_000_000
+        parts.append(part)
+        total += len(part)
+        k += 1
+    return np.concatenate(parts)[:n].astype(DVS_DTYPE)
 
 
 def with_pauses(events: np.ndarray, duration_us: int, *, bursts: int = 10) -> np.ndarray:
@@ -311,7 +360,8 @@ class Candidate:
     """Something to benchmark: a method of this package or a peer.
 
     Attributes:
-        name: the method's registry name, or a peer's name (see :data:`PEERS`).
+        name: the spec it was made from: a method's registry name, optionally with settings
+            (``"lif:weight=1.5,reset_mechanism=zero"``), or a peer's name (see :data:`PEERS`).
         label: what the report calls it.
         peer: whether it is a peer (another library's transform).
         build: ``build(sensor_size, factor)`` returns a callable taking and returning a
@@ -328,9 +378,32 @@ class Candidate:
     dense_cost: Callable[[tuple[int, int, int], Any, float], tuple[float, float]] | None = None
 
 
-def _method_builder(name: str):
+def parse_spec(spec: str) -> tuple[str, dict[str, Any]]:
+    """Split ``"NAME[:KEY=VALUE,KEY=VALUE...]"`` into the name and its settings.
+
+    Values are Python literals where they parse as one, else strings; a comma starts a new
+    setting only where ``KEY=`` follows it, so tuples are fine (``factor=(1, 2)``).
+
+    Example:
+        >>> parse_spec("lif:weight=1.5,reset_mechanism=zero")
+        ('lif', {'weight': 1.5, 'reset_mechanism': 'zero'})
+    """
+    name, _, rest = spec.partition(":")
+    settings: dict[str, Any] = {}
+    for item in filter(None, re.split(r",\s*(?=[A-Za-z_]\w*\s*=)", rest)):
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"a setting in {spec!r} must look like KEY=VALUE, got {item!r}")
+        try:
+            settings[key.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            settings[key.strip()] = value.strip()
+    return name.strip(), settings
+
+
+def _method_builder(name: str, settings: dict[str, Any]):
     def build(sensor_size, factor):
-        return make_method(name, sensor_size, factor, **BENCH_SETTINGS.get(name, {}))
+        return make_method(name, sensor_size, factor, **settings)
 
     return build
 
@@ -386,6 +459,14 @@ PEERS: dict[str, str] = {
     "tonic_differentiator": "tonic EventDownsampling (differentiator)",
 }
 
+_PEER_BUILDERS = {
+    "tonic_downsample": (_tonic_downsample, None),
+    "tonic_integrator": (_tonic_event_downsampling("integrator"),
+                         _tonic_dense_cost("integrator")),
+    "tonic_differentiator": (_tonic_event_downsampling("differentiator"),
+                             _tonic_dense_cost("differentiator")),
+}
+
 
 def _tonic_available() -> bool:
     try:
@@ -395,48 +476,72 @@ def _tonic_available() -> bool:
     return True
 
 
+def candidate(spec: str) -> Candidate:
+    """The candidate a spec names: ``"NAME"`` or ``"NAME:KEY=VALUE,..."`` (see :func:`parse_spec`).
+
+    A method runs with :data:`BENCH_SETTINGS` updated by the spec's settings; a peer takes
+    no settings.
+
+    Raises:
+        ValueError: for an unknown name, settings given to a peer, a setting the method does
+            not take, or a peer while Tonic is not installed.
+
+    Example:
+        >>> candidate("event_count:threshold=0.5").label
+        'EventCount (threshold=0.5)'
+    """
+    name, settings = parse_spec(spec)
+    if name in PEERS:
+        if settings:
+            raise ValueError(f"peer {name!r} takes no settings, got {spec!r}")
+        if not _tonic_available():
+            raise ValueError(f"peer {name!r} needs Tonic, which is not installed")
+        build, dense = _PEER_BUILDERS[name]
+        return Candidate(name, PEERS[name], True, build, dense)
+    if name not in METHODS:
+        raise ValueError(
+            f"unknown method or peer {name!r}; expected one of {[*METHODS, *PEERS]}"
+        )
+    build = _method_builder(name, {**BENCH_SETTINGS.get(name, {}), **settings})
+    build((8, 8, 2), 1)  # a setting the method does not take fails here
+    text = ", ".join(f"{k}={v!r}" for k, v in settings.items())
+    return Candidate(spec, METHODS[name].__name__ + (f" ({text})" if text else ""), False, build)
+
+
 def candidates(names: Iterable[str] | None = None, *, peers: bool = True) -> list[Candidate]:
     """The candidates to benchmark: every method in ``METHODS``, then the peers.
 
     Args:
-        names: a subset of method and peer names (default: all).
-        peers: include the Tonic peers (only when Tonic is importable).
+        names: specs of a subset of methods and peers, in this order (default: every method
+            in ``METHODS``, then every peer); see :func:`candidate`.
+        peers: with ``names=None``, include the Tonic peers (when Tonic is importable).
 
     Raises:
-        ValueError: for a name that is neither a method nor a peer.
+        ValueError: for a spec :func:`candidate` rejects.
 
     Example:
         >>> [c.name for c in candidates(["downsample", "funnelling"])]
         ['downsample', 'funnelling']
     """
-    known = list(METHODS) + list(PEERS)
-    wanted = known if names is None else list(names)
-    unknown = [n for n in wanted if n not in known]
-    if unknown:
-        raise ValueError(f"unknown method or peer {unknown}; expected some of {known}")
-    out = [
-        Candidate(name, METHODS[name].__name__, False, _method_builder(name))
-        for name in METHODS
-        if name in wanted
-    ]
-    if peers and _tonic_available():
-        builders = {
-            "tonic_downsample": (_tonic_downsample, None),
-            "tonic_integrator": (
-                _tonic_event_downsampling("integrator"), _tonic_dense_cost("integrator")
-            ),
-            "tonic_differentiator": (
-                _tonic_event_downsampling("differentiator"), _tonic_dense_cost("differentiator")
-            ),
-        }
-        for name, label in PEERS.items():
-            if name in wanted:
-                build, dense = builders[name]
-                out.append(Candidate(name, label, True, build, dense))
-    return out
+    if names is None:
+        names = [*METHODS, *(PEERS if peers and _tonic_available() else ())]
+    return [candidate(spec) for spec in names]
 
 
 # --------------------------------------------------------------------------------- timing
+
+
+@dataclass(frozen=True)
+class Timing:
+    """Timed calls: the median wall-clock and process CPU seconds, and how many calls.
+
+    On a shared machine the wall clock also counts waiting for a core; the CPU time does
+    not, so the two agree when the machine was quiet.
+    """
+
+    seconds: float
+    cpu_seconds: float
+    runs: int
 
 
 def time_call(
@@ -445,28 +550,30 @@ def time_call(
     repeats: int = 5,
     min_seconds: float = 0.0,
     max_repeats: int = 1000,
-) -> tuple[float, int, Any]:
-    """Median wall-clock time of ``fn(*args)`` after one warm-up call.
+) -> tuple[Timing, Any]:
+    """Time ``fn(*args)``: one warm-up call, then at least ``repeats`` timed calls.
 
-    Runs ``fn`` once to warm up, then at least ``repeats`` times, and more (up to
-    ``max_repeats``) until the timed calls add up to ``min_seconds``.
+    More calls (up to ``max_repeats``) are made until the timed ones add up to
+    ``min_seconds`` of wall-clock time.
 
     Returns:
-        ``(median seconds, number of timed calls, result of the warm-up call)``.
+        ``(timing, result of the warm-up call)``.
 
     Example:
-        >>> seconds, runs, result = time_call(sum, [1, 2, 3], repeats=5)
-        >>> runs, result, seconds >= 0
+        >>> timing, result = time_call(sum, [1, 2, 3], repeats=5)
+        >>> timing.runs, result, timing.seconds >= 0
         (5, 6, True)
     """
     repeats = check_positive_int("repeats", repeats)
     result = fn(*args)
-    times: list[float] = []
-    while len(times) < repeats or (sum(times) < min_seconds and len(times) < max_repeats):
-        start = time.perf_counter()
+    wall: list[float] = []
+    cpu: list[float] = []
+    while len(wall) < repeats or (sum(wall) < min_seconds and len(wall) < max_repeats):
+        start, start_cpu = time.perf_counter(), time.process_time()
         fn(*args)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), len(times), result
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return Timing(statistics.median(wall), statistics.median(cpu), len(wall)), result
 
 
 # --------------------------------------------------------------------------------- memory
@@ -474,12 +581,56 @@ def time_call(
 
 @dataclass(frozen=True)
 class MemoryJob:
-    """One peak-memory measurement: a candidate once on one input."""
+    """One peak-memory measurement, run in a fresh process by :func:`measure_memory`.
 
-    candidate: str
-    path: str
-    sensor_size: tuple[int, int, int]
-    factor: Any
+    Attributes:
+        target: ``"package.module:function"`` or ``"path/to/file.py:function"``;
+            ``function(**kwargs)`` prepares everything (loads, builds, warms up) and returns
+            the zero-argument callable whose peak is measured (its return value comes back
+            when it is a number or a string).
+        kwargs: JSON-serialisable keyword arguments of ``function``.
+    """
+
+    target: str
+    kwargs: dict[str, Any]
+
+
+def candidate_job(spec: str, path: str, sensor_size: Sequence[int], factor: Any) -> MemoryJob:
+    """The memory job of a candidate (see :func:`candidate`) once on a ``.npy`` stream."""
+    return MemoryJob("evdown_torch.bench:prepare_candidate_call",
+                     {"spec": spec, "path": str(path), "sensor_size": list(sensor_size),
+                      "factor": factor})
+
+
+def prepare_candidate_call(spec: str, path: str, sensor_size: Sequence[int],
+                           factor: Any) -> Callable[[], Any]:
+    """Load a stream, build the candidate, warm it up; return the call to measure.
+
+    The warm-up is one call on the first 1000 events, so that one-time costs (lazy
+    initialisation) are not counted as the call's.
+    """
+    events = np.load(path)
+    fn = candidate(spec).build(tuple(sensor_size),
+                               factor if isinstance(factor, int) else tuple(factor))
+    with contextlib.suppress(Exception):  # a peer may reject a short slice; the call reports
+        fn(events[:1000])
+    return lambda: fn(events)
+
+
+def _resolve(target: str) -> Callable[..., Callable[[], Any]]:
+    where, sep, function = target.rpartition(":")
+    if not sep or not where or not function:
+        raise ValueError(f"target must look like MODULE:FUNCTION or FILE.py:FUNCTION, got "
+                         f"{target!r}")
+    if where.endswith(".py"):
+        spec = importlib.util.spec_from_file_location(f"_bench_{Path(where).stem}", where)
+        if spec is None or spec.loader is None:
+            raise ValueError(f"cannot import {where!r}")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    else:
+        module = importlib.import_module(where)
+    return getattr(module, function)
 
 
 def _proc_status_kib() -> dict[str, int]:
@@ -516,33 +667,30 @@ def _peak_bytes() -> int:
     return int(value) if sys.platform == "darwin" else int(value) * 1024
 
 
-def _build(job: MemoryJob) -> Callable[[np.ndarray], np.ndarray]:
-    [candidate] = candidates([job.candidate])
-    return candidate.build(tuple(job.sensor_size), job.factor)
+def _measure_here(job: MemoryJob, prepare: Callable[..., Callable[[], Any]]) -> dict[str, Any]:
+    """Prepare the job, then measure the peak of its call in this process."""
+    call = prepare(**job.kwargs)
+    _reset_peak()
+    before = _peak_bytes()
+    start, start_cpu = time.perf_counter(), time.process_time()
+    value = call()
+    seconds, cpu = time.perf_counter() - start, time.process_time() - start_cpu
+    out = {"added": _peak_bytes() - before, "peak": _peak_bytes(), "seconds": seconds,
+           "cpu_seconds": cpu}
+    if isinstance(value, (bool, int, float, str)):
+        out["result"] = value
+    return out
 
 
-def _warm_up(fn: Callable[[np.ndarray], np.ndarray], events: np.ndarray) -> None:
-    """One call on the first 1000 events, so one-time costs (lazy initialisation) are paid."""
-    with contextlib.suppress(Exception):  # a peer may reject a short slice; the call reports
-        fn(events[:1000])
-
-
-def _forked_measurement(job: MemoryJob, base_rss: int) -> dict[str, Any]:
+def _forked_measurement(job: MemoryJob, prepare, base_rss: int) -> dict[str, Any]:
     read_end, write_end = os.pipe()
     pid = os.fork()
-    if pid == 0:  # the child: load, build, measure one call, report, exit
+    if pid == 0:  # the child: prepare, measure one call, report, exit
         os.close(read_end)
         try:
-            at_fork = _proc_status_kib()["VmRSS"]
-            events = np.load(job.path)
-            fn = _build(job)
-            _warm_up(fn, events)
-            _reset_peak()
-            before = _proc_status_kib()["VmRSS"]
-            fn(events)
-            peak = _proc_status_kib()["VmHWM"]
-            message = {"added": (peak - before) * 1024,
-                       "total": base_rss + (peak - at_fork) * 1024}
+            at_fork = _proc_status_kib()["VmRSS"] * 1024
+            message = _measure_here(job, prepare)
+            message["total"] = base_rss + message.pop("peak") - at_fork
         except BaseException as error:  # noqa: BLE001 - reported to the parent
             message = {"error": f"{type(error).__name__}: {error}"}
         os.write(write_end, json.dumps(message).encode())
@@ -558,38 +706,36 @@ def _forked_measurement(job: MemoryJob, base_rss: int) -> dict[str, Any]:
     return json.loads(b"".join(chunks))
 
 
-def _inline_measurement(job: MemoryJob) -> dict[str, Any]:
-    try:
-        events = np.load(job.path)
-        fn = _build(job)
-        _warm_up(fn, events)
-        gc.collect()
-        _reset_peak()
-        before = _peak_bytes()
-        fn(events)
-        after = _peak_bytes()
-    except Exception as error:  # noqa: BLE001 - reported to the parent
-        return {"error": f"{type(error).__name__}: {error}"}
-    return {"added": after - before, "total": after}
-
-
 def _memory_worker(spec_path: str) -> None:
     """Entry point of the measuring process: runs the jobs of a JSON spec, prints results."""
     spec = json.loads(Path(spec_path).read_text())
     torch.set_num_threads(1)
-    jobs = [MemoryJob(j["candidate"], j["path"], tuple(j["sensor_size"]),
-                      j["factor"] if isinstance(j["factor"], int) else tuple(j["factor"]))
-            for j in spec["jobs"]]
-    if any(job.candidate in PEERS for job in jobs):
+    jobs = [MemoryJob(j["target"], j["kwargs"]) for j in spec["jobs"]]
+    prepares: dict[str, Any] = {}  # imported before the baseline; an exception if it fails
+    for job in jobs:
+        if job.target not in prepares:
+            try:
+                prepares[job.target] = _resolve(job.target)
+            except Exception as error:  # noqa: BLE001 - reported for the jobs that need it
+                prepares[job.target] = error
+    if any(job.kwargs.get("spec") in PEERS for job in jobs):
         import tonic  # noqa: F401 - imported before the baseline, like torch
-    for job in jobs:  # build once here so that lazy imports happen before the baseline
-        _build(job)
     gc.collect()
     gc.freeze()  # forked children then never touch (copy) the imported objects
     fork = spec["fork"]
     base_rss = _proc_status_kib()["VmRSS"] * 1024 if fork else 0
     for job in jobs:
-        result = _forked_measurement(job, base_rss) if fork else _inline_measurement(job)
+        if isinstance(prepares[job.target], Exception):
+            error = prepares[job.target]
+            result = {"error": f"{type(error).__name__}: {error}"}
+        elif fork:
+            result = _forked_measurement(job, prepares[job.target], base_rss)
+        else:
+            try:
+                result = _measure_here(job, prepares[job.target])
+                result["total"] = result.pop("peak")
+            except Exception as error:  # noqa: BLE001 - reported to the parent
+                result = {"error": f"{type(error).__name__}: {error}"}
         print("EVDOWN-MEM " + json.dumps(result), flush=True)
 
 
@@ -598,15 +744,25 @@ def _can_fork_measure() -> bool:
 
 
 def measure_memory(jobs: Sequence[MemoryJob], *, fork: bool | None = None) -> list[dict]:
-    """Peak memory of each job, measured in a fresh process (see the module docstring).
+    """Peak memory of each job's call, each measured in a fresh process.
+
+    With ``fork`` (Linux; the default where possible) one fresh worker interpreter imports
+    the jobs' modules, then forks one child per job: the child prepares the job, resets its
+    peak resident set (``VmHWM``) and runs the call. Without it, every job runs in its own
+    fresh interpreter.
 
     Args:
         jobs: the measurements to make.
-        fork: fork one child per job from one fresh worker (Linux; the default where
-            possible), or run each job in its own fresh interpreter (``ru_maxrss``).
+        fork: see above (default: where possible).
 
     Returns:
-        One dict per job: ``{"added": bytes, "total": bytes}`` or ``{"error": message}``.
+        One dict per job: ``{"added": bytes, "total": bytes, "seconds": s,
+        "cpu_seconds": s}`` or ``{"error": message}``. *added* is the peak resident set
+        during the call minus the resident set just before it; *total* is the peak of a
+        fresh process that imports, prepares and calls (the worker's resident set after
+        imports plus the child's growth up to its peak); *seconds* and *cpu_seconds* are the
+        call's wall-clock and CPU time; *result* is the call's return value when it is a
+        number or a string.
     """
     if not jobs:
         return []
@@ -622,8 +778,8 @@ def measure_memory(jobs: Sequence[MemoryJob], *, fork: bool | None = None) -> li
         for i, group in enumerate(groups):
             spec = Path(tmp) / f"spec{i}.json"
             spec.write_text(json.dumps({"fork": fork, "jobs": [asdict(j) for j in group]}))
-            code = "import sys; from evdown_torch.bench import _memory_worker; " \
-                   "_memory_worker(sys.argv[1])"
+            code = ("import sys; from evdown_torch.bench import _memory_worker; "
+                    "_memory_worker(sys.argv[1])")
             done = subprocess.run([sys.executable, "-c", code, str(spec)], env=env,
                                   capture_output=True, text=True, check=False)
             lines = [json.loads(line[len("EVDOWN-MEM "):]) for line in done.stdout.splitlines()
@@ -664,12 +820,12 @@ def make_plan(short: bool = False, events: int | None = None, repeats: int | Non
     """
     if short:
         plan = Plan(True, 200_000, 200_000, (2, 4), 5, 3, (10_000, 100_000),
-                    ((128, 128), (1280, 720)), 100_000, (1.0, 10.0), 0.05, 1.0)
+                    ((128, 128), (1280, 720)), 100_000, (1.0, 10.0), 0.05, 2.0)
     else:
         plan = Plan(False, 1_000_000, 10_000_000, (2, 4), 5, 3,
                     (10_000, 100_000, 1_000_000, 10_000_000),
                     ((128, 128), (346, 260), (640, 480), (1280, 720)), 1_000_000,
-                    (1.0, 10.0, 100.0, 1000.0), 0.5, 60.0)
+                    (1.0, 10.0, 100.0, 1000.0), 0.5, 30.0)
     if events is not None:
         cap = check_positive_int("events", events)
         sweep = tuple(n for n in plan.events_sweep if n <= cap)
@@ -705,6 +861,7 @@ class Measurement:
     events_in: int
     events_out: int | None = None
     seconds: float | None = None
+    cpu_seconds: float | None = None
     runs: int = 0
     peak_added: int | None = None
     peak_total: int | None = None
@@ -803,15 +960,16 @@ class _Runner:
                     continue
             try:
                 fn = cand.build(inp.sensor_size, factor)
-                m.seconds, m.runs, out = time_call(fn, events, repeats=repeats,
-                                                   min_seconds=self.plan.min_seconds)
+                timing, out = time_call(fn, events, repeats=repeats,
+                                        min_seconds=self.plan.min_seconds)
+                m.seconds, m.cpu_seconds, m.runs = timing.seconds, timing.cpu_seconds, timing.runs
                 m.events_out = len(out)
             except Exception as error:  # noqa: BLE001 - a failing peer is a result too
                 m.note = f"failed: {type(error).__name__}: {error}"[:200]
                 continue
             _log(f"{section} {inp.name} f={factor} {cand.name}: {m.rate / 1e6:.2f} M events/s")
             if self.memory:
-                self.jobs.append((m, MemoryJob(cand.name, inp.path, inp.sensor_size, factor)))
+                self.jobs.append((m, candidate_job(cand.name, inp.path, inp.sensor_size, factor)))
 
     def measure_memory(self) -> None:
         if not self.jobs:
@@ -825,9 +983,9 @@ class _Runner:
 
 
 def _headline_stream(plan: Plan, seed: int) -> tuple[np.ndarray, str]:
-    duration = max(int(plan.headline_events / HEADLINE_RATE * 1e6), 1)
-    return (dvs_like_stream(plan.headline_events, (128, 128, 2), duration_us=duration, seed=seed),
-            f"evdown_torch.bench.dvs_like_stream, {duration / 1e6:.2f} s, seed {seed}")
+    events = gesture_stream(plan.headline_events, seed=seed)
+    return events, (f"evdown_torch.synthetic gestures (6 s recordings of the 11 classes in "
+                    f"turn, seed {seed}), first {len(events):,} events")
 
 
 def run_benchmark(
@@ -1040,8 +1198,8 @@ def _factor_text(factor: Any) -> str:
 def method_table(results: BenchResults, input_name: str) -> str:
     """The Markdown table of every candidate on one input (all factors)."""
     peers = [(n, label) for n, label, is_peer in results.candidates if is_peer]
-    head = ["method", "factor", "events in", "events out", "out / in", "median ms", "runs",
-            "M events/s", *[f"x {label}" for _, label in peers], "peak added MB",
+    head = ["method", "factor", "events in", "events out", "out / in", "median ms", "CPU ms",
+            "runs", "M events/s", *[f"x {label}" for _, label in peers], "peak added MB",
             "peak process MB", "note"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     rows = [m for m in results.measurements if m.section == "methods" and m.input == input_name]
@@ -1054,7 +1212,8 @@ def method_table(results: BenchResults, input_name: str) -> str:
         share = m.events_out / m.events_in if m.events_out is not None and m.events_in else None
         cells = [m.label, _factor_text(m.factor), str(m.events_in),
                  "n/a" if m.events_out is None else str(m.events_out), _num(share),
-                 _num(None if m.seconds is None else m.seconds * 1e3), str(m.runs),
+                 _num(None if m.seconds is None else m.seconds * 1e3),
+                 _num(None if m.cpu_seconds is None else m.cpu_seconds * 1e3), str(m.runs),
                  _num(None if m.rate is None else m.rate / 1e6), *ratios,
                  _mb(m.peak_added), _mb(m.peak_total), m.note.replace("|", "/")]
         lines.append("| " + " | ".join(cells) + " |")
@@ -1155,8 +1314,10 @@ def _markdown(results: BenchResults, plots: list[Path], notes: list[str], comman
         "## What is measured", "",
         "- **Time**: wall-clock time of one call of the transform on a Tonic structured array "
         "(validation and conversions included), `torch.set_num_threads(1)`; median of "
-        f"{plan.repeats} or more calls after one warm-up call (more for inputs that take under "
-        f"0.2 s in all; {plan.scaling_repeats} or more in the scaling sweeps). Every candidate "
+        f"{plan.repeats} or more calls after one warm-up call (more until the calls add up to "
+        f"{plan.min_seconds:g} s; {plan.scaling_repeats} or more in the scaling sweeps). "
+        "*CPU ms* is the median process CPU time of the same calls: where it is well below the "
+        "wall-clock time, the call waited for a core on a busy machine. Every candidate "
         "runs in this one process and run. **M events/s** is input events / median time; "
         "**x peer** is the candidate's throughput divided by the peer's (above 1: faster).",
         "- **Peak memory** (MB = 10^6 bytes), per measurement in a fresh process forked from a "
@@ -1215,8 +1376,9 @@ def _settings_text(results: BenchResults) -> list[tuple[str, str]]:
     for name, _, peer in results.candidates:
         if peer:
             continue
-        transform = _method_builder(name)((128, 128, 2), 4)
-        values = [f"{key}={getattr(transform, key)!r}" for key in method_settings(name)]
+        transform = candidate(name).build((128, 128, 2), 4)
+        keys = method_settings(parse_spec(name)[0])
+        values = [f"{key}={getattr(transform, key)!r}" for key in keys]
         out.append((name, ", ".join(values) or "no settings"))
     return out
 

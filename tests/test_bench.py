@@ -167,6 +167,8 @@ def test_dvs_like_stream_is_seeded_sorted_and_inside_the_sensor():
     counts = np.bincount(a["y"].astype(int) * 40 + a["x"], minlength=1200)
     assert np.sort(counts)[::-1][:300].sum() > 0.7 * 5000
     assert len(bench.dvs_like_stream(0, (4, 4, 2))) == 0
+    later = bench.dvs_like_stream(5000, (40, 30, 2), duration_us=20_000, seed=3, start_us=20_000)
+    assert later["t"].min() >= 20_000 and later["t"].max() < 40_000
     with pytest.raises(ValueError, match="noise"):
         bench.dvs_like_stream(10, (4, 4, 2), noise=2.0)
 
@@ -220,10 +222,15 @@ def test_cli_reports_a_missing_input_without_running(tmp_path, capsys):
 
 def test_time_call_counts_runs_and_returns_the_warm_up_result():
     calls = []
-    seconds, runs, result = bench.time_call(lambda v: calls.append(v) or v * 2, 21, repeats=5)
-    assert (runs, result, len(calls)) == (5, 42, 6) and seconds >= 0
-    _, runs, _ = bench.time_call(lambda: None, repeats=5, min_seconds=1.0, max_repeats=50)
-    assert runs == 50
+    timing, result = bench.time_call(lambda v: calls.append(v) or v * 2, 21, repeats=5)
+    assert (timing.runs, result, len(calls)) == (5, 42, 6)
+    assert timing.seconds >= 0 and timing.cpu_seconds >= 0
+    timing, _ = bench.time_call(lambda: None, repeats=5, min_seconds=1.0, max_repeats=50)
+    assert timing.runs == 50
+    busy, _ = bench.time_call(lambda: sum(range(200_000)), repeats=3)
+    idle, _ = bench.time_call(bench.time.sleep, 0.02, repeats=3)
+    assert busy.cpu_seconds > 0.3 * busy.seconds  # the loop runs on the CPU ...
+    assert idle.cpu_seconds < 0.5 * idle.seconds and idle.seconds >= 0.02  # ... sleeping does not
 
 
 def test_plan_caps_and_candidates():
@@ -238,20 +245,51 @@ def test_plan_caps_and_candidates():
         bench.candidates(["nope"])
 
 
-def test_memory_measurement_sees_the_call_in_both_modes(tmp_path):
+def test_candidate_specs_carry_settings():
+    cand = bench.candidate("event_count:threshold=0.5")
+    assert cand.name == "event_count:threshold=0.5" and not cand.peer
+    assert cand.label == "EventCount (threshold=0.5)"
+    assert cand.build((8, 8, 2), 2).threshold == 0.5
+    assert bench.parse_spec("a:b=x, c=(1, 2)") == ("a", {"b": "x", "c": (1, 2)})
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        bench.candidate("event_count:threshold")
+    with pytest.raises(ValueError, match="does not take"):
+        bench.candidate("downsample:threshold=1")
+    if TONIC:
+        assert bench.candidate("tonic_integrator").peer
+        with pytest.raises(ValueError, match="takes no settings"):
+            bench.candidate("tonic_downsample:x=1")
+
+
+def _allocate(megabytes: int):
+    """A memory job's preparation (used through its file path): the call fills an array."""
+    return lambda: float(np.ones(megabytes * 125_000).sum())
+
+
+def test_memory_measurement_sees_the_call(tmp_path):
     n = 1_000_000
     path = tmp_path / "big.npy"
     np.save(path, bench.dvs_like_stream(n, (128, 128, 2), duration_us=1_000_000, seed=1))
-    job = bench.MemoryJob("downsample", str(path), (128, 128, 2), 4)
-    bad = bench.MemoryJob("downsample", str(path), (8, 8, 2), 4)  # events outside the sensor
-    results = bench.measure_memory([job, bad])
-    inline = bench.measure_memory([job], fork=False) if hasattr(bench.os, "fork") else results
+    job = bench.candidate_job("downsample", str(path), (128, 128, 2), 4)
+    jobs = [
+        job,
+        bench.candidate_job("downsample", str(path), (8, 8, 2), 4),  # events outside the sensor
+        bench.MemoryJob(f"{__file__}:_allocate", {"megabytes": 200}),
+        bench.MemoryJob(f"{__file__}:_allocate", {"megabytes": 20}),
+        bench.MemoryJob("no_colon", {}),
+    ]
+    forked, bad, big, little, unknown = bench.measure_memory(jobs)
+    [inline] = bench.measure_memory([job], fork=False) if hasattr(bench.os, "fork") else [forked]
     output_bytes = n * bench.DVS_DTYPE.itemsize  # the call returns a new array this size
-    for result in (results[0], inline[0]):
+    for result in (forked, inline):
         assert output_bytes < result["added"] < 40 * output_bytes, result
         assert result["total"] > result["added"] + 50e6  # interpreter, torch and the input
-    assert "ValueError" in results[1]["error"]
-    assert math.isfinite(results[0]["total"])
+        assert math.isfinite(result["total"]) and result["seconds"] > 0
+    assert "ValueError" in bad["error"]
+    assert 195e6 < big["added"] < 230e6, big
+    assert big["result"] == 25_000_000.0
+    assert 19e6 < little["added"] < 40e6, little
+    assert "MODULE:FUNCTION" in unknown["error"]
 
 
 def test_new_methods_in_the_registry_are_benchmarked(monkeypatch):
