@@ -136,8 +136,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="cap every stream at N events (quick checks)")
     bench.add_argument("--repeats", type=int, metavar="R",
                        help="timed calls per measurement of the method table (default 5)")
-    bench.add_argument("--methods", nargs="+", metavar="NAME",
-                       help="only these methods and peers (default: all)")
+    bench.add_argument("--methods", nargs="+", metavar="SPEC",
+                       help="only these methods and peers (default: all): NAME or "
+                       "NAME:KEY=VALUE,... for a method with other settings, e.g. "
+                       "lif:weight=1.5; peers: tonic_downsample, tonic_integrator, "
+                       "tonic_differentiator")
     bench.add_argument("--no-scaling", action="store_true", help="skip the scaling sweeps")
     bench.add_argument("--no-memory", action="store_true", help="skip peak-memory measurements")
     bench.set_defaults(run=_bench)

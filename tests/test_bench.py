@@ -302,3 +302,10 @@ def test_new_methods_in_the_registry_are_benchmarked(monkeypatch):
     assert names[-1] == "zz_copy"
     [cand] = bench.candidates(["zz_copy"])
     assert cand.build((8, 8, 2), 2).output_sensor_size == (4, 4, 2)
+
+
+def test_cli_rejects_a_bad_method_spec(tmp_path, capsys):
+    code = main(["bench", "--out", str(tmp_path / "o"), "--methods", "nope"])
+    assert code == 2
+    assert "unknown method or peer 'nope'" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
