@@ -2,12 +2,15 @@
 
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
+from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount, EventCountSession
 
 __all__ = [
+    "CubicEstimation",
     "Downscaler",
     "Downsample",
     "EventCount",
     "EventCountSession",
     "EventFunnelling",
+    "LinearEstimation",
 ]
