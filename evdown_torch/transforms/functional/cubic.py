@@ -16,18 +16,18 @@ from evdown_torch.transforms.functional._knots import (
     level_value,
     piece_time,
     pixel_knots,
-    repeat_index,
+    region_pixels,
+    run_index,
     segmented_cumsum,
+    take,
+    where_true,
 )
-from evdown_torch.transforms.functional._reference import (
-    crossings,
-    reference_index,
-    region_pixel_count,
-)
+from evdown_torch.transforms.functional._reference import crossings, reference_index
 from evdown_torch.transforms.functional.event_count import threshold_fraction
 
-#: Pixel-segment evaluations per memory chunk (bounds the kernel's peak memory).
-CHUNK = 1 << 22
+#: Pixel-segment evaluations per chunk: bounds the kernel's memory and keeps its temporary
+#: tensors small enough to be recycled by the allocator instead of faulted in afresh.
+CHUNK = 1 << 18
 
 #: Extrema of a piece closer than this (in the piece's normalised time) to its ends are
 #: ignored: the curve cannot move by a float-visible amount there.
@@ -37,13 +37,15 @@ EDGE = 1e-9
 MAX_ITERATIONS = 100
 
 
-def _shift(values: Tensor, by: int, fill: float | int) -> Tensor:
+def _shift(values: Tensor, by: int, fill: float | int | bool) -> Tensor:
     """``values`` moved ``by`` places to the right (left when negative), padded with ``fill``."""
-    out = torch.full_like(values, fill)
+    out = torch.empty_like(values)
     if by > 0:
         out[by:] = values[:-by]
+        out[:by] = fill
     else:
         out[:by] = values[-by:]
+        out[by:] = fill
     return out
 
 
@@ -67,28 +69,46 @@ def pchip_slopes(knots: Knots) -> tuple[Tensor, Tensor, Tensor]:
         (width 1, rise 0 after a pixel's last knot).
     """
     first, last = knots.first, knots.last
-    width = torch.ones(knots.t.shape[0], dtype=torch.float64, device=knots.t.device)
-    width[:-1] = (knots.t[1:] - knots.t[:-1]).to(torch.float64)
-    width[last] = 1.0
-    rise = _shift(knots.level, -1, 0) - knots.level
-    rise[last] = 0
-    rise = rise.to(torch.float64)
+    last_at = where_true(last)
+    width = torch.empty(knots.t.shape[0], dtype=torch.float64, device=knots.t.device)
+    width[:-1] = knots.t[1:] - knots.t[:-1]
+    width[-1:] = 1.0
+    width.scatter_(0, last_at, 1.0)
+    rise = torch.empty_like(width)
+    rise[:-1] = knots.level[1:] - knots.level[:-1]
+    rise[-1:] = 0.0
+    rise.scatter_(0, last_at, 0.0)
     m_next = rise / width
     w_prev, m_prev = _shift(width, 1, 1.0), _shift(m_next, 1, 0.0)
     # Interior knots: Fritsch-Carlson weighted harmonic mean, 0 at extrema and flat segments.
     flat = (torch.sign(m_next) != torch.sign(m_prev)) | (m_next == 0) | (m_prev == 0)
     w1 = 2 * width + w_prev
     w2 = width + 2 * w_prev
-    harmonic = (w1 + w2) / (w1 / m_prev + w2 / m_next)
-    slope = torch.where(flat, 0.0, harmonic)
+    slope = torch.where(flat, 0.0, (w1 + w2) / (w1 / m_prev + w2 / m_next))
+    del flat, w1, w2
     # End knots: two knots give a line, three or more SciPy's one-sided estimate.
-    front = _edge_slope(width, _shift(width, -1, 1.0), m_next, _shift(m_next, -1, 0.0))
-    back = _edge_slope(w_prev, _shift(w_prev, 1, 1.0), m_prev, _shift(m_prev, 1, 0.0))
-    two_after = _shift(last, -1, True)
-    two_before = _shift(first, 1, True)
-    slope = torch.where(first, torch.where(two_after, m_next, front), slope)
-    slope = torch.where(last, torch.where(two_before, m_prev, back), slope)
-    slope[first & last] = 0.0
+    first_at = where_true(first)
+    two = take(last, first_at + 1)  # the pixel has exactly two knots
+    front = torch.where(
+        two,
+        take(m_next, first_at),
+        _edge_slope(
+            take(width, first_at), take(width, first_at + 1),
+            take(m_next, first_at), take(m_next, first_at + 1),
+        ),
+    )
+    back = torch.where(
+        two,
+        take(m_prev, last_at),
+        _edge_slope(
+            take(w_prev, last_at), take(w_prev, last_at - 1),
+            take(m_prev, last_at), take(m_prev, last_at - 1),
+        ),
+    )
+    slope.scatter_(0, first_at, front)
+    slope.scatter_(0, last_at, back)
+    single = where_true(first & last)  # one knot: a constant (t_start == t_end)
+    slope.scatter_(0, single, 0.0)
     return slope, width, rise
 
 
@@ -96,45 +116,74 @@ def _mid_segment_sums(
     knots: Knots, slope: Tensor, width: Tensor, rise: Tensor
 ) -> tuple[Tensor, Tensor]:
     """Value above the segment start and derivative of the pixels strictly inside a segment,
-    summed per breakpoint (chunked, so memory stays bounded)."""
+    summed per breakpoint.
+
+    Every (segment, breakpoint strictly inside it) pair is evaluated in the segment's
+    normalised time ``s = (b - t_k) / width`` in chunks of :data:`CHUNK` pairs. Segments on
+    which the curve is constant are skipped.
+    """
     device = slope.device
     nb = knots.bp_t.shape[0]
-    sums = torch.zeros(nb, 2, dtype=torch.float64, device=device)
+    value_sum = torch.zeros(nb, dtype=torch.float64, device=device)
+    slope_sum = torch.zeros(nb, dtype=torch.float64, device=device)
     bp = knots.breakpoint
-    inside = _shift(bp, -1, 0) - bp - 1
-    inside[knots.last] = 0
-    # Hermite coefficients of each segment in its normalised time s in [0, 1].
+    inside = torch.zeros_like(bp)
+    inside[:-1] = bp[1:] - bp[:-1] - 1
+    inside.scatter_(0, where_true(knots.last), 0)
     c1 = width * slope
     c2_end = width * _shift(slope, -1, 0.0)
-    c2 = 3 * rise - 2 * c1 - c2_end
-    c3 = c1 + c2_end - 2 * rise
-    del c2_end
-    segments = torch.nonzero(inside).squeeze(1)
-    counts = inside[segments]
+    moving = (c1 != 0) | (c2_end != 0) | (rise != 0)
+    segments = where_true((inside > 0) & moving)
+    del moving
+    if segments.shape[0] == 0:
+        return value_sum, slope_sum
+    counts = take(inside, segments)
+    del inside
+    # Per segment: start, first breakpoint inside, and the Hermite coefficients in s.
+    if knots.t.is_floating_point():
+        bp_time, knot_time = knots.bp_t, knots.t
+    else:  # exact: integer offsets from t_start below 2**53
+        bp_time = (knots.bp_t - knots.t[0]).to(torch.float64)
+        knot_time = (knots.t - knots.t[0]).to(torch.float64)
+    start_t = take(knot_time, segments)
+    del knot_time
+    c1 = take(c1, segments)
+    c2_end = take(c2_end, segments)
+    r = take(rise, segments)
+    c2 = 3 * r - 2 * c1 - c2_end
+    c3 = c1 + c2_end - 2 * r
+    inv_w = 1.0 / take(width, segments)
+    del c2_end, r
     cum = torch.cumsum(counts, 0)
-    total = int(cum[-1]) if cum.numel() else 0
+    total = int(cum[-1])
+    begin = cum - counts  # first pair of each segment
+    first_target = take(bp, segments) + 1 - begin  # + pair index = breakpoint
+    del segments, counts
     for start in range(0, total, CHUNK):
         stop = min(start + CHUNK, total)
         lo = int(torch.searchsorted(cum, start, right=True))
         hi = int(torch.searchsorted(cum, stop - 1, right=True)) + 1
-        part = counts[lo:hi].clone()
-        offset = cum[lo:hi] - counts[lo:hi]
-        skip = start - int(offset[0])
-        part[0] -= skip
-        part[-1] -= int(cum[hi - 1]) - stop
-        local = repeat_index(part)
-        seg = segments[lo:hi][local]
-        within = torch.arange(stop - start, device=device) - (
-            torch.cumsum(part, 0) - part
-        )[local]
-        within[: int(part[0])] += skip
-        target = bp[seg] + 1 + within
-        s = (knots.bp_t[target] - knots.t[seg]).to(torch.float64) / width[seg]
-        a1, a2, a3 = c1[seg], c2[seg], c3[seg]
-        value = s * (a1 + s * (a2 + s * a3))
-        derivative = (a1 + s * (2 * a2 + 3 * a3 * s)) / width[seg]
-        sums.index_add_(0, target, torch.stack((value, derivative), 1))
-    return sums[:, 0], sums[:, 1]
+        # Pairs [start, stop) of segments [lo, hi): the segment of each pair, its breakpoint.
+        marks = torch.zeros(stop - start, dtype=torch.int64, device=device)
+        marks.scatter_(0, begin[lo + 1 : hi] - start, 1)
+        seg = torch.cumsum(marks, 0)
+        seg += lo
+        target = torch.arange(start, stop, device=device)
+        target += take(first_target, seg)
+        s = take(bp_time, target)
+        s -= take(start_t, seg)
+        s *= take(inv_w, seg)
+        a1, a2, a3 = take(c1, seg), take(c2, seg), take(c3, seg)
+        u = torch.addcmul(a2, s, a3)  # c2 + s c3
+        value = torch.addcmul(a1, s, u)
+        value *= s  # s (c1 + s (c2 + s c3))
+        value_sum.index_add_(0, target, value)
+        a3 *= s
+        a3.add_(u, alpha=2.0)  # 2 c2 + 3 c3 s
+        derivative = torch.addcmul(a1, s, a3, out=value)
+        derivative *= take(inv_w, seg)
+        slope_sum.index_add_(0, target, derivative)
+    return value_sum, slope_sum
 
 
 def _derivative_roots(c1: Tensor, c2: Tensor, c3: Tensor) -> tuple[Tensor, Tensor]:
@@ -230,63 +279,77 @@ def cubic_estimation(
     fraction = threshold_fraction(threshold)
     out_w = output_size(sensor_size, factor)[0]
     knots = pixel_knots(events, factor=factor, out_width=out_w)
+    del events
     slope, width, rise = pchip_slopes(knots)
 
     # n_r * M_r and its derivative at every breakpoint: exact integer part + the rest.
     nb = knots.bp_t.shape[0]
     bp_first = knots.bp_first
-    per_bp = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
+    bp_first_at = where_true(bp_first)
+    whole = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
         0, knots.breakpoint, level_changes(knots)
     )
-    whole = segmented_cumsum(per_bp, bp_first)
+    whole = segmented_cumsum(whole, bp_first_at, run_index(bp_first))
     part, derivative = _mid_segment_sums(knots, slope, width, rise)
     derivative.index_add_(0, knots.breakpoint, slope)
-    del slope, width, rise, per_bp
+    del slope, width, rise
 
     # The piece ending at each breakpoint (none before a region's first), normalised time.
-    prev = torch.clamp(torch.arange(nb, device=device) - 1, min=0)
-    gap = (knots.bp_t - knots.bp_t[prev]).to(torch.float64)
-    change = (whole - whole[prev]).to(torch.float64) + (part - part[prev])
-    m0, m1 = gap * derivative[prev], gap * derivative
-    c1 = torch.where(bp_first, 0.0, m0)
-    c2 = torch.where(bp_first, 0.0, 3 * change - 2 * m0 - m1)
-    c3 = torch.where(bp_first, 0.0, m0 + m1 - 2 * change)
-    del m0, m1, derivative, change
+    prev = torch.arange(-1, nb - 1, device=device)
+    prev[bp_first_at] = bp_first_at  # a region's first step is a jump, not a piece
+    gap = (knots.bp_t - take(knots.bp_t, prev)).to(torch.float64)
+    change = (whole - take(whole, prev)).to(torch.float64) + (part - take(part, prev))
+    m0, m1 = gap * take(derivative, prev), gap * derivative
+    del gap, derivative
+    c1 = m0
+    c2 = 3 * change - 2 * m0 - m1
+    c3 = m0 + m1 - 2 * change
+    del m1, change
+    for c in (c1, c2, c3):
+        c.scatter_(0, bp_first_at, 0.0)
     low, high = _derivative_roots(c1, c2, c3)
 
     # Monotone steps: up to two interior extrema, then the breakpoint (a jump at t_start).
-    ends = torch.stack((low, high, torch.ones_like(low)), 1)
-    valid = ~torch.isnan(ends)
-    step_bp = torch.arange(nb, device=device).unsqueeze(1).expand(nb, 3)[valid]
-    step_s = ends[valid]
-    del ends, valid, low, high
-    start = prev[step_bp]
+    ends = torch.stack((low, high, torch.ones_like(low)), 1).reshape(-1)
+    del low, high
+    step_at = where_true(~torch.isnan(ends))
+    step_s = take(ends, step_at)
+    step_bp = torch.div(step_at, 3, rounding_mode="floor")
+    del ends, step_at
+    start = take(prev, step_bp)
     is_end = step_s == 1.0
-    inner = step_s * (c1[step_bp] + step_s * (c2[step_bp] + step_s * c3[step_bp]))
-    step_whole = torch.where(is_end, whole[step_bp], whole[start])
-    step_part = torch.where(is_end, part[step_bp], part[start] + inner)
-    del inner
-    pixels = region_pixel_count(knots.bp_region[step_bp], sensor_size, factor)
-    floor_u, on_level = level_index(step_whole, step_part, pixels, fraction)
-    step_first = bp_first[step_bp] & is_end
+    inner = torch.addcmul(take(c2, step_bp), step_s, take(c3, step_bp))
+    inner = torch.addcmul(take(c1, step_bp), step_s, inner, out=inner)
+    inner *= step_s
+    step_whole = torch.where(is_end, take(whole, step_bp), take(whole, start))
+    step_part = torch.where(is_end, take(part, step_bp), inner.add_(take(part, start)))
+    del inner, start
+    pixels = region_pixels(knots.bp_region, sensor_size, factor)
+    step_pixels = pixels if isinstance(pixels, int) else take(pixels, step_bp)
+    floor_u, on_level = level_index(step_whole, step_part, step_pixels, fraction)
+    del step_whole, step_part
+    step_first = take(bp_first, step_bp) & is_end
     q = reference_index(floor_u, on_level, step_first, torch.zeros_like(floor_u))
     q_before = _shift(q, 1, 0)
-    q_before[step_first] = 0
+    q_before.scatter_(0, where_true(step_first), 0)
     cross = crossings(q_before, q)
+    del q, q_before, step_first, is_end
 
-    # Solve each crossing on its monotone step.
+    # Solve each crossing on its monotone step (the step before it ends where it starts).
     e = cross.step
-    i = step_bp[e]
-    jump = bp_first[i]
-    s_high = step_s[e]
-    s_low = torch.where(step_bp[e - 1] == i, step_s[e - 1], 0.0) if e.numel() else s_high
+    i = take(step_bp, e)
+    jump = take(bp_first, i)
+    s_high = take(step_s, e)
+    before = torch.clamp(e - 1, min=0)
+    s_low = torch.where(take(step_bp, before) == i, take(step_s, before), 0.0)
     s_low = torch.where(jump, s_high, s_low)
-    begin = prev[i]
-    goal = (level_value(cross.level, pixels[e], fraction) - whole[begin].to(torch.float64)) - part[
-        begin
-    ]
-    s = _solve(c1[i], c2[i], c3[i], goal, s_low, s_high, cross.on)
-    at_end = jump | (on_level[e] & (cross.level == floor_u[e]))
+    begin = take(prev, i)
+    piece_pixels = pixels if isinstance(pixels, int) else take(pixels, i)
+    goal = level_value(cross.level, piece_pixels, fraction)
+    goal -= take(whole, begin).to(torch.float64)
+    goal -= take(part, begin)
+    s = _solve(take(c1, i), take(c2, i), take(c3, i), goal, s_low, s_high, cross.on)
+    at_end = jump | (take(on_level, e) & (cross.level == take(floor_u, e)))
     s = torch.where(at_end, s_high, s)
-    t = piece_time(knots.bp_t[begin], knots.bp_t[i], s)
-    return emit(knots.bp_region[i], t, cross.on, out_w)
+    t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, i), s)
+    return emit(take(knots.bp_region, i), t, cross.on, out_w)

@@ -17,21 +17,22 @@ from evdown_torch.transforms.functional._knots import (
     level_value,
     piece_time,
     pixel_knots,
+    region_pixels,
     run_index,
     segmented_cumsum,
+    take,
+    where_true,
 )
-from evdown_torch.transforms.functional._reference import (
-    crossings,
-    reference_index,
-    region_pixel_count,
-)
+from evdown_torch.transforms.functional._reference import crossings, reference_index
 from evdown_torch.transforms.functional.event_count import threshold_fraction
 
 
-def _split(values: Tensor, scale: float) -> tuple[Tensor, Tensor]:
-    """``values = high / scale + low`` with ``high`` int64 and ``|low| <= 0.5 / scale`` exact."""
-    high = torch.round(values * scale)
-    return high.to(torch.int64), values - high / scale
+def _changes_at_knots(values: Tensor, first_at: Tensor) -> Tensor:
+    """Per knot, ``values`` minus its predecessor's in the same pixel (itself at a first)."""
+    change = values.clone()
+    change[1:] -= values[:-1]
+    change.scatter_(0, first_at, take(values, first_at))
+    return change
 
 
 def linear_estimation(
@@ -79,80 +80,88 @@ def linear_estimation(
     fraction = threshold_fraction(threshold)
     out_w = output_size(sensor_size, factor)[0]
     knots = pixel_knots(events, factor=factor, out_width=out_w)
+    del events
 
     # Slope of every segment, stored at its first knot (0 after a pixel's last knot).
     k = knots.t.shape[0]
-    rise = torch.zeros(k, dtype=torch.int64, device=device)
-    rise[:-1] = knots.level[1:] - knots.level[:-1]
-    rise[knots.last] = 0
+    first_at, last_at = where_true(knots.first), where_true(knots.last)
+    rise = torch.empty(k, dtype=torch.int64, device=device)
+    torch.sub(knots.level[1:], knots.level[:-1], out=rise[:-1])
+    rise.scatter_(0, last_at, 0)
     run = torch.ones(k, dtype=torch.float64, device=device)
-    run[:-1] = (knots.t[1:] - knots.t[:-1]).to(torch.float64)
-    run[knots.last] = 1.0
-    slope = rise.to(torch.float64) / run
-    del rise, run
+    run[:-1] = knots.t[1:] - knots.t[:-1]
+    run.scatter_(0, last_at, 1.0)
+    slope = rise.to(torch.float64).div_(run)
+    del rise, run, last_at
     # Fixed point for the slope sums: high parts add exactly in int64, low parts are tiny.
     bound = float(slope.abs().max()) * factor[0] * factor[1]
     scale = 2.0 ** (60 - math.frexp(bound)[1]) if bound > 0 else 1.0
-    high, low = _split(slope, scale)
-    del slope
+    high_f = torch.round(slope * scale)
+    low = slope.sub_(high_f / scale)
+    high = high_f.to(torch.int64)
+    del high_f, slope
 
-    # Per knot, the changes it brings to its breakpoint: level (exact), slope sum, count.
-    d_level = level_changes(knots)
-    d_high, d_low = high.clone(), low.clone()
-    d_high[1:] -= high[:-1]
-    d_low[1:] -= low[:-1]
-    d_high[knots.first] = high[knots.first]
-    d_low[knots.first] = low[knots.first]
-    del high, low
+    # Per breakpoint: level change (exact), slope-sum change (fixed point + rest), knot count.
     nb = knots.bp_t.shape[0]
-    ints = torch.stack((d_level, d_high, torch.ones_like(d_level)), 1)
-    per_bp = torch.zeros(nb, 3, dtype=torch.int64, device=device).index_add_(
-        0, knots.breakpoint, ints
+    bp = knots.breakpoint
+    level_bp = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
+        0, bp, level_changes(knots)
     )
-    bp_low = torch.zeros(nb, dtype=torch.float64, device=device).index_add_(
-        0, knots.breakpoint, d_low
+    high_bp = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
+        0, bp, _changes_at_knots(high, first_at)
     )
-    del ints, d_level, d_high, d_low
+    low_bp = torch.zeros(nb, dtype=torch.float64, device=device).index_add_(
+        0, bp, _changes_at_knots(low, first_at)
+    )
+    count = torch.bincount(bp, minlength=nb)
+    del high, low, first_at, bp
     bp_first = knots.bp_first
-    whole = segmented_cumsum(per_bp[:, 0], bp_first)  # exact integer part of n_r * M_r
-    slope_sum = torch.cumsum(per_bp[:, 1], 0).to(torch.float64) / scale + segmented_cumsum(
-        bp_low, bp_first
-    )
-    count = per_bp[:, 2]
-    active = count[bp_first][run_index(bp_first)]
-    idle = count == active  # no pixel strictly inside a segment: the remainder is exactly 0
+    bp_first_at = where_true(bp_first)
+    region = run_index(bp_first)
+    whole = segmented_cumsum(level_bp, bp_first_at, region)  # exact integer part of n_r * M_r
+    slope_sum = torch.cumsum(high_bp, 0).to(torch.float64).div_(scale)
+    slope_sum += torch.cumsum(low_bp, 0)
+    del level_bp, high_bp, low_bp
+    # No pixel strictly inside a segment (all active pixels have a knot): remainder exactly 0.
+    idle = count == take(take(count, bp_first_at), region)
+    del count
 
     # Remainder (pixels' progress inside their segments) by a sweep, reset where it is 0.
     gap = torch.zeros(nb, dtype=torch.float64, device=device)
-    gap[:-1] = (knots.bp_t[1:] - knots.bp_t[:-1]).to(torch.float64)
-    gap[knots.bp_last] = 0.0
-    step = torch.zeros(nb, dtype=torch.float64, device=device)
-    step[1:] = (slope_sum * gap)[:-1] - (whole[1:] - whole[:-1]).to(torch.float64)
-    step[bp_first] = 0.0
+    gap[:-1] = knots.bp_t[1:] - knots.bp_t[:-1]
+    gap.scatter_(0, where_true(knots.bp_last), 0.0)
+    step = torch.empty(nb, dtype=torch.float64, device=device)
+    step[0] = 0.0
+    torch.mul(slope_sum[:-1], gap[:-1], out=step[1:])
+    step[1:] -= (whole[1:] - whole[:-1]).to(torch.float64)
+    step.scatter_(0, bp_first_at, 0.0)
+    del gap, slope_sum
     total = torch.cumsum(step, 0)
-    part = total - total[idle][run_index(idle)]
-    del step, total, slope_sum
+    part = total - take(take(total, where_true(idle)), run_index(idle))
+    del step, total, idle
 
     # Reference rule on the breakpoints (each piece between breakpoints is monotone).
-    pixels = region_pixel_count(knots.bp_region, sensor_size, factor)
+    pixels = region_pixels(knots.bp_region, sensor_size, factor)
     floor_u, on_level = level_index(whole, part, pixels, fraction)
-    zero = torch.zeros_like(floor_u)
-    q = reference_index(floor_u, on_level, bp_first, zero)
+    q = reference_index(floor_u, on_level, bp_first, torch.zeros_like(floor_u))
     q_before = torch.empty_like(q)
     q_before[1:] = q[:-1]
-    q_before[bp_first] = 0
+    q_before.scatter_(0, bp_first_at, 0)
     cross = crossings(q_before, q)
+    del q, q_before
 
     # Crossing times: linear interpolation on the piece that ends at the crossing's step.
     end = cross.step
-    jump = bp_first[end]
-    begin = torch.where(jump, end, end - 1)
-    target = level_value(cross.level, pixels[end], fraction)
-    rise_whole = (whole[end] - whole[begin]).to(torch.float64)
-    ratio = ((target - whole[begin].to(torch.float64)) - part[begin]) / (
-        rise_whole + (part[end] - part[begin])
+    jump = take(bp_first, end)
+    begin = end - (~jump).to(torch.int64)
+    piece_pixels = pixels if isinstance(pixels, int) else take(pixels, end)
+    target = level_value(cross.level, piece_pixels, fraction)
+    whole_begin, part_begin = take(whole, begin), take(part, begin)
+    rise_whole = (take(whole, end) - whole_begin).to(torch.float64)
+    ratio = ((target - whole_begin.to(torch.float64)) - part_begin) / (
+        rise_whole + (take(part, end) - part_begin)
     )
-    at_end = jump | (on_level[end] & (cross.level == floor_u[end]))
+    at_end = jump | (take(on_level, end) & (cross.level == take(floor_u, end)))
     ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
-    t = piece_time(knots.bp_t[begin], knots.bp_t[end], ratio)
-    return emit(knots.bp_region[end], t, cross.on, out_w)
+    t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, end), ratio)
+    return emit(take(knots.bp_region, end), t, cross.on, out_w)
