@@ -189,20 +189,23 @@ def _mid_segment_sums(
 def _derivative_roots(c1: Tensor, c2: Tensor, c3: Tensor) -> tuple[Tensor, Tensor]:
     """Sign changes of ``c1 + 2 c2 s + 3 c3 s^2`` inside ``(EDGE, 1 - EDGE)``, ascending.
 
+    The roots are ``q / (3 c3)`` and ``c1 / q`` with ``q = -(c2 + sign(c2) sqrt(c2^2 -
+    3 c1 c3))``, free of cancellation; when ``c3 = 0`` the first is infinite and the second is
+    the linear root ``-c1 / (2 c2)``.
+
     Returns:
         ``(low, high)``; missing roots are NaN.
     """
-    a, b, c = 3 * c3, 2 * c2, c1
-    disc = b * b - 4 * a * c
-    root = torch.sqrt(torch.clamp(disc, min=0.0))
-    q = -0.5 * (b + torch.where(b < 0, -root, root))  # no cancellation
-    quadratic = (a != 0) & (disc > 0)
-    r1 = torch.where(quadratic, q / a, torch.where((a == 0) & (b != 0), -c / b, torch.nan))
-    r2 = torch.where(quadratic & (q != 0), c / q, torch.nan)
-    r1 = torch.where((r1 > EDGE) & (r1 < 1 - EDGE), r1, torch.nan)
-    r2 = torch.where((r2 > EDGE) & (r2 < 1 - EDGE), r2, torch.nan)
+    disc = torch.addcmul(c2 * c2, c1, c3, value=-3.0)
+    q = torch.copysign(torch.sqrt(disc), c2).add_(c2).neg_()  # NaN where disc < 0
+    q.masked_fill_(disc <= 0, torch.nan)  # a double root is no sign change
+    r1 = q / (3 * c3)
+    r2 = c1 / q
+    r1.masked_fill_(~((r1 > EDGE) & (r1 < 1 - EDGE)), torch.nan)
+    r2.masked_fill_(~((r2 > EDGE) & (r2 < 1 - EDGE)), torch.nan)
     low, high = torch.fmin(r1, r2), torch.fmax(r1, r2)
-    return low, torch.where(high > low, high, torch.nan)
+    high.masked_fill_(~(high > low), torch.nan)
+    return low, high
 
 
 def _solve(
@@ -231,6 +234,49 @@ def _solve(
         if x.numel() == 0 or float(moved.max()) <= 1e-15:
             break
     return x
+
+
+def _monotone_steps(
+    low: Tensor, high: Tensor, prev: Tensor, whole: Tensor, part: Tensor,
+    c1: Tensor, c2: Tensor, c3: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The monotone steps: each piece's interior extrema (if any), then its end.
+
+    Returns:
+        ``(step_bp, step_s, step_whole, step_part)``: for each step in order, the breakpoint
+        its piece ends at, its end in the piece's normalised time (1 at the breakpoint), and
+        ``n_r * M_r`` there as an exact integer part plus a float rest.
+    """
+    nb = low.shape[0]
+    has_low, has_high = ~torch.isnan(low), ~torch.isnan(high)
+    if not bool(has_low.any()):
+        return torch.arange(nb, device=low.device), torch.ones_like(low), whole, part
+    roots = has_low.to(torch.int64) + has_high.to(torch.int64)
+    end_pos = torch.cumsum(roots, 0)
+    end_pos += torch.arange(nb, device=low.device)  # a piece's end comes after its roots
+    total = int(end_pos[-1]) + 1
+    step_bp = torch.empty(total, dtype=torch.int64, device=low.device)
+    step_bp.scatter_(0, end_pos, torch.arange(nb, device=low.device))
+    step_s = torch.ones(total, dtype=torch.float64, device=low.device)
+    step_whole = torch.empty(total, dtype=torch.int64, device=low.device)
+    step_whole.scatter_(0, end_pos, whole)
+    step_part = torch.empty(total, dtype=torch.float64, device=low.device)
+    step_part.scatter_(0, end_pos, part)
+    low_at, high_at = where_true(has_low), where_true(has_high)
+    for at, s, pos in (
+        (low_at, take(low, low_at), take(end_pos, low_at) - take(roots, low_at)),
+        (high_at, take(high, high_at), take(end_pos, high_at) - 1),
+    ):
+        begin = take(prev, at)
+        value = torch.addcmul(take(c2, at), s, take(c3, at))
+        value = torch.addcmul(take(c1, at), s, value, out=value)
+        value *= s
+        value += take(part, begin)
+        step_bp.scatter_(0, pos, at)
+        step_s.scatter_(0, pos, s)
+        step_whole.scatter_(0, pos, take(whole, begin))
+        step_part.scatter_(0, pos, value)
+    return step_bp, step_s, step_whole, step_part
 
 
 def cubic_estimation(
@@ -310,30 +356,20 @@ def cubic_estimation(
     low, high = _derivative_roots(c1, c2, c3)
 
     # Monotone steps: up to two interior extrema, then the breakpoint (a jump at t_start).
-    ends = torch.stack((low, high, torch.ones_like(low)), 1).reshape(-1)
+    step_bp, step_s, step_whole, step_part = _monotone_steps(
+        low, high, prev, whole, part, c1, c2, c3
+    )
     del low, high
-    step_at = where_true(~torch.isnan(ends))
-    step_s = take(ends, step_at)
-    step_bp = torch.div(step_at, 3, rounding_mode="floor")
-    del ends, step_at
-    start = take(prev, step_bp)
     is_end = step_s == 1.0
-    inner = torch.addcmul(take(c2, step_bp), step_s, take(c3, step_bp))
-    inner = torch.addcmul(take(c1, step_bp), step_s, inner, out=inner)
-    inner *= step_s
-    step_whole = torch.where(is_end, take(whole, step_bp), take(whole, start))
-    step_part = torch.where(is_end, take(part, step_bp), inner.add_(take(part, start)))
-    del inner, start
     pixels = region_pixels(knots.bp_region, sensor_size, factor)
     step_pixels = pixels if isinstance(pixels, int) else take(pixels, step_bp)
     floor_u, on_level = level_index(step_whole, step_part, step_pixels, fraction)
-    del step_whole, step_part
     step_first = take(bp_first, step_bp) & is_end
     q = reference_index(floor_u, on_level, step_first, torch.zeros_like(floor_u))
     q_before = _shift(q, 1, 0)
     q_before.scatter_(0, where_true(step_first), 0)
     cross = crossings(q_before, q)
-    del q, q_before, step_first, is_end
+    del q, q_before, step_first, is_end, step_whole, step_part
 
     # Solve each crossing on its monotone step (the step before it ends where it starts).
     e = cross.step
