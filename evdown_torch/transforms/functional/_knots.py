@@ -49,9 +49,10 @@ class Knots(NamedTuple):
         last: ``(K,)`` bool, the knot is its pixel's last (always at ``t_end``).
         breakpoint: ``(K,)`` int64 index of the region breakpoint at the knot's time.
         bp_t: ``(B,)`` breakpoint times, the dtype of the events' ``t``.
-        bp_region: ``(B,)`` int64 region id ``ry * Wo + rx``.
         bp_first: ``(B,)`` bool, the region's first breakpoint (at ``t_start``).
         bp_last: ``(B,)`` bool, the region's last breakpoint (at ``t_end``).
+        regions: ``(R,)`` int64 ids ``ry * Wo + rx`` of the active regions, ascending.
+        region_first_bp: ``(R,)`` int64 index of each active region's first breakpoint.
     """
 
     t: Tensor
@@ -60,9 +61,15 @@ class Knots(NamedTuple):
     last: Tensor
     breakpoint: Tensor
     bp_t: Tensor
-    bp_region: Tensor
     bp_first: Tensor
     bp_last: Tensor
+    regions: Tensor
+    region_first_bp: Tensor
+
+    def bp_region(self, bp: Tensor) -> Tensor:
+        """Region id of the breakpoints ``bp`` (int64)."""
+        rank = torch.searchsorted(self.region_first_bp, bp, right=True) - 1
+        return take(self.regions, rank)
 
 
 def take(values: Tensor, index: Tensor) -> Tensor:
@@ -178,10 +185,16 @@ def pixel_knots(events: Events, *, factor: tuple[int, int], out_width: int) -> K
     extra_front = take(t_r, first_at) > t_start
     extra_back = take(t_r, last_at) < t_end
     front_i, back_i = extra_front.to(torch.int64), extra_back.to(torch.int64)
-    shift = torch.cumsum(front_i + back_i, 0) - back_i
+    # Breakpoint of each event: count the runs, plus the extra breakpoint before a region's
+    # first run and the one after the previous region's last run.
+    runs = new_run.to(torch.int64)
+    extra = front_i.clone()
+    extra[1:] += back_i[:-1]
+    runs.scatter_add_(0, first_at, extra)
+    event_bp = torch.cumsum(runs, 0)
+    event_bp -= 1
+    del runs, extra
     region_rank = run_index(region_start)
-    event_bp = run_index(new_run) + take(shift, region_rank)
-    del shift
     region_first_bp = take(event_bp, first_at) - front_i
     region_last_bp = take(event_bp, last_at) + back_i
     n_bp = int(region_last_bp[-1]) + 1
@@ -192,8 +205,7 @@ def pixel_knots(events: Events, *, factor: tuple[int, int], out_width: int) -> K
     bp_t.scatter_(0, fill_at, t_start.expand(fill_at.shape))
     fill_at = region_last_bp[extra_back]
     bp_t.scatter_(0, fill_at, t_end.expand(fill_at.shape))
-    del run_at, new_run, t_r, region_start, first_at, last_at
-    bp_region = take(active_regions, repeat_index(region_last_bp - region_first_bp + 1))
+    del run_at, new_run, t_r, region_start, first_at, last_at, fill_at
     bp_first = torch.zeros(n_bp, dtype=torch.bool, device=device)
     bp_first.scatter_(0, region_first_bp, True)
     bp_last = torch.zeros(n_bp, dtype=torch.bool, device=device)
@@ -242,18 +254,21 @@ def pixel_knots(events: Events, *, factor: tuple[int, int], out_width: int) -> K
         rank = take(region_rank, take(ek_rt, at))
         breakpoint.scatter_(0, knot_pos, take(region_bp, rank))
     return Knots(
-        knot_t, knot_level, first, ends(first), breakpoint, bp_t, bp_region, bp_first, bp_last
+        knot_t, knot_level, first, ends(first), breakpoint, bp_t, bp_first, bp_last,
+        active_regions, region_first_bp,
     )
 
 
 def region_pixels(
-    region: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+    knots: Knots, sensor_size: tuple[int, int, int], factor: tuple[int, int]
 ) -> Tensor | int:
-    """``n_r`` of each region: the int ``fx * fy`` when the factor divides the sensor."""
+    """``n_r`` of each breakpoint's region: the int ``fx * fy`` when the factor divides the
+    sensor, else a ``(B,)`` int64 tensor."""
     w, h, _ = sensor_size
     if w % factor[0] == 0 and h % factor[1] == 0:
         return factor[0] * factor[1]
-    return region_pixel_count(region, sensor_size, factor)
+    per_region = region_pixel_count(knots.regions, sensor_size, factor)
+    return take(per_region, run_index(knots.bp_first))
 
 
 def level_index(

@@ -361,7 +361,7 @@ def cubic_estimation(
     )
     del low, high
     is_end = step_s == 1.0
-    pixels = region_pixels(knots.bp_region, sensor_size, factor)
+    pixels = region_pixels(knots, sensor_size, factor)
     step_pixels = pixels if isinstance(pixels, int) else take(pixels, step_bp)
     floor_u, on_level = level_index(step_whole, step_part, step_pixels, fraction)
     step_first = take(bp_first, step_bp) & is_end
@@ -388,4 +388,4 @@ def cubic_estimation(
     at_end = jump | (take(on_level, e) & (cross.level == take(floor_u, e)))
     s = torch.where(at_end, s_high, s)
     t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, i), s)
-    return emit(take(knots.bp_region, i), t, cross.on, out_w)
+    return emit(knots.bp_region(i), t, cross.on, out_w)

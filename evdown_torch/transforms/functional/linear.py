@@ -141,7 +141,7 @@ def linear_estimation(
     del step, total, idle
 
     # Reference rule on the breakpoints (each piece between breakpoints is monotone).
-    pixels = region_pixels(knots.bp_region, sensor_size, factor)
+    pixels = region_pixels(knots, sensor_size, factor)
     floor_u, on_level = level_index(whole, part, pixels, fraction)
     q = reference_index(floor_u, on_level, bp_first, torch.zeros_like(floor_u))
     q_before = torch.empty_like(q)
@@ -164,4 +164,4 @@ def linear_estimation(
     at_end = jump | (take(on_level, end) & (cross.level == take(floor_u, end)))
     ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
     t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, end), ratio)
-    return emit(take(knots.bp_region, end), t, cross.on, out_w)
+    return emit(knots.bp_region(end), t, cross.on, out_w)
