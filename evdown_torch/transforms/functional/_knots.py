@@ -21,6 +21,7 @@ the exact level test (:func:`level_index`) and the output assembly (:func:`emit`
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from fractions import Fraction
 from typing import NamedTuple
 
@@ -30,6 +31,9 @@ from torch import Tensor
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._common import region_of
 from evdown_torch.transforms.functional._reference import region_pixel_count
+
+#: Events per chunk of regions (see :func:`region_chunks`).
+CHUNK_EVENTS = 1 << 20
 
 #: A region level within this many thresholds of a level is on it (see :func:`level_index`).
 SNAP = 1e-9
@@ -133,45 +137,93 @@ def sort_small(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:
     return values.to(torch.int64), order
 
 
-def pixel_knots(events: Events, *, factor: tuple[int, int], out_width: int) -> Knots:
-    """Knots of every active pixel and breakpoints of every active region.
+class RegionChunk(NamedTuple):
+    """The events of consecutive output regions, in region-time order.
+
+    Attributes:
+        region: ``(n,)`` int64 region id ``ry * Wo + rx``, ascending.
+        local: ``(n,)`` int64 pixel index inside the region, ``(y % fy) * fx + x % fx``.
+        t: ``(n,)`` timestamps, ascending inside each region.
+        p: ``(n,)`` bool polarity.
+    """
+
+    region: Tensor
+    local: Tensor
+    t: Tensor
+    p: Tensor
+
+
+def region_chunks(
+    events: Events, *, factor: tuple[int, int], out_width: int, size: int = CHUNK_EVENTS
+) -> Iterator[RegionChunk]:
+    """Split a stream into chunks of whole regions with about ``size`` events each.
+
+    Regions do not interact, so the estimators process them chunk by chunk: this bounds their
+    memory and keeps temporary tensors small (much faster on the CPU than tensors of hundreds
+    of MB, which the allocator faults in afresh every time).
 
     Args:
         events: ``N >= 1`` events in stable time order.
         factor: ``(fx, fy)``.
         out_width: ``Wo``, the output sensor width.
+        size: target number of events per chunk (a chunk holds at least one whole region).
+
+    Yields:
+        :class:`RegionChunk` s covering the stream, regions ascending.
+    """
+    fx, fy = factor
+    rx, ry = region_of(events, factor)
+    region = ry * out_width + rx
+    local = (events.y - ry * fy) * fx + (events.x - rx * fx)
+    del rx, ry
+    region, order = sort_small(region, int(region.max()) + 1)
+    n = region.shape[0]
+    bounds = [0, n]
+    if n > size:
+        starts = where_true(changes(region))
+        wanted = torch.arange(size, n, size, device=region.device)
+        after = torch.searchsorted(starts, wanted).clamp(max=starts.shape[0] - 1)
+        bounds = sorted({0, n, *take(starts, after).tolist()})
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        index = order[lo:hi]
+        yield RegionChunk(region[lo:hi], take(local, index), take(events.t, index),
+                          take(events.p, index))
+
+
+def pixel_knots(
+    chunk: RegionChunk, *, factor: tuple[int, int], t_start: Tensor, t_end: Tensor
+) -> Knots:
+    """Knots of every active pixel and breakpoints of every active region of a chunk.
+
+    Args:
+        chunk: the events of consecutive regions (see :func:`region_chunks`).
+        factor: ``(fx, fy)``.
+        t_start: ``()`` first timestamp of the whole stream.
+        t_end: ``()`` last timestamp of the whole stream.
 
     Returns:
         The :class:`Knots`.
 
     Example:
         >>> ev = Events.from_columns([0, 1, 0], [0, 0, 0], [0, 5, 5], [1, 1, 1])
-        >>> k = pixel_knots(ev, factor=(2, 1), out_width=1)
+        >>> chunk = next(region_chunks(ev, factor=(2, 1), out_width=1))
+        >>> k = pixel_knots(chunk, factor=(2, 1), t_start=ev.t[0], t_end=ev.t[-1])
         >>> k.t.tolist(), k.level.tolist(), k.breakpoint.tolist(), k.bp_t.tolist()
         ([0, 5, 0, 5], [1, 2, 0, 1], [0, 1, 0, 1], [0, 5])
     """
-    device = events.device
-    fx, fy = factor
-    per_region = fx * fy
-    n = events.num_events
-    t = events.t
-    t_start, t_end = t[0], t[n - 1]
+    region_r, t_r = chunk.region, chunk.t
+    device = t_r.device
+    n = t_r.shape[0]
+    per_region = factor[0] * factor[1]
 
-    # Region-time order (stable by region), then pixel order (stable by pixel inside regions).
-    rx, ry = region_of(events, factor)
-    region = ry * out_width + rx
-    local = (events.y - ry * fy) * fx + (events.x - rx * fx)
-    del rx, ry
-    bound = int(region.max()) + 1
-    region_r, order = sort_small(region, bound)
-    del region
-    key_r = region_r * per_region + take(local, order)
-    key_p, to_region_time = sort_small(key_r, bound * per_region)
-    del local, key_r
-    t_r = take(t, order)
+    # Pixel order: stable by pixel inside regions (keys relative to the chunk's first region).
+    first_region = region_r[0]
+    key_r = (region_r - first_region) * per_region + chunk.local
+    bound = (int(region_r[n - 1] - first_region) + 1) * per_region
+    key_p, to_region_time = sort_small(key_r, bound)
+    del key_r
     t_p = take(t_r, to_region_time)
-    step_p = take(events.p, take(order, to_region_time)).to(torch.int64) * 2 - 1
-    del order
+    step_p = take(chunk.p, to_region_time).to(torch.int64) * 2 - 1
 
     # Breakpoints. In region-time order every event belongs to the run of its (region, t);
     # each run is a breakpoint, and a region whose first (last) event is later (earlier) than
@@ -181,7 +233,6 @@ def pixel_knots(events: Events, *, factor: tuple[int, int], out_width: int) -> K
     first_at = where_true(region_start)
     last_at = where_true(ends(region_start))
     active_regions = take(region_r, first_at)
-    del region_r
     extra_front = take(t_r, first_at) > t_start
     extra_back = take(t_r, last_at) < t_end
     front_i, back_i = extra_front.to(torch.int64), extra_back.to(torch.int64)
@@ -199,13 +250,13 @@ def pixel_knots(events: Events, *, factor: tuple[int, int], out_width: int) -> K
     region_last_bp = take(event_bp, last_at) + back_i
     n_bp = int(region_last_bp[-1]) + 1
     run_at = where_true(new_run)
-    bp_t = torch.empty(n_bp, dtype=t.dtype, device=device)
+    bp_t = torch.empty(n_bp, dtype=t_r.dtype, device=device)
     bp_t.scatter_(0, take(event_bp, run_at), take(t_r, run_at))
     fill_at = region_first_bp[extra_front]
     bp_t.scatter_(0, fill_at, t_start.expand(fill_at.shape))
     fill_at = region_last_bp[extra_back]
     bp_t.scatter_(0, fill_at, t_end.expand(fill_at.shape))
-    del run_at, new_run, t_r, region_start, first_at, last_at, fill_at
+    del run_at, new_run, region_start, first_at, last_at, fill_at
     bp_first = torch.zeros(n_bp, dtype=torch.bool, device=device)
     bp_first.scatter_(0, region_first_bp, True)
     bp_last = torch.zeros(n_bp, dtype=torch.bool, device=device)
@@ -236,7 +287,7 @@ def pixel_knots(events: Events, *, factor: tuple[int, int], out_width: int) -> K
     front_at, back_at = where_true(front), where_true(back)
     front_pos, back_pos = take(pos, front_at) - 1, take(pos, back_at) + 1
     total = ke + front_at.shape[0] + back_at.shape[0]
-    knot_t = torch.empty(total, dtype=t.dtype, device=device)
+    knot_t = torch.empty(total, dtype=t_r.dtype, device=device)
     knot_t.scatter_(0, pos, ek_t)
     knot_t.scatter_(0, front_pos, t_start.expand(front_pos.shape))
     knot_t.scatter_(0, back_pos, t_end.expand(back_pos.shape))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import torch
 from torch import Tensor
 
@@ -16,6 +18,7 @@ from evdown_torch.transforms.functional._knots import (
     level_value,
     piece_time,
     pixel_knots,
+    region_chunks,
     region_pixels,
     run_index,
     segmented_cumsum,
@@ -319,13 +322,32 @@ def cubic_estimation(
         ([0, 0, 5, 10], [True, True, True, True])
     """
     events = sort_by_time(events)
-    device = events.device
     if events.num_events == 0:
-        return Events.empty(events.t.dtype, device)
+        return Events.empty(events.t.dtype, events.device)
     fraction = threshold_fraction(threshold)
     out_w = output_size(sensor_size, factor)[0]
-    knots = pixel_knots(events, factor=factor, out_width=out_w)
-    del events
+    t_start, t_end = events.t[0], events.t[-1]
+    outputs = [
+        _cubic_regions(
+            pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end),
+            sensor_size=sensor_size, factor=factor, threshold=fraction,
+        )
+        for chunk in region_chunks(events, factor=factor, out_width=out_w)
+    ]
+    region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+    return emit(region, t, on, out_w)
+
+
+def _cubic_regions(
+    knots: Knots,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: Fraction,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Crossings of the regions of one chunk: ``(region, t, on)`` in region order."""
+    device = knots.t.device
+    fraction = threshold
     slope, width, rise = pchip_slopes(knots)
 
     # n_r * M_r and its derivative at every breakpoint: exact integer part + the rest.
@@ -388,4 +410,4 @@ def cubic_estimation(
     at_end = jump | (take(on_level, e) & (cross.level == take(floor_u, e)))
     s = torch.where(at_end, s_high, s)
     t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, i), s)
-    return emit(knots.bp_region(i), t, cross.on, out_w)
+    return knots.bp_region(i), t, cross.on

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 import torch
 from torch import Tensor
@@ -11,12 +12,14 @@ from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._common import sort_by_time
 from evdown_torch.transforms.functional._knots import (
+    Knots,
     emit,
     level_changes,
     level_index,
     level_value,
     piece_time,
     pixel_knots,
+    region_chunks,
     region_pixels,
     run_index,
     segmented_cumsum,
@@ -74,13 +77,32 @@ def linear_estimation(
         ([0, 0, 5, 10], [True, True, True, True])
     """
     events = sort_by_time(events)
-    device = events.device
     if events.num_events == 0:
-        return Events.empty(events.t.dtype, device)
+        return Events.empty(events.t.dtype, events.device)
     fraction = threshold_fraction(threshold)
     out_w = output_size(sensor_size, factor)[0]
-    knots = pixel_knots(events, factor=factor, out_width=out_w)
-    del events
+    t_start, t_end = events.t[0], events.t[-1]
+    outputs = [
+        _linear_regions(
+            pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end),
+            sensor_size=sensor_size, factor=factor, threshold=fraction,
+        )
+        for chunk in region_chunks(events, factor=factor, out_width=out_w)
+    ]
+    region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+    return emit(region, t, on, out_w)
+
+
+def _linear_regions(
+    knots: Knots,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: Fraction,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Crossings of the regions of one chunk: ``(region, t, on)`` in region order."""
+    device = knots.t.device
+    fraction = threshold
 
     # Slope of every segment, stored at its first knot (0 after a pixel's last knot).
     k = knots.t.shape[0]
@@ -164,4 +186,4 @@ def linear_estimation(
     at_end = jump | (take(on_level, end) & (cross.level == take(floor_u, end)))
     ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
     t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, end), ratio)
-    return emit(knots.bp_region(end), t, cross.on, out_w)
+    return knots.bp_region(end), t, cross.on
