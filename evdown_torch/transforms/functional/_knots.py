@@ -35,6 +35,9 @@ from evdown_torch.transforms.functional._reference import region_pixel_count
 #: Events per chunk of regions (see :func:`region_chunks`).
 CHUNK_EVENTS = 1 << 20
 
+#: Integer crossing times: an offset this close below a half tick rounds up (see piece_time).
+HALF_TOLERANCE = 1e-9
+
 #: A region level within this many thresholds of a level is on it (see :func:`level_index`).
 SNAP = 1e-9
 
@@ -397,13 +400,19 @@ def piece_time(t0: Tensor, t1: Tensor, s: Tensor) -> Tensor:
     """Time at normalised position ``s`` in ``[0, 1]`` of the pieces ``[t0, t1]``.
 
     Integer times are rounded half up, ``t0 + floor(s * (t1 - t0) + 0.5)``, computed from the
-    piece's start so that shifting the clock shifts the result exactly. ``s == 1`` gives
+    piece's start so that shifting the clock shifts the result exactly. An offset within float
+    noise (:data:`HALF_TOLERANCE`, plus 1e-12 of the piece) below a half counts as the half, so
+    that crossings exactly halfway between two ticks round up as they should. ``s == 1`` gives
     ``t1`` exactly.
     """
     span = t1 - t0
     if t0.is_floating_point():
         return torch.where(s >= 1, t1, torch.minimum(t0 + s * span, t1))
-    return t0 + torch.floor(s * span.to(torch.float64) + 0.5).to(torch.int64)
+    span_f = span.to(torch.float64)
+    offset = s * span_f
+    offset += 0.5 + HALF_TOLERANCE
+    offset += 1e-12 * span_f
+    return t0 + torch.minimum(torch.floor(offset), span_f).to(torch.int64)
 
 
 def emit(region: Tensor, t: Tensor, on: Tensor, out_width: int) -> Events:

@@ -36,6 +36,9 @@ CHUNK = 1 << 18
 #: ignored: the curve cannot move by a float-visible amount there.
 EDGE = 1e-9
 
+#: Relative size of a derivative's discriminant below which its roots count as one double root.
+DOUBLE_ROOT = 1e-12
+
 #: Most iterations of the safeguarded Newton solver (each at least halves the bracket).
 MAX_ITERATIONS = 100
 
@@ -91,21 +94,22 @@ def pchip_slopes(knots: Knots) -> tuple[Tensor, Tensor, Tensor]:
     del flat, w1, w2
     # End knots: two knots give a line, three or more SciPy's one-sided estimate.
     first_at = where_true(first)
-    two = take(last, first_at + 1)  # the pixel has exactly two knots
+    # The knots after a first and before a last (clamped: a pixel with one knot is set below).
+    after = torch.clamp(first_at + 1, max=first.shape[0] - 1)
+    before = torch.clamp(last_at - 1, min=0)
+    two = take(last, after)  # the pixel has exactly two knots
     front = torch.where(
         two,
         take(m_next, first_at),
         _edge_slope(
-            take(width, first_at), take(width, first_at + 1),
-            take(m_next, first_at), take(m_next, first_at + 1),
+            take(width, first_at), take(width, after), take(m_next, first_at), take(m_next, after)
         ),
     )
     back = torch.where(
         two,
         take(m_prev, last_at),
         _edge_slope(
-            take(w_prev, last_at), take(w_prev, last_at - 1),
-            take(m_prev, last_at), take(m_prev, last_at - 1),
+            take(w_prev, last_at), take(w_prev, before), take(m_prev, last_at), take(m_prev, before)
         ),
     )
     slope.scatter_(0, first_at, front)
@@ -199,9 +203,13 @@ def _derivative_roots(c1: Tensor, c2: Tensor, c3: Tensor) -> tuple[Tensor, Tenso
     Returns:
         ``(low, high)``; missing roots are NaN.
     """
-    disc = torch.addcmul(c2 * c2, c1, c3, value=-3.0)
+    square = c2 * c2
+    disc = torch.addcmul(square, c1, c3, value=-3.0)
     q = torch.copysign(torch.sqrt(disc), c2).add_(c2).neg_()  # NaN where disc < 0
-    q.masked_fill_(disc <= 0, torch.nan)  # a double root is no sign change
+    # A double root is no sign change; within float noise of one, the curve cannot move by a
+    # visible amount between the two roots (PCHIP pieces such as 1 - (1 - s)^3 have one).
+    noise = torch.addcmul(square, c1, c3, value=3.0).abs_().mul_(DOUBLE_ROOT)
+    q.masked_fill_(disc <= noise, torch.nan)
     r1 = q / (3 * c3)
     r2 = c1 / q
     r1.masked_fill_(~((r1 > EDGE) & (r1 < 1 - EDGE)), torch.nan)
