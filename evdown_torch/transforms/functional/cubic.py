@@ -30,7 +30,7 @@ from evdown_torch.transforms.functional.event_count import threshold_fraction
 
 #: Pixel-segment evaluations per chunk: bounds the kernel's memory and keeps its temporary
 #: tensors small enough to be recycled by the allocator instead of faulted in afresh.
-CHUNK = 1 << 18
+CHUNK = 1 << 16
 
 #: Extrema of a piece closer than this (in the piece's normalised time) to its ends are
 #: ignored: the curve cannot move by a float-visible amount there.
@@ -75,22 +75,25 @@ def pchip_slopes(knots: Knots) -> tuple[Tensor, Tensor, Tensor]:
         (width 1, rise 0 after a pixel's last knot).
     """
     first, last = knots.first, knots.last
+    k = knots.t.shape[0]
     last_at = where_true(last)
-    width = torch.empty(knots.t.shape[0], dtype=torch.float64, device=knots.t.device)
-    width[:-1] = knots.t[1:] - knots.t[:-1]
-    width[-1:] = 1.0
-    width.scatter_(0, last_at, 1.0)
-    rise = torch.empty_like(width)
-    rise[:-1] = knots.level[1:] - knots.level[:-1]
-    rise[-1:] = 0.0
-    rise.scatter_(0, last_at, 0.0)
-    m_next = rise / width
-    w_prev, m_prev = _shift(width, 1, 1.0), _shift(m_next, 1, 0.0)
-    # Interior knots: Fritsch-Carlson weighted harmonic mean, 0 at extrema and flat segments.
-    flat = (torch.sign(m_next) != torch.sign(m_prev)) | (m_next == 0) | (m_prev == 0)
-    w1 = 2 * width + w_prev
-    w2 = width + 2 * w_prev
-    slope = torch.where(flat, 0.0, (w1 + w2) / (w1 / m_prev + w2 / m_next))
+    # Segments between consecutive knots (K + 1 entries, so that shifted views need no copy).
+    width_ext = torch.ones(k + 1, dtype=torch.float64, device=knots.t.device)
+    torch.sub(knots.t[1:], knots.t[:-1], out=width_ext[1:-1])
+    rise_ext = torch.zeros_like(width_ext)
+    torch.sub(knots.level[1:], knots.level[:-1], out=rise_ext[1:-1])
+    width_ext.scatter_(0, last_at + 1, 1.0)  # no segment after a pixel's last knot
+    rise_ext.scatter_(0, last_at + 1, 0.0)
+    m_ext = rise_ext / width_ext
+    width, rise, m_next = width_ext[1:], rise_ext[1:], m_ext[1:]
+    w_prev, m_prev = width_ext[:-1], m_ext[:-1]
+    # Interior knots: Fritsch-Carlson weighted harmonic mean, 0 at extrema and flat segments
+    # (slopes are at least 1 / 2**63 in size, so their product cannot underflow to 0).
+    flat = (m_next * m_prev) <= 0
+    w1 = torch.add(w_prev, width, alpha=2.0)
+    w2 = torch.add(width, w_prev, alpha=2.0)
+    slope = torch.add(w1, w2).div_(torch.div(w1, m_prev).add_(w2.div_(m_next)))
+    slope.masked_fill_(flat, 0.0)
     del flat, w1, w2
     # End knots: two knots give a line, three or more SciPy's one-sided estimate.
     first_at = where_true(first)
@@ -166,30 +169,39 @@ def _mid_segment_sums(
     begin = cum - counts  # first pair of each segment
     first_target = take(bp, segments) + 1 - begin  # + pair index = breakpoint
     del segments, counts
+    # Buffers reused by every chunk: fresh temporaries would be faulted in each time.
+    size = min(CHUNK, total)
+    ints = torch.empty(3, size, dtype=torch.int64, device=device)
+    floats = torch.empty(7, size, dtype=torch.float64, device=device)
     for start in range(0, total, CHUNK):
         stop = min(start + CHUNK, total)
+        m = stop - start
         lo = int(torch.searchsorted(cum, start, right=True))
         hi = int(torch.searchsorted(cum, stop - 1, right=True)) + 1
+        marks, seg, target = ints[0, :m], ints[1, :m], ints[2, :m]
+        s, a1, a2, a3, w, u, v = (row[:m] for row in floats)
         # Pairs [start, stop) of segments [lo, hi): the segment of each pair, its breakpoint.
-        marks = torch.zeros(stop - start, dtype=torch.int64, device=device)
+        marks.zero_()
         marks.scatter_(0, begin[lo + 1 : hi] - start, 1)
-        seg = torch.cumsum(marks, 0)
+        torch.cumsum(marks, 0, out=seg)
         seg += lo
-        target = torch.arange(start, stop, device=device)
-        target += take(first_target, seg)
-        s = take(bp_time, target)
-        s -= take(start_t, seg)
-        s *= take(inv_w, seg)
-        a1, a2, a3 = take(c1, seg), take(c2, seg), take(c3, seg)
-        u = torch.addcmul(a2, s, a3)  # c2 + s c3
-        value = torch.addcmul(a1, s, u)
-        value *= s  # s (c1 + s (c2 + s c3))
-        value_sum.index_add_(0, target, value)
+        torch.arange(start, stop, out=target)
+        target += torch.index_select(first_target, 0, seg, out=marks)
+        torch.index_select(bp_time, 0, target, out=s)
+        s -= torch.index_select(start_t, 0, seg, out=a1)
+        s *= torch.index_select(inv_w, 0, seg, out=w)
+        torch.index_select(c1, 0, seg, out=a1)
+        torch.index_select(c2, 0, seg, out=a2)
+        torch.index_select(c3, 0, seg, out=a3)
+        torch.addcmul(a2, s, a3, out=u)  # c2 + s c3
+        torch.addcmul(a1, s, u, out=v)
+        v *= s  # s (c1 + s (c2 + s c3))
+        value_sum.index_add_(0, target, v)
         a3 *= s
         a3.add_(u, alpha=2.0)  # 2 c2 + 3 c3 s
-        derivative = torch.addcmul(a1, s, a3, out=value)
-        derivative *= take(inv_w, seg)
-        slope_sum.index_add_(0, target, derivative)
+        torch.addcmul(a1, s, a3, out=v)
+        v *= w  # derivative per time unit
+        slope_sum.index_add_(0, target, v)
     return value_sum, slope_sum
 
 
