@@ -22,6 +22,13 @@ class LinearEstimation(Downscaler):
     its region's polylines with the DVS reference rule at contrast ``threshold`` and emits an
     event at every exact crossing time (rounded half up when timestamps are integers).
 
+    Levels at knots are exact (integer arithmetic where no pixel is between knots, so
+    ``factor=1, threshold=1`` returns the input). Elsewhere the kernel works in float64 and
+    absorbs rounding where real arithmetic would be exact: a region within 1e-9 thresholds of
+    a level is on it, and an integer crossing time within 1e-9 of a tick below a half rounds
+    up. All time arithmetic is relative to breakpoints, so shifting the clock shifts the
+    output exactly.
+
     Args:
         sensor_size: input sensor size ``(W, H, P)``.
         factor: a positive integer or a pair ``(fx, fy)``.
@@ -56,7 +63,8 @@ class CubicEstimation(Downscaler):
     As :class:`LinearEstimation`, but each pixel's curve is the piecewise cubic Hermite
     interpolant of its knots with SciPy's ``PchipInterpolator`` slopes (two knots give a line,
     one a constant). Crossing times are solved on each monotone part of a region's cubic to
-    about 1e-15 of the piece's length (rounded half up when timestamps are integers).
+    about 1e-15 of the piece's length (rounded half up when timestamps are integers), with the
+    same numerical conventions as :class:`LinearEstimation`.
 
     Args:
         sensor_size: input sensor size ``(W, H, P)``.

@@ -7,8 +7,10 @@ than ``t_start`` and a back knot ``(t_end, last level)`` when its last knot is e
 ``t_end``. So every active pixel's curve spans exactly ``[t_start, t_end]``; a pixel without
 events stays at level 0 and is not represented.
 
-A region's mean curve ``M_r`` has its breakpoints at the union of its pixels' knot times. This
-module builds, without a Python loop over events, pixels or regions:
+A region's mean curve ``M_r`` has its breakpoints at the union of its pixels' knot times.
+Regions do not interact, so the estimators take them in chunks of whole regions
+(:func:`region_chunks`); for each chunk this module builds, without a Python loop over events,
+pixels or regions (:func:`pixel_knots`):
 
 * the knots of every active pixel in *pixel order* (grouped by region, then by pixel, then in
   time order), and
@@ -106,22 +108,6 @@ def ends(starts: Tensor) -> Tensor:
 def run_index(starts: Tensor) -> Tensor:
     """``(N,)`` int64 index of the run each element belongs to, given the runs' ``starts``."""
     return torch.cumsum(starts.to(torch.int64), 0) - 1
-
-
-def repeat_index(counts: Tensor) -> Tensor:
-    """``repeat_interleave(arange(len(counts)), counts)``, faster on the CPU.
-
-    Args:
-        counts: ``(M,)`` non-negative int64.
-
-    Returns:
-        ``(counts.sum(),)`` int64, index ``i`` repeated ``counts[i]`` times.
-    """
-    total = int(counts.sum())
-    marks = torch.zeros(total + 1, dtype=torch.int64, device=counts.device)
-    starts = torch.cumsum(counts, 0) - counts
-    marks.index_add_(0, starts, torch.ones_like(counts))
-    return torch.cumsum(marks[:total], 0) - 1
 
 
 def sort_small(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:

@@ -350,7 +350,7 @@ def cubic_estimation(
     outputs = [
         _cubic_regions(
             pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end),
-            sensor_size=sensor_size, factor=factor, threshold=fraction,
+            sensor_size=sensor_size, factor=factor, fraction=fraction,
         )
         for chunk in region_chunks(events, factor=factor, out_width=out_w)
     ]
@@ -363,11 +363,13 @@ def _cubic_regions(
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
-    threshold: Fraction,
+    fraction: Fraction,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Crossings of the regions of one chunk: ``(region, t, on)`` in region order."""
+    """Crossings of the regions of one chunk: ``(region, t, on)`` in region order.
+
+    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``.
+    """
     device = knots.t.device
-    fraction = threshold
     slope, width, rise = pchip_slopes(knots)
 
     # n_r * M_r and its derivative at every breakpoint: exact integer part + the rest.

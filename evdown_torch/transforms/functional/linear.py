@@ -85,7 +85,7 @@ def linear_estimation(
     outputs = [
         _linear_regions(
             pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end),
-            sensor_size=sensor_size, factor=factor, threshold=fraction,
+            sensor_size=sensor_size, factor=factor, fraction=fraction,
         )
         for chunk in region_chunks(events, factor=factor, out_width=out_w)
     ]
@@ -98,11 +98,13 @@ def _linear_regions(
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
-    threshold: Fraction,
+    fraction: Fraction,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Crossings of the regions of one chunk: ``(region, t, on)`` in region order."""
+    """Crossings of the regions of one chunk: ``(region, t, on)`` in region order.
+
+    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``.
+    """
     device = knots.t.device
-    fraction = threshold
 
     # Slope of every segment, stored at its first knot (0 after a pixel's last knot).
     k = knots.t.shape[0]
