@@ -32,7 +32,12 @@ from torch import Tensor
 
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._common import region_of
-from evdown_torch.transforms.functional._reference import region_pixel_count
+from evdown_torch.transforms.functional._reference import (
+    Crossings,
+    crossings,
+    reference_index,
+    region_pixel_count,
+)
 
 #: Events per chunk of regions (see :func:`region_chunks`).
 CHUNK_EVENTS = 1 << 20
@@ -353,6 +358,34 @@ def level_index(
         floor_u.scatter_(0, exact_at, exact_floor)
         on_level.scatter_(0, exact_at, exact_floor * denominator == numerator)
     return floor_u, on_level
+
+
+def step_crossings(floor_u: Tensor, on_level: Tensor, first: Tensor) -> Crossings:
+    """The reference rule over monotone steps grouped by region, from ``q = 0``.
+
+    Applies :func:`~evdown_torch.transforms.functional._reference.reference_index` and
+    :func:`~evdown_torch.transforms.functional._reference.crossings` to the steps that can
+    change ``q`` only: a step that stays strictly inside the cell its predecessor ended in
+    keeps ``q`` and crosses nothing, so dropping it changes no other step's result.
+
+    Args:
+        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
+        on_level: ``(S,)`` bool, the step ends on a level.
+        first: ``(S,)`` bool, the step is its region's first.
+
+    Returns:
+        The crossings, with ``step`` indexing the given steps.
+    """
+    moved = first | on_level
+    moved[1:] |= on_level[:-1] | (floor_u[1:] != floor_u[:-1])
+    kept = where_true(moved)
+    floor_k, first_k = take(floor_u, kept), take(first, kept)
+    q = reference_index(floor_k, take(on_level, kept), first_k, torch.zeros_like(floor_k))
+    q_before = torch.zeros_like(q)
+    q_before[1:] = q[:-1]
+    q_before.masked_fill_(first_k, 0)
+    cross = crossings(q_before, q)
+    return Crossings(take(kept, cross.step), cross.level, cross.on)
 
 
 def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Tensor:

@@ -22,10 +22,10 @@ from evdown_torch.transforms.functional._knots import (
     region_pixels,
     run_index,
     segmented_cumsum,
+    step_crossings,
     take,
     where_true,
 )
-from evdown_torch.transforms.functional._reference import crossings, reference_index
 from evdown_torch.transforms.functional.event_count import threshold_fraction
 
 #: Pixel-segment evaluations per chunk: bounds the kernel's memory and keeps its temporary
@@ -409,11 +409,8 @@ def _cubic_regions(
     step_pixels = pixels if isinstance(pixels, int) else take(pixels, step_bp)
     floor_u, on_level = level_index(step_whole, step_part, step_pixels, fraction)
     step_first = take(bp_first, step_bp) & is_end
-    q = reference_index(floor_u, on_level, step_first, torch.zeros_like(floor_u))
-    q_before = _shift(q, 1, 0)
-    q_before.scatter_(0, where_true(step_first), 0)
-    cross = crossings(q_before, q)
-    del q, q_before, step_first, is_end, step_whole, step_part
+    cross = step_crossings(floor_u, on_level, step_first)
+    del step_first, is_end, step_whole, step_part
 
     # Solve each crossing on its monotone step (the step before it ends where it starts).
     e = cross.step

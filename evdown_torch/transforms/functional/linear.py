@@ -23,10 +23,10 @@ from evdown_torch.transforms.functional._knots import (
     region_pixels,
     run_index,
     segmented_cumsum,
+    step_crossings,
     take,
     where_true,
 )
-from evdown_torch.transforms.functional._reference import crossings, reference_index
 from evdown_torch.transforms.functional.event_count import threshold_fraction
 
 
@@ -167,12 +167,7 @@ def _linear_regions(
     # Reference rule on the breakpoints (each piece between breakpoints is monotone).
     pixels = region_pixels(knots, sensor_size, factor)
     floor_u, on_level = level_index(whole, part, pixels, fraction)
-    q = reference_index(floor_u, on_level, bp_first, torch.zeros_like(floor_u))
-    q_before = torch.empty_like(q)
-    q_before[1:] = q[:-1]
-    q_before.scatter_(0, bp_first_at, 0)
-    cross = crossings(q_before, q)
-    del q, q_before
+    cross = step_crossings(floor_u, on_level, bp_first)
 
     # Crossing times: linear interpolation on the piece that ends at the crossing's step.
     end = cross.step
