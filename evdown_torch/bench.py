@@ -54,7 +54,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -86,6 +86,7 @@ __all__ = [
     "dvs_like_stream",
     "gesture_stream",
     "load_npy_events",
+    "load_results",
     "measure_memory",
     "parse_spec",
     "prepare_candidate_call",
@@ -1307,6 +1308,35 @@ def _as_json(results: BenchResults) -> dict:
     }
 
 
+def load_results(path: str | Path) -> BenchResults:
+    """Read back the ``results.json`` that :func:`write_report` wrote (to re-render a report).
+
+    Example:
+        >>> import tempfile
+        >>> r = run_benchmark(short=True, events=300, methods=["downsample"], scaling=False,
+        ...                   memory=False)
+        >>> with tempfile.TemporaryDirectory() as out:
+        ...     _ = write_report(r, out)
+        ...     again = load_results(Path(out) / "results.json")
+        >>> again.measurements == r.measurements and again.plan == r.plan
+        True
+    """
+    data = json.loads(Path(path).read_text())
+
+    def tuples(value):
+        return tuple(tuples(v) for v in value) if isinstance(value, list) else value
+
+    plan = Plan(**{k: tuples(v) for k, v in data["plan"].items()})
+    inputs = [BenchInput(**{**i, "sensor_size": tuple(i["sensor_size"])})
+              for i in data["inputs"]]
+    names = {f.name for f in fields(Measurement)}
+    measurements = [Measurement(**{k: tuples(v) for k, v in m.items() if k in names})
+                    for m in data["measurements"]]
+    return BenchResults(plan, data["machine"], inputs, measurements,
+                        [(c["name"], c["label"], c["peer"]) for c in data["candidates"]],
+                        data["notes"], data["elapsed_s"])
+
+
 def _markdown(results: BenchResults, plots: list[Path], notes: list[str], command: str) -> str:
     mc, plan = results.machine, results.plan
     lines = [
@@ -1396,7 +1426,7 @@ def _plots(results: BenchResults, out: Path) -> list[Path]:
         rows = [m for m in results.measurements if m.section == s]
         if not rows:
             continue
-        fig = Figure(figsize=(11, 4.2))
+        fig = Figure(figsize=(13, 4.2), layout="constrained")
         rate_ax, mem_ax = fig.subplots(1, 2)
         for name, label, peer in results.candidates:
             mine = sorted((m for m in rows if m.candidate == name), key=lambda m: m.x)
@@ -1413,9 +1443,8 @@ def _plots(results: BenchResults, out: Path) -> list[Path]:
             ax.set_xlabel(xlabel)
             ax.set_ylabel(ylabel)
             ax.grid(True, which="both", alpha=0.3)
-        rate_ax.legend(fontsize=7)
+        fig.legend(*rate_ax.get_legend_handles_labels(), loc="outside right center", fontsize=8)
         fig.suptitle(f"{title} ({setup})", fontsize=9)
-        fig.tight_layout()
         path = out / f"scaling_{s}.png"
         fig.savefig(path, dpi=100)
         paths.append(path)
