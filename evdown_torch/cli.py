@@ -4,6 +4,9 @@ Subcommands:
 
 * ``evdown downscale IN OUT --method NAME --factor F [--threshold T] [--set KEY=VALUE ...]``:
   downscale a ``.npy`` structured event array (Tonic's format) into another.
+* ``evdown evaluate --config FILE [--output DIR]``: measure every method's speed/accuracy
+  trade (:mod:`evdown_torch.evaluate`) and write ``results.csv``, ``report.md`` and
+  ``tradeoff.png``.
 """
 
 from __future__ import annotations
@@ -92,6 +95,20 @@ def _downscale(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate(args: argparse.Namespace) -> int:
+    from evdown_torch.config import load_config
+    from evdown_torch.evaluate import markdown_table, run_evaluation, write_report
+
+    try:
+        config = load_config(args.config)
+        result = run_evaluation(config)
+    except (OSError, RuntimeError) as error:
+        raise CommandError(str(error)) from None
+    write_report(result, args.output or config.output.directory)
+    print(markdown_table(result), end="")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``evdown`` argument parser."""
     parser = argparse.ArgumentParser(
@@ -112,6 +129,15 @@ def build_parser() -> argparse.ArgumentParser:
     down.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
                       help="input sensor size (default: from the largest coordinates)")
     down.set_defaults(run=_downscale)
+    evaluate = commands.add_parser(
+        "evaluate",
+        help="train and test a spiking classifier on every method and factor; write a report",
+    )
+    evaluate.add_argument("--config", required=True, metavar="FILE",
+                          help="TOML configuration, e.g. configs/quick.toml")
+    evaluate.add_argument("--output", metavar="DIR",
+                          help="output directory (default: the config's [output] directory)")
+    evaluate.set_defaults(run=_evaluate)
     return parser
 
 
