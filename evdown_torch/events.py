@@ -80,18 +80,24 @@ class Events(NamedTuple):
 
     @staticmethod
     def from_columns(x, y, t, p, device: torch.device | str | None = None) -> Events:
-        """Build events from array-likes; ``t`` keeps integer (int64) or float (float64) type.
+        """Build events from tensors or array-likes.
 
-        ``p`` is ON where it is ``> 0``.
+        ``x`` and ``y`` become int64, ``t`` int64 when it holds integers and float64
+        otherwise, and ``p`` is ON where it is ``> 0`` (or ``True``). Tensors stay on their
+        device unless ``device`` is given. The result never shares memory with the inputs.
         """
-        t = torch.as_tensor(np.asarray(t), device=device)
-        t = t.to(torch.float64) if t.is_floating_point() else t.to(torch.int64)
-        p = torch.as_tensor(np.asarray(p), device=device) > 0
+
+        def column(values) -> Tensor:
+            if isinstance(values, Tensor):
+                return values.to(device=device, copy=True).reshape(-1)
+            return torch.as_tensor(np.asarray(values), device=device).reshape(-1)
+
+        t = column(t)
         return Events(
-            torch.as_tensor(np.asarray(x), device=device).to(torch.int64).reshape(-1),
-            torch.as_tensor(np.asarray(y), device=device).to(torch.int64).reshape(-1),
-            t.reshape(-1),
-            p.reshape(-1),
+            column(x).to(torch.int64),
+            column(y).to(torch.int64),
+            t.to(torch.float64) if t.is_floating_point() else t.to(torch.int64),
+            column(p) > 0,
         )
 
 
@@ -113,15 +119,6 @@ class EventFormat:
     dtype: np.dtype | torch.dtype | None
     polarity: Literal["bool", "binary", "signed"]
     device: torch.device
-
-    @property
-    def integer_time(self) -> bool:
-        """Whether timestamps are integers (so crossing times are rounded)."""
-        if self.kind == "numpy":
-            return bool(np.issubdtype(self.dtype["t"], np.integer))
-        if self.kind == "tensor":
-            return not self.dtype.is_floating_point
-        return True  # decided by Events.t's dtype
 
 
 def _polarity_encoding(p: Tensor) -> Literal["bool", "binary", "signed"]:

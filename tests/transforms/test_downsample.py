@@ -164,3 +164,15 @@ def test_tonic_compose_to_frame_round_trip(nmnist):
         assert int(frames.sum()) == len(out)
     assert len(Downsample(sensor, factor=4)(nmnist)) == len(nmnist)
     assert len(EventFunnelling(sensor, factor=4)(nmnist)) < len(nmnist)
+
+
+def test_funnelling_in_chunks_never_splits_a_timestamp(rng, monkeypatch):
+    import evdown_torch.transforms.functional._common as common
+
+    arr = random_stream(rng, 3000, SENSOR, t_max=40)  # about 75 events per timestamp
+    whole = EventFunnelling(SENSOR, factor=2)(arr)
+    monkeypatch.setattr(common, "CHUNK_EVENTS", 10)
+    np.testing.assert_array_equal(EventFunnelling(SENSOR, factor=2)(arr), whole)
+    got = list(zip(whole["x"].tolist(), whole["y"].tolist(), whole["t"].tolist(),
+                   whole["p"].tolist()))
+    assert got == funnel_reference(arr, 2, 2)

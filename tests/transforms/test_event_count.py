@@ -8,6 +8,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evdown_torch import EventCount, Events
 from tests.helpers import DVS_DTYPE, as_tuples, random_stream
@@ -184,3 +186,33 @@ def test_tonic_compose_on_nmnist(nmnist):
     assert frames.shape == (1, 2, 9, 9) and int(frames.sum()) == len(out)
     assert 0 < len(out) < len(nmnist) and out.dtype == nmnist.dtype
     assert rows(out) == event_count_reference(nmnist, sensor, 4, 0.25)
+
+
+def test_long_streams_in_chunks_equal_one_pass(rng, monkeypatch):
+    import evdown_torch.transforms.functional._common as common
+
+    arr = random_stream(rng, 2000, SENSOR, t_max=300)
+    transform = EventCount(SENSOR, factor=3, threshold=0.2)
+    whole = transform(arr)
+    monkeypatch.setattr(common, "CHUNK_EVENTS", 37)
+    np.testing.assert_array_equal(transform(arr), whole)
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(
+    st.lists(
+        st.tuples(st.integers(0, 4), st.integers(0, 2), st.integers(0, 20), st.booleans()),
+        max_size=60,
+    ),
+    st.sampled_from([1, 2, 3, (5, 1), (2, 3)]),
+    st.sampled_from([0.05, 0.5, 1.0, 1.5]),
+)
+def test_property_matches_reference_and_flips(rows_in, factor, threshold):
+    sensor = (5, 3, 2)
+    arr = np.array([(x, y, p, t) for x, y, t, p in rows_in], dtype=DVS_DTYPE)
+    transform = EventCount(sensor, factor=factor, threshold=threshold)
+    out = transform(arr)
+    assert rows(out) == event_count_reference(arr, sensor, factor, threshold)
+    flipped = arr.copy()
+    flipped["p"] = ~flipped["p"]
+    np.testing.assert_array_equal(transform(flipped)["p"], ~out["p"])

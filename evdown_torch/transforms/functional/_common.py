@@ -22,6 +22,33 @@ def time_order(t: Tensor) -> Tensor | None:
     return torch.sort(t, stable=True).indices
 
 
+#: Events per chunk when a kernel processes a long stream piece by piece: temporaries of this
+#: length stay small enough (8 MB of int64) to be recycled by the allocator instead of being
+#: mapped afresh, which costs more than the arithmetic on them.
+CHUNK_EVENTS = 1 << 20
+
+
+def chunk_bounds(t: Tensor, chunk: int | None = None, *, split_ties: bool = True) -> list[int]:
+    """Start indices of consecutive chunks of about ``chunk`` events of a time-sorted stream.
+
+    Args:
+        t: ``(N,)`` sorted timestamps.
+        chunk: target chunk length (default :data:`CHUNK_EVENTS`).
+        split_ties: when False, a chunk never splits a run of equal timestamps.
+
+    Returns:
+        ``[0, b1, ..., N]``, strictly increasing (``[0, N]`` for short streams).
+    """
+    n = t.shape[0]
+    chunk = CHUNK_EVENTS if chunk is None else chunk
+    if n <= chunk:
+        return [0, n]
+    starts = torch.arange(chunk, n, chunk, device=t.device)
+    if not split_ties:
+        starts = torch.searchsorted(t, t[starts], side="left")
+    return sorted({0, n, *starts.tolist()})
+
+
 def sort_by_time(events: Events) -> Events:
     """Events in stable time order (the input itself when already sorted)."""
     order = time_order(events.t)

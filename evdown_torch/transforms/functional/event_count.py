@@ -11,6 +11,7 @@ from torch import Tensor
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._common import (
+    chunk_bounds,
     floor_divide_exact,
     region_of,
     sort_by_time,
@@ -99,9 +100,29 @@ def event_count(
         ([2, 4], [True, False])
     """
     events = sort_by_time(events)
-    device = events.device
     if state is None:
-        state = initial_state(sensor_size, factor, device)
+        state = initial_state(sensor_size, factor, events.device)
+    bounds = chunk_bounds(events.t)
+    if len(bounds) == 2:
+        return _event_count_sorted(events, sensor_size, factor, threshold, state)
+    # A long stream goes through in chunks, exactly as a streaming session would.
+    outputs = []
+    for start, stop in zip(bounds[:-1], bounds[1:]):
+        piece = Events(*(column[start:stop] for column in events))
+        out, state = _event_count_sorted(piece, sensor_size, factor, threshold, state)
+        outputs.append(out)
+    return Events(*(torch.cat(columns) for columns in zip(*outputs))), state
+
+
+def _event_count_sorted(
+    events: Events,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: float,
+    state: EventCountState,
+) -> tuple[Events, EventCountState]:
+    """:func:`event_count` on time-sorted events."""
+    device = events.device
     n = events.num_events
     if n == 0:
         return Events.empty(events.t.dtype, device), state

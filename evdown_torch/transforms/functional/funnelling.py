@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import region_of, sort_by_time
+from evdown_torch.transforms.functional._common import chunk_bounds, region_of, sort_by_time
 
 
 def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
@@ -25,6 +25,19 @@ def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
         ([0, 1, 0], [5, 5, 6])
     """
     events = sort_by_time(events)
+    bounds = chunk_bounds(events.t, split_ties=False)
+    pieces = [
+        _funnel_sorted(Events(*(column[start:stop] for column in events)), factor)
+        for start, stop in zip(bounds[:-1], bounds[1:])
+    ]
+    if len(pieces) == 1:
+        return pieces[0]
+    return Events(*(torch.cat(columns) for columns in zip(*pieces)))
+
+
+def _funnel_sorted(events: Events, factor: tuple[int, int]) -> Events:
+    """:func:`event_funnelling` on time-sorted events (duplicates share ``t``, so chunks that
+    never split a run of equal timestamps can be funnelled one by one)."""
     n = events.num_events
     x, y = region_of(events, factor)
     if n < 2:
@@ -41,5 +54,10 @@ def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
     sorted_key, order = torch.sort(key, stable=True)
     first = torch.ones(n, dtype=torch.bool, device=events.device)
     torch.ne(sorted_key[1:], sorted_key[:-1], out=first[1:])
-    keep = torch.sort(order[first]).values
-    return Events(x[keep], y[keep], events.t[keep], events.p[keep])
+    duplicates = order[~first]
+    if duplicates.shape[0] == 0:
+        return Events(x, y, events.t.clone(), events.p.clone())
+    keep = torch.ones(n, dtype=torch.bool, device=events.device)
+    keep[duplicates] = False
+    index = keep.nonzero().squeeze(1)
+    return Events(x[index], y[index], events.t[index], events.p[index])
