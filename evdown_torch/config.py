@@ -33,7 +33,7 @@ default. Keys left out take the defaults shown.
     [training]
     epochs = 8
     batch_size = 16
-    learning_rate = 0.002
+    learning_rate = 0.005
     seeds = [0]                # one training run per seed; accuracy is reported as mean and spread
     encoding = "log"           # classifier input: "counts", "log" (log1p of counts) or "binary"
     device = "cpu"             # "cpu", "cuda", "cuda:1", ... or "auto"
@@ -173,7 +173,7 @@ class TrainingConfig:
 
     epochs: int = 8
     batch_size: int = 16
-    learning_rate: float = 2e-3
+    learning_rate: float = 5e-3
     seeds: tuple[int, ...] = (0,)
     encoding: str = "log"
     device: str = "cpu"

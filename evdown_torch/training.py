@@ -59,12 +59,17 @@ def train_classifier(
     loader: Batches,
     *,
     epochs: int,
-    learning_rate: float = 2e-3,
+    learning_rate: float = 5e-3,
+    loss_fn: Callable[[Tensor, Tensor], Tensor] | None = None,
     log: Callable[[str], None] | None = None,
 ) -> list[float]:
-    """Train a spiking classifier with Adam and snntorch's cross-entropy spike-rate loss.
+    """Train a spiking classifier with Adam and a snntorch loss on its output spikes.
 
-    The loss is ``snntorch.functional.ce_rate_loss()`` on the output spikes. Training is
+    The loss is snntorch's spike-count mean-square error,
+    ``snntorch.functional.mse_count_loss(correct_rate=0.8, incorrect_rate=0.2)`` (the correct
+    class is pushed to fire on 80% of the time steps, the others on 20%), unless ``loss_fn``
+    says otherwise; on synthetic gestures it trains markedly better than the cross-entropy
+    spike-rate loss, which plateaus below 80%. Training is
     deterministic when the loader's order is (a DataLoader with a seeded ``generator``) and the
     model was initialised under a fixed seed; the loop itself draws no random numbers.
 
@@ -75,6 +80,8 @@ def train_classifier(
         loader: batches ``(frames [B, T, 2, H, W], labels [B])``.
         epochs: passes over the loader.
         learning_rate: Adam's step size.
+        loss_fn: ``loss_fn(spikes [T, B, C], labels [B])`` returning a scalar tensor, e.g.
+            ``snntorch.functional.ce_count_loss()``; default ``mse_count_loss`` as above.
         log: called with one line per epoch (loss and elapsed seconds), if given.
 
     Returns:
@@ -94,7 +101,8 @@ def train_classifier(
     learning_rate = check_positive_float("learning_rate", learning_rate)
     device = _device_of(model)
     optimiser = torch.optim.Adam(model.parameters(), lr=learning_rate)
-    loss_fn = snntorch.functional.ce_rate_loss()
+    if loss_fn is None:
+        loss_fn = snntorch.functional.mse_count_loss(correct_rate=0.8, incorrect_rate=0.2)
     model.train()
     losses = []
     for epoch in range(epochs):

@@ -48,7 +48,7 @@ class SpikingClassifier(nn.Module):
     adaptive average pooling to ``pool_size x pool_size`` (which makes the network take any
     input size), a linear layer and a leaky output layer with one neuron per class. The class
     is read from the output spike counts (:meth:`predict`); train it with a snntorch loss on
-    the output spikes, e.g. ``snntorch.functional.ce_rate_loss()``.
+    the output spikes, e.g. ``snntorch.functional.mse_count_loss()``.
 
     Args:
         num_classes: number of classes (11 for DVS128 Gesture).
