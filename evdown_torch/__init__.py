@@ -1,7 +1,7 @@
 """evdown_torch: exact, vectorised downscaling of event-camera (DVS) streams in PyTorch."""
 
 from evdown_torch.events import Events, from_events, to_events
-from evdown_torch.transforms import Downsample, EventCount, EventFunnelling
+from evdown_torch.transforms import Downsample, EventCount, EventFunnelling, LIFPooling
 
 __version__ = "0.1.0"
 
@@ -10,6 +10,7 @@ __all__ = [
     "EventCount",
     "EventFunnelling",
     "Events",
+    "LIFPooling",
     "__version__",
     "from_events",
     "to_events",

@@ -11,10 +11,15 @@ import numbers
 from typing import Any
 
 __all__ = [
+    "check_choice",
     "check_factor",
+    "check_non_negative_float",
+    "check_non_negative_int",
     "check_positive_float",
     "check_positive_int",
     "check_sensor_size",
+    "check_time_constant",
+    "check_unit_interval",
     "output_size",
 ]
 
@@ -110,4 +115,52 @@ def check_positive_int(name: str, value: Any) -> int:
         raise TypeError(f"{name} must be a positive integer, got {value!r}")
     if value <= 0:
         raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def check_non_negative_float(name: str, value: Any) -> float:
+    """Validate a finite real number ``>= 0`` and return it as a float."""
+    if not isinstance(value, numbers.Real) or isinstance(value, bool):
+        raise TypeError(f"{name} must be a non-negative number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value) or value < 0:
+        raise ValueError(f"{name} must be a non-negative finite number, got {value!r}")
+    return value
+
+
+def check_unit_interval(name: str, value: Any) -> float:
+    """Validate a real number in ``[0, 1]`` (a decay factor) and return it as a float."""
+    if not isinstance(value, numbers.Real) or isinstance(value, bool):
+        raise TypeError(f"{name} must be a number in [0, 1], got {value!r}")
+    value = float(value)
+    if not 0.0 <= value <= 1.0:  # also rejects NaN
+        raise ValueError(f"{name} must lie in [0, 1], got {value!r}")
+    return value
+
+
+def check_choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
+    """Validate that ``value`` is one of the strings ``choices`` and return it."""
+    if not isinstance(value, str):
+        raise TypeError(f"{name} must be one of {list(choices)}, got {value!r}")
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
+    return value
+
+
+def check_time_constant(name: str, value: Any) -> float:
+    """Validate a time constant: a positive number, ``math.inf`` allowed (no leak)."""
+    if not isinstance(value, numbers.Real) or isinstance(value, bool):
+        raise TypeError(f"{name} must be a positive number (math.inf for no leak), got {value!r}")
+    value = float(value)
+    if not value > 0:  # also rejects NaN
+        raise ValueError(f"{name} must be a positive number (math.inf for no leak), got {value!r}")
+    return value
+
+
+def check_non_negative_int(name: str, value: Any) -> int:
+    """Validate an integer ``>= 0`` and return it as an int."""
+    if not _is_int(value):
+        raise TypeError(f"{name} must be a non-negative integer, got {value!r}")
+    if value < 0:
+        raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
     return int(value)

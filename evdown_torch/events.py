@@ -90,7 +90,8 @@ class Events(NamedTuple):
         def column(values) -> Tensor:
             if isinstance(values, Tensor):
                 return values.to(device=device, copy=True).reshape(-1)
-            return torch.as_tensor(np.asarray(values), device=device).reshape(-1)
+            # A copy, contiguous: field views of a structured array have odd strides.
+            return torch.as_tensor(np.array(values), device=device).reshape(-1)
 
         t = column(t)
         return Events(

@@ -107,3 +107,14 @@ def test_events_container_checks_its_tensors():
         to_events(Events(good.x.int(), good.y, good.t, good.p))
     with pytest.raises(ValueError, match="same length"):
         to_events(Events(good.x, good.y, torch.zeros(2, dtype=torch.int64), good.p))
+
+
+def test_from_columns_accepts_structured_field_views_and_tensors(device):
+    arr = np.array([(1, 2, True, 7)], dtype=[("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", "<i8")])
+    ev = Events.from_columns(arr["x"], arr["y"], arr["t"], arr["p"])
+    assert (ev.x.tolist(), ev.y.tolist(), ev.t.tolist(), ev.p.tolist()) == ([1], [2], [7], [True])
+    t = torch.tensor([5], device=device)
+    ev = Events.from_columns(t, t, t, t)
+    assert ev.device == t.device and ev.p.tolist() == [True]
+    ev.t.add_(1)
+    assert t.tolist() == [5]

@@ -3,6 +3,7 @@
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
 from evdown_torch.transforms.event_count import EventCount, EventCountSession
+from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
 
 __all__ = [
     "Downscaler",
@@ -10,4 +11,6 @@ __all__ = [
     "EventCount",
     "EventCountSession",
     "EventFunnelling",
+    "LIFPooling",
+    "calibrate_weight",
 ]

@@ -8,12 +8,14 @@ from typing import Any
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
 from evdown_torch.transforms.event_count import EventCount
+from evdown_torch.transforms.lif import LIFPooling
 
 #: Method name -> transform class, in the paper's order.
 METHODS: dict[str, type[Downscaler]] = {
     "downsample": Downsample,
     "funnelling": EventFunnelling,
     "event_count": EventCount,
+    "lif": LIFPooling,
 }
 
 

@@ -3,5 +3,6 @@
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.event_count import event_count
 from evdown_torch.transforms.functional.funnelling import event_funnelling
+from evdown_torch.transforms.functional.lif import lif_pooling
 
-__all__ = ["downsample", "event_count", "event_funnelling"]
+__all__ = ["downsample", "event_count", "event_funnelling", "lif_pooling"]

@@ -1,0 +1,28 @@
+"""Synthetic DVS gesture recordings: a DVS pixel model, 11 gesture classes, low-res ground truth."""
+
+from evdown_torch.synthetic.dataset import DVS_GESTURE_DTYPE, SyntheticGestures, render_gesture
+from evdown_torch.synthetic.pixel_model import (
+    PixelModelConfig,
+    noise_events,
+    pixel_events,
+    refractory_mask,
+)
+from evdown_torch.synthetic.render import intensity_frame, render_events, step_times, swept_mask
+from evdown_torch.synthetic.scenes import GESTURE_CLASSES, GestureScene, Look
+
+__all__ = [
+    "DVS_GESTURE_DTYPE",
+    "GESTURE_CLASSES",
+    "GestureScene",
+    "Look",
+    "PixelModelConfig",
+    "intensity_frame",
+    "noise_events",
+    "pixel_events",
+    "refractory_mask",
+    "render_events",
+    "render_gesture",
+    "step_times",
+    "swept_mask",
+    "SyntheticGestures",
+]

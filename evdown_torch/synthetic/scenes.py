@@ -1,0 +1,364 @@
+"""Gesture scenes: a person in front of a static textured background, 11 DVS128 Gesture classes.
+
+A scene is drawn from a seed and holds everything needed to render it: where the person stands
+and how large, how fast and wide they move, what they and the background look like, and how
+noisy the sensor is. The person is a set of capsules (a segment thickened by a radius): torso,
+shoulders, neck and head are static; each arm is an upper arm, a forearm and a hand, driven by a
+wrist trajectory per class and two-link inverse kinematics. Arms that do not take part in a
+gesture hang at rest and are static too, so only the moving parts cost anything to render.
+
+Coordinates: body units have the origin between the shoulders, ``x`` to the right of the
+image and ``y`` down; the "right" arm is the performer's right, on the image's left (the camera
+faces the performer). ``clockwise`` means clockwise as seen in the image. Pixel ``(i, j)``
+covers ``[i, i + 1) x [j, j + 1)``; its centre is ``(i + 0.5, j + 0.5)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from evdown_torch.checks import check_non_negative_int, check_positive_int, check_sensor_size
+
+__all__ = ["GESTURE_CLASSES", "GestureScene", "Look", "scene_seed"]
+
+GESTURE_CLASSES: list[str] = [
+    "Hand clapping",
+    "Right hand wave",
+    "Left hand wave",
+    "Right arm cw",
+    "Right arm ccw",
+    "Left arm cw",
+    "Left arm ccw",
+    "Arm roll",
+    "Air drums",
+    "Air guitar",
+    "Other gestures",
+]
+"""Class names in DVS128 Gesture's order (``tonic.datasets.DVSGesture.classes``)."""
+
+# Body geometry, body units.
+SHOULDER_X = 0.18
+UPPER_ARM = 0.22
+FOREARM = 0.21
+HAND = 0.06
+REACH = 0.95 * (UPPER_ARM + FOREARM)  # the arm never locks straight
+RADIUS_UPPER = 0.048
+RADIUS_FORE = 0.040
+RADIUS_HAND = 0.045
+# Static capsules: (name, a, b, radius, look index into GestureScene.looks).
+BODY = (
+    ("torso", (0.0, 0.12), (0.0, 0.70), 0.17, 0),
+    ("shoulders", (-0.15, 0.06), (0.15, 0.06), 0.075, 0),
+    ("neck", (0.0, -0.07), (0.0, 0.02), 0.045, 1),
+    ("head", (0.0, -0.21), (0.0, -0.15), 0.095, 1),
+)
+# Per class: base frequency (Hz), which arms move (right, left), elbow bend of each arm
+# (+1: the elbow turns outward when the wrist is raised; -1: outward when it is lowered).
+MOTIONS = (
+    (1.8, (True, True), (-1, -1)),  # hand clapping
+    (2.0, (True, False), (1, -1)),  # right hand wave
+    (2.0, (False, True), (-1, 1)),  # left hand wave
+    (0.8, (True, False), (-1, -1)),  # right arm cw
+    (0.8, (True, False), (-1, -1)),  # right arm ccw
+    (0.8, (False, True), (-1, -1)),  # left arm cw
+    (0.8, (False, True), (-1, -1)),  # left arm ccw
+    (1.4, (True, True), (-1, -1)),  # arm roll
+    (2.2, (True, True), (-1, -1)),  # air drums
+    (2.6, (True, True), (-1, 1)),  # air guitar
+    (0.6, (True, True), (-1, -1)),  # other gestures
+)
+
+
+def scene_seed(*keys: int) -> int:
+    """A 63-bit seed derived from non-negative integer keys (NumPy ``SeedSequence``).
+
+    Example:
+        >>> scene_seed(0, 1, 2) == scene_seed(0, 1, 2) != scene_seed(0, 1, 3)
+        True
+    """
+    state = np.random.SeedSequence([int(k) for k in keys]).generate_state(2, dtype=np.uint32)
+    return (int(state[0]) << 31) ^ int(state[1])
+
+
+@dataclass(frozen=True)
+class Look:
+    """Appearance of one body part.
+
+    The linear intensity at a point of the part is
+    ``gain * mean_background * (1 + side * v) * (1 - rim * v**2)
+    * (1 + stripe * sin(2 pi u / period + phase))``, where ``v`` in ``[-1, 1]`` runs across
+    the part and ``u`` (body units) along it, so the texture moves with the part.
+
+    Attributes:
+        gain: mean intensity relative to the background's (dimensionless, > 0).
+        side: side lighting across the part (dimensionless, |side| < 1).
+        rim: darkening toward the outline (dimensionless, in [0, 1)).
+        stripe: contrast of stripes (folds) along the part (dimensionless, in [0, 1)).
+        period: stripe period, body units.
+        phase: stripe phase, radians.
+    """
+
+    gain: float
+    side: float
+    rim: float
+    stripe: float
+    period: float
+    phase: float
+
+
+@dataclass(frozen=True)
+class GestureScene:
+    """One recording: a person performing a gesture, fully determined by its fields.
+
+    Build one with :meth:`sample`; render it with
+    :func:`evdown_torch.synthetic.render_events`.
+
+    Attributes:
+        label: class index into :data:`GESTURE_CLASSES`.
+        seed: the seed the scene was drawn from; rendering derives its own streams from it.
+        sensor_size: ``(W, H, 2)``.
+        duration_us: recording length, microseconds.
+        origin: pixel position of the point between the shoulders (``x``, ``y``).
+        scale: pixels per body unit (0.62 to 0.76 times ``min(W, H)``).
+        speed: tempo factor on the class's base frequency (0.8 to 1.25).
+        amplitude: factor on the motion's extent (0.8 to 1.2).
+        phase: phase of the motion at ``t = 0``, radians.
+        tempo: ``(depth, frequency_hz, phase)`` of a slow tempo wobble (depth up to 0.4 rad).
+        direction: +1 or -1, the sense of the arm roll.
+        rest: wrist offsets ``(dx_right, dy_right, dx_left, dy_left)`` of resting arms, body
+            units.
+        looks: :class:`Look` of shirt, skin, upper arms, forearms and hands.
+        background: ``(k_x, k_y, amplitude, phase)`` of the background's log-intensity
+            waves, in cycles per ``min(W, H)``, then rectangles ``(x0, y0, x1, y1, log_gain)``
+            in fractions of the sensor, each as a flat tuple.
+        noise_scale: factor on the background-activity rate (0.5 to 1.5).
+        wander: for "Other gestures", per arm (right, left) a wrist centre and three waves
+            ``(frequency_hz, amp_x, amp_y, phase_x, phase_y)``, body units; empty otherwise.
+    """
+
+    label: int
+    seed: int
+    sensor_size: tuple[int, int, int]
+    duration_us: int
+    origin: tuple[float, float]
+    scale: float
+    speed: float
+    amplitude: float
+    phase: float
+    tempo: tuple[float, float, float]
+    direction: int
+    rest: tuple[float, float, float, float]
+    looks: tuple[Look, Look, Look, Look, Look]
+    background: tuple[tuple[float, ...], ...]
+    noise_scale: float
+    wander: tuple[tuple[float, ...], ...]
+
+    @classmethod
+    def sample(
+        cls,
+        label: int,
+        seed: int,
+        *,
+        sensor_size: tuple[int, int, int] = (128, 128, 2),
+        duration_us: int = 6_000_000,
+    ) -> GestureScene:
+        """Draw a scene of class ``label`` from ``seed`` (deterministic).
+
+        Args:
+            label: class index in ``[0, 11)``.
+            seed: any non-negative integer.
+            sensor_size: ``(W, H, 2)``; the person scales with ``min(W, H)``.
+            duration_us: recording length, microseconds.
+
+        Returns:
+            The scene.
+
+        Example:
+            >>> scene = GestureScene.sample(3, seed=7, sensor_size=(64, 48, 2))
+            >>> scene == GestureScene.sample(3, seed=7, sensor_size=(64, 48, 2))
+            True
+        """
+        label = check_non_negative_int("label", label)
+        if label >= len(GESTURE_CLASSES):
+            raise ValueError(f"label must be a class index in [0, 11), got {label}")
+        seed = check_non_negative_int("seed", seed)
+        sensor_size = check_sensor_size(sensor_size)
+        if sensor_size[2] != 2:
+            raise ValueError(f"sensor_size must have 2 polarities, got {sensor_size!r}")
+        duration_us = check_positive_int("duration_us", duration_us)
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 0]))
+        w, h, _ = sensor_size
+        u = rng.uniform
+        origin = (w * (0.5 + u(-0.06, 0.06)), h * (0.36 + u(-0.04, 0.04)))
+        scale = min(w, h) * u(0.62, 0.76)
+        tempo = (u(0.0, 0.4), u(0.1, 0.3), u(0.0, 2 * math.pi))
+        rest = tuple(float(v) for v in u(-0.02, 0.02, 4))
+        shirt, skin = u(0.7, 1.4), u(0.8, 1.6)
+
+        def look(gain_log: float) -> Look:
+            return Look(math.exp(gain_log), u(-0.3, 0.3), u(0.3, 0.6), u(0.15, 0.4),
+                        u(0.04, 0.1), u(0.0, 2 * math.pi))
+
+        sleeves = u() < 0.5
+        looks = (look(shirt), look(skin), look(shirt), look(shirt if sleeves else skin),
+                 look(skin))
+        waves = tuple(
+            (u(-4, 4), u(-4, 4), u(0.05, 0.2), u(0, 2 * math.pi)) for _ in range(6)
+        )
+        rects = []
+        for _ in range(3):
+            x0, y0 = u(0, 0.8), u(0, 0.8)
+            rects.append((x0, y0, x0 + u(0.1, 0.5), y0 + u(0.1, 0.5), u(-0.5, 0.5)))
+        background = waves + tuple(rects)
+        wander: tuple[tuple[float, ...], ...] = ()
+        if label == 10:
+            arms = []
+            for sign in (-1.0, 1.0):
+                centre = (sign * u(0.1, 0.35), u(-0.25, 0.15))
+                parts: list[float] = list(centre)
+                for _ in range(3):
+                    parts += [u(0.2, 0.6), u(0.03, 0.1), u(0.03, 0.1),
+                              u(0, 2 * math.pi), u(0, 2 * math.pi)]
+                arms.append(tuple(parts))
+            wander = tuple(arms)
+        return cls(
+            label=label,
+            seed=seed,
+            sensor_size=sensor_size,
+            duration_us=duration_us,
+            origin=origin,
+            scale=scale,
+            speed=u(0.8, 1.25),
+            amplitude=u(0.8, 1.2),
+            phase=u(0.0, 2 * math.pi),
+            tempo=tempo,
+            direction=1 if u() < 0.5 else -1,
+            rest=rest,  # type: ignore[arg-type]
+            looks=looks,
+            background=background,
+            noise_scale=math.exp(u(math.log(0.5), math.log(1.5))),
+            wander=wander,
+        )
+
+    @property
+    def moving_arms(self) -> tuple[bool, bool]:
+        """Whether the right and the left arm move in this scene."""
+        return MOTIONS[self.label][1]
+
+    def _phase(self, t: Tensor) -> Tensor:
+        """Motion phase (radians) at times ``t`` (seconds, float64)."""
+        freq = MOTIONS[self.label][0] * self.speed
+        depth, wobble, wobble_phase = self.tempo
+        return (2 * math.pi * freq * t + self.phase
+                + depth * torch.sin(2 * math.pi * wobble * t + wobble_phase))
+
+    def _wrists(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """Wrist targets of the right and the left arm, ``(S, 2)`` body units each."""
+        a = self.amplitude
+        phase = self._phase(t)
+        zero = torch.zeros_like(t)
+        shoulders = (-SHOULDER_X, SHOULDER_X)
+
+        def at(x, y) -> Tensor:
+            return torch.stack([x + zero, y + zero], dim=1)
+
+        rest = [
+            at(shoulders[0] - 0.06 + self.rest[0], 0.37 + self.rest[1]),
+            at(shoulders[1] + 0.06 + self.rest[2], 0.37 + self.rest[3]),
+        ]
+        label = self.label
+        if label == 0:  # clapping: hands meet in front of the chest
+            opening = 0.085 + 0.13 * a * 0.5 * (1 + torch.cos(phase))
+            y = 0.20 + 0.015 * torch.sin(phase)
+            return at(-opening, y), at(opening, y)
+        if label in (1, 2):  # wave: forearm up, swinging about the elbow
+            side = -1.0 if label == 1 else 1.0
+            swing = 0.15 + 0.6 * a * torch.sin(phase)
+            ex = side * (SHOULDER_X + UPPER_ARM * math.cos(math.radians(10)))
+            ey = UPPER_ARM * math.sin(math.radians(10))
+            wrist = at(ex + side * FOREARM * torch.sin(swing), ey - FOREARM * torch.cos(swing))
+            return (wrist, rest[1]) if label == 1 else (rest[0], wrist)
+        if 3 <= label <= 6:  # big circles about the shoulder, nearly straight arm
+            side = -1.0 if label in (3, 4) else 1.0
+            sense = 1.0 if label in (3, 5) else -1.0  # clockwise in the image: angle grows
+            radius = 0.38 + 0.04 * (a - 1.0)
+            angle = sense * phase
+            wrist = at(side * SHOULDER_X + radius * torch.cos(angle), radius * torch.sin(angle))
+            return (wrist, rest[1]) if side < 0 else (rest[0], wrist)
+        if label == 7:  # arm roll: hands orbit each other in front of the chest
+            angle = self.direction * phase
+            rx, ry = 0.05 * a, 0.08 * a
+            right = at(-0.06 + rx * torch.cos(angle), 0.25 + ry * torch.sin(angle))
+            left = at(0.06 - rx * torch.cos(angle), 0.25 - ry * torch.sin(angle))
+            return right, left
+        if label == 8:  # air drums: alternating strokes, drifting between drums
+            def stroke(p: Tensor) -> Tensor:
+                return torch.sin(p) + 0.35 * torch.sin(2 * p)
+
+            drift = 0.04 * torch.sin(0.3 * phase)
+            right = at(-0.15 + drift, 0.22 + 0.07 * a * stroke(phase))
+            left = at(0.15 + drift, 0.22 + 0.07 * a * stroke(phase + math.pi))
+            return right, left
+        if label == 9:  # air guitar: right hand strums at the hip, left hand on the neck
+            right = at(-0.05 + 0.02 * torch.sin(phase), 0.30 + 0.08 * a * torch.sin(phase))
+            slow = 0.31 * phase
+            left = at(0.46 + 0.03 * torch.sin(slow), 0.10 + 0.02 * torch.sin(slow + 1.0))
+            return right, left
+        # other gestures: smooth, irregular motion of both arms
+        out = []
+        for params in self.wander:
+            x = params[0] + zero
+            y = params[1] + zero
+            for k in range(3):
+                f, ax, ay, px, py = params[2 + 5 * k: 7 + 5 * k]
+                arg = 2 * math.pi * f * self.speed * t
+                x = x + a * ax * torch.sin(arg + px)
+                y = y + a * ay * torch.sin(arg + py)
+            out.append(torch.stack([x, y], dim=1))
+        return out[0], out[1]
+
+    def arm_keypoints(self, t_us: Tensor) -> tuple[Tensor, Tensor]:
+        """Shoulder, elbow, wrist and fingertip of each arm at times ``t_us``.
+
+        Args:
+            t_us: ``(S,)`` times, microseconds.
+
+        Returns:
+            ``(right, left)``, each ``(S, 4, 2)`` float64 pixel coordinates ``(x, y)`` of
+            shoulder, elbow, wrist, fingertip.
+        """
+        t = torch.as_tensor(t_us, dtype=torch.float64) * 1e-6
+        wrists = self._wrists(t)
+        bends = MOTIONS[self.label][2]
+        arms = []
+        for side, wrist, bend in zip((-1.0, 1.0), wrists, bends, strict=True):
+            shoulder = torch.tensor([side * SHOULDER_X, 0.0], dtype=torch.float64)
+            elbow, wrist = _two_link(shoulder, wrist, side * bend)
+            along = wrist - elbow
+            tip = wrist + HAND * along / along.norm(dim=1, keepdim=True)
+            points = torch.stack([shoulder.expand_as(wrist), elbow, wrist, tip], dim=1)
+            origin = torch.tensor(self.origin, dtype=torch.float64)
+            arms.append(origin + self.scale * points)
+        return arms[0], arms[1]
+
+
+def _two_link(shoulder: Tensor, target: Tensor, bend: float) -> tuple[Tensor, Tensor]:
+    """Elbow and (reachable) wrist for wrist targets, by two-link inverse kinematics.
+
+    ``bend`` (+1 or -1) picks the elbow side: the elbow lies at the shoulder-to-wrist angle
+    plus ``bend`` times the shoulder's inner angle (angles grow clockwise in the image).
+    """
+    delta = target - shoulder
+    dist = delta.norm(dim=1).clamp(abs(UPPER_ARM - FOREARM) + 0.05, REACH)
+    base = torch.atan2(delta[:, 1], delta[:, 0])
+    cos_inner = (UPPER_ARM**2 + dist**2 - FOREARM**2) / (2 * UPPER_ARM * dist)
+    inner = torch.acos(cos_inner.clamp(-1.0, 1.0))
+    angle = base + bend * inner
+    elbow = shoulder + UPPER_ARM * torch.stack([torch.cos(angle), torch.sin(angle)], dim=1)
+    wrist = shoulder + dist[:, None] * torch.stack([torch.cos(base), torch.sin(base)], dim=1)
+    return elbow, wrist
