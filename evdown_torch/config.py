@@ -52,7 +52,13 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from evdown_torch.checks import check_factor, check_positive_float, check_positive_int
+from evdown_torch.checks import (
+    check_choice,
+    check_factor,
+    check_non_negative_int,
+    check_positive_float,
+    check_positive_int,
+)
 from evdown_torch.transforms.registry import METHODS, make_method
 
 __all__ = [
@@ -71,18 +77,6 @@ ENCODINGS = ("counts", "log", "binary")
 DVS_GESTURE_SENSOR = (128, 128, 2)
 
 
-def _non_negative_int(name: str, value: int) -> int:
-    if value < 0:
-        raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
-    return value
-
-
-def _one_of(name: str, value: str, choices: tuple[str, ...]) -> str:
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
-    return value
-
-
 @dataclass(frozen=True)
 class DataConfig:
     """Which recordings, how many, and how they become frames (table ``[data]``)."""
@@ -98,18 +92,18 @@ class DataConfig:
     time_bins: int = 8
 
     def __post_init__(self) -> None:
-        _one_of("data.dataset", self.dataset, DATASETS)
+        check_choice("data.dataset", self.dataset, DATASETS)
         for i, name in enumerate(("width", "height")):
             check_positive_int(f"data.sensor_size {name}", self.sensor_size[i])
         check_positive_int("data.time_bins", self.time_bins)
-        _non_negative_int("data.seed", self.seed)
+        check_non_negative_int("data.seed", self.seed)
         if self.dataset == "synthetic":
             check_positive_int("data.duration_us", self.duration_us)
             check_positive_int("data.train_samples", self.train_samples)
             check_positive_int("data.test_samples", self.test_samples)
         else:
             for name in ("duration_us", "train_samples", "test_samples"):
-                _non_negative_int(f"data.{name}", getattr(self, name))
+                check_non_negative_int(f"data.{name}", getattr(self, name))
 
     @property
     def full_sensor_size(self) -> tuple[int, int, int]:
@@ -186,11 +180,11 @@ class TrainingConfig:
         if not self.seeds:
             raise ValueError("training.seeds must list at least one seed, got []")
         for seed in self.seeds:
-            _non_negative_int("training.seeds", seed)
+            check_non_negative_int("training.seeds", seed)
         if len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"training.seeds must be distinct, got {list(self.seeds)}")
-        _one_of("training.encoding", self.encoding, ENCODINGS)
-        _non_negative_int("training.num_threads", self.num_threads)
+        check_choice("training.encoding", self.encoding, ENCODINGS)
+        check_non_negative_int("training.num_threads", self.num_threads)
         if not self.device:
             raise ValueError("training.device must name a device, got ''")
 

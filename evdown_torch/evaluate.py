@@ -193,7 +193,33 @@ def load_data(config: DataConfig, log: Log | None = None) -> EvaluationData:
 
 
 def _load_synthetic(config: DataConfig, log: Log | None) -> EvaluationData:
-    raise NotImplementedError("synthetic data lands with issue 4")
+    from evdown_torch.synthetic import SyntheticGestures
+
+    sensor = config.full_sensor_size
+    splits = []
+    for train, wanted in ((True, config.train_samples), (False, config.test_samples)):
+        dataset = SyntheticGestures(
+            train=train,
+            samples_per_class=-(-wanted // len(SyntheticGestures.classes)),
+            duration_us=config.duration_us,
+            seed=config.seed,
+            sensor_size=sensor,
+        )
+        splits.append((dataset, [dataset[i] for i in range(wanted)]))
+        if log is not None:
+            events = sum(len(events) for events, _ in splits[-1][1])
+            log(f"rendered {wanted} synthetic {'train' if train else 'test'} recordings "
+                f"({events / wanted:,.0f} events each)")
+    test = splits[1][0]
+    return EvaluationData(
+        description=f"synthetic gestures (seed {config.seed}), {sensor[0]}x{sensor[1]}, "
+        f"{config.duration_us / 1e6:g} s",
+        sensor_size=sensor,
+        num_classes=len(SyntheticGestures.classes),
+        train=splits[0][1],
+        test=splits[1][1],
+        ground_truth=lambda index, factor: test.ground_truth(index, factor),
+    )
 
 
 class _Cropped:
