@@ -592,7 +592,7 @@ def markdown_table(result: EvaluationResult) -> str:
         lines.append(
             f"| {c.method} | {_factor_text(c.factor)} | {c.output_size[0]}x{c.output_size[1]} "
             f"| {accuracy} | {c.events_per_sample:,.0f} | {c.reduction:.2f} | {throughput} "
-            f"| {c.density * 1e6:.3g} | {c.entropy:.3g} | {_optional(c.consistency, '.3f')} |"
+            f"| {c.density * 1e6:.3g} | {c.entropy:.2e} | {_optional(c.consistency, '.3f')} |"
         )
     return "\n".join(lines) + "\n"
 
