@@ -1,16 +1,25 @@
 """evdown_torch: exact, vectorised downscaling of event-camera (DVS) streams in PyTorch."""
 
 from evdown_torch.events import Events, from_events, to_events
-from evdown_torch.transforms import Downsample, EventCount, EventFunnelling, LIFPooling
+from evdown_torch.transforms import (
+    CubicEstimation,
+    Downsample,
+    EventCount,
+    EventFunnelling,
+    LIFPooling,
+    LinearEstimation,
+)
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "CubicEstimation",
     "Downsample",
     "EventCount",
     "EventFunnelling",
     "Events",
     "LIFPooling",
+    "LinearEstimation",
     "__version__",
     "from_events",
     "to_events",

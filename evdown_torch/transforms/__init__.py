@@ -2,15 +2,18 @@
 
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
+from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount, EventCountSession
 from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
 
 __all__ = [
+    "CubicEstimation",
     "Downscaler",
     "Downsample",
     "EventCount",
     "EventCountSession",
     "EventFunnelling",
     "LIFPooling",
+    "LinearEstimation",
     "calibrate_weight",
 ]

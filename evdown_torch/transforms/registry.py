@@ -7,6 +7,7 @@ from typing import Any
 
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
+from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount
 from evdown_torch.transforms.lif import LIFPooling
 
@@ -15,6 +16,8 @@ METHODS: dict[str, type[Downscaler]] = {
     "downsample": Downsample,
     "funnelling": EventFunnelling,
     "event_count": EventCount,
+    "linear": LinearEstimation,
+    "cubic": CubicEstimation,
     "lif": LIFPooling,
 }
 

@@ -1,8 +1,17 @@
 """Pure, keyword-only, device-agnostic kernels on :class:`~evdown_torch.events.Events`."""
 
+from evdown_torch.transforms.functional.cubic import cubic_estimation
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.event_count import event_count
 from evdown_torch.transforms.functional.funnelling import event_funnelling
 from evdown_torch.transforms.functional.lif import lif_pooling
+from evdown_torch.transforms.functional.linear import linear_estimation
 
-__all__ = ["downsample", "event_count", "event_funnelling", "lif_pooling"]
+__all__ = [
+    "cubic_estimation",
+    "downsample",
+    "event_count",
+    "event_funnelling",
+    "lif_pooling",
+    "linear_estimation",
+]

@@ -1,0 +1,442 @@
+"""Knots of a pixel and region breakpoints, shared by the linear and cubic estimators.
+
+SEMANTICS.md, methods 4 and 5: each pixel's log-luminance is a curve through its *knots*, one
+per distinct time at which the pixel has events, at the level after all its events at that
+time (ON +1, OFF -1), plus a front knot ``(t_start, 0)`` when the pixel's first event is later
+than ``t_start`` and a back knot ``(t_end, last level)`` when its last knot is earlier than
+``t_end``. So every active pixel's curve spans exactly ``[t_start, t_end]``; a pixel without
+events stays at level 0 and is not represented.
+
+A region's mean curve ``M_r`` has its breakpoints at the union of its pixels' knot times.
+Regions do not interact, so the estimators take them in chunks of whole regions
+(:func:`region_chunks`); for each chunk this module builds, without a Python loop over events,
+pixels or regions (:func:`pixel_knots`):
+
+* the knots of every active pixel in *pixel order* (grouped by region, then by pixel, then in
+  time order), and
+* the breakpoints of every active region (grouped by region, in time order; the first is at
+  ``t_start``, the last at ``t_end``), with the breakpoint index of every knot.
+
+It also holds the small pieces both estimators share to turn a region's level into events:
+the exact level test (:func:`level_index`) and the output assembly (:func:`emit`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from fractions import Fraction
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._common import region_of
+from evdown_torch.transforms.functional._reference import (
+    Crossings,
+    crossings,
+    reference_index,
+    region_pixel_count,
+)
+
+#: Events per chunk of regions (see :func:`region_chunks`).
+CHUNK_EVENTS = 1 << 20
+
+#: Integer crossing times: an offset this close below a half tick rounds up (see piece_time).
+HALF_TOLERANCE = 1e-9
+
+#: A region level within this many thresholds of a level is on it (see :func:`level_index`).
+SNAP = 1e-9
+
+
+class Knots(NamedTuple):
+    """Knots of every active pixel and breakpoints of every active region.
+
+    ``K`` knots in pixel order (regions ascending, pixels ascending inside a region, time
+    ascending inside a pixel); ``B`` breakpoints in region order, time ascending inside a
+    region.
+
+    Attributes:
+        t: ``(K,)`` knot times, the dtype of the events' ``t``.
+        level: ``(K,)`` int64 pixel level at the knot (events counted ON +1, OFF -1).
+        first: ``(K,)`` bool, the knot is its pixel's first (always at ``t_start``).
+        last: ``(K,)`` bool, the knot is its pixel's last (always at ``t_end``).
+        breakpoint: ``(K,)`` int64 index of the region breakpoint at the knot's time.
+        bp_t: ``(B,)`` breakpoint times, the dtype of the events' ``t``.
+        bp_first: ``(B,)`` bool, the region's first breakpoint (at ``t_start``).
+        bp_last: ``(B,)`` bool, the region's last breakpoint (at ``t_end``).
+        regions: ``(R,)`` int64 ids ``ry * Wo + rx`` of the active regions, ascending.
+        region_first_bp: ``(R,)`` int64 index of each active region's first breakpoint.
+    """
+
+    t: Tensor
+    level: Tensor
+    first: Tensor
+    last: Tensor
+    breakpoint: Tensor
+    bp_t: Tensor
+    bp_first: Tensor
+    bp_last: Tensor
+    regions: Tensor
+    region_first_bp: Tensor
+
+    def bp_region(self, bp: Tensor) -> Tensor:
+        """Region id of the breakpoints ``bp`` (int64)."""
+        rank = torch.searchsorted(self.region_first_bp, bp, right=True) - 1
+        return take(self.regions, rank)
+
+
+def take(values: Tensor, index: Tensor) -> Tensor:
+    """``values[index]`` for a 1-D int64 ``index`` (``index_select``: much faster on the CPU)."""
+    return values.index_select(0, index)
+
+
+def where_true(mask: Tensor) -> Tensor:
+    """``(M,)`` int64 positions of the True entries of a 1-D bool ``mask``, ascending."""
+    return torch.nonzero(mask).squeeze(1)
+
+
+def changes(values: Tensor) -> Tensor:
+    """``(N,)`` bool: True where ``values`` differs from its predecessor (True at 0)."""
+    flags = torch.ones(values.shape[0], dtype=torch.bool, device=values.device)
+    torch.ne(values[1:], values[:-1], out=flags[1:])
+    return flags
+
+
+def ends(starts: Tensor) -> Tensor:
+    """``(N,)`` bool: True at the last element of each run, given the runs' ``starts``."""
+    flags = torch.ones_like(starts)
+    flags[:-1] = starts[1:]
+    return flags
+
+
+def run_index(starts: Tensor) -> Tensor:
+    """``(N,)`` int64 index of the run each element belongs to, given the runs' ``starts``."""
+    return torch.cumsum(starts.to(torch.int64), 0) - 1
+
+
+def sort_small(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:
+    """Stable sort of non-negative int64 ``keys < bound``: ``(sorted keys, permutation)``.
+
+    The keys are sorted as int16 or int32 when ``bound`` allows (two to three times faster
+    than int64 on the CPU).
+    """
+    if bound <= 1 << 15:
+        small = keys.to(torch.int16)
+    elif bound <= 1 << 31:
+        small = keys.to(torch.int32)
+    else:
+        small = keys
+    values, order = torch.sort(small, stable=True)
+    return values.to(torch.int64), order
+
+
+class RegionChunk(NamedTuple):
+    """The events of consecutive output regions, in region-time order.
+
+    Attributes:
+        region: ``(n,)`` int64 region id ``ry * Wo + rx``, ascending.
+        local: ``(n,)`` int64 pixel index inside the region, ``(y % fy) * fx + x % fx``.
+        t: ``(n,)`` timestamps, ascending inside each region.
+        p: ``(n,)`` bool polarity.
+    """
+
+    region: Tensor
+    local: Tensor
+    t: Tensor
+    p: Tensor
+
+
+def region_chunks(
+    events: Events, *, factor: tuple[int, int], out_width: int, size: int = CHUNK_EVENTS
+) -> Iterator[RegionChunk]:
+    """Split a stream into chunks of whole regions with about ``size`` events each.
+
+    Regions do not interact, so the estimators process them chunk by chunk: this bounds their
+    memory and keeps temporary tensors small (much faster on the CPU than tensors of hundreds
+    of MB, which the allocator faults in afresh every time).
+
+    Args:
+        events: ``N >= 1`` events in stable time order.
+        factor: ``(fx, fy)``.
+        out_width: ``Wo``, the output sensor width.
+        size: target number of events per chunk (a chunk holds at least one whole region).
+
+    Yields:
+        :class:`RegionChunk` s covering the stream, regions ascending.
+    """
+    fx, fy = factor
+    rx, ry = region_of(events, factor)
+    region = ry * out_width + rx
+    local = (events.y - ry * fy) * fx + (events.x - rx * fx)
+    del rx, ry
+    region, order = sort_small(region, int(region.max()) + 1)
+    n = region.shape[0]
+    bounds = [0, n]
+    if n > size:
+        starts = where_true(changes(region))
+        wanted = torch.arange(size, n, size, device=region.device)
+        after = torch.searchsorted(starts, wanted).clamp(max=starts.shape[0] - 1)
+        bounds = sorted({0, n, *take(starts, after).tolist()})
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        index = order[lo:hi]
+        yield RegionChunk(region[lo:hi], take(local, index), take(events.t, index),
+                          take(events.p, index))
+
+
+def pixel_knots(
+    chunk: RegionChunk, *, factor: tuple[int, int], t_start: Tensor, t_end: Tensor
+) -> Knots:
+    """Knots of every active pixel and breakpoints of every active region of a chunk.
+
+    Args:
+        chunk: the events of consecutive regions (see :func:`region_chunks`).
+        factor: ``(fx, fy)``.
+        t_start: ``()`` first timestamp of the whole stream.
+        t_end: ``()`` last timestamp of the whole stream.
+
+    Returns:
+        The :class:`Knots`.
+
+    Example:
+        >>> ev = Events.from_columns([0, 1, 0], [0, 0, 0], [0, 5, 5], [1, 1, 1])
+        >>> chunk = next(region_chunks(ev, factor=(2, 1), out_width=1))
+        >>> k = pixel_knots(chunk, factor=(2, 1), t_start=ev.t[0], t_end=ev.t[-1])
+        >>> k.t.tolist(), k.level.tolist(), k.breakpoint.tolist(), k.bp_t.tolist()
+        ([0, 5, 0, 5], [1, 2, 0, 1], [0, 1, 0, 1], [0, 5])
+    """
+    region_r, t_r = chunk.region, chunk.t
+    device = t_r.device
+    n = t_r.shape[0]
+    per_region = factor[0] * factor[1]
+
+    # Pixel order: stable by pixel inside regions (keys relative to the chunk's first region).
+    first_region = region_r[0]
+    key_r = (region_r - first_region) * per_region + chunk.local
+    bound = (int(region_r[n - 1] - first_region) + 1) * per_region
+    key_p, to_region_time = sort_small(key_r, bound)
+    del key_r
+    t_p = take(t_r, to_region_time)
+    step_p = take(chunk.p, to_region_time).to(torch.int64) * 2 - 1
+
+    # Breakpoints. In region-time order every event belongs to the run of its (region, t);
+    # each run is a breakpoint, and a region whose first (last) event is later (earlier) than
+    # t_start (t_end) gets one more breakpoint there.
+    region_start = changes(region_r)
+    new_run = region_start | changes(t_r)
+    first_at = where_true(region_start)
+    last_at = where_true(ends(region_start))
+    active_regions = take(region_r, first_at)
+    extra_front = take(t_r, first_at) > t_start
+    extra_back = take(t_r, last_at) < t_end
+    front_i, back_i = extra_front.to(torch.int64), extra_back.to(torch.int64)
+    # Breakpoint of each event: count the runs, plus the extra breakpoint before a region's
+    # first run and the one after the previous region's last run.
+    runs = new_run.to(torch.int64)
+    extra = front_i.clone()
+    extra[1:] += back_i[:-1]
+    runs.scatter_add_(0, first_at, extra)
+    event_bp = torch.cumsum(runs, 0)
+    event_bp -= 1
+    del runs, extra
+    region_rank = run_index(region_start)
+    region_first_bp = take(event_bp, first_at) - front_i
+    region_last_bp = take(event_bp, last_at) + back_i
+    n_bp = int(region_last_bp[-1]) + 1
+    run_at = where_true(new_run)
+    bp_t = torch.empty(n_bp, dtype=t_r.dtype, device=device)
+    bp_t.scatter_(0, take(event_bp, run_at), take(t_r, run_at))
+    fill_at = region_first_bp[extra_front]
+    bp_t.scatter_(0, fill_at, t_start.expand(fill_at.shape))
+    fill_at = region_last_bp[extra_back]
+    bp_t.scatter_(0, fill_at, t_end.expand(fill_at.shape))
+    del run_at, new_run, region_start, first_at, last_at, fill_at
+    bp_first = torch.zeros(n_bp, dtype=torch.bool, device=device)
+    bp_first.scatter_(0, region_first_bp, True)
+    bp_last = torch.zeros(n_bp, dtype=torch.bool, device=device)
+    bp_last.scatter_(0, region_last_bp, True)
+
+    # Level after every event; the last event of each (pixel, t) run is an event knot.
+    new_pixel = changes(key_p)
+    level = torch.cumsum(step_p, 0)
+    level -= take(take(level - step_p, where_true(new_pixel)), run_index(new_pixel))
+    kidx = where_true(ends(new_pixel | changes(t_p)))
+    del new_pixel, step_p
+    ek_t, ek_level, ek_key = take(t_p, kidx), take(level, kidx), take(key_p, kidx)
+    ek_rt = take(to_region_time, kidx)
+    ek_bp = take(event_bp, ek_rt)
+    del t_p, level, kidx, to_region_time, event_bp, key_p
+    ke = ek_t.shape[0]
+    ek_first = changes(ek_key)
+    del ek_key
+    ek_last = ends(ek_first)
+    front = ek_first & (ek_t > t_start)
+    back = ek_last & (ek_t < t_end)
+
+    # The full knot list in pixel order: front knot before, back knot after a pixel's knots.
+    front_i, back_i = front.to(torch.int64), back.to(torch.int64)
+    pos = torch.arange(ke, device=device) + torch.cumsum(front_i, 0)
+    pos += torch.cumsum(back_i, 0) - back_i
+    del front_i, back_i
+    front_at, back_at = where_true(front), where_true(back)
+    front_pos, back_pos = take(pos, front_at) - 1, take(pos, back_at) + 1
+    total = ke + front_at.shape[0] + back_at.shape[0]
+    knot_t = torch.empty(total, dtype=t_r.dtype, device=device)
+    knot_t.scatter_(0, pos, ek_t)
+    knot_t.scatter_(0, front_pos, t_start.expand(front_pos.shape))
+    knot_t.scatter_(0, back_pos, t_end.expand(back_pos.shape))
+    knot_level = torch.empty(total, dtype=torch.int64, device=device)
+    knot_level.scatter_(0, pos, ek_level)
+    knot_level.scatter_(0, front_pos, 0)
+    knot_level.scatter_(0, back_pos, take(ek_level, back_at))
+    first = torch.zeros(total, dtype=torch.bool, device=device)
+    first.scatter_(0, take(pos, where_true(ek_first & ~front)), True)
+    first.scatter_(0, front_pos, True)
+    breakpoint = torch.empty(total, dtype=torch.int64, device=device)
+    breakpoint.scatter_(0, pos, ek_bp)
+    for at, knot_pos, region_bp in ((front_at, front_pos, region_first_bp),
+                                    (back_at, back_pos, region_last_bp)):
+        rank = take(region_rank, take(ek_rt, at))
+        breakpoint.scatter_(0, knot_pos, take(region_bp, rank))
+    return Knots(
+        knot_t, knot_level, first, ends(first), breakpoint, bp_t, bp_first, bp_last,
+        active_regions, region_first_bp,
+    )
+
+
+def region_pixels(
+    knots: Knots, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+) -> Tensor | int:
+    """``n_r`` of each breakpoint's region: the int ``fx * fy`` when the factor divides the
+    sensor, else a ``(B,)`` int64 tensor."""
+    w, h, _ = sensor_size
+    if w % factor[0] == 0 and h % factor[1] == 0:
+        return factor[0] * factor[1]
+    per_region = region_pixel_count(knots.regions, sensor_size, factor)
+    return take(per_region, run_index(knots.bp_first))
+
+
+def level_index(
+    whole: Tensor, part: Tensor, pixels: Tensor | int, threshold: Fraction
+) -> tuple[Tensor, Tensor]:
+    """``floor(u)`` and ``u is on a level`` for ``u = (whole + part) / (threshold * pixels)``.
+
+    ``whole + part`` is ``n_r * M_r``: an exact integer part and a float remainder. Where the
+    remainder is exactly 0 the test is done in integers (``threshold = a / b`` is rational), so
+    a region sitting on a level is seen on it exactly. Elsewhere ``u`` is a float, and a ``u``
+    within :data:`SNAP` of an integer counts as on that level: float rounding cannot tell such
+    a ``u`` from the level itself, and snapping keeps the result stable when it lands there.
+
+    Args:
+        whole: int64 integer part of ``n_r * M_r``.
+        part: float64 remainder.
+        pixels: ``n_r``, int64 of the shape of ``whole`` or one int for all.
+        threshold: ``theta`` as a fraction ``a / b``.
+
+    Returns:
+        ``(floor_u, on_level)``, int64 and bool, of the shape of ``whole``.
+
+    Example:
+        >>> fl, on = level_index(torch.tensor([3, 3, 1]), torch.tensor([0.0, 0.5, 0.5 - 1e-12]),
+        ...                      torch.tensor([2, 2, 2]), Fraction(3, 4))
+        >>> fl.tolist(), on.tolist()
+        ([2, 2, 1], [True, False, True])
+    """
+    a, b = threshold.numerator, threshold.denominator
+    if isinstance(pixels, int):
+        u = (whole.to(torch.float64) + part) * (b / (pixels * a))
+    else:
+        u = (whole.to(torch.float64) + part) * b / (pixels * a).to(torch.float64)
+    nearest = torch.round(u)
+    on_level = (u - nearest).abs() <= SNAP
+    floor_u = torch.where(on_level, nearest, torch.floor(u)).to(torch.int64)
+    exact_at = where_true(part == 0)
+    if exact_at.shape[0]:
+        numerator = take(whole, exact_at) * b
+        denominator = pixels * a if isinstance(pixels, int) else take(pixels, exact_at) * a
+        exact_floor = torch.div(numerator, denominator, rounding_mode="floor")
+        floor_u.scatter_(0, exact_at, exact_floor)
+        on_level.scatter_(0, exact_at, exact_floor * denominator == numerator)
+    return floor_u, on_level
+
+
+def step_crossings(floor_u: Tensor, on_level: Tensor, first: Tensor) -> Crossings:
+    """The reference rule over monotone steps grouped by region, from ``q = 0``.
+
+    Applies :func:`~evdown_torch.transforms.functional._reference.reference_index` and
+    :func:`~evdown_torch.transforms.functional._reference.crossings` to the steps that can
+    change ``q`` only: a step that stays strictly inside the cell its predecessor ended in
+    keeps ``q`` and crosses nothing, so dropping it changes no other step's result.
+
+    Args:
+        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
+        on_level: ``(S,)`` bool, the step ends on a level.
+        first: ``(S,)`` bool, the step is its region's first.
+
+    Returns:
+        The crossings, with ``step`` indexing the given steps.
+    """
+    moved = first | on_level
+    moved[1:] |= on_level[:-1] | (floor_u[1:] != floor_u[:-1])
+    kept = where_true(moved)
+    floor_k, first_k = take(floor_u, kept), take(first, kept)
+    q = reference_index(floor_k, take(on_level, kept), first_k, torch.zeros_like(floor_k))
+    q_before = torch.zeros_like(q)
+    q_before[1:] = q[:-1]
+    q_before.masked_fill_(first_k, 0)
+    cross = crossings(q_before, q)
+    return Crossings(take(kept, cross.step), cross.level, cross.on)
+
+
+def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Tensor:
+    """``n_r * theta * j`` as float64, the value of ``n_r * M_r`` on level ``j``."""
+    a, b = threshold.numerator, threshold.denominator
+    return (level * pixels * a).to(torch.float64) / b
+
+
+def level_changes(knots: Knots) -> Tensor:
+    """``(K,)`` int64 change of its pixel's level at each knot (the level itself at the first)."""
+    change = knots.level.clone()
+    change[1:] -= knots.level[:-1]
+    at = where_true(knots.first)
+    change.scatter_(0, at, take(knots.level, at))
+    return change
+
+
+def segmented_cumsum(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
+    """Cumulative sum of ``values`` restarting at each segment's start.
+
+    Args:
+        values: ``(N,)`` values.
+        starts_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
+        segment: ``(N,)`` int64 segment of each element.
+    """
+    total = torch.cumsum(values, 0)
+    return total - take(take(total - values, starts_at), segment)
+
+
+def piece_time(t0: Tensor, t1: Tensor, s: Tensor) -> Tensor:
+    """Time at normalised position ``s`` in ``[0, 1]`` of the pieces ``[t0, t1]``.
+
+    Integer times are rounded half up, ``t0 + floor(s * (t1 - t0) + 0.5)``, computed from the
+    piece's start so that shifting the clock shifts the result exactly. An offset within float
+    noise (:data:`HALF_TOLERANCE`, plus 1e-12 of the piece) below a half counts as the half, so
+    that crossings exactly halfway between two ticks round up as they should. ``s == 1`` gives
+    ``t1`` exactly.
+    """
+    span = t1 - t0
+    if t0.is_floating_point():
+        return torch.where(s >= 1, t1, torch.minimum(t0 + s * span, t1))
+    span_f = span.to(torch.float64)
+    offset = s * span_f
+    offset += 0.5 + HALF_TOLERANCE
+    offset += 1e-12 * span_f
+    return t0 + torch.minimum(torch.floor(offset), span_f).to(torch.int64)
+
+
+def emit(region: Tensor, t: Tensor, on: Tensor, out_width: int) -> Events:
+    """Output events of regions ``region`` at times ``t``, sorted by ``t`` (stable)."""
+    t, order = torch.sort(t, stable=True)
+    region = take(region, order)
+    y = torch.div(region, out_width, rounding_mode="floor")
+    return Events(region - y * out_width, y, t, take(on, order))

@@ -1,0 +1,432 @@
+"""Cubic log-luminance estimation kernel: PCHIP pixel curves, crossings solved per piece."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+
+import torch
+from torch import Tensor
+
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._common import sort_by_time
+from evdown_torch.transforms.functional._knots import (
+    Knots,
+    emit,
+    level_changes,
+    level_index,
+    level_value,
+    piece_time,
+    pixel_knots,
+    region_chunks,
+    region_pixels,
+    run_index,
+    segmented_cumsum,
+    step_crossings,
+    take,
+    where_true,
+)
+from evdown_torch.transforms.functional.event_count import threshold_fraction
+
+#: Pixel-segment evaluations per chunk: bounds the kernel's memory and keeps its temporary
+#: tensors small enough to be recycled by the allocator instead of faulted in afresh.
+CHUNK = 1 << 16
+
+#: Extrema of a piece closer than this (in the piece's normalised time) to its ends are
+#: ignored: the curve cannot move by a float-visible amount there.
+EDGE = 1e-9
+
+#: Relative size of a derivative's discriminant below which its roots count as one double root.
+DOUBLE_ROOT = 1e-12
+
+#: Most iterations of the safeguarded Newton solver (each at least halves the bracket).
+MAX_ITERATIONS = 100
+
+
+def _shift(values: Tensor, by: int, fill: float | int | bool) -> Tensor:
+    """``values`` moved ``by`` places to the right (left when negative), padded with ``fill``."""
+    out = torch.empty_like(values)
+    if by > 0:
+        out[by:] = values[:-by]
+        out[:by] = fill
+    else:
+        out[:by] = values[-by:]
+        out[by:] = fill
+    return out
+
+
+def _edge_slope(h0: Tensor, h1: Tensor, m0: Tensor, m1: Tensor) -> Tensor:
+    """SciPy's one-sided three-point end slope of ``PchipInterpolator``, shape-preserving."""
+    d = ((2 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
+    flip = torch.sign(d) != torch.sign(m0)
+    steep = (torch.sign(m0) != torch.sign(m1)) & (d.abs() > 3 * m0.abs())
+    return torch.where(flip, 0.0, torch.where(steep, 3 * m0, d))
+
+
+def pchip_slopes(knots: Knots) -> tuple[Tensor, Tensor, Tensor]:
+    """Derivative of every pixel's PCHIP curve at each knot, by SciPy's rules.
+
+    Args:
+        knots: the :class:`~evdown_torch.transforms.functional._knots.Knots`.
+
+    Returns:
+        ``(slope, width, rise)``, all ``(K,)`` float64: the derivative at each knot (level per
+        time unit), and the duration and level change of the segment that starts at each knot
+        (width 1, rise 0 after a pixel's last knot).
+    """
+    first, last = knots.first, knots.last
+    k = knots.t.shape[0]
+    last_at = where_true(last)
+    # Segments between consecutive knots (K + 1 entries, so that shifted views need no copy).
+    width_ext = torch.ones(k + 1, dtype=torch.float64, device=knots.t.device)
+    torch.sub(knots.t[1:], knots.t[:-1], out=width_ext[1:-1])
+    rise_ext = torch.zeros_like(width_ext)
+    torch.sub(knots.level[1:], knots.level[:-1], out=rise_ext[1:-1])
+    width_ext.scatter_(0, last_at + 1, 1.0)  # no segment after a pixel's last knot
+    rise_ext.scatter_(0, last_at + 1, 0.0)
+    m_ext = rise_ext / width_ext
+    width, rise, m_next = width_ext[1:], rise_ext[1:], m_ext[1:]
+    w_prev, m_prev = width_ext[:-1], m_ext[:-1]
+    # Interior knots: Fritsch-Carlson weighted harmonic mean, 0 at extrema and flat segments
+    # (slopes are at least 1 / 2**63 in size, so their product cannot underflow to 0).
+    flat = (m_next * m_prev) <= 0
+    w1 = torch.add(w_prev, width, alpha=2.0)
+    w2 = torch.add(width, w_prev, alpha=2.0)
+    slope = torch.add(w1, w2).div_(torch.div(w1, m_prev).add_(w2.div_(m_next)))
+    slope.masked_fill_(flat, 0.0)
+    del flat, w1, w2
+    # End knots: two knots give a line, three or more SciPy's one-sided estimate.
+    first_at = where_true(first)
+    # The knots after a first and before a last (clamped: a pixel with one knot is set below).
+    after = torch.clamp(first_at + 1, max=first.shape[0] - 1)
+    before = torch.clamp(last_at - 1, min=0)
+    two = take(last, after)  # the pixel has exactly two knots
+    front = torch.where(
+        two,
+        take(m_next, first_at),
+        _edge_slope(
+            take(width, first_at), take(width, after), take(m_next, first_at), take(m_next, after)
+        ),
+    )
+    back = torch.where(
+        two,
+        take(m_prev, last_at),
+        _edge_slope(
+            take(w_prev, last_at), take(w_prev, before), take(m_prev, last_at), take(m_prev, before)
+        ),
+    )
+    slope.scatter_(0, first_at, front)
+    slope.scatter_(0, last_at, back)
+    single = where_true(first & last)  # one knot: a constant (t_start == t_end)
+    slope.scatter_(0, single, 0.0)
+    return slope, width, rise
+
+
+def _mid_segment_sums(
+    knots: Knots, slope: Tensor, width: Tensor, rise: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Value above the segment start and derivative of the pixels strictly inside a segment,
+    summed per breakpoint.
+
+    Every (segment, breakpoint strictly inside it) pair is evaluated in the segment's
+    normalised time ``s = (b - t_k) / width`` in chunks of :data:`CHUNK` pairs. Segments on
+    which the curve is constant are skipped.
+    """
+    device = slope.device
+    nb = knots.bp_t.shape[0]
+    value_sum = torch.zeros(nb, dtype=torch.float64, device=device)
+    slope_sum = torch.zeros(nb, dtype=torch.float64, device=device)
+    bp = knots.breakpoint
+    inside = torch.zeros_like(bp)
+    inside[:-1] = bp[1:] - bp[:-1] - 1
+    inside.scatter_(0, where_true(knots.last), 0)
+    c1 = width * slope
+    c2_end = width * _shift(slope, -1, 0.0)
+    moving = (c1 != 0) | (c2_end != 0) | (rise != 0)
+    segments = where_true((inside > 0) & moving)
+    del moving
+    if segments.shape[0] == 0:
+        return value_sum, slope_sum
+    counts = take(inside, segments)
+    del inside
+    # Per segment: start, first breakpoint inside, and the Hermite coefficients in s.
+    if knots.t.is_floating_point():
+        bp_time, knot_time = knots.bp_t, knots.t
+    else:  # exact: integer offsets from t_start below 2**53
+        bp_time = (knots.bp_t - knots.t[0]).to(torch.float64)
+        knot_time = (knots.t - knots.t[0]).to(torch.float64)
+    start_t = take(knot_time, segments)
+    del knot_time
+    c1 = take(c1, segments)
+    c2_end = take(c2_end, segments)
+    r = take(rise, segments)
+    c2 = 3 * r - 2 * c1 - c2_end
+    c3 = c1 + c2_end - 2 * r
+    inv_w = 1.0 / take(width, segments)
+    del c2_end, r
+    cum = torch.cumsum(counts, 0)
+    total = int(cum[-1])
+    begin = cum - counts  # first pair of each segment
+    first_target = take(bp, segments) + 1 - begin  # + pair index = breakpoint
+    del segments, counts
+    # Buffers reused by every chunk: fresh temporaries would be faulted in each time.
+    size = min(CHUNK, total)
+    ints = torch.empty(3, size, dtype=torch.int64, device=device)
+    floats = torch.empty(7, size, dtype=torch.float64, device=device)
+    for start in range(0, total, CHUNK):
+        stop = min(start + CHUNK, total)
+        m = stop - start
+        lo = int(torch.searchsorted(cum, start, right=True))
+        hi = int(torch.searchsorted(cum, stop - 1, right=True)) + 1
+        marks, seg, target = ints[0, :m], ints[1, :m], ints[2, :m]
+        s, a1, a2, a3, w, u, v = (row[:m] for row in floats)
+        # Pairs [start, stop) of segments [lo, hi): the segment of each pair, its breakpoint.
+        marks.zero_()
+        marks.scatter_(0, begin[lo + 1 : hi] - start, 1)
+        torch.cumsum(marks, 0, out=seg)
+        seg += lo
+        torch.arange(start, stop, out=target)
+        target += torch.index_select(first_target, 0, seg, out=marks)
+        torch.index_select(bp_time, 0, target, out=s)
+        s -= torch.index_select(start_t, 0, seg, out=a1)
+        s *= torch.index_select(inv_w, 0, seg, out=w)
+        torch.index_select(c1, 0, seg, out=a1)
+        torch.index_select(c2, 0, seg, out=a2)
+        torch.index_select(c3, 0, seg, out=a3)
+        torch.addcmul(a2, s, a3, out=u)  # c2 + s c3
+        torch.addcmul(a1, s, u, out=v)
+        v *= s  # s (c1 + s (c2 + s c3))
+        value_sum.index_add_(0, target, v)
+        a3 *= s
+        a3.add_(u, alpha=2.0)  # 2 c2 + 3 c3 s
+        torch.addcmul(a1, s, a3, out=v)
+        v *= w  # derivative per time unit
+        slope_sum.index_add_(0, target, v)
+    return value_sum, slope_sum
+
+
+def _derivative_roots(c1: Tensor, c2: Tensor, c3: Tensor) -> tuple[Tensor, Tensor]:
+    """Sign changes of ``c1 + 2 c2 s + 3 c3 s^2`` inside ``(EDGE, 1 - EDGE)``, ascending.
+
+    The roots are ``q / (3 c3)`` and ``c1 / q`` with ``q = -(c2 + sign(c2) sqrt(c2^2 -
+    3 c1 c3))``, free of cancellation; when ``c3 = 0`` the first is infinite and the second is
+    the linear root ``-c1 / (2 c2)``.
+
+    Returns:
+        ``(low, high)``; missing roots are NaN.
+    """
+    square = c2 * c2
+    disc = torch.addcmul(square, c1, c3, value=-3.0)
+    q = torch.copysign(torch.sqrt(disc), c2).add_(c2).neg_()  # NaN where disc < 0
+    # A double root is no sign change; within float noise of one, the curve cannot move by a
+    # visible amount between the two roots (PCHIP pieces such as 1 - (1 - s)^3 have one).
+    noise = torch.addcmul(square, c1, c3, value=3.0).abs_().mul_(DOUBLE_ROOT)
+    q.masked_fill_(disc <= noise, torch.nan)
+    r1 = q / (3 * c3)
+    r2 = c1 / q
+    r1.masked_fill_(~((r1 > EDGE) & (r1 < 1 - EDGE)), torch.nan)
+    r2.masked_fill_(~((r2 > EDGE) & (r2 < 1 - EDGE)), torch.nan)
+    low, high = torch.fmin(r1, r2), torch.fmax(r1, r2)
+    high.masked_fill_(~(high > low), torch.nan)
+    return low, high
+
+
+def _solve(
+    c1: Tensor, c2: Tensor, c3: Tensor, goal: Tensor, low: Tensor, high: Tensor, rising: Tensor
+) -> Tensor:
+    """Root of ``s (c1 + s (c2 + s c3)) = goal`` in ``[low, high]``, where the cubic is monotone
+    (rising or falling), by Newton's method safeguarded by bisection."""
+    sign = torch.where(rising, 1.0, -1.0)
+
+    def poly(s: Tensor) -> Tensor:
+        return s * (c1 + s * (c2 + s * c3))
+
+    at_low, at_high = poly(low), poly(high)
+    x = low + (goal - at_low) / (at_high - at_low) * (high - low)
+    x = torch.where(torch.isfinite(x), x.clamp(min=0.0, max=1.0), 0.5 * (low + high))
+    x = torch.minimum(torch.maximum(x, low), high)
+    for _ in range(MAX_ITERATIONS):
+        g = sign * (poly(x) - goal)
+        low = torch.where(g < 0, x, low)
+        high = torch.where(g > 0, x, high)
+        newton = x - g / (sign * (c1 + x * (2 * c2 + 3 * c3 * x)))
+        inside = (newton > low) & (newton < high)
+        step = torch.where(g == 0, x, torch.where(inside, newton, 0.5 * (low + high)))
+        moved = (step - x).abs()
+        x = step
+        if x.numel() == 0 or float(moved.max()) <= 1e-15:
+            break
+    return x
+
+
+def _monotone_steps(
+    low: Tensor, high: Tensor, prev: Tensor, whole: Tensor, part: Tensor,
+    c1: Tensor, c2: Tensor, c3: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The monotone steps: each piece's interior extrema (if any), then its end.
+
+    Returns:
+        ``(step_bp, step_s, step_whole, step_part)``: for each step in order, the breakpoint
+        its piece ends at, its end in the piece's normalised time (1 at the breakpoint), and
+        ``n_r * M_r`` there as an exact integer part plus a float rest.
+    """
+    nb = low.shape[0]
+    has_low, has_high = ~torch.isnan(low), ~torch.isnan(high)
+    if not bool(has_low.any()):
+        return torch.arange(nb, device=low.device), torch.ones_like(low), whole, part
+    roots = has_low.to(torch.int64) + has_high.to(torch.int64)
+    end_pos = torch.cumsum(roots, 0)
+    end_pos += torch.arange(nb, device=low.device)  # a piece's end comes after its roots
+    total = int(end_pos[-1]) + 1
+    step_bp = torch.empty(total, dtype=torch.int64, device=low.device)
+    step_bp.scatter_(0, end_pos, torch.arange(nb, device=low.device))
+    step_s = torch.ones(total, dtype=torch.float64, device=low.device)
+    step_whole = torch.empty(total, dtype=torch.int64, device=low.device)
+    step_whole.scatter_(0, end_pos, whole)
+    step_part = torch.empty(total, dtype=torch.float64, device=low.device)
+    step_part.scatter_(0, end_pos, part)
+    low_at, high_at = where_true(has_low), where_true(has_high)
+    for at, s, pos in (
+        (low_at, take(low, low_at), take(end_pos, low_at) - take(roots, low_at)),
+        (high_at, take(high, high_at), take(end_pos, high_at) - 1),
+    ):
+        begin = take(prev, at)
+        value = torch.addcmul(take(c2, at), s, take(c3, at))
+        value = torch.addcmul(take(c1, at), s, value, out=value)
+        value *= s
+        value += take(part, begin)
+        step_bp.scatter_(0, pos, at)
+        step_s.scatter_(0, pos, s)
+        step_whole.scatter_(0, pos, take(whole, begin))
+        step_part.scatter_(0, pos, value)
+    return step_bp, step_s, step_whole, step_part
+
+
+def cubic_estimation(
+    events: Events,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: float,
+) -> Events:
+    """Downscale by cubic log-luminance estimation (SEMANTICS.md method 5).
+
+    Each pixel's log-luminance is the piecewise cubic Hermite interpolant of its knots (see
+    :mod:`~evdown_torch.transforms.functional._knots`) with SciPy's ``PchipInterpolator``
+    slopes; each region's mean ``M_r`` is watched by the DVS reference rule at contrast
+    ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
+    the crossing times, rounded half up to integers when ``t`` is int64.
+
+    Between two breakpoints (consecutive knot times of a region) ``M_r`` is one cubic, known
+    from its values and derivatives at both ends. Those are sums over the region's pixels: an
+    exact integer part (the levels of pixels with a knot there) plus the pixels strictly inside
+    a segment, evaluated in each segment's normalised time. Each piece is split at the roots of
+    its derivative into monotone steps for the reference rule, and each crossing is solved on
+    its monotone step, in the piece's normalised time, by safeguarded Newton iterations to
+    about 1e-15 of the piece's length.
+
+    Args:
+        events: ``N`` input events (any order; sorted stably by ``t`` here).
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
+            nearest fraction with denominator at most 10**6.
+
+    Returns:
+        Output events sorted by ``t``, ``t`` of the input's dtype.
+
+    Example:
+        >>> ev = Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1])
+        >>> out = cubic_estimation(ev, sensor_size=(2, 1, 2), factor=(2, 1), threshold=0.25)
+        >>> out.t.tolist(), out.p.tolist()
+        ([0, 0, 5, 10], [True, True, True, True])
+    """
+    events = sort_by_time(events)
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device)
+    fraction = threshold_fraction(threshold)
+    out_w = output_size(sensor_size, factor)[0]
+    t_start, t_end = events.t[0], events.t[-1]
+    outputs = [
+        _cubic_regions(
+            pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end),
+            sensor_size=sensor_size, factor=factor, fraction=fraction,
+        )
+        for chunk in region_chunks(events, factor=factor, out_width=out_w)
+    ]
+    region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+    return emit(region, t, on, out_w)
+
+
+def _cubic_regions(
+    knots: Knots,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    fraction: Fraction,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Crossings of the regions of one chunk: ``(region, t, on)`` in region order.
+
+    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``.
+    """
+    device = knots.t.device
+    slope, width, rise = pchip_slopes(knots)
+
+    # n_r * M_r and its derivative at every breakpoint: exact integer part + the rest.
+    nb = knots.bp_t.shape[0]
+    bp_first = knots.bp_first
+    bp_first_at = where_true(bp_first)
+    whole = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
+        0, knots.breakpoint, level_changes(knots)
+    )
+    whole = segmented_cumsum(whole, bp_first_at, run_index(bp_first))
+    part, derivative = _mid_segment_sums(knots, slope, width, rise)
+    derivative.index_add_(0, knots.breakpoint, slope)
+    del slope, width, rise
+
+    # The piece ending at each breakpoint (none before a region's first), normalised time.
+    prev = torch.arange(-1, nb - 1, device=device)
+    prev[bp_first_at] = bp_first_at  # a region's first step is a jump, not a piece
+    gap = (knots.bp_t - take(knots.bp_t, prev)).to(torch.float64)
+    change = (whole - take(whole, prev)).to(torch.float64) + (part - take(part, prev))
+    m0, m1 = gap * take(derivative, prev), gap * derivative
+    del gap, derivative
+    c1 = m0
+    c2 = 3 * change - 2 * m0 - m1
+    c3 = m0 + m1 - 2 * change
+    del m1, change
+    for c in (c1, c2, c3):
+        c.scatter_(0, bp_first_at, 0.0)
+    low, high = _derivative_roots(c1, c2, c3)
+
+    # Monotone steps: up to two interior extrema, then the breakpoint (a jump at t_start).
+    step_bp, step_s, step_whole, step_part = _monotone_steps(
+        low, high, prev, whole, part, c1, c2, c3
+    )
+    del low, high
+    is_end = step_s == 1.0
+    pixels = region_pixels(knots, sensor_size, factor)
+    step_pixels = pixels if isinstance(pixels, int) else take(pixels, step_bp)
+    floor_u, on_level = level_index(step_whole, step_part, step_pixels, fraction)
+    step_first = take(bp_first, step_bp) & is_end
+    cross = step_crossings(floor_u, on_level, step_first)
+    del step_first, is_end, step_whole, step_part
+
+    # Solve each crossing on its monotone step (the step before it ends where it starts).
+    e = cross.step
+    i = take(step_bp, e)
+    jump = take(bp_first, i)
+    s_high = take(step_s, e)
+    before = torch.clamp(e - 1, min=0)
+    s_low = torch.where(take(step_bp, before) == i, take(step_s, before), 0.0)
+    s_low = torch.where(jump, s_high, s_low)
+    begin = take(prev, i)
+    piece_pixels = pixels if isinstance(pixels, int) else take(pixels, i)
+    goal = level_value(cross.level, piece_pixels, fraction)
+    goal -= take(whole, begin).to(torch.float64)
+    goal -= take(part, begin)
+    s = _solve(take(c1, i), take(c2, i), take(c3, i), goal, s_low, s_high, cross.on)
+    at_end = jump | (take(on_level, e) & (cross.level == take(floor_u, e)))
+    s = torch.where(at_end, s_high, s)
+    t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, i), s)
+    return knots.bp_region(i), t, cross.on

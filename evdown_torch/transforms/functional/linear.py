@@ -1,0 +1,186 @@
+"""Linear log-luminance estimation kernel: exact crossings of the regions' mean polylines."""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import torch
+from torch import Tensor
+
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._common import sort_by_time
+from evdown_torch.transforms.functional._knots import (
+    Knots,
+    emit,
+    level_changes,
+    level_index,
+    level_value,
+    piece_time,
+    pixel_knots,
+    region_chunks,
+    region_pixels,
+    run_index,
+    segmented_cumsum,
+    step_crossings,
+    take,
+    where_true,
+)
+from evdown_torch.transforms.functional.event_count import threshold_fraction
+
+
+def _changes_at_knots(values: Tensor, first_at: Tensor) -> Tensor:
+    """Per knot, ``values`` minus its predecessor's in the same pixel (itself at a first)."""
+    change = values.clone()
+    change[1:] -= values[:-1]
+    change.scatter_(0, first_at, take(values, first_at))
+    return change
+
+
+def linear_estimation(
+    events: Events,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: float,
+) -> Events:
+    """Downscale by linear log-luminance estimation (SEMANTICS.md method 4).
+
+    Each pixel's log-luminance is the polyline through its knots (see
+    :mod:`~evdown_torch.transforms.functional._knots`); each region's mean ``M_r`` (sum of its
+    pixels' polylines over ``n_r``) is watched by the DVS reference rule at contrast
+    ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
+    the exact crossing times, rounded half up to integers when ``t`` is int64.
+
+    The kernel sweeps each region's breakpoints once. ``n_r * M_r`` at a breakpoint is an
+    exact integer (the levels of the pixels' latest knots) plus the progress of the pixels
+    strictly inside a segment; that progress is the running integral of the region's slope,
+    whose sum is kept in fixed point so that it does not drift, and it is exactly 0 wherever no
+    pixel is inside a segment. All time arithmetic is relative to breakpoints, so shifting the
+    clock shifts the output exactly.
+
+    Args:
+        events: ``N`` input events (any order; sorted stably by ``t`` here).
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
+            nearest fraction with denominator at most 10**6.
+
+    Returns:
+        Output events sorted by ``t``, ``t`` of the input's dtype.
+
+    Example:
+        >>> ev = Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1])
+        >>> out = linear_estimation(ev, sensor_size=(2, 1, 2), factor=(2, 1), threshold=0.25)
+        >>> out.t.tolist(), out.p.tolist()
+        ([0, 0, 5, 10], [True, True, True, True])
+    """
+    events = sort_by_time(events)
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device)
+    fraction = threshold_fraction(threshold)
+    out_w = output_size(sensor_size, factor)[0]
+    t_start, t_end = events.t[0], events.t[-1]
+    outputs = [
+        _linear_regions(
+            pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end),
+            sensor_size=sensor_size, factor=factor, fraction=fraction,
+        )
+        for chunk in region_chunks(events, factor=factor, out_width=out_w)
+    ]
+    region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+    return emit(region, t, on, out_w)
+
+
+def _linear_regions(
+    knots: Knots,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    fraction: Fraction,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Crossings of the regions of one chunk: ``(region, t, on)`` in region order.
+
+    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``.
+    """
+    device = knots.t.device
+
+    # Slope of every segment, stored at its first knot (0 after a pixel's last knot).
+    k = knots.t.shape[0]
+    first_at, last_at = where_true(knots.first), where_true(knots.last)
+    rise = torch.empty(k, dtype=torch.int64, device=device)
+    torch.sub(knots.level[1:], knots.level[:-1], out=rise[:-1])
+    rise.scatter_(0, last_at, 0)
+    run = torch.ones(k, dtype=torch.float64, device=device)
+    run[:-1] = knots.t[1:] - knots.t[:-1]
+    run.scatter_(0, last_at, 1.0)
+    slope = rise.to(torch.float64).div_(run)
+    del rise, run, last_at
+    # Fixed point for the slope sums: high parts add exactly in int64, low parts are tiny.
+    bound = float(slope.abs().max()) * factor[0] * factor[1]
+    scale = 2.0 ** (60 - math.frexp(bound)[1]) if bound > 0 else 1.0
+    high_f = torch.round(slope * scale)
+    low = slope.sub_(high_f / scale)
+    high = high_f.to(torch.int64)
+    del high_f, slope
+
+    # Per breakpoint: level change (exact), slope-sum change (fixed point + rest), knot count.
+    nb = knots.bp_t.shape[0]
+    bp = knots.breakpoint
+    level_bp = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
+        0, bp, level_changes(knots)
+    )
+    high_bp = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
+        0, bp, _changes_at_knots(high, first_at)
+    )
+    low_bp = torch.zeros(nb, dtype=torch.float64, device=device).index_add_(
+        0, bp, _changes_at_knots(low, first_at)
+    )
+    count = torch.bincount(bp, minlength=nb)
+    del high, low, first_at, bp
+    bp_first = knots.bp_first
+    bp_first_at = where_true(bp_first)
+    region = run_index(bp_first)
+    whole = segmented_cumsum(level_bp, bp_first_at, region)  # exact integer part of n_r * M_r
+    slope_sum = torch.cumsum(high_bp, 0).to(torch.float64).div_(scale)
+    slope_sum += torch.cumsum(low_bp, 0)
+    del level_bp, high_bp, low_bp
+    # No pixel strictly inside a segment (all active pixels have a knot): remainder exactly 0.
+    idle = count == take(take(count, bp_first_at), region)
+    del count
+
+    # Remainder (pixels' progress inside their segments) by a sweep, reset where it is 0.
+    gap = torch.zeros(nb, dtype=torch.float64, device=device)
+    gap[:-1] = knots.bp_t[1:] - knots.bp_t[:-1]
+    gap.scatter_(0, where_true(knots.bp_last), 0.0)
+    step = torch.empty(nb, dtype=torch.float64, device=device)
+    step[0] = 0.0
+    torch.mul(slope_sum[:-1], gap[:-1], out=step[1:])
+    step[1:] -= (whole[1:] - whole[:-1]).to(torch.float64)
+    step.scatter_(0, bp_first_at, 0.0)
+    del gap, slope_sum
+    total = torch.cumsum(step, 0)
+    part = total - take(take(total, where_true(idle)), run_index(idle))
+    del step, total, idle
+
+    # Reference rule on the breakpoints (each piece between breakpoints is monotone).
+    pixels = region_pixels(knots, sensor_size, factor)
+    floor_u, on_level = level_index(whole, part, pixels, fraction)
+    cross = step_crossings(floor_u, on_level, bp_first)
+
+    # Crossing times: linear interpolation on the piece that ends at the crossing's step.
+    end = cross.step
+    jump = take(bp_first, end)
+    begin = end - (~jump).to(torch.int64)
+    piece_pixels = pixels if isinstance(pixels, int) else take(pixels, end)
+    target = level_value(cross.level, piece_pixels, fraction)
+    whole_begin, part_begin = take(whole, begin), take(part, begin)
+    rise_whole = (take(whole, end) - whole_begin).to(torch.float64)
+    ratio = ((target - whole_begin.to(torch.float64)) - part_begin) / (
+        rise_whole + (take(part, end) - part_begin)
+    )
+    at_end = jump | (take(on_level, end) & (cross.level == take(floor_u, end)))
+    ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
+    t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, end), ratio)
+    return knots.bp_region(end), t, cross.on
