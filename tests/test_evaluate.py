@@ -177,3 +177,41 @@ def test_cli_evaluate_tiny_config_end_to_end(tmp_path, capsys):
     assert captured.out in report
     pytest.importorskip("matplotlib")
     assert (tmp_path / "tradeoff.png").stat().st_size > 0
+
+
+def _fake_dvsgesture(root, rng):
+    """Tonic's DVSGesture layout: archives, and user folders of ``<label>.npy`` (x, y, p, t_ms)."""
+    location = root / "DVSGesture"
+    for folder in ("ibmGestureTrain", "ibmGestureTest"):
+        (location / f"{folder}.tar.gz").parent.mkdir(parents=True, exist_ok=True)
+        (location / f"{folder}.tar.gz").write_bytes(b"")
+        for user in range(1, 11):
+            directory = location / folder / f"user{user:02d}_led"
+            directory.mkdir(parents=True)
+            for label in range(11):
+                n = 60
+                t_ms = np.sort(rng.integers(0, 400, n))
+                rows = np.stack([rng.integers(0, 128, n), rng.integers(0, 128, n),
+                                 rng.integers(0, 2, n), t_ms], axis=1)
+                np.save(directory / f"{label}.npy", rows)
+
+
+def test_dvsgesture_subset_and_crop(tmp_path, rng):
+    pytest.importorskip("tonic")
+    _fake_dvsgesture(tmp_path, rng)
+    config = parse_config({
+        "data": {"dataset": "dvsgesture", "root": str(tmp_path), "train_samples": 22,
+                 "test_samples": 11, "duration_us": 200_000, "time_bins": 2},
+        "methods": {"factors": [8], "include": ["downsample"]},
+        "model": {"channels": [2], "pool_size": 1},
+        "training": {"epochs": 1, "num_threads": 1},
+    })
+    data = load_data(config.data)
+    assert data.sensor_size == (128, 128, 2) and data.num_classes == 11
+    assert (len(data.train), len(data.test)) == (22, 11) and data.ground_truth is None
+    events, label = data.train[0]
+    assert 0 <= label < 11 and events["t"].max() - events["t"].min() < 200_000
+    assert data.train[0][0].tolist() == events.tolist()  # the same recording every time
+    result = run_evaluation(config, data=data, log=None)
+    assert [c.output_size for c in result.cells] == [(128, 128), (16, 16)]
+    assert all(c.consistency is None and 0 <= c.accuracy_mean <= 1 for c in result.cells)
