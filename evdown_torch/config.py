@@ -9,11 +9,11 @@ default. Keys left out take the defaults shown.
     [data]
     dataset = "synthetic"      # "synthetic" (evdown_torch.synthetic) or "dvsgesture" (tonic)
     root = "data"              # dvsgesture: tonic's save_to (the dataset lies in ROOT/DVSGesture)
-    download = false           # dvsgesture: let tonic download it when absent (about 2.5 GB)
-    sensor_size = [64, 64]     # synthetic: sensor width and height, pixels
+    download = false           # dvsgesture: let tonic download it when absent
+    sensor_size = [32, 32]     # synthetic: sensor width and height, pixels
     duration_us = 1_500_000    # synthetic: recording length; dvsgesture: crop (0 = whole), us
-    train_samples = 220        # synthetic: number of samples; dvsgesture: at most (0 = all)
-    test_samples = 110         # as train_samples, for the test split
+    train_samples = 330        # synthetic: number of samples; dvsgesture: at most (0 = all)
+    test_samples = 165         # as train_samples, for the test split
     seed = 0                   # which samples (synthetic scenes, dvsgesture subset)
     time_bins = 8              # frames per sample fed to the classifier
 
@@ -31,7 +31,7 @@ default. Keys left out take the defaults shown.
     threshold = 1.0
 
     [training]
-    epochs = 8
+    epochs = 10
     batch_size = 16
     learning_rate = 0.005
     seeds = [0]                # one training run per seed; accuracy is reported as mean and spread
@@ -84,10 +84,10 @@ class DataConfig:
     dataset: str = "synthetic"
     root: str = "data"
     download: bool = False
-    sensor_size: tuple[int, int] = (64, 64)
+    sensor_size: tuple[int, int] = (32, 32)
     duration_us: int = 1_500_000
-    train_samples: int = 220
-    test_samples: int = 110
+    train_samples: int = 330
+    test_samples: int = 165
     seed: int = 0
     time_bins: int = 8
 
@@ -165,7 +165,7 @@ class ModelConfig:
 class TrainingConfig:
     """The training budget, identical for every cell (table ``[training]``)."""
 
-    epochs: int = 8
+    epochs: int = 10
     batch_size: int = 16
     learning_rate: float = 5e-3
     seeds: tuple[int, ...] = (0,)
@@ -332,7 +332,7 @@ def parse_config(document: dict[str, Any], *, name: str = "evaluation") -> Evalu
     Example:
         >>> config = parse_config({"methods": {"factors": [2, [2, 4]]}, "data": {"seed": 3}})
         >>> config.methods.factors, config.data.seed, config.training.epochs
-        ((2, (2, 4)), 3, 8)
+        ((2, (2, 4)), 3, 10)
     """
     known = [*_SECTIONS, "settings"]
     for key in document:
