@@ -24,9 +24,9 @@ subset) and every configured factor, plus the full-resolution baseline, the eval
      of the two flattened count tensors, averaged over the test recordings. It lies in
      ``[0, 1]``; it ignores the overall event rate (a stream with every count doubled scores
      the same) and rewards events at the right place, polarity and time. The CSV also gives
-     the rate ratio, output events / ground-truth events. The baseline's consistency is 1 by
-     definition (the ground truth at factor 1 is the recording itself); real datasets have no
-     ground truth ("n/a").
+     the rate ratio, output events / ground-truth events (test recordings, inside the
+     window). The baseline's consistency is 1 by definition (the ground truth at factor 1 is
+     the recording itself); real datasets have no ground truth ("n/a").
 
 Results go to ``results.csv``, ``report.md`` (a Markdown table ready to paste) and
 ``tradeoff.png`` (accuracy against throughput and against event reduction; needs matplotlib)
@@ -282,12 +282,16 @@ def _load_dvsgesture(config: DataConfig, log: Log | None) -> EvaluationData:
 
 
 def _encode(counts: Tensor, encoding: str) -> Tensor:
-    """Classifier input from event counts, stored as float16 (exact for the encodings used)."""
+    """Classifier input from event counts.
+
+    ``"log"`` (``log1p``, to three significant digits) and ``"binary"`` (exact) are stored as
+    float16 to halve the memory of the cached frames, ``"counts"`` as float32 (exact).
+    """
     if encoding == "log":
-        counts = torch.log1p(counts)
-    elif encoding == "binary":
-        counts = (counts > 0).to(counts.dtype)
-    return counts.to(torch.float16)
+        return torch.log1p(counts).to(torch.float16)
+    if encoding == "binary":
+        return (counts > 0).to(torch.float16)
+    return counts.to(torch.float32)
 
 
 def _cosine(a: Tensor, b: Tensor) -> float:
@@ -330,7 +334,8 @@ def _prepare(
     """
     bins = config.data.time_bins
     seconds = 0.0
-    events_in = events_out = test_out = 0
+    events_in = events_out = 0
+    test_out = 0.0
     densities, entropies, cosines = [], [], []
     splits = []
     for split_name, split in (("train", data.train), ("test", data.test)):
@@ -348,7 +353,7 @@ def _prepare(
             counts = to_frames(out, out_sensor, bins, t_start=window[0], t_end=window[1])
             if split_name == "test" and ground_truth is not None:
                 cosines.append(_cosine(counts, ground_truth[i]))
-                test_out += out.num_events
+                test_out += float(counts.sum())
             metrics = event_metrics(out, out_sensor, duration=window[2])
             densities.append(metrics.density)
             entropies.append(metrics.entropy)
