@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from evdown_torch.checks import check_factor, check_sensor_size, output_size
+from evdown_torch.checks import check_factor, check_positive_float, check_sensor_size, output_size
 from evdown_torch.events import Events, EventsLike, from_events, to_events
+from evdown_torch.transforms.functional._reference import threshold_fraction
 
 
 @dataclass(frozen=True)
@@ -57,3 +58,21 @@ class Downscaler:
         """
         ev, fmt = to_events(events, self.sensor_size)
         return from_events(self.kernel(ev), fmt)
+
+
+@dataclass(frozen=True)
+class ThresholdDownscaler(Downscaler):
+    """Base of the log-luminance methods: a DVS reference rule at a contrast threshold.
+
+    Attributes:
+        threshold: contrast threshold on a region's mean level (in input events per pixel),
+            > 0. It is used as the nearest fraction with denominator at most 10**6, so
+            decimal thresholds such as 0.01 are exact.
+    """
+
+    threshold: float = 1.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        object.__setattr__(self, "threshold", check_positive_float("threshold", self.threshold))
+        threshold_fraction(self.threshold)

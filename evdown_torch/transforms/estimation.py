@@ -4,16 +4,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from evdown_torch.checks import check_positive_float
 from evdown_torch.events import Events
-from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms._base import ThresholdDownscaler
 from evdown_torch.transforms.functional.cubic import cubic_estimation
-from evdown_torch.transforms.functional.event_count import threshold_fraction
 from evdown_torch.transforms.functional.linear import linear_estimation
 
 
 @dataclass(frozen=True)
-class LinearEstimation(Downscaler):
+class LinearEstimation(ThresholdDownscaler):
     """Linear log-luminance estimation (SEMANTICS.md method 4), exact crossing times.
 
     Each input pixel's log-luminance is the polyline through its knots (one per distinct event
@@ -42,13 +40,6 @@ class LinearEstimation(Downscaler):
         [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 5, 1], [0, 0, 10, 1]]
     """
 
-    threshold: float = 1.0
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        object.__setattr__(self, "threshold", check_positive_float("threshold", self.threshold))
-        threshold_fraction(self.threshold)
-
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.linear.linear_estimation`."""
         return linear_estimation(
@@ -57,7 +48,7 @@ class LinearEstimation(Downscaler):
 
 
 @dataclass(frozen=True)
-class CubicEstimation(Downscaler):
+class CubicEstimation(ThresholdDownscaler):
     """Cubic log-luminance estimation (SEMANTICS.md method 5).
 
     As :class:`LinearEstimation`, but each pixel's curve is the piecewise cubic Hermite
@@ -83,13 +74,6 @@ class CubicEstimation(Downscaler):
         >>> CubicEstimation((2, 1, 2), factor=(2, 1), threshold=0.25)(ev).tolist()
         [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 6, 1], [0, 0, 20, 0]]
     """
-
-    threshold: float = 1.0
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        object.__setattr__(self, "threshold", check_positive_float("threshold", self.threshold))
-        threshold_fraction(self.threshold)
 
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.cubic.cubic_estimation`."""

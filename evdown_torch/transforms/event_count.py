@@ -4,18 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from evdown_torch.checks import check_positive_float
 from evdown_torch.events import Events, EventsLike, from_events, to_events
-from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms._base import ThresholdDownscaler
 from evdown_torch.transforms.functional.event_count import (
     EventCountState,
     event_count,
-    threshold_fraction,
 )
 
 
 @dataclass(frozen=True)
-class EventCount(Downscaler):
+class EventCount(ThresholdDownscaler):
     """Log-luminance event count (SEMANTICS.md method 3), integer-exact and causal.
 
     Each input pixel keeps an integer level (ON +1, OFF -1); after each input event its
@@ -35,13 +33,6 @@ class EventCount(Downscaler):
         >>> EventCount((2, 2, 2), factor=2, threshold=0.5)(ev).tolist()
         [[0, 0, 20, 1], [0, 0, 40, -1]]
     """
-
-    threshold: float = 1.0
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        object.__setattr__(self, "threshold", check_positive_float("threshold", self.threshold))
-        threshold_fraction(self.threshold)
 
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.event_count.event_count`."""

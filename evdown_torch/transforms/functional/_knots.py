@@ -23,20 +23,22 @@ the exact level test (:func:`level_index`) and the output assembly (:func:`emit`
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from fractions import Fraction
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
+from evdown_torch.checks import output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import region_of
+from evdown_torch.transforms.functional._common import region_of, sort_by_time
 from evdown_torch.transforms.functional._reference import (
     Crossings,
     crossings,
     reference_index,
     region_pixel_count,
+    threshold_fraction,
 )
 
 #: Events per chunk of regions (see :func:`region_chunks`).
@@ -440,3 +442,44 @@ def emit(region: Tensor, t: Tensor, on: Tensor, out_width: int) -> Events:
     region = take(region, order)
     y = torch.div(region, out_width, rounding_mode="floor")
     return Events(region - y * out_width, y, t, take(on, order))
+
+
+RegionSolver = Callable[..., tuple[Tensor, Tensor, Tensor]]
+
+
+def estimate(
+    events: Events,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: float,
+    solve_regions: RegionSolver,
+) -> Events:
+    """The driver the estimation kernels share: knots of each chunk of regions, then output.
+
+    Args:
+        events: ``N`` input events (any order; sorted stably by ``t`` here).
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        threshold: contrast threshold, > 0.
+        solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=)`` returns the
+            crossings ``(region, t, on)`` of the regions of one chunk, in region order.
+
+    Returns:
+        Output events sorted by ``t``, ``t`` of the input's dtype.
+    """
+    events = sort_by_time(events)
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device)
+    fraction = threshold_fraction(threshold)
+    out_w = output_size(sensor_size, factor)[0]
+    t_start, t_end = events.t[0], events.t[-1]
+    outputs = [
+        solve_regions(
+            pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end),
+            sensor_size=sensor_size, factor=factor, fraction=fraction,
+        )
+        for chunk in region_chunks(events, factor=factor, out_width=out_w)
+    ]
+    region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+    return emit(region, t, on, out_w)

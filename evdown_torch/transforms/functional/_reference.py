@@ -20,10 +20,27 @@ the clamp recurrence ``q_k = clamp(q_{k-1}, floor(u_k), ceil(u_k))`` solved in c
 
 from __future__ import annotations
 
+from fractions import Fraction
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
+
+#: Largest denominator of the rational that stands for ``threshold`` (0.01 is 1/100 exactly).
+MAX_DENOMINATOR = 1_000_000
+
+
+def threshold_fraction(threshold: float) -> Fraction:
+    """The rational ``a / b`` (``b <= 10**6``) nearest to ``threshold``, used for exact tests.
+
+    Example:
+        >>> threshold_fraction(0.01), threshold_fraction(2.5)
+        (Fraction(1, 100), Fraction(5, 2))
+    """
+    fraction = Fraction(threshold).limit_denominator(MAX_DENOMINATOR)
+    if fraction <= 0:
+        raise ValueError(f"threshold must be positive and at least 1e-6, got {threshold!r}")
+    return fraction
 
 
 class RegionGroups(NamedTuple):

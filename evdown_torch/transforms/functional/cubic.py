@@ -7,18 +7,14 @@ from fractions import Fraction
 import torch
 from torch import Tensor
 
-from evdown_torch.checks import output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import sort_by_time
 from evdown_torch.transforms.functional._knots import (
     Knots,
-    emit,
+    estimate,
     level_changes,
     level_index,
     level_value,
     piece_time,
-    pixel_knots,
-    region_chunks,
     region_pixels,
     run_index,
     segmented_cumsum,
@@ -26,7 +22,6 @@ from evdown_torch.transforms.functional._knots import (
     take,
     where_true,
 )
-from evdown_torch.transforms.functional.event_count import threshold_fraction
 
 #: Pixel-segment evaluations per chunk: bounds the kernel's memory and keeps its temporary
 #: tensors small enough to be recycled by the allocator instead of faulted in afresh.
@@ -341,21 +336,10 @@ def cubic_estimation(
         >>> out.t.tolist(), out.p.tolist()
         ([0, 0, 5, 10], [True, True, True, True])
     """
-    events = sort_by_time(events)
-    if events.num_events == 0:
-        return Events.empty(events.t.dtype, events.device)
-    fraction = threshold_fraction(threshold)
-    out_w = output_size(sensor_size, factor)[0]
-    t_start, t_end = events.t[0], events.t[-1]
-    outputs = [
-        _cubic_regions(
-            pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end),
-            sensor_size=sensor_size, factor=factor, fraction=fraction,
-        )
-        for chunk in region_chunks(events, factor=factor, out_width=out_w)
-    ]
-    region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
-    return emit(region, t, on, out_w)
+    return estimate(
+        events, sensor_size=sensor_size, factor=factor, threshold=threshold,
+        solve_regions=_cubic_regions,
+    )
 
 
 def _cubic_regions(

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from fractions import Fraction
 from typing import NamedTuple
 
 import torch
@@ -21,10 +20,8 @@ from evdown_torch.transforms.functional._reference import (
     group_by_region,
     reference_index,
     region_pixel_count,
+    threshold_fraction,
 )
-
-#: Largest denominator of the rational that stands for ``threshold`` (0.01 is 1/100 exactly).
-MAX_DENOMINATOR = 1_000_000
 
 
 class EventCountState(NamedTuple):
@@ -39,19 +36,6 @@ class EventCountState(NamedTuple):
     level_sum: Tensor
     index: Tensor
     last_t: Tensor | None
-
-
-def threshold_fraction(threshold: float) -> Fraction:
-    """The rational ``a / b`` (``b <= 10**6``) nearest to ``threshold``, used for exact tests.
-
-    Example:
-        >>> threshold_fraction(0.01), threshold_fraction(2.5)
-        (Fraction(1, 100), Fraction(5, 2))
-    """
-    fraction = Fraction(threshold).limit_denominator(MAX_DENOMINATOR)
-    if fraction <= 0:
-        raise ValueError(f"threshold must be positive and at least 1e-6, got {threshold!r}")
-    return fraction
 
 
 def initial_state(
