@@ -37,7 +37,7 @@ default. Keys left out take the defaults shown.
     seeds = [0]                # one training run per seed; accuracy is reported as mean and spread
     encoding = "log"           # classifier input: "counts", "log" (log1p of counts) or "binary"
     device = "cpu"             # "cpu", "cuda", "cuda:1", ... or "auto"
-    num_threads = 2            # torch threads during the run (0: leave torch's setting)
+    num_threads = 1            # torch threads during the run (0: leave torch's setting)
 
     [output]
     directory = "results"      # relative to the working directory
@@ -171,7 +171,7 @@ class TrainingConfig:
     seeds: tuple[int, ...] = (0,)
     encoding: str = "log"
     device: str = "cpu"
-    num_threads: int = 2
+    num_threads: int = 1
 
     def __post_init__(self) -> None:
         check_positive_int("training.epochs", self.epochs)

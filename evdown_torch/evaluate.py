@@ -466,9 +466,9 @@ def _cell(
         train_seconds.append(time.perf_counter() - start)
         progress(f"{label}, seed {seed}: accuracy {accuracies[-1]:.3f} "
                  f"(trained in {train_seconds[-1]:.1f} s)")
-    consistency = prepared.consistency
+    consistency, rate = prepared.consistency, prepared.rate_vs_ground_truth
     if name == BASELINE and data.ground_truth is not None:
-        consistency = 1.0  # the ground truth at factor 1 is the recording itself
+        consistency = rate = 1.0  # the ground truth at factor 1 is the recording itself
     return CellResult(
         method=name,
         factor=factor,
@@ -480,8 +480,7 @@ def _cell(
         density=prepared.density,
         entropy=prepared.entropy,
         consistency=consistency,
-        rate_vs_ground_truth=1.0 if name == BASELINE and consistency is not None
-        else prepared.rate_vs_ground_truth,
+        rate_vs_ground_truth=rate,
         downscale_seconds=prepared.seconds,
         train_seconds=statistics.fmean(train_seconds),
     )
