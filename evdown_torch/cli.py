@@ -7,6 +7,9 @@ Subcommands:
 * ``evdown bench --out DIR [--short] [--input FILE.npy ...]``: benchmark every method against
   its peers (Tonic), with scaling curves and peak memory; writes a Markdown report, JSON and
   PNG plots (see :mod:`evdown_torch.bench`).
+* ``evdown evaluate --config FILE [--output DIR]``: measure every method's speed/accuracy
+  trade (:mod:`evdown_torch.evaluate`) and write ``results.csv``, ``report.md`` and
+  ``tradeoff.png``.
 """
 
 from __future__ import annotations
@@ -101,6 +104,20 @@ def _bench(args: argparse.Namespace) -> int:
     return bench.run_from_args(args)
 
 
+def _evaluate(args: argparse.Namespace) -> int:
+    from evdown_torch.config import load_config
+    from evdown_torch.evaluate import markdown_table, run_evaluation, write_report
+
+    try:
+        config = load_config(args.config)
+        result = run_evaluation(config)
+    except (OSError, RuntimeError) as error:
+        raise CommandError(str(error)) from None
+    write_report(result, args.output or config.output.directory)
+    print(markdown_table(result), end="")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``evdown`` argument parser."""
     parser = argparse.ArgumentParser(
@@ -144,6 +161,15 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--no-scaling", action="store_true", help="skip the scaling sweeps")
     bench.add_argument("--no-memory", action="store_true", help="skip peak-memory measurements")
     bench.set_defaults(run=_bench)
+    evaluate = commands.add_parser(
+        "evaluate",
+        help="train and test a spiking classifier on every method and factor; write a report",
+    )
+    evaluate.add_argument("--config", required=True, metavar="FILE",
+                          help="TOML configuration, e.g. configs/quick.toml")
+    evaluate.add_argument("--output", metavar="DIR",
+                          help="output directory (default: the config's [output] directory)")
+    evaluate.set_defaults(run=_evaluate)
     return parser
 
 

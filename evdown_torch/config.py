@@ -1,0 +1,388 @@
+"""Configuration of ``evdown evaluate``: TOML files mapped onto typed dataclasses.
+
+A config file has up to six tables; every key maps to a field below, so an unknown key, a
+value of the wrong type or a missing file is an error that names the problem, never a silent
+default. Keys left out take the defaults shown.
+
+.. code-block:: toml
+
+    [data]
+    dataset = "synthetic"      # "synthetic" (evdown_torch.synthetic) or "dvsgesture" (tonic)
+    root = "data"              # dvsgesture: tonic's save_to (the dataset lies in ROOT/DVSGesture)
+    download = false           # dvsgesture: let tonic download it when absent
+    sensor_size = [32, 32]     # synthetic: sensor width and height, pixels
+    duration_us = 1_500_000    # synthetic: recording length; dvsgesture: crop (0 = whole), us
+    train_samples = 330        # synthetic: number of samples; dvsgesture: at most (0 = all)
+    test_samples = 165         # as train_samples, for the test split
+    seed = 0                   # which samples (synthetic scenes, dvsgesture subset)
+    time_bins = 8              # frames per sample fed to the classifier
+
+    [methods]
+    include = ["downsample", "event_count"]   # default: every method of the registry
+    factors = [2, 4]           # each an integer or a pair [fx, fy]
+
+    [settings.event_count]     # one table per method: its settings (see `method_settings`)
+    threshold = 1.0
+
+    [model]                    # SpikingClassifier
+    channels = [16, 32]
+    pool_size = 4
+    beta = 0.9
+    threshold = 1.0
+
+    [training]
+    epochs = 10
+    batch_size = 16
+    learning_rate = 0.005
+    seeds = [0]                # one training run per seed; accuracy is reported as mean and spread
+    encoding = "log"           # classifier input: "counts", "log" (log1p of counts) or "binary"
+    device = "cpu"             # "cpu", "cuda", "cuda:1", ... or "auto"
+    num_threads = 1            # torch threads during the run (0: leave torch's setting)
+
+    [output]
+    directory = "results"      # relative to the working directory
+"""
+
+from __future__ import annotations
+
+import math
+import types
+import typing
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from evdown_torch.checks import (
+    check_choice,
+    check_factor,
+    check_non_negative_int,
+    check_positive_float,
+    check_positive_int,
+)
+from evdown_torch.transforms.registry import METHODS, make_method
+
+__all__ = [
+    "DataConfig",
+    "EvaluationConfig",
+    "MethodsConfig",
+    "ModelConfig",
+    "OutputConfig",
+    "TrainingConfig",
+    "load_config",
+    "parse_config",
+]
+
+DATASETS = ("synthetic", "dvsgesture")
+ENCODINGS = ("counts", "log", "binary")
+DVS_GESTURE_SENSOR = (128, 128, 2)
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """Which recordings, how many, and how they become frames (table ``[data]``)."""
+
+    dataset: str = "synthetic"
+    root: str = "data"
+    download: bool = False
+    sensor_size: tuple[int, int] = (32, 32)
+    duration_us: int = 1_500_000
+    train_samples: int = 330
+    test_samples: int = 165
+    seed: int = 0
+    time_bins: int = 8
+
+    def __post_init__(self) -> None:
+        check_choice("data.dataset", self.dataset, DATASETS)
+        for i, name in enumerate(("width", "height")):
+            check_positive_int(f"data.sensor_size {name}", self.sensor_size[i])
+        check_positive_int("data.time_bins", self.time_bins)
+        check_non_negative_int("data.seed", self.seed)
+        if self.dataset == "synthetic":
+            check_positive_int("data.duration_us", self.duration_us)
+            check_positive_int("data.train_samples", self.train_samples)
+            check_positive_int("data.test_samples", self.test_samples)
+        else:
+            for name in ("duration_us", "train_samples", "test_samples"):
+                check_non_negative_int(f"data.{name}", getattr(self, name))
+
+    @property
+    def full_sensor_size(self) -> tuple[int, int, int]:
+        """``(W, H, 2)`` of the dataset's recordings."""
+        if self.dataset == "dvsgesture":
+            return DVS_GESTURE_SENSOR
+        return (self.sensor_size[0], self.sensor_size[1], 2)
+
+
+@dataclass(frozen=True)
+class MethodsConfig:
+    """Which methods and factors form the table's cells (table ``[methods]``)."""
+
+    include: tuple[str, ...] | None = None
+    factors: tuple[int | tuple[int, int], ...] = (2, 4)
+
+    def __post_init__(self) -> None:
+        if not self.factors:
+            raise ValueError("methods.factors must list at least one factor, got []")
+        for factor in self.factors:
+            check_factor(factor)
+        if self.include is not None:
+            unknown = [name for name in self.include if name not in METHODS]
+            if unknown:
+                raise ValueError(
+                    f"methods.include names unknown method(s) {unknown}; the registry has "
+                    f"{list(METHODS)}"
+                )
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The methods to evaluate, in the registry's order when ``include`` is not given."""
+        if self.include is not None:
+            return self.include
+        return tuple(METHODS)
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Settings of :class:`~evdown_torch.models.SpikingClassifier` (table ``[model]``)."""
+
+    channels: tuple[int, ...] = (16, 32)
+    pool_size: int = 4
+    beta: float = 0.9
+    threshold: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.channels:
+            raise ValueError("model.channels must list at least one block, got []")
+        for c in self.channels:
+            check_positive_int("model.channels", c)
+        check_positive_int("model.pool_size", self.pool_size)
+        if not 0 < check_positive_float("model.beta", self.beta) <= 1:
+            raise ValueError(f"model.beta must lie in (0, 1], got {self.beta!r}")
+        check_positive_float("model.threshold", self.threshold)
+
+
+@dataclass(frozen=True)
+class TrainingConfig:
+    """The training budget, identical for every cell (table ``[training]``)."""
+
+    epochs: int = 10
+    batch_size: int = 16
+    learning_rate: float = 5e-3
+    seeds: tuple[int, ...] = (0,)
+    encoding: str = "log"
+    device: str = "cpu"
+    num_threads: int = 1
+
+    def __post_init__(self) -> None:
+        check_positive_int("training.epochs", self.epochs)
+        check_positive_int("training.batch_size", self.batch_size)
+        check_positive_float("training.learning_rate", self.learning_rate)
+        if not self.seeds:
+            raise ValueError("training.seeds must list at least one seed, got []")
+        for seed in self.seeds:
+            check_non_negative_int("training.seeds", seed)
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"training.seeds must be distinct, got {list(self.seeds)}")
+        check_choice("training.encoding", self.encoding, ENCODINGS)
+        check_non_negative_int("training.num_threads", self.num_threads)
+        if not self.device:
+            raise ValueError("training.device must name a device, got ''")
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """Where the report goes (table ``[output]``)."""
+
+    directory: str = "results"
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """A whole ``evdown evaluate`` configuration.
+
+    Attributes:
+        data, methods, model, training, output: the tables of the same names.
+        settings: method name -> that method's settings (keyword arguments of
+            :func:`~evdown_torch.transforms.registry.make_method`).
+        name: a label for the report (the config file's stem).
+    """
+
+    data: DataConfig = field(default_factory=DataConfig)
+    methods: MethodsConfig = field(default_factory=MethodsConfig)
+    settings: dict[str, dict[str, Any]] = field(default_factory=dict)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    name: str = "evaluation"
+
+    def __post_init__(self) -> None:
+        sensor = self.data.full_sensor_size
+        for factor in self.methods.factors:
+            try:
+                check_factor(factor, sensor)
+            except ValueError as error:
+                raise ValueError(f"methods.factors: {error}") from None
+        for method, settings in self.settings.items():
+            if method not in METHODS:
+                raise ValueError(
+                    f"[settings.{method}] names an unknown method; the registry has "
+                    f"{list(METHODS)}"
+                )
+            for factor in self.methods.factors:
+                try:
+                    make_method(method, sensor, factor, **settings)
+                except (ValueError, TypeError) as error:
+                    raise type(error)(f"[settings.{method}]: {error}") from None
+
+    def method_settings(self, method: str) -> dict[str, Any]:
+        """The configured settings of ``method`` (empty: the method's defaults)."""
+        return dict(self.settings.get(method, {}))
+
+
+_SECTIONS = {
+    "data": DataConfig,
+    "methods": MethodsConfig,
+    "model": ModelConfig,
+    "training": TrainingConfig,
+    "output": OutputConfig,
+}
+
+
+def _type_name(value: Any) -> str:
+    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string",
+            list: "an array", dict: "a table"}.get(type(value), type(value).__name__)
+
+
+def _convert(key: str, value: Any, kind: Any) -> Any:
+    """Check a TOML value against a field's annotation; arrays become tuples."""
+    origin = typing.get_origin(kind)
+    if origin in (typing.Union, types.UnionType):
+        options = [k for k in typing.get_args(kind) if k is not type(None)]
+        for option in options:
+            try:
+                return _convert(key, value, option)
+            except TypeError:
+                continue
+        expected = " or ".join(_describe(option) for option in options)
+        raise TypeError(f"{key} must be {expected}, got {_type_name(value)} ({value!r})")
+    if origin is tuple:
+        args = typing.get_args(kind)
+        if not isinstance(value, list):
+            raise TypeError(f"{key} must be {_describe(kind)}, got {_type_name(value)} ({value!r})")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(f"{key}[{i}]", v, args[0]) for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise TypeError(f"{key} must be {_describe(kind)}, got {value!r}")
+        return tuple(_convert(f"{key}[{i}]", v, a) for i, (v, a) in enumerate(zip(value, args)))
+    ok = {
+        bool: isinstance(value, bool),
+        int: isinstance(value, int) and not isinstance(value, bool),
+        float: isinstance(value, (int, float)) and not isinstance(value, bool),
+        str: isinstance(value, str),
+    }.get(kind)
+    if ok is None:  # pragma: no cover - a field type this loader does not know
+        raise TypeError(f"{key}: unsupported field type {kind!r}")
+    if not ok:
+        raise TypeError(f"{key} must be {_describe(kind)}, got {_type_name(value)} ({value!r})")
+    if kind is float:
+        value = float(value)
+        if not math.isfinite(value):
+            raise ValueError(f"{key} must be finite, got {value!r}")
+    return value
+
+
+def _describe(kind: Any) -> str:
+    origin = typing.get_origin(kind)
+    if origin is tuple:
+        args = typing.get_args(kind)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"an array whose items are each {_describe(args[0])}"
+        return f"an array of {len(args)} items, each {_describe(args[0])}"
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_describe(k) for k in typing.get_args(kind) if k is not type(None))
+    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}[kind]
+
+
+def _section(cls: type, table: Any, where: str) -> Any:
+    if not isinstance(table, dict):
+        raise TypeError(f"[{where}] must be a table, got {_type_name(table)} ({table!r})")
+    hints = typing.get_type_hints(cls)
+    known = [f.name for f in fields(cls)]
+    for key in table:
+        if key not in known:
+            raise ValueError(f"unknown key {where}.{key}; [{where}] takes {known}")
+    values = {key: _convert(f"{where}.{key}", value, hints[key]) for key, value in table.items()}
+    return cls(**values)
+
+
+def parse_config(document: dict[str, Any], *, name: str = "evaluation") -> EvaluationConfig:
+    """Build an :class:`EvaluationConfig` from a parsed TOML document.
+
+    Args:
+        document: the tables, as ``tomllib.loads`` returns them.
+        name: a label for the report.
+
+    Returns:
+        The validated configuration.
+
+    Raises:
+        ValueError: for an unknown table or key, or a value out of range.
+        TypeError: for a value of the wrong type.
+
+    Example:
+        >>> config = parse_config({"methods": {"factors": [2, [2, 4]]}, "data": {"seed": 3}})
+        >>> config.methods.factors, config.data.seed, config.training.epochs
+        ((2, (2, 4)), 3, 10)
+    """
+    known = [*_SECTIONS, "settings"]
+    for key in document:
+        if key not in known:
+            raise ValueError(f"unknown table [{key}]; a config takes tables {known}")
+    sections = {
+        key: _section(cls, document[key], key) for key, cls in _SECTIONS.items() if key in document
+    }
+    settings = document.get("settings", {})
+    if not isinstance(settings, dict) or not all(isinstance(v, dict) for v in settings.values()):
+        raise TypeError(
+            "[settings] must hold one table per method, e.g. [settings.event_count], "
+            f"got {settings!r}"
+        )
+    return EvaluationConfig(**sections, settings=settings, name=name)
+
+
+def _toml_loads(text: str) -> dict[str, Any]:
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python < 3.11
+        try:
+            import tomli as tomllib
+        except ModuleNotFoundError:
+            raise RuntimeError(
+                "reading TOML configs needs Python >= 3.11 (tomllib) or the tomli package"
+            ) from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ValueError(f"invalid TOML: {error}") from None
+
+
+def load_config(path: str | Path) -> EvaluationConfig:
+    """Read and validate a TOML configuration file.
+
+    Args:
+        path: the ``.toml`` file.
+
+    Returns:
+        The :class:`EvaluationConfig`, named after the file's stem.
+
+    Raises:
+        FileNotFoundError: if the file does not exist.
+        ValueError, TypeError: as :func:`parse_config`, with the file named in the message.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"config file {str(path)!r} does not exist")
+    try:
+        return parse_config(_toml_loads(path.read_text(encoding="utf-8")), name=path.stem)
+    except (ValueError, TypeError) as error:
+        raise type(error)(f"{path}: {error}") from None

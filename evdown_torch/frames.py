@@ -1,0 +1,91 @@
+"""Event-to-frame binning: a stream becomes ``[T, 2, H, W]`` event-count frames.
+
+Like ``tonic.transforms.ToFrame(n_time_bins=T)`` (channel order OFF then ON), with one shape
+and one dtype for every input, empty or not, and an explicit time window, so that a stream and
+its downscaled versions are binned over the same window.
+
+The window ``[t_start, t_end]`` (by default the smallest and largest ``t`` of the stream) is
+cut into ``T`` bins of equal length ``D / T``, ``D = t_end - t_start``: an event at ``t`` goes
+to bin ``floor((t - t_start) * T / D)``, the last bin also holding ``t_end`` itself. The index
+is computed exactly for integer timestamps (int64 arithmetic relative to ``t_start``). Events
+outside the window are left out. A window of zero length puts every event in bin 0.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from evdown_torch.checks import check_positive_int, check_sensor_size
+from evdown_torch.events import EventsLike, to_events
+
+__all__ = ["to_frames"]
+
+
+def to_frames(
+    events: EventsLike,
+    sensor_size: tuple[int, int, int],
+    n_time_bins: int,
+    *,
+    t_start: float | None = None,
+    t_end: float | None = None,
+) -> Tensor:
+    """Count events per time bin, polarity and pixel.
+
+    Args:
+        events: a Tonic structured array, an ``(N, 4)`` tensor ``(x, y, t, p)`` or Events.
+        sensor_size: ``(W, H, P)`` of the sensor the events live on (``P`` is 1 or 2; the
+            frames always have two channels, OFF then ON, by each event's polarity).
+        n_time_bins: number of bins ``T``.
+        t_start: start of the window, in the stream's time unit; default: the smallest ``t``.
+        t_end: end of the window (included); default: the largest ``t``.
+
+    Returns:
+        ``[T, 2, H, W]`` float32 event counts on the events' device (channel 0 OFF, 1 ON);
+        all zeros for an empty stream.
+
+    Raises:
+        ValueError: for ``t_end < t_start``, a bad ``n_time_bins`` or invalid events.
+
+    Example:
+        >>> import torch
+        >>> ev = torch.tensor([[0, 0, 0, 1], [1, 0, 5, 0], [1, 0, 10, 1]])
+        >>> frames = to_frames(ev, (2, 1, 2), n_time_bins=2)
+        >>> frames.shape, frames[:, 1, 0].tolist(), frames[:, 0, 0].tolist()
+        (torch.Size([2, 2, 1, 2]), [[1.0, 0.0], [0.0, 1.0]], [[0.0, 0.0], [0.0, 1.0]])
+    """
+    w, h, _ = check_sensor_size(sensor_size)
+    bins = check_positive_int("n_time_bins", n_time_bins)
+    ev, _ = to_events(events, (w, h, 2))
+    size = bins * 2 * h * w
+    if ev.num_events == 0:
+        return torch.zeros(bins, 2, h, w, dtype=torch.float32, device=ev.device)
+    t = ev.t
+    start = t.min() if t_start is None else torch.as_tensor(t_start, device=t.device)
+    end = t.max() if t_end is None else torch.as_tensor(t_end, device=t.device)
+    if t.dtype == torch.int64 and not (start.is_floating_point() or end.is_floating_point()):
+        start, end = start.to(torch.int64), end.to(torch.int64)
+        span = end - start
+        if int(span) < 0:
+            raise ValueError(f"t_end must not be before t_start, got {int(start)} and {int(end)}")
+        offset = t - start
+        index = offset * bins // span if int(span) > 0 else torch.zeros_like(offset)
+    else:
+        t = t.to(torch.float64)
+        start, end = start.to(torch.float64), end.to(torch.float64)
+        span = end - start
+        if float(span) < 0:
+            raise ValueError(
+                f"t_end must not be before t_start, got {float(start)} and {float(end)}"
+            )
+        offset = t - start
+        index = (
+            torch.floor(offset * bins / span).to(torch.int64)
+            if float(span) > 0
+            else torch.zeros_like(offset, dtype=torch.int64)
+        )
+    inside = (offset >= 0) & (t <= end)
+    index = index.clamp(max=bins - 1)[inside]
+    flat = ((index * 2 + ev.p[inside].to(torch.int64)) * h + ev.y[inside]) * w + ev.x[inside]
+    counts = torch.bincount(flat, minlength=size)
+    return counts.to(torch.float32).reshape(bins, 2, h, w)

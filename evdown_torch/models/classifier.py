@@ -1,0 +1,176 @@
+"""A small convolutional spiking classifier for event frames of any size."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import snntorch
+import torch
+from snntorch import surrogate
+from torch import Tensor, nn
+
+from evdown_torch.checks import check_positive_float, check_positive_int
+
+__all__ = ["ClassifierState", "SpikingClassifier", "class_scores"]
+
+
+class ClassifierState(NamedTuple):
+    """Membrane potentials of every spiking layer of a :class:`SpikingClassifier`.
+
+    Attributes:
+        conv: one ``[B, C_i, H_i, W_i]`` tensor per convolutional block.
+        out: ``[B, num_classes]`` membrane of the output layer.
+    """
+
+    conv: tuple[Tensor, ...]
+    out: Tensor
+
+
+def _leaky(beta: float, threshold: float) -> snntorch.Leaky:
+    neuron = snntorch.Leaky(
+        beta=beta, threshold=threshold, spike_grad=surrogate.fast_sigmoid(slope=25)
+    )
+    # snntorch lists every neuron ever built in a class-level registry for its hidden-state
+    # helpers, which this module does not use (its state is explicit); leave it, so that a
+    # discarded classifier can be freed.
+    if neuron in snntorch.SpikingNeuron.instances:
+        snntorch.SpikingNeuron.instances.remove(neuron)
+    return neuron
+
+
+class SpikingClassifier(nn.Module):
+    """Convolutional leaky integrate-and-fire network classifying event frames.
+
+    Each time step goes through ``len(channels)`` blocks of ``3x3`` convolution, ``2x2`` max
+    pooling (rounding up, so a ``1x1`` input stays ``1x1``) and a leaky integrate-and-fire
+    layer (``snntorch.Leaky``, subtract reset, fast-sigmoid surrogate gradient); then an
+    adaptive average pooling to ``pool_size x pool_size`` (which makes the network take any
+    input size), a linear layer and a leaky output layer with one neuron per class. The class
+    is read from the output spike counts (:meth:`predict`); train it with a snntorch loss on
+    the output spikes, e.g. ``snntorch.functional.mse_count_loss()``.
+
+    Args:
+        num_classes: number of classes (11 for DVS128 Gesture).
+        in_channels: input channels (2: OFF and ON).
+        channels: output channels of each convolutional block.
+        pool_size: side of the adaptive pooling's output.
+        beta: membrane decay per time step, in ``(0, 1]``.
+        threshold: firing threshold of every layer.
+
+    Example:
+        >>> import torch
+        >>> net = SpikingClassifier(num_classes=3, channels=(4,), pool_size=2)
+        >>> spikes, membrane, state = net(torch.rand(5, 2, 2, 9, 7))
+        >>> spikes.shape, membrane.shape, state.out.shape
+        (torch.Size([5, 2, 3]), torch.Size([5, 2, 3]), torch.Size([2, 3]))
+    """
+
+    def __init__(
+        self,
+        num_classes: int = 11,
+        *,
+        in_channels: int = 2,
+        channels: Sequence[int] = (16, 32),
+        pool_size: int = 4,
+        beta: float = 0.9,
+        threshold: float = 1.0,
+    ) -> None:
+        super().__init__()
+        self.num_classes = check_positive_int("num_classes", num_classes)
+        self.in_channels = check_positive_int("in_channels", in_channels)
+        if isinstance(channels, (str, bytes)) or not isinstance(channels, Sequence):
+            raise TypeError(f"channels must be a sequence of positive integers, got {channels!r}")
+        self.channels = tuple(check_positive_int("channels", c) for c in channels)
+        if not self.channels:
+            raise ValueError("channels must name at least one convolutional block, got ()")
+        self.pool_size = check_positive_int("pool_size", pool_size)
+        beta = check_positive_float("beta", beta)
+        if beta > 1:
+            raise ValueError(f"beta must lie in (0, 1], got {beta!r}")
+        threshold = check_positive_float("threshold", threshold)
+        widths = (self.in_channels, *self.channels)
+        self.convs = nn.ModuleList(
+            nn.Conv2d(a, b, kernel_size=3, padding=1) for a, b in zip(widths, widths[1:])
+        )
+        self.pool = nn.MaxPool2d(2, ceil_mode=True)
+        self.conv_neurons = nn.ModuleList(_leaky(beta, threshold) for _ in self.channels)
+        self.squeeze = nn.AdaptiveAvgPool2d(self.pool_size)
+        self.fc = nn.Linear(self.channels[-1] * self.pool_size**2, self.num_classes)
+        self.out_neuron = _leaky(beta, threshold)
+
+    def extra_repr(self) -> str:
+        return (
+            f"num_classes={self.num_classes}, channels={self.channels}, "
+            f"pool_size={self.pool_size}, beta={float(self.out_neuron.beta):g}, "
+            f"threshold={float(self.out_neuron.threshold):g}"
+        )
+
+    def initial_state(self, x: Tensor) -> ClassifierState:
+        """Zero membranes for a ``[T, B, C, H, W]`` input."""
+        _, b, _, h, w = x.shape
+        conv = []
+        for c in self.channels:
+            h, w = -(-h // 2), -(-w // 2)
+            conv.append(x.new_zeros(b, c, h, w))
+        return ClassifierState(tuple(conv), x.new_zeros(b, self.num_classes))
+
+    def forward(
+        self, x: Tensor, state: ClassifierState | None = None
+    ) -> tuple[Tensor, Tensor, ClassifierState]:
+        """Run the network over the time steps of ``x``.
+
+        Args:
+            x: ``[T, B, in_channels, H, W]`` float input (event counts or spikes), any
+                ``H, W >= 1``.
+            state: membranes to start from; zeros by default.
+
+        Returns:
+            ``(spikes, membrane, state)``: output spikes and output membrane, both
+            ``[T, B, num_classes]``, and the state after the last step.
+        """
+        if x.ndim != 5 or x.shape[2] != self.in_channels:
+            raise ValueError(
+                f"input must have shape [T, B, {self.in_channels}, H, W], "
+                f"got {tuple(x.shape)}"
+            )
+        if state is None:
+            state = self.initial_state(x)
+        conv_mem = list(state.conv)
+        out_mem = state.out
+        spikes, membranes = [], []
+        for step in x:
+            current = step
+            for i, (conv, neuron) in enumerate(zip(self.convs, self.conv_neurons)):
+                current, conv_mem[i] = neuron(self.pool(conv(current)), conv_mem[i])
+            current = self.fc(self.squeeze(current).flatten(1))
+            spike, out_mem = self.out_neuron(current, out_mem)
+            spikes.append(spike)
+            membranes.append(out_mem)
+        return (
+            torch.stack(spikes),
+            torch.stack(membranes),
+            ClassifierState(tuple(conv_mem), out_mem),
+        )
+
+    @torch.no_grad()
+    def predict(self, x: Tensor) -> Tensor:
+        """Class of each sample: most output spikes, ties broken by the summed membrane.
+
+        Args:
+            x: ``[T, B, in_channels, H, W]`` input.
+
+        Returns:
+            ``[B]`` int64 class indices.
+        """
+        spikes, membrane, _ = self(x)
+        return class_scores(spikes, membrane).argmax(1)
+
+
+def class_scores(spikes: Tensor, membrane: Tensor) -> Tensor:
+    """``[B, C]`` class scores: spike counts, ties broken by the summed membrane.
+
+    The membrane term is squashed into ``(0, 1)``, so it orders classes only among those with
+    equal spike counts.
+    """
+    return spikes.sum(0) + torch.sigmoid(membrane.sum(0))

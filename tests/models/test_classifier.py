@@ -1,0 +1,98 @@
+"""SpikingClassifier: shapes for any input size, explicit state, buffers, learning."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from evdown_torch.models import SpikingClassifier
+from evdown_torch.models.classifier import class_scores
+from evdown_torch.training import evaluate_classifier, train_classifier
+
+
+@pytest.mark.parametrize("size", [(1, 1), (2, 3), (7, 5), (32, 32), (64, 48)])
+def test_any_input_size(size):
+    net = SpikingClassifier(num_classes=11, channels=(4, 8), pool_size=3)
+    x = torch.rand(3, 2, 2, *size, generator=torch.Generator().manual_seed(0))
+    spikes, membrane, state = net(x)
+    assert spikes.shape == membrane.shape == (3, 2, 11)
+    assert set(spikes.unique().tolist()) <= {0.0, 1.0}
+    assert state.out.shape == (2, 11) and len(state.conv) == 2
+    assert state.conv[0].shape[-2:] == (-(-size[0] // 2), -(-size[1] // 2))
+
+
+def test_state_carries_over_between_calls():
+    torch.manual_seed(0)
+    net = SpikingClassifier(num_classes=4, channels=(6,), pool_size=2)
+    x = 3 * torch.rand(6, 2, 2, 8, 8, generator=torch.Generator().manual_seed(1))
+    whole_spikes, whole_mem, whole_state = net(x)
+    first_spikes, first_mem, state = net(x[:4])
+    rest_spikes, rest_mem, last_state = net(x[4:], state)
+    torch.testing.assert_close(torch.cat([first_spikes, rest_spikes]), whole_spikes)
+    torch.testing.assert_close(torch.cat([first_mem, rest_mem]), whole_mem)
+    torch.testing.assert_close(last_state.out, whole_state.out)
+
+
+def test_constants_are_buffers_and_state_dict_round_trips():
+    net = SpikingClassifier(num_classes=3, channels=(4,), pool_size=2, beta=0.8, threshold=0.5)
+    keys = set(net.state_dict())
+    assert {"out_neuron.beta", "out_neuron.threshold", "conv_neurons.0.beta"} <= keys
+    torch.manual_seed(1)
+    other = SpikingClassifier(num_classes=3, channels=(4,), pool_size=2, beta=0.8, threshold=0.5)
+    other.load_state_dict(net.state_dict())
+    x = torch.rand(4, 1, 2, 5, 5, generator=torch.Generator().manual_seed(2))
+    torch.testing.assert_close(other(x)[1], net(x)[1])
+    text = repr(net)
+    assert "num_classes=3" in text and "beta=0.8" in text and "threshold=0.5" in text
+
+
+def test_gradients_are_finite():
+    net = SpikingClassifier(num_classes=5, channels=(4, 4), pool_size=2)
+    x = 2 * torch.rand(5, 3, 2, 9, 9, generator=torch.Generator().manual_seed(3))
+    spikes, membrane, _ = net(x)
+    (spikes.sum() + membrane.sum()).backward()
+    grads = [p.grad for p in net.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+
+
+def test_class_scores_break_ties_by_membrane():
+    spikes = torch.tensor([[[1.0, 1.0, 0.0]], [[0.0, 0.0, 1.0]]])  # counts 1, 1, 1
+    membrane = torch.tensor([[[0.1, 0.9, 0.0]], [[0.0, 0.3, -0.5]]])
+    assert class_scores(spikes, membrane).argmax(1).tolist() == [1]
+    counts = torch.tensor([[[0.0, 1.0, 0.0]], [[0.0, 1.0, 0.0]]])
+    big_membrane = torch.tensor([[[50.0, 0.0, 0.0]], [[50.0, 0.0, 0.0]]])
+    assert class_scores(counts, big_membrane).argmax(1).tolist() == [1]
+
+
+def test_learns_a_separable_task():
+    """Class k: events in column block k; a few epochs reach perfect accuracy."""
+    g = torch.Generator().manual_seed(4)
+    labels = torch.arange(24) % 3
+    frames = 0.1 * torch.rand(24, 4, 2, 6, 9, generator=g)
+    for i, k in enumerate(labels.tolist()):
+        frames[i, :, :, :, 3 * k : 3 * k + 3] += 1.0
+    batches = [(frames[i : i + 8], labels[i : i + 8]) for i in range(0, 24, 8)]
+    torch.manual_seed(0)
+    net = SpikingClassifier(num_classes=3, channels=(8,), pool_size=3)
+    losses = train_classifier(net, batches, epochs=6, learning_rate=2e-2)
+    assert losses[-1] < losses[0]
+    assert evaluate_classifier(net, batches) == 1.0
+
+
+def test_bad_settings_and_input():
+    with pytest.raises(ValueError, match="num_classes must be a positive integer"):
+        SpikingClassifier(num_classes=0)
+    with pytest.raises(TypeError, match="channels must be a sequence"):
+        SpikingClassifier(channels=16)
+    with pytest.raises(ValueError, match="beta must lie in"):
+        SpikingClassifier(beta=1.5)
+    with pytest.raises(ValueError, match=r"input must have shape \[T, B, 2, H, W\]"):
+        SpikingClassifier()(torch.zeros(2, 1, 3, 4, 4))
+    with pytest.raises(ValueError, match="no samples"):
+        evaluate_classifier(SpikingClassifier(), [])
+
+
+def test_device(device):
+    net = SpikingClassifier(num_classes=2, channels=(2,), pool_size=1).to(device)
+    spikes, _, state = net(torch.rand(2, 1, 2, 4, 4, device=device))
+    assert spikes.device.type == device.type and state.out.device.type == device.type

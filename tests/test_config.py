@@ -1,0 +1,99 @@
+"""Evaluation configs: TOML to dataclasses, with every mistake named."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+import evdown_torch.config as config_module
+from evdown_torch.config import EvaluationConfig, load_config, parse_config
+from evdown_torch.transforms.registry import METHODS
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def test_defaults_and_conversion():
+    config = parse_config({})
+    assert config == EvaluationConfig()
+    assert config.methods.names == tuple(METHODS)
+    config = parse_config({
+        "data": {"sensor_size": [32, 24], "time_bins": 4},
+        "methods": {"factors": [2, [2, 3]], "include": ["downsample"]},
+        "training": {"learning_rate": 1, "seeds": [3, 1]},
+        "settings": {"event_count": {"threshold": 0.5}},
+    }, name="x")
+    assert config.data.sensor_size == (32, 24) and config.data.full_sensor_size == (32, 24, 2)
+    assert config.methods.factors == (2, (2, 3)) and config.methods.names == ("downsample",)
+    assert config.training.learning_rate == 1.0 and isinstance(config.training.learning_rate,
+                                                                 float)
+    assert config.method_settings("event_count") == {"threshold": 0.5}
+    assert config.method_settings("downsample") == {} and config.name == "x"
+
+
+def test_the_documented_example_is_valid(tmp_path):
+    example = re.search(r"code-block:: toml\n\n(.*?)\n\"\"\"", config_module.__doc__ + '"""',
+                        re.S).group(1)
+    path = tmp_path / "example.toml"
+    path.write_text("\n".join(line[4:] for line in example.splitlines()))
+    config = load_config(path)
+    assert config.methods.include == ("downsample", "event_count")
+    assert config.settings == {"event_count": {"threshold": 1.0}}
+
+
+@pytest.mark.parametrize("name", ["quick", "tiny", "dvsgesture"])
+def test_shipped_configs_load(name):
+    config = load_config(CONFIGS / f"{name}.toml")
+    assert config.name == name
+    assert config.methods.names == tuple(METHODS)
+
+
+@pytest.mark.parametrize(
+    ("document", "error", "message"),
+    [
+        ({"data": {"sensor_sise": [8, 8]}}, ValueError, "unknown key data.sensor_sise"),
+        ({"trainig": {}}, ValueError, r"unknown table \[trainig\]"),
+        ({"training": {"epochs": 2.5}}, TypeError, r"training.epochs must be an integer, got a "
+                                                   r"number \(2.5\)"),
+        ({"training": {"epochs": True}}, TypeError, "training.epochs must be an integer, got a "
+                                                    "boolean"),
+        ({"training": {"learning_rate": "fast"}}, TypeError, "learning_rate must be a number"),
+        ({"training": {"seeds": 0}}, TypeError, "training.seeds must be an array"),
+        ({"training": {"seeds": [0, 0]}}, ValueError, "seeds must be distinct"),
+        ({"training": {"encoding": "spikes"}}, ValueError, "training.encoding must be one of"),
+        ({"training": {"epochs": 0}}, ValueError, "training.epochs must be a positive integer"),
+        ({"model": {"channels": [8, "16"]}}, TypeError, r"model.channels\[1\] must be an integer"),
+        ({"model": {"beta": 1.5}}, ValueError, r"model.beta must lie in \(0, 1\]"),
+        ({"data": {"sensor_size": [8]}}, TypeError, "data.sensor_size must be an array of 2"),
+        ({"data": {"dataset": "nmnist"}}, ValueError, "data.dataset must be one of"),
+        ({"data": "synthetic"}, TypeError, r"\[data\] must be a table"),
+        ({"methods": {"factors": [2.5]}}, TypeError, r"methods.factors\[0\] must be an integer "
+                                                     "or an array of 2"),
+        ({"methods": {"factors": []}}, ValueError, "at least one factor"),
+        ({"methods": {"factors": [100]}}, ValueError, "methods.factors: factor 100 is larger"),
+        ({"methods": {"include": ["nope"]}}, ValueError, r"unknown method\(s\) \['nope'\]"),
+        ({"settings": {"nope": {}}}, ValueError, r"\[settings.nope\] names an unknown method"),
+        ({"settings": {"event_count": {"thresh": 1}}}, ValueError,
+         r"\[settings.event_count\]: method 'event_count' does not take setting\(s\) \['thresh'\]"),
+        ({"settings": {"event_count": {"threshold": -1.0}}}, ValueError,
+         r"\[settings.event_count\]: threshold must be a positive"),
+        ({"settings": {"event_count": 1}}, TypeError, "one table per method"),
+    ],
+)
+def test_mistakes_are_named(document, error, message):
+    with pytest.raises(error, match=message):
+        parse_config(document)
+
+
+def test_file_errors_name_the_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="config file .*absent.toml' does not exist"):
+        load_config(tmp_path / "absent.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[data\nseed = 1\n")
+    with pytest.raises(ValueError, match="bad.toml: invalid TOML"):
+        load_config(bad)
+    unknown = tmp_path / "unknown.toml"
+    unknown.write_text("[training]\nepochs = 2\nepoch = 3\n")
+    with pytest.raises(ValueError, match="unknown.toml: unknown key training.epoch;"):
+        load_config(unknown)

@@ -1,0 +1,102 @@
+"""Event-to-frame binning against hand-computed frames and a slow exact reference."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import torch
+
+from evdown_torch import Events
+from evdown_torch.frames import to_frames
+from tests.helpers import DVS_DTYPE, random_stream
+
+
+def reference_frames(events, sensor_size, bins, t_start, t_end):
+    """One event at a time, in exact rational arithmetic."""
+    w, h, _ = sensor_size
+    out = np.zeros((bins, 2, h, w), dtype=np.float32)
+    span = Fraction(t_end) - Fraction(t_start)
+    for x, y, t, p in zip(events["x"], events["y"], events["t"], events["p"]):
+        if not t_start <= t <= t_end:
+            continue
+        k = 0 if span == 0 else min(int((Fraction(int(t)) - t_start) * bins / span), bins - 1)
+        out[k, int(p > 0), y, x] += 1
+    return out
+
+
+def test_hand_computed_frames():
+    ev = np.array(
+        [(0, 0, True, 100), (2, 1, False, 103), (2, 1, False, 104), (1, 0, True, 106),
+         (1, 0, False, 109)],
+        dtype=DVS_DTYPE,
+    )
+    frames = to_frames(ev, (3, 2, 2), 3)  # window [100, 109], bins of 3 us
+    expected = torch.zeros(3, 2, 2, 3)
+    expected[0, 1, 0, 0] = 1  # t=100 -> bin 0
+    expected[1, 0, 1, 2] = 2  # t=103, 104 -> bin 1 (3*3//9 = 1, 4*3//9 = 1)
+    expected[2, 1, 0, 1] = 1  # t=106 -> bin 2 (6*3//9 = 2)
+    expected[2, 0, 0, 1] = 1  # t=109 = t_end -> last bin
+    assert frames.dtype == torch.float32 and frames.shape == (3, 2, 2, 3)
+    torch.testing.assert_close(frames, expected)
+
+
+def test_window_leaves_out_events_outside():
+    ev = torch.tensor([[0, 0, -5, 1], [0, 0, 0, 1], [0, 0, 9, 0], [0, 0, 10, 0], [0, 0, 11, 1]])
+    frames = to_frames(ev, (1, 1, 2), 2, t_start=0, t_end=10)
+    assert frames.flatten().tolist() == [0.0, 1.0, 2.0, 0.0]
+
+
+@pytest.mark.parametrize("bins", [1, 4, 7])
+def test_matches_exact_reference(rng, bins):
+    sensor = (9, 5, 2)
+    ev = random_stream(rng, 500, sensor, t_max=1_000)
+    got = to_frames(ev, sensor, bins, t_start=13, t_end=977)
+    np.testing.assert_array_equal(got.numpy(), reference_frames(ev, sensor, bins, 13, 977))
+    whole = to_frames(ev, sensor, bins)
+    lo, hi = int(ev["t"].min()), int(ev["t"].max())
+    np.testing.assert_array_equal(whole.numpy(), reference_frames(ev, sensor, bins, lo, hi))
+    assert float(whole.sum()) == len(ev)
+
+
+def test_float_timestamps_and_large_clock(rng):
+    sensor = (6, 4, 2)
+    ev = random_stream(rng, 300, sensor, t_max=10_000)
+    shifted = ev.copy()
+    shifted["t"] += 2**52
+    base = to_frames(ev, sensor, 5)
+    torch.testing.assert_close(to_frames(shifted, sensor, 5), base)
+    floats = np.empty(len(ev), dtype=[("x", "<i2"), ("y", "<i2"), ("p", "<i1"), ("t", "<f8")])
+    for name in ("x", "y", "p", "t"):
+        floats[name] = ev[name]
+    lo, hi = float(ev["t"].min()), float(ev["t"].max())
+    np.testing.assert_array_equal(
+        to_frames(floats, sensor, 5).numpy(), reference_frames(ev, sensor, 5, lo, hi)
+    )
+
+
+def test_empty_and_single_timestamp_keep_shape_and_dtype():
+    empty = to_frames(np.empty(0, dtype=DVS_DTYPE), (4, 3, 2), 6)
+    assert empty.shape == (6, 2, 3, 4) and empty.dtype == torch.float32
+    assert float(empty.abs().sum()) == 0
+    same_t = Events.from_columns([0, 1, 1], [0, 0, 2], [7, 7, 7], [1, 0, 1])
+    frames = to_frames(same_t, (4, 3, 2), 3)
+    assert frames.shape == (3, 2, 3, 4) and float(frames[0].sum()) == 3
+    assert float(frames[1:].sum()) == 0
+
+
+def test_device(device):
+    ev = torch.tensor([[1, 0, 0, 1], [0, 1, 4, 0]], device=device)
+    frames = to_frames(ev, (2, 2, 2), 2)
+    assert frames.device.type == device.type and float(frames.sum()) == 2
+
+
+def test_bad_arguments():
+    ev = torch.tensor([[0, 0, 0, 1]])
+    with pytest.raises(ValueError, match="n_time_bins must be a positive integer"):
+        to_frames(ev, (1, 1, 2), 0)
+    with pytest.raises(ValueError, match="t_end must not be before t_start"):
+        to_frames(ev, (1, 1, 2), 2, t_start=5, t_end=1)
+    with pytest.raises(ValueError, match="must lie in"):
+        to_frames(torch.tensor([[3, 0, 0, 1]]), (2, 2, 2), 2)
