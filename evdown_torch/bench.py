@@ -67,6 +67,7 @@ from evdown_torch.checks import (
     check_sensor_size,
     output_size,
 )
+from evdown_torch.events import load_npy_events
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
 __all__ = [
@@ -311,28 +312,6 @@ def read_nmnist(path: str | Path) -> np.ndarray:
     out["p"] = (raw[keep, 2] & 128) > 0
     out["t"] = t[keep]
     return out
-
-
-def load_npy_events(path: str | Path) -> np.ndarray:
-    """Load a ``.npy`` structured event array (fields ``x``, ``y``, ``t``, ``p``).
-
-    Raises:
-        ValueError: if the file is missing, unreadable or not a structured event array.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"input file {str(path)!r} does not exist")
-    try:
-        events = np.load(path, allow_pickle=False)
-    except ValueError as error:
-        raise ValueError(f"cannot read {str(path)!r} as a .npy array: {error}") from None
-    names = events.dtype.names or ()
-    if events.ndim != 1 or not {"x", "y", "t", "p"} <= set(names):
-        raise ValueError(
-            f"{str(path)!r} holds an array of dtype {events.dtype} and shape {events.shape}; "
-            "expected a 1-D structured event array with fields x, y, t, p (Tonic's format)"
-        )
-    return events
 
 
 def _stream_duration_s(events: np.ndarray) -> float:

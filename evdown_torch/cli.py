@@ -19,11 +19,11 @@ import ast
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from evdown_torch.events import load_npy_events
 from evdown_torch.transforms.registry import METHODS, make_method
 
 
@@ -57,23 +57,8 @@ def _setting(text: str) -> tuple[str, Any]:
     return key.replace("-", "_"), parsed
 
 
-def _load_events(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise CommandError(f"input file {str(path)!r} does not exist")
-    try:
-        events = np.load(path, allow_pickle=False)
-    except ValueError as error:
-        raise CommandError(f"cannot read {str(path)!r} as a .npy array: {error}") from None
-    if events.dtype.names is None:
-        raise CommandError(
-            f"{str(path)!r} holds a plain array of shape {events.shape}; expected a structured "
-            "event array with fields x, y, t, p (Tonic's format)"
-        )
-    return events
-
-
 def _downscale(args: argparse.Namespace) -> int:
-    events = _load_events(Path(args.input))
+    events = load_npy_events(args.input)
     if args.sensor_size is not None:
         sensor_size = tuple(args.sensor_size)
     elif len(events) and {"x", "y"} <= set(events.dtype.names):

@@ -23,13 +23,14 @@ converts a result back to the caller's kind.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["Events", "EventFormat", "EventsLike", "to_events", "from_events"]
+__all__ = ["Events", "EventFormat", "EventsLike", "from_events", "load_npy_events", "to_events"]
 
 FIELDS = ("x", "y", "t", "p")
 
@@ -319,3 +320,25 @@ def from_events(events: Events, fmt: EventFormat) -> EventsLike:
     for name, column in zip(FIELDS, (events.x, events.y, events.t, p)):
         out[name] = column.cpu().numpy()
     return out
+
+
+def load_npy_events(path: str | Path) -> np.ndarray:
+    """Load a ``.npy`` structured event array (fields ``x``, ``y``, ``t``, ``p``).
+
+    Raises:
+        ValueError: if the file is missing, unreadable or not a structured event array.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"input file {str(path)!r} does not exist")
+    try:
+        events = np.load(path, allow_pickle=False)
+    except ValueError as error:
+        raise ValueError(f"cannot read {str(path)!r} as a .npy array: {error}") from None
+    names = events.dtype.names or ()
+    if events.ndim != 1 or not {"x", "y", "t", "p"} <= set(names):
+        raise ValueError(
+            f"{str(path)!r} holds an array of dtype {events.dtype} and shape {events.shape}; "
+            "expected a 1-D structured event array with fields x, y, t, p (Tonic's format)"
+        )
+    return events
