@@ -11,6 +11,7 @@ from snntorch import surrogate
 from torch import Tensor, nn
 
 from evdown_torch.checks import check_positive_float, check_positive_int
+from evdown_torch.models._snn import unregistered
 
 __all__ = ["ClassifierState", "SpikingClassifier", "class_scores"]
 
@@ -31,12 +32,7 @@ def _leaky(beta: float, threshold: float) -> snntorch.Leaky:
     neuron = snntorch.Leaky(
         beta=beta, threshold=threshold, spike_grad=surrogate.fast_sigmoid(slope=25)
     )
-    # snntorch lists every neuron ever built in a class-level registry for its hidden-state
-    # helpers, which this module does not use (its state is explicit); leave it, so that a
-    # discarded classifier can be freed.
-    if neuron in snntorch.SpikingNeuron.instances:
-        snntorch.SpikingNeuron.instances.remove(neuron)
-    return neuron
+    return unregistered(neuron)
 
 
 class SpikingClassifier(nn.Module):

@@ -19,6 +19,7 @@ from evdown_torch.checks import (
     check_time_constant,
     check_unit_interval,
 )
+from evdown_torch.models._snn import unregistered
 
 __all__ = ["RESET_MECHANISMS", "SpikingPooling", "decay_factor", "resolve_beta"]
 
@@ -164,11 +165,13 @@ class SpikingPooling(nn.Module):
                 self.register_parameter(name, nn.Parameter(tensor))
             else:
                 self.register_buffer(name, tensor)
-        self.neuron = snntorch.Leaky(
-            beta=torch.tensor(beta, dtype=torch.float32),
-            threshold=torch.tensor(threshold, dtype=torch.float32),
-            reset_mechanism=reset_mechanism,
-            spike_grad=spike_grad,
+        self.neuron = unregistered(
+            snntorch.Leaky(
+                beta=torch.tensor(beta, dtype=torch.float32),
+                threshold=torch.tensor(threshold, dtype=torch.float32),
+                reset_mechanism=reset_mechanism,
+                spike_grad=spike_grad,
+            )
         )
 
     @property

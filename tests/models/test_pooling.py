@@ -251,3 +251,14 @@ def test_bad_input_shapes_raise():
         pool(torch.zeros(3, 1, 2, 4, 4), torch.zeros(1, 2, 3, 3))
     with pytest.raises(ValueError, match=r"\(B, 2, H, W\)"):
         pool.step(torch.zeros(1, 1, 2, 4, 4))
+
+
+def test_modules_stay_out_of_snntorchs_registry():
+    import snntorch
+
+    from evdown_torch.models import SpikingClassifier
+
+    before = len(snntorch.SpikingNeuron.instances)
+    SpikingPooling(2, beta=0.5)
+    SpikingClassifier(num_classes=3)
+    assert len(snntorch.SpikingNeuron.instances) == before
