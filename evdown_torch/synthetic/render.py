@@ -46,6 +46,7 @@ from evdown_torch.synthetic.scenes import (
     Look,
     scene_seed,
 )
+from evdown_torch.transforms.functional._common import stable_sort_small
 
 __all__ = [
     "intensity_frame",
@@ -331,14 +332,6 @@ def _rasterise(part: _Part, s0: int, s1: int, width: int, height: int, scale: fl
     return key, alpha, colour
 
 
-def _sort_keys(key: Tensor) -> tuple[Tensor, Tensor]:
-    """Stable sort of non-negative int64 keys (as int32 when they fit: faster)."""
-    if key.numel() and int(key.max()) < 2**31:
-        values, order = torch.sort(key.to(torch.int32), stable=True)
-        return values.to(torch.int64), order
-    return torch.sort(key, stable=True)
-
-
 def _composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, scale: float,
                static: Tensor, mean: float):
     """Intensity of every covered (pixel, step) at steps ``s0..s1``, sorted by pixel, step.
@@ -355,7 +348,7 @@ def _composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, sc
         empty = torch.empty(0, dtype=torch.int64)
         return empty, empty.clone(), torch.empty(0)
     key, alpha, colour = (torch.cat(c) for c in zip(*pieces, strict=True))
-    key, order = _sort_keys(key)
+    key, order = stable_sort_small(key)
     alpha = alpha.index_select(0, order)
     colour = colour.index_select(0, order) * mean
     pixel = key >> bits
@@ -414,7 +407,7 @@ class _Grid:
             fx, fy = self.factor
             delta = value - self.static_flat.index_select(0, pixel)
             block = (pixel // self.width) // fy * self.out_w + (pixel % self.width) // fx
-            key, order = _sort_keys((block << bits) + step)
+            key, order = stable_sort_small((block << bits) + step)
             delta = delta.index_select(0, order)
             new = torch.ones(key.shape, dtype=torch.bool)
             new[1:] = key[1:] != key[:-1]

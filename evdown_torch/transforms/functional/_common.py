@@ -55,13 +55,35 @@ def sort_by_time(events: Events) -> Events:
     return events if order is None else events.select(order)
 
 
-def _divide(values: Tensor, divisor: int) -> Tensor:
-    """``values // divisor`` for non-negative int64 values, as a new tensor."""
-    if divisor == 1:
-        return values.clone()
-    if divisor & (divisor - 1) == 0:  # a power of two: a shift is exact and cheaper
-        return values >> (divisor.bit_length() - 1)
-    return torch.div(values, divisor, rounding_mode="floor")
+def divide(values: Tensor, divisor: int, *, out: Tensor | None = None) -> Tensor:
+    """``values // divisor`` for non-negative int64 values, as a new tensor (or into ``out``)."""
+    if divisor & (divisor - 1) == 0:  # a power of two (1 included): a shift is exact, cheaper
+        return torch.bitwise_right_shift(values, divisor.bit_length() - 1, out=out)
+    return torch.div(values, divisor, rounding_mode="floor", out=out)
+
+
+def stable_sort_small(keys: Tensor, bound: int | None = None) -> tuple[Tensor, Tensor]:
+    """Stable sort of non-negative int64 ``keys < bound``: ``(sorted int64 keys, permutation)``.
+
+    The keys are sorted as int16 or int32 when ``bound`` (by default ``max(keys) + 1``)
+    allows: two to three times faster than int64 on the CPU.
+    """
+    if bound is None:
+        bound = int(keys.max()) + 1 if keys.numel() else 0
+    if bound <= 1 << 15:
+        small = keys.to(torch.int16)
+    elif bound <= 1 << 31:
+        small = keys.to(torch.int32)
+    else:
+        small = keys
+    values, order = torch.sort(small, stable=True)
+    return values.to(torch.int64), order
+
+
+def region_xy(region: Tensor, out_width: int) -> tuple[Tensor, Tensor]:
+    """Output coordinates ``(x, y)`` of int64 region ids ``y * out_width + x``."""
+    y = torch.div(region, out_width, rounding_mode="floor")
+    return region - y * out_width, y
 
 
 def floor_divide_exact(values: Tensor, divisor: int | Tensor) -> tuple[Tensor, Tensor]:
@@ -83,4 +105,4 @@ def floor_divide_exact(values: Tensor, divisor: int | Tensor) -> tuple[Tensor, T
 
 def region_of(events: Events, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:
     """Region coordinates ``(x // fx, y // fy)`` of every event, as new int64 tensors."""
-    return _divide(events.x, factor[0]), _divide(events.y, factor[1])
+    return divide(events.x, factor[0]), divide(events.y, factor[1])

@@ -26,6 +26,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from evdown_torch.transforms.functional._common import stable_sort_small
+
 #: Largest denominator of the rational that stands for ``threshold`` (0.01 is 1/100 exactly).
 MAX_DENOMINATOR = 1_000_000
 
@@ -70,10 +72,7 @@ def group_by_region(rx: Tensor, ry: Tensor, out_width: int) -> RegionGroups:
     """
     region_id = ry * out_width
     region_id += rx
-    if region_id.shape[0] and int(region_id.max()) < 2**31:
-        region_id = region_id.to(torch.int32)  # sorts about three times faster than int64
-    region, order = torch.sort(region_id, stable=True)
-    region = region.to(torch.int64)
+    region, order = stable_sort_small(region_id)
     first = torch.ones_like(region, dtype=torch.bool)
     torch.ne(region[1:], region[:-1], out=first[1:])
     return RegionGroups(order, region, first)

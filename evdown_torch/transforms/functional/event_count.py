@@ -13,6 +13,7 @@ from evdown_torch.transforms.functional._common import (
     chunk_bounds,
     floor_divide_exact,
     region_of,
+    region_xy,
     sort_by_time,
 )
 from evdown_torch.transforms.functional._reference import (
@@ -144,13 +145,8 @@ def _event_count_sorted(
 
     # Back to time order: crossings of one step keep their level order.
     source, by_time = torch.sort(groups.order[cross.step], stable=True)
-    out_region = region[cross.step[by_time]]
-    out = Events(
-        out_region % out_w,
-        torch.div(out_region, out_w, rounding_mode="floor"),
-        events.t[source],
-        cross.on[by_time],
-    )
+    out_x, out_y = region_xy(region[cross.step[by_time]], out_w)
+    out = Events(out_x, out_y, events.t[source], cross.on[by_time])
 
     # New state: each touched region's last sum and index.
     lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])

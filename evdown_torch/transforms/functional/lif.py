@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import sort_by_time
+from evdown_torch.transforms.functional._common import divide, region_xy, sort_by_time
 
 __all__ = ["active_steps", "lif_pooling", "step_end_time", "step_index"]
 
@@ -76,14 +76,6 @@ def active_steps(
             counts.append(count.clone())
             last = int(active[-1])
     return torch.cat(actives), torch.cat(counts)
-
-
-def _divide_into(values: Tensor, divisor: int, out: Tensor) -> None:
-    """``out = values // divisor`` for non-negative int64 values."""
-    if divisor & (divisor - 1) == 0:  # a power of two (1 included): a shift
-        torch.bitwise_right_shift(values, divisor.bit_length() - 1, out=out)
-    else:
-        torch.div(values, divisor, rounding_mode="floor", out=out)
 
 
 def step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -> Tensor:
@@ -305,9 +297,9 @@ def lif_pooling(
         cell[step_begin[a0 + 1 : a1] - e0] = 1
         torch.cumsum(cell, 0, out=tmp)  # row of the event's step within the chunk
         torch.mul(tmp, count, out=cell)
-        _divide_into(events.x[e0:e1], fx, tmp)
+        divide(events.x[e0:e1], fx, out=tmp)
         cell.add_(tmp)
-        _divide_into(events.y[e0:e1], fy, tmp)
+        divide(events.y[e0:e1], fy, out=tmp)
         cell.add_(tmp, alpha=wo).add_(events.p[e0:e1], alpha=plane)
         # Events per cell, summed exactly in float32 (as the module's sum pooling of counts).
         counts = pooled[: rows * count].zero_()
@@ -353,5 +345,5 @@ def lif_pooling(
     del out_neurons
     polarity = neuron >= plane
     neuron.add_(polarity, alpha=-plane)  # the region's index in its polarity's plane
-    y = torch.div(neuron, wo, rounding_mode="floor")
-    return Events(neuron.remainder_(wo), y, t, polarity)
+    x, y = region_xy(neuron, wo)
+    return Events(x, y, t, polarity)
