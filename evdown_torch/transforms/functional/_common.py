@@ -49,6 +49,16 @@ def chunk_bounds(t: Tensor, chunk: int | None = None, *, split_ties: bool = True
     return sorted({0, n, *starts.tolist()})
 
 
+def take(values: Tensor, index: Tensor) -> Tensor:
+    """``values[index]`` for a 1-D int64 ``index`` (``index_select``: much faster on the CPU)."""
+    return values.index_select(0, index)
+
+
+def where_true(mask: Tensor) -> Tensor:
+    """``(M,)`` int64 positions of the True entries of a 1-D bool ``mask``, ascending."""
+    return torch.nonzero(mask).squeeze(1)
+
+
 def sort_by_time(events: Events) -> Events:
     """Events in stable time order (the input itself when already sorted)."""
     order = time_order(events.t)

@@ -16,6 +16,10 @@ monotone piece of the interpolated curve for the linear and cubic methods). Writ
 So ``q`` after every step follows from each step's ``(floor(u), u is an integer)`` and its
 predecessor's, with a forward fill over runs of steps in one cell: no sequential scan. This is
 the clamp recurrence ``q_k = clamp(q_{k-1}, floor(u_k), ceil(u_k))`` solved in closed form.
+
+This module is the rule's one home: the exact level test (:func:`level_index`), the value of a
+level (:func:`level_value`), the reference index (:func:`reference_index`) and its crossings
+(:func:`crossings`, :func:`step_crossings`), used by the kernels and the synthetic pixel model.
 """
 
 from __future__ import annotations
@@ -26,7 +30,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch.transforms.functional._common import stable_sort_small
+from evdown_torch.transforms.functional._common import stable_sort_small, take, where_true
+
+#: A region level within this many thresholds of a level is on it (see :func:`level_index`).
+SNAP = 1e-9
 
 #: Largest denominator of the rational that stands for ``threshold`` (0.01 is 1/100 exactly).
 MAX_DENOMINATOR = 1_000_000
@@ -187,3 +194,81 @@ def crossings(q_before: Tensor, q_after: Tensor) -> Crossings:
     base = q_before[changed][pick]
     level = torch.where(on, base + 1 + within, base - 1 - within)
     return Crossings(changed[pick], level, on)
+
+
+def level_index(
+    whole: Tensor, part: Tensor, pixels: Tensor | int, threshold: Fraction
+) -> tuple[Tensor, Tensor]:
+    """``floor(u)`` and ``u is on a level`` for ``u = (whole + part) / (threshold * pixels)``.
+
+    ``whole + part`` is ``n_r * M_r``: an exact integer part and a float remainder. Where the
+    remainder is exactly 0 the test is done in integers (``threshold = a / b`` is rational), so
+    a region sitting on a level is seen on it exactly. Elsewhere ``u`` is a float, and a ``u``
+    within :data:`SNAP` of an integer counts as on that level: float rounding cannot tell such
+    a ``u`` from the level itself, and snapping keeps the result stable when it lands there.
+
+    Args:
+        whole: int64 integer part of ``n_r * M_r``.
+        part: float64 remainder.
+        pixels: ``n_r``, int64 of the shape of ``whole`` or one int for all.
+        threshold: ``theta`` as a fraction ``a / b``.
+
+    Returns:
+        ``(floor_u, on_level)``, int64 and bool, of the shape of ``whole``.
+
+    Example:
+        >>> fl, on = level_index(torch.tensor([3, 3, 1]), torch.tensor([0.0, 0.5, 0.5 - 1e-12]),
+        ...                      torch.tensor([2, 2, 2]), Fraction(3, 4))
+        >>> fl.tolist(), on.tolist()
+        ([2, 2, 1], [True, False, True])
+    """
+    a, b = threshold.numerator, threshold.denominator
+    if isinstance(pixels, int):
+        u = (whole.to(torch.float64) + part) * (b / (pixels * a))
+    else:
+        u = (whole.to(torch.float64) + part) * b / (pixels * a).to(torch.float64)
+    nearest = torch.round(u)
+    on_level = (u - nearest).abs() <= SNAP
+    floor_u = torch.where(on_level, nearest, torch.floor(u)).to(torch.int64)
+    exact_at = where_true(part == 0)
+    if exact_at.shape[0]:
+        numerator = take(whole, exact_at) * b
+        denominator = pixels * a if isinstance(pixels, int) else take(pixels, exact_at) * a
+        exact_floor = torch.div(numerator, denominator, rounding_mode="floor")
+        floor_u.scatter_(0, exact_at, exact_floor)
+        on_level.scatter_(0, exact_at, exact_floor * denominator == numerator)
+    return floor_u, on_level
+
+
+def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Tensor:
+    """``n_r * theta * j`` as float64, the value of ``n_r * M_r`` on level ``j``."""
+    a, b = threshold.numerator, threshold.denominator
+    return (level * pixels * a).to(torch.float64) / b
+
+
+def step_crossings(floor_u: Tensor, on_level: Tensor, first: Tensor) -> Crossings:
+    """The reference rule over monotone steps grouped by region, from ``q = 0``.
+
+    Applies :func:`~evdown_torch.transforms.functional._reference.reference_index` and
+    :func:`~evdown_torch.transforms.functional._reference.crossings` to the steps that can
+    change ``q`` only: a step that stays strictly inside the cell its predecessor ended in
+    keeps ``q`` and crosses nothing, so dropping it changes no other step's result.
+
+    Args:
+        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
+        on_level: ``(S,)`` bool, the step ends on a level.
+        first: ``(S,)`` bool, the step is its region's first.
+
+    Returns:
+        The crossings, with ``step`` indexing the given steps.
+    """
+    moved = first | on_level
+    moved[1:] |= on_level[:-1] | (floor_u[1:] != floor_u[:-1])
+    kept = where_true(moved)
+    floor_k, first_k = take(floor_u, kept), take(first, kept)
+    q = reference_index(floor_k, take(on_level, kept), first_k, torch.zeros_like(floor_k))
+    q_before = torch.zeros_like(q)
+    q_before[1:] = q[:-1]
+    q_before.masked_fill_(first_k, 0)
+    cross = crossings(q_before, q)
+    return Crossings(take(kept, cross.step), cross.level, cross.on)

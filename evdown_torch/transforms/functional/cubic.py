@@ -12,16 +12,14 @@ from evdown_torch.transforms.functional._knots import (
     Knots,
     estimate,
     level_changes,
-    level_index,
-    level_value,
     piece_time,
     region_pixels,
     run_index,
     segmented_cumsum,
-    step_crossings,
     take,
     where_true,
 )
+from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
 
 #: Pixel-segment evaluations per chunk: bounds the kernel's memory and keeps its temporary
 #: tensors small enough to be recycled by the allocator instead of faulted in afresh.

@@ -13,16 +13,14 @@ from evdown_torch.transforms.functional._knots import (
     Knots,
     estimate,
     level_changes,
-    level_index,
-    level_value,
     piece_time,
     region_pixels,
     run_index,
     segmented_cumsum,
-    step_crossings,
     take,
     where_true,
 )
+from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
 
 
 def _changes_at_knots(values: Tensor, first_at: Tensor) -> Tensor:
