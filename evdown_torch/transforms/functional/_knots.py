@@ -29,23 +29,23 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch.checks import output_size
-from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import (
+from evdown_torch._tensors import (
+    CHUNK_EVENTS,
+    changes,
+    differences,
+    ends,
     region_of,
+    region_pixel_count,
     region_xy,
+    run_index,
     sort_by_time,
     stable_sort_small,
     take,
     where_true,
 )
-from evdown_torch.transforms.functional._reference import (
-    region_pixel_count,
-    threshold_fraction,
-)
-
-#: Events per chunk of regions (see :func:`region_chunks`).
-CHUNK_EVENTS = 1 << 20
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._reference import threshold_fraction
 
 #: Integer crossing times: an offset this close below a half tick rounds up (see piece_time).
 HALF_TOLERANCE = 1e-9
@@ -86,25 +86,6 @@ class Knots(NamedTuple):
         """Region id of the breakpoints ``bp`` (int64)."""
         rank = torch.searchsorted(self.region_first_bp, bp, right=True) - 1
         return take(self.regions, rank)
-
-
-def changes(values: Tensor) -> Tensor:
-    """``(N,)`` bool: True where ``values`` differs from its predecessor (True at 0)."""
-    flags = torch.ones(values.shape[0], dtype=torch.bool, device=values.device)
-    torch.ne(values[1:], values[:-1], out=flags[1:])
-    return flags
-
-
-def ends(starts: Tensor) -> Tensor:
-    """``(N,)`` bool: True at the last element of each run, given the runs' ``starts``."""
-    flags = torch.ones_like(starts)
-    flags[:-1] = starts[1:]
-    return flags
-
-
-def run_index(starts: Tensor) -> Tensor:
-    """``(N,)`` int64 index of the run each element belongs to, given the runs' ``starts``."""
-    return torch.cumsum(starts.to(torch.int64), 0) - 1
 
 
 class RegionChunk(NamedTuple):
@@ -294,23 +275,7 @@ def region_pixels(
 
 def level_changes(knots: Knots) -> Tensor:
     """``(K,)`` int64 change of its pixel's level at each knot (the level itself at the first)."""
-    change = knots.level.clone()
-    change[1:] -= knots.level[:-1]
-    at = where_true(knots.first)
-    change.scatter_(0, at, take(knots.level, at))
-    return change
-
-
-def segmented_cumsum(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
-    """Cumulative sum of ``values`` restarting at each segment's start.
-
-    Args:
-        values: ``(N,)`` values.
-        starts_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
-        segment: ``(N,)`` int64 segment of each element.
-    """
-    total = torch.cumsum(values, 0)
-    return total - take(take(total - values, starts_at), segment)
+    return differences(knots.level, where_true(knots.first))
 
 
 def piece_time(t0: Tensor, t1: Tensor, s: Tensor) -> Tensor:

@@ -30,7 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch.transforms.functional._common import stable_sort_small, take, where_true
+from evdown_torch._tensors import changes, stable_sort_small, take, where_true
 
 #: A region level within this many thresholds of a level is on it (see :func:`level_index`).
 SNAP = 1e-9
@@ -80,32 +80,7 @@ def group_by_region(rx: Tensor, ry: Tensor, out_width: int) -> RegionGroups:
     region_id = ry * out_width
     region_id += rx
     region, order = stable_sort_small(region_id)
-    first = torch.ones_like(region, dtype=torch.bool)
-    torch.ne(region[1:], region[:-1], out=first[1:])
-    return RegionGroups(order, region, first)
-
-
-def region_pixel_count(
-    region: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
-) -> Tensor:
-    """``n_r``: number of sensor pixels in each region (fewer in the last column/row).
-
-    Args:
-        region: int64 region ids ``ry * Wo + rx``.
-        sensor_size: input ``(W, H, P)``.
-        factor: ``(fx, fy)``.
-
-    Returns:
-        int64 tensor of the shape of ``region``.
-    """
-    w, h, _ = sensor_size
-    fx, fy = factor
-    out_w = -(-w // fx)
-    rx = region % out_w
-    ry = region // out_w
-    nx = torch.clamp(w - rx * fx, max=fx)
-    ny = torch.clamp(h - ry * fy, max=fy)
-    return nx * ny
+    return RegionGroups(order, region, changes(region))
 
 
 def reference_index(floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: Tensor) -> Tensor:
@@ -262,8 +237,8 @@ def step_crossings(floor_u: Tensor, on_level: Tensor, first: Tensor) -> Crossing
     Returns:
         The crossings, with ``step`` indexing the given steps.
     """
-    moved = first | on_level
-    moved[1:] |= on_level[:-1] | (floor_u[1:] != floor_u[:-1])
+    moved = first | on_level | changes(floor_u)
+    moved[1:] |= on_level[:-1]
     kept = where_true(moved)
     floor_k, first_k = take(floor_u, kept), take(first, kept)
     q = reference_index(floor_k, take(on_level, kept), first_k, torch.zeros_like(floor_k))

@@ -7,6 +7,7 @@ from fractions import Fraction
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import differences, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
     Knots,
@@ -14,10 +15,6 @@ from evdown_torch.transforms.functional._knots import (
     level_changes,
     piece_time,
     region_pixels,
-    run_index,
-    segmented_cumsum,
-    take,
-    where_true,
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
 

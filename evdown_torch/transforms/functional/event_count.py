@@ -7,20 +7,20 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch.checks import output_size
-from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import (
+from evdown_torch._tensors import (
     chunk_bounds,
     floor_divide_exact,
     region_of,
+    region_pixel_count,
     region_xy,
     sort_by_time,
 )
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import (
     crossings,
     group_by_region,
     reference_index,
-    region_pixel_count,
     threshold_fraction,
 )
 

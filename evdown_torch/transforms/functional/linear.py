@@ -8,6 +8,7 @@ from fractions import Fraction
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import differences, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
     Knots,
@@ -15,20 +16,8 @@ from evdown_torch.transforms.functional._knots import (
     level_changes,
     piece_time,
     region_pixels,
-    run_index,
-    segmented_cumsum,
-    take,
-    where_true,
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
-
-
-def _changes_at_knots(values: Tensor, first_at: Tensor) -> Tensor:
-    """Per knot, ``values`` minus its predecessor's in the same pixel (itself at a first)."""
-    change = values.clone()
-    change[1:] -= values[:-1]
-    change.scatter_(0, first_at, take(values, first_at))
-    return change
 
 
 def linear_estimation(
@@ -114,10 +103,10 @@ def _linear_regions(
         0, bp, level_changes(knots)
     )
     high_bp = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
-        0, bp, _changes_at_knots(high, first_at)
+        0, bp, differences(high, first_at)
     )
     low_bp = torch.zeros(nb, dtype=torch.float64, device=device).index_add_(
-        0, bp, _changes_at_knots(low, first_at)
+        0, bp, differences(low, first_at)
     )
     count = torch.bincount(bp, minlength=nb)
     del high, low, first_at, bp
