@@ -1,8 +1,8 @@
 """Knots of a pixel and region breakpoints, shared by the linear and cubic estimators.
 
-SEMANTICS.md, methods 4 and 5: each pixel's log-luminance is a curve through its *knots*, one
-per distinct time at which the pixel has events, at the level after all its events at that
-time (ON +1, OFF -1), plus a front knot ``(t_start, 0)`` when the pixel's first event is later
+``docs/semantics.md``, methods 4 and 5: each pixel's log-luminance is a curve through its
+*knots*, one per distinct time at which the pixel has events, at the level after all its events
+at that time (ON +1, OFF -1), plus a front knot ``(t_start, 0)`` when the pixel's first event is later
 than ``t_start`` and a back knot ``(t_end, last level)`` when its last knot is earlier than
 ``t_end``. So every active pixel's curve spans exactly ``[t_start, t_end]``; a pixel without
 events stays at level 0 and is not represented.
@@ -46,6 +46,20 @@ from evdown_torch._tensors import (
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import threshold_fraction
+
+__all__ = [
+    "HALF_TOLERANCE",
+    "Knots",
+    "RegionChunk",
+    "RegionSolver",
+    "emit",
+    "estimate",
+    "level_changes",
+    "piece_time",
+    "pixel_knots",
+    "region_chunks",
+    "region_pixels",
+]
 
 #: Integer crossing times: an offset this close below a half tick rounds up (see piece_time).
 HALF_TOLERANCE = 1e-9

@@ -32,6 +32,20 @@ from torch import Tensor
 
 from evdown_torch._tensors import changes, stable_sort_small, take, where_true
 
+__all__ = [
+    "MAX_DENOMINATOR",
+    "SNAP",
+    "Crossings",
+    "RegionGroups",
+    "crossings",
+    "group_by_region",
+    "level_index",
+    "level_value",
+    "reference_index",
+    "step_crossings",
+    "threshold_fraction",
+]
+
 #: A region level within this many thresholds of a level is on it (see :func:`level_index`).
 SNAP = 1e-9
 

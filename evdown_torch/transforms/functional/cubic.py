@@ -18,6 +18,8 @@ from evdown_torch.transforms.functional._knots import (
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
 
+__all__ = ["cubic_estimation", "pchip_slopes"]
+
 #: Pixel-segment evaluations per chunk: bounds the kernel's memory and keeps its temporary
 #: tensors small enough to be recycled by the allocator instead of faulted in afresh.
 CHUNK = 1 << 16
@@ -299,7 +301,7 @@ def cubic_estimation(
     factor: tuple[int, int],
     threshold: float,
 ) -> Events:
-    """Downscale by cubic log-luminance estimation (SEMANTICS.md method 5).
+    """Downscale by cubic log-luminance estimation (docs/semantics.md, method 5).
 
     Each pixel's log-luminance is the piecewise cubic Hermite interpolant of its knots (see
     :mod:`~evdown_torch.transforms.functional._knots`) with SciPy's ``PchipInterpolator``

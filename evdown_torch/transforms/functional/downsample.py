@@ -5,6 +5,8 @@ from __future__ import annotations
 from evdown_torch._tensors import region_of, sort_by_time
 from evdown_torch.events import Events
 
+__all__ = ["downsample"]
+
 
 def downsample(events: Events, *, factor: tuple[int, int]) -> Events:
     """Map every event to its region ``(x // fx, y // fy)``; no event is dropped.

@@ -24,6 +24,8 @@ from evdown_torch.transforms.functional._reference import (
     threshold_fraction,
 )
 
+__all__ = ["EventCountState", "event_count", "initial_state"]
+
 
 class EventCountState(NamedTuple):
     """State of every output region between chunks of a stream.
@@ -58,7 +60,7 @@ def event_count(
     threshold: float,
     state: EventCountState | None = None,
 ) -> tuple[Events, EventCountState]:
-    """Downscale by the log-luminance event count (SEMANTICS.md method 3).
+    """Downscale by the log-luminance event count (docs/semantics.md, method 3).
 
     Each pixel keeps an integer level (ON adds 1, OFF subtracts 1). After each input event, in
     stable time order, its region's mean level ``M_r = sum(L_p) / n_r`` is tested with the

@@ -7,6 +7,8 @@ import torch
 from evdown_torch._tensors import changes, chunk_bounds, region_of, sort_by_time
 from evdown_torch.events import Events
 
+__all__ = ["event_funnelling"]
+
 
 def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
     """Downsample, then drop every event equal in ``(x', y', t, p)`` to an earlier one.

@@ -19,6 +19,8 @@ from evdown_torch.transforms.functional._knots import (
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
 
+__all__ = ["linear_estimation"]
+
 
 def linear_estimation(
     events: Events,
@@ -27,7 +29,7 @@ def linear_estimation(
     factor: tuple[int, int],
     threshold: float,
 ) -> Events:
-    """Downscale by linear log-luminance estimation (SEMANTICS.md method 4).
+    """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
 
     Each pixel's log-luminance is the polyline through its knots (see
     :mod:`~evdown_torch.transforms.functional._knots`); each region's mean ``M_r`` (sum of its
