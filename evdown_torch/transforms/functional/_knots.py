@@ -43,9 +43,9 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import output_size
+from evdown_torch.checks import check_time_span, output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._reference import threshold_fraction
+from evdown_torch.transforms.functional._reference import capped_threshold, threshold_fraction
 
 __all__ = [
     "HALF_TOLERANCE",
@@ -337,24 +337,34 @@ def estimate(
         sensor_size: input ``(W, H, P)``.
         factor: ``(fx, fy)``.
         threshold: contrast threshold, > 0.
-        solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=)`` returns the
-            crossings ``(region, t, on)`` of the regions of one chunk, in region order.
+        solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=, emitted=)``
+            returns the crossings ``(region, t, on)`` of the regions of one chunk, in region
+            order (``emitted``: events of the chunks before, for the output limit).
 
     Returns:
         Output events sorted by ``t``, ``t`` of the input's dtype.
+
+    Raises:
+        ValueError: for integer timestamps spanning 2**53 or more
+            (:func:`~evdown_torch.checks.check_time_span`), or an output above
+            :func:`~evdown_torch.checks.max_output_events`.
     """
     events = sort_by_time(events)
-    if events.num_events == 0:
+    n = events.num_events
+    if n == 0:
         return Events.empty(events.t.dtype, events.device)
-    fraction = threshold_fraction(threshold)
-    out_w = output_size(sensor_size, factor)[0]
     t_start, t_end = events.t[0], events.t[-1]
-    outputs = [
-        solve_regions(
-            pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end),
-            sensor_size=sensor_size, factor=factor, fraction=fraction,
-        )
-        for chunk in region_chunks(events, factor=factor, out_width=out_w)
-    ]
+    if not events.t.is_floating_point():
+        check_time_span(int(t_start), int(t_end))
+    # Every curve stays within its knots' levels, at most n in size (PCHIP is shape-preserving).
+    fraction = capped_threshold(threshold_fraction(threshold), n)
+    out_w = output_size(sensor_size, factor)[0]
+    outputs = []
+    emitted = 0
+    for chunk in region_chunks(events, factor=factor, out_width=out_w):
+        knots = pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end)
+        outputs.append(solve_regions(knots, sensor_size=sensor_size, factor=factor,
+                                     fraction=fraction, emitted=emitted))
+        emitted += outputs[-1][0].shape[0]
     region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
     return emit(region, t, on, out_w)

@@ -31,12 +31,14 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import changes, stable_sort_small, take, where_true
+from evdown_torch.checks import check_output_count
 
 __all__ = [
     "MAX_DENOMINATOR",
     "SNAP",
     "Crossings",
     "RegionGroups",
+    "capped_threshold",
     "crossings",
     "group_by_region",
     "level_index",
@@ -64,6 +66,21 @@ def threshold_fraction(threshold: float) -> Fraction:
     if fraction <= 0:
         raise ValueError(f"threshold must be positive and at least 1e-6, got {threshold!r}")
     return fraction
+
+
+def capped_threshold(fraction: Fraction, bound: int) -> Fraction:
+    """``fraction``, or ``bound + 1`` when it is larger, for levels ``|M| <= bound``.
+
+    Above every reachable ``|M|`` only level 0 can be crossed: every such threshold gives the
+    same ``floor(M / theta)`` (-1 below 0, else 0) and the same on-level test (``M == 0``),
+    hence the same events. Capping keeps the exact integer arithmetic inside int64 for
+    thresholds as large as 1e300.
+
+    Example:
+        >>> capped_threshold(Fraction(10**300), 7), capped_threshold(Fraction(1, 2), 7)
+        (Fraction(8, 1), Fraction(1, 2))
+    """
+    return fraction if fraction <= bound else Fraction(bound + 1)
 
 
 class RegionGroups(NamedTuple):
@@ -153,7 +170,7 @@ class Crossings(NamedTuple):
     on: Tensor
 
 
-def crossings(q_before: Tensor, q_after: Tensor) -> Crossings:
+def crossings(q_before: Tensor, q_after: Tensor, *, emitted: int = 0) -> Crossings:
     """Expand each step's change of reference index into one crossing per level.
 
     A step taking ``q`` from ``a`` to ``b > a`` crosses levels ``a + 1, ..., b`` upward (ON);
@@ -162,9 +179,14 @@ def crossings(q_before: Tensor, q_after: Tensor) -> Crossings:
     Args:
         q_before: ``(N,)`` int64 index before each step.
         q_after: ``(N,)`` int64 index after each step.
+        emitted: events the call already emitted (earlier chunks of the stream).
 
     Returns:
         The :class:`Crossings`, ``K = sum |q_after - q_before|``.
+
+    Raises:
+        ValueError: when ``emitted + K`` exceeds
+            :func:`~evdown_torch.checks.max_output_events` (counted before building them).
 
     Example:
         >>> import torch
@@ -176,6 +198,7 @@ def crossings(q_before: Tensor, q_after: Tensor) -> Crossings:
     changed = delta.nonzero().squeeze(1)
     delta = delta[changed]
     count = delta.abs()
+    check_output_count(emitted + int(count.sum()))
     pick = torch.repeat_interleave(torch.arange(changed.shape[0], device=delta.device), count)
     offsets = torch.cumsum(count, 0) - count
     within = torch.arange(pick.shape[0], device=delta.device) - offsets[pick]
@@ -235,7 +258,9 @@ def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Ten
     return (level * pixels * a).to(torch.float64) / b
 
 
-def step_crossings(floor_u: Tensor, on_level: Tensor, first: Tensor) -> Crossings:
+def step_crossings(
+    floor_u: Tensor, on_level: Tensor, first: Tensor, *, emitted: int = 0
+) -> Crossings:
     """The reference rule over monotone steps grouped by region, from ``q = 0``.
 
     Applies :func:`~evdown_torch.transforms.functional._reference.reference_index` and
@@ -247,6 +272,7 @@ def step_crossings(floor_u: Tensor, on_level: Tensor, first: Tensor) -> Crossing
         floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
         on_level: ``(S,)`` bool, the step ends on a level.
         first: ``(S,)`` bool, the step is its region's first.
+        emitted: events the call already emitted (see :func:`crossings`).
 
     Returns:
         The crossings, with ``step`` indexing the given steps.
@@ -259,5 +285,5 @@ def step_crossings(floor_u: Tensor, on_level: Tensor, first: Tensor) -> Crossing
     q_before = torch.zeros_like(q)
     q_before[1:] = q[:-1]
     q_before.masked_fill_(first_k, 0)
-    cross = crossings(q_before, q)
+    cross = crossings(q_before, q, emitted=emitted)
     return Crossings(take(kept, cross.step), cross.level, cross.on)

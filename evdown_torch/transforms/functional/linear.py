@@ -72,10 +72,12 @@ def _linear_regions(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     fraction: Fraction,
+    emitted: int = 0,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Crossings of the regions of one chunk: ``(region, t, on)`` in region order.
 
-    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``.
+    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``;
+    ``emitted`` counts the events of the chunks before (for the output limit).
     """
     device = knots.t.device
 
@@ -140,7 +142,7 @@ def _linear_regions(
     # Reference rule on the breakpoints (each piece between breakpoints is monotone).
     pixels = region_pixels(knots, sensor_size, factor)
     floor_u, on_level = level_index(whole, part, pixels, fraction)
-    cross = step_crossings(floor_u, on_level, bp_first)
+    cross = step_crossings(floor_u, on_level, bp_first, emitted=emitted)
 
     # Crossing times: linear interpolation on the piece that ends at the crossing's step.
     end = cross.step
