@@ -36,9 +36,10 @@ DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
 
 _max_output_events = DEFAULT_MAX_OUTPUT_EVENTS
 
-#: Longest span ``t_end - t_start`` of integer timestamps the estimators take (2**53, about
-#: 285 years in microseconds): crossing times are computed in float64 relative to the pieces'
-#: starts, exact only while offsets stay below 2**53.
+#: Spans ``t_end - t_start`` of integer timestamps the estimators refuse from (2**53, about
+#: 285 years in microseconds): crossing times are float64 offsets from the pieces' starts,
+#: which stop holding every integer there (below it, a time is within 1e-12 of its piece's
+#: length of the exact one, and shifting the clock shifts it exactly).
 MAX_EXACT_SPAN = 2**53
 
 
@@ -235,6 +236,6 @@ def check_time_span(t_start: int, t_end: int) -> None:
     if span >= MAX_EXACT_SPAN:
         raise ValueError(
             f"the events span {span:,} time units from first to last timestamp; the linear and "
-            f"cubic estimators compute exact crossing times only for spans below 2**53 "
-            f"({MAX_EXACT_SPAN:,}, about 285 years in microseconds)"
+            f"cubic estimators compute crossing times as float64 offsets, which hold spans "
+            f"below 2**53 only ({MAX_EXACT_SPAN:,}, about 285 years in microseconds)"
         )
