@@ -2,8 +2,8 @@
 
 ``docs/semantics.md``, methods 4 and 5: each pixel's log-luminance is a curve through its
 *knots*, one per distinct time at which the pixel has events, at the level after all its events
-at that time (ON +1, OFF -1), plus a front knot ``(t_start, 0)`` when the pixel's first event is later
-than ``t_start`` and a back knot ``(t_end, last level)`` when its last knot is earlier than
+at that time (ON +1, OFF -1), plus a front knot ``(t_start, 0)`` when the pixel's first event is
+later than ``t_start`` and a back knot ``(t_end, last level)`` when its last knot is earlier than
 ``t_end``. So every active pixel's curve spans exactly ``[t_start, t_end]``; a pixel without
 events stays at level 0 and is not represented.
 

@@ -7,7 +7,7 @@ from fractions import Fraction
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import CHUNK_EVENTS, differences, run_index, segmented_cumsum, take, where_true
+from evdown_torch._tensors import CHUNK_EVENTS, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
     Knots,
