@@ -76,8 +76,8 @@ class Candidate:
 def parse_spec(spec: str) -> tuple[str, dict[str, Any]]:
     """Split ``"NAME[:KEY=VALUE,KEY=VALUE...]"`` into the name and its settings.
 
-    The benchmark's own ``KEY=VALUE`` parser (``evdown downscale --set`` has the CLI's); the
-    two should become one.
+    The benchmark's ``KEY=VALUE`` parser; ``evdown downscale --set`` parses with the CLI's
+    (``evdown_torch.cli``), and the two should become one.
 
     Values are Python literals where they parse as one, else strings; a comma starts a new
     setting only where ``KEY=`` follows it, so tuples are fine (``factor=(1, 2)``).
