@@ -3,17 +3,20 @@
 from evdown_torch.checks import max_output_events, set_max_output_events
 from evdown_torch.events import Events, from_events, to_events
 from evdown_torch.transforms import (
+    Chain,
     CubicEstimation,
     Downsample,
     EventCount,
     EventFunnelling,
     LIFPooling,
     LinearEstimation,
+    TemporalFunnelling,
 )
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Chain",
     "CubicEstimation",
     "Downsample",
     "EventCount",
@@ -21,6 +24,7 @@ __all__ = [
     "Events",
     "LIFPooling",
     "LinearEstimation",
+    "TemporalFunnelling",
     "__version__",
     "from_events",
     "max_output_events",

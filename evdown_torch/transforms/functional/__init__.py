@@ -6,6 +6,7 @@ from evdown_torch.transforms.functional.event_count import event_count
 from evdown_torch.transforms.functional.funnelling import event_funnelling
 from evdown_torch.transforms.functional.lif import lif_pooling
 from evdown_torch.transforms.functional.linear import linear_estimation
+from evdown_torch.transforms.functional.temporal import temporal_funnelling
 
 __all__ = [
     "cubic_estimation",
@@ -14,4 +15,5 @@ __all__ = [
     "event_funnelling",
     "lif_pooling",
     "linear_estimation",
+    "temporal_funnelling",
 ]
