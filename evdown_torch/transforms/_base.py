@@ -100,6 +100,7 @@ class Session:
         """
         events, fmt = to_events(chunk, self.transform.sensor_size)
         if events.num_events == 0:
+            self._fmt = fmt
             return from_events(Events.empty(events.t.dtype, events.device), fmt)
         if self._device is not None:
             if events.device != self._device:
@@ -126,15 +127,16 @@ class Session:
         """End the stream: return what only its end decides and reset the session.
 
         Returns:
-            The remaining events in the kind of the last non-empty chunk (empty Events when
-            no event was ever fed).
+            The remaining events in the kind of the last chunk (empty Events when no chunk
+            was fed).
         """
         if self._fmt is None:
             self.reset()
             return Events.empty()
         out = self.transform.stream_end(self.state)
         if out is None:
-            out = Events.empty(self._t_dtype, self._device)
+            t_dtype = self._t_dtype if self._t_dtype is not None else torch.int64
+            out = Events.empty(t_dtype, self._device)
         fmt = self._fmt
         self.reset()
         return from_events(out, fmt)
