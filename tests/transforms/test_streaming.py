@@ -10,14 +10,17 @@ from hypothesis import strategies as st
 
 from evdown_torch import (
     Chain,
+    CubicEstimation,
     Downsample,
     EventCount,
     EventFunnelling,
     Events,
+    LinearEstimation,
     TemporalFunnelling,
 )
 from evdown_torch.transforms import Session
 from tests.helpers import DVS_DTYPE, random_stream
+from tests.transforms import test_estimation
 
 SENSOR = (9, 7, 2)
 
@@ -136,3 +139,99 @@ def test_chain_refuses_what_cannot_stream():
         Chain()
     with pytest.raises(TypeError, match="evdown_torch transforms"):
         Chain(lambda ev: ev)
+
+
+# --- Bounded delay: LinearEstimation and CubicEstimation ------------------------------------
+
+ESTIMATORS = {
+    "linear": (LinearEstimation, 1),
+    "cubic": (CubicEstimation, 2),
+}
+
+
+REFERENCE_KNOTS = test_estimation.reference_knots
+
+
+def delayed_knots(arr: np.ndarray, max_delay: int) -> tuple[dict, float, float]:
+    """The oracle's knots with the contract's held knots ``(t_next - D, previous level)``."""
+    knots, t_start, t_end = REFERENCE_KNOTS(arr)
+    for pixel in knots.values():
+        held = list(pixel[:1])
+        for (t0, level0), (t1, level1) in zip(pixel[:-1], pixel[1:]):
+            if t1 - t0 > max_delay and (t1, level1) != (t_end, level0):  # not the back knot
+                held.append((t1 - max_delay, level0))
+            held.append((t1, level1))
+        pixel[:] = held
+    return knots, t_start, t_end
+
+
+@pytest.mark.parametrize("kind", sorted(ESTIMATORS))
+@pytest.mark.parametrize(("factor", "threshold", "max_delay"),
+                         [(2, 0.1, 40), ((3, 2), 0.5, 7), (3, 0.25, 1)])
+def test_bounded_delay_matches_the_slow_reference(kind, factor, threshold, max_delay, rng,
+                                                  monkeypatch):
+    cls, _ = ESTIMATORS[kind]
+    arr = random_stream(rng, 300, SENSOR, t_max=3000)
+    out = cls(SENSOR, factor=factor, threshold=threshold, max_delay=max_delay)(arr)
+    monkeypatch.setattr(test_estimation, "reference_knots",
+                        lambda a: delayed_knots(a, max_delay))
+    fxy = (factor, factor) if isinstance(factor, int) else factor
+    expected = test_estimation.reference(arr, SENSOR, fxy, threshold, kind)
+    test_estimation.assert_matches_reference(out, expected, True)
+
+
+def test_bounded_delay_hand_computed():
+    # Pixel (0, 0): ON at 0, OFF at 30 -> held knot (27, 1). Pixel (1, 0): ON at 10 and 31
+    # -> held knots (7, 0) and (28, 1). The mean rises from 0.5 to 1 on [7, 10] (0.75 at
+    # 8.5, rounded to 9), dips to 5/6 on [28, 30] (no OFF at 0.75) and is 1 again at 31.
+    ev = torch.tensor([[0, 0, 0, 1], [1, 0, 10, 1], [0, 0, 30, 0], [1, 0, 31, 1]])
+    out = LinearEstimation((2, 1, 2), factor=(2, 1), threshold=0.25, max_delay=3)(ev)
+    assert out.tolist() == [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 9, 1], [0, 0, 10, 1]]
+
+
+def test_a_delay_longer_than_the_stream_changes_nothing(rng):
+    arr = random_stream(rng, 300, SENSOR, t_max=1000)
+    for cls, _ in ESTIMATORS.values():
+        np.testing.assert_array_equal(cls(SENSOR, factor=2, max_delay=10**6)(arr),
+                                      cls(SENSOR, factor=2)(arr))
+
+
+@pytest.mark.parametrize("kind", sorted(ESTIMATORS))
+@settings(max_examples=15, deadline=None, derandomize=True)
+@given(case=chunkings, max_delay=st.sampled_from([1, 5, 30]))
+def test_estimator_sessions_equal_the_batch_and_keep_the_delay_bound(kind, case, max_delay):
+    cls, lag = ESTIMATORS[kind]
+    seed, n, fractions = case
+    rng = np.random.default_rng(seed)
+    arr = random_stream(rng, n, SENSOR, t_max=400)
+    transform = cls(SENSOR, factor=(3, 2), threshold=0.3, max_delay=max_delay)
+    batch = transform(arr)
+    session = transform.session()
+    parts = []
+    for chunk in np.split(arr, sorted(int(f * n) for f in fractions)):
+        parts.append(session(chunk))
+        if len(chunk):
+            # Exactly the batch events earlier than tau - lag * D are out by now: each event
+            # comes out with the first chunk that reaches past t + lag * D, and none sooner.
+            horizon = chunk["t"][-1] - lag * max_delay
+            np.testing.assert_array_equal(np.concatenate(parts), batch[batch["t"] < horizon])
+    parts.append(session.flush())
+    np.testing.assert_array_equal(np.concatenate(parts), batch)
+
+
+@pytest.mark.parametrize("kind", sorted(ESTIMATORS))
+def test_estimator_session_needs_a_finite_delay(kind):
+    cls, _ = ESTIMATORS[kind]
+    with pytest.raises(ValueError, match="needs a finite delay|max_delay=D"):
+        cls(SENSOR, factor=2).session()
+
+
+@pytest.mark.parametrize("max_delay", [0, -3, float("nan")])
+def test_bad_max_delay_is_refused(max_delay):
+    with pytest.raises(ValueError, match="max_delay"):
+        LinearEstimation(SENSOR, factor=2, max_delay=max_delay)
+
+
+def test_fractional_delay_is_refused_for_integer_timestamps():
+    with pytest.raises(ValueError, match="whole number"):
+        CubicEstimation(SENSOR, factor=2, max_delay=2.5)(torch.tensor([[0, 0, 1, 1]]))
