@@ -43,7 +43,13 @@ class Streaming:
         return None
 
     def session(self) -> Session:
-        """Start a streaming session over consecutive chunks of one stream (see :class:`Session`)."""
+        """Start a streaming session over consecutive chunks of one stream (see :class:`Session`).
+
+        Raises:
+            NotImplementedError: for a transform that does not implement :meth:`stream`.
+        """
+        if type(self).stream is Streaming.stream:
+            raise NotImplementedError(f"{type(self).__name__} has no streaming session")
         return Session(self)
 
 
