@@ -150,12 +150,14 @@ def _write_one_shard(
 # Driver side ---------------------------------------------------------------------------------
 
 
-def _job(source, method: str, factor: tuple[int, int], transform) -> dict[str, Any]:
+def _job(source, method: str, factor: tuple[int, int], transform,
+         shard_size: int) -> dict[str, Any]:
     settings = {name: _json_value(getattr(transform, name)) for name in method_settings(method)}
     return {"format": shards.FORMAT, "format_version": shards.FORMAT_VERSION,
             "package": "evdown_torch", "version": evdown_torch.__version__,
             "dataset": source.describe(), "num_recordings": len(source),
-            "method": method, "factor": list(factor), "settings": settings}
+            "method": method, "factor": list(factor), "settings": settings,
+            "shard_size": shard_size}
 
 
 def _claim_folder(out: Path, job: dict[str, Any]) -> None:
@@ -289,7 +291,7 @@ def preprocess(
     transform = make_method(method, source.sensor_size, factor, **(settings or {}))
     rank, world = _rank_and_world()
     out = Path(out)
-    job = _job(source, method, fxy, transform)
+    job = _job(source, method, fxy, transform, shard_size)
     job_id = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()[:16]
     _claim_folder(out, job)
 
