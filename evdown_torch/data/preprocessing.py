@@ -2,7 +2,8 @@
 
 Recordings ``[k * S, (k + 1) * S)`` form shard ``k`` (``S``: the shard size); a shard's bytes
 depend only on its recordings, so the cache is the same whoever writes it. On one machine the
-shards are spread over worker processes (one torch thread each); under ``torchrun`` rank ``r``
+shards are spread over worker processes (this one and spawned ones, one torch thread
+each); under ``torchrun`` rank ``r``
 of ``W`` takes shards ``r, r + W, r + 2W, ...`` (each rank may use workers too), and after a
 collective rank 0 writes the manifest. Complete shards whose checksums verify are kept on a
 rerun, anything else is redone. The format is described in :mod:`evdown_torch.data.shards`.
@@ -17,7 +18,9 @@ import math
 import multiprocessing
 import os
 import sys
+import threading
 import time
+from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from datetime import timedelta
@@ -100,6 +103,10 @@ def _init_worker(state: dict[str, Any], queue) -> None:
     _STATE.update(state, tick=lambda: queue.put(1))
 
 
+def _ready() -> bool:
+    return True
+
+
 def _worker_shard(shard: int) -> tuple[dict[str, Any], tuple[float, float, float]]:
     return _write_one_shard(_STATE, shard)
 
@@ -178,7 +185,12 @@ def _claim_folder(out: Path, job: dict[str, Any]) -> None:
 
 def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar) -> tuple[
         list[dict[str, Any]], list[float]]:
-    """Write the shards ``todo``, in-process or over ``workers`` processes."""
+    """Write the shards ``todo`` with ``workers`` processes, one torch thread each.
+
+    This process works too (in a thread, from the back of the list) while ``workers - 1``
+    spawned processes start; each gets one shard at a time from the front once it has
+    started, so nobody waits for work and the end waits for at most one shard.
+    """
     records, timings = [], [0.0, 0.0, 0.0]
 
     def done(record, timing) -> None:
@@ -189,31 +201,75 @@ def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar) -> tu
             bar.write(f"evdown preprocess: warning: skipped {skip['source']}: {skip['error']}",
                       file=sys.stderr)
 
-    if workers <= 1:
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
+    local = dict(state, tick=lambda: bar.update(1))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        if workers <= 1:
             for shard in todo:
-                done(*_write_one_shard(dict(state, tick=lambda: bar.update(1)), shard))
-        finally:
-            torch.set_num_threads(threads)
+                done(*_write_one_shard(local, shard))
+            return records, timings
+        _run_with_pool(state, local, deque(todo), workers - 1, bar, done)
         return records, timings
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run_with_pool(state, local, waiting: deque, spawned: int, bar, done) -> None:
     context = multiprocessing.get_context("spawn")
     queue = context.Queue()
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker,
-                             initargs=(state, queue)) as pool:
-        pending = {pool.submit(_worker_shard, shard) for shard in todo}
+    stop = threading.Event()
+    here: list = []  # (record, timing) or an exception, from the thread working here
+
+    def work_here() -> None:
         try:
-            while pending:
-                finished, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
+            while not stop.is_set():
+                try:
+                    shard = waiting.pop()
+                except IndexError:
+                    return
+                here.append(_write_one_shard(local, shard))
+        except BaseException as error:  # handed to the main thread
+            here.append(error)
+
+    def collect_here() -> None:
+        while here:
+            item = here.pop(0)
+            if isinstance(item, BaseException):
+                raise item
+            done(*item)
+
+    thread = threading.Thread(target=work_here, name="evdown-preprocess", daemon=True)
+    with ProcessPoolExecutor(spawned, mp_context=context, initializer=_init_worker,
+                             initargs=(state, queue)) as pool:
+        pings = {pool.submit(_ready) for _ in range(spawned)}
+        pending: set = set()
+        thread.start()
+        try:
+            while True:
+                started = sum(ping.done() for ping in pings)
+                while not stop.is_set() and waiting and len(pending) < started:
+                    try:
+                        shard = waiting.popleft()
+                    except IndexError:
+                        break
+                    pending.add(pool.submit(_worker_shard, shard))
+                unstarted = {ping for ping in pings if not ping.done()}
+                finished, _ = wait(pending | unstarted, timeout=0.1,
+                                   return_when=FIRST_COMPLETED)
                 _drain(queue, bar)
-                for future in finished:
+                for future in finished & pending:
+                    pending.discard(future)
                     done(*future.result())
+                collect_here()
+                if not pending and not thread.is_alive() and not here:
+                    break
         except BaseException:
-            pool.shutdown(wait=True, cancel_futures=True)  # running shards finish and stay
+            stop.set()
+            thread.join()  # the shard it is writing finishes and stays
+            pool.shutdown(wait=True, cancel_futures=True)
             raise
         _drain(queue, bar)
-    return records, timings
 
 
 def _drain(queue, bar) -> None:
@@ -266,8 +322,8 @@ def preprocess(
         factor: ``f`` or ``(fx, fy)``.
         settings: the method's other settings (e.g. ``{"threshold": 0.5}``).
         shard_size: recordings per shard.
-        workers: worker processes (default: one per available core, or 1 per rank under
-            ``torch.distributed``); 1 works in this process.
+        workers: processes working, this one included (default: one per available core,
+            or 1 per rank under ``torch.distributed``); ``workers - 1`` are spawned.
         on_error: ``"skip"`` a recording that cannot be read or downscaled (reported by name
             on stderr and in the manifest; retried by a rerun), or ``"stop"`` the run there,
             keeping the shards already complete.
