@@ -336,8 +336,12 @@ def preprocess(
         ValueError: for bad settings or an ``out`` folder holding another job.
         RecordingError: with ``on_error="stop"``, naming the recording.
     """
-    from tqdm.auto import tqdm
-
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        raise ValueError(
+            "preprocessing shows its progress with tqdm: pip install 'evdown_torch[data]'"
+        ) from None
     start_time = time.perf_counter()
     check_choice("on_error", on_error, ("skip", "stop"))
     shard_size = check_positive_int("shard_size", shard_size)
