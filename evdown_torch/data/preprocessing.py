@@ -88,10 +88,6 @@ def _rank_and_world() -> tuple[int, int]:
     return 0, 1
 
 
-def _json_value(value: Any) -> Any:
-    return list(value) if isinstance(value, tuple) else value
-
-
 # Worker side ---------------------------------------------------------------------------------
 
 _STATE: dict[str, Any] = {}
@@ -159,12 +155,13 @@ def _write_one_shard(
 
 def _job(source, method: str, factor: tuple[int, int], transform,
          shard_size: int) -> dict[str, Any]:
-    settings = {name: _json_value(getattr(transform, name)) for name in method_settings(method)}
-    return {"format": shards.FORMAT, "format_version": shards.FORMAT_VERSION,
-            "package": "evdown_torch", "version": evdown_torch.__version__,
-            "dataset": source.describe(), "num_recordings": len(source),
-            "method": method, "factor": list(factor), "settings": settings,
-            "shard_size": shard_size}
+    settings = {name: getattr(transform, name) for name in method_settings(method)}
+    job = {"format": shards.FORMAT, "format_version": shards.FORMAT_VERSION,
+           "package": "evdown_torch", "version": evdown_torch.__version__,
+           "dataset": source.describe(), "num_recordings": len(source),
+           "method": method, "factor": list(factor), "settings": settings,
+           "shard_size": shard_size}
+    return json.loads(json.dumps(job))  # as it reads back from job.json
 
 
 def _claim_folder(out: Path, job: dict[str, Any]) -> None:
