@@ -22,6 +22,7 @@ from evdown_torch.data import (
     RecordingError,
     open_source,
     preprocess,
+    shards,
     verify_cache,
 )
 from evdown_torch.synthetic import SyntheticGestures
@@ -104,13 +105,48 @@ def test_dataset_applies_transforms_like_tonic(reference):
     assert plain[-1][0]["x"].max() > 0
 
 
+class WaitingSynthetic:
+    """The synthetic source, whose loads in the creating process wait until another process
+    has loaded a recording (so that a spawned worker surely gets some work); ``log`` notes
+    which process loaded each recording."""
+
+    def __init__(self, log: Path) -> None:
+        self.inner = open_source("synthetic", **SYNTHETIC)
+        self.log, self.creator = log, os.getpid()
+        self.sensor_size, self.dtype = self.inner.sensor_size, self.inner.dtype
+        self.classes = self.inner.classes
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def describe(self) -> dict:
+        return self.inner.describe()
+
+    def source_name(self, index: int) -> str:
+        return self.inner.source_name(index)
+
+    def load(self, index: int):
+        deadline = time.monotonic() + 120
+        while os.getpid() == self.creator and not any(
+                not name.endswith(f"-{self.creator}") for name in os.listdir(self.log)):
+            assert time.monotonic() < deadline, "no worker process loaded anything"
+            time.sleep(0.01)
+        (self.log / f"{index}-{os.getpid()}").touch()
+        return self.inner.load(index)
+
+
 def test_two_worker_processes_write_the_same_bytes(reference, tmp_path):
-    source = open_source("synthetic", **SYNTHETIC)
-    result = preprocess(source, tmp_path, "event_count", 2, {"threshold": 0.5}, shard_size=3,
-                        workers=2)
+    log = tmp_path / "log"
+    log.mkdir()
+    out = tmp_path / "cache"
+    result = preprocess(WaitingSynthetic(log), out, "event_count", 2, {"threshold": 0.5},
+                        shard_size=3, workers=2)
     assert result.written == (0, 1, 2, 3) and result.kept == () and result.recordings == 11
-    assert _digests(tmp_path) == _digests(reference)
-    assert (tmp_path / "manifest.json").read_text() == (reference / "manifest.json").read_text()
+    assert _digests(out) == _digests(reference)
+    assert (out / "manifest.json").read_text() == (reference / "manifest.json").read_text()
+    loads = [name.split("-") for name in os.listdir(log)]
+    assert sorted(int(i) for i, _ in loads) == list(range(11))  # each recording once
+    assert len({pid for _, pid in loads}) == 2  # both processes worked
 
 
 def _free_port() -> int:
@@ -244,6 +280,21 @@ def test_recording_error_in_the_api(tmp_path, rng):
     source = open_source(f"folder:{data}", sensor_size=(64, 48, 2))
     with pytest.raises(RecordingError, match=r"rec1\.npy: ValueError: .*x"):
         preprocess(source, tmp_path / "out", "downsample", 2, on_error="stop", workers=1)
+    out = tmp_path / "two"
+    with pytest.raises(RecordingError, match=r"rec1\.npy"):
+        preprocess(source, out, "downsample", 2, shard_size=1, on_error="stop", workers=2)
+    assert not (out / "manifest.json").exists() and not list(out.glob(".*"))
+    for record in out.glob("shard-*.json"):  # whatever finished is complete and intact
+        assert shards.shard_problem(out, json.loads(record.read_text())) is None
+
+
+def test_progress_bar_with_rate_only_when_asked(tmp_path, capsys):
+    source = open_source("synthetic", **SYNTHETIC)
+    preprocess(source, tmp_path / "a", "downsample", 2, workers=1)  # stderr is no terminal
+    assert capsys.readouterr().err == ""
+    preprocess(source, tmp_path / "b", "downsample", 2, workers=1, progress=True)
+    err = capsys.readouterr().err
+    assert "11/11" in err and "rec/s" in err
 
 
 def test_nmnist_through_tonic(tmp_path, monkeypatch, nmnist):
