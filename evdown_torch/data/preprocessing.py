@@ -11,7 +11,6 @@ rerun, anything else is redone. The format is described in :mod:`evdown_torch.da
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import math
@@ -23,7 +22,6 @@ import time
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
-from datetime import timedelta
 from pathlib import Path
 from queue import Empty
 from typing import Any
@@ -34,10 +32,10 @@ import torch
 import evdown_torch
 from evdown_torch.checks import check_choice, check_factor, check_positive_int
 from evdown_torch.data import shards
-from evdown_torch.data.sources import check_label, open_source
-from evdown_torch.transforms.registry import METHODS, make_method, method_settings
+from evdown_torch.data.sources import check_label
+from evdown_torch.transforms.registry import make_method, method_settings
 
-__all__ = ["PreprocessResult", "RecordingError", "add_parser", "preprocess", "run"]
+__all__ = ["PreprocessResult", "RecordingError", "preprocess"]
 
 
 class RecordingError(Exception):
@@ -206,15 +204,16 @@ def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar) -> tu
             for shard in todo:
                 done(*_write_one_shard(local, shard))
             return records, timings
-        _run_with_pool(state, local, deque(todo), workers - 1, bar, done)
+        _run_with_pool(state, deque(todo), workers - 1, bar, done)
         return records, timings
     finally:
         torch.set_num_threads(threads)
 
 
-def _run_with_pool(state, local, waiting: deque, spawned: int, bar, done) -> None:
+def _run_with_pool(state, waiting: deque, spawned: int, bar, done) -> None:
     context = multiprocessing.get_context("spawn")
-    queue = context.Queue()
+    queue = context.Queue()  # progress ticks from every process, shown by this thread
+    local = dict(state, tick=lambda: queue.put(1))
     stop = threading.Event()
     here: list = []  # (record, timing) or an exception, from the thread working here
 
@@ -251,9 +250,12 @@ def _run_with_pool(state, local, waiting: deque, spawned: int, bar, done) -> Non
                     except IndexError:
                         break
                     pending.add(pool.submit(_worker_shard, shard))
-                unstarted = {ping for ping in pings if not ping.done()}
-                finished, _ = wait(pending | unstarted, timeout=0.1,
-                                   return_when=FIRST_COMPLETED)
+                watched = pending | {ping for ping in pings if not ping.done()}
+                if watched:
+                    finished, _ = wait(watched, timeout=0.1, return_when=FIRST_COMPLETED)
+                else:  # only this process is busy
+                    finished = set()
+                    thread.join(timeout=0.1)
                 _drain(queue, bar)
                 for future in finished & pending:
                     pending.discard(future)
@@ -406,98 +408,3 @@ def preprocess(
         written=tuple(sorted(set(every) - set(mine["kept"]))), kept=tuple(mine["kept"]),
         recordings=mine["recordings"], seconds=time.perf_counter() - start_time,
         read_seconds=timings[0], transform_seconds=timings[1], write_seconds=timings[2])
-
-
-# Command line --------------------------------------------------------------------------------
-
-
-def _dataset_name(text: str) -> str:
-    if text in ("synthetic", "dvsgesture", "nmnist") or (
-            text.startswith("folder:") and len(text) > len("folder:")):
-        return text
-    raise argparse.ArgumentTypeError(
-        f"expected synthetic, dvsgesture, nmnist or folder:PATH, got {text!r}")
-
-
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """Add the ``preprocess`` subcommand to the ``evdown`` command line's subparsers."""
-    from evdown_torch.cli import _factor, _setting
-
-    parser = subparsers.add_parser(
-        "preprocess",
-        help="downscale every recording of a dataset once into a sharded cache (torchrun-ready)",
-        description="Downscale every recording of a dataset once and write .npy shards plus "
-        "manifest.json; read them back with evdown_torch.data.PreprocessedDataset. Under "
-        "torchrun each rank takes a disjoint share. A rerun resumes.")
-    parser.add_argument("--dataset", required=True, type=_dataset_name, metavar="NAME",
-                        help="synthetic, dvsgesture, nmnist or folder:PATH (PATH/CLASS/*.npy)")
-    parser.add_argument("--method", required=True, choices=sorted(METHODS), metavar="NAME",
-                        help=f"one of {', '.join(sorted(METHODS))}")
-    parser.add_argument("--factor", required=True, type=_factor, help="F or FX,FY")
-    parser.add_argument("--threshold", type=float,
-                        help="contrast threshold (log-luminance methods)")
-    parser.add_argument("--set", type=_setting, action="append", metavar="KEY=VALUE",
-                        help="any other setting of the method, e.g. --set dt=1000")
-    parser.add_argument("--out", required=True, metavar="DIR", help="the cache folder")
-    parser.add_argument("--split", choices=("train", "test"), default="train",
-                        help="dataset split (synthetic, dvsgesture, nmnist; default train)")
-    parser.add_argument("--root", metavar="DIR",
-                        help="folder the Tonic dataset lives in (its save_to)")
-    parser.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
-                        help="sensor of a folder dataset (required) or of the synthetic one")
-    parser.add_argument("--samples-per-class", type=int, metavar="N",
-                        help="synthetic recordings per class (default 24)")
-    parser.add_argument("--duration-us", type=int, metavar="US",
-                        help="synthetic recording length, microseconds (default 6000000)")
-    parser.add_argument("--seed", type=int, help="synthetic dataset seed (default 0)")
-    parser.add_argument("--shard-size", type=int, default=32, metavar="N",
-                        help="recordings per shard (default 32)")
-    parser.add_argument("--workers", type=int, metavar="N",
-                        help="worker processes (default: one per core; 1 per rank under "
-                        "torchrun)")
-    parser.add_argument("--on-error", choices=("skip", "stop"), default="skip",
-                        help="a recording that cannot be read: report and skip it (default), "
-                        "or stop the run, keeping the complete shards")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.set_defaults(run=run)
-    return parser
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run ``evdown preprocess`` (also one rank of a ``torchrun`` launch)."""
-    import torch.distributed as dist
-
-    launched = dist.is_available() and dist.is_torchelastic_launched()
-    if launched and not dist.is_initialized():
-        # Ranks finish their shares at different times; the manifest collective waits.
-        dist.init_process_group("gloo", timeout=timedelta(hours=24))
-    try:
-        source = open_source(
-            args.dataset, split=args.split, root=args.root,
-            sensor_size=tuple(args.sensor_size) if args.sensor_size else None,
-            samples_per_class=args.samples_per_class, duration_us=args.duration_us,
-            seed=args.seed)
-        settings = dict(args.set or [])
-        if args.threshold is not None:
-            settings["threshold"] = args.threshold
-        try:
-            result = preprocess(source, args.out, args.method, args.factor, settings,
-                                shard_size=args.shard_size, workers=args.workers,
-                                on_error=args.on_error,
-                                progress=False if args.no_progress else None)
-        except (RecordingError, OSError) as error:
-            raise ValueError(f"{error} (complete shards are kept; a rerun resumes)") from None
-    finally:
-        if launched and dist.is_initialized():
-            dist.destroy_process_group()
-    if result.manifest is not None:
-        counts = result.manifest["counts"]
-        rate = result.recordings / result.seconds if result.seconds > 0 else float("inf")
-        print(
-            f"{args.method}: {counts['recordings']} recordings in {counts['shards']} shards "
-            f"({len(result.kept)} kept from an earlier run), {counts['skipped']} skipped, "
-            f"{counts['events_in']} events in, {counts['events_out']} out; "
-            f"{result.seconds:.1f} s ({rate:.1f} recordings/s); "
-            f"wrote {Path(args.out) / shards.MANIFEST}"
-        )
-    return 0
