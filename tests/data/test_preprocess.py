@@ -357,3 +357,25 @@ def test_another_job_in_the_same_folder_is_refused(reference, tmp_path):
     with pytest.raises(ValueError, match="another job.*settings"):
         preprocess(source, out, "event_count", 2, {"threshold": 0.25}, shard_size=3, workers=1)
     assert _digests(out) == before
+
+
+def test_dvsgesture_through_tonic(tmp_path, monkeypatch, rng):
+    tonic = pytest.importorskip("tonic")
+    folder = tmp_path / "DVSGesture" / "ibmGestureTest" / "user01_led"
+    folder.mkdir(parents=True)
+    recordings = {}
+    for label in (2, 9):  # DVSGesture's files: (N, 4) arrays x, y, p, t in ms, named LABEL.npy
+        ev = random_stream(rng, 500, (128, 128, 2), t_max=3000)
+        recordings[label] = ev
+        raw = np.stack([ev["x"], ev["y"], ev["p"], ev["t"]], axis=1).astype(np.int64)
+        np.save(folder / f"{label}.npy", raw)
+    monkeypatch.setattr(tonic.datasets.DVSGesture, "_check_exists", lambda self: True)
+    source = open_source("dvsgesture", root=tmp_path, split="test")
+    preprocess(source, tmp_path / "out", "funnelling", 4, workers=1)
+    cache = PreprocessedDataset(tmp_path / "out")
+    assert cache.sensor_size == (32, 32, 2) and sorted(cache.targets) == [2, 9]
+    transform = make_method("funnelling", (128, 128, 2), 4)
+    for events, label in (cache[0], cache[1]):
+        expected = recordings[label].copy()
+        expected["t"] *= 1000  # Tonic's DVSGesture reads milliseconds as microseconds
+        np.testing.assert_array_equal(events, transform(expected))
