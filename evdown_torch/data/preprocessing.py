@@ -1,12 +1,12 @@
-"""``evdown preprocess``: downscale every recording of a dataset once, into a sharded cache.
+"""Downscale every recording of a dataset once, into a sharded cache (``evdown preprocess``).
 
 Recordings ``[k * S, (k + 1) * S)`` form shard ``k`` (``S``: the shard size); a shard's bytes
 depend only on its recordings, so the cache is the same whoever writes it. On one machine the
-shards are spread over worker processes (this one and spawned ones, one torch thread
-each); under ``torchrun`` rank ``r``
-of ``W`` takes shards ``r, r + W, r + 2W, ...`` (each rank may use workers too), and after a
-collective rank 0 writes the manifest. Complete shards whose checksums verify are kept on a
-rerun, anything else is redone. The format is described in :mod:`evdown_torch.data.shards`.
+shards are shared by worker processes (this one and spawned ones, one torch thread each);
+under ``torchrun`` rank ``r`` of ``W`` takes shards ``r, r + W, r + 2W, ...`` (each rank may
+use workers too), and after a collective rank 0 writes the manifest. Complete shards whose
+checksums verify are kept on a rerun, anything else is redone. The format is described in
+:mod:`evdown_torch.data.shards`, the command line in :mod:`evdown_torch.data.command`.
 """
 
 from __future__ import annotations
