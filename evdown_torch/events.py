@@ -30,9 +30,20 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["Events", "EventFormat", "EventsLike", "from_events", "load_npy_events", "to_events"]
+__all__ = [
+    "DVS_DTYPE",
+    "Events",
+    "EventFormat",
+    "EventsLike",
+    "from_events",
+    "load_npy_events",
+    "to_events",
+]
 
 FIELDS = ("x", "y", "t", "p")
+
+#: Tonic's structured dtype for DVS recordings (DVSGesture's): what the file readers return.
+DVS_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", np.bool_), ("t", np.int64)])
 
 
 class Events(NamedTuple):
