@@ -10,9 +10,12 @@ import math
 import numbers
 from typing import Any
 
+import torch
+
 __all__ = [
     "check_choice",
     "check_factor",
+    "check_has_values",
     "check_non_negative_float",
     "check_non_negative_int",
     "check_positive_float",
@@ -164,3 +167,16 @@ def check_non_negative_int(name: str, value: Any) -> int:
     if value < 0:
         raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
     return int(value)
+
+
+def check_has_values(tensor: torch.Tensor, what: str = "events") -> None:
+    """Refuse tensors that hold no values: those on PyTorch's ``meta`` device.
+
+    Raises:
+        ValueError: for a tensor on the ``meta`` device.
+    """
+    if tensor.device.type == "meta":
+        raise ValueError(
+            f"{what} are on the 'meta' device, which holds shapes but no values; downscaling "
+            "reads the values: move them to a real device first (e.g. .to('cpu'))"
+        )
