@@ -69,7 +69,8 @@ def _warn_if_time_lost_precision(t: Tensor, dtype_name: str) -> None:
     if math.isfinite(largest) and largest > 2**bits:  # _validate reports NaN and infinities
         warnings.warn(  # one fixed text per dtype, so Python shows it once
             f"event timestamps are {dtype_name}, which holds whole numbers exactly only up to "
-            f"2**{bits}; larger ones (epoch or long-recording microseconds) were rounded before evdown_torch saw them, so distinct events may "
+            f"2**{bits}; larger ones (epoch or long-recording microseconds) were rounded "
+            "before evdown_torch saw them, so distinct events may "
             "now share a timestamp (EventFunnelling then drops them as duplicates). Keep "
             "timestamps int64 or float64, or subtract the first one before casting.",
             TimestampPrecisionWarning,

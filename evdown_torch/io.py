@@ -22,10 +22,11 @@ extension      reader                                                 sensor siz
 =============  =====================================================  =====================
 
 Tonic, aedat, faery and h5py are optional: ``pip install 'evdown_torch[readers]'``.
-Prophesee files go through faery (an 8 MB Rust extension needing only NumPy). expelliarmus, smaller (50 kB) and installed with Tonic, misreads
-EVT 3.0 time: it counts a TIME_LOW wrap on top of the TIME_HIGH word that follows it (an event
-at 4095 us then one at 4097 us come back as 4095 and 8193), so a camera's EVT 3.0 file drifts
-by 4.1 ms every 4.1 ms. evlib reads the same formats but weighs 17 MB plus Polars and PyArrow.
+Prophesee files go through faery (an 8 MB Rust extension needing only NumPy). expelliarmus,
+smaller (50 kB) and installed with Tonic, misreads EVT 3.0 time: it counts a TIME_LOW wrap
+on top of the TIME_HIGH word that follows it (an event at 4095 us then one at 4097 us come
+back as 4095 and 8193), so timestamps gain 4.1 ms at every wrap of the 4.1 ms low clock.
+evlib reads the same formats but weighs 17 MB plus Polars and PyArrow.
 
 Files other than ``.npy``/``.npz`` come back with :data:`~evdown_torch.events.DVS_DTYPE`
 (``x``, ``y`` int16, ``p`` bool, ``t`` int64, or float64 for float timestamps).
@@ -264,7 +265,8 @@ def _read_prophesee(path: Path) -> _Read:
                     raise ValueError(f"{source!r} holds {decoder.event_type!r} events, not CD")
                 return decoder.dimensions, [packet for packet in decoder]
         with evt.Decoder(path, fallback, None) as decoder:
-            return decoder.dimensions, [packet["events"] for packet in decoder if "events" in packet]
+            packets = [packet["events"] for packet in decoder if "events" in packet]
+            return decoder.dimensions, packets
 
     try:
         try:

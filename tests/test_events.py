@@ -124,7 +124,7 @@ def test_from_columns_accepts_structured_field_views_and_tensors(device):
     assert t.tolist() == [5]
 
 
-# ----------------------------------------------------------------------------- float time, meta, grad
+# ------------------------------------------------------------------ float time, meta, grad
 
 
 def _epoch_stream(rng, n=2000):

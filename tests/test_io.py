@@ -81,7 +81,8 @@ def write_aedat4(path, events: np.ndarray, width: int, height: int, packets: int
         f'<attr key="sizeX" type="int">{width}</attr><attr key="sizeY" type="int">{height}</attr>'
         "</node></node></node></dv>"
     ).encode()
-    out = b"#!AER-DAT4.0\r\n" + _flatbuffer(b"IOHE", 2, struct.pack("<I", len(xml)) + xml + b"\0", 4)
+    header = _flatbuffer(b"IOHE", 2, struct.pack("<I", len(xml)) + xml + b"\0", 4)
+    out = b"#!AER-DAT4.0\r\n" + header
     for part in np.array_split(events, packets):
         records = np.zeros(len(part), _AEDAT4_EVENT)
         records["t"], records["x"], records["y"], records["on"] = (
