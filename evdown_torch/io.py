@@ -26,7 +26,10 @@ Prophesee files go through faery (an 8 MB Rust extension needing only NumPy). ex
 smaller (50 kB) and installed with Tonic, misreads EVT 3.0 time: it counts a TIME_LOW wrap
 on top of the TIME_HIGH word that follows it (an event at 4095 us then one at 4097 us come
 back as 4095 and 8193), so timestamps gain 4.1 ms at every wrap of the 4.1 ms low clock.
-evlib reads the same formats but weighs 17 MB plus Polars and PyArrow.
+It is 5 to 30 times faster on EVT 2.0 and DAT, but faery's 11 to 13 M events/s (one thread,
+``benchmarks/bench_readers.py``) already outpaces the downscalers, and one reader that is right
+on every Prophesee format is worth more. evlib reads the same formats but weighs 17 MB plus
+Polars and PyArrow.
 
 Files other than ``.npy``/``.npz`` come back with :data:`~evdown_torch.events.DVS_DTYPE`
 (``x``, ``y`` int16, ``p`` bool, ``t`` int64, or float64 for float timestamps).
