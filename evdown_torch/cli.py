@@ -20,6 +20,7 @@ status 2, as argparse does for bad arguments; warnings print as ``evdown COMMAND
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import textwrap
 import time
@@ -134,7 +135,8 @@ def _plan(paths: Sequence[str], output_format: str) -> list[tuple[Path, Path]]:
             )
         else:
             files.append(path)
-    into_folder = len(inputs) > 1 or inputs[0].is_dir() or output.is_dir()
+    into_folder = (len(inputs) > 1 or inputs[0].is_dir() or output.is_dir()
+                   or paths[-1].endswith(("/", os.sep)))  # "out/" names a folder to create
     if not into_folder:
         _check_output_file(output)
         pairs = [(files[0], output)]
@@ -182,18 +184,27 @@ def _downscale(args: argparse.Namespace) -> int:
                            f"takes {list(method_settings(args.method))}")
     pairs = _plan(args.paths, args.output_format)
     several = len(pairs) > 1
-    bar = tqdm(pairs, unit="file", disable=not several or not sys.stderr.isatty(),
-               file=sys.stderr, dynamic_ncols=True)
-    for source, target in bar:
-        bar.set_postfix_str(source.name)
+    # Three steps per file (read, downscale, write), so that one long file shows progress too.
+    bar = tqdm(total=3 * len(pairs), unit="step", disable=not sys.stderr.isatty(),
+               file=sys.stderr, dynamic_ncols=True, leave=False,
+               bar_format="{desc} |{bar}| {n_fmt}/{total_fmt} [{elapsed}]")
+    for index, (source, target) in enumerate(pairs):
+        file_label = f"file {index + 1}/{len(pairs)} {source.name}" if several else source.name
         try:
+            bar.set_description_str(f"{file_label}: reading")
             events, sensor_size, _ = read_events(source, sensor_size=args.sensor_size)
             transform = make_method(args.method, sensor_size, args.factor, **settings)
+            bar.update()
+            bar.set_description_str(f"{file_label}: downscaling {len(events)} events")
             start = time.perf_counter()
             out = transform(events)
             seconds = time.perf_counter() - start
+            bar.update()
+            bar.set_description_str(f"{file_label}: writing")
             written = write_events(target, out, sensor_size=transform.output_sensor_size)
+            bar.update()
         except (ValueError, TypeError) as error:
+            bar.close()
             raise CommandError(f"{source}: {error}" if several else str(error)) from None
         rate = len(events) / seconds if seconds > 0 else float("inf")
         _say(
@@ -202,6 +213,7 @@ def _downscale(args: argparse.Namespace) -> int:
             f"{transform.output_sensor_size}, {seconds:.3f} s ({rate / 1e6:.2f} M events/s); "
             f"wrote {written}"
         )
+    bar.close()
     return 0
 
 
