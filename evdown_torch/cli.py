@@ -142,7 +142,8 @@ def _plan(paths: Sequence[str], output_format: str) -> list[tuple[Path, Path]]:
         pairs = [(files[0], output)]
     else:
         if output.exists() and not output.is_dir():
-            raise CommandError(f"output {str(output)!r} must be a folder for several inputs")
+            raise CommandError(f"output {str(output)!r} is a file; several inputs, a folder "
+                               "input or a trailing '/' need an output folder")
         if not output.parent.is_dir():
             raise CommandError(f"cannot create {str(output)!r}: folder "
                                f"{str(output.parent)!r} does not exist")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import evdown_torch
-from evdown_torch import EventCount, LinearEstimation
+from evdown_torch import Downsample, EventCount, LinearEstimation
 from evdown_torch.cli import main
 from evdown_torch.io import read_events
 from evdown_torch.transforms.registry import METHODS, method_settings
@@ -141,6 +141,15 @@ def test_several_files_and_a_folder(tmp_path, rng, capsys):
     assert main(["downscale", str(inputs / "a.npy"), str(tmp_path / "a.npy"),
                  str(tmp_path / "clash"), *common]) == 2
     assert "would both be written" in capsys.readouterr().err
+
+
+def test_a_trailing_slash_names_an_output_folder(npy, tmp_path):
+    argv = ["--method", "downsample", "--factor", "2", "--sensor-size", "16", "12", "2"]
+    assert main(["downscale", str(npy), f"{tmp_path / 'made'}/", *argv]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "made" / "in.npy"),
+                                  Downsample(SENSOR, 2)(np.load(npy)))
+    assert [p.name for p in (tmp_path / "made").iterdir()] == ["in.npy"]
+    assert main(["downscale", str(npy), f"{npy}/", *argv]) == 2
 
 
 def test_version_and_help_list_every_setting_with_defaults(capsys):
