@@ -135,8 +135,8 @@ def _epoch_stream(rng, n=2000):
                         torch.as_tensor(rng.integers(0, 2, n))], dim=1)
 
 
-def test_float32_epoch_time_warns_once_naming_the_cause(rng):
-    ev = _epoch_stream(rng)
+def test_float32_epoch_time_warns_once_naming_the_cause(rng, device):
+    ev = _epoch_stream(rng).to(device)
     funnel = EventFunnelling((346, 260, 2), 2)
     exact = funnel(ev)
     assert len(exact) > 1900  # int64: distinct events stay distinct
@@ -181,10 +181,10 @@ def test_meta_tensors_are_refused_clearly():
 
 
 @pytest.mark.parametrize("method", ["event_count", "linear", "cubic", "lif", "funnelling"])
-def test_tensors_that_require_grad_are_read_as_values(rng, method):
+def test_tensors_that_require_grad_are_read_as_values(rng, method, device):
     arr = random_stream(rng, 300, SENSOR, t_max=5000)
     data = torch.tensor(np.stack([arr["x"], arr["y"], arr["t"], arr["p"]], 1),
-                        dtype=torch.float64)
+                        dtype=torch.float64, device=device)
     transform = make_method(method, SENSOR, 2, **({"dt": 100} if method == "lif" else {}))
     leaf = data.clone().requires_grad_(True)
     out = transform(leaf)
