@@ -35,7 +35,8 @@ from evdown_torch import __version__
 from evdown_torch._text import parse_factor, parse_setting
 from evdown_torch.io import (
     READ_EXTENSIONS,
-    WRITE_EXTENSIONS,
+    check_readable,
+    check_writable,
     event_files,
     read_events,
     write_events,
@@ -126,19 +127,12 @@ def _plan(paths: Sequence[str], output_format: str) -> list[tuple[Path, Path]]:
                     f"folder {str(path)!r} holds no event files ({', '.join(READ_EXTENSIONS)})"
                 )
             files += found
-        elif not path.exists():
-            raise CommandError(f"input file {str(path)!r} does not exist")
-        elif path.suffix.lower() not in READ_EXTENSIONS:
-            raise CommandError(
-                f"cannot read {str(path)!r}: unknown extension {path.suffix!r}; readable: "
-                f"{', '.join(READ_EXTENSIONS)}"
-            )
         else:
-            files.append(path)
+            files.append(check_readable(path))
     into_folder = (len(inputs) > 1 or inputs[0].is_dir() or output.is_dir()
                    or paths[-1].endswith(("/", os.sep)))  # "out/" names a folder to create
     if not into_folder:
-        _check_output_file(output)
+        check_writable(output)
         pairs = [(files[0], output)]
     else:
         if output.exists() and not output.is_dir():
@@ -154,21 +148,12 @@ def _plan(paths: Sequence[str], output_format: str) -> list[tuple[Path, Path]]:
                 raise CommandError(f"{str(seen[target])!r} and {str(source)!r} would both be "
                                    f"written to {str(target)!r}")
             seen[target] = source
-        output.mkdir(exist_ok=True)
     for source, target in pairs:
         if target.resolve() == source.resolve():
             raise CommandError(f"writing {str(target)!r} would overwrite its input")
+    if into_folder:
+        output.mkdir(exist_ok=True)
     return pairs
-
-
-def _check_output_file(output: Path) -> None:
-    """Refuse, before any work, an output file that ``write_events`` would refuse."""
-    if output.suffix.lower() not in WRITE_EXTENSIONS:
-        raise CommandError(f"cannot write {str(output)!r}: unknown extension {output.suffix!r}; "
-                           f"writable: {', '.join(WRITE_EXTENSIONS)}")
-    if not output.parent.is_dir():
-        raise CommandError(f"cannot write {str(output)!r}: folder {str(output.parent)!r} "
-                           "does not exist")
 
 
 def _downscale(args: argparse.Namespace) -> int:

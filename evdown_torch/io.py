@@ -54,6 +54,8 @@ __all__ = [
     "WRITE_EXTENSIONS",
     "Recording",
     "SensorSizeGuessWarning",
+    "check_readable",
+    "check_writable",
     "event_files",
     "read_events",
     "write_events",
@@ -344,6 +346,44 @@ def _resolve_sensor_size(
     return size, True
 
 
+def check_readable(path: str | Path) -> Path:
+    """Check that ``path`` is an existing file with an extension :func:`read_events` reads.
+
+    Raises:
+        ValueError: naming the problem (unknown extension, missing file, not a file).
+    """
+    path = Path(path)
+    if path.suffix.lower() not in _READERS:
+        raise ValueError(
+            f"cannot read {str(path)!r}: unknown extension {path.suffix!r}; "
+            f"readable: {', '.join(READ_EXTENSIONS)}"
+        )
+    if not path.exists():
+        raise ValueError(f"input file {str(path)!r} does not exist")
+    if not path.is_file():
+        raise ValueError(f"input {str(path)!r} is not a file")
+    return path
+
+
+def check_writable(path: str | Path) -> Path:
+    """Check that :func:`write_events` can write ``path``: a known extension, an existing folder.
+
+    Raises:
+        ValueError: naming the problem.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in WRITE_EXTENSIONS:
+        raise ValueError(
+            f"cannot write {str(path)!r}: unknown extension {path.suffix!r}; "
+            f"writable: {', '.join(WRITE_EXTENSIONS)}"
+        )
+    if not path.parent.is_dir():
+        raise ValueError(
+            f"cannot write {str(path)!r}: folder {str(path.parent)!r} does not exist"
+        )
+    return path
+
+
 def read_events(path: str | Path, *, sensor_size: Any = None) -> Recording:
     """Read an event recording from any supported file (see the module's table).
 
@@ -373,17 +413,8 @@ def read_events(path: str | Path, *, sensor_size: Any = None) -> Recording:
         >>> len(events), size, guessed
         (3, (8, 6, 2), False)
     """
-    path = Path(path)
-    reader = _READERS.get(path.suffix.lower())
-    if reader is None:
-        raise ValueError(
-            f"cannot read {str(path)!r}: unknown extension {path.suffix!r}; "
-            f"readable: {', '.join(READ_EXTENSIONS)}"
-        )
-    if not path.exists():
-        raise ValueError(f"input file {str(path)!r} does not exist")
-    if not path.is_file():
-        raise ValueError(f"input {str(path)!r} is not a file")
+    path = check_readable(path)
+    reader = _READERS[path.suffix.lower()]
     events, recorded, guess = reader(path)
     size, guessed = _resolve_sensor_size(events, sensor_size, recorded, guess, str(path))
     return Recording(events, size, guessed)
@@ -426,13 +457,7 @@ def write_events(
         TypeError: if ``events`` is not a structured array.
         ImportError: for HDF5 without h5py (naming the extra).
     """
-    path = Path(path)
-    extension = path.suffix.lower()
-    if extension not in WRITE_EXTENSIONS:
-        raise ValueError(
-            f"cannot write {str(path)!r}: unknown extension {path.suffix!r}; "
-            f"writable: {', '.join(WRITE_EXTENSIONS)}"
-        )
+    path = check_writable(path)
     if not isinstance(events, np.ndarray) or events.dtype.names is None:
         raise TypeError(
             f"events to write must be a structured array, got {type(events).__name__}"
@@ -443,9 +468,7 @@ def write_events(
             f"dtype {events.dtype} and shape {events.shape}"
         )
     size = None if sensor_size is None else check_sensor_size(sensor_size)
-    parent = path.parent
-    if not parent.is_dir():
-        raise ValueError(f"cannot write {str(path)!r}: folder {str(parent)!r} does not exist")
+    extension = path.suffix.lower()
     if extension == ".npy":
         with open(path, "wb") as file:  # np.save(path) would append ".npy" to other names
             np.save(file, events, allow_pickle=False)
