@@ -176,8 +176,8 @@ def _read_npz(path: Path) -> _Read:
     recorded = _sensor_attribute(arrays, source) if "sensor_size" in arrays else None
     if {"x", "y", "t", "p"} <= set(arrays):
         return _columns(arrays["x"], arrays["y"], arrays["t"], arrays["p"], source), recorded, None
-    structured = [k for k, a in arrays.items() if a.dtype.names and {"x", "y", "t", "p"} <= set(
-        a.dtype.names)]
+    structured = [key for key, array in arrays.items()
+                  if array.dtype.names and {"x", "y", "t", "p"} <= set(array.dtype.names)]
     if len(structured) == 1 and arrays[structured[0]].ndim == 1:
         return arrays[structured[0]], recorded, None
     raise ValueError(
@@ -196,7 +196,9 @@ def _read_hdf5(path: Path) -> _Read:
             if isinstance(node, h5py.Group):
                 recorded = recorded or _sensor_attribute(node.attrs, source)
                 group = node
-            elif isinstance(node, h5py.Dataset) and node.dtype.names:
+            elif isinstance(node, h5py.Dataset) and {"x", "y", "t", "p"} <= set(
+                node.dtype.names or ()
+            ):
                 recorded = recorded or _sensor_attribute(node.attrs, source)
                 data = node[()]
                 return _columns(data["x"], data["y"], data["t"], data["p"], source), recorded, None
