@@ -295,11 +295,19 @@ def add_evaluate_command(commands: argparse._SubParsersAction) -> None:
     evaluate.set_defaults(run=_evaluate)
 
 
+def add_preprocess_command(commands: argparse._SubParsersAction) -> None:
+    """Register ``evdown preprocess`` (:mod:`evdown_torch.data.command`)."""
+    from evdown_torch.data import command
+
+    command.add_parser(commands)
+
+
 # ----------------------------------------------------------------------------- the program
 
 #: One function per subcommand, in ``--help`` order; each adds its parser and sets ``run``.
 SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_downscale_command,
+    add_preprocess_command,
     add_bench_command,
     add_evaluate_command,
 ]
