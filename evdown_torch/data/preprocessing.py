@@ -335,12 +335,7 @@ def preprocess(
         ValueError: for bad settings or an ``out`` folder holding another job.
         RecordingError: with ``on_error="stop"``, naming the recording.
     """
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:
-        raise ValueError(
-            "preprocessing shows its progress with tqdm: pip install 'evdown_torch[data]'"
-        ) from None
+    from tqdm.auto import tqdm  # a core dependency, imported when a run starts
     start_time = time.perf_counter()
     check_choice("on_error", on_error, ("skip", "stop"))
     shard_size = check_positive_int("shard_size", shard_size)
