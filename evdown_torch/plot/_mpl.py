@@ -1,0 +1,38 @@
+"""The one place matplotlib is imported from, on demand, with a clear error when it is absent."""
+
+from __future__ import annotations
+
+from types import ModuleType
+
+INSTALL_HINT = "pip install evdown_torch[plot]"
+
+
+class MissingMatplotlib(ImportError):
+    """matplotlib is needed for a plot and is not installed."""
+
+
+def matplotlib() -> ModuleType:
+    """Import matplotlib (without pyplot: figures here never touch global state).
+
+    Raises:
+        MissingMatplotlib: when matplotlib is not installed; the message names the extra.
+    """
+    try:
+        import matplotlib as mpl
+        import matplotlib.animation
+        import matplotlib.backends.backend_agg
+        import matplotlib.figure
+        import matplotlib.ticker  # noqa: F401
+    except ImportError as error:
+        raise MissingMatplotlib(
+            f"plots need matplotlib, which is not installed ({error}): {INSTALL_HINT}"
+        ) from None
+    return mpl
+
+
+def new_figure(width: float, height: float, dpi: float = 100.0):
+    """A matplotlib ``Figure`` of ``width x height`` inches with an Agg canvas (no pyplot)."""
+    mpl = matplotlib()
+    figure = mpl.figure.Figure(figsize=(width, height), dpi=dpi)
+    mpl.backends.backend_agg.FigureCanvasAgg(figure)
+    return figure
