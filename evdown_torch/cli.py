@@ -10,6 +10,8 @@ Subcommands:
 * ``evdown evaluate --config FILE [--output DIR]``: measure every method's speed/accuracy
   trade (:mod:`evdown_torch.evaluate`) and write ``results.csv``, ``report.md`` and
   ``tradeoff.png``.
+* ``evdown show IN --factor F [--out FILE.gif|FILE.png] [--curve X,Y]``: see what each method
+  does (see :mod:`evdown_torch.plot.cli`).
 """
 
 from __future__ import annotations
@@ -155,6 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--output", metavar="DIR",
                           help="output directory (default: the config's [output] directory)")
     evaluate.set_defaults(run=_evaluate)
+    from evdown_torch.plot.cli import add_parser as add_show_parser
+
+    add_show_parser(commands)
     return parser
 
 
