@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from importlib import import_module
 from types import ModuleType
 
 INSTALL_HINT = "pip install evdown_torch[plot]"
@@ -18,11 +19,9 @@ def matplotlib() -> ModuleType:
         MissingMatplotlib: when matplotlib is not installed; the message names the extra.
     """
     try:
-        import matplotlib as mpl
-        import matplotlib.animation
-        import matplotlib.backends.backend_agg
-        import matplotlib.figure
-        import matplotlib.ticker  # noqa: F401
+        mpl = import_module("matplotlib")
+        for part in ("animation", "backends.backend_agg", "figure", "ticker"):
+            import_module(f"matplotlib.{part}")
     except ImportError as error:
         raise MissingMatplotlib(
             f"plots need matplotlib, which is not installed ({error}): {INSTALL_HINT}"

@@ -157,9 +157,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from evdown_torch.plot import animation, curve
+    from evdown_torch.plot import _mpl, animation, curve
     from evdown_torch.plot.recording import panels
 
+    _mpl.matplotlib()  # before any work: its absence is reported up front
     default = DEFAULT_CURVE if args.curve else DEFAULT_ANIMATION
     out = Path(args.out or default)
     suffix = out.suffix.lower()

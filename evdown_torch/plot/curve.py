@@ -33,8 +33,8 @@ from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.plot import _mpl
 from evdown_torch.plot.recording import method_name
 from evdown_torch.transforms._base import Downscaler, ThresholdDownscaler
-from evdown_torch.transforms.event_count import EventCount
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
+from evdown_torch.transforms.event_count import EventCount
 from evdown_torch.transforms.functional._common import sort_by_time
 from evdown_torch.transforms.functional._knots import pixel_knots, region_chunks
 from evdown_torch.transforms.functional._reference import region_pixel_count

@@ -219,11 +219,6 @@ def panels(
     return out
 
 
-def empty_like(events: Events) -> Events:
-    """An empty stream with the timestamps' dtype and device of ``events``."""
-    return Events.empty(events.t.dtype, events.t.device)
-
-
 def to_numpy(events: Events) -> tuple:
     """``(x, y, t, on)`` as NumPy arrays (``t`` float64, exact below 2**53)."""
     return (events.x.cpu().numpy(), events.y.cpu().numpy(),
