@@ -13,9 +13,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import torch
+
+from evdown_torch.checks import check_factor, output_size
+from evdown_torch.events import Events
 from evdown_torch.plot._mpl import MissingMatplotlib
 from evdown_torch.plot.recording import SYNTHETIC_DURATION_MS, load_recording
 from evdown_torch.transforms._base import Downscaler, ThresholdDownscaler
+from evdown_torch.transforms.functional._common import region_of
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
 DEFAULT_ANIMATION = "evdown_show.gif"
@@ -131,6 +136,19 @@ def build_transforms(
     return [make_method(name, sensor_size, factor, **per_method[name]) for name in names]
 
 
+def busiest_pixel(
+    events: Events, factor: int | tuple[int, int], sensor_size: tuple[int, int, int]
+) -> tuple[int, int, int]:
+    """The output pixel whose region has the most input events: ``(X, Y, count)``."""
+    fx, fy = check_factor(factor, sensor_size)
+    out_w, out_h, _ = output_size(sensor_size, (fx, fy))
+    rx, ry = region_of(events, (fx, fy))
+    region = ry * out_w + rx
+    counts = torch.bincount(region, minlength=out_w * out_h)
+    best = int(counts.argmax())
+    return best % out_w, best // out_w, int(counts[best])
+
+
 def _progress(frame: int, total: int) -> None:
     if sys.stderr.isatty():
         end = "\n" if frame + 1 == total else ""
@@ -174,14 +192,17 @@ def _run(args: argparse.Namespace) -> int:
     recording = load_recording(args.input, sensor_size=sensor, duration_ms=args.duration)
     transforms = build_transforms(args.methods, recording.sensor_size, args.factor,
                                   args.threshold, args.set or [])
+    truth = None if args.no_ground_truth else recording.ground_truth(args.factor)
     if args.curve:
         figure = curve.curve_figure(recording.events, recording.sensor_size, args.factor,
-                                    args.curve, transforms)
+                                    args.curve, transforms,
+                                    ground_truth=None if truth is None else truth.events)
         figure.savefig(out)
+        x, y, count = busiest_pixel(recording.events, args.factor, recording.sensor_size)
         print(f"wrote {out}: output pixel {args.curve} of {recording.name}, "
-              f"{len(transforms)} methods")
+              f"{len(transforms)} methods (the busiest output pixel is ({x}, {y}), "
+              f"with {count} input events)")
         return 0
-    truth = None if args.no_ground_truth else recording.ground_truth(args.factor)
     shown = panels(recording.events, recording.sensor_size, args.factor, transforms,
                    ground_truth=truth, log=_log)
     if suffix == ".png":

@@ -183,6 +183,7 @@ def region_curves(
     *,
     threshold: float | None = None,
     samples: int = SAMPLES,
+    ground_truth: EventsLike | None = None,
 ) -> RegionCurves:
     """What each method sees and emits at one output pixel.
 
@@ -195,6 +196,9 @@ def region_curves(
         methods: registry names or transforms (default: every registry method).
         threshold: contrast threshold of the methods built by name (default: theirs).
         samples: points of the cubic curve over the recording (plus breakpoints and events).
+        ground_truth: events on the output sensor to show beside the methods' (e.g. a
+            synthetic recording's low-resolution rendering), under the name
+            ``"ground truth"``.
 
     Returns:
         The :class:`RegionCurves`.
@@ -261,6 +265,11 @@ def region_curves(
             change = np.exp(c * level_after) - np.exp(c * (level_after - step))
             log_mean = np.log1p(np.cumsum(change) / n_r) / c
             photocurrent = (count_mean[0], np.concatenate([[0], log_mean, log_mean[-1:]]))
+    if ground_truth is not None:
+        truth = sort_by_time(to_events(ground_truth, (out_w, out_h, 2))[0])
+        at = (truth.x == px) & (truth.y == py)
+        results["ground truth"] = MethodEvents(_numpy_t(truth.t[at]), truth.p[at].cpu().numpy(),
+                                               None, None)
 
     # The linear and cubic reconstructions, from the kernels' knots and PCHIP slopes.
     if sub.num_events:
@@ -302,6 +311,7 @@ COLOURS = {
     "downsample": "tab:gray",
     "funnelling": "tab:olive",
     "lif": "tab:cyan",
+    "ground truth": "black",
 }
 ON_COLOUR, OFF_COLOUR = "tab:orange", "tab:blue"
 
@@ -314,6 +324,7 @@ def curve_figure(
     methods: Sequence[str | Downscaler] | None = None,
     *,
     threshold: float | None = None,
+    ground_truth: EventsLike | None = None,
     width: float = 10.0,
     dpi: float = 100.0,
 ):
@@ -332,14 +343,16 @@ def curve_figure(
     ``NAME`` a method or ``input``).
 
     Args:
-        events, sensor_size, factor, pixel, methods, threshold: as :func:`region_curves`.
+        events, sensor_size, factor, pixel, methods, threshold, ground_truth: as
+            :func:`region_curves`.
         width: figure width, inches.
         dpi: resolution.
 
     Returns:
         A matplotlib ``Figure`` with two axes sharing the time axis.
     """
-    curves = region_curves(events, sensor_size, factor, pixel, methods, threshold=threshold)
+    curves = region_curves(events, sensor_size, factor, pixel, methods, threshold=threshold,
+                           ground_truth=ground_truth)
     return draw_curves(curves, width=width, dpi=dpi)
 
 

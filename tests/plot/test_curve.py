@@ -217,3 +217,14 @@ def test_threshold_goes_to_contrast_methods_only(rng):
                                                            CubicEstimation(SENSOR, FACTOR)],
                            threshold=0.75)
     assert [r.threshold for r in curves.events.values()] == [2.0, 1.0, 1.0]
+
+
+def test_ground_truth_events_at_the_pixel_get_their_own_row(rng):
+    events = random_stream(rng, 100, SENSOR)
+    truth = random_stream(rng, 50, (2, 2, 2))
+    figure = curve_figure(events, SENSOR, FACTOR, PIXEL, ["cubic"], ground_truth=truth)
+    here = truth[(truth["x"] == PIXEL[0]) & (truth["y"] == PIXEL[1])]
+    for polarity, suffix in ((True, "on"), (False, "off")):
+        np.testing.assert_array_equal(
+            lines(figure, f"events:ground truth:{suffix}").get_xdata(),
+            here["t"][here["p"] == polarity].astype(np.float64))
