@@ -29,9 +29,15 @@ def matplotlib() -> ModuleType:
     return mpl
 
 
-def new_figure(width: float, height: float, dpi: float = 100.0):
-    """A matplotlib ``Figure`` of ``width x height`` inches with an Agg canvas (no pyplot)."""
+def new_figure(width: float, height: float, dpi: float = 100.0, *, agg: bool = True):
+    """A matplotlib ``Figure`` of ``width x height`` inches (no pyplot).
+
+    With ``agg`` it gets an Agg canvas, so ``figure.canvas.draw()`` renders it; without, the
+    base canvas, whose ``draw()`` does nothing: an animation's figure, which matplotlib would
+    otherwise draw twice per frame (once to save it, once on its idle redraw).
+    """
     mpl = matplotlib()
     figure = mpl.figure.Figure(figsize=(width, height), dpi=dpi)
-    mpl.backends.backend_agg.FigureCanvasAgg(figure)
+    if agg:
+        mpl.backends.backend_agg.FigureCanvasAgg(figure)
     return figure

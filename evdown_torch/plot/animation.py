@@ -9,6 +9,7 @@ upscaling, so an 8x8 output shows as 8x8 blocks rather than a blur.
 
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Callable, Sequence
 
@@ -158,7 +159,7 @@ def animate(
     rows = math.ceil(len(panels) / cols)
     title, clock_strip = 0.42, 0.22  # inches above each panel and above the first row
     height = rows * (panel_inches + title) + clock_strip
-    fig = _mpl.new_figure(cols * panel_inches, height, dpi)
+    fig = _mpl.new_figure(cols * panel_inches, height, dpi, agg=False)
     images, counts = [], []
     for i, panel in enumerate(panels):
         ax = fig.add_subplot(rows, cols, i + 1)
@@ -197,8 +198,36 @@ def save(animation, path: str, *, progress: Callable[[int, int], None] | None = 
         path: output file, ``.gif``; it plays at one frame per window of the animation.
         progress: called as ``progress(frame, total)`` before each frame is drawn.
     """
-    _mpl.matplotlib()
-    animation.save(path, writer="pillow", progress_callback=progress)
+    mpl = _mpl.matplotlib()
+    if animation.event_source is None:
+        raise ValueError("the animation has been stopped; make a new one with animate()")
+    fps = 1000.0 / animation.event_source.interval  # one frame per window, in real time
+    animation.save(path, writer=_gif_writer(mpl)(fps=fps), progress_callback=progress)
+
+
+def _gif_writer(mpl):
+    """A GIF writer (matplotlib's movie-writer interface, Pillow underneath) that keeps each
+    frame as a 1-byte-per-pixel palette image, a third of what matplotlib's PillowWriter holds
+    until the file is written."""
+    from PIL import Image
+
+    class GifWriter(mpl.animation.AbstractMovieWriter):
+        def setup(self, fig, outfile, dpi=None):
+            super().setup(fig, outfile, dpi=dpi)
+            self.frames = []
+
+        def grab_frame(self, **savefig_kwargs):
+            buffer = io.BytesIO()
+            self.fig.savefig(buffer, **{**savefig_kwargs, "format": "rgba", "dpi": self.dpi})
+            rgba = Image.frombuffer("RGBA", self.frame_size, buffer.getbuffer(), "raw", "RGBA",
+                                    0, 1)
+            self.frames.append(rgba.convert("RGB").quantize(method=Image.Quantize.FASTOCTREE))
+
+        def finish(self):
+            self.frames[0].save(self.outfile, save_all=True, append_images=self.frames[1:],
+                                duration=round(1000 / self.fps), loop=0)
+
+    return GifWriter
 
 
 def contact_sheet(
