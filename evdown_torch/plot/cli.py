@@ -3,7 +3,7 @@
 ``evdown show IN --factor F [--methods a,b,...] [--window MS] [--out FILE.gif|FILE.png]``
 writes a side-by-side animation (GIF) or a contact sheet (PNG); with ``--curve X,Y`` it writes
 the paper's Figure 5 for output pixel ``(X, Y)`` instead. ``IN`` is a ``.npy`` recording or
-``synthetic:CLASS[:SEED]`` (see :func:`~evdown_torch.plot.recording.load_recording`).
+``synthetic:CLASS[:SEED]`` (see :func:`~evdown_torch.plot.sources.load_source`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torch
 from evdown_torch.checks import check_factor, output_size
 from evdown_torch.events import Events
 from evdown_torch.plot._mpl import MissingMatplotlib
-from evdown_torch.plot.recording import SYNTHETIC_DURATION_MS, load_recording
+from evdown_torch.plot.sources import SYNTHETIC_DURATION_MS, load_source
 from evdown_torch.transforms._base import Downscaler, ThresholdDownscaler
 from evdown_torch.transforms.functional._common import region_of
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
@@ -81,7 +81,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                       f"format matplotlib writes (default {DEFAULT_ANIMATION} / {DEFAULT_CURVE})")
     show.add_argument("--curve", type=_pixel, metavar="X,Y",
                       help="draw output pixel X,Y's levels, reconstructions and events instead")
-    show.add_argument("--threshold", type=_positive,
+    show.add_argument("--threshold", type=_positive, metavar="T",
                       help="contrast threshold of event_count, linear and cubic (default 1)")
     show.add_argument("--set", type=_setting, action="append", metavar="[NAME.]KEY=VALUE",
                       help="a setting for every chosen method that takes KEY, or for method "
@@ -176,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from evdown_torch.plot import _mpl, animation, curve
-    from evdown_torch.plot.recording import panels
+    from evdown_torch.plot.sources import panels
 
     _mpl.matplotlib()  # before any work: its absence is reported up front
     default = DEFAULT_CURVE if args.curve else DEFAULT_ANIMATION
@@ -189,7 +189,7 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError(f"--out for --curve must be an image such as .png, .svg or .pdf, "
                          f"got {str(out)!r}")
     sensor = tuple(args.sensor_size) if args.sensor_size else None
-    recording = load_recording(args.input, sensor_size=sensor, duration_ms=args.duration)
+    recording = load_source(args.input, sensor_size=sensor, duration_ms=args.duration)
     transforms = build_transforms(args.methods, recording.sensor_size, args.factor,
                                   args.threshold, args.set or [])
     truth = None if args.no_ground_truth else recording.ground_truth(args.factor)

@@ -12,7 +12,7 @@ from PIL import Image
 from evdown_torch import EventCount, LIFPooling
 from evdown_torch.cli import main
 from evdown_torch.plot.cli import build_transforms
-from evdown_torch.plot.recording import load_recording
+from evdown_torch.plot.sources import load_source
 from evdown_torch.synthetic import render_gesture
 from tests.helpers import random_stream
 from tests.plot.test_animation import big_blobs
@@ -57,8 +57,8 @@ def test_curve_of_a_file(npy, tmp_path):
 
 
 def test_duration_keeps_the_first_milliseconds_of_a_file(npy):
-    whole = load_recording(str(npy))
-    first = load_recording(str(npy), duration_ms=50)
+    whole = load_source(str(npy))
+    first = load_source(str(npy), duration_ms=50)
     t = whole.events.t
     assert first.events.num_events == int((t < t[0] + 50_000).sum()) < whole.events.num_events
     assert first.sensor_size == whole.sensor_size == (16, 12, 2)

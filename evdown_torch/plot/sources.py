@@ -1,7 +1,7 @@
 """What ``evdown show`` looks at: a recording (file or synthetic) and its downscaled versions.
 
-Nothing here imports matplotlib. :func:`load_recording` is the one place an input named on the
-command line is read, so that other readers (AEDAT4) plug in there.
+Nothing here imports matplotlib. :func:`read_file` is the one place a file named on the command
+line is read, so that other readers (AEDAT4) plug in there.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from evdown_torch.checks import check_factor, check_sensor_size, output_size
@@ -19,7 +20,7 @@ from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.functional._common import sort_by_time
 from evdown_torch.transforms.registry import METHODS, make_method
 
-__all__ = ["Panel", "Recording", "load_recording", "method_name", "panels"]
+__all__ = ["Panel", "Source", "load_source", "method_name", "panels"]
 
 #: Sensor of synthetic recordings (DVS128 Gesture's).
 SYNTHETIC_SENSOR = (128, 128, 2)
@@ -43,8 +44,8 @@ class Panel(NamedTuple):
 
 
 @dataclass(frozen=True)
-class Recording:
-    """A recording to show.
+class Source:
+    """A recording to show, and where it came from.
 
     Attributes:
         events: the events, sorted by ``t`` (microseconds).
@@ -96,12 +97,12 @@ def _synthetic_label(text: str) -> int:
     )
 
 
-def load_recording(
+def load_source(
     spec: str,
     *,
     sensor_size: tuple[int, int, int] | None = None,
     duration_ms: float | None = None,
-) -> Recording:
+) -> Source:
     """Read the recording named ``spec``.
 
     Args:
@@ -114,13 +115,13 @@ def load_recording(
             first ``duration_ms`` are kept (default: all of it).
 
     Returns:
-        The :class:`Recording`.
+        The :class:`Source`.
 
     Raises:
         ValueError: for a missing or unreadable file, an unknown class or bad settings.
 
     Example:
-        >>> rec = load_recording("synthetic:right_arm_cw:2", sensor_size=(32, 32, 2),
+        >>> rec = load_source("synthetic:right_arm_cw:2", sensor_size=(32, 32, 2),
         ...                      duration_ms=200)
         >>> rec.label, rec.sensor_size, rec.name
         (3, (32, 32, 2), 'synthetic:3:2')
@@ -143,18 +144,27 @@ def load_recording(
         size = sensor_size or SYNTHETIC_SENSOR
         duration_us = round(1000 * (duration_ms or SYNTHETIC_DURATION_MS))
         raw = render_gesture(label, seed, sensor_size=size, duration_us=duration_us)
-        return Recording(to_events(raw, size)[0], size, f"synthetic:{label}:{seed}",
+        return Source(to_events(raw, size)[0], size, f"synthetic:{label}:{seed}",
                          label, seed, duration_us)
-    raw = load_npy_events(spec)  # the one file reader; AEDAT4 plugs in here
-    if sensor_size is None:
-        if len(raw) == 0:
-            raise ValueError(f"{spec!r} holds no events: pass --sensor-size W H P")
-        sensor_size = (int(raw["x"].max()) + 1, int(raw["y"].max()) + 1, 2)
+    raw, sensor_size = read_file(spec, sensor_size)
     events = sort_by_time(to_events(raw, sensor_size)[0])
     if duration_ms is not None and events.num_events:
         end = events.t[0] + duration_ms * 1000
         events = events.select(events.t < end)
-    return Recording(events, sensor_size, spec)
+    return Source(events, sensor_size, spec)
+
+
+def read_file(
+    path: str, sensor_size: tuple[int, int, int] | None
+) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """The one file reader of ``evdown show``: a structured event array and its sensor size
+    (``sensor_size`` when given, else the largest coordinates + 1)."""
+    raw = load_npy_events(path)
+    if sensor_size is None:
+        if len(raw) == 0:
+            raise ValueError(f"{path!r} holds no events: pass --sensor-size W H P")
+        sensor_size = (int(raw["x"].max()) + 1, int(raw["y"].max()) + 1, 2)
+    return raw, sensor_size
 
 
 def method_name(transform: Downscaler) -> str:
@@ -184,7 +194,7 @@ def panels(
         methods: registry names (built with their default settings by
             :func:`~evdown_torch.transforms.registry.make_method`) or transforms (whose own
             ``factor`` is used); default: every method of the registry.
-        ground_truth: a last panel to add (e.g. :meth:`Recording.ground_truth`).
+        ground_truth: a last panel to add (e.g. :meth:`Source.ground_truth`).
         log: receives one line per method with its event count and time, if given.
 
     Returns:
