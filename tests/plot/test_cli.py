@@ -49,11 +49,26 @@ def test_png_contact_sheet_of_a_file(npy, tmp_path):
         assert big_blobs(np.asarray(png.convert("RGB"))) == 3 * 3
 
 
-def test_curve_of_a_file(npy, tmp_path):
+def test_curve_of_a_file_names_the_busiest_pixel(npy, tmp_path, capsys):
     out = tmp_path / "curve.svg"
     assert main(["show", str(npy), "--factor", "4", "--curve", "1,2", "--threshold", "0.25",
                  "--methods", "linear,cubic", "--out", str(out)]) == 0
     assert out.read_text().lstrip().startswith("<?xml")
+    events = np.load(npy)
+    counts = np.zeros((3, 4), dtype=int)  # 16 x 12 sensor, factor 4: 4 x 3 output
+    np.add.at(counts, (events["y"] // 4, events["x"] // 4), 1)
+    y, x = np.unravel_index(counts.argmax(), counts.shape)
+    assert f"busiest output pixel is ({x}, {y}), with {counts.max()} input events" in (
+        capsys.readouterr().out)
+
+
+def test_synthetic_sheet_without_ground_truth(tmp_path):
+    out = tmp_path / "sheet.png"
+    assert main(["show", "synthetic:0", "--factor", "4", "--sensor-size", "32", "32", "2",
+                 "--duration", "100", "--methods", "event_count", "--windows", "2",
+                 "--no-ground-truth", "--out", str(out)]) == 0
+    with Image.open(out) as png:
+        assert big_blobs(np.asarray(png.convert("RGB"))) == 2 * 2
 
 
 def test_duration_keeps_the_first_milliseconds_of_a_file(npy):
@@ -111,30 +126,19 @@ def test_threshold_and_settings_reach_the_right_methods():
     assert c.threshold == 0.5
 
 
-def _python(code: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=120, check=False)
-
-
-def test_importing_the_package_and_the_plots_does_not_import_matplotlib():
-    result = _python(
+def test_matplotlib_is_imported_only_to_draw_and_its_absence_names_the_extra(npy, tmp_path):
+    # a fresh interpreter: this one has imported matplotlib already
+    code = (
         "import sys, evdown_torch, evdown_torch.plot, evdown_torch.cli\n"
-        "from evdown_torch.cli import build_parser\n"
-        "build_parser()\n"
-        "print(sorted(m for m in sys.modules if m.startswith('matplotlib')))"
+        "evdown_torch.cli.build_parser()\n"
+        "print(sorted(m for m in sys.modules if m.startswith('matplotlib')))\n"
+        "sys.modules['matplotlib'] = None  # as if it were not installed\n"
+        f"sys.exit(evdown_torch.cli.main(['show', {str(npy)!r}, '--factor', '2',\n"
+        f"                                '--out', {str(tmp_path / 'x.gif')!r}]))"
     )
-    assert result.returncode == 0, result.stderr
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=120, check=False)
     assert result.stdout.strip() == "[]"
-
-
-def test_without_matplotlib_the_error_names_the_extra(npy, tmp_path):
-    result = _python(
-        "import sys\n"
-        "sys.modules['matplotlib'] = None\n"
-        "from evdown_torch.cli import main\n"
-        f"sys.exit(main(['show', {str(npy)!r}, '--factor', '2', '--methods', 'downsample',\n"
-        f"               '--out', {str(tmp_path / 'x.gif')!r}]))"
-    )
     assert result.returncode == 2
     assert result.stderr.startswith("evdown show: error: plots need matplotlib")
     assert result.stderr.count("\n") == 1 and "pip install evdown_torch[plot]" in result.stderr
