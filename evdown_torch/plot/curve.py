@@ -35,7 +35,7 @@ from evdown_torch.plot.sources import method_name
 from evdown_torch.transforms._base import Downscaler, ThresholdDownscaler
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount
-from evdown_torch.transforms.functional._common import sort_by_time
+from evdown_torch.transforms.functional._common import region_of, sort_by_time
 from evdown_torch.transforms.functional._knots import pixel_knots, region_chunks
 from evdown_torch.transforms.functional._reference import region_pixel_count
 from evdown_torch.transforms.functional.cubic import pchip_slopes
@@ -86,7 +86,9 @@ class RegionCurves:
         cubic_mean: ``(t, M_r)`` of the cubic reconstruction on a fine grid.
         photocurrent: ``(t, log I_r / c)`` as steps, with PhotocurrentPooling (events mode),
             else ``None``.
-        events: method name -> :class:`MethodEvents`, in the order of the methods.
+        events: method name -> :class:`MethodEvents`, in the order of the methods (a method
+            given twice is numbered: ``"event_count"``, ``"event_count 2"``), then
+            ``"ground truth"`` when given.
     """
 
     pixel: tuple[int, int]
@@ -144,7 +146,7 @@ def _numpy_t(t: torch.Tensor) -> np.ndarray:
     return t.to(torch.float64).cpu().numpy()
 
 
-def _cubic_mean(events: Events, t_start, t_end, factor, out_width, n_r, grid):
+def _reconstructions(events: Events, t_start, t_end, factor, out_width, n_r, grid):
     """The cubic reconstruction's ``M_r`` at ``grid`` (float64 offsets from ``t_start``), and
     the linear one's at the region's breakpoints (offsets), from the kernels' knots and slopes.
     """
@@ -222,8 +224,8 @@ def region_curves(
     w, h, _ = sensor_size
     region = (px * fx, min(px * fx + fx, w), py * fy, min(py * fy + fy, h))
     n_r = int(region_pixel_count(torch.tensor([py * out_w + px]), sensor_size, (fx, fy)))
-    inside = (ev.x // fx == px) & (ev.y // fy == py)
-    sub = ev.select(inside)
+    rx, ry = region_of(ev, (fx, fy))
+    sub = ev.select((rx == px) & (ry == py))
     if ev.num_events:
         t0_tensor, t1_tensor = ev.t[0], ev.t[-1]
         t_start, t_end = float(t0_tensor), float(t1_tensor)
@@ -259,7 +261,11 @@ def region_curves(
         out_t, out_on = _numpy_t(out.t[at]), out.p[at].cpu().numpy()
         theta = _level_threshold(transform)
         crossed = None if theta is None else theta * np.cumsum(np.where(out_on, 1.0, -1.0))
-        results[method_name(transform)] = MethodEvents(out_t, out_on, crossed, theta)
+        name, copy = method_name(transform), 1
+        while name in results:  # the same method twice (other settings): number them
+            copy += 1
+            name = f"{method_name(transform)} {copy}"
+        results[name] = MethodEvents(out_t, out_on, crossed, theta)
         if _is_photocurrent(transform) and getattr(transform, "fps", None) is None:
             c = float(transform.contrast)
             change = np.exp(c * level_after) - np.exp(c * (level_after - step))
@@ -275,7 +281,7 @@ def region_curves(
     if sub.num_events:
         marks = [r.t for r in results.values()]
         grid = np.unique(np.concatenate([np.linspace(t_start, t_end, samples), *marks]))
-        cubic, bp, linear = _cubic_mean(sub, t0_tensor, t1_tensor, (fx, fy), out_w, n_r,
+        cubic, bp, linear = _reconstructions(sub, t0_tensor, t1_tensor, (fx, fy), out_w, n_r,
                                         grid - t_start)
         linear_mean, cubic_mean = (bp + t_start, linear), (grid, cubic)
     else:

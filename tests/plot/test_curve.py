@@ -228,3 +228,11 @@ def test_ground_truth_events_at_the_pixel_get_their_own_row(rng):
         np.testing.assert_array_equal(
             lines(figure, f"events:ground truth:{suffix}").get_xdata(),
             here["t"][here["p"] == polarity].astype(np.float64))
+
+
+def test_a_method_given_twice_keeps_both_results(rng):
+    events = random_stream(rng, 300, SENSOR)
+    curves = region_curves(events, SENSOR, FACTOR, PIXEL,
+                           [EventCount(SENSOR, FACTOR, threshold=0.25), "event_count"])
+    assert list(curves.events) == ["event_count", "event_count 2"]
+    assert [r.threshold for r in curves.events.values()] == [0.25, 1.0]
