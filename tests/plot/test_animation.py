@@ -5,23 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from PIL import Image
-from scipy import ndimage
 
 from evdown_torch import EventCount
 from evdown_torch.events import Events
 from evdown_torch.plot import animate, contact_sheet, panels, save
 from evdown_torch.plot.animation import BACKGROUND, OFF_COLOUR, ON_COLOUR, frame_grid
 from tests.helpers import DVS_DTYPE, random_stream
+from tests.plot.images import big_blobs
 
 SENSOR = (8, 8, 2)
-
-
-def big_blobs(rgb: np.ndarray) -> int:
-    """Connected non-white areas larger than text: the panels of a drawn figure."""
-    mask = rgb[..., :3].min(axis=2) < 200
-    labels, n = ndimage.label(mask)
-    sizes = np.bincount(labels.ravel())[1:]
-    return int((sizes > 2000).sum())
 
 
 def gapped_stream() -> np.ndarray:

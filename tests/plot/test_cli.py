@@ -15,7 +15,7 @@ from evdown_torch.plot.cli import build_transforms
 from evdown_torch.plot.sources import load_source
 from evdown_torch.synthetic import render_gesture
 from tests.helpers import random_stream
-from tests.plot.test_animation import big_blobs
+from tests.plot.images import big_blobs
 
 SENSOR = (16, 12, 2)
 
