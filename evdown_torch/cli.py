@@ -157,6 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--output", metavar="DIR",
                           help="output directory (default: the config's [output] directory)")
     evaluate.set_defaults(run=_evaluate)
+    from evdown_torch.data import command
+
+    command.add_parser(commands)
     from evdown_torch.plot.cli import add_parser as add_show_parser
 
     add_show_parser(commands)

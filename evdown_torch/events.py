@@ -30,7 +30,19 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["Events", "EventFormat", "EventsLike", "from_events", "load_npy_events", "to_events"]
+__all__ = [
+    "DVS_DTYPE",
+    "Events",
+    "EventFormat",
+    "EventsLike",
+    "from_events",
+    "load_npy_events",
+    "to_events",
+]
+
+#: Tonic's event dtype for DVS cameras (``tonic.datasets.DVSGesture.dtype``): ``x``, ``y``
+#: int16, ``p`` bool, ``t`` int64 microseconds, in that field order.
+DVS_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", np.bool_), ("t", np.int64)])
 
 FIELDS = ("x", "y", "t", "p")
 

@@ -15,12 +15,12 @@ from typing import Any
 
 import torch
 
+from evdown_torch._tensors import region_of
 from evdown_torch.checks import check_factor, output_size
 from evdown_torch.events import Events
 from evdown_torch.plot._mpl import MissingMatplotlib
 from evdown_torch.plot.sources import SYNTHETIC_DURATION_MS, load_source
 from evdown_torch.transforms._base import Downscaler, ThresholdDownscaler
-from evdown_torch.transforms.functional._common import region_of
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
 DEFAULT_ANIMATION = "evdown_show.gif"

@@ -28,6 +28,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from evdown_torch._tensors import region_of, region_pixel_count, sort_by_time
 from evdown_torch.checks import check_factor, check_positive_int, check_sensor_size, output_size
 from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.plot import _mpl
@@ -35,9 +36,7 @@ from evdown_torch.plot.sources import method_name
 from evdown_torch.transforms._base import Downscaler, ThresholdDownscaler
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount
-from evdown_torch.transforms.functional._common import region_of, sort_by_time
 from evdown_torch.transforms.functional._knots import pixel_knots, region_chunks
-from evdown_torch.transforms.functional._reference import region_pixel_count
 from evdown_torch.transforms.functional.cubic import pchip_slopes
 from evdown_torch.transforms.registry import METHODS, make_method
 

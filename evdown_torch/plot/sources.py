@@ -14,10 +14,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import check_factor, check_sensor_size, output_size
 from evdown_torch.events import Events, EventsLike, load_npy_events, to_events
 from evdown_torch.transforms._base import Downscaler
-from evdown_torch.transforms.functional._common import sort_by_time
 from evdown_torch.transforms.registry import METHODS, make_method
 
 __all__ = ["Panel", "Source", "load_source", "method_name", "panels"]
