@@ -5,20 +5,24 @@ from evdown_torch.synthetic.pixel_model import (
     PixelModelConfig,
     noise_events,
     pixel_events,
+    readout_times,
     refractory_mask,
 )
-from evdown_torch.synthetic.render import intensity_frame, render_events, step_times, swept_mask
-from evdown_torch.synthetic.scenes import GESTURE_CLASSES, GestureScene, Look
+from evdown_torch.synthetic.raster import intensity_frame
+from evdown_torch.synthetic.render import render_events, step_times, swept_mask
+from evdown_torch.synthetic.scenes import GESTURE_CLASSES, LIGHTING, GestureScene, Look
 
 __all__ = [
     "DVS_GESTURE_DTYPE",
     "GESTURE_CLASSES",
+    "LIGHTING",
     "GestureScene",
     "Look",
     "PixelModelConfig",
     "intensity_frame",
     "noise_events",
     "pixel_events",
+    "readout_times",
     "refractory_mask",
     "render_events",
     "render_gesture",
