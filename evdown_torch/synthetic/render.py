@@ -115,6 +115,8 @@ def _with_static(pixel: Tensor, step: Tensor, x: Tensor, x_static: Tensor, s0: i
     """
     n = pixel.numel()
     first = torch.ones(n, dtype=torch.bool)
+    if n == 0:
+        return pixel, step, x, first
     first[1:] = pixel[1:] != pixel[:-1]
     last = torch.ones(n, dtype=torch.bool)
     last[:-1] = first[1:]
@@ -227,45 +229,51 @@ def render_events(
     base = start_reference(log_start, offset, theta_on, theta_off)
     a_state = torch.zeros(n_out, dtype=torch.int64)
     b_state = torch.zeros(n_out, dtype=torch.int64)
-    ev_pixel, ev_time, ev_on = [], [], []
 
-    def run(pixel: Tensor, t: Tensor, level: Tensor, first: Tensor, base: Tensor,
-            state: bool) -> None:
-        a0 = a_state.index_select(0, pixel) if state else torch.zeros_like(pixel)
-        b0 = b_state.index_select(0, pixel) if state else torch.zeros_like(pixel)
+    # The lamp's flicker on lit static pixels: its own groups of samples, without carried
+    # state, run in the same call as the first chunk (the scan's iterations then cover both).
+    depth = flicker_depth(scene, grid.static, factor, block_sums)
+    lamp_pixel, lamp_t, lamp_level = flicker_samples(scene, depth, log_static,
+                                                     torch.minimum(theta_on, theta_off))
+    lamp_first = torch.ones(lamp_pixel.shape, dtype=torch.bool)
+    lamp_first[1:] = lamp_pixel[1:] != lamp_pixel[:-1]
+    group = torch.cumsum(lamp_first, 0) - 1
+    # each lit pixel starts in the same place within its window as in the scene
+    lamp_base = start_reference(lamp_level[lamp_first][group],
+                                offset.index_select(0, lamp_pixel),
+                                theta_on.index_select(0, lamp_pixel),
+                                theta_off.index_select(0, lamp_pixel))
+    lamp = (lamp_pixel, lamp_t, lamp_level, lamp_first, lamp_base)
+    ev_pixel, ev_time, ev_on = [], [], []
+    n_steps = times.numel() - 1
+    chunks = _chunks(parts, n_steps, grid.width * grid.height, max_fragments)
+    for index, (s0, s1) in enumerate(chunks):
+        pixel, step, value = grid.samples(parts, s0, s1)
+        level = torch.log(value).to(torch.float64)
+        pixel, step, level, first = _with_static(pixel, step, level, log_static, s0, s1)
+        t = times.index_select(0, step)
+        a0, b0 = a_state.index_select(0, pixel), b_state.index_select(0, pixel)
+        n_moving = pixel.numel()
+        if index == 0:
+            pixel, t, level, first, base_at = (torch.cat([u, v]) for u, v in zip(
+                (pixel, t, level, first, base.index_select(0, pixel)), lamp, strict=True))
+            a0 = torch.cat([a0, torch.zeros_like(lamp_pixel)])
+            b0 = torch.cat([b0, torch.zeros_like(lamp_pixel)])
+        else:
+            base_at = base.index_select(0, pixel)
+        if pixel.numel() == 0:
+            continue
         segment, time, on, a, b = level_crossings(
-            level, t, first, base=base,
-            theta_on=theta_on.index_select(0, pixel), theta_off=theta_off.index_select(0, pixel),
-            a_start=a0, b_start=b0)
-        if state:
-            ends = torch.ones_like(first)
-            ends[:-1] = first[1:]
-            a_state[pixel[ends]] = a[ends]
-            b_state[pixel[ends]] = b[ends]
+            level, t, first, base=base_at, theta_on=theta_on.index_select(0, pixel),
+            theta_off=theta_off.index_select(0, pixel), a_start=a0, b_start=b0)
+        ends = torch.ones_like(first)
+        ends[:-1] = first[1:]
+        ends[n_moving:] = False  # the lamp's groups carry no state
+        a_state[pixel[ends]] = a[ends]
+        b_state[pixel[ends]] = b[ends]
         ev_pixel.append(pixel.index_select(0, segment))
         ev_time.append(round_time(time))
         ev_on.append(on)
-
-    n_steps = times.numel() - 1
-    for s0, s1 in _chunks(parts, n_steps, grid.width * grid.height, max_fragments):
-        pixel, step, value = grid.samples(parts, s0, s1)
-        if pixel.numel() == 0:
-            continue
-        level = torch.log(value).to(torch.float64)
-        pixel, step, level, first = _with_static(pixel, step, level, log_static, s0, s1)
-        run(pixel, times.index_select(0, step), level, first, base.index_select(0, pixel),
-            state=True)
-    depth = flicker_depth(scene, grid.static, factor, block_sums)
-    pixel, t, level = flicker_samples(scene, depth, log_static, torch.minimum(theta_on, theta_off))
-    if pixel.numel():
-        first = torch.ones(pixel.shape, dtype=torch.bool)
-        first[1:] = pixel[1:] != pixel[:-1]
-        # the lit pixel's own start, in the same state within its window as the scene's
-        group = torch.cumsum(first, 0) - 1
-        lamp_base = start_reference(level[first][group], offset.index_select(0, pixel),
-                                    theta_on.index_select(0, pixel),
-                                    theta_off.index_select(0, pixel))
-        run(pixel, t, level, first, lamp_base, state=False)
     noise = noise_events(
         num_pixels=n_out,
         duration_us=scene.duration_us,

@@ -130,9 +130,9 @@ class GestureScene:
         sensor_size: ``(W, H, 2)``.
         duration_us: recording length, microseconds.
         origin: pixel position of the point between the shoulders (``x``, ``y``).
-        scale: pixels per body unit (0.62 to 0.76 times ``min(W, H)``).
-        speed: tempo factor on the class's base frequency (0.8 to 1.25).
-        amplitude: factor on the motion's extent (0.8 to 1.2).
+        scale: pixels per body unit (0.58 to 0.8 times ``min(W, H)``).
+        speed: tempo factor on the class's base frequency (0.7 to 1.45).
+        amplitude: factor on the motion's extent (0.7 to 1.3).
         phase: phase of the motion at ``t = 0``, radians.
         tempo: ``(depth, frequency_hz, phase)`` of a slow tempo wobble (depth up to 0.4 rad).
         direction: +1 or -1, the sense of the arm roll.

@@ -214,28 +214,33 @@ def two_threshold_level(base: Tensor, a: Tensor, b: Tensor, theta_on: Tensor,
     return base + a.to(base.dtype) * theta_on - b.to(base.dtype) * theta_off
 
 
+#: Margin (in thresholds) taken off the float estimate of the levels crossed, so that the
+#: estimate can only fall short, by at most one; one exact comparison then settles it.
+_ESTIMATE_MARGIN = 1e-9
+
+
 def _crossed(value: Tensor, base: Tensor, a: Tensor, b: Tensor, theta_on: Tensor,
-             theta_off: Tensor, rising: Tensor) -> Tensor:
+             theta_off: Tensor, up: Tensor, sign: Tensor, inv_theta: Tensor) -> Tensor:
     """Levels reached by moving monotonically from the reference ``(a, b)`` to ``value``.
 
-    Rising (``rising`` True): the largest ``k >= 0`` with
-    ``level(a + k, b) <= value``; falling: the largest ``k >= 0`` with
-    ``level(a, b + k) >= value``. A float estimate corrected by the exact comparisons.
+    Rising (``up`` 1.0, ``sign`` 1.0, ``inv_theta = 1 / theta_on``): the largest ``k >= 0``
+    with ``level(a + k, b) <= value``; falling (``up`` 0.0, ``sign`` -1.0,
+    ``inv_theta = 1 / theta_off``): the largest ``k >= 0`` with ``level(a, b + k) >= value``.
+    Counts ``a``, ``b`` and the result are float64 holding integers (exact below 2**53).
     """
-    ref = two_threshold_level(base, a, b, theta_on, theta_off)
-    gap = torch.where(rising, value - ref, ref - value)
-    theta = torch.where(rising, theta_on, theta_off)
-    k = torch.floor(gap / theta).clamp_min(0).to(torch.int64)
-    for _ in range(2):  # the estimate is off by at most one either way
-        up = torch.where(rising, a + k + 1, a)
-        down = torch.where(rising, b, b + k + 1)
-        level = two_threshold_level(base, up, down, theta_on, theta_off)
-        k = k + torch.where(rising, level <= value, level >= value).to(torch.int64)
-        up = torch.where(rising, a + k, a)
-        down = torch.where(rising, b, b + k)
-        level = two_threshold_level(base, up, down, theta_on, theta_off)
-        k = k - (torch.where(rising, level > value, level < value) & (k > 0)).to(torch.int64)
-    return k
+    ref = base + a * theta_on - b * theta_off  # two_threshold_level, in float counts
+    k = ((value - ref) * sign * inv_theta - _ESTIMATE_MARGIN).floor_().clamp_min_(0)
+    k1 = k + 1
+    down = 1 - up
+    level = base + (a + up * k1) * theta_on - (b + down * k1) * theta_off
+    return k.add_((level - value) * sign <= 0)
+
+
+def _direction_terms(rising: Tensor, theta_on: Tensor, theta_off: Tensor
+                     ) -> tuple[Tensor, Tensor, Tensor]:
+    """``(up, sign, inv_theta)`` of :func:`_crossed` for a direction (True: rising)."""
+    up = rising.to(theta_on.dtype)
+    return up, up * 2 - 1, 1 / torch.where(rising, theta_on, theta_off)
 
 
 def two_threshold_counts(
@@ -323,26 +328,31 @@ def two_threshold_counts(
         active = torch.bincount(within, minlength=int(per_pixel.max())).tolist()
         end = run_end.index_select(0, order)
         end_value = value.index_select(0, end)
-        rising = direction.index_select(0, starts.index_select(0, order)) > 0
+        rising = direction.index_select(0, starts.index_select(0, order)) > 0  # per run
         pix = by_count
         at = first_index.index_select(0, pix)
         base_p, on_p, off_p = (c.index_select(0, at) for c in (base, theta_on, theta_off))
-        a_p, b_p = a_state.index_select(0, pix), b_state.index_select(0, pix)
-        a0_it = torch.empty(n_runs, dtype=torch.int64, device=device)
-        b0_it = torch.empty(n_runs, dtype=torch.int64, device=device)
+        a_p = a_state.index_select(0, pix).to(value.dtype)  # float counts: exact integers
+        b_p = b_state.index_select(0, pix).to(value.dtype)
+        start_it = starts.index_select(0, order)
+        up_it, sign_it, inv_it = _direction_terms(rising, theta_on.index_select(0, start_it),
+                                                  theta_off.index_select(0, start_it))
+        down_it = 1 - up_it
+        a0_it = torch.empty(n_runs, dtype=value.dtype, device=device)
+        b0_it = torch.empty(n_runs, dtype=value.dtype, device=device)
         offset = 0
-        for n in active:
+        for n in active:  # the scan: iteration i advances the i-th run of each pixel
             sl = slice(offset, offset + n)
+            offset += n
             a_n, b_n = a_p[:n], b_p[:n]
             a0_it[sl] = a_n
             b0_it[sl] = b_n
-            up = rising[sl]
-            k = _crossed(end_value[sl], base_p[:n], a_n, b_n, on_p[:n], off_p[:n], up)
-            a_n += k * up
-            b_n += k * ~up  # in place: a_p, b_p hold the state
-            offset += n
-        run_a0[order] = a0_it
-        run_b0[order] = b0_it
+            k = _crossed(end_value[sl], base_p[:n], a_n, b_n, on_p[:n], off_p[:n], up_it[sl],
+                         sign_it[sl], inv_it[sl])
+            a_n.addcmul_(up_it[sl], k)  # in place: a_p, b_p hold the state
+            b_n.addcmul_(down_it[sl], k)
+        run_a0[order] = a0_it.to(torch.int64)
+        run_b0[order] = b0_it.to(torch.int64)
     # every sample: the counts at its run's start, plus the levels crossed up to its value
     run_of = torch.cumsum(run_start, 0) - 1
     in_run = (run_of >= 0) & ~first
@@ -359,7 +369,9 @@ def two_threshold_counts(
     pixel_first = first_index.index_select(0, pixel_of)
     a0 = torch.where(in_run, a0, a_start.index_select(0, pixel_first))
     b0 = torch.where(in_run, b0, b_start.index_select(0, pixel_first))
-    k = _crossed(value, base, a0, b0, theta_on, theta_off, up)
+    up_f, sign, inv_theta = _direction_terms(up, theta_on, theta_off)
+    k = _crossed(value, base, a0.to(value.dtype), b0.to(value.dtype), theta_on, theta_off,
+                 up_f, sign, inv_theta).to(torch.int64)
     k = torch.where(in_run, k, 0)
     return a0 + k * up, b0 + k * ~up
 
