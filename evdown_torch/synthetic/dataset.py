@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import operator
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -79,7 +80,14 @@ class SyntheticGestures:
     the same recording. Sample ``i`` has label ``i % 11``; the train and test splits draw
     their scenes from different derived seeds, so they share no recording.
 
+    The constructor takes ``tonic.datasets.DVSGesture``'s arguments in its order
+    (``save_to``, ``train``, ``transform``, ``target_transform``, ``transforms``), so
+    ``SyntheticGestures("data", train=False)`` and ``DVSGesture("data", train=False)`` are
+    swapped by one word; the generator's own settings are keyword-only.
+
     Args:
+        save_to: accepted for DVSGesture's signature and unused: nothing is downloaded or
+            stored (a path, or None).
         train: the training split (else the test split).
         transform: applied to the events.
         target_transform: applied to the label.
@@ -114,6 +122,7 @@ class SyntheticGestures:
 
     def __init__(
         self,
+        save_to: str | os.PathLike | None = None,
         train: bool = True,
         transform: Callable | None = None,
         target_transform: Callable | None = None,
@@ -125,12 +134,17 @@ class SyntheticGestures:
         sensor_size: tuple[int, int, int] = (128, 128, 2),
         pixel_model: PixelModelConfig | None = None,
     ) -> None:
+        if save_to is not None and not isinstance(save_to, (str, os.PathLike)):
+            raise TypeError(
+                f"save_to must be a path or None (unused: nothing is downloaded), got "
+                f"{save_to!r}; train is the second argument, as in tonic's DVSGesture")
         if not isinstance(train, bool):
             raise TypeError(f"train must be a bool, got {train!r}")
         for name, fn in (("transform", transform), ("target_transform", target_transform),
                          ("transforms", transforms)):
             if fn is not None and not callable(fn):
                 raise TypeError(f"{name} must be callable or None, got {fn!r}")
+        self.save_to = save_to
         self.train = train
         self.transform = transform
         self.target_transform = target_transform
