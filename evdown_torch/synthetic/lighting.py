@@ -41,11 +41,12 @@ def waveform(scene: GestureScene, t_us: Tensor) -> Tensor:
     """The lamp's waveform ``w(t)`` in ``[-1, 1]`` at times ``t_us`` (0 under natural light).
 
     Example:
-        >>> scene = GestureScene.sample(0, 1)
         >>> import dataclasses
+        >>> scene = GestureScene.sample(0, 1)
         >>> lamp = dataclasses.replace(scene, lighting="fluorescent", flicker_hz=100.0)
-        >>> waveform(lamp, torch.tensor([0.0, 2500.0, 5000.0, 7500.0])).tolist()
-        [-1.0, 0.0, 1.0, 0.0]
+        >>> w = waveform(lamp, torch.tensor([0.0, 1250.0, 5000.0, 6250.0]))
+        >>> w.round(decimals=6).tolist()
+        [-1.0, -0.5, 1.0, 0.5]
     """
     t_us = torch.as_tensor(t_us, dtype=torch.float64)
     if scene.flicker_hz <= 0 or scene.lighting not in WAVEFORMS:

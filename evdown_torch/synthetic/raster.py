@@ -32,7 +32,15 @@ from evdown_torch.synthetic.scenes import (
 )
 from evdown_torch.transforms.functional._common import region_xy, stable_sort_small
 
-__all__ = ["Grid", "block_of", "block_sums", "intensity_frame", "moving_parts", "rasterise", "step_bits"]
+__all__ = [
+    "Grid",
+    "block_of",
+    "block_sums",
+    "intensity_frame",
+    "moving_parts",
+    "rasterise",
+    "step_bits",
+]
 
 
 @dataclass(frozen=True)

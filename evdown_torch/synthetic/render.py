@@ -304,8 +304,8 @@ def swept_mask(
 ) -> Tensor:
     """Output pixels that a moving part covers at some simulation step.
 
-    Only these pixels can emit events other than noise and lamp flicker. Covering means a coverage above 0
-    at a pixel of the block (``factor`` as in :func:`render_events`).
+    Only these pixels can emit events other than noise and lamp flicker. Covering means a
+    coverage above 0 at a pixel of the block (``factor`` as in :func:`render_events`).
 
     Returns:
         ``(H', W')`` bool tensor (``W' = ceil(W / fx)``, ``H' = ceil(H / fy)``).
