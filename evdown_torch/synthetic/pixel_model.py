@@ -86,7 +86,7 @@ class PixelModelConfig:
         500
     """
 
-    threshold: float = 0.13
+    threshold: float = 0.12
     on_off_spread: float = 0.35
     threshold_mismatch: float = 0.03
     refractory_us: int = 500

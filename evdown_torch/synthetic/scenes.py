@@ -146,9 +146,9 @@ class GestureScene:
         active: ``(start_us, end_us)`` of the gesture: before and after it the person stands
             with arms at rest (idle start and end, each 3 % to 12 % of the recording); arms
             swing in and out over :data:`RAMP_FRACTION` of the recording.
-        pauses: ``(start_us, length_us)`` of each pause inside the gesture (1 to 3, each 3 %
-            to 8 % of the recording): the motion slows to a halt and resumes, holding its pose.
-        accent: depth of the speed change within each repetition (0.4 to 0.85): the motion
+        pauses: ``(start_us, length_us)`` of each pause inside the gesture (1 to 3, each 4 %
+            to 10 % of the recording): the motion slows to a halt and resumes, holding its pose.
+        accent: depth of the speed change within each repetition (0.5 to 0.9): the motion
             phase is ``psi + accent * sin(psi)``, so within a cycle the limbs speed up to
             ``1 + accent`` and slow down to ``1 - accent`` times their mean speed.
         lighting: ``"natural"``, ``"fluorescent"`` or ``"led"`` (DVS128 Gesture's three
@@ -257,11 +257,11 @@ class GestureScene:
             wander = tuple(arms)
         life = np.random.default_rng(np.random.SeedSequence([seed, 1]))  # added draws
         v = life.uniform
-        start = duration_us * v(0.06, 0.2)
-        end = duration_us * (1 - v(0.06, 0.2))
+        start = duration_us * v(0.08, 0.24)
+        end = duration_us * (1 - v(0.08, 0.24))
         pauses = []
         for _ in range(int(life.integers(1, 4))):
-            length = duration_us * v(0.03, 0.08)
+            length = duration_us * v(0.04, 0.1)
             at = v(start + duration_us * RAMP_FRACTION, end - length - duration_us * RAMP_FRACTION)
             pauses.append((float(at), float(length)))
         lighting = LIGHTING[int(life.integers(0, 3))]
@@ -286,7 +286,7 @@ class GestureScene:
             wander=wander,
             active=(float(start), float(end)),
             pauses=tuple(sorted(pauses)),
-            accent=float(v(0.4, 0.85)),
+            accent=float(v(0.5, 0.9)),
             lighting=lighting,
             flicker_hz=flicker_hz,
             flicker_depth=float(depth),
@@ -316,8 +316,9 @@ class GestureScene:
         """Motion phase (radians) at times ``t`` (seconds, float64)."""
         freq = MOTIONS[self.label][0] * self.speed
         depth, wobble, wobble_phase = self.tempo
-        psi = (2 * math.pi * freq * self._moving_time(t) + self.phase
-               + depth * torch.sin(2 * math.pi * wobble * t + wobble_phase))
+        moving = self._moving_time(t)  # the tempo wobble too holds still in pauses
+        psi = (2 * math.pi * freq * moving + self.phase
+               + depth * torch.sin(2 * math.pi * wobble * moving + wobble_phase))
         return psi + self.accent * torch.sin(psi)
 
     def presence(self, t: Tensor) -> Tensor:

@@ -123,7 +123,7 @@ def test_low_resolution_sees_the_same_lamp():
 def test_gesture_life_idle_pauses_and_variation():
     scene = GestureScene.sample(3, 1)
     start, end = scene.active
-    assert 0.06 * 6e6 <= start <= 0.2 * 6e6 and 0.8 * 6e6 <= end <= 0.94 * 6e6
+    assert 0.08 * 6e6 <= start <= 0.24 * 6e6 and 0.76 * 6e6 <= end <= 0.92 * 6e6
     assert 1 <= len(scene.pauses) <= 3
     t = torch.tensor([0.0, start - 1.0, (start + end) / 2], dtype=torch.float64)
     right, _ = scene.arm_keypoints(t)

@@ -183,7 +183,7 @@ def test_direction_of_motion_shows_in_polarity():
     """ON leads OFF: in short windows the ON events of a circling arm lie ahead of its OFF."""
     for label, sense in ((3, 1), (4, -1), (5, 1), (6, -1)):
         scene = GestureScene.sample(label, 30 + label, sensor_size=(64, 64, 2),
-                                    duration_us=1_000_000)
+                                    duration_us=2_000_000)  # idle start/end: 2 s
         events = render_events(scene, QUIET)
         shoulder = scene.arm_keypoints(torch.zeros(1))[0 if label < 5 else 1][0, 0]
         angle = torch.atan2(events.y + 0.5 - shoulder[1], events.x + 0.5 - shoulder[0])
