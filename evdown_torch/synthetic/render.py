@@ -243,24 +243,39 @@ def render_events(
                                 offset.index_select(0, lamp_pixel),
                                 theta_on.index_select(0, lamp_pixel),
                                 theta_off.index_select(0, lamp_pixel))
+    # batches of whole lit pixels (all have the same samples), each within the memory budget
+    n_lit = int(lamp_first.sum())
+    lamp_batches = []
+    if n_lit:
+        per_batch = max(1, max_fragments // (lamp_pixel.numel() // n_lit))
+        per_batch *= lamp_pixel.numel() // n_lit
+        lamp_batches = [slice(i, i + per_batch) for i in range(0, lamp_pixel.numel(), per_batch)]
     lamp = (lamp_pixel, lamp_t, lamp_level, lamp_first, lamp_base)
-    ev_pixel, ev_time, ev_on = [], [], []
+    events: tuple[list[Tensor], list[Tensor], list[Tensor]] = ([], [], [])
+    lamp_events: tuple[list[Tensor], list[Tensor], list[Tensor]] = ([], [], [])
     n_steps = times.numel() - 1
     chunks = _chunks(parts, n_steps, grid.width * grid.height, max_fragments)
-    for index, (s0, s1) in enumerate(chunks):
-        pixel, step, value = grid.samples(parts, s0, s1)
-        level = torch.log(value).to(torch.float64)
-        pixel, step, level, first = _with_static(pixel, step, level, log_static, s0, s1)
-        t = times.index_select(0, step)
-        a0, b0 = a_state.index_select(0, pixel), b_state.index_select(0, pixel)
-        n_moving = pixel.numel()
-        if index == 0:
-            pixel, t, level, first, base_at = (torch.cat([u, v]) for u, v in zip(
-                (pixel, t, level, first, base.index_select(0, pixel)), lamp, strict=True))
-            a0 = torch.cat([a0, torch.zeros_like(lamp_pixel)])
-            b0 = torch.cat([b0, torch.zeros_like(lamp_pixel)])
+    empty = torch.empty(0, dtype=torch.int64)
+    for index in range(max(len(chunks), len(lamp_batches))):
+        # job `index`: chunk `index` of the moving limbs and batch `index` of the lamp's
+        # pixels (no carried state), in one scan
+        if index < len(chunks):
+            s0, s1 = chunks[index]
+            pixel, step, value = grid.samples(parts, s0, s1)
+            level = torch.log(value).to(torch.float64)
+            pixel, step, level, first = _with_static(pixel, step, level, log_static, s0, s1)
+            t = times.index_select(0, step)
         else:
-            base_at = base.index_select(0, pixel)
+            pixel, t, level, first = empty, empty.double(), empty.double(), empty.bool()
+        a0, b0 = a_state.index_select(0, pixel), b_state.index_select(0, pixel)
+        base_at = base.index_select(0, pixel)
+        n_moving = pixel.numel()
+        if index < len(lamp_batches):
+            batch = lamp_batches[index]
+            pixel, t, level, first, base_at = (torch.cat([u, v[batch]]) for u, v in zip(
+                (pixel, t, level, first, base_at), lamp, strict=True))
+            zeros = torch.zeros(pixel.numel() - n_moving, dtype=torch.int64)
+            a0, b0 = torch.cat([a0, zeros]), torch.cat([b0, zeros])
         if pixel.numel() == 0:
             continue
         segment, time, on, a, b = level_crossings(
@@ -271,9 +286,12 @@ def render_events(
         ends[n_moving:] = False  # the lamp's groups carry no state
         a_state[pixel[ends]] = a[ends]
         b_state[pixel[ends]] = b[ends]
-        ev_pixel.append(pixel.index_select(0, segment))
-        ev_time.append(round_time(time))
-        ev_on.append(on)
+        # the limbs' events, then the lamp's: an order that does not depend on the chunking
+        moving = segment < n_moving
+        for out, keep in ((events, moving), (lamp_events, ~moving)):
+            out[0].append(pixel.index_select(0, segment[keep]))
+            out[1].append(round_time(time[keep]))
+            out[2].append(on[keep])
     noise = noise_events(
         num_pixels=n_out,
         duration_us=scene.duration_us,
@@ -282,9 +300,9 @@ def render_events(
         hot_pixel_rate_hz=config.hot_pixel_rate_hz,
         generator=_generator(scene, _NOISE_STREAM, factor),
     )
-    pixel = torch.cat(ev_pixel + [noise[0]])
-    t = torch.cat(ev_time + [noise[1]])
-    on = torch.cat(ev_on + [noise[2]])
+    pixel = torch.cat(events[0] + lamp_events[0] + [noise[0]])
+    t = torch.cat(events[1] + lamp_events[1] + [noise[1]])
+    on = torch.cat(events[2] + lamp_events[2] + [noise[2]])
     inside = t < scene.duration_us
     pixel, t, on = pixel[inside], t[inside], on[inside]
     order = torch.sort(pixel * (scene.duration_us + 1) + t, stable=True).indices

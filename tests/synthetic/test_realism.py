@@ -136,3 +136,16 @@ def test_gesture_life_idle_pauses_and_variation():
         assert float((pose - pose[:1]).abs().max()) < 1e-6
     speeds = {round(GestureScene.sample(3, s).speed, 3) for s in range(30)}
     assert max(speeds) / min(speeds) > 1.6  # tempo varies widely between recordings
+
+
+def test_lamp_batches_and_chunks_do_not_change_the_result():
+    scene = dataclasses.replace(
+        GestureScene.sample(4, 6, sensor_size=(48, 40, 2), duration_us=400_000),
+        lighting="led", flicker_hz=120.0, flicker_depth=0.4)
+    whole = render_events(scene)
+    for budget in (500, 3000, 20_000):  # several limb chunks and lamp batches
+        part = render_events(scene, max_fragments=budget)
+        for name in ("x", "y", "t", "p"):
+            assert torch.equal(getattr(part, name), getattr(whole, name))
+    static = ~swept_mask(scene)[whole.y, whole.x]
+    assert int(static.sum()) > 100  # the lamp is in the picture
