@@ -45,9 +45,10 @@ def render_gesture(
 ) -> np.ndarray:
     """Render one gesture recording as a Tonic structured array (DVSGesture's dtype).
 
-    ``render_gesture(label, seed, factor=f)`` is the same scene, motion and noise settings
-    as ``render_gesture(label, seed)``, seen by a sensor ``f`` times smaller whose pixels
-    receive the mean photocurrent of the blocks they cover; ``factor=1`` is the recording.
+    ``render_gesture(label, seed, factor=f)`` is the same scene, motion, lighting, noise
+    settings and readout as ``render_gesture(label, seed)``, seen by a sensor ``f`` times
+    smaller whose pixels receive the mean photocurrent of the blocks they cover;
+    ``factor=1`` is the recording.
 
     Args:
         label: class index into :data:`GESTURE_CLASSES`.
@@ -204,7 +205,8 @@ class SyntheticGestures:
     def ground_truth(self, index: int, factor: int | tuple[int, int]) -> np.ndarray:
         """Sample ``index`` as a sensor ``factor`` times smaller would have recorded it.
 
-        The same scene, motion, pixel parameters and noise settings, rendered on a sensor
+        The same scene, motion, lighting, pixel parameters, noise settings and readout,
+        rendered on a sensor
         ``(ceil(W / fx), ceil(H / fy), 2)`` whose pixels receive the mean linear intensity
         (photocurrent) of the block of full-resolution pixels they cover (edge blocks: the
         pixels inside the sensor). At ``factor=1`` this is exactly the sample's events.
