@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import region_xy, stable_sort_small
 from evdown_torch.checks import check_factor, output_size
 from evdown_torch.synthetic.scenes import (
     BODY,
@@ -30,7 +31,6 @@ from evdown_torch.synthetic.scenes import (
     GestureScene,
     Look,
 )
-from evdown_torch.transforms.functional._common import region_xy, stable_sort_small
 
 __all__ = [
     "Grid",

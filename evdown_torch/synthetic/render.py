@@ -25,6 +25,7 @@ import math
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import region_xy
 from evdown_torch.checks import check_factor, check_positive_int, output_size
 from evdown_torch.events import Events
 from evdown_torch.synthetic.lighting import flicker_depth, flicker_samples
@@ -48,7 +49,6 @@ from evdown_torch.synthetic.raster import (
     step_bits,
 )
 from evdown_torch.synthetic.scenes import GestureScene, scene_seed
-from evdown_torch.transforms.functional._common import region_xy
 
 __all__ = [
     "pixel_parameters",
