@@ -16,7 +16,8 @@ import torch
 
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import check_factor, check_sensor_size, output_size
-from evdown_torch.events import Events, EventsLike, load_npy_events, to_events
+from evdown_torch.events import Events, EventsLike, to_events
+from evdown_torch.io import read_events
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.registry import METHODS, make_method
 
@@ -106,7 +107,8 @@ def load_source(
     """Read the recording named ``spec``.
 
     Args:
-        spec: a ``.npy`` structured event array (Tonic's format, ``t`` in microseconds), or
+        spec: an event file that :func:`evdown_torch.io.read_events` reads (``.npy``, HDF5,
+            AEDAT4, N-MNIST ``.bin``, Prophesee ``.raw``/``.dat``; ``t`` in microseconds), or
             ``synthetic:CLASS[:SEED]`` (a gesture of :mod:`evdown_torch.synthetic`; ``CLASS``
             an index or a class name, case, spaces and underscores ignored; seed 0 by default).
         sensor_size: ``(W, H, P)``; default: the synthetic sensor (128, 128, 2), or for a file
@@ -158,13 +160,10 @@ def read_file(
     path: str, sensor_size: tuple[int, int, int] | None
 ) -> tuple[np.ndarray, tuple[int, int, int]]:
     """The one file reader of ``evdown show``: a structured event array and its sensor size
-    (``sensor_size`` when given, else the largest coordinates + 1)."""
-    raw = load_npy_events(path)
-    if sensor_size is None:
-        if len(raw) == 0:
-            raise ValueError(f"{path!r} holds no events: pass --sensor-size W H P")
-        sensor_size = (int(raw["x"].max()) + 1, int(raw["y"].max()) + 1, 2)
-    return raw, sensor_size
+    (``sensor_size`` when given, else the file's own, else guessed from the largest coordinates
+    with a warning; see :func:`evdown_torch.io.read_events`)."""
+    events, size, _ = read_events(path, sensor_size=sensor_size)
+    return events, size
 
 
 def method_name(transform: Downscaler) -> str:

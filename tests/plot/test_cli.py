@@ -71,6 +71,16 @@ def test_synthetic_sheet_without_ground_truth(tmp_path):
         assert big_blobs(np.asarray(png.convert("RGB"))) == 2 * 2
 
 
+def test_a_file_that_records_its_sensor_size_is_shown_on_that_sensor(npy, tmp_path):
+    from evdown_torch.io import write_events
+
+    wide = (40, 30, 2)  # larger than the coordinates reach: a guess would be wrong
+    path = write_events(tmp_path / "in.h5", np.load(npy), sensor_size=wide)
+    source = load_source(str(path))
+    assert source.sensor_size == wide
+    assert source.events.num_events == len(np.load(npy))
+
+
 def test_duration_keeps_the_first_milliseconds_of_a_file(npy):
     whole = load_source(str(npy))
     first = load_source(str(npy), duration_ms=50)
@@ -90,7 +100,8 @@ def test_duration_keeps_the_first_milliseconds_of_a_file(npy):
 ])
 def test_bad_arguments_give_one_line_errors(npy, tmp_path, capsys, argv, message):
     argv = [a if not a.endswith((".mp4", ".gif")) else str(tmp_path / a) for a in argv]
-    assert main(["show", str(npy), "--factor", "2", *argv]) == 2
+    size = [str(n) for n in SENSOR]  # a file that does not record its size warns without it
+    assert main(["show", str(npy), "--factor", "2", "--sensor-size", *size, *argv]) == 2
     err = capsys.readouterr().err
     assert err.startswith("evdown show: error: ") and message in err
     assert err.count("\n") == 1
