@@ -2,8 +2,8 @@
 
 ``evdown show IN --factor F [--methods a,b,...] [--window MS] [--out FILE.gif|FILE.png]``
 writes a side-by-side animation (GIF) or a contact sheet (PNG); with ``--curve X,Y`` it writes
-the paper's Figure 5 for output pixel ``(X, Y)`` instead. ``IN`` is an event file (any format of :mod:`evdown_torch.io`) or
-``synthetic:CLASS[:SEED]`` (see :func:`~evdown_torch.plot.sources.load_source`).
+the paper's Figure 5 for output pixel ``(X, Y)`` instead. ``IN`` is an event file (any format
+of :mod:`evdown_torch.io`) or ``synthetic:CLASS[:SEED]`` (see :func:`~evdown_torch.plot.sources.load_source`).
 """
 
 from __future__ import annotations
@@ -69,7 +69,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "reconstructions, thresholds and events of one output pixel (the paper's Figure 5).",
     )
     show.add_argument("input", metavar="IN",
-                      help="an event file (.npy, .h5, .aedat4, .bin, .raw, .dat; t in microseconds) or "
+                      help="an event file (.npy, .h5, .aedat4, .bin, .raw, .dat; t in "
+                      "microseconds) or "
                       "synthetic:CLASS[:SEED] (a synthetic gesture, class index or name)")
     show.add_argument("--factor", required=True, type=_factor, help="F or FX,FY")
     show.add_argument("--methods", type=_methods, metavar="A,B,...",
