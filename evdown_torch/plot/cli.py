@@ -3,7 +3,8 @@
 ``evdown show IN --factor F [--methods a,b,...] [--window MS] [--out FILE.gif|FILE.png]``
 writes a side-by-side animation (GIF) or a contact sheet (PNG); with ``--curve X,Y`` it writes
 the paper's Figure 5 for output pixel ``(X, Y)`` instead. ``IN`` is an event file (any format
-of :mod:`evdown_torch.io`) or ``synthetic:CLASS[:SEED]`` (see :func:`~evdown_torch.plot.sources.load_source`).
+of :mod:`evdown_torch.io`) or ``synthetic:CLASS[:SEED]`` (see
+:func:`~evdown_torch.plot.sources.load_source`).
 """
 
 from __future__ import annotations
