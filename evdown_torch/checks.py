@@ -10,11 +10,14 @@ import math
 import numbers
 from typing import Any
 
+import torch
+
 __all__ = [
     "DEFAULT_MAX_OUTPUT_EVENTS",
     "MAX_EXACT_SPAN",
     "check_choice",
     "check_factor",
+    "check_has_values",
     "check_non_negative_float",
     "check_non_negative_int",
     "check_output_count",
@@ -238,4 +241,17 @@ def check_time_span(t_start: int, t_end: int) -> None:
             f"the events span {span:,} time units from first to last timestamp; the linear and "
             f"cubic estimators compute crossing times as float64 offsets, which hold spans "
             f"below 2**53 only ({MAX_EXACT_SPAN:,}, about 285 years in microseconds)"
+        )
+
+
+def check_has_values(tensor: torch.Tensor, what: str = "events") -> None:
+    """Refuse tensors that hold no values: those on PyTorch's ``meta`` device.
+
+    Raises:
+        ValueError: for a tensor on the ``meta`` device.
+    """
+    if tensor.device.type == "meta":
+        raise ValueError(
+            f"{what} are on the 'meta' device, which holds shapes but no values; downscaling "
+            "reads the values: move them to a real device first (e.g. .to('cpu'))"
         )
