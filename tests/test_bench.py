@@ -411,3 +411,13 @@ def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_pat
     skipped = {d["method"] for d in data if d["note"]}
     assert skipped <= {"lif"}  # only a method without a session is skipped
     assert "realtime.md" in capsys.readouterr().out
+
+
+def test_sustained_rate_is_one_over_the_p99_time_per_event():
+    from evdown_torch.bench.realtime import ReplayResult
+
+    r = ReplayResult("m", 1e6, 1000, seconds=[0.001, 0.002, 0.5], chunk_events=[1000, 1000, 0])
+    # Per event 1 and 2 us (the empty chunk left out); p99 by linear interpolation 1.99 us.
+    assert r.sustained_rate == pytest.approx(1 / 1.99e-6)
+    assert r.keeps_up is False  # p99 of the chunk times (0.5 s) is above 1 ms
+    assert ReplayResult("m", 1e6, 1000).sustained_rate is None

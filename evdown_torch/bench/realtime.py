@@ -7,10 +7,11 @@ so the same events arrive faster). Per method, rate and chunk size it reports:
 
 * the wall-clock processing time of each chunk (median and 99th percentile), on one thread;
 * whether the method **keeps up** (99th percentile below the chunk's duration) and the
-  largest input rate it **sustains**: the replayed rate times the chunk's duration over the
-  99th percentile, i.e. the rate at which the 99th percentile would reach the chunk's
-  duration if the cost per event stayed the same (an extrapolation from the measured rate,
-  not a measurement at that rate);
+  largest input rate it **sustains**: one over the 99th percentile of the chunks' time per
+  input event, i.e. the rate at which the 99th percentile of a chunk's time would reach its
+  duration if the cost per event stayed what it was (an extrapolation from the replayed
+  rate, exact at it; chunks without events are left out);
+* the same 99th percentile in process CPU time, which a busy machine does not inflate;
 * for methods whose output lags their input (LinearEstimation and CubicEstimation with
   ``max_delay``), the **output delay** of each output event: the end of the chunk that
   returned it (when a live system has that chunk) minus the event's time, in stream time.
@@ -80,6 +81,8 @@ class ReplayResult:
         events_in: input events of the timed chunks.
         events_out: output events of the whole replay (flush included).
         seconds: wall-clock seconds of each timed chunk.
+        cpu_seconds: process CPU seconds of each timed chunk.
+        chunk_events: input events of each timed chunk.
         delays_us: output delay of every output event (only for lagging methods).
         note: why a method was skipped, else empty.
     """
@@ -91,6 +94,8 @@ class ReplayResult:
     events_in: int = 0
     events_out: int = 0
     seconds: list[float] = field(default_factory=list)
+    cpu_seconds: list[float] = field(default_factory=list)
+    chunk_events: list[int] = field(default_factory=list)
     delays_us: list[float] = field(default_factory=list)
     note: str = ""
 
@@ -105,6 +110,11 @@ class ReplayResult:
         return float(np.percentile(self.seconds, 99)) if self.seconds else None
 
     @property
+    def p99_cpu_s(self) -> float | None:
+        """99th percentile of the CPU time of a chunk (seconds)."""
+        return float(np.percentile(self.cpu_seconds, 99)) if self.cpu_seconds else None
+
+    @property
     def keeps_up(self) -> bool | None:
         """Whether the 99th percentile is below the chunk's duration."""
         p99 = self.p99_s
@@ -112,18 +122,22 @@ class ReplayResult:
 
     @property
     def sustained_rate(self) -> float | None:
-        """Input rate at which the 99th percentile would reach the chunk's duration."""
-        p99 = self.p99_s
-        if p99 is None or p99 <= 0:
+        """Input rate (events/s) at which the 99th percentile of a chunk's time would reach the
+        chunk's duration: one over the 99th percentile of the time per input event."""
+        per_event = [s / n for s, n in zip(self.seconds, self.chunk_events) if n]
+        if not per_event:
             return None
-        return self.rate * self.chunk_us * 1e-6 / p99
+        p99 = float(np.percentile(per_event, 99))
+        return None if p99 <= 0 else 1.0 / p99
 
     def summary(self) -> dict[str, Any]:
         """The result with its statistics, for JSON."""
         out = asdict(self)
-        out.pop("seconds")
+        for name in ("seconds", "cpu_seconds", "chunk_events"):
+            out.pop(name)
         delays = out.pop("delays_us")
-        out.update(median_s=self.median_s, p99_s=self.p99_s, keeps_up=self.keeps_up,
+        out.update(median_s=self.median_s, p99_s=self.p99_s, p99_cpu_s=self.p99_cpu_s,
+                   keeps_up=self.keeps_up,
                    sustained_rate=self.sustained_rate)
         if delays:
             out["delay_us"] = {q: float(np.percentile(delays, p)) for q, p in
@@ -206,11 +220,13 @@ def replay(
     last = len(bounds) - 1 if max_chunks is None else min(len(bounds) - 1, max_chunks + 1)
     for k in range(last):
         chunk = events[bounds[k]:bounds[k + 1]]
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         out = session(chunk)
-        elapsed = time.perf_counter() - start
+        elapsed, cpu = time.perf_counter() - start, time.process_time() - start_cpu
         if k:
             result.seconds.append(elapsed)
+            result.cpu_seconds.append(cpu)
+            result.chunk_events.append(len(chunk))
             result.events_in += len(chunk)
         result.events_out += len(out)
         if lagging and len(out):
@@ -280,12 +296,12 @@ def _ms(seconds: float | None) -> str:
 def realtime_markdown(results: Sequence[ReplayResult]) -> str:
     """The results as a Markdown table (times in ms, rates in M events/s, delays in µs)."""
     lines = ["| method | input rate (M ev/s) | chunk (ms) | chunks | median (ms) | p99 (ms) | "
-             "keeps up | sustains (M ev/s) | delay median / p99 / max (µs) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "p99 CPU (ms) | keeps up | sustains (M ev/s) | delay median / p99 / max (µs) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         if r.note:
             lines.append(f"| {r.method} | {r.rate / 1e6:.3g} | {r.chunk_us / 1e3:g} | – | – | – "
-                         f"| – | – | {r.note.split(';')[0]} |")
+                         f"| – | – | – | {r.note.split(';')[0]} |")
             continue
         s = r.summary()
         delay = s.get("delay_us")
@@ -294,7 +310,7 @@ def realtime_markdown(results: Sequence[ReplayResult]) -> str:
         sustained = r.sustained_rate
         lines.append(
             f"| {r.method} | {r.rate / 1e6:.3g} | {r.chunk_us / 1e3:g} | {r.chunks} "
-            f"| {_ms(r.median_s)} | {_ms(r.p99_s)} "
+            f"| {_ms(r.median_s)} | {_ms(r.p99_s)} | {_ms(r.p99_cpu_s)} "
             f"| {'–' if r.keeps_up is None else 'yes' if r.keeps_up else 'no'} "
             f"| {'–' if sustained is None else f'{sustained / 1e6:.3g}'} | {delay_text} |")
     return "\n".join(lines) + "\n"
@@ -324,7 +340,7 @@ def write_realtime_report(
     for i, (rate, chunk_us) in enumerate(keys):
         rows = {r.method: r for r in measured if (r.rate, r.chunk_us) == (rate, chunk_us)}
         xs = [j + i * width for j, m in enumerate(labels) if m in rows]
-        ys = [rows[m].sustained_rate / 1e6 for m in labels if m in rows]
+        ys = [(rows[m].sustained_rate or 0.0) / 1e6 for m in labels if m in rows]
         ax.bar(xs, ys, width, label=f"{rate / 1e6:.3g} M ev/s in {chunk_us / 1e3:g} ms chunks")
     ax.axhline(REALTIME_RATE / 1e6, color="k", linestyle="--", linewidth=1, label="25 M ev/s")
     ax.set_yscale("log")
