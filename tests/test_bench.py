@@ -377,10 +377,12 @@ def test_replay_gives_the_batch_output_and_bounded_delays(rng):
     arr = random_stream(rng, 3000, sensor, t_max=20_000)
     transform = LinearEstimation(sensor, factor=4, threshold=0.5, max_delay=300)
     result = replay(transform, arr, chunk_us=1000, label="linear", rate=1.0, lagging=True)
+    chunks = math.ceil((arr["t"][-1] - arr["t"][0] + 1) / 1000)
     first_chunk = int((arr["t"] < arr["t"][0] + 1000).sum())
-    assert result.chunks == len(result.seconds) == math.ceil((arr["t"][-1] - arr["t"][0] + 1)
-                                                             / 1000) - 1
-    assert result.events_in == len(arr) - first_chunk  # the warm-up chunk is not timed
+    last_chunk = int((arr["t"] >= arr["t"][0] + (chunks - 1) * 1000).sum())
+    # Neither the warm-up chunk nor the stream's last (partial) chunk is timed.
+    assert result.chunks == len(result.seconds) == chunks - 2
+    assert result.events_in == len(arr) - first_chunk - last_chunk
     assert result.events_out == len(transform(arr)) == len(result.delays_us)
     # Out with the first chunk whose last event is later than t + D (test_streaming checks
     # that exactly); measured from the end of the chunk's window, at most D plus two chunks.
@@ -394,8 +396,8 @@ def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_pat
     from evdown_torch.bench.realtime import REALTIME_METHODS
 
     out = tmp_path / "rt"
-    # 60,000 events last 2.4 ms at 25 M events/s: two timed 1 ms chunks, no 10 ms one.
-    code = main(["bench", "--realtime", "--short", "--events", "60000", "--out", str(out)])
+    # 80,000 events last 3.2 ms at 25 M events/s: two timed 1 ms chunks, no 10 ms one.
+    code = main(["bench", "--realtime", "--short", "--events", "80000", "--out", str(out)])
     assert code == 0
     table = (out / "realtime.md").read_text()
     rows = [line for line in table.splitlines() if line.startswith("| ") and "---" not in line]
@@ -413,11 +415,11 @@ def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_pat
     assert "realtime.md" in capsys.readouterr().out
 
 
-def test_sustained_rate_is_one_over_the_p99_time_per_event():
+def test_sustained_rate_scales_the_replayed_rate_to_the_p99():
     from evdown_torch.bench.realtime import ReplayResult
 
-    r = ReplayResult("m", 1e6, 1000, seconds=[0.001, 0.002, 0.5], chunk_events=[1000, 1000, 0])
-    # Per event 1 and 2 us (the empty chunk left out); p99 by linear interpolation 1.99 us.
-    assert r.sustained_rate == pytest.approx(1 / 1.99e-6)
-    assert r.keeps_up is False  # p99 of the chunk times (0.5 s) is above 1 ms
+    r = ReplayResult("m", 2e6, 1000, seconds=[0.0001, 0.0002, 0.0004])
+    # p99 by linear interpolation: 0.0002 + 0.98 * 0.0002 = 0.000396 s of a 1 ms chunk.
+    assert r.sustained_rate == pytest.approx(2e6 * 1e-3 / 0.000396)
+    assert r.keeps_up is True
     assert ReplayResult("m", 1e6, 1000).sustained_rate is None

@@ -7,17 +7,18 @@ so the same events arrive faster). Per method, rate and chunk size it reports:
 
 * the wall-clock processing time of each chunk (median and 99th percentile), on one thread;
 * whether the method **keeps up** (99th percentile below the chunk's duration) and the
-  largest input rate it **sustains**: one over the 99th percentile of the chunks' time per
-  input event, i.e. the rate at which the 99th percentile of a chunk's time would reach its
-  duration if the cost per event stayed what it was (an extrapolation from the replayed
-  rate, exact at it; chunks without events are left out);
+  largest input rate it **sustains**: the replayed rate times the chunk's duration over the
+  99th percentile, i.e. the rate at which the 99th percentile would reach the chunk's
+  duration if a chunk's time grew in proportion to its events (an extrapolation from the
+  replayed rate, exact at it, conservative where a fixed cost per call dominates);
 * the same 99th percentile in process CPU time, which a busy machine does not inflate;
 * for methods whose output lags their input (LinearEstimation and CubicEstimation with
   ``max_delay``), the **output delay** of each output event: the end of the chunk that
   returned it (when a live system has that chunk) minus the event's time, in stream time.
 
 Only the chunks of a replay are timed (the recording is loaded and retimed first); the first
-chunk's call warms up and is not counted. A method without a session (LIFPooling until it has
+chunk's call warms up and the stream's last chunk (cut short by the end of the recording) is
+processed but not counted. A method without a session (LIFPooling until it has
 one) is skipped with a note.
 """
 
@@ -123,12 +124,11 @@ class ReplayResult:
     @property
     def sustained_rate(self) -> float | None:
         """Input rate (events/s) at which the 99th percentile of a chunk's time would reach the
-        chunk's duration: one over the 99th percentile of the time per input event."""
-        per_event = [s / n for s, n in zip(self.seconds, self.chunk_events) if n]
-        if not per_event:
+        chunk's duration, for chunk times in proportion to their events."""
+        p99 = self.p99_s
+        if p99 is None or p99 <= 0:
             return None
-        p99 = float(np.percentile(per_event, 99))
-        return None if p99 <= 0 else 1.0 / p99
+        return self.rate * self.chunk_us * 1e-6 / p99
 
     def summary(self) -> dict[str, Any]:
         """The result with its statistics, for JSON."""
@@ -201,7 +201,8 @@ def replay(
         lagging: record the output delay of every output event.
 
     Returns:
-        The :class:`ReplayResult`; the first chunk warms up and is not timed.
+        The :class:`ReplayResult`; the first chunk warms up and the stream's last chunk is
+        cut short by its end: both are processed but not timed.
 
     Example:
         >>> from evdown_torch import Downsample
@@ -210,7 +211,7 @@ def replay(
         >>> ev["t"] = [0, 500, 1000, 1500, 2500, 4000]
         >>> r = replay(Downsample((4, 4, 2), factor=2), ev, chunk_us=1000)
         >>> r.chunks, r.events_in, r.events_out, len(r.seconds)
-        (4, 4, 6, 4)
+        (3, 3, 6, 3)
     """
     chunk_us = check_positive_int("chunk_us", chunk_us)
     result = ReplayResult(label or type(transform).__name__, rate, chunk_us)
@@ -223,7 +224,7 @@ def replay(
         start, start_cpu = time.perf_counter(), time.process_time()
         out = session(chunk)
         elapsed, cpu = time.perf_counter() - start, time.process_time() - start_cpu
-        if k:
+        if 0 < k < len(bounds) - 2:  # neither the warm-up nor the stream's last chunk
             result.seconds.append(elapsed)
             result.cpu_seconds.append(cpu)
             result.chunk_events.append(len(chunk))

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import torch
 
-from evdown_torch._tensors import changes, chunk_bounds, region_of, sort_by_time
+from evdown_torch._tensors import (
+    changes,
+    chunk_bounds,
+    region_of,
+    sort_by_time,
+    stable_sort_small,
+)
 from evdown_torch.events import Events
 
 __all__ = ["drop_repeats", "event_funnelling"]
@@ -98,8 +104,9 @@ def _funnel_sorted(events: Events, factor: tuple[int, int]) -> Events:
     height = int(y.max()) + 1
     key.mul_(height).add_(y).mul_(width).add_(x).mul_(2).add_(events.p)
     # Equal keys share t, so they lie in one run of equal t; a stable sort of the keys puts
-    # the first occurrence of each first.
-    sorted_key, order = torch.sort(key, stable=True)
+    # the first occurrence of each first (as int32 when the keys fit: several times faster).
+    bound = (int(key[-1]) + 1) * height * width * 2
+    sorted_key, order = stable_sort_small(key, bound)
     first = changes(sorted_key)
     duplicates = order[~first]
     if duplicates.shape[0] == 0:
