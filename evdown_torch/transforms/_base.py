@@ -1,4 +1,4 @@
-"""The shape every downscaling transform shares."""
+"""The shape every downscaling transform shares, and the one streaming session of all."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import torch
 
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import check_factor, check_positive_float, check_sensor_size, output_size
-from evdown_torch.events import Events, EventFormat, EventsLike, from_events, to_events
+from evdown_torch.events import EventFormat, Events, EventsLike, from_events, to_events
 from evdown_torch.transforms.functional._reference import threshold_fraction
 
 
@@ -253,7 +253,7 @@ class Chain(Streaming):
         for transform in transforms:
             if not isinstance(transform, Streaming):
                 raise TypeError(
-                    "Chain takes evdown_torch transforms, got " f"{type(transform).__name__}"
+                    f"Chain takes evdown_torch transforms, got {type(transform).__name__}"
                 )
         object.__setattr__(self, "transforms", tuple(transforms))
 
