@@ -235,3 +235,15 @@ def test_bad_max_delay_is_refused(max_delay):
 def test_fractional_delay_is_refused_for_integer_timestamps():
     with pytest.raises(ValueError, match="whole number"):
         CubicEstimation(SENSOR, factor=2, max_delay=2.5)(torch.tensor([[0, 0, 1, 1]]))
+
+
+@pytest.mark.parametrize("name", ["funnelling", "event_count", "temporal_then_count"])
+def test_sessions_stay_on_the_chunks_device(name, device, rng):
+    arr = random_stream(rng, 400, SENSOR, t_max=80)
+    data = torch.tensor(np.stack([arr["x"], arr["y"], arr["t"], arr["p"]], 1).astype(np.int64),
+                        device=device)
+    transform = TRANSFORMS[name]
+    session = transform.session()
+    parts = [session(chunk) for chunk in torch.split(data, 70)] + [session.flush()]
+    assert all(part.device == data.device for part in parts)
+    assert torch.equal(torch.cat(parts), transform(data))
