@@ -16,41 +16,22 @@ from evdown_torch.checks import (
     check_factor,
     check_non_negative_float,
     check_positive_float,
-    check_time_constant,
     check_unit_interval,
+    output_size,
 )
 from evdown_torch.models._snn import unregistered
+from evdown_torch.transforms.functional.lif import (
+    DEFAULT_THRESHOLD,
+    DEFAULT_WEIGHT,
+    RESET_MECHANISMS,
+    ResetMechanism,
+    decay_factor,
+)
 
-__all__ = ["RESET_MECHANISMS", "SpikingPooling", "decay_factor", "resolve_beta"]
+__all__ = ["SpikingPooling", "decay_factor", "resolve_beta"]
 
-ResetMechanism = Literal["subtract", "zero", "none"]
-RESET_MECHANISMS: tuple[str, ...] = ("subtract", "zero", "none")
-
-#: Defaults shared with :class:`~evdown_torch.transforms.LIFPooling`: a neuron needs about four
-#: same-polarity input events within a few time constants to fire (see LIFPooling's docstring).
-DEFAULT_THRESHOLD = 1.0
-DEFAULT_WEIGHT = 0.3
+#: The module's leak when neither ``tau`` nor ``beta`` is given: ``tau`` = 10 steps.
 DEFAULT_TAU_STEPS = 10.0
-
-
-def decay_factor(dt: float, tau: float) -> float:
-    """Membrane decay per time step, ``beta = exp(-dt / tau)``.
-
-    Args:
-        dt: length of a time step, positive.
-        tau: membrane time constant in the unit of ``dt``, positive; ``math.inf`` gives
-            ``beta = 1`` (no leak, integrate-and-fire).
-
-    Returns:
-        ``beta`` in ``[0, 1]``: 0 as ``tau -> 0`` (no memory), 1 as ``tau -> inf``.
-
-    Example:
-        >>> round(decay_factor(1000.0, 10_000.0), 6)
-        0.904837
-    """
-    dt = check_positive_float("dt", dt)
-    tau = check_time_constant("tau", tau)
-    return math.exp(-dt / tau)
 
 
 def resolve_beta(*, tau: float | None, beta: float | None, dt: float) -> float:

@@ -95,19 +95,6 @@ def test_skipping_empty_steps_equals_stepping_through_them(reset, tau):
     }[reset][beta]
     assert len(fired_in_silence) == expected
     np.testing.assert_array_equal(fired_in_silence, 20 + 10 * np.arange(expected))
-    # the same, with the silence cut into many chunks
-    chunked = dataclasses.replace(pool, chunk_cells=1, chunk_events=1)
-    np.testing.assert_array_equal(chunked(arr), out)
-
-
-def test_chunking_does_not_change_the_output(rng):
-    arr = bursty_stream(rng, 40, (16, 12, 2), gap_max=300, burst=200)
-    pool = LIFPooling((16, 12, 2), 4, dt=5, tau=40.0, weight=0.4)
-    out = pool(arr)
-    assert len(out) > 50
-    for cells, n_events in [(1, 1), (96, 10), (1000, 7), (10**9, 1)]:
-        chunked = dataclasses.replace(pool, chunk_cells=cells, chunk_events=n_events)
-        np.testing.assert_array_equal(chunked(arr), out)
 
 
 def test_integrate_and_fire_limit_on_events():
@@ -357,7 +344,8 @@ def test_calibrate_weight_errors():
         ({"mutual_inhibition": -1}, ValueError, "mutual_inhibition must be a non-negative"),
         ({"reset_mechanism": "soft"}, ValueError, "reset_mechanism must be one of"),
         ({"reset_mechanism": None}, TypeError, "reset_mechanism must be one of"),
-        ({"chunk_cells": 0}, ValueError, "chunk_cells must be a positive integer"),
+        ({"max_output_events": 0}, ValueError, "max_output_events must be a positive integer"),
+        ({"max_output_events": 1.5}, TypeError, "max_output_events must be a positive integer"),
         ({"factor": 9}, ValueError, "larger than the sensor"),
     ],
 )
