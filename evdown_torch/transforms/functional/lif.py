@@ -173,8 +173,8 @@ class _Leak:
         self.offset = self.threshold / (1.0 - b) if b < 1.0 else math.inf  # A, module docstring
 
     def decay(self, u: Tensor, steps: Tensor) -> Tensor:
-        """``u`` after ``steps`` steps of pure decay: ``u * beta ** steps``, rounded once."""
-        return u * torch.pow(self.beta, steps.to(torch.float64)).to(u.dtype)
+        """``u`` after ``steps`` steps of pure decay: ``u * beta ** steps`` (float32 power)."""
+        return u * torch.pow(self.beta32, steps.to(u.dtype))
 
     def chain(self, u: Tensor, j: Tensor) -> Tensor:
         """Membrane ``j`` steps after ``u`` (float64), firing (and resetting) at every one."""
@@ -322,20 +322,21 @@ def lif_pooling(
     # Cells: the (region, step) pairs that hold events, ordered by region, then step.
     region = divide(events.x, fx).add_(divide(events.y, fy), alpha=wo)
     region, order = stable_sort_small(region, plane)  # stable: time order within a region
-    steps = steps[order]
-    polarity = events.p[order].to(torch.int64)
+    steps = steps.index_select(0, order)
+    polarity = events.p.index_select(0, order)
+    del order
     n = region.shape[0]
     starts = torch.ones(n, dtype=torch.bool, device=device)
-    starts[1:] = (region[1:] != region[:-1]) | (steps[1:] != steps[:-1])
-    cell_of_event = torch.cumsum(starts, 0).sub_(1)
+    torch.ne(region[1:], region[:-1], out=starts[1:])
+    starts[1:] |= steps[1:] != steps[:-1]
+    cell_of_event = torch.cumsum(starts, 0)
+    n_cells = int(cell_of_event[-1])
     first = starts.nonzero().squeeze(1)
-    cell_region, cell_step = region[first], steps[first]
-    n_cells = first.shape[0]
-    del region, steps, order, starts
+    cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
+    del region, steps, starts, first
     # Input current of the region's (OFF, ON) neurons: w * S - w_inh * S', in float32.
-    counts = torch.zeros(n_cells * 2, dtype=f32, device=device)
-    counts.index_add_(0, cell_of_event * 2 + polarity, torch.ones(n, dtype=f32, device=device))
-    counts = counts.view(n_cells, 2)
+    counts = torch.bincount(cell_of_event.mul_(2).add_(polarity).sub_(2), minlength=2 * n_cells)
+    counts = counts.to(f32).view(n_cells, 2)  # exact: fewer than 2**24 events per cell
     del cell_of_event, polarity
     current = counts * torch.tensor(weight, dtype=f32, device=device)
     if mutual_inhibition != 0:
@@ -344,76 +345,86 @@ def lif_pooling(
 
     # Each region's cells: its first one, and the empty steps before and after each cell.
     new_region = torch.ones(n_cells, dtype=torch.bool, device=device)
-    new_region[1:] = cell_region[1:] != cell_region[:-1]
+    torch.ne(cell_region[1:], cell_region[:-1], out=new_region[1:])
     region_first = new_region.nonzero().squeeze(1)
+    n_regions = region_first.shape[0]
     cells_per_region = torch.diff(region_first, append=region_first.new_tensor([n_cells]))
     gap_before = torch.empty_like(cell_step)
-    gap_before[1:] = cell_step[1:] - cell_step[:-1] - 1
-    gap_before[region_first] = cell_step[region_first]  # from the zero membrane before step 0
+    torch.sub(cell_step[1:], cell_step[:-1], out=gap_before[1:]).sub_(1)
+    gap_before.index_copy_(0, region_first, cell_step.index_select(0, region_first))  # from 0
     gap_after = torch.empty_like(cell_step)
     gap_after[:-1] = gap_before[1:]
-    last_of_region = torch.roll(new_region, -1)
-    gap_after[last_of_region] = last_step - cell_step[last_of_region]
+    region_last = torch.roll(region_first, -1).sub_(1)
+    region_last[-1] = n_cells - 1
+    gap_after.index_copy_(0, region_last, last_step - cell_step.index_select(0, region_last))
 
     # Rounds: lanes are regions by decreasing cell count, so round r's lanes are a prefix.
-    by_count = torch.sort(cells_per_region, descending=True, stable=True)
-    lane_of_region = torch.empty_like(by_count.indices)
-    lane_of_region[by_count.indices] = torch.arange(by_count.indices.shape[0], device=device)
+    rounds = int(cells_per_region.max())
+    count_sorted, region_of_lane = stable_sort_small(rounds - cells_per_region, rounds + 1)
+    lane_of_region = torch.empty_like(region_of_lane)
+    lane_of_region.index_copy_(0, region_of_lane, torch.arange(n_regions, device=device))
     region_index = torch.cumsum(new_region, 0).sub_(1)
-    rank = torch.arange(n_cells, device=device) - region_first[region_index]
-    rounds = int(by_count.values[0])
-    # lanes in round r: regions with more than r cells
-    lanes_per_round = torch.searchsorted(
-        by_count.values.flip(0), torch.arange(rounds, device=device), right=True
+    # lanes in round r: the regions with more than r cells
+    lanes_per_round = n_regions - torch.searchsorted(
+        count_sorted.flip(0).neg_().add_(rounds), torch.arange(rounds, device=device),
+        right=True,
     )
-    lanes_per_round = by_count.values.shape[0] - lanes_per_round
     round_start = torch.zeros(rounds + 1, dtype=torch.int64, device=device)
     torch.cumsum(lanes_per_round, 0, out=round_start[1:])
-    slot = round_start[rank] + lane_of_region[region_index]  # position in round order
-    del rank, region_index, lane_of_region
+    # position in round order: round start of the cell's rank, plus its region's lane
+    slot = torch.arange(n_cells, device=device).sub_(region_first.index_select(0, region_index))
+    slot = round_start.index_select(0, slot).add_(lane_of_region.index_select(0, region_index))
+    del region_index, lane_of_region, region_of_lane, count_sorted
     gap_in_rounds = torch.empty(n_cells, 1, dtype=torch.int64, device=device)
-    gap_in_rounds[slot, 0] = gap_before
-    current_in_rounds = torch.empty_like(current)
-    current_in_rounds[slot] = current
+    gap_in_rounds.index_copy_(0, slot, gap_before[:, None])
+    current_in_rounds = torch.empty_like(current).index_copy_(0, slot, current)
     del current
     # A membrane at or below threshold only decays through a gap: beta ** g, rounded once
-    # (exactly snntorch's product for g <= 1).
-    decay_in_rounds = torch.pow(leak.beta, gap_in_rounds.to(torch.float64)).to(f32)
+    # (exactly snntorch's product for g <= 1); after one step of a firing chain, beta ** (g - 1).
+    gap32 = gap_in_rounds.to(f32)
+    decay_in_rounds = torch.pow(beta32, gap32)
+    decay_after_one = torch.pow(beta32, gap32.sub_(1).clamp_(min=0))
+    del gap32
     silent_in_rounds = gap_in_rounds > 0
     chain_in_rounds = torch.zeros(n_cells, 2, dtype=torch.int64, device=device)
 
-    # The rounds: snntorch.Leaky's float32 update at every cell, in its order.
-    mem = torch.zeros(by_count.values.shape[0], 2, dtype=f32, device=device)
+    # The rounds: snntorch.Leaky's float32 update at every cell, in its order. The lanes of
+    # round r are the first lanes of round r - 1, so a lane's membrane is read back from there.
     mem_in_rounds = torch.empty(n_cells, 2, dtype=f32, device=device)
     bounds = round_start.tolist()
-    for r in range(rounds):
+    mem_in_rounds[: bounds[1]] = current_in_rounds[: bounds[1]]  # from zero: beta * 0 + I
+    for r in range(1, rounds):
         a, b = bounds[r], bounds[r + 1]
-        u = mem[: b - a]
+        u = mem_in_rounds[bounds[r - 1] : bounds[r - 1] + b - a]
         fired = u > threshold32  # the reset signal of the next step, unless a gap follows
         w = u * decay_in_rounds[a:b]
         if reset_mechanism == "zero":  # reset at the next step, then silent: W = 0 either way
-            w = w.masked_fill_(fired, 0.0)
+            w.masked_fill_(fired, 0.0)
         elif reset_mechanism == "subtract":
-            moving = fired & silent_in_rounds[a:b]
-            if bool(moving.any()):  # fired, then empty steps: it may go on firing
-                where = moving.nonzero(as_tuple=True)
+            silent = silent_in_rounds[a:b]
+            moving = fired & silent  # fired, then empty steps: one step of the chain, U - theta
+            chain = beta32 * u - threshold32  # (+ a zero current: exact)
+            w = torch.where(moving, chain * decay_after_one[a:b], w)
+            fired &= ~silent
+            longer = moving & (chain > threshold32)
+            if bool(longer.any()):  # still firing after one empty step: the chain goes on
+                where = longer.nonzero(as_tuple=True)
                 gap = gap_in_rounds[a:b].expand(-1, 2)[where]
                 count, w[where], fired[where] = leak.fire_through(u[where], gap)
                 chain_in_rounds[a:b][where] = count
-        u = beta32 * w + current_in_rounds[a:b]
+        out = torch.mul(beta32, w, out=mem_in_rounds[a:b])
+        out += current_in_rounds[a:b]
         if reset_mechanism == "subtract":
-            u -= fired * threshold32
-        mem[: b - a] = u
-        mem_in_rounds[a:b] = u
-    membrane = mem_in_rounds[slot]  # back to cell order
-    chain_before = chain_in_rounds[slot]
-    del mem_in_rounds, current_in_rounds, gap_in_rounds, decay_in_rounds, silent_in_rounds
-    del chain_in_rounds, slot
+            out -= fired * threshold32
+    membrane = mem_in_rounds.index_select(0, slot)  # back to cell order
+    chain_before = chain_in_rounds.index_select(0, slot)
+    del mem_in_rounds, current_in_rounds, gap_in_rounds, decay_in_rounds, decay_after_one
+    del silent_in_rounds, chain_in_rounds, slot
 
     # Spikes at the cells.
     fired = membrane > threshold32
     spike_cell, spike_polarity = fired.nonzero(as_tuple=True)  # cell-major
-    spike_step = cell_step[spike_cell]
+    spike_step = cell_step.index_select(0, spike_cell)
     # Spikes of neurons that go on firing through the silent steps after a cell: found in the
     # rounds (reset "subtract", gaps between cells) or here (the tail after a region's last
     # cell; every gap with reset "none", whose membrane does not depend on them).
@@ -422,10 +433,14 @@ def lif_pooling(
     run_start = cell_step[run_cell] - gap_before[run_cell]
     run_cell = run_cell - 1  # the cell the run follows
     if reset_mechanism != "zero":
-        candidate = fired & (gap_after > 0)[:, None]
-        if reset_mechanism == "subtract":
-            candidate &= last_of_region[:, None]
-        tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
+        if reset_mechanism == "subtract":  # only the tails: the rounds found the others
+            candidate = fired.index_select(0, region_last)
+            candidate &= (gap_after.index_select(0, region_last) > 0)[:, None]
+            tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
+            tail_cell = region_last[tail_cell]
+        else:
+            candidate = fired & (gap_after > 0)[:, None]
+            tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
         tail_length, _, _ = leak.fire_through(
             membrane[tail_cell, tail_polarity], gap_after[tail_cell]
         )
