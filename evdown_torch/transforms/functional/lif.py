@@ -15,21 +15,23 @@ that follows the events:
   chain ``U_j = beta * U_{j-1} - theta`` falls below threshold after a number of spikes solved
   from ``beta ** j * (U + A) - A > theta``, ``A = theta / (1 - beta)`` (``U - j * theta`` for
   ``beta = 1``); with ``"none"`` ``beta ** j * U > theta`` gives the count (every step for
-  ``beta = 1``); with ``"zero"`` the neuron is silent after its reset. Counts are solved in
-  float64 and checked against the chain's value on both sides, then the membrane at the next
-  cell follows from the same closed form. No loop runs over the steps of a gap.
+  ``beta = 1``); with ``"zero"`` the neuron is silent after its reset. The first
+  :data:`EXACT_CHAIN_STEPS` steps of a chain use the float32 arithmetic of stepping (chains
+  are usually shorter); a longer chain continues in closed form, its count solved in float64
+  and checked against the chain's value on both sides. No loop runs over the steps of a gap.
 - **Rounds.** Cells are processed by their rank within their region: round ``r`` updates the
   ``r``-th cell of every region that has one, all at once (regions are laid out by decreasing
   number of cells, so the regions of a round are a prefix and every update is a slice). The
-  number of rounds is the largest number of cells of one region; the work is proportional to
-  the cells.
+  element work is proportional to the cells; the number of rounds (a fixed cost of a few
+  tensor operations each) is the largest number of cells of one region, at most the number
+  of steps that hold events.
 
 Exactness. The update at a cell is snntorch's float32 arithmetic, in its order, so runs of
-consecutive active steps are bit-identical to the module. Across a gap the decay ``beta ** g``
-and the firing chain are one float64 evaluation rounded once, where stepping rounds ``g`` times
-in float32 (identical when ``beta`` is 0, 1 or a power of two and the membrane's float32
-arithmetic is exact, e.g. with weights and thresholds that are multiples of a power of two);
-a spike can differ only where a membrane lies within float32 rounding of the threshold.
+consecutive active steps, and gaps of one step, are bit-identical to the module. Over a longer
+gap the decay ``beta ** g`` is one float32 power where stepping rounds ``g`` products
+(identical when ``beta`` is 0, 1 or a power of two), and a chain longer than
+:data:`EXACT_CHAIN_STEPS` is one float64 evaluation rounded once; a spike can differ only where
+a membrane lies within float32 rounding of the threshold.
 
 Limits. Step indices are int64: a ``dt`` that would cut the stream into more than ``2 ** 62``
 steps is refused, and a ``dt`` longer than the stream puts every event in step 0. The output
@@ -398,9 +400,10 @@ def lif_pooling(
         u = mem_in_rounds[bounds[r - 1] : bounds[r - 1] + b - a]
         fired = u > threshold32  # the reset signal of the next step, unless a gap follows
         w = u * decay_in_rounds[a:b]
+        reset = None  # R = 1 where a neuron fired in the step just before this cell
         if reset_mechanism == "zero":  # reset at the next step, then silent: W = 0 either way
             w.masked_fill_(fired, 0.0)
-        elif reset_mechanism == "subtract":
+        elif reset_mechanism == "subtract" and bool(fired.any()):
             silent = silent_in_rounds[a:b]
             moving = fired & silent  # fired, then empty steps: one step of the chain, U - theta
             chain = beta32 * u - threshold32  # (+ a zero current: exact)
@@ -412,10 +415,11 @@ def lif_pooling(
                 gap = gap_in_rounds[a:b].expand(-1, 2)[where]
                 count, w[where], fired[where] = leak.fire_through(u[where], gap)
                 chain_in_rounds[a:b][where] = count
+            reset = fired
         out = torch.mul(beta32, w, out=mem_in_rounds[a:b])
         out += current_in_rounds[a:b]
-        if reset_mechanism == "subtract":
-            out -= fired * threshold32
+        if reset is not None:
+            out -= reset * threshold32
     membrane = mem_in_rounds.index_select(0, slot)  # back to cell order
     chain_before = chain_in_rounds.index_select(0, slot)
     del mem_in_rounds, current_in_rounds, gap_in_rounds, decay_in_rounds, decay_after_one
