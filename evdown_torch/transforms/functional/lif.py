@@ -209,51 +209,56 @@ class _Leak:
         count += (self.chain(u, count + 1.0) > theta).to(count.dtype)
         return count.clamp_(0.0, float(MAX_STEPS))
 
-    def fire_through(self, u: Tensor, gap: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """A neuron that fired (float32 membrane ``u > threshold``), then ``gap`` empty steps.
+    def fire_through(
+        self, u: Tensor, gap: Tensor, alive: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Neurons that fired (float32 membrane ``u > threshold``), then ``gap`` empty steps.
 
-        The first :data:`EXACT_CHAIN_STEPS` steps of the chain use snntorch's float32
-        arithmetic; a chain still firing after them continues in closed form.
+        The first :data:`EXACT_CHAIN_STEPS` steps of a chain use snntorch's float32
+        arithmetic, all lanes at once; a chain still firing after them continues in closed
+        form.
 
         Args:
-            u: ``(n,)`` float32 membranes above threshold.
-            gap: ``(n,)`` int64 numbers of empty steps, at least 1.
+            u: float32 membranes, above threshold where ``alive``.
+            gap: int64 numbers of empty steps, broadcastable to ``u``, at least 1 where
+                ``alive``.
+            alive: bool, the lanes to compute; the others are returned as they came
+                (``count`` 0, ``W = u``, ``R = u > threshold``).
 
         Returns:
-            ``(count, W, R)``: ``(n,)`` int64 spikes fired in the gap (in its first ``count``
-            steps), float32 membranes after the gap and bool resets (fired at its last step).
+            ``(count, W, R)``: int64 spikes fired in the gap (in its first ``count`` steps),
+            float32 membranes after the gap and bool resets (fired at its last step).
         """
-        n = u.shape[0]
-        count = torch.zeros(n, dtype=torch.int64, device=u.device)
         if self.reset == "zero":  # reset to zero at the first empty step: silent afterwards
-            return count, torch.zeros_like(u), torch.zeros(n, dtype=torch.bool, device=u.device)
-        w = torch.empty_like(u)
-        still = torch.empty(n, dtype=torch.bool, device=u.device)
-        lanes = torch.arange(n, device=u.device)
+            return (torch.zeros(u.shape, dtype=torch.int64, device=u.device),
+                    u.masked_fill(alive, 0.0), (u > self.threshold32) & ~alive)
         v = u
-        for j in range(1, EXACT_CHAIN_STEPS + 1):  # a bounded number of steps
-            v = self.beta32 * v  # + a zero current: exact
+        took_step = []  # per step: the lanes that took it (a chain stops for good)
+        fired = []  # per step: the lanes that fired in it
+        for j in range(EXACT_CHAIN_STEPS):  # a bounded number of steps, all lanes at once
+            if j and not bool(alive.any()):
+                break
+            after = self.beta32 * v  # + a zero current: exact
             if self.reset == "subtract":
-                v = v - self.threshold32
-            fires = v > self.threshold32
-            count[lanes] += fires
-            left = gap[lanes] - j
-            done = ~fires | (left == 0)
-            if bool(done.any()):
-                ended = lanes[done]
-                w[ended] = self.decay(v[done], left[done])  # below threshold: it only decays
-                still[ended] = fires[done]
-                keep = ~done
-                lanes, v = lanes[keep], v[keep]
-                if lanes.numel() == 0:
-                    return count, w, still
-        left = (gap[lanes] - EXACT_CHAIN_STEPS).to(torch.float64)
-        v64 = v.to(torch.float64)
-        run = self.run(v64)
-        chained = torch.minimum(left, run + 1.0)  # steps of the firing chain, then decay
-        w[lanes] = (torch.pow(self.beta, left - chained) * self.chain(v64, chained)).to(u.dtype)
-        still[lanes] = run >= left
-        count[lanes] += torch.minimum(run, left).to(torch.int64)
+                after = after - self.threshold32
+            v = torch.where(alive, after, v)
+            took_step.append(alive)
+            alive = alive & (v > self.threshold32)
+            fired.append(alive)
+            alive = alive & (gap > j + 1)
+        steps = torch.stack(took_step).sum(0)
+        count = torch.stack(fired).sum(0)
+        w = v * torch.pow(self.beta32, (gap - steps).to(v.dtype))  # ended chains only decay
+        still = v > self.threshold32  # above threshold only where the gap ended the chain
+        if bool(alive.any()):  # chains longer than EXACT_CHAIN_STEPS: closed form
+            lanes = alive.nonzero(as_tuple=True)
+            left = (gap.expand_as(v)[lanes] - steps[lanes]).to(torch.float64)
+            v64 = v[lanes].to(torch.float64)
+            run = self.run(v64)
+            chained = torch.minimum(left, run + 1.0)  # steps of the firing chain, then decay
+            w[lanes] = (torch.pow(self.beta, left - chained) * self.chain(v64, chained)).to(u.dtype)
+            still[lanes] = run >= left
+            count[lanes] += torch.minimum(run, left).to(torch.int64)
         return count, w, still
 
 
@@ -411,15 +416,15 @@ def lif_pooling(
             fired &= ~silent
             longer = moving & (chain > threshold32)
             if bool(longer.any()):  # still firing after one empty step: the chain goes on
-                where = longer.nonzero(as_tuple=True)
-                gap = gap_in_rounds[a:b].expand(-1, 2)[where]
-                count, w[where], fired[where] = leak.fire_through(u[where], gap)
-                chain_in_rounds[a:b][where] = count
+                count, chained, still = leak.fire_through(u, gap_in_rounds[a:b], longer)
+                w = torch.where(longer, chained, w)
+                fired = torch.where(longer, still, fired)
+                chain_in_rounds[a:b] = count
             reset = fired
         out = torch.mul(beta32, w, out=mem_in_rounds[a:b])
         out += current_in_rounds[a:b]
         if reset is not None:
-            out -= reset * threshold32
+            torch.where(reset, out - threshold32, out, out=out)
     membrane = mem_in_rounds.index_select(0, slot)  # back to cell order
     chain_before = chain_in_rounds.index_select(0, slot)
     del mem_in_rounds, current_in_rounds, gap_in_rounds, decay_in_rounds, decay_after_one
@@ -445,8 +450,9 @@ def lif_pooling(
         else:
             candidate = fired & (gap_after > 0)[:, None]
             tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
+        tail_gap = gap_after.index_select(0, tail_cell)
         tail_length, _, _ = leak.fire_through(
-            membrane[tail_cell, tail_polarity], gap_after[tail_cell]
+            membrane[tail_cell, tail_polarity], tail_gap, tail_gap > 0
         )
         run_cell = torch.cat([run_cell, tail_cell])
         run_polarity = torch.cat([run_polarity, tail_polarity])
