@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
+from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import (
     check_choice,
     check_non_negative_float,
@@ -15,7 +16,6 @@ from evdown_torch.checks import (
 )
 from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.transforms._base import Downscaler
-from evdown_torch.transforms.functional._common import sort_by_time
 from evdown_torch.transforms.functional.lif import (
     DEFAULT_DT,
     DEFAULT_MAX_OUTPUT_EVENTS,

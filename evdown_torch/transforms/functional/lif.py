@@ -47,14 +47,9 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import divide, region_xy, sort_by_time, stable_sort_small
 from evdown_torch.checks import check_positive_float, check_time_constant, output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import (
-    divide,
-    region_xy,
-    sort_by_time,
-    stable_sort_small,
-)
 
 __all__ = [
     "DEFAULT_DT",
