@@ -42,10 +42,14 @@ class LIFPooling(Downscaler):
     the events of a ``fx x fy`` block drive the block's two neurons (weight ``+weight`` from
     same-polarity events, ``-mutual_inhibition`` from the other polarity), which follow
     ``snntorch.Leaky`` with ``beta = exp(-dt / tau)`` (see
-    :class:`~evdown_torch.models.SpikingPooling`, which computes exactly the same spikes on the
+    :class:`~evdown_torch.models.SpikingPooling`, which computes the same spikes on the
     dense ``ToFrame``-like tensor; :meth:`to_module` builds it). A spike in step ``k`` becomes an
     event at the block's coordinates with the neuron's polarity, at
-    ``t_start + (k + 1) * dt`` clipped to ``t_end``. Steps without events cost nothing.
+    ``t_start + (k + 1) * dt`` clipped to ``t_end``. The kernel is event-driven: a neuron is
+    touched only at the steps where its block has events, the silences in between (decay, and
+    a neuron firing on above threshold) are solved in closed form, so the cost follows the
+    events, not steps x regions (see :mod:`evdown_torch.transforms.functional.lif`, also for
+    the float32 rounding over a silence, the only difference from stepping).
 
     Choosing the settings. ``dt`` and ``tau`` are in the stream's time unit (microseconds for
     Tonic datasets; nothing is rescaled). A neuron fires once its membrane *exceeds*
@@ -129,7 +133,8 @@ class LIFPooling(Downscaler):
 
         Run on the stream's frames ``ToFrame(sensor_size, time_window=dt,
         include_incomplete=True)`` (windows from the first event on, as a ``(T, 1, 2, H, W)``
-        float tensor), it gives exactly the spikes that this transform turns into events.
+        float tensor), it gives the spikes that this transform turns into events (up to float32
+        rounding over silences, see :mod:`evdown_torch.transforms.functional.lif`).
         """
         from evdown_torch.models.pooling import SpikingPooling  # models build on transforms
 
