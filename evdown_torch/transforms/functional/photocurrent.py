@@ -1,0 +1,612 @@
+"""Photocurrent pooling kernels (SEMANTICS.md method 7): events to video to events.
+
+Each input pixel keeps an integer level ``L_p`` (ON +1, OFF -1) and its log intensity is
+``c * L_p``. A region's photocurrent is the mean of its pixels' intensities,
+``I_r = (1 / n_r) * sum exp(c * L_p)``, and the output pixel runs the DVS reference rule on
+``log I_r`` at contrast ``theta``: with ``u = log(I_r) / theta``, the shared rule of
+:mod:`~evdown_torch.transforms.functional._reference` (floor of ``u`` and whether ``u`` is on a
+level, a ``u`` within :data:`~evdown_torch.transforms.functional._knots.SNAP` of an integer
+counting as on it).
+
+*Events mode* (:func:`photocurrent_events`): ``log I_r`` changes only at input events. Per
+region, the photocurrent after each event is a running sum of the changes ``exp(c * L_after) -
+exp(c * L_before)``. Levels stay exact int64; the sums are *re-anchored*: at the start of every
+piece of the stream each touched region's sum is recomputed from its pixels' integer levels,
+relative to the region's brightest pixel (``sum exp(c * (L_p - m_r))`` lies in ``[1, n_r]``,
+so nothing overflows), and inside a piece the changes are summed in fixed point (exact int64
+high parts, float64 remainders) so that regions do not pollute each other. Where the running
+sum's error bound (a few ulps per change) would exceed ``1e-11 * theta`` of the sum, or an
+exponent would leave float64's range, the piece is cut there and the rest re-anchored.
+
+*Frames mode* (:func:`photocurrent_frames`): frames at ``t_start + k / fps`` (the last one
+clipped to ``t_end``), the log intensity of each region interpolated linearly in time between
+consecutive frames, crossings at exact times. Without a leak a region's frame value changes only
+at frames that follow its events, so the kernel works on (region, frame) pairs with events and
+recomputes each such frame value from the pixels' integer levels: the cost follows the events.
+With a leak (``cutoff_hz > 0``) every pixel decays between frames, so frames are built densely
+in bounded chunks of frames (never the whole recording at once).
+"""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._common import (
+    CHUNK_EVENTS,
+    chunk_bounds,
+    region_of,
+    region_xy,
+    sort_by_time,
+    stable_sort_small,
+)
+from evdown_torch.transforms.functional._knots import (
+    HALF_TOLERANCE,
+    SNAP,
+    changes,
+    emit,
+    ends,
+    run_index,
+    take,
+    where_true,
+)
+from evdown_torch.transforms.functional._reference import (
+    crossings,
+    group_by_region,
+    reference_index,
+    region_pixel_count,
+)
+
+#: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut (exp(709) overflows).
+MAX_EXPONENT = 600.0
+
+#: Unit roundoff of float64.
+EPS = 2.0**-53
+
+#: Frame values per chunk (pixels x frames with a leak, region pixels x steps without one).
+CHUNK_VALUES = 1 << 22
+
+#: Timestamps per second: ``fps`` and ``cutoff_hz`` read ``t`` as microseconds.
+TICKS_PER_SECOND = 1_000_000
+
+
+class PhotocurrentState(NamedTuple):
+    """State of a photocurrent pooling stream between chunks (events mode).
+
+    Attributes:
+        level: ``(H * W,)`` int64 level of every input pixel (ON +1, OFF -1), index ``y * W + x``.
+        index: ``(Ho * Wo,)`` int64 reference index ``q`` of every output region.
+        last_t: ``()`` tensor, the latest timestamp seen (``None`` before any event).
+    """
+
+    level: Tensor
+    index: Tensor
+    last_t: Tensor | None
+
+
+def initial_state(
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    device: torch.device | str | None = None,
+) -> PhotocurrentState:
+    """A fresh state: every pixel at level 0 (intensity 1), every region with ``q = 0``."""
+    w, h, _ = sensor_size
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    return PhotocurrentState(
+        torch.zeros(w * h, dtype=torch.int64, device=device),
+        torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
+        None,
+    )
+
+
+def check_contrast_range(contrast: float, threshold: float) -> None:
+    """Refuse contrasts whose results float64 cannot represent (see the transform)."""
+    if not 1e-6 <= contrast <= 50.0:
+        raise ValueError(
+            f"contrast must lie in [1e-6, 50] (log units per input event), got {contrast!r}"
+        )
+    if not 1e-6 <= threshold <= 1e6:
+        raise ValueError(f"threshold must lie in [1e-6, 1e6] (log units), got {threshold!r}")
+
+
+def _check_level_range(max_level: int, contrast: float, threshold: float) -> None:
+    """Refuse streams whose level index ``c * L / theta`` would lose integer precision."""
+    if max_level * contrast / threshold >= 2.0**50:
+        raise ValueError(
+            f"contrast / threshold = {contrast / threshold:g} times up to {max_level} levels "
+            "exceeds 2**50 output levels; float64 cannot resolve them"
+        )
+
+
+def _snap(u: Tensor) -> tuple[Tensor, Tensor]:
+    """``(floor(u), u is on a level)``, a ``u`` within :data:`SNAP` of an integer on it."""
+    nearest = torch.round(u)
+    on_level = (u - nearest).abs() <= SNAP
+    return torch.where(on_level, nearest, torch.floor(u)).to(torch.int64), on_level
+
+
+def _region_pixels(
+    regions: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+) -> tuple[Tensor, Tensor]:
+    """Pixel ids ``y * W + x`` of every pixel of ``regions``: ``(R, fx * fy)`` int64 and a
+    same-shaped bool mask of those inside the sensor (ids outside are 0)."""
+    w, h, _ = sensor_size
+    fx, fy = factor
+    rx, ry = region_xy(regions, -(-w // fx))
+    grid = torch.arange(fx * fy, device=regions.device)
+    px = rx[:, None] * fx + grid % fx
+    py = ry[:, None] * fy + torch.div(grid, fx, rounding_mode="floor")
+    inside = (px < w) & (py < h)
+    return torch.where(inside, py * w + px, 0), inside
+
+
+def _log_mean_exp(levels: Tensor, inside: Tensor, contrast: float) -> tuple[Tensor, Tensor]:
+    """Per row: brightest level ``m`` and ``sum exp(c * (L - m))`` over the ``inside`` entries.
+
+    Args:
+        levels: ``(R, n)`` int64 pixel levels.
+        inside: ``(R, n)`` bool, the entry is a sensor pixel.
+        contrast: ``c``.
+
+    Returns:
+        ``(m, s)``: ``(R,)`` int64 and ``(R,)`` float64 in ``[1, n]``.
+    """
+    lowest = torch.iinfo(torch.int64).min
+    m = torch.where(inside, levels, lowest).amax(1)
+    below = torch.where(inside, levels - m[:, None], 0).to(torch.float64).mul_(contrast)
+    return m, torch.where(inside, torch.exp(below), 0.0).sum(1)
+
+
+def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
+    """Running sum of float64 ``values`` restarting at each segment, without cross-talk.
+
+    High parts on a fixed-point grid add exactly in int64; only the small remainders are
+    summed in float64, so a segment's sum does not carry the rounding of earlier segments.
+    """
+    bound = float(values.abs().max()) if values.numel() else 0.0
+    if bound == 0.0:
+        return torch.zeros_like(values)
+    scale = math.ldexp(1.0, 61 - values.shape[0].bit_length() - math.frexp(bound)[1])
+    high_f = torch.round(values * scale)
+    rest = values - high_f / scale
+    high = high_f.to(torch.int64)
+    whole = torch.cumsum(high, 0)
+    whole -= take(take(whole - high, starts_at), segment)
+    part = torch.cumsum(rest, 0)
+    part -= take(take(part - rest, starts_at), segment)
+    return whole.to(torch.float64).div_(scale).add_(part)
+
+
+class _PixelLevels(NamedTuple):
+    """Levels after each event of a time-ordered piece, in pixel order."""
+
+    pixel: Tensor  # (n,) int64 pixel id, ascending (time order inside a pixel)
+    order: Tensor  # (n,) int64 time position of each
+    level: Tensor  # (n,) int64 level of the pixel after the event
+    new_state: Tensor  # (H * W,) int64 levels after the piece
+
+
+def _pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> _PixelLevels:
+    """Exact level of its pixel after every event, starting from ``levels``."""
+    pixel = events.y * width + events.x
+    pixel, order = stable_sort_small(pixel, width * height)
+    step = take(events.p, order).to(torch.int64).mul_(2).sub_(1)
+    new_pixel = changes(pixel)
+    level = torch.cumsum(step, 0)
+    starts = where_true(new_pixel)
+    base = take(levels, take(pixel, starts)) - take(level - step, starts)
+    level += take(base, run_index(new_pixel))
+    new_state = levels.clone()
+    last = where_true(ends(new_pixel))
+    new_state.scatter_(0, take(pixel, last), take(level, last))
+    return _PixelLevels(pixel, order, level, new_state)
+
+
+# --------------------------------------------------------------------------------------------
+# Events mode
+
+
+def photocurrent_events(
+    events: Events,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    contrast: float,
+    threshold: float,
+    state: PhotocurrentState | None = None,
+) -> tuple[Events, PhotocurrentState]:
+    """Photocurrent pooling, events mode (SEMANTICS.md method 7): causal, streamable.
+
+    After each input event, in stable time order, its region's ``u = log(I_r) / threshold``
+    with ``I_r = mean(exp(contrast * L_p))`` is tested with the DVS reference rule; emitted
+    events take the triggering event's ``t``.
+
+    Args:
+        events: ``N`` input events (any order; sorted stably by ``t`` here).
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        contrast: ``c``, the input camera's contrast threshold in log units, in [1e-6, 50].
+        threshold: ``theta``, the output pixel's contrast threshold in log units.
+        state: the state returned for the previous chunk of the same stream, or ``None``.
+
+    Returns:
+        ``(output events sorted by t, state after the last event)``.
+
+    Example:
+        Two ON events in a 2x1 region at contrast ln 2: the photocurrent goes 1 -> 1.5 -> 2,
+        so only the second event reaches the level ``ln 2``.
+
+        >>> ev = Events.from_columns([0, 1], [0, 0], [5, 9], [1, 1])
+        >>> out, _ = photocurrent_events(ev, sensor_size=(2, 1, 2), factor=(2, 1),
+        ...                              contrast=math.log(2), threshold=math.log(2))
+        >>> out.t.tolist(), out.p.tolist()
+        ([9], [True])
+    """
+    check_contrast_range(contrast, threshold)
+    events = sort_by_time(events)
+    if state is None:
+        state = initial_state(sensor_size, factor, events.device)
+    n = events.num_events
+    if n == 0:
+        return Events.empty(events.t.dtype, events.device), state
+    _check_level_range(int(state.level.abs().max()) + n, contrast, threshold)
+    outputs = []
+    start = 0
+    while start < n:
+        stop = min(start + CHUNK_EVENTS, n)
+        while True:
+            piece = Events(*(column[start:stop] for column in events))
+            result = _events_piece(piece, sensor_size, factor, contrast, threshold, state)
+            if isinstance(result, int):  # cut before the first event the sums cannot hold
+                stop = start + result
+                continue
+            break
+        out, state = result
+        outputs.append(out)
+        start = stop
+    return Events(*(torch.cat(columns) for columns in zip(*outputs, strict=True))), state
+
+
+def _events_piece(
+    events: Events,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    contrast: float,
+    threshold: float,
+    state: PhotocurrentState,
+) -> tuple[Events, PhotocurrentState] | int:
+    """Events mode on one time-sorted piece anchored at ``state``; or, where the running sums
+    cannot hold the piece to the required accuracy, the length (>= 1) of the prefix to take."""
+    w, h, _ = sensor_size
+    out_w = output_size(sensor_size, factor)[0]
+    levels = _pixel_levels(events, w, h, state.level)
+    level_after = torch.empty_like(levels.level).scatter_(0, levels.order, levels.level)
+    rx, ry = region_of(events, factor)
+    groups = group_by_region(rx, ry, out_w)
+    region = groups.region
+    del rx, ry
+    firsts = where_true(groups.first)
+    rank = run_index(groups.first)
+    touched = take(region, firsts)
+
+    # Anchor: each touched region's sum recomputed from the integer levels before the piece.
+    ids, inside = _region_pixels(touched, sensor_size, factor)
+    m, anchor = _log_mean_exp(state.level[ids], inside, contrast)
+    del ids, inside
+
+    # Change of the region's sum at each event, relative to its brightest anchored pixel.
+    on = take(events.p, groups.order)
+    before = take(level_after, groups.order) - on.to(torch.int64).mul(2).sub(1)
+    before -= take(m, rank)
+    exponent = before.to(torch.float64).mul_(contrast)
+    del before
+    up_down = torch.tensor([math.expm1(-contrast), math.expm1(contrast)],
+                           dtype=torch.float64, device=on.device)
+    change = torch.exp(exponent).mul_(take(up_down, on.to(torch.int64)))
+    anchor_at = take(anchor, rank)
+    total = _segment_sum(change, firsts, rank).add_(anchor_at)
+    spent = _segment_sum(change.abs_(), firsts, rank).add_(anchor_at)
+    tolerance = max(1e-11 * threshold, 16 * EPS)
+    bad = (spent * (4 * EPS) > total * tolerance) | (exponent > MAX_EXPONENT)
+    del change, spent, anchor_at, exponent
+    if events.num_events > 1 and bool(bad.any()):
+        return max(int(take(groups.order, where_true(bad)).min()), 1)
+
+    # u = log(I_r) / theta = (c * m + log(sum / n_r)) / theta, then the reference rule.
+    log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
+    u = torch.log(total).sub_(take(log_pixels, rank)).div_(threshold)
+    u += take(m, rank).to(torch.float64).mul_(contrast / threshold)
+    floor_u, on_level = _snap(u)
+    del u, total
+    q = reference_index(floor_u, on_level, groups.first, take(state.index, region))
+    q_before = q.roll(1)
+    q_before[firsts] = take(state.index, touched)
+    cross = crossings(q_before, q)
+
+    # Back to time order: crossings of one step keep their level order.
+    source, by_time = torch.sort(take(groups.order, cross.step), stable=True)
+    out_x, out_y = region_xy(take(region, take(cross.step, by_time)), out_w)
+    out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
+
+    lasts = where_true(ends(groups.first))
+    new_index = state.index.clone()
+    new_index.scatter_(0, take(region, lasts), take(q, lasts))
+    return out, PhotocurrentState(levels.new_state, new_index, events.t[-1].clone())
+
+
+# --------------------------------------------------------------------------------------------
+# Frames mode
+
+
+class FrameClock(NamedTuple):
+    """Frame times of a stream: frame ``k`` at offset ``min(k * period, duration)`` from
+    ``t_start`` (ticks), ``period = denominator / numerator`` exactly.
+
+    Attributes:
+        numerator: ``a`` of ``fps = a / b`` (``fps`` as the nearest fraction, ``b <= 10**6``).
+        denominator: ``b * 10**6`` (ticks per second times ``b``).
+        duration: ``t_end - t_start`` as a float (ticks).
+    """
+
+    numerator: int
+    denominator: int
+    duration: float
+
+    @staticmethod
+    def make(fps: float, duration: float | int) -> FrameClock:
+        """The clock of a stream lasting ``duration`` ticks at ``fps`` frames per second."""
+        fraction = Fraction(fps).limit_denominator(10**6)
+        if fraction <= 0:
+            raise ValueError(f"fps must be at least 1e-6 frames per second, got {fps!r}")
+        if duration * fraction.numerator >= 2**62:
+            raise ValueError(
+                f"fps={fps!r} over a stream of {duration} ticks gives frame indices beyond "
+                "int64's exact range"
+            )
+        return FrameClock(fraction.numerator, fraction.denominator * TICKS_PER_SECOND,
+                          float(duration))
+
+    @property
+    def period(self) -> float:
+        """Frame period in ticks."""
+        return self.denominator / self.numerator
+
+    def index(self, offset: Tensor) -> Tensor:
+        """int64 index of the first frame at or after each ``offset`` (the frame holding it)."""
+        if offset.is_floating_point():
+            return torch.ceil(offset * (self.numerator / self.denominator)).to(torch.int64)
+        scaled = offset * -self.numerator
+        return -torch.div(scaled, self.denominator, rounding_mode="floor")
+
+    def time(self, k: Tensor) -> Tensor:
+        """float64 offset of frames ``k`` from ``t_start`` (frame -1 is at 0 too)."""
+        return (k.to(torch.float64) * self.period).clamp_(0.0, self.duration)
+
+
+def photocurrent_frames(
+    events: Events,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    contrast: float,
+    threshold: float,
+    fps: float,
+    cutoff_hz: float = 0.0,
+) -> Events:
+    """Photocurrent pooling, frames mode (SEMANTICS.md method 7): the paper's literal pipeline.
+
+    Intensity frames at ``t_start + k / fps`` (``t`` in microseconds; the last frame is
+    clipped to ``t_end``) hold every event up to their time. Each pixel's log intensity is
+    ``contrast`` times its level, or, with ``cutoff_hz > 0``, the high-pass filtered sum in
+    which each event's ``+-contrast`` decays as ``exp(-2 pi cutoff_hz dt)``. Frames are
+    area-averaged over regions in linear intensity; between consecutive frames each region's
+    ``log I_r`` is interpolated linearly in time and the DVS reference rule at ``threshold``
+    emits events at the exact crossing times (rounded half up when ``t`` is an integer type).
+
+    Args:
+        events: ``N`` input events (any order; sorted stably by ``t`` here).
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        contrast: ``c`` in log units, in [1e-6, 50].
+        threshold: ``theta`` in log units.
+        fps: frames per second, > 0.
+        cutoff_hz: high-pass cut-off frequency in Hz, >= 0 (0: no leak).
+
+    Returns:
+        Output events sorted by ``t``, ``t`` of the input's dtype.
+
+    Example:
+        Frames at 0, 1000 and 2000 us: the region's log photocurrent goes 0, log 1.5, log 2
+        and crosses ``log 2`` exactly at the last frame.
+
+        >>> ev = Events.from_columns([0, 1], [0, 0], [0, 2000], [1, 1])
+        >>> out = photocurrent_frames(ev, sensor_size=(2, 1, 2), factor=(2, 1),
+        ...                           contrast=math.log(2), threshold=math.log(2), fps=1000)
+        >>> out.t.tolist(), out.p.tolist()
+        ([2000], [True])
+    """
+    check_contrast_range(contrast, threshold)
+    events = sort_by_time(events)
+    n = events.num_events
+    if n == 0:
+        return Events.empty(events.t.dtype, events.device)
+    _check_level_range(n, contrast, threshold)
+    t_start = events.t[0]
+    offset = events.t - t_start
+    clock = FrameClock.make(fps, offset[-1].item())
+    frame = clock.index(offset)
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    carry_u = torch.zeros(out_w * out_h, dtype=torch.float64, device=events.device)
+    carry_q = torch.zeros(out_w * out_h, dtype=torch.int64, device=events.device)
+    if cutoff_hz > 0:
+        steps = _leaky_frame_steps(events, offset, frame, clock, sensor_size, factor,
+                                   contrast, threshold, cutoff_hz)
+    else:
+        steps = _frame_steps(events, frame, sensor_size, factor, contrast, threshold)
+    outputs = [
+        _frame_crossings(*step, carry_u, carry_q, clock) for step in steps
+    ]
+    if not outputs:
+        return Events.empty(events.t.dtype, events.device)
+    region, at, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+    if events.t.is_floating_point():
+        t = t_start + at
+    else:
+        tick = torch.floor(at.add_(0.5 + HALF_TOLERANCE)).clamp_(max=clock.duration)
+        t = t_start + tick.to(torch.int64)
+    return emit(region, t, on, out_w)
+
+
+def _log_photocurrent(
+    m: Tensor, spread: Tensor, regions: Tensor, sensor_size: tuple[int, int, int],
+    factor: tuple[int, int], contrast: float, threshold: float,
+) -> Tensor:
+    """``u = log(I_r) / theta`` from the brightest level ``m`` and ``sum exp(c (L - m))``."""
+    log_pixels = region_pixel_count(regions, sensor_size, factor).to(torch.float64).log_()
+    u = torch.log(spread).sub_(log_pixels).div_(threshold)
+    return u.add_(m.to(torch.float64).mul_(contrast / threshold))
+
+
+def _frame_steps(
+    events: Events,
+    frame: Tensor,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    contrast: float,
+    threshold: float,
+):
+    """Without a leak: ``(region, frame, u, first)`` of every (region, frame) pair whose value
+    changed (those following the region's events), region-major, in bounded batches."""
+    w, h, _ = sensor_size
+    out_w = output_size(sensor_size, factor)[0]
+    per_region = factor[0] * factor[1]
+    level_state = torch.zeros(w * h, dtype=torch.int64, device=events.device)
+    bounds = chunk_bounds(frame, max(1, CHUNK_VALUES // per_region), split_ties=False)
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        piece = Events(*(column[lo:hi] for column in events))
+        k = frame[lo:hi]
+        k0 = int(k[0])
+        span = int(k[-1]) - k0 + 1
+        levels = _pixel_levels(piece, w, h, level_state)
+        # Each pixel's level at the end of each frame it has events in, keyed (pixel, frame).
+        key = levels.pixel * span + take(k, levels.order) - k0
+        last = where_true(ends(changes(key)))
+        table_key, table_level = take(key, last), take(levels.level, last)
+        del key, last
+        # The (region, frame) runs of the piece: one step each.
+        rx, ry = region_of(piece, factor)
+        groups = group_by_region(rx, ry, out_w)
+        k_g = take(k, groups.order)
+        step_at = where_true(ends(groups.first | changes(k_g)))
+        region, step_frame = take(groups.region, step_at), take(k_g, step_at)
+        del groups, k_g, step_at, rx, ry
+        # Every pixel of the step's region at the end of the step's frame.
+        ids, inside = _region_pixels(region, sensor_size, factor)
+        query = ids * span + (step_frame - k0)[:, None]
+        found = torch.searchsorted(table_key, query.reshape(-1), right=True).view_as(query)
+        found -= 1
+        hit = found >= 0
+        found.clamp_(min=0)
+        hit &= table_key[found] >= ids * span  # the same pixel
+        lv = torch.where(hit, table_level[found], level_state[ids])
+        del query, found, hit
+        m, spread = _log_mean_exp(lv, inside, contrast)
+        u = _log_photocurrent(m, spread, region, sensor_size, factor, contrast, threshold)
+        level_state = levels.new_state
+        yield region, step_frame, u, changes(region)
+
+
+def _leaky_frame_steps(
+    events: Events,
+    offset: Tensor,
+    frame: Tensor,
+    clock: FrameClock,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    contrast: float,
+    threshold: float,
+    cutoff_hz: float,
+):
+    """With a leak: ``(region, frame, u, first)`` of every region at every frame, built from
+    dense frames in chunks of at most :data:`CHUNK_VALUES` pixel values."""
+    w, h, _ = sensor_size
+    fx, fy = factor
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    device = events.device
+    omega = 2 * math.pi * cutoff_hz / TICKS_PER_SECOND  # per tick
+    # Inside a chunk every factor exp(+-omega dt) stays within [1/e, e]: no precision lost.
+    per_chunk = max(1, min(CHUNK_VALUES // (w * h), int(1 / (omega * clock.period))))
+    last_frame = int(frame[-1])
+    pixel = events.y * w + events.x
+    sign = events.p.to(torch.float64).mul_(2 * contrast).sub_(contrast)
+    offset = offset.to(torch.float64)
+    regions = torch.arange(out_w * out_h, device=device)
+    log_pixels = region_pixel_count(regions, sensor_size, factor).to(torch.float64).log_()
+    ell = torch.zeros(w * h, dtype=torch.float64, device=device)  # log intensity, last frame
+    ell_time = 0.0
+    pad = (0, out_w * fx - w, 0, out_h * fy - h)
+    for k0 in range(0, last_frame + 1, per_chunk):
+        ks = torch.arange(k0, min(k0 + per_chunk, last_frame + 1), device=device)
+        times = clock.time(ks)
+        end = float(times[-1])
+        lo, hi = torch.searchsorted(frame, torch.stack([ks[0], ks[-1] + 1])).tolist()
+        # Log intensity of every pixel at every frame of the chunk.
+        inputs = torch.zeros(ks.shape[0], w * h, dtype=torch.float64, device=device)
+        weight = torch.exp((offset[lo:hi] - end) * omega).mul_(sign[lo:hi])
+        inputs.index_put_((frame[lo:hi] - k0, pixel[lo:hi]), weight, accumulate=True)
+        inputs.cumsum_(0).mul_(torch.exp((end - times) * omega)[:, None])
+        inputs += ell * torch.exp((ell_time - times) * omega)[:, None]
+        ell, ell_time = inputs[-1].clone(), end
+        # Area average in linear intensity: log-sum-exp over each region (padding excluded).
+        grid = torch.nn.functional.pad(inputs.view(-1, h, w), pad, value=-math.inf)
+        grid = grid.view(-1, out_h, fy, out_w, fx).permute(0, 1, 3, 2, 4)
+        log_sum = torch.logsumexp(grid.reshape(ks.shape[0], out_h * out_w, fx * fy), 2)
+        del inputs, grid
+        u = log_sum.sub_(log_pixels).div_(threshold)
+        yield (regions.repeat_interleave(ks.shape[0]), ks.repeat(out_w * out_h),
+               u.T.reshape(-1), (ks == k0).repeat(out_w * out_h))
+
+
+def _frame_crossings(
+    region: Tensor,
+    frame: Tensor,
+    u: Tensor,
+    first: Tensor,
+    carry_u: Tensor,
+    carry_q: Tensor,
+    clock: FrameClock,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The reference rule on the linear ramps from frame ``k - 1`` to each step's frame ``k``.
+
+    Steps are region-major (``first`` marks each region's first), frames ascending; a region's
+    value at frame ``k - 1`` is its previous step's (``carry_u`` before its first step).
+    ``carry_u`` and ``carry_q`` (per region ``u`` and ``q`` so far) are updated in place.
+
+    Returns:
+        ``(region, offset from t_start as float64, on)`` of each crossing.
+    """
+    floor_u, on_level = _snap(u)
+    firsts = where_true(first)
+    first_region = take(region, firsts)
+    q = reference_index(floor_u, on_level, first, take(carry_q, region))
+    q_before, u_before = q.roll(1), u.roll(1)
+    q_before[firsts] = take(carry_q, first_region)
+    u_before[firsts] = take(carry_u, first_region)
+    lasts = where_true(ends(first))
+    carry_q.scatter_(0, take(region, lasts), take(q, lasts))
+    carry_u.scatter_(0, take(region, lasts), take(u, lasts))
+    cross = crossings(q_before, q)
+    end = cross.step
+    u0, u1 = take(u_before, end), take(u, end)
+    ratio = (cross.level.to(torch.float64) - u0) / (u1 - u0)
+    at_end = take(on_level, end) & (cross.level == take(floor_u, end))
+    ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
+    k = take(frame, end)
+    t0, t1 = clock.time(k - 1), clock.time(k)
+    return take(region, end), t0 + ratio * (t1 - t0), cross.on
