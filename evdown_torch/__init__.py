@@ -8,6 +8,7 @@ from evdown_torch.transforms import (
     EventFunnelling,
     LIFPooling,
     LinearEstimation,
+    PhotocurrentPooling,
 )
 
 __version__ = "0.1.0"
@@ -20,6 +21,7 @@ __all__ = [
     "Events",
     "LIFPooling",
     "LinearEstimation",
+    "PhotocurrentPooling",
     "__version__",
     "from_events",
     "to_events",

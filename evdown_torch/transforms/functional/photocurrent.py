@@ -166,21 +166,31 @@ def _log_mean_exp(levels: Tensor, inside: Tensor, contrast: float) -> tuple[Tens
 def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
     """Running sum of float64 ``values`` restarting at each segment, without cross-talk.
 
-    High parts on a fixed-point grid add exactly in int64; only the small remainders are
-    summed in float64, so a segment's sum does not carry the rounding of earlier segments.
+    Each segment is put on its own fixed-point grid (a power of two fitted to its largest
+    value): the grid parts add exactly in int64 and only the remainders, below half a grid
+    step, are summed in float64, so a segment's sum carries no rounding of other segments,
+    however much larger their values are.
+
+    Args:
+        values: ``(N,)`` float64.
+        starts_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
+        segment: ``(N,)`` int64 segment of each element.
     """
-    bound = float(values.abs().max()) if values.numel() else 0.0
-    if bound == 0.0:
-        return torch.zeros_like(values)
-    scale = math.ldexp(1.0, 61 - values.shape[0].bit_length() - math.frexp(bound)[1])
-    high_f = torch.round(values * scale)
-    rest = values - high_f / scale
+    n = values.shape[0]
+    largest = torch.zeros(starts_at.shape[0], dtype=torch.float64, device=values.device)
+    largest.scatter_reduce_(0, segment, values.abs(), "amax")
+    exponent = torch.frexp(largest).exponent.to(torch.float64)
+    scale = take(torch.exp2((61 - n.bit_length()) - exponent), segment)
+    scaled = values * scale
+    high_f = torch.round(scaled)
+    rest = scaled.sub_(high_f)
     high = high_f.to(torch.int64)
+    del high_f
     whole = torch.cumsum(high, 0)
     whole -= take(take(whole - high, starts_at), segment)
     part = torch.cumsum(rest, 0)
     part -= take(take(part - rest, starts_at), segment)
-    return whole.to(torch.float64).div_(scale).add_(part)
+    return whole.to(torch.float64).add_(part).div_(scale)
 
 
 class _PixelLevels(NamedTuple):
