@@ -63,8 +63,10 @@ from evdown_torch.transforms.functional._reference import (
     region_pixel_count,
 )
 
-#: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut (exp(709) overflows).
-MAX_EXPONENT = 600.0
+#: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: a pixel rising this
+#: far above its region's anchor would make the region's running sum span too many orders of
+#: magnitude for its early values to keep their precision (exp(709) overflows anyway).
+MAX_EXPONENT = 24.0
 
 #: Unit roundoff of float64.
 EPS = 2.0**-53
@@ -163,7 +165,7 @@ def _log_mean_exp(levels: Tensor, inside: Tensor, contrast: float) -> tuple[Tens
     return m, torch.where(inside, torch.exp(below), 0.0).sum(1)
 
 
-def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
+def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> tuple[Tensor, Tensor]:
     """Running sum of float64 ``values`` restarting at each segment, without cross-talk.
 
     Each segment is put on its own fixed-point grid (a power of two fitted to its largest
@@ -175,6 +177,10 @@ def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
         values: ``(N,)`` float64.
         starts_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
         segment: ``(N,)`` int64 segment of each element.
+
+    Returns:
+        ``(sums, spent)``: ``(N,)`` running sums and, for error bounds, running sums of
+        ``|value|`` (exact up to one grid step per value, a relative 2**-40 or better).
     """
     n = values.shape[0]
     largest = torch.zeros(starts_at.shape[0], dtype=torch.float64, device=values.device)
@@ -190,7 +196,39 @@ def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
     whole -= take(take(whole - high, starts_at), segment)
     part = torch.cumsum(rest, 0)
     part -= take(take(part - rest, starts_at), segment)
-    return whole.to(torch.float64).add_(part).div_(scale)
+    total = whole.to(torch.float64).add_(part).div_(scale)
+    del whole, part, rest
+    size = high.abs_().add_(1)
+    spent = torch.cumsum(size, 0)
+    spent -= take(take(spent - size, starts_at), segment)
+    return total, spent.to(torch.float64).div_(scale)
+
+
+#: Largest table of ``exp(c * j)`` values :func:`_sum_changes` builds instead of calling exp.
+TABLE_SIZE = 1 << 16
+
+
+def _sum_changes(before: Tensor, on: Tensor, contrast: float) -> tuple[Tensor, Tensor | None]:
+    """``exp(c * (before + s)) - exp(c * before)`` for int64 ``before`` (level minus anchor)
+    and step ``s = +-1``, from a table of ``exp(c * j) * expm1(+-c)`` when the levels span
+    little; and where ``c * before`` exceeds :data:`MAX_EXPONENT` (else ``None``)."""
+    lowest, highest = int(before.min()), int(before.max())
+    too_bright = None
+    if highest * contrast > MAX_EXPONENT:
+        too_bright = before > MAX_EXPONENT / contrast
+        highest = math.floor(MAX_EXPONENT / contrast)
+        before = before.clamp(max=highest)
+    expm1 = (math.expm1(-contrast), math.expm1(contrast))
+    floor = max(lowest, -math.ceil(800 / contrast))  # exp(c * j) is 0 below
+    if highest - floor < TABLE_SIZE:
+        j = torch.arange(floor, highest + 1, device=before.device, dtype=torch.float64)
+        table = torch.exp(j.mul_(contrast))[:, None] * torch.tensor(
+            expm1, dtype=torch.float64, device=before.device)
+        index = (before.clamp(min=floor) - floor).mul_(2).add_(on.to(torch.int64))
+        return take(table.reshape(-1), index), too_bright
+    steps = torch.tensor(expm1, dtype=torch.float64, device=before.device)
+    change = torch.exp(before.to(torch.float64).mul_(contrast))
+    return change.mul_(take(steps, on.to(torch.int64))), too_bright
 
 
 class _PixelLevels(NamedTuple):
@@ -267,19 +305,22 @@ def photocurrent_events(
         return Events.empty(events.t.dtype, events.device), state
     _check_level_range(int(state.level.abs().max()) + n, contrast, threshold)
     outputs = []
-    start = 0
+    start, size = 0, CHUNK_EVENTS
     while start < n:
-        stop = min(start + CHUNK_EVENTS, n)
+        stop = min(start + size, n)
         while True:
             piece = Events(*(column[start:stop] for column in events))
             result = _events_piece(piece, sensor_size, factor, contrast, threshold, state)
-            if isinstance(result, int):  # cut before the first event the sums cannot hold
-                stop = start + result
-                continue
-            break
+            if not isinstance(result, int):
+                break
+            # Cut before the first event the running sums cannot hold, re-anchor there, and
+            # try shorter pieces for a while (a stream that needs one cut soon needs more).
+            stop = start + result
+            size = max(2 * result, 1024)
         out, state = result
         outputs.append(out)
         start = stop
+        size = min(2 * size, CHUNK_EVENTS)
     return Events(*(torch.cat(columns) for columns in zip(*outputs, strict=True))), state
 
 
@@ -314,17 +355,20 @@ def _events_piece(
     on = take(events.p, groups.order)
     before = take(level_after, groups.order) - on.to(torch.int64).mul(2).sub(1)
     before -= take(m, rank)
-    exponent = before.to(torch.float64).mul_(contrast)
+    del level_after
+    change, too_bright = _sum_changes(before, on, contrast)
     del before
-    up_down = torch.tensor([math.expm1(-contrast), math.expm1(contrast)],
-                           dtype=torch.float64, device=on.device)
-    change = torch.exp(exponent).mul_(take(up_down, on.to(torch.int64)))
+    total, spent = _segment_sum(change, firsts, rank)
+    del change
+    # Error bound of each running sum: a few ulps of every term (anchor and changes) so far.
     anchor_at = take(anchor, rank)
-    total = _segment_sum(change, firsts, rank).add_(anchor_at)
-    spent = _segment_sum(change.abs_(), firsts, rank).add_(anchor_at)
-    tolerance = max(1e-11 * threshold, 16 * EPS)
-    bad = (spent * (4 * EPS) > total * tolerance) | (exponent > MAX_EXPONENT)
-    del change, spent, anchor_at, exponent
+    total += anchor_at
+    bound = spent.add_(anchor_at).mul_(4 * EPS)
+    del anchor_at, spent
+    bad = ~(bound <= total * max(1e-10 * threshold, 16 * EPS))  # NaN is bad too
+    del bound
+    if too_bright is not None and bool(too_bright.any()):
+        bad = too_bright  # cut there first: the region's other sums are on a clamped scale
     if events.num_events > 1 and bool(bad.any()):
         return max(int(take(groups.order, where_true(bad)).min()), 1)
 
