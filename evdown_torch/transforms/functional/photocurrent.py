@@ -57,6 +57,7 @@ from evdown_torch.transforms.functional._knots import (
     where_true,
 )
 from evdown_torch.transforms.functional._reference import (
+    RegionGroups,
     crossings,
     group_by_region,
     reference_index,
@@ -165,7 +166,22 @@ def _log_mean_exp(levels: Tensor, inside: Tensor, contrast: float) -> tuple[Tens
     return m, torch.where(inside, torch.exp(below), 0.0).sum(1)
 
 
-def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> tuple[Tensor, Tensor]:
+class _SegmentSums(NamedTuple):
+    """Running sums of :func:`_segment_sum` and what an error bound needs of them."""
+
+    total: Tensor  # (N,) float64 running sums
+    grid: Tensor  # (N,) int64 grid parts of the values
+    scale: Tensor  # (N,) or () float64 grid scale of each value's segment
+
+
+def _segmented(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
+    """Cumulative sum of ``values`` restarting at each segment (exact for int64)."""
+    total = torch.cumsum(values, 0)
+    total -= take(take(total, starts_at) - take(values, starts_at), segment)
+    return total
+
+
+def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> _SegmentSums:
     """Running sum of float64 ``values`` restarting at each segment, without cross-talk.
 
     Each segment is put on its own fixed-point grid (a power of two fitted to its largest
@@ -177,31 +193,33 @@ def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> tuple[Te
         values: ``(N,)`` float64.
         starts_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
         segment: ``(N,)`` int64 segment of each element.
-
-    Returns:
-        ``(sums, spent)``: ``(N,)`` running sums and, for error bounds, running sums of
-        ``|value|`` (exact up to one grid step per value, a relative 2**-40 or better).
     """
     n = values.shape[0]
     largest = torch.zeros(starts_at.shape[0], dtype=torch.float64, device=values.device)
     largest.scatter_reduce_(0, segment, values.abs(), "amax")
-    exponent = torch.frexp(largest).exponent.to(torch.float64)
-    scale = take(torch.exp2((61 - n.bit_length()) - exponent), segment)
+    top = float(largest.max())
+    if top == 0.0 or float(largest.min()) >= top * 2.0**-24:
+        # Segments of similar magnitudes share one grid: the remainders' sum then drifts by
+        # at most n * 2**-53 grid steps, 2**-60 of the smallest segment's largest value.
+        scale = torch.tensor(math.ldexp(1.0, 61 - n.bit_length() - math.frexp(top)[1]),
+                             dtype=torch.float64, device=values.device)
+    else:
+        exponent = torch.frexp(largest).exponent.to(torch.float64)
+        scale = take(torch.exp2((61 - n.bit_length()) - exponent), segment)
     scaled = values * scale
     high_f = torch.round(scaled)
     rest = scaled.sub_(high_f)
     high = high_f.to(torch.int64)
     del high_f
-    whole = torch.cumsum(high, 0)
-    whole -= take(take(whole - high, starts_at), segment)
-    part = torch.cumsum(rest, 0)
-    part -= take(take(part - rest, starts_at), segment)
-    total = whole.to(torch.float64).add_(part).div_(scale)
-    del whole, part, rest
-    size = high.abs_().add_(1)
-    spent = torch.cumsum(size, 0)
-    spent -= take(take(spent - size, starts_at), segment)
-    return total, spent.to(torch.float64).div_(scale)
+    total = _segmented(high, starts_at, segment).to(torch.float64)
+    total += _segmented(rest, starts_at, segment)
+    return _SegmentSums(total.div_(scale), high, scale)
+
+
+def _running_magnitude(sums: _SegmentSums, starts_at: Tensor, segment: Tensor) -> Tensor:
+    """Running sums of ``|value|`` from the grid parts (exact to a grid step per value)."""
+    size = sums.grid.abs().add_(1)
+    return _segmented(size, starts_at, segment).to(torch.float64).div_(sums.scale)
 
 
 #: Largest table of ``exp(c * j)`` values :func:`_sum_changes` builds instead of calling exp.
@@ -237,6 +255,7 @@ class _PixelLevels(NamedTuple):
     pixel: Tensor  # (n,) int64 pixel id, ascending (time order inside a pixel)
     order: Tensor  # (n,) int64 time position of each
     level: Tensor  # (n,) int64 level of the pixel after the event
+    step: Tensor  # (n,) int64 the event's step, +1 (ON) or -1 (OFF)
     new_state: Tensor  # (H * W,) int64 levels after the piece
 
 
@@ -246,14 +265,18 @@ def _pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> _P
     pixel, order = stable_sort_small(pixel, width * height)
     step = take(events.p, order).to(torch.int64).mul_(2).sub_(1)
     new_pixel = changes(pixel)
-    level = torch.cumsum(step, 0)
-    starts = where_true(new_pixel)
-    base = take(levels, take(pixel, starts)) - take(level - step, starts)
-    level += take(base, run_index(new_pixel))
+    starts, last = where_true(new_pixel), where_true(ends(new_pixel))
+    # One cumulative sum whose first step of each pixel also moves from the previous pixel's
+    # last level to this pixel's starting level (a telescoping correction).
+    plain = torch.cumsum(step, 0)
+    first_level = take(levels, take(pixel, starts))
+    final = take(plain, last) - take(plain, starts) + take(step, starts) + first_level
+    jump = first_level
+    jump[1:] -= final[:-1]
+    level = step.index_add(0, starts, jump).cumsum_(0)
     new_state = levels.clone()
-    last = where_true(ends(new_pixel))
-    new_state.scatter_(0, take(pixel, last), take(level, last))
-    return _PixelLevels(pixel, order, level, new_state)
+    new_state.scatter_(0, take(pixel, last), final)
+    return _PixelLevels(pixel, order, level, step, new_state)
 
 
 # --------------------------------------------------------------------------------------------
@@ -305,22 +328,19 @@ def photocurrent_events(
         return Events.empty(events.t.dtype, events.device), state
     _check_level_range(int(state.level.abs().max()) + n, contrast, threshold)
     outputs = []
-    start, size = 0, CHUNK_EVENTS
+    # Pieces of a few events per pixel: re-anchoring then costs little (at most the sensor's
+    # pixels per piece), and a piece that has to be cut wastes little.
+    largest = min(max(4 * sensor_size[0] * sensor_size[1], 1 << 16), CHUNK_EVENTS)
+    start, size = 0, largest
     while start < n:
         stop = min(start + size, n)
-        while True:
-            piece = Events(*(column[start:stop] for column in events))
-            result = _events_piece(piece, sensor_size, factor, contrast, threshold, state)
-            if not isinstance(result, int):
-                break
-            # Cut before the first event the running sums cannot hold, re-anchor there, and
-            # try shorter pieces for a while (a stream that needs one cut soon needs more).
-            stop = start + result
-            size = max(2 * result, 1024)
-        out, state = result
+        piece = Events(*(column[start:stop] for column in events))
+        out, state, used = _events_piece(piece, sensor_size, factor, contrast, threshold, state)
         outputs.append(out)
-        start = stop
-        size = min(2 * size, CHUNK_EVENTS)
+        # After a cut (the running sums could not hold the rest), re-anchor there and try
+        # shorter pieces for a while: a stream that needed one cut soon needs another.
+        size = min(size + size // 4, largest) if start + used == stop else max(used, 1024)
+        start += used
     return Events(*(torch.cat(columns) for columns in zip(*outputs, strict=True))), state
 
 
@@ -331,13 +351,20 @@ def _events_piece(
     contrast: float,
     threshold: float,
     state: PhotocurrentState,
-) -> tuple[Events, PhotocurrentState] | int:
-    """Events mode on one time-sorted piece anchored at ``state``; or, where the running sums
-    cannot hold the piece to the required accuracy, the length (>= 1) of the prefix to take."""
+) -> tuple[Events, PhotocurrentState, int]:
+    """Events mode on one time-sorted piece anchored at ``state``: ``(output, state, used)``.
+
+    Where the running sums cannot hold the whole piece to the required accuracy, only its
+    events before the first that they cannot hold are used (``used >= 1`` events, the output
+    and state are theirs); the caller re-anchors there.
+    """
     w, h, _ = sensor_size
     out_w = output_size(sensor_size, factor)[0]
     levels = _pixel_levels(events, w, h, state.level)
-    level_after = torch.empty_like(levels.level).scatter_(0, levels.order, levels.level)
+    level_before = torch.empty_like(levels.level).scatter_(0, levels.order,
+                                                           levels.level - levels.step)
+    new_levels = levels.new_state
+    del levels
     rx, ry = region_of(events, factor)
     groups = group_by_region(rx, ry, out_w)
     region = groups.region
@@ -353,24 +380,42 @@ def _events_piece(
 
     # Change of the region's sum at each event, relative to its brightest anchored pixel.
     on = take(events.p, groups.order)
-    before = take(level_after, groups.order) - on.to(torch.int64).mul(2).sub(1)
+    before = take(level_before, groups.order)
     before -= take(m, rank)
-    del level_after
+    del level_before
     change, too_bright = _sum_changes(before, on, contrast)
     del before
-    total, spent = _segment_sum(change, firsts, rank)
-    del change
+    sums = _segment_sum(change, firsts, rank)
+    total = sums.total
     # Error bound of each running sum: a few ulps of every term (anchor and changes) so far.
-    anchor_at = take(anchor, rank)
-    total += anchor_at
-    bound = spent.add_(anchor_at).mul_(4 * EPS)
-    del anchor_at, spent
-    bad = ~(bound <= total * max(1e-10 * threshold, 16 * EPS))  # NaN is bad too
-    del bound
-    if too_bright is not None and bool(too_bright.any()):
-        bad = too_bright  # cut there first: the region's other sums are on a clamped scale
-    if events.num_events > 1 and bool(bad.any()):
-        return max(int(take(groups.order, where_true(bad)).min()), 1)
+    # First a cheap one (all the region's changes in the piece), the exact one where it fails.
+    tolerance = max(1e-10 * threshold, 16 * EPS)
+    magnitude = torch.zeros_like(anchor).index_add_(0, rank, change.abs_()).add_(anchor)
+    del change
+    total += take(anchor, rank)
+    lowest = torch.full_like(anchor, math.inf).scatter_reduce_(0, rank, total, "amin")
+    bad = too_bright
+    if not bool((magnitude.mul_(4 * EPS) <= lowest.mul_(tolerance)).all()):  # NaN fails too
+        bound = _running_magnitude(sums, firsts, rank).add_(take(anchor, rank)).mul_(4 * EPS)
+        bad = ~(bound <= total * tolerance) if bad is None else bad | ~(bound <= total * tolerance)
+        del bound
+    del sums, magnitude, lowest
+    n = events.num_events
+    if n > 1 and bad is not None and bool(bad.any()):
+        used = int(take(groups.order, where_true(bad)).min())
+        if used == 0:  # the first event alone: its sum is the anchor plus one change
+            return _events_piece(Events(*(column[:1] for column in events)), sensor_size,
+                                 factor, contrast, threshold, state)
+        # Keep the events before the cut (each region keeps a prefix of its own events).
+        kept = where_true(groups.order < used)
+        groups = RegionGroups(*(take(column, kept) for column in groups))
+        region, total, rank = groups.region, take(total, kept), take(rank, kept)
+        new_levels = state.level.clone()
+        new_levels.index_add_(0, events.y[:used] * w + events.x[:used],
+                              events.p[:used].to(torch.int64).mul_(2).sub_(1))
+        events = Events(*(column[:used] for column in events))
+        n = used
+        firsts = where_true(groups.first)
 
     # u = log(I_r) / theta = (c * m + log(sum / n_r)) / theta, then the reference rule.
     log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
@@ -380,7 +425,7 @@ def _events_piece(
     del u, total
     q = reference_index(floor_u, on_level, groups.first, take(state.index, region))
     q_before = q.roll(1)
-    q_before[firsts] = take(state.index, touched)
+    q_before[firsts] = take(state.index, take(region, firsts))
     cross = crossings(q_before, q)
 
     # Back to time order: crossings of one step keep their level order.
@@ -391,7 +436,7 @@ def _events_piece(
     lasts = where_true(ends(groups.first))
     new_index = state.index.clone()
     new_index.scatter_(0, take(region, lasts), take(q, lasts))
-    return out, PhotocurrentState(levels.new_state, new_index, events.t[-1].clone())
+    return out, PhotocurrentState(new_levels, new_index, events.t[-1].clone()), n
 
 
 # --------------------------------------------------------------------------------------------
