@@ -9,10 +9,12 @@ from evdown_torch.checks import check_non_negative_float, check_positive_float
 from evdown_torch.events import Events, EventsLike, from_events, to_events
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.functional.photocurrent import (
-    FrameClock,
     PhotocurrentState,
     check_contrast_range,
     photocurrent_events,
+)
+from evdown_torch.transforms.functional.photocurrent_frames import (
+    FrameClock,
     photocurrent_frames,
 )
 
@@ -154,8 +156,6 @@ class PhotocurrentSession:
             events, sensor_size=transform.sensor_size, factor=transform.factor_xy,
             contrast=transform.contrast, threshold=transform.threshold, state=self.state,
         )
-        if events.num_events:
-            self.state = state
-        elif self.state is None:
+        if events.num_events or self.state is None:
             self.state = state
         return from_events(out, fmt)

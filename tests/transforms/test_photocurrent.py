@@ -79,7 +79,8 @@ def frames_reference(arr, sensor, factor, contrast, threshold, fps, cutoff_hz=0.
         for i, ti in zip(order, t, strict=True):
             if ti - t0 <= k * period:
                 step = contrast if arr["p"][i] > 0 else -contrast
-                ell[int(arr["x"][i]), int(arr["y"][i])] += step * math.exp(-omega * (tk - (ti - t0)))
+                decay = math.exp(-omega * (tk - (ti - t0)))
+                ell[int(arr["x"][i]), int(arr["y"][i])] += step * decay
         t_before = times[k - 1] if k else 0.0
         for r, pixels in members.items():
             u = _u([ell[p] for p in pixels], threshold)
