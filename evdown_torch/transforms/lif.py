@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import (
     check_choice,
     check_non_negative_float,
@@ -21,7 +22,6 @@ from evdown_torch.models.pooling import (
     decay_factor,
 )
 from evdown_torch.transforms._base import Downscaler
-from evdown_torch.transforms.functional._common import sort_by_time
 from evdown_torch.transforms.functional.lif import (
     DEFAULT_CHUNK_CELLS,
     DEFAULT_CHUNK_EVENTS,

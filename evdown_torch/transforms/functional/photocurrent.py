@@ -30,29 +30,28 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch.checks import output_size
-from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import (
+from evdown_torch._tensors import (
     CHUNK_EVENTS,
-    region_of,
-    region_xy,
-    sort_by_time,
-    stable_sort_small,
-)
-from evdown_torch.transforms.functional._knots import (
-    SNAP,
     changes,
     ends,
+    region_of,
+    region_pixel_count,
+    region_xy,
     run_index,
+    segmented_cumsum,
+    sort_by_time,
+    stable_sort_small,
     take,
     where_true,
 )
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import (
+    SNAP,
     RegionGroups,
     crossings,
     group_by_region,
     reference_index,
-    region_pixel_count,
 )
 
 #: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: a pixel rising this
@@ -159,13 +158,6 @@ class _SegmentSums(NamedTuple):
     scale: Tensor  # (N,) or () float64 grid scale of each value's segment
 
 
-def _segmented(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
-    """Cumulative sum of ``values`` restarting at each segment (exact for int64)."""
-    total = torch.cumsum(values, 0)
-    total -= take(take(total, starts_at) - take(values, starts_at), segment)
-    return total
-
-
 def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> _SegmentSums:
     """Running sum of float64 ``values`` restarting at each segment, without cross-talk.
 
@@ -196,15 +188,15 @@ def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> _Segment
     rest = scaled.sub_(high_f)
     high = high_f.to(torch.int64)
     del high_f
-    total = _segmented(high, starts_at, segment).to(torch.float64)
-    total += _segmented(rest, starts_at, segment)
+    total = segmented_cumsum(high, starts_at, segment).to(torch.float64)
+    total += segmented_cumsum(rest, starts_at, segment)
     return _SegmentSums(total.div_(scale), high, scale)
 
 
 def _running_magnitude(sums: _SegmentSums, starts_at: Tensor, segment: Tensor) -> Tensor:
     """Running sums of ``|value|`` from the grid parts (exact to a grid step per value)."""
     size = sums.grid.abs().add_(1)
-    return _segmented(size, starts_at, segment).to(torch.float64).div_(sums.scale)
+    return segmented_cumsum(size, starts_at, segment).to(torch.float64).div_(sums.scale)
 
 
 #: Largest table of ``exp(c * j)`` values :func:`_sum_changes` builds instead of calling exp.
@@ -316,12 +308,14 @@ def photocurrent_events(
     # Pieces of a few events per pixel: re-anchoring then costs little (at most the sensor's
     # pixels per piece), and a piece that has to be cut wastes little.
     largest = min(max(4 * sensor_size[0] * sensor_size[1], 1 << 16), CHUNK_EVENTS)
-    start, size = 0, largest
+    start, size, emitted = 0, largest, 0
     while start < n:
         stop = min(start + size, n)
         piece = Events(*(column[start:stop] for column in events))
-        out, state, used = _events_piece(piece, sensor_size, factor, contrast, threshold, state)
+        out, state, used = _events_piece(piece, sensor_size, factor, contrast, threshold, state,
+                                         emitted)
         outputs.append(out)
+        emitted += out.num_events
         # After a cut (the running sums could not hold the rest), re-anchor there and try
         # shorter pieces for a while: a stream that needed one cut soon needs another.
         size = min(size + size // 4, largest) if start + used == stop else max(used, 1024)
@@ -336,12 +330,15 @@ def _events_piece(
     contrast: float,
     threshold: float,
     state: PhotocurrentState,
+    emitted: int = 0,
 ) -> tuple[Events, PhotocurrentState, int]:
     """Events mode on one time-sorted piece anchored at ``state``: ``(output, state, used)``.
 
-    Where the running sums cannot hold the whole piece to the required accuracy, only its
-    events before the first that they cannot hold are used (``used >= 1`` events, the output
-    and state are theirs); the caller re-anchors there.
+    ``emitted`` counts the events of earlier pieces, for the output cap of
+    :func:`~evdown_torch.checks.check_output_count`. Where the running sums cannot hold the
+    whole piece to the required accuracy, only its events before the first that they cannot
+    hold are used (``used >= 1`` events, the output and state are theirs); the caller
+    re-anchors there.
     """
     w, h, _ = sensor_size
     out_w = output_size(sensor_size, factor)[0]
@@ -390,7 +387,7 @@ def _events_piece(
         used = int(take(groups.order, where_true(bad)).min())
         if used == 0:  # the first event alone: its sum is the anchor plus one change
             return _events_piece(Events(*(column[:1] for column in events)), sensor_size,
-                                 factor, contrast, threshold, state)
+                                 factor, contrast, threshold, state, emitted)
         # Keep the events before the cut (each region keeps a prefix of its own events).
         kept = where_true(groups.order < used)
         groups = RegionGroups(*(take(column, kept) for column in groups))
@@ -411,7 +408,7 @@ def _events_piece(
     q = reference_index(floor_u, on_level, groups.first, take(state.index, region))
     q_before = q.roll(1)
     q_before[firsts] = take(state.index, take(region, firsts))
-    cross = crossings(q_before, q)
+    cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one step keep their level order.
     source, by_time = torch.sort(take(groups.order, cross.step), stable=True)

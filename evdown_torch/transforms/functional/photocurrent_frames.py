@@ -21,22 +21,23 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch.checks import output_size
-from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import chunk_bounds, region_of, sort_by_time
-from evdown_torch.transforms.functional._knots import (
-    HALF_TOLERANCE,
+from evdown_torch._tensors import (
     changes,
-    emit,
+    chunk_bounds,
     ends,
+    region_of,
+    region_pixel_count,
+    sort_by_time,
     take,
     where_true,
 )
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._knots import HALF_TOLERANCE, emit
 from evdown_torch.transforms.functional._reference import (
     crossings,
     group_by_region,
     reference_index,
-    region_pixel_count,
 )
 from evdown_torch.transforms.functional.photocurrent import (
     check_contrast_range,
@@ -162,9 +163,10 @@ def photocurrent_frames(
                                    contrast, threshold, cutoff_hz)
     else:
         steps = _frame_steps(events, frame, sensor_size, factor, contrast, threshold)
-    outputs = [
-        _frame_crossings(*step, carry_u, carry_q, clock) for step in steps
-    ]
+    outputs, emitted = [], 0
+    for step in steps:
+        outputs.append(_frame_crossings(*step, carry_u, carry_q, clock, emitted))
+        emitted += outputs[-1][0].shape[0]
     if not outputs:
         return Events.empty(events.t.dtype, events.device)
     region, at, on = (torch.cat(column) for column in zip(*outputs, strict=True))
@@ -294,6 +296,7 @@ def _frame_crossings(
     carry_u: Tensor,
     carry_q: Tensor,
     clock: FrameClock,
+    emitted: int = 0,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The reference rule on the linear ramps from frame ``k - 1`` to each step's frame ``k``.
 
@@ -314,7 +317,7 @@ def _frame_crossings(
     lasts = where_true(ends(first))
     carry_q.scatter_(0, take(region, lasts), take(q, lasts))
     carry_u.scatter_(0, take(region, lasts), take(u, lasts))
-    cross = crossings(q_before, q)
+    cross = crossings(q_before, q, emitted=emitted)
     end = cross.step
     u0, u1 = take(u_before, end), take(u, end)
     ratio = (cross.level.to(torch.float64) - u0) / (u1 - u0)
