@@ -316,3 +316,34 @@ def test_registry_and_budget_setting():
     assert pool.output_sensor_size == (5, 4, 2)
     assert PhotocurrentPooling.budget_setting == "threshold"
     assert PhotocurrentPooling(SENSOR).threshold == 0.2
+
+
+def test_streaming_equals_batch_across_cuts(rng):
+    # A hot pixel forces the kernel to cut pieces and re-anchor; a session must agree.
+    hot = np.zeros(3000, dtype=DVS_DTYPE)
+    hot["t"] = np.arange(3000) * 3
+    hot["p"][:2000] = True
+    rest = random_stream(rng, 2000, (4, 4, 2), t_max=9000)
+    arr = np.sort(np.concatenate([hot, rest]), order="t", kind="stable")
+    pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.3, threshold=0.2)
+    session = pool.session()
+    cuts = np.concatenate([[0], np.sort(rng.integers(0, len(arr), 9)), [len(arr)]])
+    pieces = [session(arr[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    batch = pool(arr)
+    assert rows(np.concatenate(pieces)) == rows(batch)
+    assert sorted(rows(batch)) == sorted(events_reference(arr, (4, 4, 2), 2, 0.3, 0.2))
+
+
+def test_frames_mode_float_timestamps(rng):
+    arr = random_stream(rng, 300, SENSOR, t_max=20_000)
+    as_float = torch.as_tensor(np.stack([arr["x"], arr["y"], arr["t"], arr["p"]], axis=1)
+                               .astype(np.float64))
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=1000.0)
+    expected = frames_reference(arr, SENSOR, 2, 0.3, 0.1, 1000.0)
+    out = pool(as_float)
+    assert out.dtype == torch.float64
+    # Float times are not rounded: each lies within half a tick of the integer result.
+    got = sorted((int(x), int(y), float(t), bool(p > 0)) for x, y, t, p in out.tolist())
+    assert len(got) == len(expected) > 20
+    for (x, y, t, on), (ex, ey, et, eon) in zip(got, expected, strict=True):
+        assert (x, y, on) == (ex, ey, eon) and abs(t - et) <= 0.5 + 1e-6

@@ -400,9 +400,10 @@ def _events_piece(
         firsts = where_true(groups.first)
 
     # u = log(I_r) / theta = (c * m + log(sum / n_r)) / theta, then the reference rule.
+    # Per region: c * m / theta - log(n_r) / theta, added to log(sum) / theta.
     log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
-    u = torch.log(total).sub_(take(log_pixels, rank)).div_(threshold)
-    u += take(m, rank).to(torch.float64).mul_(contrast / threshold)
+    offset = m.to(torch.float64).mul_(contrast / threshold).sub_(log_pixels.div_(threshold))
+    u = torch.log(total).div_(threshold).add_(take(offset, rank))
     floor_u, on_level = snap(u)
     del u, total
     q = reference_index(floor_u, on_level, groups.first, take(state.index, region))
