@@ -10,6 +10,7 @@ from evdown_torch.transforms import (
     EventFunnelling,
     LIFPooling,
     LinearEstimation,
+    PhotocurrentPooling,
     TemporalFunnelling,
 )
 
@@ -24,6 +25,7 @@ __all__ = [
     "Events",
     "LIFPooling",
     "LinearEstimation",
+    "PhotocurrentPooling",
     "TemporalFunnelling",
     "__version__",
     "from_events",

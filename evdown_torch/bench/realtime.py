@@ -19,8 +19,8 @@ so the same events arrive faster). Per method, rate and chunk size it reports:
 
 Only the chunks of a replay are timed (the recording is loaded and retimed first); the first
 chunk's call warms up and the stream's last chunk (cut short by the end of the recording) is
-processed but not counted. A method without a session (LIFPooling until it has
-one) is skipped with a note.
+processed but not counted. A method without a session of the common shape
+(:class:`~evdown_torch.transforms.Session`) is skipped with a note.
 """
 
 from __future__ import annotations
@@ -68,6 +68,7 @@ REALTIME_METHODS: dict[str, tuple[str, dict[str, Any]]] = {
     "linear": ("linear", {"max_delay": REALTIME_MAX_DELAY_US}),
     "cubic": ("cubic", {"max_delay": REALTIME_MAX_DELAY_US}),
     "lif": ("lif", {"dt": 1000}),
+    "photocurrent": ("photocurrent", {}),
 }
 
 
@@ -277,9 +278,13 @@ def realtime_benchmark(
                                      f"{sorted(REALTIME_METHODS)}")
                 transform = _transform(label, sensor_size, factor)
                 try:
-                    transform.session()
+                    session = transform.session()
                 except (NotImplementedError, ValueError) as error:
                     results.append(ReplayResult(label, actual, chunk_us, note=str(error)))
+                    continue
+                if not hasattr(session, "flush"):
+                    results.append(ReplayResult(label, actual, chunk_us, note=(
+                        f"{type(session).__name__} is not the common session (no flush)")))
                     continue
                 lagging = "max_delay" in REALTIME_METHODS[label][1]
                 # The estimators' sessions recompute the stream so far: fewer chunks.

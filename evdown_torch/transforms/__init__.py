@@ -5,6 +5,7 @@ from evdown_torch.transforms.downsample import Downsample, EventFunnelling
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount, EventCountSession
 from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
+from evdown_torch.transforms.photocurrent import PhotocurrentPooling, PhotocurrentSession
 from evdown_torch.transforms.temporal import TemporalFunnelling
 
 __all__ = [
@@ -17,6 +18,8 @@ __all__ = [
     "EventFunnelling",
     "LIFPooling",
     "LinearEstimation",
+    "PhotocurrentPooling",
+    "PhotocurrentSession",
     "Session",
     "Streaming",
     "TemporalFunnelling",
