@@ -58,14 +58,17 @@ __all__ = [
     "Knots",
     "RegionChunk",
     "RegionSolver",
+    "Resume",
     "emit",
     "estimate",
+    "estimate_window",
     "hold_knots",
     "level_changes",
     "piece_time",
     "pixel_knots",
     "region_chunks",
     "region_pixels",
+    "resume_steps",
 ]
 
 #: Integer crossing times: an offset this close below a half tick rounds up (see piece_time).
@@ -117,7 +120,8 @@ class RegionChunk(NamedTuple):
         local: ``(n,)`` int64 pixel index inside the region, ``(y % fy) * fx + x % fx``.
         t: ``(n,)`` timestamps, ascending inside each region.
         step: ``(n,)`` int8 level change of the event: +1 (ON), -1 (OFF) or 0 (a held knot
-            of :func:`hold_knots`).
+            of :func:`hold_knots`); int64 in a streaming window, whose first knot of a pixel
+            carries the pixel's whole level.
     """
 
     region: Tensor
@@ -145,7 +149,8 @@ def region_chunks(
         factor: ``(fx, fy)``.
         out_width: ``Wo``, the output sensor width.
         size: target number of events per chunk (a chunk holds at least one whole region).
-        step: ``(N,)`` int8 level change of each event (default: +1 for ON, -1 for OFF).
+        step: ``(N,)`` int8 or int64 level change of each event (default: +1 for ON, -1 for
+            OFF).
 
     Yields:
         :class:`RegionChunk` s covering the stream, regions ascending.
@@ -356,7 +361,9 @@ def hold_knots(
     Args:
         events: ``N`` events in stable time order.
         max_delay: ``D`` > 0, in the stream's time unit (a whole number for int64 ``t``).
-        t_start: ``()`` first timestamp of the whole stream.
+        t_start: ``()`` first timestamp of the whole stream (the front knots' time), or
+            ``(N,)`` for each event the time of its pixel's last knot before these events
+            (a streaming session's next chunk; ``t_start`` for a pixel without one).
 
     Returns:
         ``(events, step)``: ``N + M`` events in stable time order (a held knot before the
@@ -385,7 +392,9 @@ def hold_knots(
     first = new_pixel[new_knot]
     previous = torch.empty_like(knot_t)
     previous[1:] = knot_t[:-1]
-    previous[first] = t_start  # the front knot (t_start, 0); a gap of 0 when they coincide
+    # The front knot (t_start, 0), or the pixel's knot before the chunk; a gap of 0 when
+    # they coincide.
+    previous[first] = t_start if t_start.ndim == 0 else take(t_start, order)[new_knot][first]
     held = (knot_t - previous) > delay
     if not bool(held.any()):
         return events, step
@@ -399,7 +408,65 @@ def hold_knots(
     return merged.select(order), take(merged_step, order)
 
 
-RegionSolver = Callable[..., tuple[Tensor, Tensor, Tensor]]
+class Resume(NamedTuple):
+    """Where a streaming window of the stream picks up (a bounded-delay session's state).
+
+    The window holds, for each of its pixels, the knots it had before ``cut`` that the curves
+    after ``cut`` still need (the last one, or the last two for PCHIP slopes) and every knot
+    since. Each region resumes at its last breakpoint earlier than ``cut`` with the reference
+    index it had there; the pieces before are not solved (the window's curves are not the
+    stream's there).
+
+    Attributes:
+        cut: ``()`` time, or ``None`` for a window that starts at ``t_start`` (from ``q = 0``).
+        q: ``(Wo * Ho,)`` int64 reference index of every output region after its last
+            breakpoint earlier than ``cut`` (0 for a region without one).
+    """
+
+    cut: Tensor | None
+    q: Tensor
+
+
+def resume_steps(
+    knots: Knots, step_bp: Tensor, floor_u: Tensor, on_level: Tensor, resume: Resume | None
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The steps of a window as the reference rule must see them, and each step's ``q_start``.
+
+    Steps whose piece ends at a breakpoint earlier than ``resume.cut`` take the value of
+    their region's last such step (the cut), so that they cross nothing: the region starts
+    there from ``resume.q``, which is consistent with that value.
+
+    Args:
+        knots: the window's :class:`Knots` (one chunk of regions).
+        step_bp: ``(S,)`` int64 breakpoint at the end of each step's piece, ascending.
+        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
+        on_level: ``(S,)`` bool, the step ends on a level.
+        resume: where the window picks up, or ``None`` (the whole stream from ``q = 0``).
+
+    Returns:
+        ``(floor_u, on_level, q_start)`` for
+        :func:`~evdown_torch.transforms.functional._reference.step_crossings`.
+    """
+    if resume is None:
+        return floor_u, on_level, None
+    bp_rank = run_index(knots.bp_first)
+    step_rank = take(bp_rank, step_bp)
+    q_start = take(take(resume.q, knots.regions), step_rank)
+    if resume.cut is None:
+        return floor_u, on_level, q_start
+    done = knots.bp_t < resume.cut  # a prefix of each region's breakpoints
+    n_done = torch.zeros_like(knots.regions).index_add_(0, bp_rank, done.to(torch.int64))
+    cut_bp = knots.region_first_bp + n_done - 1
+    cut_step = torch.searchsorted(step_bp, cut_bp, right=True) - 1
+    at = where_true(take(done, step_bp))
+    source = take(cut_step, take(step_rank, at))
+    floor_u, on_level = floor_u.clone(), on_level.clone()
+    floor_u[at] = take(floor_u, source)
+    on_level[at] = take(on_level, source)
+    return floor_u, on_level, q_start
+
+
+RegionSolver = Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]]
 
 
 def estimate(
@@ -411,16 +478,17 @@ def estimate(
     solve_regions: RegionSolver,
     max_delay: float | None = None,
 ) -> Events:
-    """The driver the estimation kernels share: knots of each chunk of regions, then output.
+    """The batch entry of the estimation kernels: the whole stream, then :func:`estimate_window`.
 
     Args:
         events: ``N`` input events (any order; sorted stably by ``t`` here).
         sensor_size: input ``(W, H, P)``.
         factor: ``(fx, fy)``.
         threshold: contrast threshold, > 0.
-        solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=, emitted=)``
-            returns the crossings ``(region, t, on)`` of the regions of one chunk, in region
-            order (``emitted``: events of the chunks before, for the output limit).
+        solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=, emitted=,
+            resume=)`` returns the crossings ``(region, t, on, breakpoint)`` of the regions of
+            one chunk, in region order (``emitted``: events of the chunks before, for the
+            output limit; ``breakpoint``: the one ending each crossing's piece).
         max_delay: the bounded delay ``D`` (:func:`hold_knots`), or ``None`` (the paper's
             method).
 
@@ -433,24 +501,72 @@ def estimate(
             :func:`~evdown_torch.checks.max_output_events`.
     """
     events = sort_by_time(events)
-    n = events.num_events
-    if n == 0:
+    if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device)
     t_start, t_end = events.t[0], events.t[-1]
-    if not events.t.is_floating_point():
-        check_time_span(int(t_start), int(t_end))
-    # Every curve stays within its knots' levels, at most n in size (PCHIP is shape-preserving).
-    fraction = capped_threshold(threshold_fraction(threshold), n)
-    out_w = output_size(sensor_size, factor)[0]
     step = None
     if max_delay is not None:
         events, step = hold_knots(events, max_delay=max_delay, t_start=t_start)
+    out, _ = estimate_window(
+        events, step=step, t_start=t_start, t_end=t_end, sensor_size=sensor_size,
+        factor=factor, threshold=threshold, solve_regions=solve_regions,
+    )
+    return out
+
+
+def estimate_window(
+    events: Events,
+    *,
+    step: Tensor | None,
+    t_start: Tensor,
+    t_end: Tensor,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: float,
+    solve_regions: RegionSolver,
+    resume: Resume | None = None,
+    next_cut: Tensor | None = None,
+) -> tuple[Events, Tensor | None]:
+    """The driver the estimation kernels share: knots of each chunk of regions, then output.
+
+    Batch (:func:`estimate`): the whole stream. Streaming (a bounded-delay session): a window
+    of it, the knot events its pixels still need, resumed at ``resume``.
+
+    Args:
+        events: ``N >= 1`` knot events in stable time order, within ``[t_start, t_end]``.
+        step: ``(N,)`` int8 or int64 level change of each event (``None``: +1 ON, -1 OFF).
+        t_start: ``()`` first timestamp of the stream (its front knots).
+        t_end: ``()`` last timestamp of the stream so far (the back knots).
+        sensor_size, factor, threshold, solve_regions: as for :func:`estimate`.
+        resume: where a window picks up (:class:`Resume`), or ``None`` (from ``t_start``).
+        next_cut: with ``resume``, the next window's cut: the returned ``q`` is each region's
+            reference index after its last breakpoint earlier than it.
+
+    Returns:
+        ``(events, q)``: output events sorted by ``t`` (``t`` of the input's dtype; with
+        ``resume``, only crossings after its cut), and with ``resume`` the ``(Wo * Ho,)``
+        int64 ``q`` at ``next_cut`` (``None`` without).
+    """
+    n = events.num_events
+    if not events.t.is_floating_point():
+        check_time_span(int(t_start), int(t_end))
+    # Every curve stays within its knots' levels, at most sum |step| in size (PCHIP is
+    # shape-preserving; a window's first knot of a pixel carries its whole level).
+    bound = n if step is None else int(step.abs().sum())
+    fraction = capped_threshold(threshold_fraction(threshold), bound)
+    out_w = output_size(sensor_size, factor)[0]
+    q = None if resume is None else resume.q.clone()
     outputs = []
     emitted = 0
     for chunk in region_chunks(events, factor=factor, out_width=out_w, step=step):
         knots = pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end)
-        outputs.append(solve_regions(knots, sensor_size=sensor_size, factor=factor,
-                                     fraction=fraction, emitted=emitted))
-        emitted += outputs[-1][0].shape[0]
+        region, t, on, bp = solve_regions(knots, sensor_size=sensor_size, factor=factor,
+                                          fraction=fraction, emitted=emitted, resume=resume)
+        outputs.append((region, t, on))
+        emitted += region.shape[0]
+        if q is not None and next_cut is not None:
+            decided = where_true(take(knots.bp_t, bp) < next_cut)
+            sign = take(on, decided).to(torch.int64) * 2 - 1
+            q.index_add_(0, take(region, decided), sign)
     region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
-    return emit(region, t, on, out_w)
+    return emit(region, t, on, out_w), q
