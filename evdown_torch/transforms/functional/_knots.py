@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor
@@ -53,12 +53,14 @@ from evdown_torch.checks import check_time_span, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import capped_threshold, threshold_fraction
 
+if TYPE_CHECKING:
+    from evdown_torch.transforms.functional.estimation_stream import Resume
+
 __all__ = [
     "HALF_TOLERANCE",
     "Knots",
     "RegionChunk",
     "RegionSolver",
-    "Resume",
     "emit",
     "estimate",
     "estimate_window",
@@ -68,7 +70,6 @@ __all__ = [
     "pixel_knots",
     "region_chunks",
     "region_pixels",
-    "resume_steps",
 ]
 
 #: Integer crossing times: an offset this close below a half tick rounds up (see piece_time).
@@ -408,64 +409,6 @@ def hold_knots(
     return merged.select(order), take(merged_step, order)
 
 
-class Resume(NamedTuple):
-    """Where a streaming window of the stream picks up (a bounded-delay session's state).
-
-    The window holds, for each of its pixels, the knots it had before ``cut`` that the curves
-    after ``cut`` still need (the last one, or the last two for PCHIP slopes) and every knot
-    since. Each region resumes at its last breakpoint earlier than ``cut`` with the reference
-    index it had there; the pieces before are not solved (the window's curves are not the
-    stream's there).
-
-    Attributes:
-        cut: ``()`` time, or ``None`` for a window that starts at ``t_start`` (from ``q = 0``).
-        q: ``(Wo * Ho,)`` int64 reference index of every output region after its last
-            breakpoint earlier than ``cut`` (0 for a region without one).
-    """
-
-    cut: Tensor | None
-    q: Tensor
-
-
-def resume_steps(
-    knots: Knots, step_bp: Tensor, floor_u: Tensor, on_level: Tensor, resume: Resume | None
-) -> tuple[Tensor, Tensor, Tensor | None]:
-    """The steps of a window as the reference rule must see them, and each step's ``q_start``.
-
-    Steps whose piece ends at a breakpoint earlier than ``resume.cut`` take the value of
-    their region's last such step (the cut), so that they cross nothing: the region starts
-    there from ``resume.q``, which is consistent with that value.
-
-    Args:
-        knots: the window's :class:`Knots` (one chunk of regions).
-        step_bp: ``(S,)`` int64 breakpoint at the end of each step's piece, ascending.
-        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
-        on_level: ``(S,)`` bool, the step ends on a level.
-        resume: where the window picks up, or ``None`` (the whole stream from ``q = 0``).
-
-    Returns:
-        ``(floor_u, on_level, q_start)`` for
-        :func:`~evdown_torch.transforms.functional._reference.step_crossings`.
-    """
-    if resume is None:
-        return floor_u, on_level, None
-    bp_rank = run_index(knots.bp_first)
-    step_rank = take(bp_rank, step_bp)
-    q_start = take(take(resume.q, knots.regions), step_rank)
-    if resume.cut is None:
-        return floor_u, on_level, q_start
-    done = knots.bp_t < resume.cut  # a prefix of each region's breakpoints
-    n_done = torch.zeros_like(knots.regions).index_add_(0, bp_rank, done.to(torch.int64))
-    cut_bp = knots.region_first_bp + n_done - 1
-    cut_step = torch.searchsorted(step_bp, cut_bp, right=True) - 1
-    at = where_true(take(done, step_bp))
-    source = take(cut_step, take(step_rank, at))
-    floor_u, on_level = floor_u.clone(), on_level.clone()
-    floor_u[at] = take(floor_u, source)
-    on_level[at] = take(on_level, source)
-    return floor_u, on_level, q_start
-
-
 RegionSolver = Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]]
 
 
@@ -538,7 +481,9 @@ def estimate_window(
         t_start: ``()`` first timestamp of the stream (its front knots).
         t_end: ``()`` last timestamp of the stream so far (the back knots).
         sensor_size, factor, threshold, solve_regions: as for :func:`estimate`.
-        resume: where a window picks up (:class:`Resume`), or ``None`` (from ``t_start``).
+        resume: where a window picks up
+            (:class:`~evdown_torch.transforms.functional.estimation_stream.Resume`), or
+            ``None`` (from ``t_start``).
         next_cut: with ``resume``, the next window's cut: the returned ``q`` is each region's
             reference index after its last breakpoint earlier than it.
 

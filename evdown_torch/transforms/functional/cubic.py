@@ -11,14 +11,13 @@ from evdown_torch._tensors import CHUNK_EVENTS, run_index, segmented_cumsum, tak
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
     Knots,
-    Resume,
     estimate,
     level_changes,
     piece_time,
     region_pixels,
-    resume_steps,
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
+from evdown_torch.transforms.functional.estimation_stream import Resume, resume_steps
 
 __all__ = ["cubic_estimation", "cubic_regions", "pchip_slopes"]
 

@@ -40,13 +40,71 @@ from evdown_torch._tensors import (
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
+    Knots,
     RegionSolver,
-    Resume,
     estimate_window,
     hold_knots,
 )
 
-__all__ = ["WindowState", "window_end", "window_step"]
+__all__ = ["Resume", "WindowState", "resume_steps", "window_end", "window_step"]
+
+
+class Resume(NamedTuple):
+    """Where a streaming window of the stream picks up (a bounded-delay session's state).
+
+    The window holds, for each of its pixels, the knots it had before ``cut`` that the curves
+    after ``cut`` still need (the last one, or the last two for PCHIP slopes) and every knot
+    since. Each region resumes at its last breakpoint earlier than ``cut`` with the reference
+    index it had there; the pieces before are not solved (the window's curves are not the
+    stream's there).
+
+    Attributes:
+        cut: ``()`` time, or ``None`` for a window that starts at ``t_start`` (from ``q = 0``).
+        q: ``(Wo * Ho,)`` int64 reference index of every output region after its last
+            breakpoint earlier than ``cut`` (0 for a region without one).
+    """
+
+    cut: Tensor | None
+    q: Tensor
+
+
+def resume_steps(
+    knots: Knots, step_bp: Tensor, floor_u: Tensor, on_level: Tensor, resume: Resume | None
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The steps of a window as the reference rule must see them, and each step's ``q_start``.
+
+    Steps whose piece ends at a breakpoint earlier than ``resume.cut`` take the value of
+    their region's last such step (the cut), so that they cross nothing: the region starts
+    there from ``resume.q``, which is consistent with that value.
+
+    Args:
+        knots: the window's :class:`Knots` (one chunk of regions).
+        step_bp: ``(S,)`` int64 breakpoint at the end of each step's piece, ascending.
+        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
+        on_level: ``(S,)`` bool, the step ends on a level.
+        resume: where the window picks up, or ``None`` (the whole stream from ``q = 0``).
+
+    Returns:
+        ``(floor_u, on_level, q_start)`` for
+        :func:`~evdown_torch.transforms.functional._reference.step_crossings`.
+    """
+    if resume is None:
+        return floor_u, on_level, None
+    bp_rank = run_index(knots.bp_first)
+    step_rank = take(bp_rank, step_bp)
+    q_start = take(take(resume.q, knots.regions), step_rank)
+    if resume.cut is None:
+        return floor_u, on_level, q_start
+    done = knots.bp_t < resume.cut  # a prefix of each region's breakpoints
+    n_done = torch.zeros_like(knots.regions).index_add_(0, bp_rank, done.to(torch.int64))
+    cut_bp = knots.region_first_bp + n_done - 1
+    cut_step = torch.searchsorted(step_bp, cut_bp, right=True) - 1
+    at = where_true(take(done, step_bp))
+    source = take(cut_step, take(step_rank, at))
+    floor_u, on_level = floor_u.clone(), on_level.clone()
+    floor_u[at] = take(floor_u, source)
+    on_level[at] = take(on_level, source)
+    return floor_u, on_level, q_start
 
 
 class WindowState(NamedTuple):
@@ -138,6 +196,19 @@ def window_step(
 
     Returns:
         ``(output, state)``: output sorted by ``t``, ``t`` of the input's dtype.
+
+    Example:
+        Two pixels of one region (threshold 0.25); pixel (1, 0) holds 0 until ``10 - D``:
+
+        >>> from evdown_torch.transforms.functional.linear import linear_regions
+        >>> settings = dict(sensor_size=(2, 1, 2), factor=(2, 1), threshold=0.25,
+        ...                 solve_regions=linear_regions)
+        >>> out, state = window_step(Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1]), None,
+        ...                          max_delay=3, lag=1, **settings)
+        >>> out.t.tolist(), state.horizon  # decided: before 10 - 3
+        ([0, 0], 7)
+        >>> window_end(state, **settings).t.tolist()  # the ramp on [7, 10]
+        [9, 10]
     """
     device, t_dtype = events.t.device, events.t.dtype
     width, height, _ = sensor_size

@@ -12,14 +12,13 @@ from evdown_torch._tensors import differences, run_index, segmented_cumsum, take
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
     Knots,
-    Resume,
     estimate,
     level_changes,
     piece_time,
     region_pixels,
-    resume_steps,
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
+from evdown_torch.transforms.functional.estimation_stream import Resume, resume_steps
 
 __all__ = ["linear_estimation", "linear_regions"]
 
