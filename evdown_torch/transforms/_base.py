@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import overload
 
+import torch
+
+from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.checks import check_factor, check_positive_float, check_sensor_size, output_size
 from evdown_torch.events import Events, EventsLike, from_events, to_events
+from evdown_torch.transforms._batch import Stacked, stack, unstack
 from evdown_torch.transforms.functional._reference import threshold_fraction
 
 
@@ -58,6 +64,66 @@ class Downscaler:
         """
         ev, fmt = to_events(events, self.sensor_size)
         return from_events(self.kernel(ev), fmt)
+
+    def batch_kernel(self, stacked: Stacked) -> Events | None:
+        """Downscale a batch of recordings stacked on one virtual sensor in one pass.
+
+        Methods whose regions are independent and that need no stream bounds run their
+        kernel on the stacked stream as it is; others pass it each recording's bounds (see
+        :mod:`evdown_torch.transforms._batch`). The default, ``None``, means the method has no
+        batched kernel: :meth:`batch` then processes the recordings one by one.
+        """
+        return None
+
+    @overload
+    def batch(self, recordings: EventBatch) -> EventBatch: ...
+
+    @overload
+    def batch(self, recordings: Sequence[EventsLike]) -> list[EventsLike]: ...
+
+    def batch(self, recordings):
+        """Downscale many recordings in one pass; each output equals the recording's own call.
+
+        The recordings go through the kernel together (``docs/semantics.md``: processing
+        several recordings in one batched call gives, for each, the same events as processing
+        it alone), which costs much less than one call per recording when they are small.
+        :class:`~evdown_torch.transforms.LIFPooling` has no batched kernel yet and processes
+        the recordings one by one.
+
+        Args:
+            recordings: a sequence of recordings of any accepted kind (on one device, all
+                with integer or all with float timestamps), or an
+                :class:`~evdown_torch.collate.EventBatch`.
+
+        Returns:
+            A list with each recording's output in its own kind, dtype and polarity encoding;
+            an :class:`~evdown_torch.collate.EventBatch` (on the input's device) for an
+            :class:`~evdown_torch.collate.EventBatch`.
+
+        Example:
+            >>> import torch
+            >>> from evdown_torch import Downsample
+            >>> down = Downsample((4, 4, 2), factor=2)
+            >>> a, b = torch.tensor([[3, 1, 0, 1]]), torch.tensor([[2, 2, 5, 0], [0, 0, 6, 1]])
+            >>> [out.tolist() for out in down.batch([a, b])]
+            [[[1, 0, 0, 1]], [[1, 1, 5, 0], [0, 0, 6, 1]]]
+        """
+        if isinstance(recordings, EventBatch):
+            events, _ = to_events(recordings.events, self.sensor_size)
+            return self._batch_events(EventBatch(events, recordings.lengths))
+        batch, formats = to_batch(recordings, self.sensor_size)
+        return from_batch(self._batch_events(batch), formats)
+
+    def _batch_events(self, batch: EventBatch) -> EventBatch:
+        """:meth:`batch` on validated events."""
+        stacked = stack(batch.events, batch.lengths, sensor_size=self.sensor_size,
+                        factor=self.factor_xy)
+        out = self.batch_kernel(stacked)
+        if out is None:  # no batched kernel: one recording at a time
+            parts = [self.kernel(part) for part in batch.unbind()]
+            events = Events(*(torch.cat(columns) for columns in zip(*parts, strict=True)))
+            return EventBatch(events, tuple(part.num_events for part in parts))
+        return EventBatch(*unstack(out, stacked))
 
 
 @dataclass(frozen=True)

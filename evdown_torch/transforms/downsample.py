@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms._batch import Stacked
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.funnelling import event_funnelling
 
@@ -32,6 +33,10 @@ class Downsample(Downscaler):
         """Apply :func:`~evdown_torch.transforms.functional.downsample.downsample`."""
         return downsample(events, factor=self.factor_xy)
 
+    def batch_kernel(self, stacked: Stacked) -> Events:
+        """Regions are independent: the kernel runs on the stacked batch as it is."""
+        return downsample(stacked.events, factor=self.factor_xy)
+
 
 @dataclass(frozen=True)
 class EventFunnelling(Downscaler):
@@ -52,3 +57,7 @@ class EventFunnelling(Downscaler):
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.funnelling.event_funnelling`."""
         return event_funnelling(events, factor=self.factor_xy)
+
+    def batch_kernel(self, stacked: Stacked) -> Events:
+        """Regions are independent: the kernel runs on the stacked batch as it is."""
+        return event_funnelling(stacked.events, factor=self.factor_xy)

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import ThresholdDownscaler
+from evdown_torch.transforms._batch import Stacked
 from evdown_torch.transforms.functional.cubic import cubic_estimation
 from evdown_torch.transforms.functional.linear import linear_estimation
 
@@ -46,6 +47,13 @@ class LinearEstimation(ThresholdDownscaler):
             events, sensor_size=self.sensor_size, factor=self.factor_xy, threshold=self.threshold
         )
 
+    def batch_kernel(self, stacked: Stacked) -> Events:
+        """The kernel on the stacked batch, with each recording's own stream bounds."""
+        return linear_estimation(
+            stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
+            threshold=self.threshold, bounds=(stacked.starts, stacked.ends),
+        )
+
 
 @dataclass(frozen=True)
 class CubicEstimation(ThresholdDownscaler):
@@ -79,4 +87,11 @@ class CubicEstimation(ThresholdDownscaler):
         """Apply :func:`~evdown_torch.transforms.functional.cubic.cubic_estimation`."""
         return cubic_estimation(
             events, sensor_size=self.sensor_size, factor=self.factor_xy, threshold=self.threshold
+        )
+
+    def batch_kernel(self, stacked: Stacked) -> Events:
+        """The kernel on the stacked batch, with each recording's own stream bounds."""
+        return cubic_estimation(
+            stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
+            threshold=self.threshold, bounds=(stacked.starts, stacked.ends),
         )

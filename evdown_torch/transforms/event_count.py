@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from evdown_torch.events import Events, EventsLike, from_events, to_events
 from evdown_torch.transforms._base import ThresholdDownscaler
+from evdown_torch.transforms._batch import Stacked
 from evdown_torch.transforms.functional.event_count import (
     EventCountState,
     event_count,
@@ -38,6 +39,14 @@ class EventCount(ThresholdDownscaler):
         """Apply :func:`~evdown_torch.transforms.functional.event_count.event_count`."""
         out, _ = event_count(
             events, sensor_size=self.sensor_size, factor=self.factor_xy, threshold=self.threshold
+        )
+        return out
+
+    def batch_kernel(self, stacked: Stacked) -> Events:
+        """The kernel on the stacked batch, with one block of regions per recording."""
+        out, _ = event_count(
+            stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
+            threshold=self.threshold, recordings=stacked.recordings,
         )
         return out
 

@@ -28,6 +28,7 @@ def linear_estimation(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     threshold: float,
+    bounds: tuple[Tensor, Tensor] | None = None,
 ) -> Events:
     """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
 
@@ -50,6 +51,9 @@ def linear_estimation(
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
+        bounds: ``(B,)`` first and last timestamps of each recording of a batch stacked
+            vertically (see :func:`~evdown_torch.transforms.functional._knots.estimate`), or
+            ``None`` for one stream.
 
     Returns:
         Output events sorted by ``t``, ``t`` of the input's dtype.
@@ -62,7 +66,7 @@ def linear_estimation(
     """
     return estimate(
         events, sensor_size=sensor_size, factor=factor, threshold=threshold,
-        solve_regions=_linear_regions,
+        solve_regions=_linear_regions, bounds=bounds,
     )
 
 
