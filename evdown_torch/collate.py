@@ -27,6 +27,8 @@ from evdown_torch.events import (
     EventFormat,
     Events,
     EventsLike,
+    _polarity_encoding,
+    _warn_if_time_lost_precision,
     from_events,
     to_events,
 )
@@ -102,17 +104,38 @@ def _check_one_device_and_clock(parts: list[Events]) -> None:
         )
 
 
-def _concatenated(recordings: Sequence[EventsLike]) -> EventsLike | None:
-    """The recordings as one input of their common kind, when they share kind and dtype."""
+def _structured_columns(
+    recordings: list[np.ndarray], sensor_size: tuple[int, int, int] | None
+) -> tuple[Events, EventFormat]:
+    """Structured arrays of one dtype, converted field by field straight into one stream
+    (much faster than concatenating the structured arrays first)."""
+    _, fmt = to_events(recordings[0][:0])  # checks the fields and their dtypes
+    t_kind = recordings[0].dtype["t"]
+    t_dtype = np.float64 if np.issubdtype(t_kind, np.floating) else np.int64
+    x, y, t = (torch.from_numpy(np.concatenate([r[f] for r in recordings], dtype=dtype))
+               for f, dtype in (("x", np.int64), ("y", np.int64), ("t", t_dtype)))
+    _warn_if_time_lost_precision(t, t_kind.name)
+    p = torch.from_numpy(np.concatenate([r["p"] for r in recordings]))
+    if p.dtype != torch.bool:
+        fmt = EventFormat(fmt.kind, fmt.dtype, _polarity_encoding(p), fmt.device)
+        p = p > 0
+    events, _ = to_events(Events(x, y, t, p), sensor_size)
+    return events, fmt
+
+
+def _concatenated(
+    recordings: list[EventsLike], sensor_size: tuple[int, int, int] | None
+) -> tuple[Events, EventFormat] | None:
+    """The recordings as one stream, when they share kind and dtype (else ``None``)."""
     first = recordings[0]
     if isinstance(first, np.ndarray) and first.dtype.names is not None:
         if all(isinstance(r, np.ndarray) and r.dtype == first.dtype and r.ndim == 1
                for r in recordings):
-            return np.concatenate(recordings)
+            return _structured_columns(recordings, sensor_size)
     elif isinstance(first, Tensor):
         if all(isinstance(r, Tensor) and r.dtype == first.dtype and r.device == first.device
                and r.ndim == 2 and r.shape[1:] == first.shape[1:] for r in recordings):
-            return torch.cat(list(recordings))
+            return to_events(torch.cat(recordings), sensor_size)
     return None
 
 
@@ -142,13 +165,12 @@ def to_batch(
     if not recordings:
         raise ValueError("a batch needs at least one recording, got none")
     lengths = tuple(_length(r) for r in recordings)
-    whole = _concatenated(recordings)
+    try:
+        whole = _concatenated(recordings, sensor_size)
+    except (TypeError, ValueError):
+        whole = None  # one by one below: the message names the recording
     if whole is not None:
-        try:
-            events, fmt = to_events(whole, sensor_size)
-        except (TypeError, ValueError):
-            whole = None  # one by one below: the message names the recording
-    if whole is not None:
+        events, fmt = whole
         if fmt.polarity != "signed":
             return EventBatch(events, lengths), [fmt] * len(recordings)
         # Signed overall: a recording without an OFF event reads as 0/1 on its own.

@@ -11,7 +11,6 @@ import torch
 from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.checks import check_factor, check_positive_float, check_sensor_size, output_size
 from evdown_torch.events import Events, EventsLike, from_events, to_events
-from evdown_torch.transforms._batch import Stacked, stack, unstack
 from evdown_torch.transforms.functional._reference import threshold_fraction
 
 
@@ -65,13 +64,13 @@ class Downscaler:
         ev, fmt = to_events(events, self.sensor_size)
         return from_events(self.kernel(ev), fmt)
 
-    def batch_kernel(self, stacked: Stacked) -> Events | None:
-        """Downscale a batch of recordings stacked on one virtual sensor in one pass.
+    def batch_kernel(self, batch: EventBatch) -> EventBatch | None:
+        """Downscale a batch of validated recordings in one pass.
 
-        Methods whose regions are independent and that need no stream bounds run their
-        kernel on the stacked stream as it is; others pass it each recording's bounds (see
-        :mod:`evdown_torch.transforms._batch`). The default, ``None``, means the method has no
-        batched kernel: :meth:`batch` then processes the recordings one by one.
+        Methods run their kernel once on the recordings stacked on one virtual sensor
+        (:func:`~evdown_torch.transforms._batch.run_stacked`), passing it each recording's
+        stream bounds where the method needs them. The default, ``None``, means the method
+        has no batched kernel: :meth:`batch` then processes the recordings one by one.
         """
         return None
 
@@ -116,14 +115,12 @@ class Downscaler:
 
     def _batch_events(self, batch: EventBatch) -> EventBatch:
         """:meth:`batch` on validated events."""
-        stacked = stack(batch.events, batch.lengths, sensor_size=self.sensor_size,
-                        factor=self.factor_xy)
-        out = self.batch_kernel(stacked)
+        out = self.batch_kernel(batch)
         if out is None:  # no batched kernel: one recording at a time
             parts = [self.kernel(part) for part in batch.unbind()]
             events = Events(*(torch.cat(columns) for columns in zip(*parts, strict=True)))
-            return EventBatch(events, tuple(part.num_events for part in parts))
-        return EventBatch(*unstack(out, stacked))
+            out = EventBatch(events, tuple(part.num_events for part in parts))
+        return out
 
 
 @dataclass(frozen=True)

@@ -24,16 +24,18 @@ regions independently, so each recording's output is the one it gets alone.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, stable_sort_small, take
+from evdown_torch._tensors import divide, stable_sort_small, take, where_true
 from evdown_torch.checks import output_size
+from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 
-__all__ = ["Stacked", "stack", "unstack"]
+__all__ = ["Stacked", "recording_index", "run_stacked", "sorted_within", "stack", "unstack"]
 
 #: Largest total of the shifted time windows: int64 arithmetic on shifted times stays exact.
 MAX_SHIFTED_SPAN = 1 << 62
@@ -60,10 +62,27 @@ class Stacked(NamedTuple):
     out_height: int
 
 
-def _recording_index(lengths: tuple[int, ...], device: torch.device) -> Tensor:
+def recording_index(lengths: tuple[int, ...], device: torch.device) -> Tensor:
+    """``(N,)`` int64 recording of each event of recordings of ``lengths`` concatenated."""
     counts = torch.tensor(lengths, dtype=torch.int64, device=device)
     return torch.repeat_interleave(torch.arange(len(lengths), device=device), counts,
                                    output_size=sum(lengths))
+
+
+def sorted_within(t: Tensor, lengths: tuple[int, ...]) -> bool:
+    """Whether each recording of ``t`` (recordings of ``lengths`` concatenated) is in time order.
+
+    Example:
+        >>> sorted_within(torch.tensor([5, 9, 1, 2]), (2, 2)), sorted_within(torch.tensor([5, 1]), (2,))
+        (True, False)
+    """
+    if t.shape[0] < 2:
+        return True
+    ordered = t[1:] >= t[:-1]
+    starts = torch.tensor(lengths[:-1], dtype=torch.int64).cumsum(0)
+    starts = starts[(starts > 0) & (starts < t.shape[0])].to(t.device)
+    ordered.index_fill_(0, starts - 1, True)  # a recording may start before the last ended
+    return bool(ordered.all())
 
 
 def stack(
@@ -94,14 +113,23 @@ def stack(
     device = events.device
     b = len(lengths)
     out_h = output_size(sensor_size, factor)[1]
-    recording = _recording_index(lengths, device)
+    recording = recording_index(lengths, device)
     y = recording * (out_h * factor[1])
     y += events.y
     t = events.t
+    counts = torch.tensor(lengths, dtype=torch.int64)
+    present = where_true(counts > 0)
+    last = (counts.cumsum(0) - 1)[present].to(device)
+    first = last - (counts[present].to(device) - 1)
+    present = present.to(device)
     starts = torch.zeros(b, dtype=t.dtype, device=device)
     ends = torch.zeros(b, dtype=t.dtype, device=device)
-    starts.scatter_reduce_(0, recording, t, "amin", include_self=False)
-    ends.scatter_reduce_(0, recording, t, "amax", include_self=False)
+    if sorted_within(t, lengths):
+        starts[present] = take(t, first)
+        ends[present] = take(t, last)
+    else:
+        starts.scatter_reduce_(0, recording, t, "amin", include_self=False)
+        ends.scatter_reduce_(0, recording, t, "amax", include_self=False)
     shift = None
     if not t.is_floating_point() and b > 1:
         spans = ends - starts
@@ -118,18 +146,39 @@ def unstack(out: Events, stacked: Stacked) -> tuple[Events, tuple[int, ...]]:
     """Map a kernel's output on the virtual sensor back to each recording.
 
     Args:
-        out: the kernel's output for :attr:`Stacked.events`, sorted by ``t``.
+        out: the kernel's output for :attr:`Stacked.events`, sorted by ``t``; with a shifted
+            clock, each recording's output lies in its window ``[starts, ends]``. Its ``y``
+            and (shifted) ``t`` are rewritten in place: they must be new tensors (or the
+            stacked ones), never the caller's.
         stacked: the :class:`Stacked` batch it came from.
 
     Returns:
         ``(events, lengths)``: the outputs of the recordings concatenated, recording 0 first,
         each sorted by ``t`` in its own coordinates and clock, and their lengths.
     """
-    recording = divide(out.y, stacked.out_height)
-    if stacked.shift is None or not bool((recording[1:] >= recording[:-1]).all()):
-        recording, order = stable_sort_small(recording, stacked.recordings)
+    b = stacked.recordings
+    if stacked.shift is None:
+        recording = divide(out.y, stacked.out_height)
+        recording, order = stable_sort_small(recording, b)
         out = out.select(order)
-    y = out.y - recording * stacked.out_height
-    t = out.t if stacked.shift is None else out.t - take(stacked.shift, recording)
-    counts = torch.bincount(recording, minlength=stacked.recordings)
-    return Events(out.x, y, t, out.p), tuple(counts.tolist())
+        counts = tuple(torch.bincount(recording, minlength=b).tolist())
+        t = out.t
+    else:  # sorted by t: the recordings' windows follow each other
+        edges = torch.searchsorted(out.t, stacked.starts).tolist() + [out.num_events]
+        counts = tuple(hi - lo for lo, hi in zip(edges[:-1], edges[1:]))
+        recording = recording_index(counts, out.device)
+        t = out.t.sub_(take(stacked.shift, recording))  # the kernel's own new tensors
+    y = out.y.sub_(recording, alpha=stacked.out_height)
+    return Events(out.x, y, t, out.p), counts
+
+
+def run_stacked(
+    batch: EventBatch,
+    kernel: Callable[[Stacked], Events],
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+) -> EventBatch:
+    """Stack a batch, run ``kernel`` on it once, and give each recording its output back."""
+    stacked = stack(batch.events, batch.lengths, sensor_size=sensor_size, factor=factor)
+    return EventBatch(*unstack(kernel(stacked), stacked))

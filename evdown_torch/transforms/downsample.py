@@ -6,7 +6,9 @@ from dataclasses import dataclass
 
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Downscaler
-from evdown_torch.transforms._batch import Stacked
+from evdown_torch._tensors import region_of
+from evdown_torch.collate import EventBatch
+from evdown_torch.transforms._batch import run_stacked, sorted_within
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.funnelling import event_funnelling
 
@@ -33,9 +35,14 @@ class Downsample(Downscaler):
         """Apply :func:`~evdown_torch.transforms.functional.downsample.downsample`."""
         return downsample(events, factor=self.factor_xy)
 
-    def batch_kernel(self, stacked: Stacked) -> Events:
-        """Regions are independent: the kernel runs on the stacked batch as it is."""
-        return downsample(stacked.events, factor=self.factor_xy)
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """Events do not interact: recordings in time order need only the division."""
+        events = batch.events
+        if sorted_within(events.t, batch.lengths):
+            x, y = region_of(events, self.factor_xy)
+            return EventBatch(Events(x, y, events.t.clone(), events.p.clone()), batch.lengths)
+        return run_stacked(batch, lambda s: downsample(s.events, factor=self.factor_xy),
+                           sensor_size=self.sensor_size, factor=self.factor_xy)
 
 
 @dataclass(frozen=True)
@@ -58,6 +65,7 @@ class EventFunnelling(Downscaler):
         """Apply :func:`~evdown_torch.transforms.functional.funnelling.event_funnelling`."""
         return event_funnelling(events, factor=self.factor_xy)
 
-    def batch_kernel(self, stacked: Stacked) -> Events:
-        """Regions are independent: the kernel runs on the stacked batch as it is."""
-        return event_funnelling(stacked.events, factor=self.factor_xy)
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """Regions are independent: the kernel runs once on the stacked batch."""
+        return run_stacked(batch, lambda s: event_funnelling(s.events, factor=self.factor_xy),
+                           sensor_size=self.sensor_size, factor=self.factor_xy)

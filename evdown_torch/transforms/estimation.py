@@ -6,7 +6,8 @@ from dataclasses import dataclass
 
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import ThresholdDownscaler
-from evdown_torch.transforms._batch import Stacked
+from evdown_torch.collate import EventBatch
+from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.cubic import cubic_estimation
 from evdown_torch.transforms.functional.linear import linear_estimation
 
@@ -47,12 +48,16 @@ class LinearEstimation(ThresholdDownscaler):
             events, sensor_size=self.sensor_size, factor=self.factor_xy, threshold=self.threshold
         )
 
-    def batch_kernel(self, stacked: Stacked) -> Events:
-        """The kernel on the stacked batch, with each recording's own stream bounds."""
-        return linear_estimation(
-            stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
-            threshold=self.threshold, bounds=(stacked.starts, stacked.ends),
-        )
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """The kernel once on the stacked batch, with each recording's own stream bounds."""
+
+        def kernel(stacked: Stacked) -> Events:
+            return linear_estimation(
+                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
+                threshold=self.threshold, bounds=(stacked.starts, stacked.ends),
+            )
+
+        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
 
 
 @dataclass(frozen=True)
@@ -89,9 +94,13 @@ class CubicEstimation(ThresholdDownscaler):
             events, sensor_size=self.sensor_size, factor=self.factor_xy, threshold=self.threshold
         )
 
-    def batch_kernel(self, stacked: Stacked) -> Events:
-        """The kernel on the stacked batch, with each recording's own stream bounds."""
-        return cubic_estimation(
-            stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
-            threshold=self.threshold, bounds=(stacked.starts, stacked.ends),
-        )
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """The kernel once on the stacked batch, with each recording's own stream bounds."""
+
+        def kernel(stacked: Stacked) -> Events:
+            return cubic_estimation(
+                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
+                threshold=self.threshold, bounds=(stacked.starts, stacked.ends),
+            )
+
+        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)

@@ -6,7 +6,8 @@ from dataclasses import dataclass
 
 from evdown_torch.events import Events, EventsLike, from_events, to_events
 from evdown_torch.transforms._base import ThresholdDownscaler
-from evdown_torch.transforms._batch import Stacked
+from evdown_torch.collate import EventBatch
+from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.event_count import (
     EventCountState,
     event_count,
@@ -42,13 +43,17 @@ class EventCount(ThresholdDownscaler):
         )
         return out
 
-    def batch_kernel(self, stacked: Stacked) -> Events:
-        """The kernel on the stacked batch, with one block of regions per recording."""
-        out, _ = event_count(
-            stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
-            threshold=self.threshold, recordings=stacked.recordings,
-        )
-        return out
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """The kernel once on the stacked batch, with one block of regions per recording."""
+
+        def kernel(stacked: Stacked) -> Events:
+            out, _ = event_count(
+                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
+                threshold=self.threshold, recordings=stacked.recordings,
+            )
+            return out
+
+        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
 
     def session(self) -> EventCountSession:
         """Start a streaming session over consecutive chunks of one stream."""
