@@ -12,7 +12,7 @@ For every method, on one thread: the throughput (input events per second) of
 and the goal ratio ``batch / stream`` (issue 16 asks >= 0.5). With ``--device cuda`` (when
 available) the batch goes through :class:`~evdown_torch.collate.EventBatch` on the GPU.
 
-Run: ``python benchmarks/bench_batch.py [--batch 256] [--events 1000000] [--repeats 3]
+Run: ``python benchmarks/bench_batch.py [--batch 256] [--events 1000000] [--repeats 5]
 [--methods ...] [--device cpu] [--short]``. ``--short`` (a few seconds, for checking that it
 works) uses batches of 16 and a 50,000-event stream.
 """
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--batch", type=int, default=256, help="recordings per batch")
     parser.add_argument("--events", type=int, default=1_000_000, help="events of the stream")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
     parser.add_argument("--device", default="cpu", help="cpu or cuda (batched path only)")
     parser.add_argument("--short", action="store_true", help="tiny sizes, to check it runs")

@@ -128,14 +128,15 @@ def _concatenated(
 ) -> tuple[Events, EventFormat] | None:
     """The recordings as one stream, when they share kind and dtype (else ``None``)."""
     first = recordings[0]
-    if isinstance(first, np.ndarray) and first.dtype.names is not None:
-        if all(isinstance(r, np.ndarray) and r.dtype == first.dtype and r.ndim == 1
-               for r in recordings):
-            return _structured_columns(recordings, sensor_size)
-    elif isinstance(first, Tensor):
-        if all(isinstance(r, Tensor) and r.dtype == first.dtype and r.device == first.device
-               and r.ndim == 2 and r.shape[1:] == first.shape[1:] for r in recordings):
-            return to_events(torch.cat(recordings), sensor_size)
+    structured = isinstance(first, np.ndarray) and first.dtype.names is not None
+    if structured and all(isinstance(r, np.ndarray) and r.dtype == first.dtype and r.ndim == 1
+                          for r in recordings):
+        return _structured_columns(recordings, sensor_size)
+    if isinstance(first, Tensor) and all(
+        isinstance(r, Tensor) and r.dtype == first.dtype and r.device == first.device
+        and r.ndim == 2 and r.shape[1:] == first.shape[1:] for r in recordings
+    ):
+        return to_events(torch.cat(recordings), sensor_size)
     return None
 
 

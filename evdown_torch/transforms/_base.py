@@ -8,8 +8,8 @@ from typing import overload
 
 import torch
 
-from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.checks import check_factor, check_positive_float, check_sensor_size, output_size
+from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.events import Events, EventsLike, from_events, to_events
 from evdown_torch.transforms.functional._reference import threshold_fraction
 

@@ -73,8 +73,10 @@ def sorted_within(t: Tensor, lengths: tuple[int, ...]) -> bool:
     """Whether each recording of ``t`` (recordings of ``lengths`` concatenated) is in time order.
 
     Example:
-        >>> sorted_within(torch.tensor([5, 9, 1, 2]), (2, 2)), sorted_within(torch.tensor([5, 1]), (2,))
-        (True, False)
+        >>> sorted_within(torch.tensor([5, 9, 1, 2]), (2, 2))
+        True
+        >>> sorted_within(torch.tensor([5, 1]), (2,))
+        False
     """
     if t.shape[0] < 2:
         return True

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from evdown_torch.events import Events
-from evdown_torch.transforms._base import Downscaler
 from evdown_torch._tensors import region_of
 from evdown_torch.collate import EventBatch
+from evdown_torch.events import Events
+from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms._batch import run_stacked, sorted_within
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.funnelling import event_funnelling

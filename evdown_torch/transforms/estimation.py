@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import ThresholdDownscaler
-from evdown_torch.collate import EventBatch
 from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.cubic import cubic_estimation
 from evdown_torch.transforms.functional.linear import linear_estimation

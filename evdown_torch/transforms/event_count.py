@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, EventsLike, from_events, to_events
 from evdown_torch.transforms._base import ThresholdDownscaler
-from evdown_torch.collate import EventBatch
 from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.event_count import (
     EventCountState,
