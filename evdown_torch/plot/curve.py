@@ -269,7 +269,8 @@ def region_curves(
             c = float(transform.contrast)
             change = np.exp(c * level_after) - np.exp(c * (level_after - step))
             log_mean = np.log1p(np.cumsum(change) / n_r) / c
-            photocurrent = (count_mean[0], np.concatenate([[0], log_mean, log_mean[-1:]]))
+            last = log_mean[-1:] if log_mean.size else [0]  # a region without events stays at 0
+            photocurrent = (count_mean[0], np.concatenate([[0], log_mean, last]))
     if ground_truth is not None:
         truth = sort_by_time(to_events(ground_truth, (out_w, out_h, 2))[0])
         at = (truth.x == px) & (truth.y == py)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import operator
 import os
 from collections.abc import Callable
 from typing import Any
@@ -12,6 +11,7 @@ import torch
 
 from evdown_torch.checks import (
     check_factor,
+    check_item_index,
     check_non_negative_int,
     check_positive_int,
     check_sensor_size,
@@ -172,14 +172,7 @@ class SyntheticGestures:
         return [i % len(self.classes) for i in range(len(self))]
 
     def _index(self, index: Any) -> int:
-        try:
-            index = operator.index(index)
-        except TypeError:
-            raise TypeError(f"index must be an integer, got {index!r}") from None
-        n = len(self)
-        if not -n <= index < n:
-            raise IndexError(f"index {index} is out of range for {n} samples")
-        return index % n
+        return check_item_index(index, len(self), "samples")
 
     def scene(self, index: int) -> GestureScene:
         """The scene of sample ``index`` (its label is ``index % 11``)."""

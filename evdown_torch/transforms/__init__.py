@@ -5,6 +5,7 @@ from evdown_torch.transforms.downsample import Downsample, EventFunnelling
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount, EventCountSession
 from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
+from evdown_torch.transforms.photocurrent import PhotocurrentPooling, PhotocurrentSession
 
 __all__ = [
     "CubicEstimation",
@@ -15,5 +16,7 @@ __all__ = [
     "EventFunnelling",
     "LIFPooling",
     "LinearEstimation",
+    "PhotocurrentPooling",
+    "PhotocurrentSession",
     "calibrate_weight",
 ]
