@@ -14,6 +14,7 @@ from evdown_torch import (
     Events,
     LIFPooling,
     LinearEstimation,
+    PhotocurrentPooling,
 )
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import DVS_DTYPE
@@ -28,6 +29,9 @@ METHODS = {
     "linear": lambda f: LinearEstimation(SENSOR, factor=f, threshold=0.2),
     "cubic": lambda f: CubicEstimation(SENSOR, factor=f, threshold=0.2),
     "lif": lambda f: LIFPooling(SENSOR, factor=f, dt=50, tau=200),
+    "photocurrent": lambda f: PhotocurrentPooling(SENSOR, factor=f, contrast=0.3, threshold=0.2),
+    "photocurrent_frames": lambda f: PhotocurrentPooling(SENSOR, factor=f, contrast=0.3,
+                                                         threshold=0.2, fps=20_000),
 }
 
 
