@@ -86,8 +86,9 @@ class Downscaler:
         The recordings go through the kernel together (``docs/semantics.md``: processing
         several recordings in one batched call gives, for each, the same events as processing
         it alone), which costs much less than one call per recording when they are small.
-        :class:`~evdown_torch.transforms.LIFPooling` has no batched kernel yet and processes
-        the recordings one by one.
+        :class:`~evdown_torch.transforms.LIFPooling` and the frames mode of
+        :class:`~evdown_torch.transforms.PhotocurrentPooling` have no batched kernel yet and
+        process the recordings one by one.
 
         Args:
             recordings: a sequence of recordings of any accepted kind (on one device, all
