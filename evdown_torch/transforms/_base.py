@@ -86,9 +86,10 @@ class Downscaler:
         The recordings go through the kernel together (``docs/semantics.md``: processing
         several recordings in one batched call gives, for each, the same events as processing
         it alone), which costs much less than one call per recording when they are small.
-        :class:`~evdown_torch.transforms.LIFPooling` and the frames mode of
-        :class:`~evdown_torch.transforms.PhotocurrentPooling` have no batched kernel yet and
-        process the recordings one by one.
+        The frames mode of :class:`~evdown_torch.transforms.PhotocurrentPooling` has no
+        batched kernel yet and processes the recordings one by one. The output limit
+        (:func:`evdown_torch.set_max_output_events`, or ``LIFPooling.max_output_events``)
+        applies to the batch as a whole.
 
         Args:
             recordings: a sequence of recordings of any accepted kind (on one device, all

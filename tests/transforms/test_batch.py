@@ -146,3 +146,17 @@ def test_dvs_dtype_round_trip(rng):
     recordings = [random_stream(rng, n, SENSOR, dtype=DVS_DTYPE) for n in (3, 9)]
     outputs = EventFunnelling(SENSOR, factor=2).batch(recordings)
     assert all(o.dtype == DVS_DTYPE for o in outputs)
+
+
+@pytest.mark.parametrize("reset", ["subtract", "zero", "none"])
+@pytest.mark.parametrize("dt", [7, 12.5, 10_000])
+def test_lif_batch_with_firing_chains(reset, dt, rng):
+    """Strong weights and slow leaks: neurons keep firing through silent steps up to their own
+    recording's end (tails), inhibition, a fractional dt, a dt longer than every recording."""
+    transform = LIFPooling(SENSOR, factor=2, dt=dt, tau=500, threshold=0.5, weight=2.0,
+                           mutual_inhibition=0.5, reset_mechanism=reset)
+    recordings = _recordings(rng, t_max=150)
+    outputs = transform.batch(recordings)
+    assert sum(len(o) for o in outputs) > 50
+    for recording, output in zip(recordings, outputs, strict=True):
+        _assert_same(output, transform(recording))
