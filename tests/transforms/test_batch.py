@@ -160,3 +160,12 @@ def test_lif_batch_with_firing_chains(reset, dt, rng):
     assert sum(len(o) for o in outputs) > 50
     for recording, output in zip(recordings, outputs, strict=True):
         _assert_same(output, transform(recording))
+
+
+@pytest.mark.parametrize("name", sorted(METHODS))
+def test_batch_of_empty_recordings_and_of_one(name, rng):
+    transform = METHODS[name](2)
+    empty = random_stream(rng, 0, SENSOR)
+    assert [len(out) for out in transform.batch([empty, empty.copy()])] == [0, 0]
+    recording = random_stream(rng, 30, SENSOR)
+    _assert_same(transform.batch([recording])[0], transform(recording))
