@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from evdown_torch._tensors import region_of
 from evdown_torch.collate import EventBatch
@@ -10,7 +11,11 @@ from evdown_torch.events import Events
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms._batch import run_stacked, sorted_within
 from evdown_torch.transforms.functional.downsample import downsample
-from evdown_torch.transforms.functional.funnelling import event_funnelling
+from evdown_torch.transforms.functional.funnelling import (
+    drop_repeats,
+    event_funnelling,
+    last_instant,
+)
 
 
 @dataclass(frozen=True)
@@ -43,6 +48,9 @@ class Downsample(Downscaler):
             return EventBatch(Events(x, y, events.t.clone(), events.p.clone()), batch.lengths)
         return run_stacked(batch, lambda s: downsample(s.events, factor=self.factor_xy),
                            sensor_size=self.sensor_size, factor=self.factor_xy)
+    def stream(self, events: Events, state: Any | None) -> tuple[Events, None]:
+        """One chunk of a stream: stateless, every event is decided at once."""
+        return self.kernel(events), None
 
 
 @dataclass(frozen=True)
@@ -69,3 +77,12 @@ class EventFunnelling(Downscaler):
         """Regions are independent: the kernel runs once on the stacked batch."""
         return run_stacked(batch, lambda s: event_funnelling(s.events, factor=self.factor_xy),
                            sensor_size=self.sensor_size, factor=self.factor_xy)
+    def stream(self, events: Events, state: Events | None) -> tuple[Events, Events | None]:
+        """One chunk of a stream.
+
+        The state is the distinct output events at the latest timestamp so far: the only ones
+        a later chunk can repeat (a repeat shares ``t``), so duplicates that straddle a chunk
+        boundary are still dropped.
+        """
+        out = drop_repeats(downsample(events, factor=self.factor_xy), seen=state)
+        return out, last_instant(out, state)

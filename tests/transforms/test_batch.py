@@ -28,6 +28,8 @@ METHODS = {
     "event_count": lambda f: EventCount(SENSOR, factor=f, threshold=0.25),
     "linear": lambda f: LinearEstimation(SENSOR, factor=f, threshold=0.2),
     "cubic": lambda f: CubicEstimation(SENSOR, factor=f, threshold=0.2),
+    "linear_delay": lambda f: LinearEstimation(SENSOR, factor=f, threshold=0.2, max_delay=9),
+    "cubic_delay": lambda f: CubicEstimation(SENSOR, factor=f, threshold=0.2, max_delay=9),
     "lif": lambda f: LIFPooling(SENSOR, factor=f, dt=50, tau=200),
     "photocurrent": lambda f: PhotocurrentPooling(SENSOR, factor=f, contrast=0.3, threshold=0.2),
     "photocurrent_frames": lambda f: PhotocurrentPooling(SENSOR, factor=f, contrast=0.3,
