@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from evdown_torch.checks import check_factor, check_positive_float, check_sensor_size, output_size
 from evdown_torch.events import Events, EventsLike, from_events, to_events
@@ -23,6 +24,10 @@ class Downscaler:
         factor: a positive integer or a pair ``(fx, fy)``; pixel ``(x, y)`` goes to region
             ``(x // fx, y // fy)``.
     """
+
+    #: The one setting that sets the output's event budget (see ``transforms.calibrate``);
+    #: ``None`` for methods whose output count is fixed by the input.
+    budget_setting: ClassVar[str | None] = None
 
     sensor_size: tuple[int, int, int]
     factor: int | tuple[int, int] = 2
@@ -69,6 +74,8 @@ class ThresholdDownscaler(Downscaler):
             > 0. It is used as the nearest fraction with denominator at most 10**6, so
             decimal thresholds such as 0.01 are exact.
     """
+
+    budget_setting: ClassVar[str | None] = "threshold"
 
     threshold: float = 1.0
 
