@@ -1,0 +1,1 @@
+"""The trade study behind ``evdown evaluate``."""
