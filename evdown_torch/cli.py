@@ -8,7 +8,7 @@ Subcommands:
   its peers (Tonic), with scaling curves and peak memory; writes a Markdown report, JSON and
   PNG plots (see :mod:`evdown_torch.bench`).
 * ``evdown evaluate --config FILE [--output DIR]``: measure every method's speed/accuracy
-  trade (:mod:`evdown_torch.evaluate`) and write ``results.csv``, ``report.md`` and
+  trade (:mod:`evdown_torch.evaluation`) and write ``results.csv``, ``report.md`` and
   ``tradeoff.png``.
 """
 
@@ -91,14 +91,15 @@ def _bench(args: argparse.Namespace) -> int:
 
 def _evaluate(args: argparse.Namespace) -> int:
     from evdown_torch.config import load_config
-    from evdown_torch.evaluate import markdown_table, run_evaluation, write_report
+    from evdown_torch.evaluation import markdown_table, run_evaluation, write_report
 
     try:
         config = load_config(args.config)
-        result = run_evaluation(config)
+        result = run_evaluation(config, cache=not args.no_cache)
     except (OSError, RuntimeError) as error:
         raise CommandError(str(error)) from None
-    write_report(result, args.output or config.output.directory)
+    write_report(result, args.output or config.output.directory,
+                 log=lambda line: print(line, file=sys.stderr))
     print(markdown_table(result), end="")
     return 0
 
@@ -154,6 +155,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="TOML configuration, e.g. configs/quick.toml")
     evaluate.add_argument("--output", metavar="DIR",
                           help="output directory (default: the config's [output] directory)")
+    evaluate.add_argument("--no-cache", action="store_true",
+                          help="neither read nor keep the cache of recordings, frames and "
+                          "predictions (work in a temporary directory)")
     evaluate.set_defaults(run=_evaluate)
     return parser
 
