@@ -93,7 +93,7 @@ def test_study_settings():
         ({"methods": {"factors": [2.5]}}, TypeError, r"methods.factors\[0\] must be an integer "
                                                      "or an array of 2"),
         ({"methods": {"factors": []}}, ValueError, "at least one factor"),
-        ({"methods": {"factors": [100]}}, ValueError, "methods.factors: factor 100 is larger"),
+        ({"methods": {"factors": [200]}}, ValueError, "methods.factors: factor 200 is larger"),
         ({"methods": {"include": ["nope"]}}, ValueError, r"unknown method\(s\) \['nope'\]"),
         ({"settings": {"nope": {}}}, ValueError, r"\[settings.nope\] names an unknown method"),
         ({"settings": {"event_count": {"thresh": 1}}}, ValueError,
