@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from evdown_torch.cli import main
+from bench_all import run_bench
 
 METHODS = ["downsample", "funnelling", "tonic_downsample"]
 
@@ -19,4 +19,4 @@ if __name__ == "__main__":
     args = sys.argv[1:]
     if "--out" not in args:
         args += ["--out", str(Path(__file__).parent / "results" / "downsample")]
-    sys.exit(main(["bench", "--methods", *METHODS, "--no-scaling", *args]))
+    sys.exit(run_bench(["--methods", *METHODS, "--no-scaling", *args]))

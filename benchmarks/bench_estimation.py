@@ -6,7 +6,7 @@ peak memory per method in a fresh process, the 1280x720 10M-event stream at fact
 memory goal) with two more inputs, uniformly random events on a 128x128 sensor with
 Unix-epoch microsecond timestamps (about 1.7e15): a dense one (about two events per
 microsecond, so timestamps repeat) and one at 200,000 events per second. The report's goals
-table gives the speed-up over the paper's reference code.
+table printed at the end gives the speed-up over the paper's reference code.
 
 Run: ``python benchmarks/bench_estimation.py [--out DIR] [--events N] [--short]``; the report
 goes to ``benchmarks/results/estimation`` unless ``--out`` is given.
@@ -20,9 +20,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from bench_all import run_bench
 
-from evdown_torch.bench import DVS_DTYPE
-from evdown_torch.cli import main as evdown
+from evdown_torch.events import DVS_DTYPE
 
 EPOCH = 1_700_000_000_000_000  # Unix-epoch microseconds, as recorded by real cameras
 
@@ -49,9 +49,10 @@ def main() -> int:
         dense, rate = Path(tmp) / "uniform-dense.npy", Path(tmp) / "uniform-200k.npy"
         np.save(dense, uniform_stream(args.events, max(args.events // 2, 1)))
         np.save(rate, uniform_stream(args.events, args.events * 5))
-        return evdown(["bench", "--out", args.out, "--methods", "event_count", "linear", "cubic",
-                       "--no-scaling", "--input", str(dense), "--input", str(rate),
-                       "--sensor-size", "128", "128", "2", *(["--short"] if args.short else [])])
+        return run_bench(["--out", args.out, "--methods", "event_count", "linear", "cubic",
+                          "--no-scaling", "--input", str(dense), "--input", str(rate),
+                          "--sensor-size", "128", "128", "2",
+                          *(["--short"] if args.short else [])])
 
 
 if __name__ == "__main__":

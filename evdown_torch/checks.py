@@ -10,18 +10,40 @@ import math
 import numbers
 from typing import Any
 
+import torch
+
 __all__ = [
+    "DEFAULT_MAX_OUTPUT_EVENTS",
+    "MAX_EXACT_SPAN",
     "check_choice",
     "check_factor",
+    "check_has_values",
     "check_non_negative_float",
     "check_non_negative_int",
+    "check_output_count",
     "check_positive_float",
     "check_positive_int",
     "check_sensor_size",
     "check_time_constant",
+    "check_time_span",
     "check_unit_interval",
+    "max_output_events",
     "output_size",
+    "set_max_output_events",
 ]
+
+#: Default most events one call of a downscaler may emit (see :func:`set_max_output_events`).
+#: 100 million events are about 2.5 GB as tensors, and a kernel needs several times that
+#: while it builds them; thresholds far below a region's level steps can ask for much more.
+DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
+
+_max_output_events = DEFAULT_MAX_OUTPUT_EVENTS
+
+#: Spans ``t_end - t_start`` of integer timestamps the estimators refuse from (2**53, about
+#: 285 years in microseconds): crossing times are float64 offsets from the pieces' starts,
+#: which stop holding every integer there (below it, a time is within 1e-12 of its piece's
+#: length of the exact one, and shifting the clock shifts it exactly).
+MAX_EXACT_SPAN = 2**53
 
 
 def _is_int(value: Any) -> bool:
@@ -164,3 +186,72 @@ def check_non_negative_int(name: str, value: Any) -> int:
     if value < 0:
         raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
     return int(value)
+
+
+def max_output_events() -> int:
+    """The most events one call of a downscaler may emit (see :func:`set_max_output_events`)."""
+    return _max_output_events
+
+
+def set_max_output_events(limit: int | None) -> int:
+    """Set the most events one call of a downscaler may emit; returns the previous limit.
+
+    The log-luminance methods (EventCount, LinearEstimation, CubicEstimation) can emit many
+    events per input event when the threshold is small; they count their output before
+    building it and raise a ``ValueError`` naming the count when it exceeds this limit, instead
+    of running out of memory. The limit holds for the whole process.
+
+    Args:
+        limit: a positive number of events, or ``None`` for
+            :data:`DEFAULT_MAX_OUTPUT_EVENTS` (100 million).
+
+    Returns:
+        The limit that was in force before.
+
+    Example:
+        >>> previous = set_max_output_events(10**9)
+        >>> max_output_events()
+        1000000000
+        >>> set_max_output_events(previous) == 10**9
+        True
+    """
+    global _max_output_events
+    previous = _max_output_events
+    _max_output_events = (
+        DEFAULT_MAX_OUTPUT_EVENTS if limit is None else check_positive_int("limit", limit)
+    )
+    return previous
+
+
+def check_output_count(count: int) -> None:
+    """Refuse an output of ``count`` events above :func:`max_output_events`."""
+    if count > _max_output_events:
+        raise ValueError(
+            f"the output would hold at least {count:,} events, more than the limit of "
+            f"{_max_output_events:,}; a larger threshold or factor gives fewer events, and "
+            "evdown_torch.set_max_output_events(n) raises the limit"
+        )
+
+
+def check_time_span(t_start: int, t_end: int) -> None:
+    """Refuse integer timestamps spanning :data:`MAX_EXACT_SPAN` or more (estimators)."""
+    span = int(t_end) - int(t_start)
+    if span >= MAX_EXACT_SPAN:
+        raise ValueError(
+            f"the events span {span:,} time units from first to last timestamp; the linear and "
+            f"cubic estimators compute crossing times as float64 offsets, which hold spans "
+            f"below 2**53 only ({MAX_EXACT_SPAN:,}, about 285 years in microseconds)"
+        )
+
+
+def check_has_values(tensor: torch.Tensor, what: str = "events") -> None:
+    """Refuse tensors that hold no values: those on PyTorch's ``meta`` device.
+
+    Raises:
+        ValueError: for a tensor on the ``meta`` device.
+    """
+    if tensor.device.type == "meta":
+        raise ValueError(
+            f"{what} are on the 'meta' device, which holds shapes but no values; downscaling "
+            "reads the values: move them to a real device first (e.g. .to('cpu'))"
+        )

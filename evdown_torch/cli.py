@@ -1,86 +1,239 @@
 """The ``evdown`` command line.
 
-Subcommands:
+Subcommands (``evdown COMMAND --help`` for each):
 
-* ``evdown downscale IN OUT --method NAME --factor F [--threshold T] [--set KEY=VALUE ...]``:
-  downscale a ``.npy`` structured event array (Tonic's format) into another.
+* ``evdown downscale IN [IN ...] OUT --method NAME --factor F [--set KEY=VALUE ...]``:
+  downscale event files (any format :mod:`evdown_torch.io` reads, or folders of them) into
+  ``.npy`` or HDF5 files.
 * ``evdown bench --out DIR [--short] [--input FILE.npy ...]``: benchmark every method against
-  its peers (Tonic), with scaling curves and peak memory; writes a Markdown report, JSON and
-  PNG plots (see :mod:`evdown_torch.bench`).
+  its peers (Tonic) and write a report with plots (see :mod:`evdown_torch.bench`).
 * ``evdown evaluate --config FILE [--output DIR]``: measure every method's speed/accuracy
   trade (:mod:`evdown_torch.evaluation`) and write ``results.csv``, ``report.md`` and
   ``tradeoff.png``.
+
+Each subcommand is registered by one function in :data:`SUBCOMMANDS` that adds its parser
+to the subparsers and sets ``run`` (a function of the parsed arguments returning the exit
+status). A run that raises :class:`CommandError`, ``ValueError``, ``TypeError``,
+``ImportError`` or ``OSError`` ends with the one line ``evdown COMMAND: error: ...`` and exit
+status 2, as argparse does for bad arguments; warnings print as ``evdown COMMAND: warning:``.
 """
 
 from __future__ import annotations
 
 import argparse
-import ast
+import os
 import sys
+import textwrap
 import time
-from collections.abc import Sequence
-from typing import Any
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import MISSING, fields
+from pathlib import Path
 
-import numpy as np
+from tqdm import tqdm
 
-from evdown_torch.events import load_npy_events
-from evdown_torch.transforms.registry import METHODS, make_method
+from evdown_torch import __version__
+from evdown_torch._text import parse_factor, parse_setting
+from evdown_torch.io import (
+    READ_EXTENSIONS,
+    check_readable,
+    check_writable,
+    event_files,
+    read_events,
+    write_events,
+)
+from evdown_torch.transforms.registry import METHODS, make_method, method_settings
+
+__all__ = ["SUBCOMMANDS", "CommandError", "build_parser", "main"]
 
 
 class CommandError(Exception):
     """A problem with the command's input, reported as one line without a traceback."""
 
 
+# ----------------------------------------------------------------------------- argument types
+
+
 def _factor(text: str) -> int | tuple[int, int]:
-    parts = text.split(",")
     try:
-        values = [int(p) for p in parts]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"factor must be F or FX,FY integers, got {text!r}"
-        ) from None
-    if len(values) == 1:
-        return values[0]
-    if len(values) == 2:
-        return values[0], values[1]
-    raise argparse.ArgumentTypeError(f"factor must be F or FX,FY integers, got {text!r}")
+        return parse_factor(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
-def _setting(text: str) -> tuple[str, Any]:
-    key, sep, value = text.partition("=")
-    if not sep or not key:
-        raise argparse.ArgumentTypeError(f"a setting must look like KEY=VALUE, got {text!r}")
+def _setting(text: str) -> tuple[str, object]:
     try:
-        parsed = ast.literal_eval(value)
-    except (ValueError, SyntaxError):
-        parsed = value
-    return key.replace("-", "_"), parsed
+        return parse_setting(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _normal(name: str) -> str:
+    return name.lower().replace("_", "").replace("-", "")
+
+
+def _method(text: str) -> str:
+    """A registry name from a registry name or a class name (``event_count``, ``EventCount``)."""
+    aliases = {}
+    for name, cls in METHODS.items():
+        aliases[_normal(name)] = name
+        aliases[_normal(cls.__name__)] = name
+    name = aliases.get(_normal(text))
+    if name is None:
+        choices = ", ".join(f"{n} ({c.__name__})" for n, c in METHODS.items())
+        raise argparse.ArgumentTypeError(f"unknown method {text!r}; choose one of {choices}")
+    return name
+
+
+def _methods_help() -> str:
+    """Each method's names and its settings with their defaults: the valid ``--set`` keys."""
+    lines = ["methods (--method takes either name) and their settings "
+             "(--set KEY=VALUE; defaults shown):"]
+    for name, cls in METHODS.items():
+        defaults = {f.name: f for f in fields(cls)}
+        items = []
+        for key in method_settings(name):
+            field = defaults[key]
+            if field.default is not MISSING:
+                items.append(f"{key}={field.default!r}")
+            elif field.default_factory is not MISSING:
+                items.append(f"{key}={field.default_factory()!r}")
+            else:
+                items.append(f"{key} (required)")
+        text = " ".join(items) if items else "no settings"
+        lines.append(textwrap.fill(text, width=92, initial_indent=f"  {name}, {cls.__name__}: ",
+                                   subsequent_indent="      "))
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- downscale
+
+
+def _say(text: str) -> None:
+    """Print a line to stdout without breaking a progress bar."""
+    tqdm.write(text, file=sys.stdout)
+
+
+def _plan(paths: Sequence[str], output_format: str) -> list[tuple[Path, Path]]:
+    """Pair each input file with its output path, checking everything before any work."""
+    if len(paths) < 2:
+        raise CommandError("give the input file(s) or folder(s), then the output")
+    *inputs, output = (Path(p) for p in paths)
+    files: list[Path] = []
+    for path in inputs:
+        if path.is_dir():
+            found = event_files(path)
+            if not found:
+                raise CommandError(
+                    f"folder {str(path)!r} holds no event files ({', '.join(READ_EXTENSIONS)})"
+                )
+            files += found
+        else:
+            files.append(check_readable(path))
+    into_folder = (len(inputs) > 1 or inputs[0].is_dir() or output.is_dir()
+                   or paths[-1].endswith(("/", os.sep)))  # "out/" names a folder to create
+    if not into_folder:
+        check_writable(output)
+        pairs = [(files[0], output)]
+    else:
+        if output.exists() and not output.is_dir():
+            raise CommandError(f"output {str(output)!r} is a file; several inputs, a folder "
+                               "input or a trailing '/' need an output folder")
+        if not output.parent.is_dir():
+            raise CommandError(f"cannot create {str(output)!r}: folder "
+                               f"{str(output.parent)!r} does not exist")
+        pairs = [(f, output / f"{f.stem}.{output_format}") for f in files]
+        seen: dict[Path, Path] = {}
+        for source, target in pairs:
+            if target in seen:
+                raise CommandError(f"{str(seen[target])!r} and {str(source)!r} would both be "
+                                   f"written to {str(target)!r}")
+            seen[target] = source
+    for source, target in pairs:
+        if target.resolve() == source.resolve():
+            raise CommandError(f"writing {str(target)!r} would overwrite its input")
+    if into_folder:
+        output.mkdir(exist_ok=True)
+    return pairs
 
 
 def _downscale(args: argparse.Namespace) -> int:
-    events = load_npy_events(args.input)
-    if args.sensor_size is not None:
-        sensor_size = tuple(args.sensor_size)
-    elif len(events) and {"x", "y"} <= set(events.dtype.names):
-        sensor_size = (int(events["x"].max()) + 1, int(events["y"].max()) + 1, 2)
-    else:
-        raise CommandError("the sensor size cannot be inferred here: pass --sensor-size W H P")
-    settings = dict(args.set or [])
     if args.threshold is not None:
-        settings["threshold"] = args.threshold
-    transform = make_method(args.method, sensor_size, args.factor, **settings)
-    start = time.perf_counter()
-    out = transform(events)
-    seconds = time.perf_counter() - start
-    np.save(args.output, out)
-    rate = len(events) / seconds if seconds > 0 else float("inf")
-    print(
-        f"{args.method}: {len(events)} events in, {len(out)} events out "
-        f"({len(out) / max(len(events), 1):.3f} of the input), sensor {sensor_size} -> "
-        f"{transform.output_sensor_size}, {seconds:.3f} s ({rate / 1e6:.2f} M events/s); "
-        f"wrote {args.output}"
-    )
+        raise CommandError(
+            "--threshold is gone: it meant a contrast threshold for some methods and a firing "
+            "threshold for lif; give --set threshold=T (evdown downscale --help lists each "
+            "method's settings)"
+        )
+    settings = dict(args.set or [])
+    unknown = sorted(set(settings) - set(method_settings(args.method)))
+    if unknown:  # before reading anything
+        raise CommandError(f"method {args.method!r} does not take setting(s) {unknown}; it "
+                           f"takes {list(method_settings(args.method))}")
+    pairs = _plan(args.paths, args.output_format)
+    several = len(pairs) > 1
+    # Three steps per file (read, downscale, write), so that one long file shows progress too.
+    bar = tqdm(total=3 * len(pairs), unit="step", disable=not sys.stderr.isatty(),
+               file=sys.stderr, dynamic_ncols=True, leave=False,
+               bar_format="{desc} |{bar}| {n_fmt}/{total_fmt} [{elapsed}]")
+    for index, (source, target) in enumerate(pairs):
+        file_label = f"file {index + 1}/{len(pairs)} {source.name}" if several else source.name
+        try:
+            bar.set_description_str(f"{file_label}: reading")
+            events, sensor_size, _ = read_events(source, sensor_size=args.sensor_size)
+            transform = make_method(args.method, sensor_size, args.factor, **settings)
+            bar.update()
+            bar.set_description_str(f"{file_label}: downscaling {len(events)} events")
+            start = time.perf_counter()
+            out = transform(events)
+            seconds = time.perf_counter() - start
+            bar.update()
+            bar.set_description_str(f"{file_label}: writing")
+            written = write_events(target, out, sensor_size=transform.output_sensor_size)
+            bar.update()
+        except (ValueError, TypeError) as error:
+            bar.close()
+            raise CommandError(f"{source}: {error}" if several else str(error)) from None
+        rate = len(events) / seconds if seconds > 0 else float("inf")
+        _say(
+            f"{args.method}: {len(events)} events in, {len(out)} events out "
+            f"({len(out) / max(len(events), 1):.3f} of the input), sensor {sensor_size} -> "
+            f"{transform.output_sensor_size}, {seconds:.3f} s ({rate / 1e6:.2f} M events/s); "
+            f"wrote {written}"
+        )
+    bar.close()
     return 0
+
+
+def add_downscale_command(commands: argparse._SubParsersAction) -> None:
+    """Register ``evdown downscale``."""
+    down = commands.add_parser(
+        "downscale",
+        help="downscale event files (or folders of them) into .npy or HDF5 files",
+        description="Downscale event recordings. Inputs: "
+        f"{', '.join(READ_EXTENSIONS)} files, or folders of them. With one input file, OUT is "
+        "the output file (.npy, .h5 or .hdf5); with several inputs or a folder, OUT is a "
+        "folder (created if missing) that gets one file per input, named after it.",
+        epilog=_methods_help(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    down.add_argument("paths", nargs="+", metavar="PATH",
+                      help="input files or folders, then the output file or folder")
+    down.add_argument("--method", required=True, type=_method, metavar="NAME",
+                      help="the method, by name or class name (listed below)")
+    down.add_argument("--factor", required=True, type=_factor, help="F or FX,FY")
+    down.add_argument("--set", type=_setting, action="append", metavar="KEY=VALUE",
+                      help="a setting of the method (listed below), e.g. --set threshold=0.5; "
+                      "repeatable")
+    down.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
+                      help="input sensor size; needed where a file does not record it "
+                      "(.npy, .bin, some .raw/.dat/HDF5), else it is guessed with a warning")
+    down.add_argument("--output-format", choices=("npy", "h5"), default="npy",
+                      help="format of the files written into an output folder (default npy)")
+    down.add_argument("--threshold", help=argparse.SUPPRESS)  # gone: explains itself
+    down.set_defaults(run=_downscale)
+
+
+# ----------------------------------------------------------------------------- bench, evaluate
 
 
 def _bench(args: argparse.Namespace) -> int:
@@ -89,41 +242,8 @@ def _bench(args: argparse.Namespace) -> int:
     return bench.run_from_args(args)
 
 
-def _evaluate(args: argparse.Namespace) -> int:
-    from evdown_torch.config import load_config
-    from evdown_torch.evaluation import markdown_table, run_evaluation, write_report
-
-    try:
-        config = load_config(args.config)
-        result = run_evaluation(config, cache=not args.no_cache)
-    except (OSError, RuntimeError) as error:
-        raise CommandError(str(error)) from None
-    write_report(result, args.output or config.output.directory,
-                 log=lambda line: print(line, file=sys.stderr))
-    print(markdown_table(result), end="")
-    return 0
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The ``evdown`` argument parser."""
-    parser = argparse.ArgumentParser(
-        prog="evdown", description="Downscale event-camera streams (evdown_torch)."
-    )
-    commands = parser.add_subparsers(dest="command", required=True)
-    down = commands.add_parser(
-        "downscale", help="downscale a .npy structured event array into another"
-    )
-    down.add_argument("input", help="input .npy structured array with fields x, y, t, p")
-    down.add_argument("output", help="output .npy path")
-    down.add_argument("--method", required=True, choices=sorted(METHODS), metavar="NAME",
-                      help=f"one of {', '.join(sorted(METHODS))}")
-    down.add_argument("--factor", required=True, type=_factor, help="F or FX,FY")
-    down.add_argument("--threshold", type=float, help="contrast threshold (log-luminance methods)")
-    down.add_argument("--set", type=_setting, action="append", metavar="KEY=VALUE",
-                      help="any other setting of the method, e.g. --set dt=1000")
-    down.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
-                      help="input sensor size (default: from the largest coordinates)")
-    down.set_defaults(run=_downscale)
+def add_bench_command(commands: argparse._SubParsersAction) -> None:
+    """Register ``evdown bench``."""
     bench = commands.add_parser(
         "bench", help="benchmark every method against its peers; write a report and plots"
     )
@@ -147,6 +267,25 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--no-scaling", action="store_true", help="skip the scaling sweeps")
     bench.add_argument("--no-memory", action="store_true", help="skip peak-memory measurements")
     bench.set_defaults(run=_bench)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from evdown_torch.config import load_config
+    from evdown_torch.evaluation import markdown_table, run_evaluation, write_report
+
+    try:
+        config = load_config(args.config)
+        result = run_evaluation(config, cache=not args.no_cache)
+    except (OSError, RuntimeError) as error:
+        raise CommandError(str(error)) from None
+    write_report(result, args.output or config.output.directory,
+                 log=lambda line: print(line, file=sys.stderr))
+    print(markdown_table(result), end="")
+    return 0
+
+
+def add_evaluate_command(commands: argparse._SubParsersAction) -> None:
+    """Register ``evdown evaluate``."""
     evaluate = commands.add_parser(
         "evaluate",
         help="train and test a spiking classifier on every method and factor; write a report",
@@ -159,17 +298,56 @@ def build_parser() -> argparse.ArgumentParser:
                           help="neither read nor keep the cache of recordings, frames and "
                           "predictions (work in a temporary directory)")
     evaluate.set_defaults(run=_evaluate)
+
+
+def add_preprocess_command(commands: argparse._SubParsersAction) -> None:
+    """Register ``evdown preprocess`` (:mod:`evdown_torch.data.command`)."""
+    from evdown_torch.data import command
+
+    command.add_parser(commands)
+
+
+# ----------------------------------------------------------------------------- the program
+
+#: One function per subcommand, in ``--help`` order; each adds its parser and sets ``run``.
+SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
+    add_downscale_command,
+    add_preprocess_command,
+    add_bench_command,
+    add_evaluate_command,
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``evdown`` argument parser."""
+    parser = argparse.ArgumentParser(
+        prog="evdown", description="Downscale event-camera streams (evdown_torch)."
+    )
+    parser.add_argument("--version", action="version", version=f"evdown {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add_command in SUBCOMMANDS:
+        add_command(commands)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     args = build_parser().parse_args(argv)
-    try:
-        return args.run(args)
-    except (CommandError, ValueError, TypeError) as error:
-        print(f"evdown {args.command}: error: {error}", file=sys.stderr)
-        return 2
+    prefix = f"evdown {args.command}"
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        tqdm.write(f"{prefix}: warning: {message}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        try:
+            return args.run(args)
+        except (CommandError, ValueError, TypeError, ImportError, OSError) as error:
+            print(f"{prefix}: error: {error}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print(f"{prefix}: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

@@ -13,8 +13,13 @@ Users hand transforms one of three kinds, and get the same kind back:
   same dtype and field order, and polarity in the same encoding;
 * a ``torch.Tensor`` of shape ``(N, 4)`` whose columns are ``(x, y, t, p)``: the result has
   the same dtype and device (an int64 tensor keeps exact int64 timestamps; a float32 tensor
-  cannot hold microsecond timestamps past 16.7 s, use int64 or float64 for long recordings);
+  cannot hold microsecond timestamps past 2**24 us = 16.8 s, use int64 or float64 for long
+  recordings: a :class:`TimestampPrecisionWarning` says when it happened);
 * an :class:`Events` tuple.
+
+Tensors that require grad are read as values (detached): downscaling selects and moves
+discrete events and is not differentiable, so results never require grad. Tensors on the
+``meta`` device hold no values and are refused.
 
 :func:`to_events` validates and converts the input (never modifying it), :func:`from_events`
 converts a result back to the caller's kind.
@@ -22,6 +27,8 @@ converts a result back to the caller's kind.
 
 from __future__ import annotations
 
+import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, NamedTuple
@@ -30,9 +37,49 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["Events", "EventFormat", "EventsLike", "from_events", "load_npy_events", "to_events"]
+from evdown_torch.checks import check_has_values
+
+__all__ = [
+    "DVS_DTYPE",
+    "Events",
+    "EventFormat",
+    "EventsLike",
+    "TimestampPrecisionWarning",
+    "from_events",
+    "load_npy_events",
+    "to_events",
+]
+
+#: Tonic's event dtype for DVS cameras (``tonic.datasets.DVSGesture.dtype``): ``x``, ``y``
+#: int16, ``p`` bool, ``t`` int64 microseconds, in that field order.
+DVS_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", np.bool_), ("t", np.int64)])
 
 FIELDS = ("x", "y", "t", "p")
+
+class TimestampPrecisionWarning(UserWarning):
+    """Float timestamps too large for their dtype to tell consecutive microseconds apart."""
+
+
+#: Exact integers in each float dtype reach 2 ** (significand bits).
+_EXACT_INTEGER_BITS = {"float16": 11, "bfloat16": 8, "float32": 24}
+
+
+def _warn_if_time_lost_precision(t: Tensor, dtype_name: str) -> None:
+    """Warn (once per dtype and place) when float timestamps exceed their exact-integer range."""
+    bits = _EXACT_INTEGER_BITS.get(dtype_name)
+    if bits is None or t.numel() == 0:
+        return
+    largest = float(t.abs().max())
+    if math.isfinite(largest) and largest > 2**bits:  # _validate reports NaN and infinities
+        warnings.warn(  # one fixed text per dtype, so Python shows it once
+            f"event timestamps are {dtype_name}, which holds whole numbers exactly only up to "
+            f"2**{bits}; larger ones (epoch or long-recording microseconds) were rounded "
+            "before evdown_torch saw them, so distinct events may "
+            "now share a timestamp (EventFunnelling then drops them as duplicates). Keep "
+            "timestamps int64 or float64, or subtract the first one before casting.",
+            TimestampPrecisionWarning,
+            stacklevel=4,
+        )
 
 
 class Events(NamedTuple):
@@ -197,6 +244,7 @@ def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat]:
         raise TypeError(f"event field p must be bool, integer or float, got {kinds['p']}")
     t_dtype = np.float64 if np.issubdtype(kinds["t"], np.floating) else np.int64
     t = torch.from_numpy(np.array(data["t"], dtype=t_dtype))  # always a copy
+    _warn_if_time_lost_precision(t, kinds["t"].name)
     p_raw = torch.from_numpy(np.array(data["p"]))
     encoding = _polarity_encoding(p_raw)
     p = p_raw if encoding == "bool" else p_raw > 0
@@ -217,7 +265,10 @@ def _from_tensor(data: Tensor) -> tuple[Events, EventFormat]:
         )
     if data.dtype == torch.bool or data.is_complex():
         raise TypeError(f"an event tensor must be integer or float, got dtype {data.dtype}")
+    check_has_values(data)
+    data = data.detach()  # values only: downscaling is not differentiable
     x, y, t, p = data.unbind(1)
+    _warn_if_time_lost_precision(t, str(data.dtype).removeprefix("torch."))
     _check_integral("x", x)
     _check_integral("y", y)
     encoding = _polarity_encoding(p)
@@ -238,12 +289,15 @@ def _from_events(data: Events) -> tuple[Events, EventFormat]:
             raise ValueError(f"Events.{name} must be a 1-D tensor of the same length as t")
         if column.device != data.t.device:
             raise ValueError("Events tensors must all be on one device")
+    check_has_values(data.t)
     if data.x.dtype != torch.int64 or data.y.dtype != torch.int64:
         raise TypeError(f"Events.x and Events.y must be int64, got {data.x.dtype}, {data.y.dtype}")
     if data.t.dtype not in (torch.int64, torch.float64):
         raise TypeError(f"Events.t must be int64 or float64, got {data.t.dtype}")
     if data.p.dtype != torch.bool:
         raise TypeError(f"Events.p must be bool, got {data.p.dtype}")
+    if data.t.requires_grad:  # float64 t only; values only, as for tensors
+        data = data._replace(t=data.t.detach())
     return data, EventFormat("events", None, "bool", data.t.device)
 
 

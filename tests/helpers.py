@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-DVS_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", bool), ("t", np.int64)])
+from evdown_torch.events import DVS_DTYPE
 
 
 def random_stream(

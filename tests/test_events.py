@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
 
-from evdown_torch.events import Events, from_events, to_events
+from evdown_torch import CubicEstimation, EventCount, EventFunnelling
+from evdown_torch.events import Events, TimestampPrecisionWarning, from_events, to_events
+from evdown_torch.transforms.registry import make_method
 from tests.helpers import random_stream
 
 SENSOR = (8, 6, 2)
@@ -118,3 +122,74 @@ def test_from_columns_accepts_structured_field_views_and_tensors(device):
     assert ev.device == t.device and ev.p.tolist() == [True]
     ev.t.add_(1)
     assert t.tolist() == [5]
+
+
+# ------------------------------------------------------------------ float time, meta, grad
+
+
+def _epoch_stream(rng, n=2000):
+    """A DAVIS-like stream on an epoch clock (microseconds since 1970): beyond 2**24."""
+    t = np.sort(rng.integers(0, 200_000, n)) + 1_600_000_000_000_000
+    return torch.stack([torch.as_tensor(rng.integers(0, 16, n)),
+                        torch.as_tensor(rng.integers(0, 16, n)), torch.as_tensor(t),
+                        torch.as_tensor(rng.integers(0, 2, n))], dim=1)
+
+
+def test_float32_epoch_time_warns_once_naming_the_cause(rng, device):
+    ev = _epoch_stream(rng).to(device)
+    funnel = EventFunnelling((346, 260, 2), 2)
+    exact = funnel(ev)
+    assert len(exact) > 1900  # int64: distinct events stay distinct
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        for _ in range(3):
+            rounded = funnel(ev.float())
+    assert len(rounded) < len(exact) / 2  # float32 merged microseconds into duplicates
+    assert [w.category for w in caught] == [TimestampPrecisionWarning]
+    message = str(caught[0].message)
+    assert "float32" in message and "2**24" in message and "int64 or float64" in message
+
+
+@pytest.mark.parametrize(
+    ("make", "dtype_name"),
+    [
+        (lambda t: torch.tensor([[0, 0, t, 1]], dtype=torch.float32), "float32"),
+        (lambda t: torch.tensor([[0, 0, t / 1000, 1]], dtype=torch.float16), "float16"),
+        (lambda t: np.array([(0, 0, t, True)], dtype=[("x", "<i2"), ("y", "<i2"),
+                                                     ("t", "<f4"), ("p", "?")]), "float32"),
+    ],
+)
+def test_each_short_float_warns_past_its_exact_range(make, dtype_name):
+    with pytest.warns(TimestampPrecisionWarning, match=dtype_name):
+        to_events(make(2**24 + 8))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TimestampPrecisionWarning)
+        to_events(make(2000))  # in range: silent
+        to_events(torch.tensor([[0, 0, 2**40, 1]], dtype=torch.int64))
+        to_events(torch.tensor([[0, 0, 2**40, 1]], dtype=torch.float64))
+
+
+def test_meta_tensors_are_refused_clearly():
+    data = torch.zeros(5, 4, device="meta")
+    for transform in (EventCount(SENSOR, 2), CubicEstimation(SENSOR, 2)):
+        with pytest.raises(ValueError, match="'meta' device.*no values"):
+            transform(data)
+    meta = Events(*(torch.zeros(3, dtype=d, device="meta")
+                    for d in (torch.int64, torch.int64, torch.int64, torch.bool)))
+    with pytest.raises(ValueError, match="'meta' device"):
+        to_events(meta)
+
+
+@pytest.mark.parametrize("method", ["event_count", "linear", "cubic", "lif", "funnelling"])
+def test_tensors_that_require_grad_are_read_as_values(rng, method, device):
+    arr = random_stream(rng, 300, SENSOR, t_max=5000)
+    data = torch.tensor(np.stack([arr["x"], arr["y"], arr["t"], arr["p"]], 1),
+                        dtype=torch.float64, device=device)
+    transform = make_method(method, SENSOR, 2, **({"dt": 100} if method == "lif" else {}))
+    leaf = data.clone().requires_grad_(True)
+    out = transform(leaf)
+    assert not out.requires_grad and leaf.requires_grad and leaf.grad is None
+    torch.testing.assert_close(out, transform(data), rtol=0, atol=0)
+    events = Events(*to_events(data)[0][:2], to_events(data)[0].t.requires_grad_(True),
+                    to_events(data)[0].p)
+    assert not transform(events).t.requires_grad

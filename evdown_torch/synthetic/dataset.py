@@ -16,15 +16,13 @@ from evdown_torch.checks import (
     check_sensor_size,
     output_size,
 )
-from evdown_torch.events import EventFormat, Events, from_events
+from evdown_torch.events import DVS_DTYPE as DVS_GESTURE_DTYPE, EventFormat, Events, from_events
 from evdown_torch.synthetic.pixel_model import PixelModelConfig
 from evdown_torch.synthetic.render import render_events
 from evdown_torch.synthetic.scenes import GESTURE_CLASSES, GestureScene, scene_seed
 
 __all__ = ["DVS_GESTURE_DTYPE", "SyntheticGestures", "render_gesture"]
 
-DVS_GESTURE_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", bool), ("t", np.int64)])
-"""The event dtype of ``tonic.datasets.DVSGesture``."""
 
 _FORMAT = EventFormat("numpy", DVS_GESTURE_DTYPE, "bool", torch.device("cpu"))
 

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import stable_sort_small
 from evdown_torch.checks import check_factor, check_positive_int, output_size
 from evdown_torch.events import Events
 from evdown_torch.synthetic.pixel_model import (
@@ -46,7 +47,6 @@ from evdown_torch.synthetic.scenes import (
     Look,
     scene_seed,
 )
-from evdown_torch.transforms.functional._common import stable_sort_small
 
 __all__ = [
     "intensity_frame",

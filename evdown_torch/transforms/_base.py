@@ -73,6 +73,12 @@ class ThresholdDownscaler(Downscaler):
         threshold: contrast threshold on a region's mean level (in input events per pixel),
             > 0. It is used as the nearest fraction with denominator at most 10**6, so
             decimal thresholds such as 0.01 are exact.
+
+    A call counts its output before building it and raises a ``ValueError`` naming the count
+    when it would exceed :func:`evdown_torch.set_max_output_events` (100 million events by
+    default): a threshold far below the level steps of a region asks for that many. The
+    linear and cubic estimators also refuse integer timestamps spanning 2**53 or more, whose
+    crossing times float64 cannot hold.
     """
 
     budget_setting: ClassVar[str | None] = "threshold"

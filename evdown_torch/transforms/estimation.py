@@ -12,7 +12,7 @@ from evdown_torch.transforms.functional.linear import linear_estimation
 
 @dataclass(frozen=True)
 class LinearEstimation(ThresholdDownscaler):
-    """Linear log-luminance estimation (SEMANTICS.md method 4), exact crossing times.
+    """Linear log-luminance estimation (docs/semantics.md, method 4), exact crossing times.
 
     Each input pixel's log-luminance is the polyline through its knots (one per distinct event
     time, at the level after its events there, ON +1 and OFF -1; held at 0 from the stream's
@@ -49,7 +49,7 @@ class LinearEstimation(ThresholdDownscaler):
 
 @dataclass(frozen=True)
 class CubicEstimation(ThresholdDownscaler):
-    """Cubic log-luminance estimation (SEMANTICS.md method 5).
+    """Cubic log-luminance estimation (docs/semantics.md, method 5).
 
     As :class:`LinearEstimation`, but each pixel's curve is the piecewise cubic Hermite
     interpolant of its knots with SciPy's ``PchipInterpolator`` slopes (two knots give a line,

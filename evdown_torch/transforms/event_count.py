@@ -14,7 +14,7 @@ from evdown_torch.transforms.functional.event_count import (
 
 @dataclass(frozen=True)
 class EventCount(ThresholdDownscaler):
-    """Log-luminance event count (SEMANTICS.md method 3), integer-exact and causal.
+    """Log-luminance event count (docs/semantics.md, method 3), integer-exact and causal.
 
     Each input pixel keeps an integer level (ON +1, OFF -1); after each input event its
     region's mean level is tested with the DVS reference rule at contrast ``threshold``, and

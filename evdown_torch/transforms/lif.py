@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, replace
 from typing import ClassVar
 
+from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import (
     check_choice,
     check_non_negative_float,
@@ -22,7 +23,6 @@ from evdown_torch.models.pooling import (
     decay_factor,
 )
 from evdown_torch.transforms._base import Downscaler
-from evdown_torch.transforms.functional._common import sort_by_time
 from evdown_torch.transforms.functional.lif import (
     DEFAULT_CHUNK_CELLS,
     DEFAULT_CHUNK_EVENTS,

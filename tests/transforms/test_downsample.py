@@ -167,7 +167,7 @@ def test_tonic_compose_to_frame_round_trip(nmnist):
 
 
 def test_funnelling_in_chunks_never_splits_a_timestamp(rng, monkeypatch):
-    import evdown_torch.transforms.functional._common as common
+    import evdown_torch._tensors as common
 
     arr = random_stream(rng, 3000, SENSOR, t_max=40)  # about 75 events per timestamp
     whole = EventFunnelling(SENSOR, factor=2)(arr)

@@ -2,14 +2,20 @@
 
 The oracles below are written for clarity, not speed: each pixel's curve is built with
 ``numpy.interp`` (linear) or ``scipy.interpolate.PchipInterpolator`` (cubic) through the knots
-of SEMANTICS.md, the region's mean is their sum over ``n_r``, its pieces are split at the
+of docs/semantics.md, the region's mean is their sum over ``n_r``, its pieces are split at the
 extrema found on a fine grid (refined with ``brentq``), and the DVS reference rule is applied
 step by step in Python, each crossing solved exactly (linear) or with ``brentq`` (cubic).
+A second oracle for the linear method works in exact rationals (``fractions.Fraction``)
+throughout, so its integer crossing times are exact.
+
+Integer output times must equal the oracle's crossing time rounded half up, except where that
+time lies within 1e-6 of a half tick (float arithmetic cannot tell which way it rounds there).
 """
 
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -30,6 +36,7 @@ ESTIMATORS = [LinearEstimation, CubicEstimation]
 LOG_LUMINANCE = [EventCount, LinearEstimation, CubicEstimation]
 KINDS = [(LinearEstimation, "linear"), (CubicEstimation, "cubic")]
 SNAP = 1e-9  # the kernels' tolerance for "on a level", in thresholds
+HALF_TICK = 1e-6  # an oracle time this close to a half tick may round either way
 
 
 # --- slow oracles --------------------------------------------------------------------------
@@ -151,26 +158,77 @@ def by_output_pixel(out: np.ndarray) -> dict:
     return got
 
 
+def assert_rounded(t: int, t_ref: float | Fraction, key) -> None:
+    """``t`` is ``t_ref`` rounded half up, or either neighbour within HALF_TICK of a half."""
+    rounded = math.floor(t_ref + Fraction(1, 2))
+    if abs((t_ref - math.floor(t_ref)) - Fraction(1, 2)) <= HALF_TICK:
+        assert t in (math.floor(t_ref), math.ceil(t_ref)), (key, t, t_ref)
+    else:
+        assert t == rounded, (key, t, t_ref)
+
+
 def assert_matches_reference(out: np.ndarray, expected: dict, integer_time: bool) -> None:
-    """Same events per output pixel: count, polarity order, and times to rounding."""
+    """Same events per output pixel: count, polarity order, and times (rounded half up)."""
     got = by_output_pixel(out)
     assert got.keys() == expected.keys()
-    exact = 0
-    total = 0
     for key, ref in expected.items():
         mine = got[key]
         assert len(mine) == len(ref), key
         assert [p for _, p in mine] == [p for _, p in ref], key
         for (t, _), (t_ref, _) in zip(mine, ref, strict=True):
             if integer_time:
-                rounded = math.floor(t_ref + 0.5)
-                assert abs(t - rounded) <= 1, (key, t, t_ref)  # t_ref exactly at .5: either
-                exact += t == rounded
+                assert_rounded(t, Fraction(t_ref), key)
             else:
                 assert t == pytest.approx(t_ref, rel=1e-12, abs=1e-6), (key, t, t_ref)
-                exact += 1
-            total += 1
-    assert exact >= 0.99 * total
+
+
+def exact_linear_reference(arr: np.ndarray, sensor, factor, threshold: float) -> dict:
+    """The linear method in exact rationals: per output pixel, ``(t, on)`` with t a Fraction.
+
+    Each pixel's polyline is evaluated at every breakpoint of its region as a Fraction; the
+    region's sum is linear between breakpoints, so each crossing time is the exact rational
+    ``ta + (level - ua) / (ub - ua) * (tb - ta)``. A value is on a level only when it equals it.
+    """
+    theta = Fraction(threshold).limit_denominator(10**6)
+    fx, fy = factor
+    w, h, _ = sensor
+    knots, t_start, _ = reference_knots(arr)
+    regions: dict = {}
+    for (x, y), pixel in knots.items():
+        regions.setdefault((x // fx, y // fy), []).append(
+            [(int(t), level) for t, level in pixel])
+
+    def value(pixel: list, t: int) -> Fraction:
+        for (ta, la), (tb, lb) in zip(pixel[:-1], pixel[1:], strict=True):
+            if ta <= t <= tb:
+                return la + Fraction(lb - la, tb - ta) * (t - ta)
+        return Fraction(pixel[0][1])  # one knot: t_start == t_end
+
+    def rule(q: int, u: Fraction) -> int:
+        if u.denominator == 1:
+            return int(u)
+        if u >= q + 1:
+            return math.floor(u)
+        if u <= q - 1:
+            return math.ceil(u)
+        return q
+
+    out = {}
+    for (rx, ry), pixels in regions.items():
+        n_r = min(fx, w - rx * fx) * min(fy, h - ry * fy)
+        times = sorted({t for p in pixels for t, _ in p})
+        us = [sum(value(p, t) for p in pixels) / (n_r * theta) for t in times]
+        q = rule(0, us[0])
+        events = [(Fraction(int(t_start)), q > 0)] * abs(q)
+        for ta, tb, ua, ub in zip(times[:-1], times[1:], us[:-1], us[1:], strict=True):
+            new_q = rule(q, ub)
+            up = new_q > q
+            for level in range(q + 1, new_q + 1) if up else range(q - 1, new_q - 1, -1):
+                events.append((ta + (level - ua) / (ub - ua) * (tb - ta), up))
+            q = new_q
+        if events:
+            out[(rx, ry)] = events
+    return out
 
 
 def unique_pixel_times(arr: np.ndarray) -> np.ndarray:
@@ -243,6 +301,24 @@ def test_matches_slow_reference(cls, kind, factor, threshold, rng):
     out = cls(SENSOR, factor=factor, threshold=threshold)(arr)
     fxy = (factor, factor) if isinstance(factor, int) else factor
     assert_matches_reference(out, reference(arr, SENSOR, fxy, threshold, kind), True)
+
+
+@pytest.mark.parametrize("factor", [2, 3, (3, 2), (10, 7)])
+@pytest.mark.parametrize("threshold", [0.1, 0.37, 1.5])
+@pytest.mark.parametrize("t0", [0, 1_700_000_000_000_000])
+def test_linear_matches_exact_rational_reference(factor, threshold, t0, rng):
+    arr = random_stream(rng, 300, SENSOR, t_max=2000)
+    arr["t"] += t0
+    out = LinearEstimation(SENSOR, factor=factor, threshold=threshold)(arr)
+    fxy = (factor, factor) if isinstance(factor, int) else factor
+    assert_matches_reference(out, exact_linear_reference(arr, SENSOR, fxy, threshold), True)
+
+
+def test_exact_rational_reference_on_the_hand_computed_case():
+    ev = np.array([(0, 0, True, 0), (1, 0, True, 10), (0, 0, False, 30)], dtype=DVS_DTYPE)
+    assert exact_linear_reference(ev, (2, 1, 2), (2, 1), 0.25) == {
+        (0, 0): [(0, True), (0, True), (Fraction(15, 2), True), (30, False)]
+    }
 
 
 @pytest.mark.parametrize(("cls", "kind"), KINDS)

@@ -189,7 +189,7 @@ def test_tonic_compose_on_nmnist(nmnist):
 
 
 def test_long_streams_in_chunks_equal_one_pass(rng, monkeypatch):
-    import evdown_torch.transforms.functional._common as common
+    import evdown_torch._tensors as common
 
     arr = random_stream(rng, 2000, SENSOR, t_max=300)
     transform = EventCount(SENSOR, factor=3, threshold=0.2)

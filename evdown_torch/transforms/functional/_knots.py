@@ -1,9 +1,9 @@
 """Knots of a pixel and region breakpoints, shared by the linear and cubic estimators.
 
-SEMANTICS.md, methods 4 and 5: each pixel's log-luminance is a curve through its *knots*, one
-per distinct time at which the pixel has events, at the level after all its events at that
-time (ON +1, OFF -1), plus a front knot ``(t_start, 0)`` when the pixel's first event is later
-than ``t_start`` and a back knot ``(t_end, last level)`` when its last knot is earlier than
+``docs/semantics.md``, methods 4 and 5: each pixel's log-luminance is a curve through its
+*knots*, one per distinct time at which the pixel has events, at the level after all its events
+at that time (ON +1, OFF -1), plus a front knot ``(t_start, 0)`` when the pixel's first event is
+later than ``t_start`` and a back knot ``(t_end, last level)`` when its last knot is earlier than
 ``t_end``. So every active pixel's curve spans exactly ``[t_start, t_end]``; a pixel without
 events stays at level 0 and is not represented.
 
@@ -17,43 +17,52 @@ pixels or regions (:func:`pixel_knots`):
 * the breakpoints of every active region (grouped by region, in time order; the first is at
   ``t_start``, the last at ``t_end``), with the breakpoint index of every knot.
 
-It also holds the small pieces both estimators share to turn a region's level into events:
-the exact level test (:func:`level_index`) and the output assembly (:func:`emit`).
+It also holds the output assembly both estimators share (:func:`emit`); the level test and
+the reference rule they apply live in :mod:`~evdown_torch.transforms.functional._reference`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from fractions import Fraction
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from evdown_torch.checks import output_size
-from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import (
+from evdown_torch._tensors import (
+    CHUNK_EVENTS,
+    changes,
+    differences,
+    ends,
     region_of,
+    region_pixel_count,
     region_xy,
+    run_index,
     sort_by_time,
     stable_sort_small,
+    take,
+    where_true,
 )
-from evdown_torch.transforms.functional._reference import (
-    Crossings,
-    crossings,
-    reference_index,
-    region_pixel_count,
-    threshold_fraction,
-)
+from evdown_torch.checks import check_time_span, output_size
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._reference import capped_threshold, threshold_fraction
 
-#: Events per chunk of regions (see :func:`region_chunks`).
-CHUNK_EVENTS = 1 << 20
+__all__ = [
+    "HALF_TOLERANCE",
+    "Knots",
+    "RegionChunk",
+    "RegionSolver",
+    "emit",
+    "estimate",
+    "level_changes",
+    "piece_time",
+    "pixel_knots",
+    "region_chunks",
+    "region_pixels",
+]
 
 #: Integer crossing times: an offset this close below a half tick rounds up (see piece_time).
 HALF_TOLERANCE = 1e-9
-
-#: A region level within this many thresholds of a level is on it (see :func:`level_index`).
-SNAP = 1e-9
 
 
 class Knots(NamedTuple):
@@ -91,35 +100,6 @@ class Knots(NamedTuple):
         """Region id of the breakpoints ``bp`` (int64)."""
         rank = torch.searchsorted(self.region_first_bp, bp, right=True) - 1
         return take(self.regions, rank)
-
-
-def take(values: Tensor, index: Tensor) -> Tensor:
-    """``values[index]`` for a 1-D int64 ``index`` (``index_select``: much faster on the CPU)."""
-    return values.index_select(0, index)
-
-
-def where_true(mask: Tensor) -> Tensor:
-    """``(M,)`` int64 positions of the True entries of a 1-D bool ``mask``, ascending."""
-    return torch.nonzero(mask).squeeze(1)
-
-
-def changes(values: Tensor) -> Tensor:
-    """``(N,)`` bool: True where ``values`` differs from its predecessor (True at 0)."""
-    flags = torch.ones(values.shape[0], dtype=torch.bool, device=values.device)
-    torch.ne(values[1:], values[:-1], out=flags[1:])
-    return flags
-
-
-def ends(starts: Tensor) -> Tensor:
-    """``(N,)`` bool: True at the last element of each run, given the runs' ``starts``."""
-    flags = torch.ones_like(starts)
-    flags[:-1] = starts[1:]
-    return flags
-
-
-def run_index(starts: Tensor) -> Tensor:
-    """``(N,)`` int64 index of the run each element belongs to, given the runs' ``starts``."""
-    return torch.cumsum(starts.to(torch.int64), 0) - 1
 
 
 class RegionChunk(NamedTuple):
@@ -307,103 +287,9 @@ def region_pixels(
     return take(per_region, run_index(knots.bp_first))
 
 
-def level_index(
-    whole: Tensor, part: Tensor, pixels: Tensor | int, threshold: Fraction
-) -> tuple[Tensor, Tensor]:
-    """``floor(u)`` and ``u is on a level`` for ``u = (whole + part) / (threshold * pixels)``.
-
-    ``whole + part`` is ``n_r * M_r``: an exact integer part and a float remainder. Where the
-    remainder is exactly 0 the test is done in integers (``threshold = a / b`` is rational), so
-    a region sitting on a level is seen on it exactly. Elsewhere ``u`` is a float, and a ``u``
-    within :data:`SNAP` of an integer counts as on that level: float rounding cannot tell such
-    a ``u`` from the level itself, and snapping keeps the result stable when it lands there.
-
-    Args:
-        whole: int64 integer part of ``n_r * M_r``.
-        part: float64 remainder.
-        pixels: ``n_r``, int64 of the shape of ``whole`` or one int for all.
-        threshold: ``theta`` as a fraction ``a / b``.
-
-    Returns:
-        ``(floor_u, on_level)``, int64 and bool, of the shape of ``whole``.
-
-    Example:
-        >>> fl, on = level_index(torch.tensor([3, 3, 1]), torch.tensor([0.0, 0.5, 0.5 - 1e-12]),
-        ...                      torch.tensor([2, 2, 2]), Fraction(3, 4))
-        >>> fl.tolist(), on.tolist()
-        ([2, 2, 1], [True, False, True])
-    """
-    a, b = threshold.numerator, threshold.denominator
-    if isinstance(pixels, int):
-        u = (whole.to(torch.float64) + part) * (b / (pixels * a))
-    else:
-        u = (whole.to(torch.float64) + part) * b / (pixels * a).to(torch.float64)
-    nearest = torch.round(u)
-    on_level = (u - nearest).abs() <= SNAP
-    floor_u = torch.where(on_level, nearest, torch.floor(u)).to(torch.int64)
-    exact_at = where_true(part == 0)
-    if exact_at.shape[0]:
-        numerator = take(whole, exact_at) * b
-        denominator = pixels * a if isinstance(pixels, int) else take(pixels, exact_at) * a
-        exact_floor = torch.div(numerator, denominator, rounding_mode="floor")
-        floor_u.scatter_(0, exact_at, exact_floor)
-        on_level.scatter_(0, exact_at, exact_floor * denominator == numerator)
-    return floor_u, on_level
-
-
-def step_crossings(floor_u: Tensor, on_level: Tensor, first: Tensor) -> Crossings:
-    """The reference rule over monotone steps grouped by region, from ``q = 0``.
-
-    Applies :func:`~evdown_torch.transforms.functional._reference.reference_index` and
-    :func:`~evdown_torch.transforms.functional._reference.crossings` to the steps that can
-    change ``q`` only: a step that stays strictly inside the cell its predecessor ended in
-    keeps ``q`` and crosses nothing, so dropping it changes no other step's result.
-
-    Args:
-        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
-        on_level: ``(S,)`` bool, the step ends on a level.
-        first: ``(S,)`` bool, the step is its region's first.
-
-    Returns:
-        The crossings, with ``step`` indexing the given steps.
-    """
-    moved = first | on_level
-    moved[1:] |= on_level[:-1] | (floor_u[1:] != floor_u[:-1])
-    kept = where_true(moved)
-    floor_k, first_k = take(floor_u, kept), take(first, kept)
-    q = reference_index(floor_k, take(on_level, kept), first_k, torch.zeros_like(floor_k))
-    q_before = torch.zeros_like(q)
-    q_before[1:] = q[:-1]
-    q_before.masked_fill_(first_k, 0)
-    cross = crossings(q_before, q)
-    return Crossings(take(kept, cross.step), cross.level, cross.on)
-
-
-def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Tensor:
-    """``n_r * theta * j`` as float64, the value of ``n_r * M_r`` on level ``j``."""
-    a, b = threshold.numerator, threshold.denominator
-    return (level * pixels * a).to(torch.float64) / b
-
-
 def level_changes(knots: Knots) -> Tensor:
     """``(K,)`` int64 change of its pixel's level at each knot (the level itself at the first)."""
-    change = knots.level.clone()
-    change[1:] -= knots.level[:-1]
-    at = where_true(knots.first)
-    change.scatter_(0, at, take(knots.level, at))
-    return change
-
-
-def segmented_cumsum(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
-    """Cumulative sum of ``values`` restarting at each segment's start.
-
-    Args:
-        values: ``(N,)`` values.
-        starts_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
-        segment: ``(N,)`` int64 segment of each element.
-    """
-    total = torch.cumsum(values, 0)
-    return total - take(take(total - values, starts_at), segment)
+    return differences(knots.level, where_true(knots.first))
 
 
 def piece_time(t0: Tensor, t1: Tensor, s: Tensor) -> Tensor:
@@ -451,24 +337,34 @@ def estimate(
         sensor_size: input ``(W, H, P)``.
         factor: ``(fx, fy)``.
         threshold: contrast threshold, > 0.
-        solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=)`` returns the
-            crossings ``(region, t, on)`` of the regions of one chunk, in region order.
+        solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=, emitted=)``
+            returns the crossings ``(region, t, on)`` of the regions of one chunk, in region
+            order (``emitted``: events of the chunks before, for the output limit).
 
     Returns:
         Output events sorted by ``t``, ``t`` of the input's dtype.
+
+    Raises:
+        ValueError: for integer timestamps spanning 2**53 or more
+            (:func:`~evdown_torch.checks.check_time_span`), or an output above
+            :func:`~evdown_torch.checks.max_output_events`.
     """
     events = sort_by_time(events)
-    if events.num_events == 0:
+    n = events.num_events
+    if n == 0:
         return Events.empty(events.t.dtype, events.device)
-    fraction = threshold_fraction(threshold)
-    out_w = output_size(sensor_size, factor)[0]
     t_start, t_end = events.t[0], events.t[-1]
-    outputs = [
-        solve_regions(
-            pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end),
-            sensor_size=sensor_size, factor=factor, fraction=fraction,
-        )
-        for chunk in region_chunks(events, factor=factor, out_width=out_w)
-    ]
+    if not events.t.is_floating_point():
+        check_time_span(int(t_start), int(t_end))
+    # Every curve stays within its knots' levels, at most n in size (PCHIP is shape-preserving).
+    fraction = capped_threshold(threshold_fraction(threshold), n)
+    out_w = output_size(sensor_size, factor)[0]
+    outputs = []
+    emitted = 0
+    for chunk in region_chunks(events, factor=factor, out_width=out_w):
+        knots = pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end)
+        outputs.append(solve_regions(knots, sensor_size=sensor_size, factor=factor,
+                                     fraction=fraction, emitted=emitted))
+        emitted += outputs[-1][0].shape[0]
     region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
     return emit(region, t, on, out_w)

@@ -16,6 +16,10 @@ monotone piece of the interpolated curve for the linear and cubic methods). Writ
 So ``q`` after every step follows from each step's ``(floor(u), u is an integer)`` and its
 predecessor's, with a forward fill over runs of steps in one cell: no sequential scan. This is
 the clamp recurrence ``q_k = clamp(q_{k-1}, floor(u_k), ceil(u_k))`` solved in closed form.
+
+This module is the rule's one home: the exact level test (:func:`level_index`), the value of a
+level (:func:`level_value`), the reference index (:func:`reference_index`) and its crossings
+(:func:`crossings`, :func:`step_crossings`), used by the kernels and the synthetic pixel model.
 """
 
 from __future__ import annotations
@@ -26,7 +30,26 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch.transforms.functional._common import stable_sort_small
+from evdown_torch._tensors import changes, stable_sort_small, take, where_true
+from evdown_torch.checks import check_output_count
+
+__all__ = [
+    "MAX_DENOMINATOR",
+    "SNAP",
+    "Crossings",
+    "RegionGroups",
+    "capped_threshold",
+    "crossings",
+    "group_by_region",
+    "level_index",
+    "level_value",
+    "reference_index",
+    "step_crossings",
+    "threshold_fraction",
+]
+
+#: A region level within this many thresholds of a level is on it (see :func:`level_index`).
+SNAP = 1e-9
 
 #: Largest denominator of the rational that stands for ``threshold`` (0.01 is 1/100 exactly).
 MAX_DENOMINATOR = 1_000_000
@@ -43,6 +66,21 @@ def threshold_fraction(threshold: float) -> Fraction:
     if fraction <= 0:
         raise ValueError(f"threshold must be positive and at least 1e-6, got {threshold!r}")
     return fraction
+
+
+def capped_threshold(fraction: Fraction, bound: int) -> Fraction:
+    """``fraction``, or ``bound + 1`` when it is larger, for levels ``|M| <= bound``.
+
+    Above every reachable ``|M|`` only level 0 can be crossed: every such threshold gives the
+    same ``floor(M / theta)`` (-1 below 0, else 0) and the same on-level test (``M == 0``),
+    hence the same events. Capping keeps the exact integer arithmetic inside int64 for
+    thresholds as large as 1e300.
+
+    Example:
+        >>> capped_threshold(Fraction(10**300), 7), capped_threshold(Fraction(1, 2), 7)
+        (Fraction(8, 1), Fraction(1, 2))
+    """
+    return fraction if fraction <= bound else Fraction(bound + 1)
 
 
 class RegionGroups(NamedTuple):
@@ -73,32 +111,7 @@ def group_by_region(rx: Tensor, ry: Tensor, out_width: int) -> RegionGroups:
     region_id = ry * out_width
     region_id += rx
     region, order = stable_sort_small(region_id)
-    first = torch.ones_like(region, dtype=torch.bool)
-    torch.ne(region[1:], region[:-1], out=first[1:])
-    return RegionGroups(order, region, first)
-
-
-def region_pixel_count(
-    region: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
-) -> Tensor:
-    """``n_r``: number of sensor pixels in each region (fewer in the last column/row).
-
-    Args:
-        region: int64 region ids ``ry * Wo + rx``.
-        sensor_size: input ``(W, H, P)``.
-        factor: ``(fx, fy)``.
-
-    Returns:
-        int64 tensor of the shape of ``region``.
-    """
-    w, h, _ = sensor_size
-    fx, fy = factor
-    out_w = -(-w // fx)
-    rx = region % out_w
-    ry = region // out_w
-    nx = torch.clamp(w - rx * fx, max=fx)
-    ny = torch.clamp(h - ry * fy, max=fy)
-    return nx * ny
+    return RegionGroups(order, region, changes(region))
 
 
 def reference_index(floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: Tensor) -> Tensor:
@@ -157,7 +170,7 @@ class Crossings(NamedTuple):
     on: Tensor
 
 
-def crossings(q_before: Tensor, q_after: Tensor) -> Crossings:
+def crossings(q_before: Tensor, q_after: Tensor, *, emitted: int = 0) -> Crossings:
     """Expand each step's change of reference index into one crossing per level.
 
     A step taking ``q`` from ``a`` to ``b > a`` crosses levels ``a + 1, ..., b`` upward (ON);
@@ -166,9 +179,14 @@ def crossings(q_before: Tensor, q_after: Tensor) -> Crossings:
     Args:
         q_before: ``(N,)`` int64 index before each step.
         q_after: ``(N,)`` int64 index after each step.
+        emitted: events the call already emitted (earlier chunks of the stream).
 
     Returns:
         The :class:`Crossings`, ``K = sum |q_after - q_before|``.
+
+    Raises:
+        ValueError: when ``emitted + K`` exceeds
+            :func:`~evdown_torch.checks.max_output_events` (counted before building them).
 
     Example:
         >>> import torch
@@ -180,6 +198,7 @@ def crossings(q_before: Tensor, q_after: Tensor) -> Crossings:
     changed = delta.nonzero().squeeze(1)
     delta = delta[changed]
     count = delta.abs()
+    check_output_count(emitted + int(count.sum()))
     pick = torch.repeat_interleave(torch.arange(changed.shape[0], device=delta.device), count)
     offsets = torch.cumsum(count, 0) - count
     within = torch.arange(pick.shape[0], device=delta.device) - offsets[pick]
@@ -187,3 +206,84 @@ def crossings(q_before: Tensor, q_after: Tensor) -> Crossings:
     base = q_before[changed][pick]
     level = torch.where(on, base + 1 + within, base - 1 - within)
     return Crossings(changed[pick], level, on)
+
+
+def level_index(
+    whole: Tensor, part: Tensor, pixels: Tensor | int, threshold: Fraction
+) -> tuple[Tensor, Tensor]:
+    """``floor(u)`` and ``u is on a level`` for ``u = (whole + part) / (threshold * pixels)``.
+
+    ``whole + part`` is ``n_r * M_r``: an exact integer part and a float remainder. Where the
+    remainder is exactly 0 the test is done in integers (``threshold = a / b`` is rational), so
+    a region sitting on a level is seen on it exactly. Elsewhere ``u`` is a float, and a ``u``
+    within :data:`SNAP` of an integer counts as on that level: float rounding cannot tell such
+    a ``u`` from the level itself, and snapping keeps the result stable when it lands there.
+
+    Args:
+        whole: int64 integer part of ``n_r * M_r``.
+        part: float64 remainder.
+        pixels: ``n_r``, int64 of the shape of ``whole`` or one int for all.
+        threshold: ``theta`` as a fraction ``a / b``.
+
+    Returns:
+        ``(floor_u, on_level)``, int64 and bool, of the shape of ``whole``.
+
+    Example:
+        >>> fl, on = level_index(torch.tensor([3, 3, 1]), torch.tensor([0.0, 0.5, 0.5 - 1e-12]),
+        ...                      torch.tensor([2, 2, 2]), Fraction(3, 4))
+        >>> fl.tolist(), on.tolist()
+        ([2, 2, 1], [True, False, True])
+    """
+    a, b = threshold.numerator, threshold.denominator
+    if isinstance(pixels, int):
+        u = (whole.to(torch.float64) + part) * (b / (pixels * a))
+    else:
+        u = (whole.to(torch.float64) + part) * b / (pixels * a).to(torch.float64)
+    nearest = torch.round(u)
+    on_level = (u - nearest).abs() <= SNAP
+    floor_u = torch.where(on_level, nearest, torch.floor(u)).to(torch.int64)
+    exact_at = where_true(part == 0)
+    if exact_at.shape[0]:
+        numerator = take(whole, exact_at) * b
+        denominator = pixels * a if isinstance(pixels, int) else take(pixels, exact_at) * a
+        exact_floor = torch.div(numerator, denominator, rounding_mode="floor")
+        floor_u.scatter_(0, exact_at, exact_floor)
+        on_level.scatter_(0, exact_at, exact_floor * denominator == numerator)
+    return floor_u, on_level
+
+
+def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Tensor:
+    """``n_r * theta * j`` as float64, the value of ``n_r * M_r`` on level ``j``."""
+    a, b = threshold.numerator, threshold.denominator
+    return (level * pixels * a).to(torch.float64) / b
+
+
+def step_crossings(
+    floor_u: Tensor, on_level: Tensor, first: Tensor, *, emitted: int = 0
+) -> Crossings:
+    """The reference rule over monotone steps grouped by region, from ``q = 0``.
+
+    Applies :func:`~evdown_torch.transforms.functional._reference.reference_index` and
+    :func:`~evdown_torch.transforms.functional._reference.crossings` to the steps that can
+    change ``q`` only: a step that stays strictly inside the cell its predecessor ended in
+    keeps ``q`` and crosses nothing, so dropping it changes no other step's result.
+
+    Args:
+        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
+        on_level: ``(S,)`` bool, the step ends on a level.
+        first: ``(S,)`` bool, the step is its region's first.
+        emitted: events the call already emitted (see :func:`crossings`).
+
+    Returns:
+        The crossings, with ``step`` indexing the given steps.
+    """
+    moved = first | on_level | changes(floor_u)
+    moved[1:] |= on_level[:-1]
+    kept = where_true(moved)
+    floor_k, first_k = take(floor_u, kept), take(first, kept)
+    q = reference_index(floor_k, take(on_level, kept), first_k, torch.zeros_like(floor_k))
+    q_before = torch.zeros_like(q)
+    q_before[1:] = q[:-1]
+    q_before.masked_fill_(first_k, 0)
+    cross = crossings(q_before, q, emitted=emitted)
+    return Crossings(take(kept, cross.step), cross.level, cross.on)

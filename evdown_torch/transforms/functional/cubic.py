@@ -7,21 +7,18 @@ from fractions import Fraction
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import CHUNK_EVENTS, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
     Knots,
     estimate,
     level_changes,
-    level_index,
-    level_value,
     piece_time,
     region_pixels,
-    run_index,
-    segmented_cumsum,
-    step_crossings,
-    take,
-    where_true,
 )
+from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
+
+__all__ = ["cubic_estimation", "pchip_slopes"]
 
 #: Pixel-segment evaluations per chunk: bounds the kernel's memory and keeps its temporary
 #: tensors small enough to be recycled by the allocator instead of faulted in afresh.
@@ -230,28 +227,40 @@ def _solve(
     c1: Tensor, c2: Tensor, c3: Tensor, goal: Tensor, low: Tensor, high: Tensor, rising: Tensor
 ) -> Tensor:
     """Root of ``s (c1 + s (c2 + s c3)) = goal`` in ``[low, high]``, where the cubic is monotone
-    (rising or falling), by Newton's method safeguarded by bisection."""
+    (rising or falling), by Newton's method safeguarded by bisection.
+
+    Each root leaves the iteration once its last step moved it by at most 1e-15, so the cost
+    follows the number of roots (most converge in a few steps), not the slowest one.
+    """
     sign = torch.where(rising, 1.0, -1.0)
 
-    def poly(s: Tensor) -> Tensor:
+    def poly(s: Tensor, c1: Tensor, c2: Tensor, c3: Tensor) -> Tensor:
         return s * (c1 + s * (c2 + s * c3))
 
-    at_low, at_high = poly(low), poly(high)
+    at_low, at_high = poly(low, c1, c2, c3), poly(high, c1, c2, c3)
     x = low + (goal - at_low) / (at_high - at_low) * (high - low)
     x = torch.where(torch.isfinite(x), x.clamp(min=0.0, max=1.0), 0.5 * (low + high))
     x = torch.minimum(torch.maximum(x, low), high)
+    root = x.clone()
+    active = torch.arange(x.shape[0], device=x.device)
     for _ in range(MAX_ITERATIONS):
-        g = sign * (poly(x) - goal)
+        if active.shape[0] == 0:
+            break
+        g = sign * (poly(x, c1, c2, c3) - goal)
         low = torch.where(g < 0, x, low)
         high = torch.where(g > 0, x, high)
         newton = x - g / (sign * (c1 + x * (2 * c2 + 3 * c3 * x)))
         inside = (newton > low) & (newton < high)
         step = torch.where(g == 0, x, torch.where(inside, newton, 0.5 * (low + high)))
-        moved = (step - x).abs()
+        moving = (step - x).abs() > 1e-15
         x = step
-        if x.numel() == 0 or float(moved.max()) <= 1e-15:
-            break
-    return x
+        root.scatter_(0, active, x)
+        if not bool(moving.all()):  # drop the converged roots
+            keep = where_true(moving)
+            active, x, low, high, goal, sign, c1, c2, c3 = (
+                take(v, keep) for v in (active, x, low, high, goal, sign, c1, c2, c3)
+            )
+    return root
 
 
 def _monotone_steps(
@@ -304,7 +313,7 @@ def cubic_estimation(
     factor: tuple[int, int],
     threshold: float,
 ) -> Events:
-    """Downscale by cubic log-luminance estimation (SEMANTICS.md method 5).
+    """Downscale by cubic log-luminance estimation (docs/semantics.md, method 5).
 
     Each pixel's log-luminance is the piecewise cubic Hermite interpolant of its knots (see
     :mod:`~evdown_torch.transforms.functional._knots`) with SciPy's ``PchipInterpolator``
@@ -348,10 +357,12 @@ def _cubic_regions(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     fraction: Fraction,
+    emitted: int = 0,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Crossings of the regions of one chunk: ``(region, t, on)`` in region order.
 
-    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``.
+    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``;
+    ``emitted`` counts the events of the chunks before (for the output limit).
     """
     device = knots.t.device
     slope, width, rise = pchip_slopes(knots)
@@ -393,24 +404,32 @@ def _cubic_regions(
     step_pixels = pixels if isinstance(pixels, int) else take(pixels, step_bp)
     floor_u, on_level = level_index(step_whole, step_part, step_pixels, fraction)
     step_first = take(bp_first, step_bp) & is_end
-    cross = step_crossings(floor_u, on_level, step_first)
+    cross = step_crossings(floor_u, on_level, step_first, emitted=emitted)
     del step_first, is_end, step_whole, step_part
 
-    # Solve each crossing on its monotone step (the step before it ends where it starts).
-    e = cross.step
-    i = take(step_bp, e)
-    jump = take(bp_first, i)
-    s_high = take(step_s, e)
-    before = torch.clamp(e - 1, min=0)
-    s_low = torch.where(take(step_bp, before) == i, take(step_s, before), 0.0)
-    s_low = torch.where(jump, s_high, s_low)
-    begin = take(prev, i)
-    piece_pixels = pixels if isinstance(pixels, int) else take(pixels, i)
-    goal = level_value(cross.level, piece_pixels, fraction)
-    goal -= take(whole, begin).to(torch.float64)
-    goal -= take(part, begin)
-    s = _solve(take(c1, i), take(c2, i), take(c3, i), goal, s_low, s_high, cross.on)
-    at_end = jump | (take(on_level, e) & (cross.level == take(floor_u, e)))
-    s = torch.where(at_end, s_high, s)
-    t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, i), s)
-    return knots.bp_region(i), t, cross.on
+    # Solve each crossing on its monotone step (the step before it ends where it starts), in
+    # chunks of crossings so that the solver's temporaries stay small however many there are.
+    def crossing_times(e: Tensor, level: Tensor, on: Tensor) -> Tensor:
+        i = take(step_bp, e)
+        jump = take(bp_first, i)
+        s_high = take(step_s, e)
+        before = torch.clamp(e - 1, min=0)
+        s_low = torch.where(take(step_bp, before) == i, take(step_s, before), 0.0)
+        s_low = torch.where(jump, s_high, s_low)
+        begin = take(prev, i)
+        piece_pixels = pixels if isinstance(pixels, int) else take(pixels, i)
+        goal = level_value(level, piece_pixels, fraction)
+        goal -= take(whole, begin).to(torch.float64)
+        goal -= take(part, begin)
+        s = _solve(take(c1, i), take(c2, i), take(c3, i), goal, s_low, s_high, on)
+        at_end = jump | (take(on_level, e) & (level == take(floor_u, e)))
+        s = torch.where(at_end, s_high, s)
+        return piece_time(take(knots.bp_t, begin), take(knots.bp_t, i), s)
+
+    k = cross.step.shape[0]
+    t = torch.cat([
+        crossing_times(cross.step[lo:lo + CHUNK_EVENTS], cross.level[lo:lo + CHUNK_EVENTS],
+                       cross.on[lo:lo + CHUNK_EVENTS])
+        for lo in range(0, max(k, 1), CHUNK_EVENTS)
+    ])
+    return knots.bp_region(take(step_bp, cross.step)), t, cross.on

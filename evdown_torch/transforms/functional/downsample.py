@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from evdown_torch._tensors import region_of, sort_by_time
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import region_of, sort_by_time
+
+__all__ = ["downsample"]
 
 
 def downsample(events: Events, *, factor: tuple[int, int]) -> Events:

@@ -7,22 +7,25 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch.checks import output_size
-from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import (
+from evdown_torch._tensors import (
     chunk_bounds,
     floor_divide_exact,
     region_of,
+    region_pixel_count,
     region_xy,
     sort_by_time,
 )
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import (
+    capped_threshold,
     crossings,
     group_by_region,
     reference_index,
-    region_pixel_count,
     threshold_fraction,
 )
+
+__all__ = ["EventCountState", "event_count", "initial_state"]
 
 
 class EventCountState(NamedTuple):
@@ -58,7 +61,7 @@ def event_count(
     threshold: float,
     state: EventCountState | None = None,
 ) -> tuple[Events, EventCountState]:
-    """Downscale by the log-luminance event count (SEMANTICS.md method 3).
+    """Downscale by the log-luminance event count (docs/semantics.md, method 3).
 
     Each pixel keeps an integer level (ON adds 1, OFF subtracts 1). After each input event, in
     stable time order, its region's mean level ``M_r = sum(L_p) / n_r`` is tested with the
@@ -92,10 +95,12 @@ def event_count(
         return _event_count_sorted(events, sensor_size, factor, threshold, state)
     # A long stream goes through in chunks, exactly as a streaming session would.
     outputs = []
+    emitted = 0
     for start, stop in zip(bounds[:-1], bounds[1:]):
         piece = Events(*(column[start:stop] for column in events))
-        out, state = _event_count_sorted(piece, sensor_size, factor, threshold, state)
+        out, state = _event_count_sorted(piece, sensor_size, factor, threshold, state, emitted)
         outputs.append(out)
+        emitted += out.num_events
     return Events(*(torch.cat(columns) for columns in zip(*outputs))), state
 
 
@@ -105,13 +110,16 @@ def _event_count_sorted(
     factor: tuple[int, int],
     threshold: float,
     state: EventCountState,
+    emitted: int = 0,
 ) -> tuple[Events, EventCountState]:
-    """:func:`event_count` on time-sorted events."""
+    """:func:`event_count` on time-sorted events (``emitted``: events of earlier chunks)."""
     device = events.device
     n = events.num_events
     if n == 0:
         return Events.empty(events.t.dtype, device), state
-    fraction = threshold_fraction(threshold)
+    # No |M_r| can exceed the level sums it starts from plus one per event.
+    bound = int(state.level_sum.abs().max()) + n if state.level_sum.numel() else n
+    fraction = capped_threshold(threshold_fraction(threshold), bound)
     a, b = fraction.numerator, fraction.denominator
     out_w, out_h, _ = output_size(sensor_size, factor)
     rx, ry = region_of(events, factor)
@@ -141,7 +149,7 @@ def _event_count_sorted(
 
     q_before = q.roll(1)
     q_before[firsts] = state.index[region[firsts]]
-    cross = crossings(q_before, q)
+    cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one step keep their level order.
     source, by_time = torch.sort(groups.order[cross.step], stable=True)

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import torch
 
+from evdown_torch._tensors import changes, chunk_bounds, region_of, sort_by_time
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import chunk_bounds, region_of, sort_by_time
+
+__all__ = ["event_funnelling"]
 
 
 def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
@@ -43,17 +45,14 @@ def _funnel_sorted(events: Events, factor: tuple[int, int]) -> Events:
     if n < 2:
         return Events(x, y, events.t.clone(), events.p.clone())
     # Dense rank of t (t is sorted), then one int64 key per (t, x', y', p), built in place.
-    new_time = torch.ones(n, dtype=torch.int64, device=events.device)
-    torch.ne(events.t[1:], events.t[:-1], out=new_time[1:])
-    key = torch.cumsum(new_time, 0)
+    key = torch.cumsum(changes(events.t), 0)
     width = int(x.max()) + 1
     height = int(y.max()) + 1
     key.mul_(height).add_(y).mul_(width).add_(x).mul_(2).add_(events.p)
     # Equal keys share t, so they lie in one run of equal t; a stable sort of the keys puts
     # the first occurrence of each first.
     sorted_key, order = torch.sort(key, stable=True)
-    first = torch.ones(n, dtype=torch.bool, device=events.device)
-    torch.ne(sorted_key[1:], sorted_key[:-1], out=first[1:])
+    first = changes(sorted_key)
     duplicates = order[~first]
     if duplicates.shape[0] == 0:
         return Events(x, y, events.t.clone(), events.p.clone())

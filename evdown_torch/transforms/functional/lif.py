@@ -24,8 +24,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import divide, region_xy, sort_by_time
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._common import divide, region_xy, sort_by_time
 
 __all__ = ["active_steps", "lif_pooling", "step_end_time", "step_index"]
 

@@ -8,29 +8,18 @@ from fractions import Fraction
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import differences, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
     Knots,
     estimate,
     level_changes,
-    level_index,
-    level_value,
     piece_time,
     region_pixels,
-    run_index,
-    segmented_cumsum,
-    step_crossings,
-    take,
-    where_true,
 )
+from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
 
-
-def _changes_at_knots(values: Tensor, first_at: Tensor) -> Tensor:
-    """Per knot, ``values`` minus its predecessor's in the same pixel (itself at a first)."""
-    change = values.clone()
-    change[1:] -= values[:-1]
-    change.scatter_(0, first_at, take(values, first_at))
-    return change
+__all__ = ["linear_estimation"]
 
 
 def linear_estimation(
@@ -40,7 +29,7 @@ def linear_estimation(
     factor: tuple[int, int],
     threshold: float,
 ) -> Events:
-    """Downscale by linear log-luminance estimation (SEMANTICS.md method 4).
+    """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
 
     Each pixel's log-luminance is the polyline through its knots (see
     :mod:`~evdown_torch.transforms.functional._knots`); each region's mean ``M_r`` (sum of its
@@ -83,10 +72,12 @@ def _linear_regions(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     fraction: Fraction,
+    emitted: int = 0,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Crossings of the regions of one chunk: ``(region, t, on)`` in region order.
 
-    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``.
+    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``;
+    ``emitted`` counts the events of the chunks before (for the output limit).
     """
     device = knots.t.device
 
@@ -116,10 +107,10 @@ def _linear_regions(
         0, bp, level_changes(knots)
     )
     high_bp = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
-        0, bp, _changes_at_knots(high, first_at)
+        0, bp, differences(high, first_at)
     )
     low_bp = torch.zeros(nb, dtype=torch.float64, device=device).index_add_(
-        0, bp, _changes_at_knots(low, first_at)
+        0, bp, differences(low, first_at)
     )
     count = torch.bincount(bp, minlength=nb)
     del high, low, first_at, bp
@@ -151,7 +142,7 @@ def _linear_regions(
     # Reference rule on the breakpoints (each piece between breakpoints is monotone).
     pixels = region_pixels(knots, sensor_size, factor)
     floor_u, on_level = level_index(whole, part, pixels, fraction)
-    cross = step_crossings(floor_u, on_level, bp_first)
+    cross = step_crossings(floor_u, on_level, bp_first, emitted=emitted)
 
     # Crossing times: linear interpolation on the piece that ends at the crossing's step.
     end = cross.step

@@ -1,0 +1,251 @@
+"""Small tensor helpers shared by the whole package (private).
+
+Every helper here exists once: time ordering and chunking of a stream, run starts and ends,
+segmented sums, fast indexing, integer division, small-key stable sorting, and the region
+geometry of a downscaling factor (region of a pixel, coordinates of a region id, pixels in a
+region). The output sensor size itself is :func:`evdown_torch.checks.output_size`.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
+
+__all__ = [
+    "CHUNK_EVENTS",
+    "changes",
+    "chunk_bounds",
+    "differences",
+    "divide",
+    "ends",
+    "floor_divide_exact",
+    "region_of",
+    "region_pixel_count",
+    "region_xy",
+    "run_index",
+    "segmented_cumsum",
+    "sort_by_time",
+    "stable_sort_small",
+    "take",
+    "time_order",
+    "where_true",
+]
+
+#: Events per chunk when a kernel processes a long stream piece by piece: temporaries of this
+#: length stay small enough (8 MB of int64) to be recycled by the allocator instead of being
+#: mapped afresh, which costs more than the arithmetic on them.
+CHUNK_EVENTS = 1 << 20
+
+
+# --- Indexing -----------------------------------------------------------------------------
+
+
+def take(values: Tensor, index: Tensor) -> Tensor:
+    """``values[index]`` for a 1-D int64 ``index`` (``index_select``: much faster on the CPU)."""
+    return values.index_select(0, index)
+
+
+def where_true(mask: Tensor) -> Tensor:
+    """``(M,)`` int64 positions of the True entries of a 1-D bool ``mask``, ascending."""
+    return torch.nonzero(mask).squeeze(1)
+
+
+# --- Runs of equal values ------------------------------------------------------------------
+
+
+def changes(values: Tensor) -> Tensor:
+    """``(N,)`` bool run starts: True where ``values`` differs from its predecessor (and at 0).
+
+    Example:
+        >>> changes(torch.tensor([3, 3, 5, 5, 3])).tolist()
+        [True, False, True, False, True]
+    """
+    flags = torch.ones(values.shape[0], dtype=torch.bool, device=values.device)
+    torch.ne(values[1:], values[:-1], out=flags[1:])
+    return flags
+
+
+def ends(starts: Tensor) -> Tensor:
+    """``(N,)`` bool: True at the last element of each run, given the runs' ``starts``."""
+    flags = torch.ones_like(starts)
+    flags[:-1] = starts[1:]
+    return flags
+
+
+def run_index(starts: Tensor) -> Tensor:
+    """``(N,)`` int64 index of the run each element belongs to, given the runs' ``starts``."""
+    return torch.cumsum(starts.to(torch.int64), 0) - 1
+
+
+def differences(values: Tensor, starts_at: Tensor) -> Tensor:
+    """Each element minus its predecessor, except at run starts, where the element itself.
+
+    Args:
+        values: ``(N,)`` values.
+        starts_at: int64 positions of the runs' first elements (0 among them).
+
+    Example:
+        >>> differences(torch.tensor([1, 3, 6, 2, 2]), torch.tensor([0, 3])).tolist()
+        [1, 2, 3, 2, 0]
+    """
+    change = values.clone()
+    change[1:] -= values[:-1]
+    change.scatter_(0, starts_at, take(values, starts_at))
+    return change
+
+
+def segmented_cumsum(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tensor:
+    """Cumulative sum of ``values`` restarting at each segment's start.
+
+    Args:
+        values: ``(N,)`` values.
+        starts_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
+        segment: ``(N,)`` int64 segment of each element.
+    """
+    total = torch.cumsum(values, 0)
+    return total - take(take(total - values, starts_at), segment)
+
+
+# --- Time order and chunks -----------------------------------------------------------------
+
+
+def time_order(t: Tensor) -> Tensor | None:
+    """Stable permutation that sorts ``t``, or ``None`` when ``t`` is already sorted.
+
+    Args:
+        t: ``(N,)`` timestamps.
+
+    Returns:
+        ``(N,)`` int64 indices (ties keep input order), or ``None`` for a sorted input.
+    """
+    if t.shape[0] < 2 or bool((t[1:] >= t[:-1]).all()):
+        return None
+    return torch.sort(t, stable=True).indices
+
+
+def sort_by_time(events: Events) -> Events:
+    """Events in stable time order (the input itself when already sorted)."""
+    order = time_order(events.t)
+    return events if order is None else events.select(order)
+
+
+def chunk_bounds(t: Tensor, chunk: int | None = None, *, split_ties: bool = True) -> list[int]:
+    """Start indices of consecutive chunks of about ``chunk`` events of a time-sorted stream.
+
+    Args:
+        t: ``(N,)`` sorted timestamps.
+        chunk: target chunk length (default :data:`CHUNK_EVENTS`).
+        split_ties: when False, a chunk never splits a run of equal timestamps.
+
+    Returns:
+        ``[0, b1, ..., N]``, strictly increasing (``[0, N]`` for short streams).
+    """
+    n = t.shape[0]
+    chunk = CHUNK_EVENTS if chunk is None else chunk
+    if n <= chunk:
+        return [0, n]
+    starts = torch.arange(chunk, n, chunk, device=t.device)
+    if not split_ties:
+        starts = torch.searchsorted(t, t[starts], side="left")
+    return sorted({0, n, *starts.tolist()})
+
+
+def stable_sort_small(keys: Tensor, bound: int | None = None) -> tuple[Tensor, Tensor]:
+    """Stable sort of non-negative int64 ``keys < bound``: ``(sorted int64 keys, permutation)``.
+
+    The keys are sorted as int16 or int32 when ``bound`` (by default ``max(keys) + 1``)
+    allows: two to three times faster than int64 on the CPU.
+    """
+    if bound is None:
+        bound = int(keys.max()) + 1 if keys.numel() else 0
+    if bound <= 1 << 15:
+        small = keys.to(torch.int16)
+    elif bound <= 1 << 31:
+        small = keys.to(torch.int32)
+    else:
+        small = keys
+    values, order = torch.sort(small, stable=True)
+    return values.to(torch.int64), order
+
+
+# --- Integer division ----------------------------------------------------------------------
+
+
+def divide(values: Tensor, divisor: int | Tensor, *, out: Tensor | None = None) -> Tensor:
+    """``floor(values / divisor)`` for int64 ``values`` of any sign, as a new tensor (or ``out``).
+
+    Args:
+        values: int64 tensor.
+        divisor: a positive int, or a positive int64 tensor broadcastable to ``values``.
+        out: optional output tensor.
+
+    Example:
+        >>> divide(torch.tensor([-5, 5, 7]), 2).tolist(), divide(torch.tensor([-5, 7]), 3).tolist()
+        ([-3, 2, 3], [-2, 2])
+    """
+    if isinstance(divisor, int) and divisor & (divisor - 1) == 0:
+        # A power of two (1 included): an arithmetic shift floors negative values too.
+        return torch.bitwise_right_shift(values, divisor.bit_length() - 1, out=out)
+    return torch.div(values, divisor, rounding_mode="floor", out=out)
+
+
+def floor_divide_exact(values: Tensor, divisor: int | Tensor) -> tuple[Tensor, Tensor]:
+    """``floor(values / divisor)`` and whether the division is exact, for int64 values.
+
+    Args:
+        values: int64 tensor (any sign).
+        divisor: a positive int, or a positive int64 tensor broadcastable to ``values``.
+
+    Returns:
+        ``(quotient, exact)``: int64 floor quotient and a bool tensor.
+    """
+    quotient = divide(values, divisor)
+    if isinstance(divisor, int) and divisor & (divisor - 1) == 0:
+        return quotient, (values & (divisor - 1)) == 0
+    return quotient, quotient * divisor == values
+
+
+# --- Region geometry -----------------------------------------------------------------------
+
+
+def region_of(events: Events, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """Region coordinates ``(x // fx, y // fy)`` of every event, as new int64 tensors."""
+    return divide(events.x, factor[0]), divide(events.y, factor[1])
+
+
+def region_xy(region: Tensor, out_width: int) -> tuple[Tensor, Tensor]:
+    """Output coordinates ``(x, y)`` of int64 region ids ``y * out_width + x``.
+
+    Example:
+        >>> x, y = region_xy(torch.tensor([0, 4, 7]), 3)
+        >>> x.tolist(), y.tolist()
+        ([0, 1, 1], [0, 1, 2])
+    """
+    y = divide(region, out_width)
+    return region - y * out_width, y
+
+
+def region_pixel_count(
+    region: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+) -> Tensor:
+    """``n_r``: number of sensor pixels in each region (fewer in the last column/row).
+
+    Args:
+        region: int64 region ids ``ry * Wo + rx``.
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+
+    Returns:
+        int64 tensor of the shape of ``region``.
+
+    Example:
+        >>> region_pixel_count(torch.arange(4), (5, 3, 2), (2, 2)).tolist()  # Wo = 3
+        [4, 4, 2, 2]
+    """
+    w, h, _ = sensor_size
+    fx, fy = factor
+    rx, ry = region_xy(region, output_size(sensor_size, factor)[0])
+    return torch.clamp(w - rx * fx, max=fx) * torch.clamp(h - ry * fy, max=fy)

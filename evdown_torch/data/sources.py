@@ -1,0 +1,277 @@
+"""The datasets ``evdown preprocess`` reads: synthetic gestures, Tonic's, or a folder of files.
+
+A source is a picklable object (worker processes receive it) with ``len()``, ``sensor_size``,
+``dtype``, ``classes``, ``describe()`` (JSON facts naming it) and ``load(i) -> (events, label)``
+plus ``source_name(i)`` for messages. :func:`open_source` builds one from the command line's
+``--dataset`` choice.
+"""
+
+from __future__ import annotations
+
+import operator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from evdown_torch.checks import check_choice, check_sensor_size
+from evdown_torch.events import load_npy_events
+
+__all__ = [
+    "RECORDING_SUFFIXES",
+    "FolderSource",
+    "SyntheticSource",
+    "TonicSource",
+    "check_label",
+    "open_source",
+    "read_recording",
+]
+
+#: File suffixes the folder source reads, with :func:`read_recording`.
+RECORDING_SUFFIXES = (".npy",)
+
+
+def read_recording(path: Path) -> np.ndarray:
+    """Read one recording file of a folder dataset as a Tonic structured array.
+
+    This is the one place that reads files, so that other formats (AEDAT4) can be added here.
+
+    Raises:
+        ValueError: if the file cannot be read as a structured event array.
+    """
+    return load_npy_events(path)
+
+
+class SyntheticSource:
+    """:class:`~evdown_torch.synthetic.SyntheticGestures` recordings (rendered, not read)."""
+
+    name = "synthetic"
+
+    def __init__(self, *, split: str, samples_per_class: int, duration_us: int, seed: int,
+                 sensor_size: tuple[int, int, int]) -> None:
+        from evdown_torch.synthetic import SyntheticGestures
+
+        self.split = check_choice("split", split, ("train", "test"))
+        self._data = SyntheticGestures(
+            train=self.split == "train", samples_per_class=samples_per_class,
+            duration_us=duration_us, seed=seed, sensor_size=sensor_size)
+        self.sensor_size = self._data.sensor_size
+        self.dtype = np.dtype(self._data.dtype)
+        self.classes = list(self._data.classes)
+        self._options = {"split": self.split, "samples_per_class": samples_per_class,
+                         "duration_us": duration_us, "seed": seed}
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "sensor_size": list(self.sensor_size), **self._options}
+
+    def source_name(self, index: int) -> str:
+        return f"synthetic {self.split} recording {index}"
+
+    def load(self, index: int) -> tuple[np.ndarray, int]:
+        return self._data[index]
+
+
+_TONIC_CLASSES = {"dvsgesture": "DVSGesture", "nmnist": "NMNIST"}
+
+
+class TonicSource:
+    """A dataset of ``tonic.datasets`` whose files are already on disk (never downloads).
+
+    Raises:
+        ValueError: if the files are absent, saying where they go.
+    """
+
+    def __init__(self, name: str, *, root: str | Path, split: str) -> None:
+        self.name = check_choice("dataset", name, tuple(_TONIC_CLASSES))
+        self.split = check_choice("split", split, ("train", "test"))
+        self.root = str(Path(root).expanduser().resolve())
+        self._data = None
+        data = self._dataset()
+        cls = type(data).__mro__[1]
+        self.sensor_size = tuple(cls.sensor_size)
+        self.dtype = np.dtype(cls.dtype)
+        self.classes = list(cls.classes)
+        self._length = len(data)
+        self._files = list(data.data)
+
+    def _dataset(self):
+        if self._data is None:
+            try:
+                import tonic.datasets
+            except ImportError:
+                raise ValueError(
+                    f"--dataset {self.name} needs tonic: pip install 'evdown_torch[tonic]'"
+                ) from None
+            cls = getattr(tonic.datasets, _TONIC_CLASSES[self.name])
+            self._data = _without_download(cls)(self.root, train=self.split == "train")
+        return self._data
+
+    def __getstate__(self) -> dict[str, Any]:
+        return dict(self.__dict__, _data=None)
+
+    def __len__(self) -> int:
+        return self._length
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "root": self.root, "split": self.split,
+                "sensor_size": list(self.sensor_size)}
+
+    def source_name(self, index: int) -> str:
+        return str(self._files[index])
+
+    def load(self, index: int) -> tuple[np.ndarray, int]:
+        return self._dataset()[index]
+
+
+def _without_download(cls: type) -> type:
+    """A subclass of a Tonic dataset class that raises where Tonic would download."""
+
+    def refuse(self) -> None:
+        folder = Path(self.location_on_system)
+        raise ValueError(
+            f"the {cls.__name__} files are absent: put {self.filename} and its extracted "
+            f"folder {self.folder_name}/ in {folder} (tonic.datasets.{cls.__name__}"
+            f"(save_to={str(folder.parent)!r}) downloads them there)"
+        )
+
+    return type(cls.__name__, (cls,), {"download": refuse})
+
+
+class FolderSource:
+    """Recording files under ``path/CLASS/...``, one recording per file, labels from folders.
+
+    Class ``k`` is the ``k``-th subfolder of ``path`` in sorted order; each class folder is
+    searched recursively for files with a suffix in :data:`RECORDING_SUFFIXES`, in sorted
+    order. The dataset's dtype is that of the first file that reads; a file with another
+    dtype is rejected like an unreadable one.
+
+    Raises:
+        ValueError: if ``path`` is not a folder, has no class subfolders or no readable file.
+    """
+
+    name = "folder"
+
+    def __init__(self, path: str | Path, *, sensor_size: tuple[int, int, int]) -> None:
+        self.path = Path(path).expanduser().resolve()
+        if not self.path.is_dir():
+            raise ValueError(f"dataset folder {str(self.path)!r} does not exist")
+        self.sensor_size = check_sensor_size(sensor_size)
+        self.classes = sorted(p.name for p in self.path.iterdir() if p.is_dir())
+        if not self.classes:
+            raise ValueError(
+                f"dataset folder {str(self.path)!r} has no class subfolders; expected "
+                f"PATH/CLASS/FILE with FILE ending in {', '.join(RECORDING_SUFFIXES)}"
+            )
+        self._items: list[tuple[str, int]] = []
+        for label, cls in enumerate(self.classes):
+            files = sorted(p for p in (self.path / cls).rglob("*")
+                           if p.suffix in RECORDING_SUFFIXES and p.is_file())
+            self._items += [(p.relative_to(self.path).as_posix(), label) for p in files]
+        if not self._items:
+            raise ValueError(
+                f"dataset folder {str(self.path)!r} holds no recording files "
+                f"({', '.join(RECORDING_SUFFIXES)}) in its class subfolders"
+            )
+        self.dtype = self._first_dtype()
+
+    def _first_dtype(self) -> np.dtype:
+        for relative, _ in self._items:
+            try:
+                return read_recording(self.path / relative).dtype
+            except (OSError, ValueError):
+                continue
+        raise ValueError(f"no file under {str(self.path)!r} reads as a structured event array")
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "path": str(self.path), "sensor_size": list(self.sensor_size),
+                "files": len(self._items)}
+
+    def source_name(self, index: int) -> str:
+        return str(self.path / self._items[index][0])
+
+    def load(self, index: int) -> tuple[np.ndarray, int]:
+        relative, label = self._items[index]
+        events = read_recording(self.path / relative)
+        if events.dtype != self.dtype:
+            raise ValueError(
+                f"its dtype {events.dtype} differs from the dataset's {self.dtype} "
+                "(the first readable file's)"
+            )
+        return events, label
+
+
+def open_source(
+    dataset: str,
+    *,
+    split: str = "train",
+    root: str | Path | None = None,
+    sensor_size: tuple[int, int, int] | None = None,
+    samples_per_class: int | None = None,
+    duration_us: int | None = None,
+    seed: int | None = None,
+) -> SyntheticSource | TonicSource | FolderSource:
+    """The source named by ``--dataset``: ``synthetic``, ``dvsgesture``, ``nmnist`` or
+    ``folder:PATH``.
+
+    Args:
+        dataset: the source's name.
+        split: ``"train"`` or ``"test"`` (synthetic and Tonic datasets).
+        root: the folder Tonic datasets live in (``save_to``); required for them.
+        sensor_size: ``(W, H, P)``; required for folders, the synthetic sensor (default
+            ``(128, 128, 2)``), not accepted for Tonic datasets (theirs is fixed).
+        samples_per_class: synthetic recordings per class (default 24).
+        duration_us: synthetic recording length, microseconds (default 6 s).
+        seed: synthetic dataset seed (default 0).
+
+    Raises:
+        ValueError: for an unknown dataset, a missing or foreign option, absent files.
+
+    Example:
+        >>> src = open_source("synthetic", samples_per_class=1, duration_us=100_000,
+        ...                   sensor_size=(16, 16, 2))
+        >>> len(src), src.sensor_size
+        (11, (16, 16, 2))
+    """
+    if not isinstance(dataset, str):
+        raise TypeError(f"dataset must be a string, got {dataset!r}")
+    synthetic_options = {"samples_per_class": samples_per_class, "duration_us": duration_us,
+                         "seed": seed}
+    if dataset != "synthetic":
+        given = [name for name, value in synthetic_options.items() if value is not None]
+        if given:
+            raise ValueError(f"{given[0]} is a setting of the synthetic dataset only")
+    if dataset.startswith("folder:"):
+        if root is not None:
+            raise ValueError("--root is for Tonic datasets; a folder dataset is folder:PATH")
+        if sensor_size is None:
+            raise ValueError("a folder dataset needs --sensor-size W H P")
+        return FolderSource(dataset[len("folder:"):], sensor_size=sensor_size)
+    if dataset == "synthetic":
+        if root is not None:
+            raise ValueError("--root is for Tonic datasets, not synthetic")
+        defaults = {"samples_per_class": 24, "duration_us": 6_000_000, "seed": 0}
+        options = {k: defaults[k] if v is None else v for k, v in synthetic_options.items()}
+        return SyntheticSource(split=split, sensor_size=sensor_size or (128, 128, 2), **options)
+    if dataset in _TONIC_CLASSES:
+        if root is None:
+            raise ValueError(f"--dataset {dataset} needs --root DIR, the folder its files are in")
+        if sensor_size is not None:
+            raise ValueError(f"{dataset} has a fixed sensor size; drop --sensor-size")
+        return TonicSource(dataset, root=root, split=split)
+    raise ValueError(
+        f"unknown dataset {dataset!r}; expected synthetic, dvsgesture, nmnist or folder:PATH"
+    )
+
+
+def check_label(value: Any) -> int:
+    """A recording's label as an int (the cache stores integer labels)."""
+    try:
+        return operator.index(value)
+    except TypeError:
+        raise TypeError(f"labels must be integers, got {value!r}") from None

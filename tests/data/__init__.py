@@ -1,0 +1,1 @@
+"""Tests of evdown_torch.data: preprocessing a dataset into a cache and reading it back."""
