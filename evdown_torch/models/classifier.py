@@ -41,13 +41,13 @@ class SpikingClassifier(nn.Module):
 
     Each time step goes through an optional strided stem (a ``stem_stride x stem_stride``
     convolution with the same stride to ``stem_channels`` channels, the input zero-padded on the
-    right and bottom to a multiple of the stride), then ``len(channels)`` blocks of ``3x3`` convolution, ``2x2`` max
-    pooling (rounding up, so a ``1x1`` input stays ``1x1``) and a leaky integrate-and-fire
-    layer (``snntorch.Leaky``, subtract reset, fast-sigmoid surrogate gradient); then an
-    adaptive average pooling to ``pool_size x pool_size`` (which makes the network take any
-    input size), a linear layer and a leaky output layer with one neuron per class. The class
-    is read from the output spike counts (:meth:`predict`); train it with a snntorch loss on
-    the output spikes, e.g. ``snntorch.functional.mse_count_loss()``.
+    right and bottom to a multiple of the stride), then ``len(channels)`` blocks of ``3x3``
+    convolution, ``2x2`` max pooling (rounding up, so a ``1x1`` input stays ``1x1``) and a
+    leaky integrate-and-fire layer (``snntorch.Leaky``, subtract reset, fast-sigmoid surrogate
+    gradient); then an adaptive average pooling to ``pool_size x pool_size`` (which makes the
+    network take any input size), a linear layer and a leaky output layer with one neuron per
+    class. The class is read from the output spike counts (:meth:`predict`); train it with a
+    snntorch loss on the output spikes, e.g. ``snntorch.functional.mse_count_loss()``.
 
     Args:
         num_classes: number of classes (11 for DVS128 Gesture).
@@ -118,7 +118,8 @@ class SpikingClassifier(nn.Module):
     def extra_repr(self) -> str:
         return (
             f"num_classes={self.num_classes}, channels={self.channels}, "
-            f"pool_size={self.pool_size}, stem_stride={self.stem_stride}, beta={float(self.out_neuron.beta):g}, "
+            f"pool_size={self.pool_size}, stem_stride={self.stem_stride}, "
+            f"beta={float(self.out_neuron.beta):g}, "
             f"threshold={float(self.out_neuron.threshold):g}"
         )
 

@@ -1,10 +1,10 @@
 """Downscaling transforms, usable alone or inside ``tonic.transforms.Compose``."""
 
 from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms.calibrate import BudgetTarget, calibrate
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount, EventCountSession
-from evdown_torch.transforms.calibrate import BudgetTarget, calibrate
 from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
 from evdown_torch.transforms.thinning import ThinnedDownsample
 

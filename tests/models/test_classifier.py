@@ -117,8 +117,8 @@ def _receptive_mask(model, size):
 def test_receptive_field_covers_the_input(size):
     from evdown_torch.models.classifier import stem_stride_for
 
-    model = SpikingClassifier(11, channels=(16, 32, 32, 32), stem_stride=stem_stride_for((size, size),
-                                                                                     16))
+    stride = stem_stride_for((size, size), 16)
+    model = SpikingClassifier(11, channels=(16, 32, 32, 32), stem_stride=stride)
     assert bool(_receptive_mask(model, size).all())
     # without the stem, four blocks see only a corner of 128x128
     if size == 128:

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
+from evdown_torch.events import to_events
 from evdown_torch.synthetic import SyntheticGestures
 from evdown_torch.transforms import Downsample, EventCount
 from evdown_torch.transforms.calibrate import BudgetTarget, calibrate, calibration
 from evdown_torch.transforms.registry import METHODS
 from evdown_torch.transforms.thinning import ThinnedDownsample, recording_seed
-from evdown_torch.events import to_events
 
 SENSOR = (48, 48, 2)
 BUDGETED = [name for name, cls in METHODS.items() if cls.budget_setting is not None]
