@@ -227,6 +227,9 @@ def run_evaluation(
     Returns:
         The :class:`EvaluationResult`.
 
+    With ``training.workers > 0`` the stages run in spawned worker processes, which import
+    the calling script again: call this from under ``if __name__ == "__main__":``.
+
     Raises:
         FileNotFoundError: for DVS128 Gesture absent from its root.
         RuntimeError: if a needed optional package (tonic) is missing.
