@@ -169,6 +169,7 @@ def _plot(result: EvaluationResult, path: Path) -> bool:
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
+        from matplotlib.ticker import NullFormatter
     except ModuleNotFoundError:
         return False
     factors = list(dict.fromkeys(c.factor for c in result.cells if c.method != BASELINE))
@@ -204,6 +205,7 @@ def _plot(result: EvaluationResult, path: Path) -> bool:
         top.set_title(f"factor {factor[0] if factor[0] == factor[1] else factor}")
         for ax in (top, bottom):
             ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(NullFormatter())
             ax.grid(True, which="both", alpha=0.3)
         bottom.set_xlabel("output events per second")
     axes[0][0].set_ylabel("test accuracy (95% CI)")
