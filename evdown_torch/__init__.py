@@ -9,6 +9,7 @@ from evdown_torch.transforms import (
     EventFunnelling,
     LIFPooling,
     LinearEstimation,
+    PhotocurrentPooling,
 )
 
 __version__ = "0.1.0"
@@ -21,6 +22,7 @@ __all__ = [
     "Events",
     "LIFPooling",
     "LinearEstimation",
+    "PhotocurrentPooling",
     "__version__",
     "from_events",
     "max_output_events",

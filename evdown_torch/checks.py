@@ -18,6 +18,7 @@ __all__ = [
     "check_choice",
     "check_factor",
     "check_has_values",
+    "check_item_index",
     "check_non_negative_float",
     "check_non_negative_int",
     "check_output_count",
@@ -177,6 +178,28 @@ def check_time_constant(name: str, value: Any) -> float:
     if not value > 0:  # also rejects NaN
         raise ValueError(f"{name} must be a positive number (math.inf for no leak), got {value!r}")
     return value
+
+
+def check_item_index(index: Any, length: int, what: str = "items") -> int:
+    """Validate a dataset index (negative counts from the end) and return it in ``[0, length)``.
+
+    Raises:
+        TypeError: if ``index`` is not an integer.
+        IndexError: if it is outside ``[-length, length)``.
+
+    Example:
+        >>> check_item_index(-1, 5, "recordings")
+        4
+    """
+    import operator
+
+    try:
+        index = operator.index(index)
+    except TypeError:
+        raise TypeError(f"index must be an integer, got {index!r}") from None
+    if not -length <= index < length:
+        raise IndexError(f"index {index} is out of range for {length} {what}")
+    return index % length
 
 
 def check_non_negative_int(name: str, value: Any) -> int:

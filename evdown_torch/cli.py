@@ -10,6 +10,10 @@ Subcommands (``evdown COMMAND --help`` for each):
 * ``evdown evaluate --config FILE [--output DIR]``: measure every method's speed/accuracy
   trade (:mod:`evdown_torch.evaluation`) and write ``results.csv``, ``report.md`` and
   ``tradeoff.png``.
+* ``evdown preprocess --dataset NAME --method NAME --factor F --out DIR``: downscale a whole
+  dataset once into a cache (see :mod:`evdown_torch.data`).
+* ``evdown show IN --factor F [--out FILE.gif|FILE.png] [--curve X,Y]``: see what each method
+  does (see :mod:`evdown_torch.plot.cli`).
 
 Each subcommand is registered by one function in :data:`SUBCOMMANDS` that adds its parser
 to the subparsers and sets ``run`` (a function of the parsed arguments returning the exit
@@ -307,6 +311,13 @@ def add_preprocess_command(commands: argparse._SubParsersAction) -> None:
     command.add_parser(commands)
 
 
+def add_show_command(commands: argparse._SubParsersAction) -> None:
+    """Register ``evdown show`` (:mod:`evdown_torch.plot.cli`)."""
+    from evdown_torch.plot.cli import add_parser
+
+    add_parser(commands)
+
+
 # ----------------------------------------------------------------------------- the program
 
 #: One function per subcommand, in ``--help`` order; each adds its parser and sets ``run``.
@@ -315,6 +326,7 @@ SUBCOMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_preprocess_command,
     add_bench_command,
     add_evaluate_command,
+    add_show_command,
 ]
 
 

@@ -7,15 +7,14 @@ peer of :data:`PEERS` (Tonic's transforms, when Tonic is installed).
 
 from __future__ import annotations
 
-import ast
 import contextlib
-import re
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from evdown_torch._text import parse_settings
 from evdown_torch.bench.measure import MemoryJob
 from evdown_torch.checks import check_factor, check_sensor_size, output_size
 from evdown_torch.transforms.registry import METHODS, make_method
@@ -76,27 +75,19 @@ class Candidate:
 def parse_spec(spec: str) -> tuple[str, dict[str, Any]]:
     """Split ``"NAME[:KEY=VALUE,KEY=VALUE...]"`` into the name and its settings.
 
-    The benchmark's ``KEY=VALUE`` parser; ``evdown downscale --set`` parses with the CLI's
-    (``evdown_torch.cli``), and the two should become one.
-
-    Values are Python literals where they parse as one, else strings; a comma starts a new
-    setting only where ``KEY=`` follows it, so tuples are fine (``factor=(1, 2)``).
+    The settings follow the command line's syntax (:func:`evdown_torch._text.parse_settings`):
+    Python literals where they parse as one, else strings; a comma starts a new setting only
+    where ``KEY=`` follows it, so tuples are fine (``factor=(1, 2)``).
 
     Example:
         >>> parse_spec("lif:weight=1.5,reset_mechanism=zero")
         ('lif', {'weight': 1.5, 'reset_mechanism': 'zero'})
     """
     name, _, rest = spec.partition(":")
-    settings: dict[str, Any] = {}
-    for item in filter(None, re.split(r",\s*(?=[A-Za-z_]\w*\s*=)", rest)):
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ValueError(f"a setting in {spec!r} must look like KEY=VALUE, got {item!r}")
-        try:
-            settings[key.strip()] = ast.literal_eval(value.strip())
-        except (ValueError, SyntaxError):
-            settings[key.strip()] = value.strip()
-    return name.strip(), settings
+    try:
+        return name.strip(), parse_settings(rest)
+    except ValueError as error:
+        raise ValueError(f"{error} (in {spec!r})") from None
 
 
 def _method_builder(name: str, settings: dict[str, Any]):

@@ -6,8 +6,8 @@ import json
 import math
 from dataclasses import asdict, fields
 from pathlib import Path
-from typing import Any
 
+from evdown_torch._text import format_factor
 from evdown_torch.bench.inputs import EVENTS_SWEEP_RATE, BenchInput
 from evdown_torch.bench.lineup import (
     PEER_DIFFERENTIATOR_BINS,
@@ -20,7 +20,7 @@ from evdown_torch.bench.lineup import (
 from evdown_torch.bench.run import BenchResults, Measurement, Plan, log
 from evdown_torch.transforms.registry import method_settings
 
-__all__ = ["factor_text", "load_results", "method_table", "sweep_table", "write_report"]
+__all__ = ["load_results", "method_table", "sweep_table", "write_report"]
 
 def _num(value: float | None, digits: int = 3) -> str:
     """``digits`` significant digits (more for large numbers), no exponent; n/a for None."""
@@ -38,11 +38,6 @@ def _mb(value: int | None) -> str:
     return "n/a" if value is None else _num(value / 1e6)
 
 
-def factor_text(factor: Any) -> str:
-    """A factor as the report writes it: ``4`` or ``4x2`` (the CLI has its own formatter)."""
-    return str(factor) if isinstance(factor, int) else f"{factor[0]}x{factor[1]}"
-
-
 def method_table(results: BenchResults, input_name: str) -> str:
     """The Markdown table of every candidate on one input (all factors)."""
     peers = [(n, label) for n, label, is_peer in results.candidates if is_peer]
@@ -58,7 +53,7 @@ def method_table(results: BenchResults, input_name: str) -> str:
             ok = ref is not None and ref.rate and m.rate
             ratios.append(_num(m.rate / ref.rate) if ok else "n/a")
         share = m.events_out / m.events_in if m.events_out is not None and m.events_in else None
-        cells = [m.label, factor_text(m.factor), str(m.events_in),
+        cells = [m.label, format_factor(m.factor), str(m.events_in),
                  "n/a" if m.events_out is None else str(m.events_out), _num(share),
                  _num(None if m.seconds is None else m.seconds * 1e3),
                  _num(None if m.cpu_seconds is None else m.cpu_seconds * 1e3), str(m.runs),
@@ -297,7 +292,7 @@ def _plots(results: BenchResults, out: Path) -> list[Path]:
         axes[0].set_yticks(range(len(rows)), [m.label for m in rows])
         axes[0].set_ylim(len(rows) - 0.5, -0.5)
         fig.suptitle(f"{inp.name}: {inp.sensor_size[0]}x{inp.sensor_size[1]}, "
-                     f"{inp.num_events:,} events, factor {factor_text(factor)} "
+                     f"{inp.num_events:,} events, factor {format_factor(factor)} "
                      "(gray: other libraries)", fontsize=9)
         path = out / f"methods_{inp.name}.png"
         fig.savefig(path, dpi=100)

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import operator
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from evdown_torch.checks import check_item_index
 from evdown_torch.data import shards
 
 __all__ = ["PreprocessedDataset", "verify_cache"]
@@ -149,14 +149,7 @@ class PreprocessedDataset:
 
     def __getitem__(self, index: int) -> tuple[Any, Any]:
         """``(events, label)`` of item ``index``, after the transforms."""
-        try:
-            index = operator.index(index)
-        except TypeError:
-            raise TypeError(f"index must be an integer, got {index!r}") from None
-        n = len(self)
-        if not -n <= index < n:
-            raise IndexError(f"index {index} is out of range for {n} recordings")
-        index %= n
+        index = check_item_index(index, len(self), "recordings")
         shard_events = self._shard_events(int(self._shard[index]))
         events: Any = np.array(shard_events[self._start[index]:self._stop[index]])
         target: Any = self.targets[index]

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from evdown_torch.checks import check_choice, check_sensor_size
-from evdown_torch.events import load_npy_events
+from evdown_torch.io import READ_EXTENSIONS, read_events
 
 __all__ = [
     "RECORDING_SUFFIXES",
@@ -27,19 +27,21 @@ __all__ = [
     "read_recording",
 ]
 
-#: File suffixes the folder source reads, with :func:`read_recording`.
-RECORDING_SUFFIXES = (".npy",)
+#: File suffixes the folder source reads, with :func:`read_recording` (every format of
+#: :mod:`evdown_torch.io`: NumPy, HDF5, AEDAT4, N-MNIST ``.bin``, Prophesee).
+RECORDING_SUFFIXES = READ_EXTENSIONS
 
 
-def read_recording(path: Path) -> np.ndarray:
+def read_recording(path: Path, sensor_size: tuple[int, int, int]) -> np.ndarray:
     """Read one recording file of a folder dataset as a Tonic structured array.
 
-    This is the one place that reads files, so that other formats (AEDAT4) can be added here.
+    The one place a folder dataset reads files, through :func:`evdown_torch.io.read_events`
+    (the dataset's ``sensor_size`` stands for files that do not record one).
 
     Raises:
         ValueError: if the file cannot be read as a structured event array.
     """
-    return load_npy_events(path)
+    return read_events(path, sensor_size=sensor_size).events
 
 
 class SyntheticSource:
@@ -180,7 +182,7 @@ class FolderSource:
     def _first_dtype(self) -> np.dtype:
         for relative, _ in self._items:
             try:
-                return read_recording(self.path / relative).dtype
+                return read_recording(self.path / relative, self.sensor_size).dtype
             except (OSError, ValueError):
                 continue
         raise ValueError(f"no file under {str(self.path)!r} reads as a structured event array")
@@ -197,7 +199,7 @@ class FolderSource:
 
     def load(self, index: int) -> tuple[np.ndarray, int]:
         relative, label = self._items[index]
-        events = read_recording(self.path / relative)
+        events = read_recording(self.path / relative, self.sensor_size)
         if events.dtype != self.dtype:
             raise ValueError(
                 f"its dtype {events.dtype} differs from the dataset's {self.dtype} "

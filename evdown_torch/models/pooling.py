@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
-from typing import Literal
 
 import snntorch
 import torch
@@ -16,41 +14,28 @@ from evdown_torch.checks import (
     check_factor,
     check_non_negative_float,
     check_positive_float,
-    check_time_constant,
     check_unit_interval,
+    output_size,
 )
 from evdown_torch.models._snn import unregistered
+from evdown_torch.transforms.functional.lif import (
+    DEFAULT_THRESHOLD,
+    DEFAULT_WEIGHT,
+    RESET_MECHANISMS,
+    ResetMechanism,
+    decay_factor,
+)
 
-__all__ = ["RESET_MECHANISMS", "SpikingPooling", "decay_factor", "resolve_beta"]
+__all__ = [
+    "SpikingPooling",
+    "SpikingPoolingLayer",
+    "decay_factor",
+    "reset_states",
+    "resolve_beta",
+]
 
-ResetMechanism = Literal["subtract", "zero", "none"]
-RESET_MECHANISMS: tuple[str, ...] = ("subtract", "zero", "none")
-
-#: Defaults shared with :class:`~evdown_torch.transforms.LIFPooling`: a neuron needs about four
-#: same-polarity input events within a few time constants to fire (see LIFPooling's docstring).
-DEFAULT_THRESHOLD = 1.0
-DEFAULT_WEIGHT = 0.3
+#: The module's leak when neither ``tau`` nor ``beta`` is given: ``tau`` = 10 steps.
 DEFAULT_TAU_STEPS = 10.0
-
-
-def decay_factor(dt: float, tau: float) -> float:
-    """Membrane decay per time step, ``beta = exp(-dt / tau)``.
-
-    Args:
-        dt: length of a time step, positive.
-        tau: membrane time constant in the unit of ``dt``, positive; ``math.inf`` gives
-            ``beta = 1`` (no leak, integrate-and-fire).
-
-    Returns:
-        ``beta`` in ``[0, 1]``: 0 as ``tau -> 0`` (no memory), 1 as ``tau -> inf``.
-
-    Example:
-        >>> round(decay_factor(1000.0, 10_000.0), 6)
-        0.904837
-    """
-    dt = check_positive_float("dt", dt)
-    tau = check_time_constant("tau", tau)
-    return math.exp(-dt / tau)
 
 
 def resolve_beta(*, tau: float | None, beta: float | None, dt: float) -> float:
@@ -102,8 +87,12 @@ class SpikingPooling(nn.Module):
     Constants live in buffers (``weight``, ``mutual_inhibition`` here and ``neuron.beta``,
     ``neuron.threshold`` in the Leaky), so ``state_dict``, ``.to(device)`` and ``torch.compile``
     work; with ``learnable=True``, ``weight`` and ``mutual_inhibition`` are ``nn.Parameter``\ s.
-    (snntorch picks the reset rule when the Leaky is built, so load a state dict into a module
-    built with the same ``reset_mechanism``.)
+    The ``reset_mechanism`` is saved in the state dict too (its extra state): loading a state
+    dict saved with another reset mechanism raises a ``ValueError``.
+
+    This module is functional in time: it takes a whole spike tensor and returns
+    ``(spikes, state)``. Inside an ``nn.Sequential`` driven one step at a time (the snntorch
+    idiom), use :class:`SpikingPoolingLayer` (:meth:`layer`).
 
     Args:
         factor: ``f`` or ``(fx, fy)``, positive integers: block width and height.
@@ -117,12 +106,18 @@ class SpikingPooling(nn.Module):
         reset_mechanism: ``"subtract"``, ``"zero"`` or ``"none"`` (snntorch's meanings).
         learnable: make ``weight`` and ``mutual_inhibition`` trainable parameters.
         spike_grad: snntorch surrogate gradient (``None``: snntorch's default ATan).
+        batch_first: input and output spikes are ``(B, T, ...)`` (as Tonic's ``PadTensors``
+            gives them by default) instead of ``(T, B, ...)``, like PyTorch's RNNs.
 
     Shape:
-        - Input: ``(T, B, 2, H, W)`` spikes or spike counts, time first, channel 0 OFF and
-          channel 1 ON (Tonic's ``ToFrame`` order); float, integer or bool.
-        - State: membrane ``(B, 2, ceil(H / fy), ceil(W / fx))``.
-        - Output: spikes ``(T, B, 2, ceil(H / fy), ceil(W / fx))``, float 0/1.
+        - Input: ``(T, B, 2, H, W)`` spikes or spike counts, time first (``(B, T, 2, H, W)``
+          with ``batch_first=True``), channel 0 OFF and channel 1 ON (Tonic's ``ToFrame``
+          order); float, integer or bool.
+        - State: membrane ``(B, 2, ceil(H / fy), ceil(W / fx))``, float32 (or the module's
+          dtype after ``.double()``).
+        - Output: spikes of the input's shape order, ``(T, B, 2, ceil(H / fy),
+          ceil(W / fx))``, 0/1 in the input's floating dtype (half and bfloat16 included;
+          float32 for integer or bool input).
 
     Example:
         >>> pool = SpikingPooling(2, beta=1.0, weight=0.25, threshold=1.0)
@@ -148,6 +143,7 @@ class SpikingPooling(nn.Module):
         reset_mechanism: ResetMechanism = "subtract",
         learnable: bool = False,
         spike_grad: Callable[[Tensor], Tensor] | None = None,
+        batch_first: bool = False,
     ) -> None:
         super().__init__()
         self.factor = check_factor(factor)
@@ -156,9 +152,11 @@ class SpikingPooling(nn.Module):
         weight = check_positive_float("weight", weight)
         inhibition = check_non_negative_float("mutual_inhibition", mutual_inhibition)
         check_choice("reset_mechanism", reset_mechanism, RESET_MECHANISMS)
-        if not isinstance(learnable, bool):
-            raise TypeError(f"learnable must be a bool, got {learnable!r}")
+        for name, flag in (("learnable", learnable), ("batch_first", batch_first)):
+            if not isinstance(flag, bool):
+                raise TypeError(f"{name} must be a bool, got {flag!r}")
         self.learnable = learnable
+        self.batch_first = batch_first
         for name, value in (("weight", weight), ("mutual_inhibition", inhibition)):
             tensor = torch.tensor(value, dtype=torch.float32)
             if learnable:
@@ -189,6 +187,28 @@ class SpikingPooling(nn.Module):
         """``"subtract"``, ``"zero"`` or ``"none"``."""
         return self.neuron.reset_mechanism
 
+    def get_extra_state(self) -> dict[str, str]:
+        """What the state dict records besides tensors: the reset mechanism."""
+        return {"reset_mechanism": self.reset_mechanism}
+
+    def set_extra_state(self, state: dict[str, str]) -> None:
+        """Refuse a state dict saved with another reset mechanism (it would behave otherwise).
+
+        Raises:
+            ValueError: if the saved ``reset_mechanism`` differs from this module's.
+        """
+        saved = state.get("reset_mechanism") if isinstance(state, dict) else None
+        if saved != self.reset_mechanism:
+            raise ValueError(
+                f"this state dict was saved from a SpikingPooling with reset_mechanism="
+                f"{saved!r}, but this module uses {self.reset_mechanism!r}; build the module "
+                f"with reset_mechanism={saved!r} to load it"
+            )
+
+    def layer(self) -> SpikingPoolingLayer:
+        """A :class:`SpikingPoolingLayer` around this module (sharing its parameters)."""
+        return SpikingPoolingLayer(self)
+
     @property
     def conv_weight(self) -> Tensor:
         """The equivalent ``conv2d`` kernel ``(2, 2, fy, fx)`` (``+w`` same, ``-w_inh`` other)."""
@@ -199,8 +219,8 @@ class SpikingPooling(nn.Module):
 
     def output_shape(self, height: int, width: int) -> tuple[int, int]:
         """Output ``(ceil(H / fy), ceil(W / fx))`` for an input of ``H x W`` pixels."""
-        fx, fy = self.factor
-        return -(-height // fy), -(-width // fx)
+        wo, ho, _ = output_size((width, height, 2), self.factor)
+        return ho, wo
 
     def current(self, x: Tensor) -> Tensor:
         """Input current of the neurons: the pooling convolution of ``x``.
@@ -210,7 +230,7 @@ class SpikingPooling(nn.Module):
 
         Returns:
             ``(..., 2, ceil(H / fy), ceil(W / fx))`` currents, in ``x``'s floating dtype
-            (float32 for integer or bool input).
+            (the module's, float32 by default, for integer or bool input).
         """
         if x.ndim < 3 or x.shape[-3] != 2:
             raise ValueError(
@@ -224,7 +244,8 @@ class SpikingPooling(nn.Module):
         ho, wo = self.output_shape(height, width)
         x = F.pad(x, (0, wo * fx - width, 0, ho * fy - height))
         pooled = x.reshape(*lead, 2, ho, fy, wo, fx).sum(dim=(-3, -1))
-        return self.weight * pooled - self.mutual_inhibition * pooled.flip(-3)
+        weight, inhibition = self.weight.to(x.dtype), self.mutual_inhibition.to(x.dtype)
+        return weight * pooled - inhibition * pooled.flip(-3)
 
     def step(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Advance the neurons by one time step.
@@ -240,32 +261,44 @@ class SpikingPooling(nn.Module):
             raise ValueError(
                 f"one step of spikes must have shape (B, 2, H, W), got {tuple(x.shape)}"
             )
-        spikes, state = self(x.unsqueeze(0), state)
+        spikes, state = self._run(x.unsqueeze(0), state)
         return spikes[0], state
 
     def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """Pool and integrate a time-first spike tensor.
+        """Pool and integrate a spike tensor over its time axis.
 
         Args:
-            x: ``(T, B, 2, H, W)`` input spikes (channel 0 OFF, 1 ON).
+            x: ``(T, B, 2, H, W)`` input spikes, time first; ``(B, T, 2, H, W)`` with
+                ``batch_first=True`` (channel 0 OFF, 1 ON).
             state: ``(B, 2, Ho, Wo)`` membrane to start from; ``None`` starts from zero.
 
         Returns:
-            ``(spikes, state)``: ``(T, B, 2, Ho, Wo)`` output spikes and the membrane after
-            the last step.
+            ``(spikes, state)``: output spikes ``(T, B, 2, Ho, Wo)`` (``(B, T, ...)`` with
+            ``batch_first=True``) and the membrane after the last step.
         """
         if x.ndim != 5 or x.shape[2] != 2:
+            order = "(B, T, 2, H, W), batch first" if self.batch_first else (
+                "(T, B, 2, H, W), time first (batch_first=False)"
+            )
             raise ValueError(
-                "spikes must have shape (T, B, 2, H, W), time first, channels (OFF, ON); "
+                f"spikes must have shape {order}, channels (OFF, ON); "
                 f"got shape {tuple(x.shape)}"
             )
+        if self.batch_first:
+            spikes, state = self._run(x.transpose(0, 1), state)
+            return spikes.transpose(0, 1), state
+        return self._run(x, state)
+
+    def _run(self, x: Tensor, state: Tensor | None) -> tuple[Tensor, Tensor]:
+        """:meth:`forward` on a time-first ``(T, B, 2, H, W)`` tensor."""
         current = self.current(x)
         if state is None:
-            state = torch.zeros_like(current[0])
+            dtype = torch.promote_types(current.dtype, self.neuron.beta.dtype)
+            state = torch.zeros(current.shape[1:], dtype=dtype, device=current.device)
         elif state.shape != current.shape[1:]:
             raise ValueError(
                 f"state must have shape {tuple(current.shape[1:])} (B, 2, Ho, Wo) for input "
-                f"of shape {tuple(x.shape)}, got {tuple(state.shape)}"
+                f"of shape {tuple(x.shape)} (T, B, 2, H, W), got {tuple(state.shape)}"
             )
         if x.shape[0] == 0:
             return torch.zeros_like(current), state
@@ -274,13 +307,98 @@ class SpikingPooling(nn.Module):
             spike, state = self.neuron(current[k], state)
             spikes.append(spike)
         self.neuron.mem = torch.zeros(0, device=state.device)  # keep no hidden state
-        return torch.stack(spikes), state
+        return torch.stack(spikes).to(current.dtype), state  # spikes in the input's dtype
 
     def extra_repr(self) -> str:
         fx, fy = self.factor
         return (
             f"factor=({fx}, {fy}), beta={self.beta:.6g}, threshold={self.threshold:.6g}, "
-            f"weight={float(self.weight):.6g}, "
-            f"mutual_inhibition={float(self.mutual_inhibition):.6g}, "
-            f"reset_mechanism={self.reset_mechanism!r}, learnable={self.learnable}"
+            f"weight={self.weight.item():.6g}, "
+            f"mutual_inhibition={self.mutual_inhibition.item():.6g}, "
+            f"reset_mechanism={self.reset_mechanism!r}, learnable={self.learnable}, "
+            f"batch_first={self.batch_first}"
         )
+
+
+class SpikingPoolingLayer(nn.Module):
+    """:class:`SpikingPooling` as a stateful layer for snntorch-style networks.
+
+    snntorch networks are often an ``nn.Sequential`` of layers called once per time step,
+    whose neurons keep their membrane between calls (``snn.Leaky(init_hidden=True)``). This
+    layer does the same: each call takes one step of spikes, returns this step's spikes only
+    and keeps the membrane in :attr:`mem`. Reset it between samples with :meth:`reset`, or
+    reset a whole network (snntorch's layers too) with :func:`reset_states`. (snntorch's own
+    ``snntorch.utils.reset(net)`` resets only the neurons in its global registry, which our
+    modules leave so that discarded models can be freed.)
+
+    Args:
+        factor: a :class:`SpikingPooling` to wrap (its parameters are shared), or the
+            ``factor`` of a new one.
+        **settings: the other :class:`SpikingPooling` arguments, for a new one.
+
+    Shape:
+        - Input: ``(B, 2, H, W)`` spikes of one step (channel 0 OFF, 1 ON).
+        - Output: ``(B, 2, ceil(H / fy), ceil(W / fx))`` spikes in the input's floating dtype.
+
+    Example:
+        >>> import snntorch as snn
+        >>> net = torch.nn.Sequential(
+        ...     SpikingPoolingLayer(2, beta=1.0, weight=0.6),
+        ...     torch.nn.Flatten(), torch.nn.Linear(2 * 2 * 2, 3),
+        ...     snn.Leaky(beta=0.9, init_hidden=True))
+        >>> x = torch.ones(5, 1, 2, 4, 4)  # (T, B, 2, H, W)
+        >>> out = torch.stack([net(x[k]) for k in range(5)])
+        >>> out.shape
+        torch.Size([5, 1, 3])
+        >>> reset_states(net)
+        >>> net[0].mem is None
+        True
+    """
+
+    def __init__(self, factor: SpikingPooling | int | tuple[int, int], **settings) -> None:
+        super().__init__()
+        if isinstance(factor, SpikingPooling):
+            if settings:
+                raise TypeError(
+                    "give either a SpikingPooling to wrap or its settings, not both; got "
+                    f"{sorted(settings)}"
+                )
+            self.pool = factor
+        else:
+            self.pool = SpikingPooling(factor, **settings)
+        #: The membrane after the last step, ``(B, 2, Ho, Wo)``; ``None`` after a reset.
+        self.mem: Tensor | None = None
+
+    def reset(self) -> None:
+        """Forget the membrane: the next step starts from zero."""
+        self.mem = None
+
+    def forward(self, x: Tensor) -> Tensor:
+        """One step: ``(B, 2, H, W)`` spikes in, ``(B, 2, Ho, Wo)`` spikes out."""
+        if self.mem is not None and (
+            self.mem.shape[0] != x.shape[0] or self.mem.device != x.device
+        ):
+            raise ValueError(
+                f"the layer holds the membrane of a batch of {self.mem.shape[0]} on "
+                f"{self.mem.device}, got a step of shape {tuple(x.shape)} on {x.device}; "
+                "call reset() (or reset_states(net)) between samples"
+            )
+        spikes, self.mem = self.pool.step(x, self.mem)
+        return spikes
+
+
+def reset_states(net: nn.Module) -> None:
+    """Reset the hidden state of every stateful spiking layer of ``net`` (and ``net``).
+
+    Calls :meth:`SpikingPoolingLayer.reset` on our layers and clears the membrane of every
+    snntorch neuron built with ``init_hidden=True``, detached from the graph, wherever it
+    sits in ``net`` (``snntorch.utils.reset`` looks only at direct children).
+    """
+    for module in net.modules():
+        if isinstance(module, SpikingPoolingLayer):
+            module.reset()
+        elif isinstance(module, snntorch.SpikingNeuron) and getattr(module, "init_hidden", False):
+            for name in ("mem", "syn", "spk"):
+                value = getattr(module, name, None)
+                if isinstance(value, Tensor):
+                    setattr(module, name, torch.zeros_like(value).detach())

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import operator
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -11,12 +11,14 @@ import torch
 
 from evdown_torch.checks import (
     check_factor,
+    check_item_index,
     check_non_negative_int,
     check_positive_int,
     check_sensor_size,
     output_size,
 )
-from evdown_torch.events import DVS_DTYPE as DVS_GESTURE_DTYPE, EventFormat, Events, from_events
+from evdown_torch.events import DVS_DTYPE as DVS_GESTURE_DTYPE
+from evdown_torch.events import EventFormat, Events, from_events
 from evdown_torch.synthetic.pixel_model import PixelModelConfig
 from evdown_torch.synthetic.render import render_events
 from evdown_torch.synthetic.scenes import GESTURE_CLASSES, GestureScene, scene_seed
@@ -42,9 +44,10 @@ def render_gesture(
 ) -> np.ndarray:
     """Render one gesture recording as a Tonic structured array (DVSGesture's dtype).
 
-    ``render_gesture(label, seed, factor=f)`` is the same scene, motion and noise settings
-    as ``render_gesture(label, seed)``, seen by a sensor ``f`` times smaller whose pixels
-    receive the mean photocurrent of the blocks they cover; ``factor=1`` is the recording.
+    ``render_gesture(label, seed, factor=f)`` is the same scene, motion, lighting, noise
+    settings and readout as ``render_gesture(label, seed)``, seen by a sensor ``f`` times
+    smaller whose pixels receive the mean photocurrent of the blocks they cover;
+    ``factor=1`` is the recording.
 
     Args:
         label: class index into :data:`GESTURE_CLASSES`.
@@ -77,7 +80,14 @@ class SyntheticGestures:
     the same recording. Sample ``i`` has label ``i % 11``; the train and test splits draw
     their scenes from different derived seeds, so they share no recording.
 
+    The constructor takes ``tonic.datasets.DVSGesture``'s arguments in its order
+    (``save_to``, ``train``, ``transform``, ``target_transform``, ``transforms``), so
+    ``SyntheticGestures("data", train=False)`` and ``DVSGesture("data", train=False)`` are
+    swapped by one word; the generator's own settings are keyword-only.
+
     Args:
+        save_to: accepted for DVSGesture's signature and unused: nothing is downloaded or
+            stored (a path, or None).
         train: the training split (else the test split).
         transform: applied to the events.
         target_transform: applied to the label.
@@ -112,6 +122,7 @@ class SyntheticGestures:
 
     def __init__(
         self,
+        save_to: str | os.PathLike | None = None,
         train: bool = True,
         transform: Callable | None = None,
         target_transform: Callable | None = None,
@@ -123,12 +134,17 @@ class SyntheticGestures:
         sensor_size: tuple[int, int, int] = (128, 128, 2),
         pixel_model: PixelModelConfig | None = None,
     ) -> None:
+        if save_to is not None and not isinstance(save_to, (str, os.PathLike)):
+            raise TypeError(
+                f"save_to must be a path or None (unused: nothing is downloaded), got "
+                f"{save_to!r}; train is the second argument, as in tonic's DVSGesture")
         if not isinstance(train, bool):
             raise TypeError(f"train must be a bool, got {train!r}")
         for name, fn in (("transform", transform), ("target_transform", target_transform),
                          ("transforms", transforms)):
             if fn is not None and not callable(fn):
                 raise TypeError(f"{name} must be callable or None, got {fn!r}")
+        self.save_to = save_to
         self.train = train
         self.transform = transform
         self.target_transform = target_transform
@@ -156,14 +172,7 @@ class SyntheticGestures:
         return [i % len(self.classes) for i in range(len(self))]
 
     def _index(self, index: Any) -> int:
-        try:
-            index = operator.index(index)
-        except TypeError:
-            raise TypeError(f"index must be an integer, got {index!r}") from None
-        n = len(self)
-        if not -n <= index < n:
-            raise IndexError(f"index {index} is out of range for {n} samples")
-        return index % n
+        return check_item_index(index, len(self), "samples")
 
     def scene(self, index: int) -> GestureScene:
         """The scene of sample ``index`` (its label is ``index % 11``)."""
@@ -188,7 +197,8 @@ class SyntheticGestures:
     def ground_truth(self, index: int, factor: int | tuple[int, int]) -> np.ndarray:
         """Sample ``index`` as a sensor ``factor`` times smaller would have recorded it.
 
-        The same scene, motion, pixel parameters and noise settings, rendered on a sensor
+        The same scene, motion, lighting, pixel parameters, noise settings and readout,
+        rendered on a sensor
         ``(ceil(W / fx), ceil(H / fy), 2)`` whose pixels receive the mean linear intensity
         (photocurrent) of the block of full-resolution pixels they cover (edge blocks: the
         pixels inside the sensor). At ``factor=1`` this is exactly the sample's events.

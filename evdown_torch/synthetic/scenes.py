@@ -24,7 +24,13 @@ from torch import Tensor
 
 from evdown_torch.checks import check_non_negative_int, check_positive_int, check_sensor_size
 
-__all__ = ["GESTURE_CLASSES", "GestureScene", "Look", "scene_seed"]
+__all__ = ["GESTURE_CLASSES", "LIGHTING", "GestureScene", "Look", "scene_seed"]
+
+LIGHTING = ("natural", "fluorescent", "led")
+"""DVS128 Gesture's three lighting conditions."""
+
+RAMP_FRACTION = 0.04
+"""Share of the recording over which arms swing in, out, and slow into and out of pauses."""
 
 GESTURE_CLASSES: list[str] = [
     "Hand clapping",
@@ -124,9 +130,9 @@ class GestureScene:
         sensor_size: ``(W, H, 2)``.
         duration_us: recording length, microseconds.
         origin: pixel position of the point between the shoulders (``x``, ``y``).
-        scale: pixels per body unit (0.62 to 0.76 times ``min(W, H)``).
-        speed: tempo factor on the class's base frequency (0.8 to 1.25).
-        amplitude: factor on the motion's extent (0.8 to 1.2).
+        scale: pixels per body unit (0.58 to 0.8 times ``min(W, H)``).
+        speed: tempo factor on the class's base frequency (0.7 to 1.45).
+        amplitude: factor on the motion's extent (0.7 to 1.3).
         phase: phase of the motion at ``t = 0``, radians.
         tempo: ``(depth, frequency_hz, phase)`` of a slow tempo wobble (depth up to 0.4 rad).
         direction: +1 or -1, the sense of the arm roll.
@@ -137,6 +143,22 @@ class GestureScene:
             waves, in cycles per ``min(W, H)``, then rectangles ``(x0, y0, x1, y1, log_gain)``
             in fractions of the sensor, each as a flat tuple.
         noise_scale: factor on the background-activity rate (0.5 to 1.5).
+        active: ``(start_us, end_us)`` of the gesture: before and after it the person stands
+            with arms at rest (idle start and end, each 3 % to 12 % of the recording); arms
+            swing in and out over :data:`RAMP_FRACTION` of the recording.
+        pauses: ``(start_us, length_us)`` of each pause inside the gesture (1 to 3, each 4 %
+            to 10 % of the recording): the motion slows to a halt and resumes, holding its pose.
+        accent: depth of the speed change within each repetition (0.5 to 0.9): the motion
+            phase is ``psi + accent * sin(psi)``, so within a cycle the limbs speed up to
+            ``1 + accent`` and slow down to ``1 - accent`` times their mean speed.
+        lighting: ``"natural"``, ``"fluorescent"`` or ``"led"`` (DVS128 Gesture's three
+            conditions, equally likely).
+        flicker_hz: lamp flicker frequency, twice the mains frequency (100 or 120 Hz; 0 under
+            natural light).
+        flicker_depth: the lamp's modulation of linear intensity at the brightest surfaces,
+            ``(max - min) / (max + min)`` (0 under natural light).
+        bias: ON/OFF threshold balance of this recording's bias settings, in ``[-1, 1]``:
+            ``log(theta_on / theta_off) = bias * PixelModelConfig.on_off_spread``.
         wander: for "Other gestures", per arm (right, left) a wrist centre and three waves
             ``(frequency_hz, amp_x, amp_y, phase_x, phase_y)``, body units; empty otherwise.
     """
@@ -157,6 +179,13 @@ class GestureScene:
     background: tuple[tuple[float, ...], ...]
     noise_scale: float
     wander: tuple[tuple[float, ...], ...]
+    active: tuple[float, float] = (0.0, math.inf)
+    pauses: tuple[tuple[float, float], ...] = ()
+    accent: float = 0.0
+    lighting: str = "natural"
+    flicker_hz: float = 0.0
+    flicker_depth: float = 0.0
+    bias: float = 0.0
 
     @classmethod
     def sample(
@@ -194,8 +223,8 @@ class GestureScene:
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0]))
         w, h, _ = sensor_size
         u = rng.uniform
-        origin = (w * (0.5 + u(-0.06, 0.06)), h * (0.36 + u(-0.04, 0.04)))
-        scale = min(w, h) * u(0.62, 0.76)
+        origin = (w * (0.5 + u(-0.08, 0.08)), h * (0.36 + u(-0.05, 0.05)))
+        scale = min(w, h) * u(0.58, 0.8)
         tempo = (u(0.0, 0.4), u(0.1, 0.3), u(0.0, 2 * math.pi))
         rest = tuple(float(v) for v in u(-0.02, 0.02, 4))
         shirt, skin = u(0.7, 1.4), u(0.8, 1.6)
@@ -226,6 +255,18 @@ class GestureScene:
                               u(0, 2 * math.pi), u(0, 2 * math.pi)]
                 arms.append(tuple(parts))
             wander = tuple(arms)
+        life = np.random.default_rng(np.random.SeedSequence([seed, 1]))  # added draws
+        v = life.uniform
+        start = duration_us * v(0.08, 0.24)
+        end = duration_us * (1 - v(0.08, 0.24))
+        pauses = []
+        for _ in range(int(life.integers(1, 4))):
+            length = duration_us * v(0.04, 0.1)
+            at = v(start + duration_us * RAMP_FRACTION, end - length - duration_us * RAMP_FRACTION)
+            pauses.append((float(at), float(length)))
+        lighting = LIGHTING[int(life.integers(0, 3))]
+        flicker_hz = 0.0 if lighting == "natural" else (100.0 if life.random() < 0.5 else 120.0)
+        depth = {"natural": 0.0, "fluorescent": v(0.08, 0.2), "led": v(0.05, 0.25)}[lighting]
         return cls(
             label=label,
             seed=seed,
@@ -233,8 +274,8 @@ class GestureScene:
             duration_us=duration_us,
             origin=origin,
             scale=scale,
-            speed=u(0.8, 1.25),
-            amplitude=u(0.8, 1.2),
+            speed=u(0.7, 1.45),
+            amplitude=u(0.7, 1.3),
             phase=u(0.0, 2 * math.pi),
             tempo=tempo,
             direction=1 if u() < 0.5 else -1,
@@ -243,6 +284,13 @@ class GestureScene:
             background=background,
             noise_scale=math.exp(u(math.log(0.5), math.log(1.5))),
             wander=wander,
+            active=(float(start), float(end)),
+            pauses=tuple(sorted(pauses)),
+            accent=float(v(0.5, 0.9)),
+            lighting=lighting,
+            flicker_hz=flicker_hz,
+            flicker_depth=float(depth),
+            bias=float(v(-1.0, 1.0)),
         )
 
     @property
@@ -250,27 +298,53 @@ class GestureScene:
         """Whether the right and the left arm move in this scene."""
         return MOTIONS[self.label][1]
 
+    def _moving_time(self, t: Tensor) -> Tensor:
+        """Seconds of motion up to ``t`` (seconds): the integral of a gate that is 1 while the
+        person moves, 0 before the gesture, after it and in pauses, with linear ramps."""
+        ramp = RAMP_FRACTION * self.duration_us * 1e-6
+
+        def ramped(x: Tensor) -> Tensor:  # integral of clamp(x / ramp, 0, 1)
+            return torch.where(x < ramp, x.clamp_min(0) ** 2 / (2 * ramp), x - ramp / 2)
+
+        start, end = (v * 1e-6 for v in self.active)
+        out = ramped(t - start) - ramped(t - end)
+        for at, length in self.pauses:
+            out = out - ramped(t - at * 1e-6) + ramped(t - (at + length) * 1e-6)
+        return out
+
     def _phase(self, t: Tensor) -> Tensor:
         """Motion phase (radians) at times ``t`` (seconds, float64)."""
         freq = MOTIONS[self.label][0] * self.speed
         depth, wobble, wobble_phase = self.tempo
-        return (2 * math.pi * freq * t + self.phase
-                + depth * torch.sin(2 * math.pi * wobble * t + wobble_phase))
+        moving = self._moving_time(t)  # the tempo wobble too holds still in pauses
+        psi = (2 * math.pi * freq * moving + self.phase
+               + depth * torch.sin(2 * math.pi * wobble * moving + wobble_phase))
+        return psi + self.accent * torch.sin(psi)
+
+    def presence(self, t: Tensor) -> Tensor:
+        """How far the arms are out of their rest pose at ``t`` (seconds): 0 to 1."""
+        ramp = RAMP_FRACTION * self.duration_us * 1e-6
+        start, end = (v * 1e-6 for v in self.active)
+        return ((t - start) / ramp).clamp(0, 1) - ((t - end) / ramp + 1).clamp(0, 1)
+
+    def _wrists_at_rest(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """Wrists of arms hanging at rest, ``(S, 2)`` body units each."""
+        zero = torch.zeros_like(t)
+        return (torch.stack([-SHOULDER_X - 0.06 + self.rest[0] + zero, 0.37 + self.rest[1] + zero],
+                            dim=1),
+                torch.stack([SHOULDER_X + 0.06 + self.rest[2] + zero, 0.37 + self.rest[3] + zero],
+                            dim=1))
 
     def _wrists(self, t: Tensor) -> tuple[Tensor, Tensor]:
         """Wrist targets of the right and the left arm, ``(S, 2)`` body units each."""
         a = self.amplitude
         phase = self._phase(t)
         zero = torch.zeros_like(t)
-        shoulders = (-SHOULDER_X, SHOULDER_X)
 
         def at(x, y) -> Tensor:
             return torch.stack([x + zero, y + zero], dim=1)
 
-        rest = [
-            at(shoulders[0] - 0.06 + self.rest[0], 0.37 + self.rest[1]),
-            at(shoulders[1] + 0.06 + self.rest[2], 0.37 + self.rest[3]),
-        ]
+        rest = self._wrists_at_rest(t)
         label = self.label
         if label == 0:  # clapping: hands meet in front of the chest
             opening = 0.085 + 0.13 * a * 0.5 * (1 + torch.cos(phase))
@@ -311,12 +385,13 @@ class GestureScene:
             return right, left
         # other gestures: smooth, irregular motion of both arms
         out = []
+        moving_t = self._moving_time(t)
         for params in self.wander:
             x = params[0] + zero
             y = params[1] + zero
             for k in range(3):
                 f, ax, ay, px, py = params[2 + 5 * k: 7 + 5 * k]
-                arg = 2 * math.pi * f * self.speed * t
+                arg = 2 * math.pi * f * self.speed * moving_t
                 x = x + a * ax * torch.sin(arg + px)
                 y = y + a * ay * torch.sin(arg + py)
             out.append(torch.stack([x, y], dim=1))
@@ -334,6 +409,10 @@ class GestureScene:
         """
         t = torch.as_tensor(t_us, dtype=torch.float64) * 1e-6
         wrists = self._wrists(t)
+        rest = self._wrists_at_rest(t)
+        out = self.presence(t)[:, None]
+        wrists = tuple(r + out * (w - r) if moving else w for w, r, moving
+                       in zip(wrists, rest, self.moving_arms, strict=True))
         bends = MOTIONS[self.label][2]
         arms = []
         for side, wrist, bend in zip((-1.0, 1.0), wrists, bends, strict=True):

@@ -6,6 +6,7 @@ from evdown_torch.transforms.downsample import Downsample, EventFunnelling
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount, EventCountSession
 from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
+from evdown_torch.transforms.photocurrent import PhotocurrentPooling, PhotocurrentSession
 from evdown_torch.transforms.thinning import ThinnedDownsample
 
 __all__ = [
@@ -18,6 +19,8 @@ __all__ = [
     "EventFunnelling",
     "LIFPooling",
     "LinearEstimation",
+    "PhotocurrentPooling",
+    "PhotocurrentSession",
     "ThinnedDownsample",
     "calibrate",
     "calibrate_weight",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import (
@@ -15,24 +15,23 @@ from evdown_torch.checks import (
     check_time_constant,
 )
 from evdown_torch.events import Events, EventsLike, to_events
-from evdown_torch.models.pooling import (
+from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms.functional.lif import (
+    DEFAULT_DT,
+    DEFAULT_MAX_OUTPUT_EVENTS,
+    DEFAULT_TAU,
     DEFAULT_THRESHOLD,
     DEFAULT_WEIGHT,
     RESET_MECHANISMS,
-    SpikingPooling,
+    ResetMechanism,
     decay_factor,
-)
-from evdown_torch.transforms._base import Downscaler
-from evdown_torch.transforms.functional.lif import (
-    DEFAULT_CHUNK_CELLS,
-    DEFAULT_CHUNK_EVENTS,
     lif_pooling,
 )
 
-__all__ = ["LIFPooling", "calibrate_weight"]
+if TYPE_CHECKING:
+    from evdown_torch.models.pooling import SpikingPooling
 
-DEFAULT_DT = 1000.0
-DEFAULT_TAU = 10_000.0
+__all__ = ["LIFPooling", "calibrate_weight"]
 
 
 @dataclass(frozen=True)
@@ -43,10 +42,14 @@ class LIFPooling(Downscaler):
     the events of a ``fx x fy`` block drive the block's two neurons (weight ``+weight`` from
     same-polarity events, ``-mutual_inhibition`` from the other polarity), which follow
     ``snntorch.Leaky`` with ``beta = exp(-dt / tau)`` (see
-    :class:`~evdown_torch.models.SpikingPooling`, which computes exactly the same spikes on the
+    :class:`~evdown_torch.models.SpikingPooling`, which computes the same spikes on the
     dense ``ToFrame``-like tensor; :meth:`to_module` builds it). A spike in step ``k`` becomes an
     event at the block's coordinates with the neuron's polarity, at
-    ``t_start + (k + 1) * dt`` clipped to ``t_end``. Steps without events cost nothing.
+    ``t_start + (k + 1) * dt`` clipped to ``t_end``. The kernel is event-driven: a neuron is
+    touched only at the steps where its block has events, the silences in between (decay, and
+    a neuron firing on above threshold) are solved in closed form, so the cost follows the
+    events, not steps x regions (see :mod:`evdown_torch.transforms.functional.lif`, also for
+    the float32 rounding over a silence, the only difference from stepping).
 
     Choosing the settings. ``dt`` and ``tau`` are in the stream's time unit (microseconds for
     Tonic datasets; nothing is rescaled). A neuron fires once its membrane *exceeds*
@@ -82,9 +85,14 @@ class LIFPooling(Downscaler):
         weight: weight of each same-polarity input event, positive.
         mutual_inhibition: weight of each opposite-polarity input event, subtracted (0: none).
         reset_mechanism: ``"subtract"``, ``"zero"`` or ``"none"`` (snntorch's meanings).
-        chunk_cells: memory bound: at most this many ``(active step, neuron)`` cells are dense
-            at once.
-        chunk_events: memory bound: at most about this many events are pooled at once.
+        max_output_events: a call that would emit more events than this raises a
+            ``ValueError`` naming the count instead (a neuron kept above threshold, e.g. with
+            no leak and ``reset_mechanism="none"``, fires at every step of a silence, however
+            long); ``None`` removes the bound. Default 10**8.
+
+    Raises:
+        ValueError: at call time, when ``dt`` would cut the stream into more than ``2**62``
+            steps (an int64 step index) or the output exceeds ``max_output_events``.
 
     Example:
         >>> import numpy as np
@@ -103,9 +111,8 @@ class LIFPooling(Downscaler):
     threshold: float = DEFAULT_THRESHOLD
     weight: float = DEFAULT_WEIGHT
     mutual_inhibition: float = 0.0
-    reset_mechanism: str = "subtract"
-    chunk_cells: int = DEFAULT_CHUNK_CELLS
-    chunk_events: int = DEFAULT_CHUNK_EVENTS
+    reset_mechanism: ResetMechanism = "subtract"
+    max_output_events: int | None = DEFAULT_MAX_OUTPUT_EVENTS
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -115,8 +122,8 @@ class LIFPooling(Downscaler):
         check_positive_float("weight", self.weight)
         check_non_negative_float("mutual_inhibition", self.mutual_inhibition)
         check_choice("reset_mechanism", self.reset_mechanism, RESET_MECHANISMS)
-        check_positive_int("chunk_cells", self.chunk_cells)
-        check_positive_int("chunk_events", self.chunk_events)
+        if self.max_output_events is not None:
+            check_positive_int("max_output_events", self.max_output_events)
 
     @property
     def beta(self) -> float:
@@ -128,8 +135,11 @@ class LIFPooling(Downscaler):
 
         Run on the stream's frames ``ToFrame(sensor_size, time_window=dt,
         include_incomplete=True)`` (windows from the first event on, as a ``(T, 1, 2, H, W)``
-        float tensor), it gives exactly the spikes that this transform turns into events.
+        float tensor), it gives the spikes that this transform turns into events (up to float32
+        rounding over silences, see :mod:`evdown_torch.transforms.functional.lif`).
         """
+        from evdown_torch.models.pooling import SpikingPooling  # models build on transforms
+
         return SpikingPooling(
             self.factor_xy,
             beta=self.beta,
@@ -151,8 +161,7 @@ class LIFPooling(Downscaler):
             weight=float(self.weight),
             mutual_inhibition=float(self.mutual_inhibition),
             reset_mechanism=self.reset_mechanism,
-            chunk_cells=self.chunk_cells,
-            chunk_events=self.chunk_events,
+            max_output_events=self.max_output_events,
         )
 
 
@@ -168,7 +177,7 @@ def calibrate_weight(
     tau: float = DEFAULT_TAU,
     threshold: float = DEFAULT_THRESHOLD,
     mutual_inhibition: float = 0.0,
-    reset_mechanism: str = "subtract",
+    reset_mechanism: ResetMechanism = "subtract",
     rtol: float = 1e-3,
     max_evaluations: int = 40,
 ) -> float:

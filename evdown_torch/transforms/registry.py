@@ -10,6 +10,7 @@ from evdown_torch.transforms.downsample import Downsample, EventFunnelling
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount
 from evdown_torch.transforms.lif import LIFPooling
+from evdown_torch.transforms.photocurrent import PhotocurrentPooling
 
 #: Method name -> transform class, in the paper's order.
 METHODS: dict[str, type[Downscaler]] = {
@@ -19,6 +20,7 @@ METHODS: dict[str, type[Downscaler]] = {
     "linear": LinearEstimation,
     "cubic": CubicEstimation,
     "lif": LIFPooling,
+    "photocurrent": PhotocurrentPooling,
 }
 
 

@@ -7,8 +7,9 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
+from torch import nn
 
-from evdown_torch.models import SpikingPooling
+from evdown_torch.models import SpikingPooling, SpikingPoolingLayer, reset_states
 from evdown_torch.models.pooling import decay_factor
 
 
@@ -260,5 +261,107 @@ def test_modules_stay_out_of_snntorchs_registry():
 
     before = len(snntorch.SpikingNeuron.instances)
     SpikingPooling(2, beta=0.5)
+    SpikingPooling(2, beta=0.5).layer()
+    SpikingPoolingLayer(2, beta=0.5)
     SpikingClassifier(num_classes=3)
     assert len(snntorch.SpikingNeuron.instances) == before
+
+
+def test_layer_in_sequential_with_snntorch_trains_and_resets(rng):
+    import snntorch as snn
+
+    torch.manual_seed(0)
+    net = nn.Sequential(
+        SpikingPoolingLayer(2, beta=0.9, weight=0.6, learnable=True),
+        nn.Flatten(),
+        nn.Linear(2 * 3 * 3, 4),
+        snn.Leaky(beta=0.8, init_hidden=True),
+    )
+    x = torch.from_numpy(rng.integers(0, 2, size=(12, 3, 2, 6, 6))).float()  # (T, B, 2, H, W)
+    target = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 3)
+
+    def run() -> torch.Tensor:  # the snntorch idiom: one call per time step
+        return torch.stack([net(x[k]) for k in range(x.shape[0])])
+
+    # The layer is the module run step by step: same spikes as the whole tensor at once.
+    reset_states(net)
+    pooled = torch.stack([net[0](x[k]) for k in range(x.shape[0])])
+    expected, mem = net[0].pool(x)
+    assert torch.equal(pooled, expected) and torch.equal(net[0].mem, mem)
+    assert pooled.sum() > 0
+
+    optimizer = torch.optim.SGD(net.parameters(), lr=0.02)
+    before = net[2].weight.detach().clone()
+    for _ in range(3):
+        reset_states(net)
+        loss = ((run().mean(0) - target) ** 2).sum()
+        optimizer.zero_grad()
+        loss.backward()
+        assert torch.isfinite(net[0].pool.weight.grad) and net[2].weight.grad.abs().sum() > 0
+        optimizer.step()
+    assert not torch.equal(net[2].weight, before)
+
+    # Reset: the same input gives the same output; without a reset the state carries over.
+    with torch.no_grad():
+        reset_states(net)
+        first, first_pooled = run(), net[0].mem.clone()
+        run()  # the state carries over into a second pass
+        reset_states(net)
+        assert net[0].mem is None and not net[3].mem.any()
+        again = run()
+    assert torch.equal(first, again) and torch.equal(net[0].mem, first_pooled)
+    layer = net[0]
+    layer.reset()
+    fresh = [layer(x[k]) for k in range(x.shape[0])]
+    continued = [layer(x[k]) for k in range(x.shape[0])]
+    assert not all(torch.equal(a, b) for a, b in zip(fresh, continued, strict=True))
+    net[0].reset()
+    with pytest.raises(ValueError, match="call reset"):
+        net[0](x[0])
+        net[0](x[0, :2])  # another batch size without a reset
+
+
+def test_batch_first_both_ways(rng):
+    x = torch.from_numpy(rng.integers(0, 2, size=(7, 3, 2, 4, 6))).float()  # (T, B, ...)
+    time_first = SpikingPooling(2, tau=5.0, weight=0.4)
+    batch_first = SpikingPooling(2, tau=5.0, weight=0.4, batch_first=True)
+    spikes, mem = time_first(x)
+    spikes_bf, mem_bf = batch_first(x.transpose(0, 1))
+    assert spikes_bf.shape == (3, 7, 2, 2, 3) and spikes.sum() > 0
+    assert torch.equal(spikes_bf, spikes.transpose(0, 1)) and torch.equal(mem_bf, mem)
+    # a single step is (B, 2, H, W) either way
+    assert torch.equal(batch_first.step(x[0])[0], time_first.step(x[0])[0])
+    with pytest.raises(ValueError, match=r"\(B, T, 2, H, W\), batch first"):
+        batch_first(x[0])
+    with pytest.raises(ValueError, match=r"\(T, B, 2, H, W\), time first"):
+        time_first(x[0])
+    assert "batch_first=True" in repr(batch_first)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_through_two_layers(dtype, rng):
+    x = torch.from_numpy(rng.integers(0, 2, size=(10, 2, 2, 8, 8))).float()
+    settings = {"beta": 0.5, "weight": 0.5}  # exact in half precision
+
+    def two_layers() -> nn.Sequential:
+        return nn.Sequential(SpikingPoolingLayer(2, **settings), SpikingPoolingLayer(2, **settings))
+
+    reference, low = two_layers(), two_layers()
+    expected = torch.stack([reference(x[k]) for k in range(10)])
+    out = torch.stack([low(x[k].to(dtype)) for k in range(10)])
+    assert out.dtype == dtype and low[0].mem.dtype == torch.float32
+    assert torch.equal(out.float(), expected) and expected.sum() > 0
+    spikes, _ = SpikingPooling(2, **settings)(x.to(dtype))
+    assert spikes.dtype == dtype
+    assert SpikingPooling(2, **settings)(x.bool())[0].dtype == torch.float32
+
+
+def test_state_dict_records_the_reset_mechanism():
+    zero = SpikingPooling(2, beta=0.5, reset_mechanism="zero")
+    state = zero.state_dict()
+    SpikingPooling(2, beta=0.7, reset_mechanism="zero").load_state_dict(state)
+    with pytest.raises(ValueError, match="reset_mechanism='zero', but this module uses 'subtract'"):
+        SpikingPooling(2, beta=0.5).load_state_dict(state)
+    layer = SpikingPoolingLayer(2, reset_mechanism="none")
+    with pytest.raises(ValueError, match="reset_mechanism='none'"):
+        SpikingPoolingLayer(2).load_state_dict(layer.state_dict())

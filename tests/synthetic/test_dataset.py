@@ -34,6 +34,24 @@ def test_interface_matches_dvsgesture():
     assert SyntheticGestures.sensor_size == reference.sensor_size
 
 
+def test_constructor_takes_dvsgestures_arguments():
+    """``save_to`` first, then train and the transforms, as ``tonic.datasets.DVSGesture``."""
+    test = SyntheticGestures("data", train=False, **SMALL)
+    assert test.train is False and test.save_to == "data"
+    np.testing.assert_array_equal(test[2][0], SyntheticGestures(train=False, **SMALL)[2][0])
+    positional = SyntheticGestures("data", False, None, None, None, **SMALL)
+    np.testing.assert_array_equal(positional[2][0], test[2][0])
+    assert SyntheticGestures(save_to="elsewhere", **SMALL).train is True
+    with pytest.raises(TypeError, match="save_to"):
+        SyntheticGestures(False)
+    tonic = pytest.importorskip("tonic")
+    import inspect
+
+    ours = list(inspect.signature(SyntheticGestures).parameters)[:5]
+    theirs = list(inspect.signature(tonic.datasets.DVSGesture).parameters)[:5]
+    assert ours == theirs
+
+
 def test_items_are_sorted_events_inside_the_sensor():
     data = SyntheticGestures(**SMALL)
     for index in (0, 5, 21, -1):

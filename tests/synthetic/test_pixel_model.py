@@ -98,6 +98,65 @@ def slow_reference(pixel, t, level, theta, offset, refractory):
     return sorted(out, key=lambda e: (e[0], e[1]))
 
 
+def slow_two_thresholds(pixel, t, level, theta_on, theta_off, offset, refractory):
+    """Per-pixel loop of a DVS pixel with two comparators: a reference level moved by the
+    threshold of each event; every level is ``start + a * theta_on - b * theta_off``."""
+    out = []
+    for p in sorted(set(pixel)):
+        idx = [i for i in range(len(pixel)) if pixel[i] == p]
+        on, off = theta_on[p], theta_off[p]
+        start = level[idx[0]] - offset[p] * (on if offset[p] > 0 else off)
+        a = b = 0
+        mine, last_kept = [], None
+        for k in range(1, len(idx)):
+            x0, x1 = level[idx[k - 1]], level[idx[k]]
+            t0, t1 = t[idx[k - 1]], t[idx[k]]
+            while x1 > x0 and start + (a + 1) * on - b * off <= x1:
+                a += 1
+                mine.append((t0 + (start + a * on - b * off - x0) / (x1 - x0) * (t1 - t0), True))
+            while x1 < x0 and start + a * on - (b + 1) * off >= x1:
+                b += 1
+                mine.append((t0 + (start + a * on - b * off - x0) / (x1 - x0) * (t1 - t0),
+                             False))
+        for time, polarity in mine:
+            time = math.floor(time + 0.5)
+            if last_kept is None or time - last_kept >= refractory:
+                out.append((time, p, polarity))
+                last_kept = time
+    return sorted(out, key=lambda e: (e[0], e[1]))
+
+
+@pytest.mark.parametrize("refractory", [0, 300])
+def test_two_thresholds_match_slow_reference(refractory, rng):
+    n_pixels, per_pixel = 40, 30
+    pixel = np.repeat(np.arange(n_pixels) * 2, per_pixel)
+    t = np.concatenate([np.cumsum(rng.integers(1, 200, per_pixel)) for _ in range(n_pixels)])
+    level = np.concatenate([np.cumsum(rng.normal(0, 0.3, per_pixel)) for _ in range(n_pixels)])
+    theta_on = rng.uniform(0.1, 0.4, 2 * n_pixels)
+    theta_off = rng.uniform(0.1, 0.4, 2 * n_pixels)
+    offset = rng.uniform(-0.99, 0.99, 2 * n_pixels)
+    pix, times, on = pixel_events(
+        torch.from_numpy(pixel), torch.from_numpy(t), torch.from_numpy(level),
+        threshold=torch.from_numpy(theta_on), off_threshold=torch.from_numpy(theta_off),
+        offset=torch.from_numpy(offset), refractory_us=refractory,
+    )
+    got = list(zip(times.tolist(), pix.tolist(), on.tolist(), strict=True))
+    expected = slow_two_thresholds(pixel.tolist(), t.tolist(), level.tolist(), theta_on,
+                                   theta_off, offset, refractory)
+    assert len(expected) > 200
+    assert got == expected
+
+
+def test_on_share_follows_the_thresholds():
+    """A bump up and back down: ON count ~ rise / theta_on, OFF count ~ fall / theta_off."""
+    _, _, p = pixel_events(torch.zeros(3, dtype=torch.long), torch.tensor([0, 1000, 2000]),
+                           torch.tensor([0.0, 3.05, 0.1], dtype=torch.float64),
+                           threshold=0.1, off_threshold=0.3)
+    # up: 30 ON (the reference ends at 3.0); down to 0.1: OFF at 2.7, 2.4, ..., 0.3 (9), the
+    # next level 0.0 is not reached
+    assert int(p.sum()) == 30 and int((~p).sum()) == 9
+
+
 @pytest.mark.parametrize("refractory", [0, 40, 300])
 def test_matches_slow_reference_on_random_signals(refractory, rng):
     n_pixels, per_pixel = 40, 30

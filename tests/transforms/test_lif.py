@@ -95,19 +95,6 @@ def test_skipping_empty_steps_equals_stepping_through_them(reset, tau):
     }[reset][beta]
     assert len(fired_in_silence) == expected
     np.testing.assert_array_equal(fired_in_silence, 20 + 10 * np.arange(expected))
-    # the same, with the silence cut into many chunks
-    chunked = dataclasses.replace(pool, chunk_cells=1, chunk_events=1)
-    np.testing.assert_array_equal(chunked(arr), out)
-
-
-def test_chunking_does_not_change_the_output(rng):
-    arr = bursty_stream(rng, 40, (16, 12, 2), gap_max=300, burst=200)
-    pool = LIFPooling((16, 12, 2), 4, dt=5, tau=40.0, weight=0.4)
-    out = pool(arr)
-    assert len(out) > 50
-    for cells, n_events in [(1, 1), (96, 10), (1000, 7), (10**9, 1)]:
-        chunked = dataclasses.replace(pool, chunk_cells=cells, chunk_events=n_events)
-        np.testing.assert_array_equal(chunked(arr), out)
 
 
 def test_integrate_and_fire_limit_on_events():
@@ -357,7 +344,8 @@ def test_calibrate_weight_errors():
         ({"mutual_inhibition": -1}, ValueError, "mutual_inhibition must be a non-negative"),
         ({"reset_mechanism": "soft"}, ValueError, "reset_mechanism must be one of"),
         ({"reset_mechanism": None}, TypeError, "reset_mechanism must be one of"),
-        ({"chunk_cells": 0}, ValueError, "chunk_cells must be a positive integer"),
+        ({"max_output_events": 0}, ValueError, "max_output_events must be a positive integer"),
+        ({"max_output_events": 1.5}, TypeError, "max_output_events must be a positive integer"),
         ({"factor": 9}, ValueError, "larger than the sensor"),
     ],
 )
@@ -371,3 +359,90 @@ def test_transform_is_frozen_and_exposes_beta():
     assert pool.beta == pytest.approx(math.exp(-0.1))
     with pytest.raises(dataclasses.FrozenInstanceError):
         pool.weight = 1.0
+
+
+@pytest.mark.parametrize("reset", ["subtract", "zero", "none"])
+@pytest.mark.parametrize("inhibition", [0.0, 0.4])
+@pytest.mark.parametrize("tau", [math.inf, 25.0])
+@pytest.mark.parametrize("density", ["sparse", "dense"])
+def test_event_driven_equals_stepped_reference(reset, inhibition, tau, density):
+    # The kernel visits only the (region, step) cells that hold events and jumps over the
+    # rest in closed form; the oracle steps the module through every step of dense frames.
+    rng = np.random.default_rng(7)
+    sensor = (12, 10, 2)
+    if density == "sparse":  # most steps and most regions empty, long silences
+        arr = random_stream(rng, 300, sensor, t_max=6_000)
+    else:  # several events per region in most steps
+        arr = random_stream(rng, 4000, sensor, t_max=600)
+    pool = LIFPooling(sensor, 2, dt=3, tau=tau, weight=0.45 if density == "dense" else 1.3,
+                      mutual_inhibition=inhibition, reset_mechanism=reset)
+    out = tuples(pool(arr))
+    assert len(out) > 20
+    assert out == dense_reference(arr, pool)
+
+
+@pytest.mark.parametrize("reset", ["subtract", "none"])
+@pytest.mark.parametrize("tau", [math.inf, 33.0, 1000.0])
+def test_long_firing_chains_equal_stepping(reset, tau):
+    # A burst drives the membrane far above threshold; the neuron then fires through the
+    # silence for more steps than are stepped one by one before the closed form takes over.
+    burst = [(x, y, True, t) for t in range(2) for x in range(2) for y in range(2)]
+    late = [(0, 0, True, 1500), (1, 1, False, 1510), (0, 0, True, 4000)]
+    arr = np.array(burst + late, dtype=DVS_DTYPE)
+    pool = LIFPooling((4, 4, 2), 2, dt=1, tau=tau, weight=3.1, reset_mechanism=reset)
+    out = tuples(pool(arr))
+    assert len(out) > 20
+    assert out == dense_reference(arr, pool)
+
+
+def test_huge_dt_puts_everything_in_one_step():
+    # dt beyond int64 (1e20 us): no OverflowError; all events in step 0, which ends after
+    # t_end, so its spikes are clipped to t_end.
+    arr = np.array([(0, 0, True, 0), (1, 1, True, 5), (3, 3, False, 7)], dtype=DVS_DTYPE)
+    for dt in (1e20, 9.3e18, float(2**63), 8.0):
+        out = LIFPooling((4, 4, 2), 2, dt=dt, tau=math.inf, weight=0.6)(arr)
+        assert out.tolist() == [(0, 0, True, 7)]
+    floats = arr.astype([("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", "<f8")])
+    out = LIFPooling((4, 4, 2), 2, dt=1e300, tau=math.inf, weight=0.6)(floats)
+    assert out.tolist() == [(0, 0, True, 7.0)]
+
+
+@pytest.mark.parametrize("t_dtype", ["<i8", "<f8"])
+def test_tiny_dt_whose_step_count_overflows_int64_is_refused(t_dtype):
+    arr = np.array([(0, 0, True, 0), (0, 0, True, 3), (0, 0, True, 9)],
+                   dtype=[("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", t_dtype)])
+    with pytest.raises(ValueError, match=r"dt = 1e-30 .* more than the 2\*\*62"):
+        LIFPooling((4, 4, 2), 2, dt=1e-30, weight=1.5)(arr)
+    # the largest representable step counts still work
+    assert len(LIFPooling((4, 4, 2), 2, dt=1e-17, weight=1.5)(arr)) == 3
+
+
+def test_stream_span_beyond_int64_step_arithmetic_is_refused():
+    arr = np.array([(0, 0, True, -(2**62)), (0, 0, True, 2**62)], dtype=DVS_DTYPE)
+    with pytest.raises(ValueError, match=r"spans .* more than 2\*\*62"):
+        LIFPooling((4, 4, 2), 2, dt=1e18, weight=1.5)(arr)
+
+
+def test_firing_through_a_long_gap_is_closed_form():
+    # No leak, threshold 2**-20, one event of weight 1: the membrane 1 - j * 2**-20 stays above
+    # threshold for 2**20 - 2 silent steps (exact float32 values), one spike per step; a
+    # stepping kernel loops a million times here.
+    arr = np.array([(0, 0, True, 0), (0, 0, True, 2**21)], dtype=DVS_DTYPE)
+    pool = LIFPooling((4, 4, 2), 2, dt=1, tau=math.inf, threshold=2.0**-20, weight=1.0)
+    out = pool(arr)
+    assert len(out) == 2**20
+    np.testing.assert_array_equal(out["t"][:-1], np.arange(1, 2**20))
+    assert out["t"][-1] == 2**21 and np.all(out["p"]) and not np.any(out["x"] | out["y"])
+
+
+def test_output_beyond_the_bound_is_refused_with_its_count():
+    # reset "none", no leak: a neuron above threshold fires at every one of 10**12 steps.
+    arr = np.array([(0, 0, True, 0), (0, 0, True, 10**12)], dtype=DVS_DTYPE)
+    pool = LIFPooling((4, 4, 2), 2, dt=1, tau=math.inf, weight=1.5, reset_mechanism="none")
+    with pytest.raises(ValueError, match=r"would emit 1000000000001 events .*max_output_events"):
+        pool(arr)
+    short = np.array([(0, 0, True, 0), (0, 0, True, 99)], dtype=DVS_DTYPE)
+    assert len(pool(short)) == 100
+    with pytest.raises(ValueError, match="would emit 100 events"):
+        dataclasses.replace(pool, max_output_events=99)(short)
+    assert len(dataclasses.replace(pool, max_output_events=None)(short)) == 100

@@ -6,6 +6,8 @@ from evdown_torch.transforms.functional.event_count import event_count
 from evdown_torch.transforms.functional.funnelling import event_funnelling
 from evdown_torch.transforms.functional.lif import lif_pooling
 from evdown_torch.transforms.functional.linear import linear_estimation
+from evdown_torch.transforms.functional.photocurrent import photocurrent_events
+from evdown_torch.transforms.functional.photocurrent_frames import photocurrent_frames
 
 __all__ = [
     "cubic_estimation",
@@ -14,4 +16,6 @@ __all__ = [
     "event_funnelling",
     "lif_pooling",
     "linear_estimation",
+    "photocurrent_events",
+    "photocurrent_frames",
 ]

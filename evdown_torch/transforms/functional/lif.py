@@ -1,197 +1,260 @@
-"""LIF pooling kernel: event stream -> time steps -> spiking pooling -> event stream.
+"""LIF pooling kernel (method 6), event-driven: a neuron is touched only when input reaches it.
 
-The kernel runs exactly the arithmetic of :class:`~evdown_torch.models.SpikingPooling`
-(``snntorch.Leaky``) on the time steps that hold events, with the membrane kept as one float32
-vector of ``2 * Ho * Wo`` neurons, and jumps over the steps in between:
+The stream is binned into steps of ``dt`` from ``t_start``; one ``snntorch.Leaky`` neuron per
+output region and polarity integrates the pooled events of each step. Stepping every neuron
+through every step costs ``T x Ho x Wo``; this kernel computes the same spikes with a cost
+that follows the events:
 
-- the input current of a step is a scatter-add of its events into ``(polarity, region)``,
-  computed for a chunk of active steps (and of events) at a time, so memory follows the chunk
-  and the number of active steps, never ``T x H x W`` nor ``T x Ho x Wo`` over the recording;
-- over ``g`` empty steps a membrane at or below threshold only decays, by ``beta ** g``; a
-  membrane above threshold keeps firing there (snntorch's reset acts one step later and
-  subtract removes one threshold per step), so those neurons are stepped through the empty
-  steps one by one, with the module's arithmetic, until they stop firing. That loop runs once
-  per step that emits a spike, so the cost follows the active steps plus the output.
+- **Cells.** The events are grouped into *cells*, the ``(region, step)`` pairs that hold
+  events; a cell's input current for the region's two neurons is the pooled count of its
+  events (``w * S - w_inh * S'``, as :class:`~evdown_torch.models.SpikingPooling` computes it).
+  Steps without input are never visited.
+- **Gaps in closed form.** Between two cells of a region the input is zero. A membrane at or
+  below threshold only decays, by ``beta ** g`` over ``g`` steps. A membrane above threshold
+  keeps firing (snntorch applies the reset one step later): with reset ``"subtract"`` the
+  chain ``U_j = beta * U_{j-1} - theta`` falls below threshold after a number of spikes solved
+  from ``beta ** j * (U + A) - A > theta``, ``A = theta / (1 - beta)`` (``U - j * theta`` for
+  ``beta = 1``); with ``"none"`` ``beta ** j * U > theta`` gives the count (every step for
+  ``beta = 1``); with ``"zero"`` the neuron is silent after its reset. The first
+  :data:`EXACT_CHAIN_STEPS` steps of a chain use the float32 arithmetic of stepping (chains
+  are usually shorter); a longer chain continues in closed form, its count solved in float64
+  and checked against the chain's value on both sides. No loop runs over the steps of a gap.
+- **Rounds.** Cells are processed by their rank within their region: round ``r`` updates the
+  ``r``-th cell of every region that has one, all at once (regions are laid out by decreasing
+  number of cells, so the regions of a round are a prefix and every update is a slice). The
+  element work is proportional to the cells; the number of rounds (a fixed cost of a few
+  tensor operations each) is the largest number of cells of one region, at most the number
+  of steps that hold events.
 
-The spikes equal those of the module run on the dense binned stream, step by step; the only
-difference is that ``beta ** g`` is one rounding where stepping applies ``g`` (bit-identical
-when ``beta`` is 0, 1 or a power of two), which changes a spike only if a membrane lands within
-float32 rounding of the threshold.
+Exactness. The update at a cell is snntorch's float32 arithmetic, in its order, so runs of
+consecutive active steps, and gaps of one step, are bit-identical to the module. Over a longer
+gap the decay ``beta ** g`` is one float32 power where stepping rounds ``g`` products
+(identical when ``beta`` is 0, 1 or a power of two), and a chain longer than
+:data:`EXACT_CHAIN_STEPS` is one float64 evaluation rounded once; a spike can differ only where
+a membrane lies within float32 rounding of the threshold.
+
+Limits. Step indices are int64: a ``dt`` that would cut the stream into more than ``2 ** 62``
+steps is refused, and a ``dt`` longer than the stream puts every event in step 0. The output
+is counted before it is built; more than ``max_output_events`` events (a neuron firing through
+a very long gap) is refused with the expected count.
 """
 
 from __future__ import annotations
 
+import math
+from typing import Literal
+
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, region_xy, sort_by_time
+from evdown_torch._tensors import divide, region_xy, sort_by_time, stable_sort_small
+from evdown_torch.checks import check_positive_float, check_time_constant, output_size
 from evdown_torch.events import Events
 
-__all__ = ["active_steps", "lif_pooling", "step_end_time", "step_index"]
+__all__ = [
+    "DEFAULT_DT",
+    "DEFAULT_MAX_OUTPUT_EVENTS",
+    "DEFAULT_TAU",
+    "DEFAULT_THRESHOLD",
+    "DEFAULT_WEIGHT",
+    "MAX_STEPS",
+    "RESET_MECHANISMS",
+    "ResetMechanism",
+    "decay_factor",
+    "lif_pooling",
+]
 
-#: Dense per-chunk work is at most this many (step, neuron) cells (two 4 MiB float32 buffers).
-DEFAULT_CHUNK_CELLS = 1 << 20
-#: A chunk holds at most this many input events (at least one whole step).
-DEFAULT_CHUNK_EVENTS = 1 << 20
+ResetMechanism = Literal["subtract", "zero", "none"]
+RESET_MECHANISMS: tuple[str, ...] = ("subtract", "zero", "none")
+
+#: Defaults of LIF pooling (transform and module): a neuron needs about four same-polarity input
+#: events within a few time constants to fire (see :class:`~evdown_torch.LIFPooling`).
+DEFAULT_DT = 1000.0
+DEFAULT_TAU = 10_000.0
+DEFAULT_THRESHOLD = 1.0
+DEFAULT_WEIGHT = 0.3
+
+#: Largest number of steps a stream may be cut into (step indices are int64, with headroom).
+MAX_STEPS = 1 << 62
+#: Default bound on the number of output events (LIFPooling's ``max_output_events``).
+DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
 
 
-def step_index(relative_t: Tensor, dt: float) -> Tensor:
-    """Time step of each event, ``floor((t - t_start) / dt)``, as int64.
+def decay_factor(dt: float, tau: float) -> float:
+    """Membrane decay per time step, ``beta = exp(-dt / tau)``.
 
     Args:
-        relative_t: ``(N,)`` ``t - t_start``, int64 or float64, non-negative.
-        dt: step length in the stream's time unit.
+        dt: length of a time step, positive.
+        tau: membrane time constant in the unit of ``dt``, positive; ``math.inf`` gives
+            ``beta = 1`` (no leak, integrate-and-fire).
 
     Returns:
-        ``(N,)`` int64 step indices (exact integer division when ``t`` is an integer and ``dt``
-        a whole number).
+        ``beta`` in ``[0, 1]``: 0 as ``tau -> 0`` (no memory), 1 as ``tau -> inf``.
+
+    Example:
+        >>> round(decay_factor(1000.0, 10_000.0), 6)
+        0.904837
     """
-    if not relative_t.is_floating_point() and float(dt).is_integer():
-        return torch.div(relative_t, int(dt), rounding_mode="floor")
-    return torch.floor(relative_t.to(torch.float64) / dt).to(torch.int64)
+    dt = check_positive_float("dt", dt)
+    tau = check_time_constant("tau", tau)
+    return math.exp(-dt / tau)
 
 
-def active_steps(
-    t: Tensor, *, t_start: Tensor, dt: float, block: int
-) -> tuple[Tensor, Tensor]:
-    """The steps that hold events and their event counts, for sorted timestamps.
+def _step_indices(t: Tensor, dt: float) -> tuple[Tensor, int, float]:
+    """Step of every (sorted) event, the last step, and the ``dt`` to compute end times with.
 
-    Works through ``t`` in blocks of ``block`` events, so that no per-event step index of the
-    whole stream is ever held.
-
-    Returns:
-        ``(active, counts)``: ``(A,)`` int64 increasing step indices and ``(A,)`` int64 counts.
+    Raises:
+        ValueError: when the stream's span or its number of steps cannot be represented.
     """
-    actives, counts = [], []
-    last = None
-    for b0 in range(0, t.shape[0], block):
-        steps = step_index(t[b0 : b0 + block] - t_start, dt)
-        active, count = torch.unique_consecutive(steps, return_counts=True)
-        if last is not None and int(active[0]) == last:  # a step across two blocks
-            counts[-1][-1:] += count[0]
-            active, count = active[1:], count[1:]
-        if active.numel():
-            # clone: unique_consecutive's results may keep the block-sized storage alive
-            actives.append(active.clone())
-            counts.append(count.clone())
-            last = int(active[-1])
-    return torch.cat(actives), torch.cat(counts)
+    t_start, t_end = t[0], t[-1]
+    if t.is_floating_point():
+        span = float(t_end) - float(t_start)
+        if not math.isfinite(span):
+            raise ValueError(f"LIF pooling needs finite timestamps, got a span of {span}")
+    else:
+        span = int(t_end) - int(t_start)  # exact, as a Python int
+        if span >= MAX_STEPS:
+            raise ValueError(
+                f"the stream spans {span} time units, more than 2**62 that int64 step "
+                "arithmetic can hold; split the stream"
+            )
+        if dt > span:  # one step holds everything; ends at t_start + dt > t_end, clipped
+            dt = float(span + 1)
+    if span / dt >= MAX_STEPS:
+        raise ValueError(
+            f"dt = {dt!r} cuts the stream's span of {span} time units into about "
+            f"{span / dt:.3g} steps, more than the 2**62 an int64 step index can hold; "
+            "use a larger dt"
+        )
+    relative = t - t_start
+    if not relative.is_floating_point() and dt.is_integer():
+        steps = torch.div(relative, int(dt), rounding_mode="floor")
+    else:
+        steps = torch.floor(relative.to(torch.float64) / dt).to(torch.int64)
+    return steps, int(steps[-1]), dt
 
 
-def step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -> Tensor:
+def _step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -> Tensor:
     """Output timestamp ``t_start + (k + 1) * dt`` of steps ``k``, clipped to ``t_end``.
 
-    Integer timestamps stay int64: with a whole ``dt`` the sum is exact; otherwise the offset
-    ``(k + 1) * dt`` is rounded to the nearest integer, halves upward, before it is added.
+    Integer timestamps stay int64 and nothing overflows: with a whole ``dt`` the sum is exact;
+    otherwise the offset ``(k + 1) * dt`` is rounded to the nearest integer, halves upward.
     """
-    if not t_start.is_floating_point():
-        if float(dt).is_integer():
-            offset = (steps + 1) * int(dt)
-        else:
-            offset = torch.floor((steps + 1).to(torch.float64) * dt + 0.5).to(torch.int64)
-    else:
-        offset = (steps + 1).to(torch.float64) * dt
-    return torch.minimum(t_start + offset, t_end)
+    if t_start.is_floating_point():
+        return torch.minimum(t_start + (steps + 1).to(torch.float64) * dt, t_end)
+    span = t_end - t_start
+    if dt.is_integer():
+        start = steps * int(dt)  # <= span: the step begins inside the stream
+        return torch.where(span - start > int(dt), t_start + start + int(dt), t_end)
+    offset = torch.floor((steps + 1).to(torch.float64) * dt + 0.5)
+    offset = torch.minimum(offset.clamp_max(float(span)).to(torch.int64), span)
+    return t_start + offset
 
 
-def _nonzero_flat(values: Tensor, mask: Tensor) -> Tensor:
-    """Increasing flat indices of the nonzero entries of a contiguous tensor of sparse 0/1.
-
-    Same as ``values.reshape(-1).nonzero()[:, 0]``, several times faster on CPU for sparse
-    input: the bool mask is scanned 8 entries (one int64 word) at a time.
-
-    Args:
-        values: the tensor, ``n`` entries.
-        mask: a bool workspace of at least ``n`` entries rounded up to a multiple of 8.
-    """
-    n = values.numel()
-    words = -(-n // 8)
-    mask = mask[: 8 * words]
-    mask[n:] = False
-    mask[:n].copy_(values.reshape(-1))
-    hit_words = mask.view(torch.int64).nonzero()[:, 0]
-    hits = mask.view(words, 8)[hit_words].nonzero()
-    return hit_words[hits[:, 0]] * 8 + hits[:, 1]
+#: Steps of a firing chain computed with snntorch's float32 arithmetic, one at a time, before
+#: the closed form takes over (a chain rarely lasts longer unless ``beta`` is about 1).
+EXACT_CHAIN_STEPS = 8
 
 
-class _Neurons:
-    """The membrane of all neurons and snntorch.Leaky's update, on a flat float32 vector.
+class _Leak:
+    """A neuron without input, for one ``(beta, threshold, reset)``: decay and firing chains.
 
-    Every operation is the one snntorch.Leaky performs, in the same order and dtype (0-dim
-    float32 constants), so the membrane is bit-identical to the module's.
+    Membranes are float32 as in snntorch; the closed forms run in float64 on exact copies.
     """
 
-    def __init__(
-        self, count: int, *, beta: float, threshold: float, reset_mechanism: str, device
-    ) -> None:
-        self.beta = torch.tensor(beta, dtype=torch.float32, device=device)
-        self.threshold = torch.tensor(threshold, dtype=torch.float32, device=device)
-        self.beta_value = float(self.beta)
-        self.threshold_value = float(self.threshold)  # exactly the float32 value
-        self.reset = reset_mechanism
-        self.mem = torch.zeros(count, dtype=torch.float32, device=device)
-        # R = [U_{k-1} > threshold] as float 0/1 (snntorch's reset signal): a view of the last
-        # step's row of spikes, or one of these two buffers.
-        self.fired = torch.zeros(count, dtype=torch.float32, device=device)
-        self._gap_fired = torch.zeros_like(self.fired)
-        self._carried = self.fired
+    def __init__(self, beta: Tensor, threshold: Tensor, reset: str) -> None:
+        self.beta32, self.threshold32, self.reset = beta, threshold, reset
+        self.beta, self.threshold = float(beta), float(threshold)
+        b = self.beta
+        self.log_beta = math.log(b) if 0.0 < b < 1.0 else 0.0
+        self.offset = self.threshold / (1.0 - b) if b < 1.0 else math.inf  # A, module docstring
 
-    def detach_from_spikes(self) -> None:
-        """Copy ``fired`` out of the spike rows, before they are reused."""
-        if self.fired is not self._carried:
-            self._carried.copy_(self.fired)
-            self.fired = self._carried
+    def decay(self, u: Tensor, steps: Tensor) -> Tensor:
+        """``u`` after ``steps`` steps of pure decay: ``u * beta ** steps`` (float32 power)."""
+        return u * torch.pow(self.beta32, steps.to(u.dtype))
 
-    def step(self, current: Tensor, spikes_out: Tensor) -> None:
-        """One step with input ``current``; writes ``U_k > threshold`` (0/1) to ``spikes_out``."""
-        mem, reset = self.mem, self.fired
-        if self.reset == "zero":
-            mem.addcmul_(mem, reset, value=-1.0)  # (1 - R) U: U - U = +0 or U - 0 = U, exact
-        torch.mul(self.beta, mem, out=mem)
-        mem.add_(current)
-        if self.reset == "subtract":
-            mem.sub_(reset, alpha=self.threshold_value)  # - R * threshold, an exact product
-        torch.gt(mem, self.threshold, out=spikes_out)
-        self.fired = spikes_out
+    def chain(self, u: Tensor, j: Tensor) -> Tensor:
+        """Membrane ``j`` steps after ``u`` (float64), firing (and resetting) at every one."""
+        b, theta = self.beta, self.threshold
+        if self.reset == "none":
+            return u * torch.pow(b, j) if b < 1.0 else u
+        if b == 1.0:
+            return u - j * theta
+        return torch.pow(b, j) * (u + self.offset) - self.offset  # b = 0: -theta for j >= 1
 
-    def skip(self, gap: int, first_step: int) -> tuple[Tensor, Tensor] | None:
-        """Advance through ``gap`` steps without input.
+    def run(self, u: Tensor) -> Tensor:
+        """Number of ``j >= 1`` at which the chain from ``u > threshold`` stays above it.
+
+        Float64 in and out; "none" with ``beta = 1`` never stops (returns ``MAX_STEPS``).
+        """
+        b, theta = self.beta, self.threshold
+        if self.reset == "zero" or b == 0.0 or u.numel() == 0:
+            return torch.zeros_like(u)
+        if self.reset == "none":
+            if b == 1.0:
+                return torch.full_like(u, float(MAX_STEPS))
+            bound = torch.log(theta / u) / self.log_beta  # b^j u > theta  <=>  j < bound
+        elif b == 1.0:
+            bound = u / theta - 1.0  # u - j theta > theta  <=>  j < u / theta - 1
+        else:  # b^j (u + A) - A > theta  <=>  j < log((theta + A) / (u + A)) / log(b)
+            bound = torch.log((theta + self.offset) / (u + self.offset)) / self.log_beta
+        count = (torch.ceil(bound) - 1.0).clamp(0.0, float(MAX_STEPS))
+        # Settle the rounding of the logarithms on the chain's own values.
+        count -= ((count >= 1.0) & (self.chain(u, count) <= theta)).to(count.dtype)
+        count += (self.chain(u, count + 1.0) > theta).to(count.dtype)
+        return count.clamp_(0.0, float(MAX_STEPS))
+
+    def fire_through(
+        self, u: Tensor, gap: Tensor, alive: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Neurons that fired (float32 membrane ``u > threshold``), then ``gap`` empty steps.
+
+        The first :data:`EXACT_CHAIN_STEPS` steps of a chain use snntorch's float32
+        arithmetic, all lanes at once; a chain still firing after them continues in closed
+        form.
+
+        Args:
+            u: float32 membranes, above threshold where ``alive``.
+            gap: int64 numbers of empty steps, broadcastable to ``u``, at least 1 where
+                ``alive``.
+            alive: bool, the lanes to compute; the others are returned as they came
+                (``count`` 0, ``W = u``, ``R = u > threshold``).
 
         Returns:
-            ``(steps, neurons)`` of the spikes emitted in those steps (the first one being
-            ``first_step``), or ``None`` when there are none.
+            ``(count, W, R)``: int64 spikes fired in the gap (in its first ``count`` steps),
+            float32 membranes after the gap and bool resets (fired at its last step).
         """
-        firing = self.fired.nonzero().squeeze(1)
-        above = self.mem[firing]
-        self.mem.mul_(self.beta_value**gap)  # U <= threshold: it only decays
-        self.fired = self._gap_fired.zero_()
-        if firing.numel() == 0:
-            return None
-        if self.reset == "zero":  # reset to zero, then no input: nothing more to emit
-            self.mem[firing] = 0.0
-            return None
-        if self.reset == "none" and self.beta_value == 1.0:  # fires in every empty step
-            self.mem[firing] = above
-            self.fired[firing] = 1.0
-            steps = torch.arange(first_step, first_step + gap, device=firing.device)
-            return steps.repeat_interleave(firing.numel()), firing.repeat(gap)
-        out_steps, out_neurons = [], []
-        j = 0
-        while firing.numel() and j < gap:  # each pass emits at least one spike
-            j += 1
-            above = self.beta * above  # plus a zero current: exact
+        if self.reset == "zero":  # reset to zero at the first empty step: silent afterwards
+            return (torch.zeros(u.shape, dtype=torch.int64, device=u.device),
+                    u.masked_fill(alive, 0.0), (u > self.threshold32) & ~alive)
+        v = u
+        took_step = []  # per step: the lanes that took it (a chain stops for good)
+        fired = []  # per step: the lanes that fired in it
+        for j in range(EXACT_CHAIN_STEPS):  # a bounded number of steps, all lanes at once
+            if j and not bool(alive.any()):
+                break
+            after = self.beta32 * v  # + a zero current: exact
             if self.reset == "subtract":
-                above = above - self.threshold
-            spiking = above > self.threshold
-            out_neurons.append(firing[spiking])
-            out_steps.append(torch.full_like(out_neurons[-1], first_step + j - 1))
-            quiet = ~spiking
-            self.mem[firing[quiet]] = above[quiet] * self.beta_value ** (gap - j)
-            firing, above = firing[spiking], above[spiking]
-        if firing.numel():  # still firing at the end of the gap
-            self.mem[firing] = above
-            self.fired[firing] = 1.0
-        return torch.cat(out_steps), torch.cat(out_neurons)
+                after = after - self.threshold32
+            v = torch.where(alive, after, v)
+            took_step.append(alive)
+            alive = alive & (v > self.threshold32)
+            fired.append(alive)
+            alive = alive & (gap > j + 1)
+        steps = torch.stack(took_step).sum(0)
+        count = torch.stack(fired).sum(0)
+        w = v * torch.pow(self.beta32, (gap - steps).to(v.dtype))  # ended chains only decay
+        still = v > self.threshold32  # above threshold only where the gap ended the chain
+        if bool(alive.any()):  # chains longer than EXACT_CHAIN_STEPS: closed form
+            lanes = alive.nonzero(as_tuple=True)
+            left = (gap.expand_as(v)[lanes] - steps[lanes]).to(torch.float64)
+            v64 = v[lanes].to(torch.float64)
+            run = self.run(v64)
+            chained = torch.minimum(left, run + 1.0)  # steps of the firing chain, then decay
+            w[lanes] = (torch.pow(self.beta, left - chained) * self.chain(v64, chained)).to(u.dtype)
+            still[lanes] = run >= left
+            count[lanes] += torch.minimum(run, left).to(torch.int64)
+        return count, w, still
 
 
 def lif_pooling(
@@ -204,9 +267,8 @@ def lif_pooling(
     threshold: float,
     weight: float,
     mutual_inhibition: float = 0.0,
-    reset_mechanism: str = "subtract",
-    chunk_cells: int = DEFAULT_CHUNK_CELLS,
-    chunk_events: int = DEFAULT_CHUNK_EVENTS,
+    reset_mechanism: ResetMechanism = "subtract",
+    max_output_events: int | None = DEFAULT_MAX_OUTPUT_EVENTS,
 ) -> Events:
     """Downscale a stream through one leaky integrate-and-fire neuron per region and polarity.
 
@@ -215,7 +277,8 @@ def lif_pooling(
     ``ToFrame`` tensor (weight ``+weight`` from the same polarity, ``-mutual_inhibition`` from
     the other), then ``snntorch.Leaky`` semantics run over every step from 0 to the step of
     ``t_end``. A spike of the neuron of polarity ``c`` and region ``(i, j)`` in step ``k``
-    becomes the event ``(x=j, y=i, t=t_start + (k + 1) * dt clipped to t_end, p=c)``.
+    becomes the event ``(x=j, y=i, t=t_start + (k + 1) * dt clipped to t_end, p=c)``. The cost
+    follows the events, not the steps (see the module docstring).
 
     Args:
         events: ``N`` events (any order); ``t`` int64 or float64.
@@ -227,12 +290,15 @@ def lif_pooling(
         weight: weight of each same-polarity input event, positive.
         mutual_inhibition: weight of each opposite-polarity input event, subtracted, ``>= 0``.
         reset_mechanism: ``"subtract"``, ``"zero"`` or ``"none"``.
-        chunk_cells: at most this many ``(active step, neuron)`` cells are dense at once.
-        chunk_events: at most about this many events are processed at once (whole steps).
+        max_output_events: refuse to emit more events than this (``None``: no bound).
 
     Returns:
         Output events sorted by ``t`` (within a step: OFF before ON, then row-major region),
         ``t`` of the input's dtype, on the input's device.
+
+    Raises:
+        ValueError: when the steps cannot be indexed in int64 (``dt`` far too small for the
+            stream's span) or the output would exceed ``max_output_events``.
 
     Example:
         >>> ev = Events.from_columns([0, 1, 0, 1, 3], [0, 0, 1, 1, 0], [0, 1, 2, 3, 9],
@@ -247,103 +313,168 @@ def lif_pooling(
     if events.num_events == 0:
         return Events.empty(events.t.dtype, device)
     fx, fy = factor
-    wo, ho = -(-sensor_size[0] // fx), -(-sensor_size[1] // fy)
+    wo, ho, _ = output_size(sensor_size, factor)
     plane = wo * ho
-    count = 2 * plane
-    t_start, t_end = events.t[0], events.t[-1]
-    active, per_step = active_steps(events.t, t_start=t_start, dt=dt, block=chunk_events)
-    step_end = torch.cumsum(per_step, 0)
-    step_begin = step_end - per_step
-    active_list = active.tolist()
-    begin_list, end_list = step_begin.tolist(), step_end.tolist()
-    n_active = len(active_list)
+    steps, last_step, dt = _step_indices(events.t, float(dt))
+    f32 = torch.float32
+    beta32 = torch.tensor(beta, dtype=f32, device=device)  # the neuron's buffers, as snntorch
+    threshold32 = torch.tensor(threshold, dtype=f32, device=device)
+    leak = _Leak(beta32, threshold32, reset_mechanism)
 
-    dtype = torch.float32
-    weight_t = torch.tensor(weight, dtype=dtype, device=device)
-    inhibition = mutual_inhibition != 0
-    inhibition_t = torch.tensor(mutual_inhibition, dtype=dtype, device=device)
-    neurons = _Neurons(
-        count, beta=beta, threshold=threshold, reset_mechanism=reset_mechanism, device=device
+    # Cells: the (region, step) pairs that hold events, ordered by region, then step.
+    region = divide(events.x, fx).add_(divide(events.y, fy), alpha=wo)
+    region, order = stable_sort_small(region, plane)  # stable: time order within a region
+    steps = steps.index_select(0, order)
+    polarity = events.p.index_select(0, order)
+    del order
+    n = region.shape[0]
+    starts = torch.ones(n, dtype=torch.bool, device=device)
+    torch.ne(region[1:], region[:-1], out=starts[1:])
+    starts[1:] |= steps[1:] != steps[:-1]
+    cell_of_event = torch.cumsum(starts, 0)
+    n_cells = int(cell_of_event[-1])
+    first = starts.nonzero().squeeze(1)
+    cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
+    del region, steps, starts, first
+    # Input current of the region's (OFF, ON) neurons: w * S - w_inh * S', in float32.
+    counts = torch.bincount(cell_of_event.mul_(2).add_(polarity).sub_(2), minlength=2 * n_cells)
+    counts = counts.to(f32).view(n_cells, 2)  # exact: fewer than 2**24 events per cell
+    del cell_of_event, polarity
+    current = counts * torch.tensor(weight, dtype=f32, device=device)
+    if mutual_inhibition != 0:
+        current -= counts.flip(1) * torch.tensor(mutual_inhibition, dtype=f32, device=device)
+    del counts
+
+    # Each region's cells: its first one, and the empty steps before and after each cell.
+    new_region = torch.ones(n_cells, dtype=torch.bool, device=device)
+    torch.ne(cell_region[1:], cell_region[:-1], out=new_region[1:])
+    region_first = new_region.nonzero().squeeze(1)
+    n_regions = region_first.shape[0]
+    cells_per_region = torch.diff(region_first, append=region_first.new_tensor([n_cells]))
+    gap_before = torch.empty_like(cell_step)
+    torch.sub(cell_step[1:], cell_step[:-1], out=gap_before[1:]).sub_(1)
+    gap_before.index_copy_(0, region_first, cell_step.index_select(0, region_first))  # from 0
+    gap_after = torch.empty_like(cell_step)
+    gap_after[:-1] = gap_before[1:]
+    region_last = torch.roll(region_first, -1).sub_(1)
+    region_last[-1] = n_cells - 1
+    gap_after.index_copy_(0, region_last, last_step - cell_step.index_select(0, region_last))
+
+    # Rounds: lanes are regions by decreasing cell count, so round r's lanes are a prefix.
+    rounds = int(cells_per_region.max())
+    count_sorted, region_of_lane = stable_sort_small(rounds - cells_per_region, rounds + 1)
+    lane_of_region = torch.empty_like(region_of_lane)
+    lane_of_region.index_copy_(0, region_of_lane, torch.arange(n_regions, device=device))
+    region_index = torch.cumsum(new_region, 0).sub_(1)
+    # lanes in round r: the regions with more than r cells
+    lanes_per_round = n_regions - torch.searchsorted(
+        count_sorted.flip(0).neg_().add_(rounds), torch.arange(rounds, device=device),
+        right=True,
     )
-    max_steps = max(1, min(chunk_cells // count, n_active))
-    cells = max_steps * count
-    # Workspaces, allocated once: a long recording churns no large allocations.
-    pooled = torch.empty(cells, dtype=dtype, device=device)
-    spikes = torch.empty(max_steps, count, dtype=dtype, device=device)
-    mask = torch.empty(-(-cells // 8) * 8, dtype=torch.bool, device=device)
-    inhibit = torch.empty(max_steps, 2, plane, dtype=dtype, device=device) if inhibition else None
-    capacity = min(chunk_events, events.num_events)
-    key = torch.empty(capacity, dtype=torch.int64, device=device)
-    part = torch.empty(capacity, dtype=torch.int64, device=device)
-    ones = torch.ones(capacity, dtype=dtype, device=device)
-    out_steps, out_neurons = [], []
-    previous = -1
-    a0 = 0
-    while a0 < n_active:
-        a1 = min(a0 + max_steps, n_active)
-        if end_list[a1 - 1] - begin_list[a0] > chunk_events:
-            limit = begin_list[a0] + chunk_events
-            a1 = max(a0 + 1, int(torch.searchsorted(step_end[a0:a1], limit, right=True)) + a0)
-        e0, e1 = begin_list[a0], end_list[a1 - 1]
-        rows, size = a1 - a0, e1 - e0
-        if size > capacity:  # one step with more events than chunk_events
-            capacity = size
-            key = torch.empty(size, dtype=torch.int64, device=device)
-            part = torch.empty(size, dtype=torch.int64, device=device)
-            ones = torch.ones(size, dtype=dtype, device=device)
-        # Cell of each event: (active step within the chunk, polarity, region).
-        cell, tmp = key[:size], part[:size]
-        cell.zero_()
-        cell[step_begin[a0 + 1 : a1] - e0] = 1
-        torch.cumsum(cell, 0, out=tmp)  # row of the event's step within the chunk
-        torch.mul(tmp, count, out=cell)
-        divide(events.x[e0:e1], fx, out=tmp)
-        cell.add_(tmp)
-        divide(events.y[e0:e1], fy, out=tmp)
-        cell.add_(tmp, alpha=wo).add_(events.p[e0:e1], alpha=plane)
-        # Events per cell, summed exactly in float32 (as the module's sum pooling of counts).
-        counts = pooled[: rows * count].zero_()
-        counts.index_add_(0, cell, ones[:size])
-        counts = counts.view(rows, 2, plane)
-        if inhibit is not None:  # w * S - w_inh * S', as the module computes it
-            opposite = inhibit[:rows]
-            torch.mul(counts[:, 1], inhibition_t, out=opposite[:, 0])
-            torch.mul(counts[:, 0], inhibition_t, out=opposite[:, 1])
-            counts.mul_(weight_t).sub_(opposite)
-        else:  # w * S - 0 * S' == w * S exactly
-            counts.mul_(weight_t)
-        current = counts.view(rows, count)
-        gap_steps, gap_neurons = [], []
-        for a in range(a0, a1):
-            step = active_list[a]
-            gap = step - previous - 1
-            if gap > 0:
-                emitted = neurons.skip(gap, previous + 1)
-                if emitted is not None:
-                    gap_steps.append(emitted[0])
-                    gap_neurons.append(emitted[1])
-            neurons.step(current[a - a0], spikes[a - a0])
-            previous = step
-        neurons.detach_from_spikes()  # the spike rows are reused by the next chunk
-        flat = _nonzero_flat(spikes[:rows], mask)
-        cols = flat % count
-        step_of_spike = active[a0:a1][torch.div(flat, count, rounding_mode="floor")]
-        if gap_steps:
-            step_of_spike = torch.cat([step_of_spike, *gap_steps])
-            cols = torch.cat([cols, *gap_neurons])
-            order = torch.sort(step_of_spike * count + cols).indices
-            step_of_spike, cols = step_of_spike[order], cols[order]
-        out_steps.append(step_of_spike)
-        out_neurons.append(cols)
-        a0 = a1
+    round_start = torch.zeros(rounds + 1, dtype=torch.int64, device=device)
+    torch.cumsum(lanes_per_round, 0, out=round_start[1:])
+    # position in round order: round start of the cell's rank, plus its region's lane
+    slot = torch.arange(n_cells, device=device).sub_(region_first.index_select(0, region_index))
+    slot = round_start.index_select(0, slot).add_(lane_of_region.index_select(0, region_index))
+    del region_index, lane_of_region, region_of_lane, count_sorted
+    gap_in_rounds = torch.empty(n_cells, 1, dtype=torch.int64, device=device)
+    gap_in_rounds.index_copy_(0, slot, gap_before[:, None])
+    current_in_rounds = torch.empty_like(current).index_copy_(0, slot, current)
+    del current
+    # A membrane at or below threshold only decays through a gap: beta ** g, rounded once
+    # (exactly snntorch's product for g <= 1); after one step of a firing chain, beta ** (g - 1).
+    gap32 = gap_in_rounds.to(f32)
+    decay_in_rounds = torch.pow(beta32, gap32)
+    decay_after_one = torch.pow(beta32, gap32.sub_(1).clamp_(min=0))
+    del gap32
+    silent_in_rounds = gap_in_rounds > 0
+    chain_in_rounds = torch.zeros(n_cells, 2, dtype=torch.int64, device=device)
 
-    step_of_spike = torch.cat(out_steps)
-    del out_steps
-    t = step_end_time(step_of_spike, t_start=t_start, t_end=t_end, dt=dt)
-    del step_of_spike
-    neuron = torch.cat(out_neurons)
-    del out_neurons
+    # The rounds: snntorch.Leaky's float32 update at every cell, in its order. The lanes of
+    # round r are the first lanes of round r - 1, so a lane's membrane is read back from there.
+    mem_in_rounds = torch.empty(n_cells, 2, dtype=f32, device=device)
+    bounds = round_start.tolist()
+    mem_in_rounds[: bounds[1]] = current_in_rounds[: bounds[1]]  # from zero: beta * 0 + I
+    for r in range(1, rounds):
+        a, b = bounds[r], bounds[r + 1]
+        u = mem_in_rounds[bounds[r - 1] : bounds[r - 1] + b - a]
+        fired = u > threshold32  # the reset signal of the next step, unless a gap follows
+        w = u * decay_in_rounds[a:b]
+        reset = None  # R = 1 where a neuron fired in the step just before this cell
+        if reset_mechanism == "zero":  # reset at the next step, then silent: W = 0 either way
+            w.masked_fill_(fired, 0.0)
+        elif reset_mechanism == "subtract" and bool(fired.any()):
+            silent = silent_in_rounds[a:b]
+            moving = fired & silent  # fired, then empty steps: one step of the chain, U - theta
+            chain = beta32 * u - threshold32  # (+ a zero current: exact)
+            w = torch.where(moving, chain * decay_after_one[a:b], w)
+            fired &= ~silent
+            longer = moving & (chain > threshold32)
+            if bool(longer.any()):  # still firing after one empty step: the chain goes on
+                count, chained, still = leak.fire_through(u, gap_in_rounds[a:b], longer)
+                w = torch.where(longer, chained, w)
+                fired = torch.where(longer, still, fired)
+                chain_in_rounds[a:b] = count
+            reset = fired
+        out = torch.mul(beta32, w, out=mem_in_rounds[a:b])
+        out += current_in_rounds[a:b]
+        if reset is not None:
+            torch.where(reset, out - threshold32, out, out=out)
+    membrane = mem_in_rounds.index_select(0, slot)  # back to cell order
+    chain_before = chain_in_rounds.index_select(0, slot)
+    del mem_in_rounds, current_in_rounds, gap_in_rounds, decay_in_rounds, decay_after_one
+    del silent_in_rounds, chain_in_rounds, slot
+
+    # Spikes at the cells.
+    fired = membrane > threshold32
+    spike_cell, spike_polarity = fired.nonzero(as_tuple=True)  # cell-major
+    spike_step = cell_step.index_select(0, spike_cell)
+    # Spikes of neurons that go on firing through the silent steps after a cell: found in the
+    # rounds (reset "subtract", gaps between cells) or here (the tail after a region's last
+    # cell; every gap with reset "none", whose membrane does not depend on them).
+    run_cell, run_polarity = (chain_before > 0).nonzero(as_tuple=True)
+    run_length = chain_before[run_cell, run_polarity]
+    run_start = cell_step[run_cell] - gap_before[run_cell]
+    run_cell = run_cell - 1  # the cell the run follows
+    if reset_mechanism != "zero":
+        if reset_mechanism == "subtract":  # only the tails: the rounds found the others
+            candidate = fired.index_select(0, region_last)
+            candidate &= (gap_after.index_select(0, region_last) > 0)[:, None]
+            tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
+            tail_cell = region_last[tail_cell]
+        else:
+            candidate = fired & (gap_after > 0)[:, None]
+            tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
+        tail_gap = gap_after.index_select(0, tail_cell)
+        tail_length, _, _ = leak.fire_through(
+            membrane[tail_cell, tail_polarity], tail_gap, tail_gap > 0
+        )
+        run_cell = torch.cat([run_cell, tail_cell])
+        run_polarity = torch.cat([run_polarity, tail_polarity])
+        run_length = torch.cat([run_length, tail_length])
+        run_start = torch.cat([run_start, cell_step[tail_cell] + 1])
+    total = spike_cell.shape[0] + int(run_length.sum())
+    if max_output_events is not None and total > max_output_events:
+        raise ValueError(
+            f"LIF pooling would emit {total} events ({total - spike_cell.shape[0]} of them "
+            "fired by neurons that stay above threshold through silent steps), more than "
+            f"max_output_events={max_output_events}; raise that bound or lower the weight"
+        )
+    run_of_spike = torch.repeat_interleave(
+        torch.arange(run_length.shape[0], device=device), run_length
+    )
+    first_of_run = torch.cumsum(run_length, 0) - run_length
+    within_run = torch.arange(run_of_spike.shape[0], device=device) - first_of_run[run_of_spike]
+    spike_step = torch.cat([spike_step, run_start[run_of_spike] + within_run])
+    spike_cell = torch.cat([spike_cell, run_cell[run_of_spike]])
+    spike_polarity = torch.cat([spike_polarity, run_polarity[run_of_spike]])
+    neuron = spike_polarity * plane + cell_region[spike_cell]
+    # Output order: by step, then neuron (OFF before ON, then row-major region).
+    _, by_neuron = stable_sort_small(neuron, 2 * plane)
+    spike_step, neuron = spike_step[by_neuron], neuron[by_neuron]
+    by_step = torch.sort(spike_step, stable=True).indices
+    spike_step, neuron = spike_step[by_step], neuron[by_step]
+    t = _step_end_time(spike_step, t_start=events.t[0], t_end=events.t[-1], dt=dt)
     polarity = neuron >= plane
-    neuron.add_(polarity, alpha=-plane)  # the region's index in its polarity's plane
-    x, y = region_xy(neuron, wo)
+    x, y = region_xy(neuron - polarity * plane, wo)
     return Events(x, y, t, polarity)

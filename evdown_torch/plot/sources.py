@@ -1,0 +1,234 @@
+"""What ``evdown show`` looks at: a recording (file or synthetic) and its downscaled versions.
+
+Nothing here imports matplotlib. :func:`read_file` is the one place a file named on the command
+line is read, so that other readers (AEDAT4) plug in there.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from evdown_torch._tensors import sort_by_time
+from evdown_torch.checks import check_factor, check_sensor_size, output_size
+from evdown_torch.events import Events, EventsLike, to_events
+from evdown_torch.io import read_events
+from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms.registry import METHODS, make_method
+
+__all__ = ["Panel", "Source", "load_source", "method_name", "panels"]
+
+#: Sensor of synthetic recordings (DVS128 Gesture's).
+SYNTHETIC_SENSOR = (128, 128, 2)
+
+#: Default length of a synthetic recording, milliseconds.
+SYNTHETIC_DURATION_MS = 2000.0
+
+
+class Panel(NamedTuple):
+    """One stream to show.
+
+    Attributes:
+        name: what it is (``"input"``, a method name, ``"ground truth"``).
+        events: the events, sorted by ``t`` (microseconds).
+        sensor_size: ``(W, H, P)`` the events live on.
+    """
+
+    name: str
+    events: Events
+    sensor_size: tuple[int, int, int]
+
+
+@dataclass(frozen=True)
+class Source:
+    """A recording to show, and where it came from.
+
+    Attributes:
+        events: the events, sorted by ``t`` (microseconds).
+        sensor_size: ``(W, H, P)``.
+        name: where it came from (file name or ``synthetic:CLASS:SEED``).
+        label: gesture class of a synthetic recording, else ``None``.
+        seed: seed of a synthetic recording, else ``None``.
+        duration_us: length of a synthetic recording, else ``None``.
+    """
+
+    events: Events
+    sensor_size: tuple[int, int, int]
+    name: str
+    label: int | None = None
+    seed: int | None = None
+    duration_us: int | None = None
+
+    def ground_truth(self, factor: int | tuple[int, int]) -> Panel | None:
+        """The low-resolution ground truth of a synthetic recording (``None`` for a file):
+        the same scene rendered on a sensor ``factor`` times smaller."""
+        if self.label is None:
+            return None
+        from evdown_torch.synthetic import render_gesture
+
+        fxy = check_factor(factor, self.sensor_size)
+        low = render_gesture(self.label, self.seed, sensor_size=self.sensor_size,
+                             duration_us=self.duration_us, factor=fxy)
+        size = output_size(self.sensor_size, fxy)
+        return Panel("ground truth", to_events(low, size)[0], size)
+
+
+def _synthetic_label(text: str) -> int:
+    from evdown_torch.synthetic import GESTURE_CLASSES
+
+    def key(name: str) -> str:
+        return "".join(c for c in name.lower() if c.isalnum())
+
+    if text.isdigit():
+        label = int(text)
+        if label < len(GESTURE_CLASSES):
+            return label
+    else:
+        for label, name in enumerate(GESTURE_CLASSES):
+            if key(name) == key(text):
+                return label
+    raise ValueError(
+        f"unknown synthetic class {text!r}; expected an index 0-{len(GESTURE_CLASSES) - 1} or "
+        f"one of {', '.join(repr(n) for n in GESTURE_CLASSES)}"
+    )
+
+
+def load_source(
+    spec: str,
+    *,
+    sensor_size: tuple[int, int, int] | None = None,
+    duration_ms: float | None = None,
+) -> Source:
+    """Read the recording named ``spec``.
+
+    Args:
+        spec: an event file that :func:`evdown_torch.io.read_events` reads (``.npy``, HDF5,
+            AEDAT4, N-MNIST ``.bin``, Prophesee ``.raw``/``.dat``; ``t`` in microseconds), or
+            ``synthetic:CLASS[:SEED]`` (a gesture of :mod:`evdown_torch.synthetic`; ``CLASS``
+            an index or a class name, case, spaces and underscores ignored; seed 0 by default).
+        sensor_size: ``(W, H, P)``; default: the synthetic sensor (128, 128, 2), or for a file
+            the largest coordinates + 1.
+        duration_ms: length of a synthetic recording (default 2000 ms); for a file, only its
+            first ``duration_ms`` are kept (default: all of it).
+
+    Returns:
+        The :class:`Source`.
+
+    Raises:
+        ValueError: for a missing or unreadable file, an unknown class or bad settings.
+
+    Example:
+        >>> rec = load_source("synthetic:right_arm_cw:2", sensor_size=(32, 32, 2),
+        ...                      duration_ms=200)
+        >>> rec.label, rec.sensor_size, rec.name
+        (3, (32, 32, 2), 'synthetic:3:2')
+    """
+    if duration_ms is not None and not (float(duration_ms) > 0):
+        raise ValueError(f"duration must be a positive number of ms, got {duration_ms!r}")
+    if sensor_size is not None:
+        sensor_size = check_sensor_size(sensor_size)
+    if spec.startswith("synthetic:"):
+        from evdown_torch.synthetic import render_gesture
+
+        parts = spec.split(":")
+        if len(parts) > 3 or not parts[1]:
+            raise ValueError(f"a synthetic input looks like synthetic:CLASS[:SEED], got {spec!r}")
+        label = _synthetic_label(parts[1])
+        seed_text = parts[2] if len(parts) == 3 else "0"
+        if not seed_text.isdigit():
+            raise ValueError(f"the seed of {spec!r} must be a non-negative integer")
+        seed = int(seed_text)
+        size = sensor_size or SYNTHETIC_SENSOR
+        duration_us = round(1000 * (duration_ms or SYNTHETIC_DURATION_MS))
+        raw = render_gesture(label, seed, sensor_size=size, duration_us=duration_us)
+        return Source(to_events(raw, size)[0], size, f"synthetic:{label}:{seed}",
+                         label, seed, duration_us)
+    raw, sensor_size = read_file(spec, sensor_size)
+    events = sort_by_time(to_events(raw, sensor_size)[0])
+    if duration_ms is not None and events.num_events:
+        end = events.t[0] + duration_ms * 1000
+        events = events.select(events.t < end)
+    return Source(events, sensor_size, spec)
+
+
+def read_file(
+    path: str, sensor_size: tuple[int, int, int] | None
+) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """The one file reader of ``evdown show``: a structured event array and its sensor size
+    (``sensor_size`` when given, else the file's own, else guessed from the largest coordinates
+    with a warning; see :func:`evdown_torch.io.read_events`)."""
+    events, size, _ = read_events(path, sensor_size=sensor_size)
+    return events, size
+
+
+def method_name(transform: Downscaler) -> str:
+    """The registry name of a transform's class (its class name when not registered)."""
+    for name, cls in METHODS.items():
+        if type(transform) is cls:
+            return name
+    return type(transform).__name__
+
+
+def panels(
+    events: EventsLike,
+    sensor_size: tuple[int, int, int],
+    factor: int | tuple[int, int],
+    methods: Sequence[str | Downscaler] | None = None,
+    *,
+    ground_truth: Panel | None = None,
+    log: Callable[[str], None] | None = None,
+) -> list[Panel]:
+    """The input and its downscaled versions, one :class:`Panel` each.
+
+    Args:
+        events: a Tonic structured array, an ``(N, 4)`` tensor or Events (``t`` in
+            microseconds).
+        sensor_size: input ``(W, H, P)``.
+        factor: the downscaling factor, ``f`` or ``(fx, fy)``.
+        methods: registry names (built with their default settings by
+            :func:`~evdown_torch.transforms.registry.make_method`) or transforms (whose own
+            ``factor`` is used); default: every method of the registry.
+        ground_truth: a last panel to add (e.g. :meth:`Source.ground_truth`).
+        log: receives one line per method with its event count and time, if given.
+
+    Returns:
+        ``[input, method 1, ..., (ground truth)]``.
+
+    Example:
+        >>> import torch
+        >>> ev = torch.tensor([[0, 0, 0, 1], [1, 1, 10, 1], [3, 3, 20, 0]])
+        >>> [(p.name, p.events.num_events, p.sensor_size[:2])
+        ...  for p in panels(ev, (4, 4, 2), 2, ["downsample", "event_count"])]
+        [('input', 3, (4, 4)), ('downsample', 3, (2, 2)), ('event_count', 0, (2, 2))]
+    """
+    sensor_size = check_sensor_size(sensor_size)
+    check_factor(factor, sensor_size)
+    ev = sort_by_time(to_events(events, sensor_size)[0])
+    chosen = list(METHODS) if methods is None else list(methods)
+    out = [Panel("input", ev, sensor_size)]
+    for method in chosen:
+        transform = make_method(method, sensor_size, factor) if isinstance(method, str) else method
+        if not isinstance(transform, Downscaler):
+            raise TypeError(
+                f"methods must be registry names or downscaling transforms, got {method!r}"
+            )
+        start = time.perf_counter()
+        result = transform(ev)
+        name = method_name(transform)
+        if log is not None:
+            log(f"{name}: {result.num_events} events ({time.perf_counter() - start:.2f} s)")
+        out.append(Panel(name, result, transform.output_sensor_size))
+    if ground_truth is not None:
+        out.append(ground_truth)
+    return out
+
+
+def to_numpy(events: Events) -> tuple:
+    """``(x, y, t, on)`` as NumPy arrays (``t`` float64, exact below 2**53)."""
+    return (events.x.cpu().numpy(), events.y.cpu().numpy(),
+            events.t.to(torch.float64).cpu().numpy(), events.p.cpu().numpy())

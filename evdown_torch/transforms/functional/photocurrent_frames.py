@@ -1,0 +1,328 @@
+"""Photocurrent pooling, frames mode (SEMANTICS.md method 7): the paper's literal pipeline.
+
+Frames at ``t_start + k / fps`` (the last one clipped to ``t_end``), each region's log
+photocurrent interpolated linearly in time between consecutive frames, crossings at exact
+times. Without a leak a region's frame value changes only at frames that follow its events, so
+the kernel works on (region, frame) pairs with events and recomputes each such frame value from
+the pixels' integer levels (relative to the region's brightest pixel): the cost follows the
+events. With a leak (``cutoff_hz > 0``) every pixel decays between frames, so frames are built
+densely in bounded chunks of frames (never the whole recording at once). The shared pieces
+(pixel levels, region geometry, the level snap) live in
+:mod:`~evdown_torch.transforms.functional.photocurrent`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from fractions import Fraction
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from evdown_torch._tensors import (
+    changes,
+    chunk_bounds,
+    ends,
+    region_of,
+    region_pixel_count,
+    sort_by_time,
+    take,
+    where_true,
+)
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._knots import HALF_TOLERANCE, emit
+from evdown_torch.transforms.functional._reference import (
+    crossings,
+    group_by_region,
+    reference_index,
+)
+from evdown_torch.transforms.functional.photocurrent import (
+    check_contrast_range,
+    check_level_range,
+    log_mean_exp,
+    pixel_levels,
+    region_pixels,
+    snap,
+)
+
+#: Frame values per chunk (pixels x frames with a leak, region pixels x steps without one).
+CHUNK_VALUES = 1 << 22
+
+#: Timestamps per second: ``fps`` and ``cutoff_hz`` read ``t`` as microseconds.
+TICKS_PER_SECOND = 1_000_000
+
+Steps = Iterator[tuple[Tensor, Tensor, Tensor, Tensor]]
+
+
+
+class FrameClock(NamedTuple):
+    """Frame times of a stream: frame ``k`` at offset ``min(k * period, duration)`` from
+    ``t_start`` (ticks), ``period = denominator / numerator`` exactly.
+
+    Attributes:
+        numerator: ``a`` of ``fps = a / b`` (``fps`` as the nearest fraction, ``b <= 10**6``).
+        denominator: ``b * 10**6`` (ticks per second times ``b``).
+        duration: ``t_end - t_start`` as a float (ticks).
+    """
+
+    numerator: int
+    denominator: int
+    duration: float
+
+    @staticmethod
+    def make(fps: float, duration: float | int) -> FrameClock:
+        """The clock of a stream lasting ``duration`` ticks at ``fps`` frames per second."""
+        fraction = Fraction(fps).limit_denominator(10**6)
+        if fraction <= 0:
+            raise ValueError(f"fps must be at least 1e-6 frames per second, got {fps!r}")
+        if duration * fraction.numerator >= 2**62:
+            raise ValueError(
+                f"fps={fps!r} over a stream of {duration} ticks gives frame indices beyond "
+                "int64's exact range"
+            )
+        return FrameClock(fraction.numerator, fraction.denominator * TICKS_PER_SECOND,
+                          float(duration))
+
+    @property
+    def period(self) -> float:
+        """Frame period in ticks."""
+        return self.denominator / self.numerator
+
+    def index(self, offset: Tensor) -> Tensor:
+        """int64 index of the first frame at or after each ``offset`` (the frame holding it)."""
+        if offset.is_floating_point():
+            return torch.ceil(offset * (self.numerator / self.denominator)).to(torch.int64)
+        scaled = offset * -self.numerator
+        return -torch.div(scaled, self.denominator, rounding_mode="floor")
+
+    def time(self, k: Tensor) -> Tensor:
+        """float64 offset of frames ``k`` from ``t_start`` (frame -1 is at 0 too)."""
+        return (k.to(torch.float64) * self.period).clamp_(0.0, self.duration)
+
+
+def photocurrent_frames(
+    events: Events,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    contrast: float,
+    threshold: float,
+    fps: float,
+    cutoff_hz: float = 0.0,
+) -> Events:
+    """Photocurrent pooling, frames mode (SEMANTICS.md method 7): the paper's literal pipeline.
+
+    Intensity frames at ``t_start + k / fps`` (``t`` in microseconds; the last frame is
+    clipped to ``t_end``) hold every event up to their time. Each pixel's log intensity is
+    ``contrast`` times its level, or, with ``cutoff_hz > 0``, the high-pass filtered sum in
+    which each event's ``+-contrast`` decays as ``exp(-2 pi cutoff_hz dt)``. Frames are
+    area-averaged over regions in linear intensity; between consecutive frames each region's
+    ``log I_r`` is interpolated linearly in time and the DVS reference rule at ``threshold``
+    emits events at the exact crossing times (rounded half up when ``t`` is an integer type).
+
+    Args:
+        events: ``N`` input events (any order; sorted stably by ``t`` here).
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        contrast: ``c`` in log units, in [1e-6, 50].
+        threshold: ``theta`` in log units.
+        fps: frames per second, > 0.
+        cutoff_hz: high-pass cut-off frequency in Hz, >= 0 (0: no leak).
+
+    Returns:
+        Output events sorted by ``t``, ``t`` of the input's dtype.
+
+    Example:
+        Frames at 0, 1000 and 2000 us: the region's log photocurrent goes 0, log 1.5, log 2
+        and crosses ``log 2`` exactly at the last frame.
+
+        >>> ev = Events.from_columns([0, 1], [0, 0], [0, 2000], [1, 1])
+        >>> out = photocurrent_frames(ev, sensor_size=(2, 1, 2), factor=(2, 1),
+        ...                           contrast=math.log(2), threshold=math.log(2), fps=1000)
+        >>> out.t.tolist(), out.p.tolist()
+        ([2000], [True])
+    """
+    check_contrast_range(contrast, threshold)
+    events = sort_by_time(events)
+    n = events.num_events
+    if n == 0:
+        return Events.empty(events.t.dtype, events.device)
+    check_level_range(n, contrast, threshold)
+    t_start = events.t[0]
+    offset = events.t - t_start
+    clock = FrameClock.make(fps, offset[-1].item())
+    frame = clock.index(offset)
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    carry_u = torch.zeros(out_w * out_h, dtype=torch.float64, device=events.device)
+    carry_q = torch.zeros(out_w * out_h, dtype=torch.int64, device=events.device)
+    if cutoff_hz > 0:
+        steps = _leaky_frame_steps(events, offset, frame, clock, sensor_size, factor,
+                                   contrast, threshold, cutoff_hz)
+    else:
+        steps = _frame_steps(events, frame, sensor_size, factor, contrast, threshold)
+    outputs, emitted = [], 0
+    for step in steps:
+        outputs.append(_frame_crossings(*step, carry_u, carry_q, clock, emitted))
+        emitted += outputs[-1][0].shape[0]
+    if not outputs:
+        return Events.empty(events.t.dtype, events.device)
+    region, at, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+    if events.t.is_floating_point():
+        t = t_start + at
+    else:
+        tick = torch.floor(at.add_(0.5 + HALF_TOLERANCE)).clamp_(max=clock.duration)
+        t = t_start + tick.to(torch.int64)
+    return emit(region, t, on, out_w)
+
+
+def _log_photocurrent(
+    m: Tensor, spread: Tensor, regions: Tensor, sensor_size: tuple[int, int, int],
+    factor: tuple[int, int], contrast: float, threshold: float,
+) -> Tensor:
+    """``u = log(I_r) / theta`` from the brightest level ``m`` and ``sum exp(c (L - m))``."""
+    log_pixels = region_pixel_count(regions, sensor_size, factor).to(torch.float64).log_()
+    u = torch.log(spread).sub_(log_pixels).div_(threshold)
+    return u.add_(m.to(torch.float64).mul_(contrast / threshold))
+
+
+def _frame_steps(
+    events: Events,
+    frame: Tensor,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    contrast: float,
+    threshold: float,
+) -> Steps:
+    """Without a leak: ``(region, frame, u, first)`` of every (region, frame) pair whose value
+    changed (those following the region's events), region-major, in bounded batches."""
+    w, h, _ = sensor_size
+    out_w = output_size(sensor_size, factor)[0]
+    per_region = factor[0] * factor[1]
+    level_state = torch.zeros(w * h, dtype=torch.int64, device=events.device)
+    bounds = chunk_bounds(frame, max(1, CHUNK_VALUES // per_region), split_ties=False)
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        piece = Events(*(column[lo:hi] for column in events))
+        k = frame[lo:hi]
+        k0 = int(k[0])
+        span = int(k[-1]) - k0 + 1
+        levels = pixel_levels(piece, w, h, level_state)
+        # Each pixel's level at the end of each frame it has events in, keyed (pixel, frame).
+        key = levels.pixel * span + take(k, levels.order) - k0
+        last = where_true(ends(changes(key)))
+        table_key, table_level = take(key, last), take(levels.level, last)
+        del key, last
+        # The (region, frame) runs of the piece: one step each.
+        rx, ry = region_of(piece, factor)
+        groups = group_by_region(rx, ry, out_w)
+        k_g = take(k, groups.order)
+        step_at = where_true(ends(groups.first | changes(k_g)))
+        region, step_frame = take(groups.region, step_at), take(k_g, step_at)
+        del groups, k_g, step_at, rx, ry
+        # Every pixel of the step's region at the end of the step's frame.
+        ids, inside = region_pixels(region, sensor_size, factor)
+        query = ids * span + (step_frame - k0)[:, None]
+        found = torch.searchsorted(table_key, query.reshape(-1), right=True).view_as(query)
+        found -= 1
+        hit = found >= 0
+        found.clamp_(min=0)
+        hit &= table_key[found] >= ids * span  # the same pixel
+        lv = torch.where(hit, table_level[found], level_state[ids])
+        del query, found, hit
+        m, spread = log_mean_exp(lv, inside, contrast)
+        u = _log_photocurrent(m, spread, region, sensor_size, factor, contrast, threshold)
+        level_state = levels.new_state
+        yield region, step_frame, u, changes(region)
+
+
+def _leaky_frame_steps(
+    events: Events,
+    offset: Tensor,
+    frame: Tensor,
+    clock: FrameClock,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    contrast: float,
+    threshold: float,
+    cutoff_hz: float,
+) -> Steps:
+    """With a leak: ``(region, frame, u, first)`` of every region at every frame, built from
+    dense frames in chunks of at most :data:`CHUNK_VALUES` pixel values."""
+    w, h, _ = sensor_size
+    fx, fy = factor
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    device = events.device
+    omega = 2 * math.pi * cutoff_hz / TICKS_PER_SECOND  # per tick
+    # Inside a chunk every factor exp(+-omega dt) stays within [1/e, e]: no precision lost.
+    per_chunk = max(1, min(CHUNK_VALUES // (w * h), int(1 / (omega * clock.period))))
+    last_frame = int(frame[-1])
+    pixel = events.y * w + events.x
+    sign = events.p.to(torch.float64).mul_(2 * contrast).sub_(contrast)
+    offset = offset.to(torch.float64)
+    regions = torch.arange(out_w * out_h, device=device)
+    log_pixels = region_pixel_count(regions, sensor_size, factor).to(torch.float64).log_()
+    ell = torch.zeros(w * h, dtype=torch.float64, device=device)  # log intensity, last frame
+    ell_time = 0.0
+    pad = (0, out_w * fx - w, 0, out_h * fy - h)
+    for k0 in range(0, last_frame + 1, per_chunk):
+        ks = torch.arange(k0, min(k0 + per_chunk, last_frame + 1), device=device)
+        times = clock.time(ks)
+        end = float(times[-1])
+        lo, hi = torch.searchsorted(frame, torch.stack([ks[0], ks[-1] + 1])).tolist()
+        # Log intensity of every pixel at every frame of the chunk.
+        inputs = torch.zeros(ks.shape[0], w * h, dtype=torch.float64, device=device)
+        weight = torch.exp((offset[lo:hi] - end) * omega).mul_(sign[lo:hi])
+        inputs.index_put_((frame[lo:hi] - k0, pixel[lo:hi]), weight, accumulate=True)
+        inputs.cumsum_(0).mul_(torch.exp((end - times) * omega)[:, None])
+        inputs += ell * torch.exp((ell_time - times) * omega)[:, None]
+        ell, ell_time = inputs[-1].clone(), end
+        # Area average in linear intensity: log-sum-exp over each region (padding excluded).
+        grid = torch.nn.functional.pad(inputs.view(-1, h, w), pad, value=-math.inf)
+        grid = grid.view(-1, out_h, fy, out_w, fx).permute(0, 1, 3, 2, 4)
+        log_sum = torch.logsumexp(grid.reshape(ks.shape[0], out_h * out_w, fx * fy), 2)
+        del inputs, grid
+        u = log_sum.sub_(log_pixels).div_(threshold)
+        yield (regions.repeat_interleave(ks.shape[0]), ks.repeat(out_w * out_h),
+               u.T.reshape(-1), (ks == k0).repeat(out_w * out_h))
+
+
+def _frame_crossings(
+    region: Tensor,
+    frame: Tensor,
+    u: Tensor,
+    first: Tensor,
+    carry_u: Tensor,
+    carry_q: Tensor,
+    clock: FrameClock,
+    emitted: int = 0,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The reference rule on the linear ramps from frame ``k - 1`` to each step's frame ``k``.
+
+    Steps are region-major (``first`` marks each region's first), frames ascending; a region's
+    value at frame ``k - 1`` is its previous step's (``carry_u`` before its first step).
+    ``carry_u`` and ``carry_q`` (per region ``u`` and ``q`` so far) are updated in place.
+
+    Returns:
+        ``(region, offset from t_start as float64, on)`` of each crossing.
+    """
+    floor_u, on_level = snap(u)
+    firsts = where_true(first)
+    first_region = take(region, firsts)
+    q = reference_index(floor_u, on_level, first, take(carry_q, region))
+    q_before, u_before = q.roll(1), u.roll(1)
+    q_before[firsts] = take(carry_q, first_region)
+    u_before[firsts] = take(carry_u, first_region)
+    lasts = where_true(ends(first))
+    carry_q.scatter_(0, take(region, lasts), take(q, lasts))
+    carry_u.scatter_(0, take(region, lasts), take(u, lasts))
+    cross = crossings(q_before, q, emitted=emitted)
+    end = cross.step
+    u0, u1 = take(u_before, end), take(u, end)
+    ratio = (cross.level.to(torch.float64) - u0) / (u1 - u0)
+    at_end = take(on_level, end) & (cross.level == take(floor_u, end))
+    ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
+    k = take(frame, end)
+    t0, t1 = clock.time(k - 1), clock.time(k)
+    return take(region, end), t0 + ratio * (t1 - t0), cross.on

@@ -1,0 +1,161 @@
+"""PhotocurrentPooling: the paper's events-to-video-to-events downscaler, with a session."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+from evdown_torch.checks import check_non_negative_float, check_positive_float
+from evdown_torch.events import Events, EventsLike, from_events, to_events
+from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms.functional.photocurrent import (
+    PhotocurrentState,
+    check_contrast_range,
+    photocurrent_events,
+)
+from evdown_torch.transforms.functional.photocurrent_frames import (
+    FrameClock,
+    photocurrent_frames,
+)
+
+
+@dataclass(frozen=True)
+class PhotocurrentPooling(Downscaler):
+    """Photocurrent pooling (SEMANTICS.md method 7): what a physically larger pixel would see.
+
+    Each input pixel's log intensity is ``contrast * L_p`` (``L_p``: its integer level, ON +1,
+    OFF -1; every pixel starts at intensity 1). A region's photocurrent is the mean of its
+    pixels' intensities, ``I_r = mean(exp(contrast * L_p))``, and the output pixel is a DVS
+    pixel of contrast ``threshold`` watching ``log I_r``.
+
+    *Events mode* (``fps=None``, the default): ``I_r`` changes only at input events, so output
+    events take the triggering event's ``t``; causal, with a streaming :meth:`session`.
+    *Frames mode* (``fps`` set): the paper's literal pipeline. Intensity frames at
+    ``t_start + k / fps`` (optionally high-pass filtered with ``cutoff_hz``), area-averaged
+    in linear intensity, and events between consecutive low-resolution frames by the reference
+    rule on the log intensity interpolated linearly in time, at exact crossing times.
+
+    Float64 throughout; a ``log I_r`` within ``1e-9 * threshold`` of a level is on it. With
+    ``factor=1`` and ``threshold == contrast`` the events mode returns its input; as
+    ``contrast -> 0`` with ``threshold = contrast * k`` it tends to ``EventCount(k)``.
+
+    Args:
+        sensor_size: input sensor size ``(W, H, P)``.
+        factor: a positive integer or a pair ``(fx, fy)``.
+        contrast: the input camera's contrast threshold in log units, in [1e-6, 50].
+        threshold: the output pixel's contrast threshold in log units, in [1e-6, 1e6]
+            (default: ``contrast``, a camera of the same kind). The budget setting.
+        fps: frames per second of the frames mode (``t`` read as microseconds), or ``None``
+            for the events mode.
+        cutoff_hz: high-pass leak of the frames mode in Hz (each event's log contribution
+            decays as ``exp(-2 pi cutoff_hz dt)``, Scheerlinck et al. 2018), >= 0; 0 is no
+            leak. With a leak, every frame of every region is computed (cost: frames x sensor
+            area, in bounded chunks).
+
+    Example:
+        >>> import torch
+        >>> ev = torch.tensor([[0, 0, 10, 1], [1, 0, 20, 1], [1, 0, 30, 0]])
+        >>> PhotocurrentPooling((2, 1, 2), factor=(2, 1), contrast=0.5)(ev).tolist()
+        [[0, 0, 20, 1]]
+    """
+
+    contrast: float = 0.2
+    threshold: float | None = None
+    fps: float | None = None
+    cutoff_hz: float = 0.0
+
+    #: The setting :func:`calibrate` searches to meet an event budget.
+    budget_setting: ClassVar[str | None] = "threshold"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        contrast = check_positive_float("contrast", self.contrast)
+        threshold = contrast if self.threshold is None else self.threshold
+        threshold = check_positive_float("threshold", threshold)
+        check_contrast_range(contrast, threshold)
+        object.__setattr__(self, "contrast", contrast)
+        object.__setattr__(self, "threshold", threshold)
+        if self.fps is not None:
+            fps = check_positive_float("fps", self.fps)
+            FrameClock.make(fps, 0)
+            object.__setattr__(self, "fps", fps)
+        cutoff = check_non_negative_float("cutoff_hz", self.cutoff_hz)
+        if cutoff > 0 and self.fps is None:
+            raise ValueError(f"cutoff_hz={cutoff!r} needs the frames mode: set fps")
+        object.__setattr__(self, "cutoff_hz", cutoff)
+
+    def kernel(self, events: Events) -> Events:
+        """Apply the events-mode or frames-mode kernel of
+        :mod:`~evdown_torch.transforms.functional.photocurrent`."""
+        if self.fps is not None:
+            return photocurrent_frames(
+                events, sensor_size=self.sensor_size, factor=self.factor_xy,
+                contrast=self.contrast, threshold=self.threshold, fps=self.fps,
+                cutoff_hz=self.cutoff_hz,
+            )
+        out, _ = photocurrent_events(
+            events, sensor_size=self.sensor_size, factor=self.factor_xy,
+            contrast=self.contrast, threshold=self.threshold,
+        )
+        return out
+
+    def session(self) -> PhotocurrentSession:
+        """Start a streaming session over consecutive chunks of one stream (events mode)."""
+        if self.fps is not None:
+            raise ValueError(
+                "a streaming session needs the events mode (fps=None): the frames mode "
+                "interpolates between frames and is batch only"
+            )
+        return PhotocurrentSession(self)
+
+
+class PhotocurrentSession:
+    """Streaming PhotocurrentPooling (events mode): feed consecutive chunks, get their events.
+
+    The concatenation of the outputs equals ``PhotocurrentPooling`` applied to the whole
+    stream. Chunks must follow each other in time (a chunk may not start before the previous
+    one's last timestamp; equal timestamps are fine and keep chunk order). The state (every
+    pixel's integer level and every region's reference index) is held in :attr:`state`.
+
+    Args:
+        transform: the :class:`PhotocurrentPooling` settings (events mode).
+
+    Example:
+        >>> import torch
+        >>> ev = torch.tensor([[0, 0, 10, 1], [1, 0, 20, 1], [1, 0, 30, 0]])
+        >>> session = PhotocurrentPooling((2, 1, 2), factor=(2, 1), contrast=0.5).session()
+        >>> [session(chunk).tolist() for chunk in (ev[:1], ev[1:1], ev[1:])]
+        [[], [], [[0, 0, 20, 1]]]
+    """
+
+    def __init__(self, transform: PhotocurrentPooling) -> None:
+        self.transform = transform
+        self.state: PhotocurrentState | None = None
+
+    def reset(self) -> None:
+        """Forget the stream: the next chunk starts a new one."""
+        self.state = None
+
+    def __call__(self, chunk: EventsLike) -> EventsLike:
+        """Downscale the next chunk; returns the events it produces, in the chunk's kind."""
+        transform = self.transform
+        events, fmt = to_events(chunk, transform.sensor_size)
+        last_t = None if self.state is None else self.state.last_t
+        if last_t is not None and events.num_events:
+            if last_t.device != events.device:
+                raise ValueError(
+                    f"chunk is on {events.device} but the session's state is on {last_t.device}"
+                )
+            first = events.t.min()
+            if bool(first < last_t):
+                raise ValueError(
+                    f"chunks must follow each other in time: this chunk starts at {first.item()}, "
+                    f"before the previous chunk's last event at {last_t.item()}"
+                )
+        out, state = photocurrent_events(
+            events, sensor_size=transform.sensor_size, factor=transform.factor_xy,
+            contrast=transform.contrast, threshold=transform.threshold, state=self.state,
+        )
+        if events.num_events or self.state is None:
+            self.state = state
+        return from_events(out, fmt)

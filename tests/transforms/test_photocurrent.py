@@ -1,0 +1,349 @@
+"""PhotocurrentPooling against slow float64 references of both modes, limits and invariants."""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import torch
+
+from evdown_torch import EventCount, PhotocurrentPooling
+from evdown_torch.transforms.registry import make_method
+from tests.helpers import DVS_DTYPE, as_tuples, random_stream
+
+SENSOR = (10, 7, 2)
+SNAP = 1e-9
+
+
+def _region_geometry(sensor, factor):
+    w, h, _ = sensor
+    fx, fy = (factor, factor) if isinstance(factor, int) else factor
+    out_w, out_h = -(-w // fx), -(-h // fy)
+    members = defaultdict(list)
+    for y in range(h):
+        for x in range(w):
+            members[x // fx, y // fy].append((x, y))
+    return fx, fy, out_w, out_h, members
+
+
+def _u(log_values, theta):
+    """log(mean(exp(values))) / theta in float64 (log-sum-exp), snapped to a level."""
+    top = max(log_values)
+    u = (top + math.log(math.fsum(math.exp(v - top) for v in log_values))
+         - math.log(len(log_values))) / theta
+    return float(round(u)) if abs(u - round(u)) <= SNAP else u
+
+
+def _walk(q, u):
+    """Reference rule from index q to value u: (new q, list of (level, on))."""
+    out = []
+    while u >= q + 1:
+        q += 1
+        out.append((q, True))
+    while u <= q - 1:
+        q -= 1
+        out.append((q, False))
+    return q, out
+
+
+def events_reference(arr, sensor, factor, contrast, threshold):
+    """Event by event: recompute each region's mean photocurrent from scratch."""
+    fx, fy, _, _, members = _region_geometry(sensor, factor)
+    level, q, out = defaultdict(int), defaultdict(int), []
+    for i in np.argsort(arr["t"], kind="stable"):
+        x, y = int(arr["x"][i]), int(arr["y"][i])
+        level[x, y] += 1 if arr["p"][i] > 0 else -1
+        r = (x // fx, y // fy)
+        u = _u([contrast * level[p] for p in members[r]], threshold)
+        q[r], crossed = _walk(q[r], u)
+        out += [(r[0], r[1], arr["t"][i].item(), on) for _, on in crossed]
+    return out
+
+
+def frames_reference(arr, sensor, factor, contrast, threshold, fps, cutoff_hz=0.0):
+    """Dense frames at t_start + k / fps (last clipped to t_end), linear ramps in log I_r."""
+    fx, fy, _, _, members = _region_geometry(sensor, factor)
+    order = np.argsort(arr["t"], kind="stable")
+    t = [arr["t"][i].item() for i in order]
+    t0, duration = t[0], t[-1] - t[0]
+    period = Fraction(10**6) / Fraction(fps).limit_denominator(10**6)
+    last = math.ceil(Fraction(duration) / period)
+    times = [float(min(k * period, duration)) for k in range(last + 1)]
+    omega = 2 * math.pi * cutoff_hz / 1e6
+    q, u_prev, out = defaultdict(int), defaultdict(float), []
+    for k, tk in enumerate(times):
+        ell = defaultdict(float)
+        for i, ti in zip(order, t, strict=True):
+            if ti - t0 <= k * period:
+                step = contrast if arr["p"][i] > 0 else -contrast
+                decay = math.exp(-omega * (tk - (ti - t0)))
+                ell[int(arr["x"][i]), int(arr["y"][i])] += step * decay
+        t_before = times[k - 1] if k else 0.0
+        for r, pixels in members.items():
+            u = _u([ell[p] for p in pixels], threshold)
+            q[r], crossed = _walk(q[r], u)
+            for j, on in crossed:
+                ratio = 1.0 if j == u else (j - u_prev[r]) / (u - u_prev[r])
+                at = t_before + ratio * (tk - t_before)
+                out.append((r[0], r[1], t0 + math.floor(at + 0.5 + 1e-9), on))
+            u_prev[r] = u
+    return sorted(out)
+
+
+def rows(out: np.ndarray) -> list[tuple]:
+    return list(zip(out["x"].tolist(), out["y"].tolist(), out["t"].tolist(),
+                    (out["p"] > 0).tolist()))
+
+
+def test_hand_computed_region():
+    # 2x1 region, c = theta = ln 2: intensities 1 -> (2 + 1) / 2 -> (2 + 2) / 2 = 2 (log 2, ON)
+    # -> (4 + 2) / 2 = 3 (log2 3 = 1.58, no event) -> (4 + 4) / 2 = 4 (ON) -> (2 + 4) / 2 = 3
+    # (inside (1, 2) from above: no event) -> (2 + 2) / 2 = 2 (level 1: OFF).
+    ev = np.array([(0, 0, True, 1), (1, 0, True, 2), (0, 0, True, 3), (1, 0, True, 4),
+                   (0, 0, False, 5), (1, 0, False, 6)], dtype=DVS_DTYPE)
+    out = PhotocurrentPooling((2, 1, 2), factor=(2, 1), contrast=math.log(2))(ev)
+    assert out.tolist() == [(0, 0, True, 2), (0, 0, True, 4), (0, 0, False, 6)]
+
+
+def test_linear_intensity_averaging_favours_bright_pixels():
+    # One pixel up two steps: (4 + 1) / 2 = 2.5, log2 2.5 = 1.32 -> one ON. Flipped: (1/4 + 1)
+    # / 2 = 0.625, log2 0.625 = -0.68 -> nothing. Polarity flip is no invariant of method 7
+    # (SEMANTICS.md keeps it for methods 3 to 5); it is for factor 1.
+    ev = torch.tensor([[0, 0, 1, 1], [0, 0, 2, 1]])
+    pool = PhotocurrentPooling((2, 1, 2), factor=(2, 1), contrast=math.log(2))
+    assert pool(ev).tolist() == [[0, 0, 2, 1]]
+    flipped = ev.clone()
+    flipped[:, 3] = 0
+    assert pool(flipped).tolist() == []
+
+
+def test_polarity_flip_with_factor_one(rng):
+    arr = random_stream(rng, 600, SENSOR, t_max=500)
+    pool = PhotocurrentPooling(SENSOR, factor=1, contrast=0.3, threshold=0.5)
+    flipped = arr.copy()
+    flipped["p"] = ~arr["p"]
+    expected = [(x, y, t, not on) for x, y, t, on in as_tuples(pool(arr))]
+    assert as_tuples(pool(flipped)) == sorted(expected)
+
+
+@pytest.mark.parametrize("factor", [2, 3, (2, 3), (10, 7)])
+@pytest.mark.parametrize(("contrast", "threshold"), [(0.2, None), (0.2, 0.05), (0.5, 0.3),
+                                                    (1.5, 0.7), (0.01, 0.004)])
+def test_events_mode_matches_reference(factor, contrast, threshold, rng):
+    arr = random_stream(rng, 500, SENSOR, t_max=300, sort=False)
+    pool = PhotocurrentPooling(SENSOR, factor=factor, contrast=contrast, threshold=threshold)
+    expected = events_reference(arr, SENSOR, factor, contrast, pool.threshold)
+    assert rows(pool(arr)) == expected
+
+
+def test_hot_pixel_far_beyond_float_range(rng):
+    # 4000 ON then 4000 OFF at one pixel: c * L reaches 1000 (exp overflows), so the kernel
+    # must cut the stream and re-anchor; its neighbours keep moving meanwhile.
+    hot = np.zeros(8000, dtype=DVS_DTYPE)
+    hot["t"] = np.arange(8000) * 2
+    hot["p"][:4000] = True
+    rest = random_stream(rng, 3000, (4, 4, 2), t_max=16000)
+    arr = np.sort(np.concatenate([hot, rest]), order="t", kind="stable")
+    pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)
+    expected = events_reference(arr, (4, 4, 2), 2, 0.25, 0.4)
+    assert sorted(rows(pool(arr))) == sorted(expected)
+
+
+def test_factor_one_threshold_contrast_returns_input(rng):
+    arr = random_stream(rng, 2000, SENSOR, t_max=1000)  # many same-pixel same-time events too
+    for contrast in (0.2, 0.15, 1.0, 3.7):
+        out = PhotocurrentPooling(SENSOR, factor=1, contrast=contrast)(arr)
+        assert as_tuples(out) == as_tuples(arr)
+
+
+def _mean_on_level(arr, sensor, factor, threshold):
+    """Regions whose mean level ever lies exactly on a level of EventCount(threshold)."""
+    fx, fy, _, _, members = _region_geometry(sensor, factor)
+    theta = Fraction(threshold)
+    total, hit = defaultdict(int), set()
+    for i in np.argsort(arr["t"], kind="stable"):
+        r = (int(arr["x"][i]) // fx, int(arr["y"][i]) // fy)
+        total[r] += 1 if arr["p"][i] > 0 else -1
+        if (Fraction(total[r], len(members[r])) / theta).denominator == 1:
+            hit.add(r)
+    return hit
+
+
+@pytest.mark.parametrize("factor", [2, (3, 2)])
+def test_small_contrast_limit_is_event_count(factor, rng):
+    threshold = 0.37
+    arr = random_stream(rng, 3000, SENSOR, t_max=2000)
+    on_level = _mean_on_level(arr, SENSOR, factor, threshold)
+    c = 1e-4
+    pool = PhotocurrentPooling(SENSOR, factor=factor, contrast=c, threshold=c * threshold)
+    got = [e for e in rows(pool(arr)) if e[:2] not in on_level]
+    expected = [e for e in rows(EventCount(SENSOR, factor=factor, threshold=threshold)(arr))
+                if e[:2] not in on_level]
+    assert len(expected) > 100  # plenty of regions never sit on a level
+    assert got == expected
+
+
+@pytest.mark.parametrize("fps", [1000.0, 333.0, 12_500.0])
+@pytest.mark.parametrize(("factor", "contrast", "threshold"), [(2, 0.2, None), ((3, 2), 0.4, 0.25)])
+def test_frames_mode_matches_reference(fps, factor, contrast, threshold, rng):
+    arr = random_stream(rng, 300, SENSOR, t_max=20_000, sort=False)
+    pool = PhotocurrentPooling(SENSOR, factor=factor, contrast=contrast, threshold=threshold,
+                               fps=fps)
+    expected = frames_reference(arr, SENSOR, factor, contrast, pool.threshold, fps)
+    assert sorted(rows(pool(arr))) == expected
+
+
+@pytest.mark.parametrize("cutoff_hz", [5.0, 200.0])
+def test_frames_mode_with_leak_matches_reference(cutoff_hz, rng):
+    arr = random_stream(rng, 200, SENSOR, t_max=20_000)
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=2000.0,
+                               cutoff_hz=cutoff_hz)
+    expected = frames_reference(arr, SENSOR, 2, 0.3, 0.1, 2000.0, cutoff_hz)
+    assert len(expected) > 20
+    assert sorted(rows(pool(arr))) == expected
+
+
+@pytest.mark.parametrize("fps", [1e6, 1e5])
+def test_frames_mode_at_high_fps_matches_events_mode_count(fps, rng):
+    # A region here has an event every ~1300 us on average. With frames 100 times shorter or
+    # more, a frame rarely holds two of a region's events, and only those (whose intermediate
+    # value the events mode sees) can change the count. Stated tolerance: 1 %.
+    arr = random_stream(rng, 3000, SENSOR, t_max=200_000)
+    events_mode = PhotocurrentPooling(SENSOR, factor=2, contrast=0.2, threshold=0.05)(arr)
+    frames_mode = PhotocurrentPooling(SENSOR, factor=2, contrast=0.2, threshold=0.05,
+                                      fps=fps)(arr)
+    assert len(events_mode) > 1000
+    assert abs(len(frames_mode) - len(events_mode)) <= 0.01 * len(events_mode)
+
+
+@pytest.mark.parametrize("fps", [None, 1000.0])
+def test_clock_shift_at_unix_epoch_magnitude(fps, rng):
+    arr = random_stream(rng, 800, SENSOR, t_max=50_000)
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.2, fps=fps)
+    shift = 1_700_000_000_000_000  # 1.7e15 us
+    shifted = arr.copy()
+    shifted["t"] += shift
+    base = pool(arr)
+    assert len(base) > 50
+    expected = [(x, y, t + shift, on) for x, y, t, on in as_tuples(base)]
+    assert as_tuples(pool(shifted)) == expected
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_streaming_equals_batch(seed):
+    rng = np.random.default_rng(seed)
+    arr = random_stream(rng, 3000, SENSOR, t_max=3000)
+    pool = PhotocurrentPooling(SENSOR, factor=(3, 2), contrast=0.25, threshold=0.3)
+    cuts = np.sort(rng.integers(0, len(arr) + 1, 12))
+    cuts = np.concatenate([[0], cuts, cuts[:3], [len(arr)]])  # repeated cuts: empty chunks
+    cuts.sort()
+    session = pool.session()
+    pieces = [session(arr[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    assert rows(np.concatenate(pieces)) == rows(pool(arr))
+
+
+def test_session_rejects_out_of_order_chunks_and_frames_mode():
+    session = PhotocurrentPooling(SENSOR).session()
+    session(torch.tensor([[0, 0, 10, 1]]))
+    with pytest.raises(ValueError, match="follow each other in time"):
+        session(torch.tensor([[0, 0, 5, 1]]))
+    with pytest.raises(ValueError, match="events mode"):
+        PhotocurrentPooling(SENSOR, fps=100.0).session()
+
+
+@pytest.mark.parametrize("fps", [None, 500.0])
+def test_empty_and_single_event(fps):
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.2, fps=fps)
+    empty = np.zeros(0, dtype=DVS_DTYPE)
+    out = pool(empty)
+    assert out.dtype == DVS_DTYPE and len(out) == 0
+    assert pool(torch.zeros((0, 4), dtype=torch.int64)).shape == (0, 4)
+    single = np.array([(3, 4, True, 77)], dtype=DVS_DTYPE)
+    # One ON in a 2x2 region: (e^0.2 + 3) / 4 is far below the level e^0.2: nothing.
+    assert len(pool(single)) == 0
+    one = PhotocurrentPooling(SENSOR, factor=1, contrast=0.2, fps=fps)(single)
+    assert one.tolist() == [(3, 4, True, 77)]
+
+
+def test_kinds_in_kinds_out_input_untouched(rng):
+    arr = random_stream(rng, 400, SENSOR, t_max=1000)
+    before = arr.copy()
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.15)
+    out_arr = pool(arr)
+    assert out_arr.dtype == DVS_DTYPE and np.array_equal(arr, before)
+    tensor = torch.as_tensor(np.stack([arr["x"], arr["y"], arr["t"],
+                                       np.where(arr["p"], 1, -1)], axis=1).astype(np.int64))
+    tensor_before = tensor.clone()
+    out_tensor = pool(tensor)
+    assert torch.equal(tensor, tensor_before)
+    assert out_tensor.dtype == torch.int64 and out_tensor.shape[1] == 4
+    assert set(out_tensor[:, 3].tolist()) <= {-1, 1}
+    assert out_tensor[:, :3].tolist() == [list(r[:2]) + [r[3]] for r in out_arr.tolist()]
+    assert (out_tensor[:, 0] < 5).all() and (out_tensor[:, 1] < 4).all()
+    assert (out_tensor[1:, 2] >= out_tensor[:-1, 2]).all()
+
+
+def test_device(device, rng):
+    arr = random_stream(rng, 500, SENSOR, t_max=1000)
+    tensor = torch.as_tensor(np.stack([arr["x"], arr["y"], arr["t"], arr["p"]], axis=1)
+                             .astype(np.int64))
+    for fps in (None, 2000.0):
+        pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, fps=fps)
+        out = pool(tensor.to(device))
+        assert out.device.type == device.type
+        assert out.cpu().tolist() == pool(tensor).tolist()
+
+
+@pytest.mark.parametrize(("settings", "message"), [
+    ({"contrast": 0.0}, "contrast"), ({"contrast": -0.2}, "contrast"),
+    ({"contrast": math.nan}, "contrast"), ({"contrast": math.inf}, "contrast"),
+    ({"contrast": 100.0}, "contrast"), ({"threshold": 0.0}, "threshold"),
+    ({"threshold": math.inf}, "threshold"), ({"fps": 0.0}, "fps"), ({"fps": -5.0}, "fps"),
+    ({"fps": math.nan}, "fps"), ({"fps": 100.0, "cutoff_hz": -1.0}, "cutoff_hz"),
+    ({"cutoff_hz": 3.0}, "cutoff_hz"),
+])
+def test_bad_settings_are_refused(settings, message):
+    with pytest.raises(ValueError, match=message):
+        PhotocurrentPooling(SENSOR, **settings)
+
+
+def test_registry_and_budget_setting():
+    pool = make_method("photocurrent", SENSOR, 2, contrast=0.3, threshold=0.1)
+    assert isinstance(pool, PhotocurrentPooling)
+    assert pool.output_sensor_size == (5, 4, 2)
+    assert PhotocurrentPooling.budget_setting == "threshold"
+    assert PhotocurrentPooling(SENSOR).threshold == 0.2
+
+
+def test_streaming_equals_batch_across_cuts(rng):
+    # A hot pixel forces the kernel to cut pieces and re-anchor; a session must agree.
+    hot = np.zeros(3000, dtype=DVS_DTYPE)
+    hot["t"] = np.arange(3000) * 3
+    hot["p"][:2000] = True
+    rest = random_stream(rng, 2000, (4, 4, 2), t_max=9000)
+    arr = np.sort(np.concatenate([hot, rest]), order="t", kind="stable")
+    pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.3, threshold=0.2)
+    session = pool.session()
+    cuts = np.concatenate([[0], np.sort(rng.integers(0, len(arr), 9)), [len(arr)]])
+    pieces = [session(arr[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    batch = pool(arr)
+    assert rows(np.concatenate(pieces)) == rows(batch)
+    assert sorted(rows(batch)) == sorted(events_reference(arr, (4, 4, 2), 2, 0.3, 0.2))
+
+
+def test_frames_mode_float_timestamps(rng):
+    arr = random_stream(rng, 300, SENSOR, t_max=20_000)
+    as_float = torch.as_tensor(np.stack([arr["x"], arr["y"], arr["t"], arr["p"]], axis=1)
+                               .astype(np.float64))
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=1000.0)
+    expected = frames_reference(arr, SENSOR, 2, 0.3, 0.1, 1000.0)
+    out = pool(as_float)
+    assert out.dtype == torch.float64
+    # Float times are not rounded: each lies within half a tick of the integer result.
+    got = sorted((int(x), int(y), float(t), bool(p > 0)) for x, y, t, p in out.tolist())
+    assert len(got) == len(expected) > 20
+    for (x, y, t, on), (ex, ey, et, eon) in zip(got, expected, strict=True):
+        assert (x, y, on) == (ex, ey, eon) and abs(t - et) <= 0.5 + 1e-6
