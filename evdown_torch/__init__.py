@@ -3,6 +3,7 @@
 from evdown_torch.checks import max_output_events, set_max_output_events
 from evdown_torch.events import Events, from_events, to_events
 from evdown_torch.transforms import (
+    Chain,
     CubicEstimation,
     Downsample,
     EventCount,
@@ -10,11 +11,13 @@ from evdown_torch.transforms import (
     LIFPooling,
     LinearEstimation,
     PhotocurrentPooling,
+    TemporalFunnelling,
 )
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Chain",
     "CubicEstimation",
     "Downsample",
     "EventCount",
@@ -23,6 +26,7 @@ __all__ = [
     "LIFPooling",
     "LinearEstimation",
     "PhotocurrentPooling",
+    "TemporalFunnelling",
     "__version__",
     "from_events",
     "max_output_events",

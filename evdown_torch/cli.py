@@ -270,6 +270,10 @@ def add_bench_command(commands: argparse._SubParsersAction) -> None:
                        "tonic_differentiator")
     bench.add_argument("--no-scaling", action="store_true", help="skip the scaling sweeps")
     bench.add_argument("--no-memory", action="store_true", help="skip peak-memory measurements")
+    bench.add_argument("--realtime", action="store_true",
+                       help="replay a recording (the first --input, else a synthetic gesture "
+                       "one) through every streaming session in 1 ms and 10 ms chunks, at its "
+                       "own rate and at 25 M events/s; writes realtime.md/.json/.png")
     bench.set_defaults(run=_bench)
 
 

@@ -342,3 +342,88 @@ def test_cli_rejects_a_bad_method_spec(tmp_path, capsys):
     assert code == 2
     assert "unknown method or peer 'nope'" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+# --- Real-time replay (evdown bench --realtime): structure, not timing ------------------------
+
+
+def test_retime_compresses_time_and_keeps_the_order(rng):
+    from evdown_torch.bench import realtime
+
+    arr = random_stream(rng, 1000, (16, 16, 2), t_max=1_000_000)
+    arr["t"][0] = 0
+    fast, rate = realtime.retime(arr, 25e6)
+    assert rate == 25e6
+    assert (np.diff(fast["t"]) >= 0).all() and fast["t"][0] == arr["t"][0]
+    own = len(arr) / ((arr["t"][-1] - arr["t"][0]) * 1e-6)
+    assert fast["t"][-1] == math.floor(arr["t"][-1] * own / 25e6)
+    same, own_rate = realtime.retime(arr, None)
+    assert same is arr and own_rate == pytest.approx(own)
+
+
+def test_chunk_bounds_follow_stream_time():
+    from evdown_torch.bench.realtime import chunk_bounds_us
+
+    t = np.array([100, 150, 1099, 1100, 3200])
+    # Chunks [100, 1100), [1100, 2100), [2100, 3100), [3100, 4100).
+    assert chunk_bounds_us(t, 1000).tolist() == [0, 3, 4, 4, 5]
+
+
+def test_replay_gives_the_batch_output_and_bounded_delays(rng):
+    from evdown_torch import LinearEstimation
+    from evdown_torch.bench.realtime import replay
+
+    sensor = (16, 16, 2)
+    arr = random_stream(rng, 3000, sensor, t_max=20_000)
+    transform = LinearEstimation(sensor, factor=4, threshold=0.5, max_delay=300)
+    result = replay(transform, arr, chunk_us=1000, label="linear", rate=1.0, lagging=True)
+    chunks = math.ceil((arr["t"][-1] - arr["t"][0] + 1) / 1000)
+    first_chunk = int((arr["t"] < arr["t"][0] + 1000).sum())
+    last_chunk = int((arr["t"] >= arr["t"][0] + (chunks - 1) * 1000).sum())
+    # Neither the warm-up chunk nor the stream's last (partial) chunk is timed.
+    assert result.chunks == len(result.seconds) == chunks - 2
+    assert result.events_in == len(arr) - first_chunk - last_chunk
+    assert result.events_out == len(transform(arr))
+    tail = int((transform(arr)["t"] >= arr["t"][-1] - 300).sum())  # left for the flush
+    assert len(transform(arr)) - tail <= len(result.delays_us) <= result.events_out
+    # Out with the first chunk whose last event is later than t + D (test_streaming checks
+    # that exactly); measured from the end of the chunk's window, at most D plus two chunks.
+    assert min(result.delays_us) >= 300 and max(result.delays_us) <= 300 + 2 * 1000
+    summary = result.summary()
+    assert summary["keeps_up"] == (summary["p99_s"] < 1e-3)
+    assert summary["delay_us"]["max"] == max(result.delays_us)
+
+
+def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_path, capsys):
+    from evdown_torch.bench.realtime import REALTIME_METHODS
+
+    out = tmp_path / "rt"
+    # 80,000 events last 3.2 ms at 25 M events/s: two timed 1 ms chunks, no 10 ms one.
+    code = main(["bench", "--realtime", "--short", "--events", "80000", "--out", str(out)])
+    assert code == 0
+    table = (out / "realtime.md").read_text()
+    rows = [line for line in table.splitlines() if line.startswith("| ") and "---" not in line]
+    assert len(rows) - 1 == len(REALTIME_METHODS) * 2 * 2  # methods x rates x chunk sizes
+    data = json.loads((out / "realtime.json").read_text())
+    assert {(d["method"], d["chunk_us"]) for d in data} == {
+        (m, c) for m in REALTIME_METHODS for c in (1000, 10_000)}
+    fast = [d for d in data if d["rate"] == 25e6 and d["chunk_us"] == 1000 and not d["note"]]
+    assert fast and all(d["chunks"] >= 1 and d["sustained_rate"] > 0 for d in fast)
+    slow = [d for d in data if d["rate"] == 25e6 and d["chunk_us"] == 10_000 and not d["note"]]
+    assert all(d["chunks"] == 0 and d["p99_s"] is None for d in slow)
+    # Delays only for the lagging methods, and never below their max_delay (1 ms).
+    assert all(d["method"] in ("linear", "cubic") and d["delay_us"]["median"] >= 1000
+               for d in data if "delay_us" in d)
+    skipped = {d["method"] for d in data if d["note"]}
+    assert skipped <= {"lif", "photocurrent"}  # only methods without the common session
+    assert "realtime.md" in capsys.readouterr().out
+
+
+def test_sustained_rate_scales_the_replayed_rate_to_the_p99():
+    from evdown_torch.bench.realtime import ReplayResult
+
+    r = ReplayResult("m", 2e6, 1000, seconds=[0.0001, 0.0002, 0.0004])
+    # p99 by linear interpolation: 0.0002 + 0.98 * 0.0002 = 0.000396 s of a 1 ms chunk.
+    assert r.sustained_rate == pytest.approx(2e6 * 1e-3 / 0.000396)
+    assert r.keeps_up is True
+    assert ReplayResult("m", 1e6, 1000).sustained_rate is None

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
+
+import numpy as np
 
 from evdown_torch.bench.report import method_table, write_report
 from evdown_torch.bench.run import run_benchmark
@@ -21,6 +24,8 @@ def run_from_args(args: argparse.Namespace, *, nmnist: str | Path | None = None)
     """
     if args.events is not None:
         check_positive_int("--events", args.events)
+    if getattr(args, "realtime", False):
+        return _realtime_from_args(args)
     results = run_benchmark(
         short=args.short, inputs=args.input or (), sensor_size=args.sensor_size,
         events=args.events, repeats=args.repeats, methods=args.methods,
@@ -33,4 +38,39 @@ def run_from_args(args: argparse.Namespace, *, nmnist: str | Path | None = None)
           f"{headline.num_events:,} events\n{method_table(results, 'gesture')}")
     print(f"evdown bench: {len(results.measurements)} measurements in "
           f"{results.elapsed_s:.0f} s; wrote {', '.join(str(p) for p in written)}")
+    return 0
+
+
+def _realtime_from_args(args: argparse.Namespace) -> int:
+    """``evdown bench --realtime``: replay a recording through every session in live chunks."""
+    from evdown_torch.bench.inputs import gesture_stream
+    from evdown_torch.bench.realtime import (
+        REALTIME_RATE,
+        realtime_benchmark,
+        write_realtime_report,
+    )
+    from evdown_torch.events import load_npy_events
+
+    start = time.perf_counter()
+    if args.input:
+        events = np.sort(load_npy_events(args.input[0]), order="t", kind="stable")
+        sensor = tuple(args.sensor_size) if args.sensor_size else (
+            int(events["x"].max()) + 1, int(events["y"].max()) + 1, 2)
+        source = f"{args.input[0]}"
+    else:
+        # Enough events for the timed chunks at 25 M events/s in 10 ms chunks.
+        n = args.events or (1_000_000 if args.short else 13_000_000)
+        sensor = (128, 128, 2)
+        events = gesture_stream(n, sensor_size=sensor)
+        source = f"synthetic DVS128-Gesture-like recording ({len(events):,} events)"
+    max_chunks = 10 if args.short else 50
+    results = realtime_benchmark(events, sensor, methods=args.methods, max_chunks=max_chunks)
+    header = (
+        f"Real-time replay of {source}, {sensor[0]}x{sensor[1]}, factor 4, one thread; "
+        f"at its own rate and at {REALTIME_RATE / 1e6:g} M events/s; up to {max_chunks} timed "
+        f"chunks per replay; {time.perf_counter() - start:.0f} s.\n\n"
+    )
+    written = write_realtime_report(results, args.out, header=header)
+    print(header + (Path(written[0]).read_text()[len(header):]))
+    print(f"evdown bench --realtime: wrote {', '.join(str(p) for p in written)}")
     return 0

@@ -1,17 +1,155 @@
-"""The shape every downscaling transform shares."""
+"""The shape every downscaling transform shares, and the one streaming session of all."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
+import torch
+
+from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import check_factor, check_positive_float, check_sensor_size, output_size
-from evdown_torch.events import Events, EventsLike, from_events, to_events
+from evdown_torch.events import EventFormat, Events, EventsLike, from_events, to_events
 from evdown_torch.transforms.functional._reference import threshold_fraction
 
 
+class Streaming:
+    """What a transform implements to get a streaming :class:`Session`.
+
+    A transform is a pure function of the whole stream; its streaming form is a pair of pure
+    step functions on validated, time-sorted :class:`~evdown_torch.events.Events`, the state
+    passed in and returned, never hidden:
+
+    - :meth:`stream` ``(chunk, state) -> (output, state)``: one chunk, ``state`` ``None`` for
+      the first chunk of a stream. It returns the output events the chunk *decides* (those no
+      later input can change), sorted by ``t`` and later than or equal to every earlier one.
+    - :meth:`stream_end` ``(state) -> output``: what only the end of the stream decides
+      (default: nothing).
+
+    The concatenation of every chunk's output and the end's equals the transform applied to
+    the whole stream (docs/semantics.md, "Processing a stream in consecutive chunks").
+    :class:`Session` adds the edges: validation, conversion to the chunk's kind, the time
+    order check. A method that cannot stream overrides :meth:`session` to say why.
+    """
+
+    sensor_size: tuple[int, int, int] | None
+
+    def stream(self, events: Events, state: Any | None) -> tuple[Events, Any]:
+        """Process one non-empty, time-sorted chunk; returns ``(output, new state)``."""
+        raise NotImplementedError(f"{type(self).__name__} has no streaming session")
+
+    def stream_end(self, state: Any | None) -> Events | None:
+        """The output only the end of the stream decides (``None``: nothing)."""
+        return None
+
+    def session(self) -> Session:
+        """Start a streaming session over consecutive chunks of one stream (see :class:`Session`).
+
+        Raises:
+            NotImplementedError: for a transform that does not implement :meth:`stream`.
+        """
+        if type(self).stream is Streaming.stream:
+            raise NotImplementedError(f"{type(self).__name__} has no streaming session")
+        return Session(self)
+
+
+class Session:
+    """A live stream through a transform: feed consecutive chunks, get each chunk's events.
+
+    ``session(chunk)`` returns the events that chunk decides, in the chunk's kind (structured
+    array, ``(N, 4)`` tensor or Events); ``session.flush()`` returns what only the end of the
+    stream decides and ends the stream; ``session.reset()`` forgets the stream. The
+    concatenation of all outputs, flush included, equals the transform applied to the whole
+    stream, whatever the chunk sizes (empty chunks included).
+
+    Chunks must follow each other in time: a chunk may not hold a timestamp earlier than the
+    previous chunks' last one (equal timestamps are fine and keep chunk order). A chunk that
+    breaks this, or any other bad chunk, raises a ``ValueError`` and leaves the session as it
+    was, so it stays usable. The method's own state is held explicitly in :attr:`state`
+    (``None`` before the first event); the transform itself is never modified.
+
+    Attributes:
+        transform: the settings.
+        state: the method's state after the last chunk (see its ``stream`` method).
+        last_t: the latest input timestamp seen (a Python number), ``None`` before any event.
+
+    Example:
+        >>> import torch
+        >>> from evdown_torch import EventCount
+        >>> ev = torch.tensor([[0, 0, 10, 1], [1, 1, 20, 1], [0, 1, 30, -1], [1, 0, 40, -1]])
+        >>> session = EventCount((2, 2, 2), factor=2, threshold=0.5).session()
+        >>> [session(chunk).tolist() for chunk in (ev[:1], ev[1:3], ev[3:])]
+        [[], [[0, 0, 20, 1]], [[0, 0, 40, -1]]]
+        >>> session.flush().tolist()
+        []
+    """
+
+    def __init__(self, transform: Streaming) -> None:
+        self.transform = transform
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the stream: the next chunk starts a new one."""
+        self.state: Any | None = None
+        self.last_t: int | float | None = None
+        self._fmt: EventFormat | None = None
+        self._t_dtype: torch.dtype | None = None
+        self._device: torch.device | None = None
+
+    def __call__(self, chunk: EventsLike) -> EventsLike:
+        """Process the next chunk; returns the events it decides, in the chunk's kind.
+
+        Raises:
+            ValueError: for a chunk that starts before the previous chunk's last event, on
+                another device or with another timestamp dtype than the stream's, or that
+                fails the transform's input checks; the session is unchanged.
+        """
+        events, fmt = to_events(chunk, self.transform.sensor_size)
+        if events.num_events == 0:
+            self._fmt = fmt
+            return from_events(Events.empty(events.t.dtype, events.device), fmt)
+        if self._device is not None:
+            if events.device != self._device:
+                raise ValueError(
+                    f"chunk is on {events.device} but the stream so far is on {self._device}"
+                )
+            if events.t.dtype != self._t_dtype:
+                raise ValueError(
+                    f"chunk timestamps are {events.t.dtype} but the stream's are {self._t_dtype}"
+                )
+        first = events.t.min().item()
+        if self.last_t is not None and first < self.last_t:
+            raise ValueError(
+                f"chunks must follow each other in time: this chunk holds t={first}, before "
+                f"the previous chunks' last event at t={self.last_t}"
+            )
+        out, state = self.transform.stream(sort_by_time(events), self.state)
+        self.state = state
+        self.last_t = events.t.max().item()
+        self._fmt, self._t_dtype, self._device = fmt, events.t.dtype, events.device
+        return from_events(out, fmt)
+
+    def flush(self) -> EventsLike:
+        """End the stream: return what only its end decides and reset the session.
+
+        Returns:
+            The remaining events in the kind of the last chunk (empty Events when no chunk
+            was fed).
+        """
+        if self._fmt is None:
+            self.reset()
+            return Events.empty()
+        out = self.transform.stream_end(self.state)
+        if out is None:
+            t_dtype = self._t_dtype if self._t_dtype is not None else torch.int64
+            out = Events.empty(t_dtype, self._device)
+        fmt = self._fmt
+        self.reset()
+        return from_events(out, fmt)
+
+
 @dataclass(frozen=True)
-class Downscaler:
+class Downscaler(Streaming):
     """Base of the downscaling transforms: settings, validation and the edge conversions.
 
     Subclasses are frozen dataclasses that implement :meth:`kernel`; ``__call__`` validates
@@ -89,3 +227,74 @@ class ThresholdDownscaler(Downscaler):
         super().__post_init__()
         object.__setattr__(self, "threshold", check_positive_float("threshold", self.threshold))
         threshold_fraction(self.threshold)
+
+
+@dataclass(frozen=True, init=False)
+class Chain(Streaming):
+    """Transforms applied one after the other, as one transform with one session.
+
+    ``tonic.transforms.Compose`` chains transforms for whole recordings; ``Chain`` does the
+    same and also streams: its session feeds each chunk's output of one stage to the next
+    stage's step, and its flush ends the stages in order, so a chained session equals the
+    chained batch result too. Use it to compose :class:`~evdown_torch.TemporalFunnelling`
+    with a spatial method.
+
+    Args:
+        *transforms: streaming transforms (at least one), first applied first.
+
+    Example:
+        >>> import torch
+        >>> from evdown_torch import EventFunnelling, TemporalFunnelling
+        >>> ev = torch.tensor([[0, 0, 0, 1], [1, 1, 3, 1], [2, 0, 12, 1]])
+        >>> chain = Chain(TemporalFunnelling(dt=10), EventFunnelling((4, 4, 2), factor=2))
+        >>> chain(ev).tolist()
+        [[0, 0, 0, 1], [1, 0, 10, 1]]
+    """
+
+    transforms: tuple[Streaming, ...]
+
+    def __init__(self, *transforms: Streaming) -> None:
+        if not transforms:
+            raise ValueError("Chain needs at least one transform")
+        for transform in transforms:
+            if not isinstance(transform, Streaming):
+                raise TypeError(
+                    f"Chain takes evdown_torch transforms, got {type(transform).__name__}"
+                )
+        object.__setattr__(self, "transforms", tuple(transforms))
+
+    @property
+    def sensor_size(self) -> tuple[int, int, int] | None:  # type: ignore[override]
+        """The first stage's input sensor size."""
+        return self.transforms[0].sensor_size
+
+    def __call__(self, events: EventsLike) -> EventsLike:
+        """Apply every stage in order; returns the input's kind."""
+        for transform in self.transforms:
+            events = transform(events)  # type: ignore[operator]
+        return events
+
+    def stream(self, events: Events, state: Any | None) -> tuple[Events, Any]:
+        """One chunk through every stage; the state is the tuple of the stages' states."""
+        states = list(state) if state is not None else [None] * len(self.transforms)
+        for i, transform in enumerate(self.transforms):
+            if events.num_events == 0:
+                break
+            events, states[i] = transform.stream(events, states[i])
+        return events, tuple(states)
+
+    def stream_end(self, state: Any | None) -> Events | None:
+        """End the stages in order, each one's end fed through the stages after it."""
+        states = list(state) if state is not None else [None] * len(self.transforms)
+        pieces: list[Events] = []
+        for i, transform in enumerate(self.transforms):
+            tail = transform.stream_end(states[i])
+            for j in range(i + 1, len(self.transforms)):
+                if tail is None or tail.num_events == 0:
+                    break
+                tail, states[j] = self.transforms[j].stream(tail, states[j])
+            if tail is not None and tail.num_events:
+                pieces.append(tail)
+        if not pieces:
+            return None
+        return Events(*(torch.cat(columns) for columns in zip(*pieces)))

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.functional.downsample import downsample
-from evdown_torch.transforms.functional.funnelling import event_funnelling
+from evdown_torch.transforms.functional.funnelling import (
+    drop_repeats,
+    event_funnelling,
+    last_instant,
+)
 
 
 @dataclass(frozen=True)
@@ -32,6 +37,10 @@ class Downsample(Downscaler):
         """Apply :func:`~evdown_torch.transforms.functional.downsample.downsample`."""
         return downsample(events, factor=self.factor_xy)
 
+    def stream(self, events: Events, state: Any | None) -> tuple[Events, None]:
+        """One chunk of a stream: stateless, every event is decided at once."""
+        return self.kernel(events), None
+
 
 @dataclass(frozen=True)
 class EventFunnelling(Downscaler):
@@ -52,3 +61,13 @@ class EventFunnelling(Downscaler):
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.funnelling.event_funnelling`."""
         return event_funnelling(events, factor=self.factor_xy)
+
+    def stream(self, events: Events, state: Events | None) -> tuple[Events, Events | None]:
+        """One chunk of a stream.
+
+        The state is the distinct output events at the latest timestamp so far: the only ones
+        a later chunk can repeat (a repeat shares ``t``), so duplicates that straddle a chunk
+        boundary are still dropped.
+        """
+        out = drop_repeats(downsample(events, factor=self.factor_xy), seen=state)
+        return out, last_instant(out, state)

@@ -3,15 +3,99 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
+import torch
+
+from evdown_torch.checks import check_positive_float
 from evdown_torch.events import Events
-from evdown_torch.transforms._base import ThresholdDownscaler
+from evdown_torch.transforms._base import Session, ThresholdDownscaler
 from evdown_torch.transforms.functional.cubic import cubic_estimation
 from evdown_torch.transforms.functional.linear import linear_estimation
 
 
+class EstimationState(NamedTuple):
+    """State of a bounded-delay estimation stream between chunks.
+
+    Attributes:
+        history: every input event of the stream so far, in time order.
+        horizon: output events earlier than this time have been returned already.
+    """
+
+    history: Events
+    horizon: int | float
+
+
 @dataclass(frozen=True)
-class LinearEstimation(ThresholdDownscaler):
+class _Estimation(ThresholdDownscaler):
+    """What both estimators share: the bounded delay and its streaming session.
+
+    Attributes:
+        max_delay: ``D`` in the stream's time unit (a whole number for integer timestamps),
+            or ``None`` (default) for the paper's method, which needs the whole stream.
+    """
+
+    max_delay: float | None = None
+
+    #: Output up to ``tau - lag * D`` is decided by input up to ``tau``.
+    lag = 1
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.max_delay is not None:
+            check_positive_float("max_delay", self.max_delay)
+
+    def session(self) -> Session:
+        """Start a streaming session (needs a finite ``max_delay``; see :meth:`stream`).
+
+        Raises:
+            ValueError: when ``max_delay`` is ``None``: the paper's estimators need the whole
+                stream (each pixel's curve ramps towards its next event however far ahead).
+        """
+        if self.max_delay is None:
+            raise ValueError(
+                f"{type(self).__name__} with max_delay=None is the paper's method, which needs "
+                "the whole stream; streaming needs a finite delay: set max_delay=D (in the "
+                f"stream's time unit) and events come out at most {self.lag}*D after they happen"
+            )
+        return Session(self)
+
+    def stream(
+        self, events: Events, state: EstimationState | None
+    ) -> tuple[Events, EstimationState]:
+        """One chunk of a stream: returns the output events earlier than ``tau - lag * D``.
+
+        ``tau`` is the chunk's last timestamp and ``lag`` 1 (linear) or 2 (cubic): with the
+        bounded delay, output up to there no longer depends on later input
+        (docs/semantics.md, "Bounded delay"), so every output event at ``t`` comes out with
+        the first chunk that reaches past ``t + lag * D``. The session recomputes the stream
+        so far and keeps its input: exact, but its cost and memory grow with the stream.
+        """
+        if state is None:
+            history, horizon = events, None
+        else:
+            history = Events(*(torch.cat(pair) for pair in zip(state.history, events)))
+            horizon = state.horizon
+        out = self.kernel(history)
+        tau = events.t[-1].item()
+        delay = self.max_delay if events.t.is_floating_point() else int(self.max_delay)
+        new_horizon = tau - self.lag * delay  # type: ignore[operator]
+        keep = out.t < new_horizon
+        if horizon is not None:
+            keep &= out.t >= horizon
+            new_horizon = max(new_horizon, horizon)
+        return out.select(keep.nonzero().squeeze(1)), EstimationState(history, new_horizon)
+
+    def stream_end(self, state: EstimationState | None) -> Events | None:
+        """The output from the last horizon to the end of the stream."""
+        if state is None:
+            return None
+        out = self.kernel(state.history)
+        return out.select((out.t >= state.horizon).nonzero().squeeze(1))
+
+
+@dataclass(frozen=True)
+class LinearEstimation(_Estimation):
     """Linear log-luminance estimation (docs/semantics.md, method 4), exact crossing times.
 
     Each input pixel's log-luminance is the polyline through its knots (one per distinct event
@@ -32,6 +116,11 @@ class LinearEstimation(ThresholdDownscaler):
         factor: a positive integer or a pair ``(fx, fy)``.
         threshold: contrast threshold on the region's mean level (in input events per pixel),
             > 0. It is used as the nearest fraction with denominator at most 10**6.
+        max_delay: bounded delay ``D`` (docs/semantics.md, "Bounded delay"), in the stream's
+            time unit and a whole number for integer timestamps: a pixel holds its level
+            until ``D`` before its next knot, and a :meth:`session` returns each event at
+            most ``D`` of stream time after it happens. ``None`` (default): the paper's
+            method, batch only.
 
     Example:
         >>> import torch
@@ -43,12 +132,13 @@ class LinearEstimation(ThresholdDownscaler):
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.linear.linear_estimation`."""
         return linear_estimation(
-            events, sensor_size=self.sensor_size, factor=self.factor_xy, threshold=self.threshold
+            events, sensor_size=self.sensor_size, factor=self.factor_xy,
+            threshold=self.threshold, max_delay=self.max_delay,
         )
 
 
 @dataclass(frozen=True)
-class CubicEstimation(ThresholdDownscaler):
+class CubicEstimation(_Estimation):
     """Cubic log-luminance estimation (docs/semantics.md, method 5).
 
     As :class:`LinearEstimation`, but each pixel's curve is the piecewise cubic Hermite
@@ -62,6 +152,9 @@ class CubicEstimation(ThresholdDownscaler):
         factor: a positive integer or a pair ``(fx, fy)``.
         threshold: contrast threshold on the region's mean level (in input events per pixel),
             > 0. It is used as the nearest fraction with denominator at most 10**6.
+        max_delay: bounded delay ``D`` as for :class:`LinearEstimation`; PCHIP slopes need
+            one more knot, so a :meth:`session` returns each event at most ``2 * D`` after it
+            happens.
 
     Example:
         Pixel (1, 0)'s curve rises faster than a straight line: on ``[0, 10]`` the sum of
@@ -75,8 +168,11 @@ class CubicEstimation(ThresholdDownscaler):
         [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 6, 1], [0, 0, 20, 0]]
     """
 
+    lag = 2
+
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.cubic.cubic_estimation`."""
         return cubic_estimation(
-            events, sensor_size=self.sensor_size, factor=self.factor_xy, threshold=self.threshold
+            events, sensor_size=self.sensor_size, factor=self.factor_xy,
+            threshold=self.threshold, max_delay=self.max_delay,
         )

@@ -8,6 +8,7 @@ from evdown_torch.transforms.functional.lif import lif_pooling
 from evdown_torch.transforms.functional.linear import linear_estimation
 from evdown_torch.transforms.functional.photocurrent import photocurrent_events
 from evdown_torch.transforms.functional.photocurrent_frames import photocurrent_frames
+from evdown_torch.transforms.functional.temporal import temporal_funnelling
 
 __all__ = [
     "cubic_estimation",
@@ -18,4 +19,5 @@ __all__ = [
     "linear_estimation",
     "photocurrent_events",
     "photocurrent_frames",
+    "temporal_funnelling",
 ]

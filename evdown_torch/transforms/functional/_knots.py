@@ -17,12 +17,18 @@ pixels or regions (:func:`pixel_knots`):
 * the breakpoints of every active region (grouped by region, in time order; the first is at
   ``t_start``, the last at ``t_end``), with the breakpoint index of every knot.
 
+With a bounded delay ``D`` (``max_delay``, docs/semantics.md "Bounded delay"), a knot
+``(t_next - D, previous level)`` is inserted wherever two consecutive knots of a pixel (the
+front knot included) are more than ``D`` apart (:func:`hold_knots`): the estimators see it as
+an event that changes no level, so the knot and breakpoint machinery stays one.
+
 It also holds the output assembly both estimators share (:func:`emit`); the level test and
 the reference rule they apply live in :mod:`~evdown_torch.transforms.functional._reference`.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 from typing import NamedTuple
 
@@ -54,6 +60,7 @@ __all__ = [
     "RegionSolver",
     "emit",
     "estimate",
+    "hold_knots",
     "level_changes",
     "piece_time",
     "pixel_knots",
@@ -109,17 +116,23 @@ class RegionChunk(NamedTuple):
         region: ``(n,)`` int64 region id ``ry * Wo + rx``, ascending.
         local: ``(n,)`` int64 pixel index inside the region, ``(y % fy) * fx + x % fx``.
         t: ``(n,)`` timestamps, ascending inside each region.
-        p: ``(n,)`` bool polarity.
+        step: ``(n,)`` int8 level change of the event: +1 (ON), -1 (OFF) or 0 (a held knot
+            of :func:`hold_knots`).
     """
 
     region: Tensor
     local: Tensor
     t: Tensor
-    p: Tensor
+    step: Tensor
 
 
 def region_chunks(
-    events: Events, *, factor: tuple[int, int], out_width: int, size: int = CHUNK_EVENTS
+    events: Events,
+    *,
+    factor: tuple[int, int],
+    out_width: int,
+    size: int = CHUNK_EVENTS,
+    step: Tensor | None = None,
 ) -> Iterator[RegionChunk]:
     """Split a stream into chunks of whole regions with about ``size`` events each.
 
@@ -132,11 +145,14 @@ def region_chunks(
         factor: ``(fx, fy)``.
         out_width: ``Wo``, the output sensor width.
         size: target number of events per chunk (a chunk holds at least one whole region).
+        step: ``(N,)`` int8 level change of each event (default: +1 for ON, -1 for OFF).
 
     Yields:
         :class:`RegionChunk` s covering the stream, regions ascending.
     """
     fx, fy = factor
+    if step is None:
+        step = events.p.to(torch.int8) * 2 - 1
     rx, ry = region_of(events, factor)
     region = ry * out_width + rx
     local = (events.y - ry * fy) * fx + (events.x - rx * fx)
@@ -152,7 +168,7 @@ def region_chunks(
     for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
         index = order[lo:hi]
         yield RegionChunk(region[lo:hi], take(local, index), take(events.t, index),
-                          take(events.p, index))
+                          take(step, index))
 
 
 def pixel_knots(
@@ -188,7 +204,7 @@ def pixel_knots(
     key_p, to_region_time = stable_sort_small(key_r, bound)
     del key_r
     t_p = take(t_r, to_region_time)
-    step_p = take(chunk.p, to_region_time).to(torch.int64) * 2 - 1
+    step_p = take(chunk.step, to_region_time).to(torch.int64)
 
     # Breakpoints. In region-time order every event belongs to the run of its (region, t);
     # each run is a breakpoint, and a region whose first (last) event is later (earlier) than
@@ -319,6 +335,70 @@ def emit(region: Tensor, t: Tensor, on: Tensor, out_width: int) -> Events:
     return Events(x, y, t, take(on, order))
 
 
+def check_max_delay(max_delay: float | None, t: Tensor) -> None:
+    """Refuse a ``max_delay`` that is not a whole number for integer timestamps."""
+    if max_delay is not None and not t.is_floating_point() and max_delay != math.floor(max_delay):
+        raise ValueError(
+            "max_delay must be a whole number for integer timestamps (held knots must fall "
+            f"on ticks), got {max_delay!r}"
+        )
+
+
+def hold_knots(
+    events: Events, *, max_delay: float, t_start: Tensor
+) -> tuple[Events, Tensor]:
+    """The stream with the held knots of a bounded delay added, and each event's level step.
+
+    Wherever two consecutive knots of a pixel (its front knot ``(t_start, 0)`` included) are
+    more than ``max_delay`` apart, a held knot at ``t_next - max_delay`` is added as an event
+    with level step 0 (docs/semantics.md, "Bounded delay").
+
+    Args:
+        events: ``N`` events in stable time order.
+        max_delay: ``D`` > 0, in the stream's time unit (a whole number for int64 ``t``).
+        t_start: ``()`` first timestamp of the whole stream.
+
+    Returns:
+        ``(events, step)``: ``N + M`` events in stable time order (a held knot before the
+        real events of its timestamp) and their ``(N + M,)`` int8 steps (+1, -1, 0).
+
+    Example:
+        >>> ev = Events.from_columns([0, 0, 1], [0, 0, 0], [0, 10, 4], [1, 1, 0])
+        >>> held, step = hold_knots(ev, max_delay=3, t_start=ev.t[0])
+        >>> held.t.tolist(), held.x.tolist(), step.tolist()
+        ([0, 1, 4, 7, 10], [0, 1, 1, 0, 0], [1, 0, -1, 0, 1])
+    """
+    check_max_delay(max_delay, events.t)
+    delay = max_delay if events.t.is_floating_point() else int(max_delay)
+    step = events.p.to(torch.int8) * 2 - 1
+    n = events.num_events
+    if n == 0:
+        return events, step
+    # Distinct event times of each pixel, in pixel order then time order.
+    width = int(events.x.max()) + 1
+    pixel = events.y * width + events.x
+    pixel, order = stable_sort_small(pixel)
+    t = take(events.t, order)
+    new_pixel = changes(pixel)
+    new_knot = new_pixel | changes(t)
+    knot_t = t[new_knot]
+    first = new_pixel[new_knot]
+    previous = torch.empty_like(knot_t)
+    previous[1:] = knot_t[:-1]
+    previous[first] = t_start  # the front knot (t_start, 0); a gap of 0 when they coincide
+    held = (knot_t - previous) > delay
+    if not bool(held.any()):
+        return events, step
+    held_t = knot_t[held] - delay
+    held_pixel = pixel[new_knot][held]
+    held_events = Events(held_pixel % width, torch.div(held_pixel, width, rounding_mode="floor"),
+                         held_t, torch.zeros_like(held_t, dtype=torch.bool))
+    merged = Events(*(torch.cat(pair) for pair in zip(held_events, events)))
+    merged_step = torch.cat([torch.zeros_like(held_t, dtype=torch.int8), step])
+    order = torch.sort(merged.t, stable=True).indices
+    return merged.select(order), take(merged_step, order)
+
+
 RegionSolver = Callable[..., tuple[Tensor, Tensor, Tensor]]
 
 
@@ -329,6 +409,7 @@ def estimate(
     factor: tuple[int, int],
     threshold: float,
     solve_regions: RegionSolver,
+    max_delay: float | None = None,
 ) -> Events:
     """The driver the estimation kernels share: knots of each chunk of regions, then output.
 
@@ -340,6 +421,8 @@ def estimate(
         solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=, emitted=)``
             returns the crossings ``(region, t, on)`` of the regions of one chunk, in region
             order (``emitted``: events of the chunks before, for the output limit).
+        max_delay: the bounded delay ``D`` (:func:`hold_knots`), or ``None`` (the paper's
+            method).
 
     Returns:
         Output events sorted by ``t``, ``t`` of the input's dtype.
@@ -359,9 +442,12 @@ def estimate(
     # Every curve stays within its knots' levels, at most n in size (PCHIP is shape-preserving).
     fraction = capped_threshold(threshold_fraction(threshold), n)
     out_w = output_size(sensor_size, factor)[0]
+    step = None
+    if max_delay is not None:
+        events, step = hold_knots(events, max_delay=max_delay, t_start=t_start)
     outputs = []
     emitted = 0
-    for chunk in region_chunks(events, factor=factor, out_width=out_w):
+    for chunk in region_chunks(events, factor=factor, out_width=out_w, step=step):
         knots = pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end)
         outputs.append(solve_regions(knots, sensor_size=sensor_size, factor=factor,
                                      fraction=fraction, emitted=emitted))

@@ -312,6 +312,7 @@ def cubic_estimation(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     threshold: float,
+    max_delay: float | None = None,
 ) -> Events:
     """Downscale by cubic log-luminance estimation (docs/semantics.md, method 5).
 
@@ -335,6 +336,9 @@ def cubic_estimation(
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
+        max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
+            "Bounded delay"; a whole number for int64 ``t``), or ``None`` for the paper's
+            method. With ``D`` a pixel holds its level until ``D`` before its next knot.
 
     Returns:
         Output events sorted by ``t``, ``t`` of the input's dtype.
@@ -347,7 +351,7 @@ def cubic_estimation(
     """
     return estimate(
         events, sensor_size=sensor_size, factor=factor, threshold=threshold,
-        solve_regions=_cubic_regions,
+        solve_regions=_cubic_regions, max_delay=max_delay,
     )
 
 

@@ -28,6 +28,7 @@ def linear_estimation(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     threshold: float,
+    max_delay: float | None = None,
 ) -> Events:
     """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
 
@@ -50,6 +51,9 @@ def linear_estimation(
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
+        max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
+            "Bounded delay"; a whole number for int64 ``t``), or ``None`` for the paper's
+            method. With ``D`` a pixel holds its level until ``D`` before its next knot.
 
     Returns:
         Output events sorted by ``t``, ``t`` of the input's dtype.
@@ -62,7 +66,7 @@ def linear_estimation(
     """
     return estimate(
         events, sensor_size=sensor_size, factor=factor, threshold=threshold,
-        solve_regions=_linear_regions,
+        solve_regions=_linear_regions, max_delay=max_delay,
     )
 
 

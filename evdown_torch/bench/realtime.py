@@ -1,0 +1,358 @@
+"""``evdown bench --realtime``: can a method keep up with a live sensor, and with what delay?
+
+A recording is replayed through each method's streaming session (:meth:`session`) in chunks
+of fixed *stream* time (1 ms and 10 ms by default), at the recording's own rate and retimed to
+25 M events/s (a fast sensor's peak: its timestamps are compressed by the ratio of the rates,
+so the same events arrive faster). Per method, rate and chunk size it reports:
+
+* the wall-clock processing time of each chunk (median and 99th percentile), on one thread;
+* whether the method **keeps up** (99th percentile below the chunk's duration) and the
+  largest input rate it **sustains**: the replayed rate times the chunk's duration over the
+  99th percentile, i.e. the rate at which the 99th percentile would reach the chunk's
+  duration if a chunk's time grew in proportion to its events (an extrapolation from the
+  replayed rate, exact at it, conservative where a fixed cost per call dominates);
+* the same 99th percentile in process CPU time, which a busy machine does not inflate;
+* for methods whose output lags their input (LinearEstimation and CubicEstimation with
+  ``max_delay``), the **output delay** of each output event a chunk returned: the end of that
+  chunk (when a live system has it) minus the event's time, in stream time (events the final
+  flush returns are decided by the end of the stream and have no delay).
+
+Only the chunks of a replay are timed (the recording is loaded and retimed first); the first
+chunk's call warms up and the stream's last chunk (cut short by the end of the recording) is
+processed but not counted. A method without a session of the common shape
+(:class:`~evdown_torch.transforms.Session`) is skipped with a note.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from evdown_torch.checks import check_positive_int
+from evdown_torch.transforms import Chain, Streaming, TemporalFunnelling
+from evdown_torch.transforms.registry import make_method
+
+__all__ = [
+    "REALTIME_CHUNKS_US",
+    "REALTIME_METHODS",
+    "REALTIME_RATE",
+    "ReplayResult",
+    "chunk_bounds_us",
+    "realtime_benchmark",
+    "realtime_markdown",
+    "replay",
+    "retime",
+    "write_realtime_report",
+]
+
+#: A fast sensor's peak event rate (events per second).
+REALTIME_RATE = 25_000_000.0
+#: Chunk durations in stream time (microseconds).
+REALTIME_CHUNKS_US = (1_000, 10_000)
+#: Bounded delay of the estimators in the replay (microseconds).
+REALTIME_MAX_DELAY_US = 1_000
+#: Method label -> (registry name or "temporal", settings).
+REALTIME_METHODS: dict[str, tuple[str, dict[str, Any]]] = {
+    "downsample": ("downsample", {}),
+    "funnelling": ("funnelling", {}),
+    "event_count": ("event_count", {}),
+    "temporal": ("temporal", {"dt": 1000}),
+    "linear": ("linear", {"max_delay": REALTIME_MAX_DELAY_US}),
+    "cubic": ("cubic", {"max_delay": REALTIME_MAX_DELAY_US}),
+    "lif": ("lif", {"dt": 1000}),
+    "photocurrent": ("photocurrent", {}),
+}
+
+
+@dataclass
+class ReplayResult:
+    """One method replayed at one rate in chunks of one duration.
+
+    Attributes:
+        method: the method's label.
+        rate: the replayed input rate (events per second).
+        chunk_us: chunk duration in stream time (microseconds).
+        chunks: number of timed chunks (the warm-up chunk excluded).
+        events_in: input events of the timed chunks.
+        events_out: output events of the whole replay (flush included).
+        seconds: wall-clock seconds of each timed chunk.
+        cpu_seconds: process CPU seconds of each timed chunk.
+        chunk_events: input events of each timed chunk.
+        delays_us: output delay of every output event (only for lagging methods).
+        note: why a method was skipped, else empty.
+    """
+
+    method: str
+    rate: float
+    chunk_us: int
+    chunks: int = 0
+    events_in: int = 0
+    events_out: int = 0
+    seconds: list[float] = field(default_factory=list)
+    cpu_seconds: list[float] = field(default_factory=list)
+    chunk_events: list[int] = field(default_factory=list)
+    delays_us: list[float] = field(default_factory=list)
+    note: str = ""
+
+    @property
+    def median_s(self) -> float | None:
+        """Median processing time of a chunk (seconds)."""
+        return statistics.median(self.seconds) if self.seconds else None
+
+    @property
+    def p99_s(self) -> float | None:
+        """99th percentile of the processing time of a chunk (seconds)."""
+        return float(np.percentile(self.seconds, 99)) if self.seconds else None
+
+    @property
+    def p99_cpu_s(self) -> float | None:
+        """99th percentile of the CPU time of a chunk (seconds)."""
+        return float(np.percentile(self.cpu_seconds, 99)) if self.cpu_seconds else None
+
+    @property
+    def keeps_up(self) -> bool | None:
+        """Whether the 99th percentile is below the chunk's duration."""
+        p99 = self.p99_s
+        return None if p99 is None else p99 < self.chunk_us * 1e-6
+
+    @property
+    def sustained_rate(self) -> float | None:
+        """Input rate (events/s) at which the 99th percentile of a chunk's time would reach the
+        chunk's duration, for chunk times in proportion to their events."""
+        p99 = self.p99_s
+        if p99 is None or p99 <= 0:
+            return None
+        return self.rate * self.chunk_us * 1e-6 / p99
+
+    def summary(self) -> dict[str, Any]:
+        """The result with its statistics, for JSON."""
+        out = asdict(self)
+        for name in ("seconds", "cpu_seconds", "chunk_events"):
+            out.pop(name)
+        delays = out.pop("delays_us")
+        out.update(median_s=self.median_s, p99_s=self.p99_s, p99_cpu_s=self.p99_cpu_s,
+                   keeps_up=self.keeps_up,
+                   sustained_rate=self.sustained_rate)
+        if delays:
+            out["delay_us"] = {q: float(np.percentile(delays, p)) for q, p in
+                               (("median", 50), ("p99", 99), ("max", 100))}
+        return out
+
+
+def retime(events: np.ndarray, rate: float | None) -> tuple[np.ndarray, float]:
+    """The recording at ``rate`` events per second (``None``: its own rate), and that rate.
+
+    Timestamps are compressed (or stretched) about the first one by the ratio of the rates,
+    rounded down to microseconds, so the order and the relative timing stay.
+    """
+    t = events["t"].astype(np.int64)
+    span_us = max(int(t[-1] - t[0]), 1)
+    own = len(events) / (span_us * 1e-6)
+    if rate is None:
+        return events, own
+    out = events.copy()
+    out["t"] = t[0] + np.floor((t - t[0]) * (own / rate)).astype(np.int64)
+    return out, rate
+
+
+def chunk_bounds_us(t: np.ndarray, chunk_us: int) -> np.ndarray:
+    """Start indices of consecutive chunks ``[t0 + k * chunk_us, t0 + (k + 1) * chunk_us)``
+    of sorted timestamps ``t``, and ``len(t)`` at the end (chunks may be empty)."""
+    if len(t) == 0:
+        return np.zeros(1, dtype=np.int64)
+    t0 = int(t[0])
+    edges = t0 + chunk_us * np.arange(1, (int(t[-1]) - t0) // chunk_us + 1, dtype=np.int64)
+    return np.concatenate([[0], np.searchsorted(t, edges, side="left"), [len(t)]])
+
+
+def _transform(label: str, sensor_size: tuple[int, int, int], factor: int) -> Streaming:
+    name, settings = REALTIME_METHODS[label]
+    if name == "temporal":
+        return Chain(TemporalFunnelling(sensor_size=sensor_size, **settings),
+                     make_method("downsample", sensor_size, factor))
+    return make_method(name, sensor_size, factor, **settings)
+
+
+def replay(
+    transform: Streaming,
+    events: np.ndarray,
+    *,
+    chunk_us: int,
+    label: str = "",
+    rate: float = 0.0,
+    max_chunks: int | None = None,
+    lagging: bool = False,
+) -> ReplayResult:
+    """Replay sorted ``events`` through ``transform.session()`` in chunks of ``chunk_us``.
+
+    Args:
+        transform: a transform with a session.
+        events: a Tonic structured array sorted by ``t`` (microseconds).
+        chunk_us: chunk duration in stream time (microseconds, > 0).
+        label: the method's name in the result.
+        rate: the replayed rate, for the result.
+        max_chunks: time at most this many chunks after the warm-up one (``None``: all).
+        lagging: record the output delay of every output event a chunk returns.
+
+    Returns:
+        The :class:`ReplayResult`; the first chunk warms up and the stream's last chunk is
+        cut short by its end: both are processed but not timed.
+
+    Example:
+        >>> from evdown_torch import Downsample
+        >>> from evdown_torch.events import DVS_DTYPE
+        >>> ev = np.zeros(6, dtype=DVS_DTYPE)
+        >>> ev["t"] = [0, 500, 1000, 1500, 2500, 4000]
+        >>> r = replay(Downsample((4, 4, 2), factor=2), ev, chunk_us=1000)
+        >>> r.chunks, r.events_in, r.events_out, len(r.seconds)
+        (3, 3, 6, 3)
+    """
+    chunk_us = check_positive_int("chunk_us", chunk_us)
+    result = ReplayResult(label or type(transform).__name__, rate, chunk_us)
+    session = transform.session()
+    bounds = chunk_bounds_us(events["t"], chunk_us)
+    t0 = int(events["t"][0]) if len(events) else 0
+    last = len(bounds) - 1 if max_chunks is None else min(len(bounds) - 1, max_chunks + 1)
+    for k in range(last):
+        chunk = events[bounds[k]:bounds[k + 1]]
+        start, start_cpu = time.perf_counter(), time.process_time()
+        out = session(chunk)
+        elapsed, cpu = time.perf_counter() - start, time.process_time() - start_cpu
+        if 0 < k < len(bounds) - 2:  # neither the warm-up nor the stream's last chunk
+            result.seconds.append(elapsed)
+            result.cpu_seconds.append(cpu)
+            result.chunk_events.append(len(chunk))
+            result.events_in += len(chunk)
+        result.events_out += len(out)
+        if lagging and len(out):
+            emitted_at = t0 + (k + 1) * chunk_us
+            result.delays_us.extend((emitted_at - out["t"]).astype(float).tolist())
+    # What the flush returns is decided by the end of the (replayed part of the) stream, not
+    # by the delay: its events are counted but have no delay.
+    result.events_out += len(session.flush())
+    result.chunks = len(result.seconds)
+    return result
+
+
+def realtime_benchmark(
+    events: np.ndarray,
+    sensor_size: tuple[int, int, int],
+    *,
+    factor: int = 4,
+    methods: Sequence[str] | None = None,
+    chunks_us: Sequence[int] = REALTIME_CHUNKS_US,
+    rates: Sequence[float | None] = (None, REALTIME_RATE),
+    max_chunks: int = 50,
+) -> list[ReplayResult]:
+    """Replay a recording through every method at every rate and chunk size (one thread).
+
+    Args:
+        events: the recording, a Tonic structured array sorted by ``t`` (microseconds).
+        sensor_size: its ``(W, H, P)``.
+        factor: the downscaling factor.
+        methods: labels of :data:`REALTIME_METHODS` (default: all).
+        chunks_us: chunk durations (microseconds).
+        rates: replayed rates in events per second; ``None`` is the recording's own.
+        max_chunks: timed chunks per replay at most (a fifth of it for the estimators,
+            whose sessions recompute the stream so far).
+
+    Returns:
+        One :class:`ReplayResult` per method, rate and chunk size.
+    """
+    torch.set_num_threads(1)
+    results = []
+    for rate in rates:
+        stream, actual = retime(events, rate)
+        for chunk_us in chunks_us:
+            for label in methods or REALTIME_METHODS:
+                if label not in REALTIME_METHODS:
+                    raise ValueError(f"unknown realtime method {label!r}; expected one of "
+                                     f"{sorted(REALTIME_METHODS)}")
+                transform = _transform(label, sensor_size, factor)
+                try:
+                    session = transform.session()
+                except (NotImplementedError, ValueError) as error:
+                    results.append(ReplayResult(label, actual, chunk_us, note=str(error)))
+                    continue
+                if not hasattr(session, "flush"):
+                    results.append(ReplayResult(label, actual, chunk_us, note=(
+                        f"{type(session).__name__} is not the common session (no flush)")))
+                    continue
+                lagging = "max_delay" in REALTIME_METHODS[label][1]
+                # The estimators' sessions recompute the stream so far: fewer chunks.
+                cap = max(1, max_chunks // 5) if lagging else max_chunks
+                results.append(replay(transform, stream, chunk_us=chunk_us, label=label,
+                                      rate=actual, max_chunks=cap, lagging=lagging))
+    return results
+
+
+def _ms(seconds: float | None) -> str:
+    return "–" if seconds is None else f"{seconds * 1e3:.3g}"
+
+
+def realtime_markdown(results: Sequence[ReplayResult]) -> str:
+    """The results as a Markdown table (times in ms, rates in M events/s, delays in µs)."""
+    lines = ["| method | input rate (M ev/s) | chunk (ms) | chunks | median (ms) | p99 (ms) | "
+             "p99 CPU (ms) | keeps up | sustains (M ev/s) | delay median / p99 / max (µs) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        if r.note:
+            lines.append(f"| {r.method} | {r.rate / 1e6:.3g} | {r.chunk_us / 1e3:g} | – | – | – "
+                         f"| – | – | – | {r.note.split(';')[0]} |")
+            continue
+        s = r.summary()
+        delay = s.get("delay_us")
+        delay_text = ("–" if delay is None else
+                      f"{delay['median']:.0f} / {delay['p99']:.0f} / {delay['max']:.0f}")
+        sustained = r.sustained_rate
+        lines.append(
+            f"| {r.method} | {r.rate / 1e6:.3g} | {r.chunk_us / 1e3:g} | {r.chunks} "
+            f"| {_ms(r.median_s)} | {_ms(r.p99_s)} | {_ms(r.p99_cpu_s)} "
+            f"| {'–' if r.keeps_up is None else 'yes' if r.keeps_up else 'no'} "
+            f"| {'–' if sustained is None else f'{sustained / 1e6:.3g}'} | {delay_text} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_realtime_report(
+    results: Sequence[ReplayResult], out_dir: str | Path, *, header: str = ""
+) -> list[Path]:
+    """Write ``realtime.md``, ``realtime.json`` and (with matplotlib) ``realtime.png``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "realtime.md", out / "realtime.json"]
+    written[0].write_text(header + realtime_markdown(results))
+    written[1].write_text(json.dumps([r.summary() for r in results], indent=1))
+    try:
+        from matplotlib.figure import Figure
+    except ImportError:
+        return written
+    measured = [r for r in results if r.seconds]
+    if not measured:
+        return written
+    fig = Figure(figsize=(10, 4.5), layout="constrained")
+    ax = fig.subplots()
+    keys = sorted({(r.rate, r.chunk_us) for r in measured})
+    labels = list(dict.fromkeys(r.method for r in measured))
+    width = 0.8 / len(keys)
+    for i, (rate, chunk_us) in enumerate(keys):
+        rows = {r.method: r for r in measured if (r.rate, r.chunk_us) == (rate, chunk_us)}
+        xs = [j + i * width for j, m in enumerate(labels) if m in rows]
+        ys = [(rows[m].sustained_rate or 0.0) / 1e6 for m in labels if m in rows]
+        ax.bar(xs, ys, width, label=f"{rate / 1e6:.3g} M ev/s in {chunk_us / 1e3:g} ms chunks")
+    ax.axhline(REALTIME_RATE / 1e6, color="k", linestyle="--", linewidth=1, label="25 M ev/s")
+    ax.set_yscale("log")
+    ax.set_xticks([j + 0.4 - width / 2 for j in range(len(labels))], labels)
+    ax.set_ylabel("sustained input rate (M events/s, p99)")
+    ax.legend(fontsize=8)
+    ax.grid(True, axis="y", which="both", alpha=0.3)
+    written.append(out / "realtime.png")
+    fig.savefig(written[-1], dpi=110)
+    return written

@@ -1,0 +1,83 @@
+"""Temporal funnelling kernel: timestamps to the start of their bin, then drop repeats."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from evdown_torch._tensors import divide, sort_by_time
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional.funnelling import drop_repeats
+
+__all__ = ["bin_start", "temporal_funnelling"]
+
+
+def bin_start(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
+    """``t_start + floor((t - t_start) / dt) * dt``: the start of each timestamp's bin.
+
+    Args:
+        t: ``(N,)`` int64 or float64 timestamps, ``>= t_start``.
+        dt: bin length in the stream's time unit, > 0; an integer for int64 ``t``.
+        t_start: the stream's first timestamp.
+
+    Returns:
+        ``(N,)`` bin starts, ``t``'s dtype; exact for int64 ``t``.
+
+    Raises:
+        ValueError: for int64 ``t`` and a ``dt`` that is not a whole number (its bin starts
+            would not be integers).
+
+    Example:
+        >>> bin_start(torch.tensor([3, 9, 10, 25]), dt=10, t_start=3).tolist()
+        [3, 3, 3, 23]
+    """
+    if t.is_floating_point():
+        return (torch.floor((t - t_start) / dt) * dt).add_(t_start)
+    if float(dt) != math.floor(dt):
+        raise ValueError(
+            f"dt must be a whole number for integer timestamps (bin starts must stay "
+            f"integers), got {dt!r}"
+        )
+    step = int(dt)
+    return divide(t - int(t_start), step).mul_(step).add_(int(t_start))
+
+
+def temporal_funnelling(
+    events: Events,
+    *,
+    dt: int | float,
+    t_start: int | float | None = None,
+    seen: Events | None = None,
+) -> Events:
+    """Temporal downscaling (docs/semantics.md, method 8).
+
+    Every ``t`` becomes the start of its bin, ``t_start + floor((t - t_start) / dt) * dt``,
+    and events equal in ``(x, y, t, p)`` after that are dropped (the first is kept);
+    coordinates are unchanged.
+
+    Args:
+        events: ``N`` events (any order).
+        dt: bin length in the stream's own time unit (microseconds for Tonic), > 0; a whole
+            number for int64 timestamps.
+        t_start: origin of the bins (default: the first timestamp of ``events``); a
+            streaming session passes the stream's.
+        seen: distinct events already kept in the bin of the first event (streaming).
+
+    Returns:
+        The kept events with binned timestamps, sorted by ``t``.
+
+    Example:
+        >>> ev = Events.from_columns([0, 0, 1, 0], [0, 0, 0, 0], [5, 9, 12, 16], [1, 1, 1, 1])
+        >>> out = temporal_funnelling(ev, dt=10)
+        >>> out.x.tolist(), out.t.tolist()
+        ([0, 1, 0], [5, 5, 15])
+    """
+    events = sort_by_time(events)
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device)
+    if t_start is None:
+        t_start = events.t[0].item()
+    binned = Events(events.x, events.y, bin_start(events.t, dt=dt, t_start=t_start), events.p)
+    return drop_repeats(binned, seen=seen)

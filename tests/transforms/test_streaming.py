@@ -1,0 +1,249 @@
+"""Streaming sessions: any chunking gives the batch result; bad chunks are refused safely."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from evdown_torch import (
+    Chain,
+    CubicEstimation,
+    Downsample,
+    EventCount,
+    EventFunnelling,
+    Events,
+    LinearEstimation,
+    TemporalFunnelling,
+)
+from evdown_torch.transforms import Session
+from tests.helpers import DVS_DTYPE, random_stream
+from tests.transforms import test_estimation
+
+SENSOR = (9, 7, 2)
+
+TRANSFORMS = {
+    "downsample": Downsample(SENSOR, factor=2),
+    "funnelling": EventFunnelling(SENSOR, factor=(3, 2)),
+    "event_count": EventCount(SENSOR, factor=3, threshold=0.3),
+    "temporal": TemporalFunnelling(dt=7, sensor_size=SENSOR),
+    "temporal_then_count": Chain(
+        TemporalFunnelling(dt=5), EventCount(SENSOR, factor=2, threshold=0.5)
+    ),
+    "funnelling_then_temporal": Chain(
+        EventFunnelling(SENSOR, factor=2), TemporalFunnelling(dt=11)
+    ),
+}
+
+
+def run_in_chunks(transform, arr: np.ndarray, cuts: list[int]) -> np.ndarray:
+    """Feed ``arr`` split at ``cuts`` (repeated cuts make empty chunks), then flush."""
+    session = transform.session()
+    parts = [session(chunk) for chunk in np.split(arr, sorted(cuts))]
+    parts.append(session.flush())
+    return np.concatenate(parts)
+
+
+chunkings = st.tuples(
+    st.integers(0, 2**32 - 1),  # stream seed
+    st.integers(0, 300),  # number of events
+    st.lists(st.floats(0, 1), max_size=12),  # cut positions as fractions of the stream
+)
+
+
+@pytest.mark.parametrize("name", sorted(TRANSFORMS))
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(case=chunkings)
+def test_any_chunking_gives_the_batch_result(name, case):
+    seed, n, fractions = case
+    rng = np.random.default_rng(seed)
+    arr = random_stream(rng, n, SENSOR, t_max=60)  # many equal timestamps and repeats
+    cuts = [int(f * n) for f in fractions]
+    transform = TRANSFORMS[name]
+    np.testing.assert_array_equal(run_in_chunks(transform, arr, cuts), transform(arr))
+
+
+def test_funnelling_drops_a_repeat_that_straddles_a_chunk_boundary():
+    arr = np.array([(0, 0, True, 5), (1, 1, True, 5), (1, 0, True, 5)], dtype=DVS_DTYPE)
+    session = EventFunnelling((4, 4, 2), factor=2).session()
+    first = session(arr[:1])
+    second = session(arr[1:])  # both repeat (0, 0, 5, ON) after downsampling
+    assert first.tolist() == [(0, 0, True, 5)]
+    assert second.tolist() == []
+
+
+def test_temporal_session_bins_from_the_stream_start():
+    # dt 10 from t_start 3: bins [3, 13) and [13, 23).
+    session = TemporalFunnelling(dt=10).session()
+    a = session(torch.tensor([[0, 0, 3, 1]]))
+    b = session(torch.tensor([[0, 0, 12, 1], [0, 0, 13, 1], [1, 0, 14, 0]]))
+    assert a.tolist() == [[0, 0, 3, 1]]
+    assert b.tolist() == [[0, 0, 13, 1], [1, 0, 13, 0]]  # (0, 0, 12) repeats (0, 0, 3)
+
+
+@pytest.mark.parametrize("name", sorted(TRANSFORMS))
+def test_a_chunk_back_in_time_is_refused_and_the_session_stays_usable(name, rng):
+    arr = random_stream(rng, 200, SENSOR, t_max=100)
+    transform = TRANSFORMS[name]
+    session = transform.session()
+    head = session(arr[:120])
+    late = arr[120:].copy()
+    late["t"][-1] = arr["t"][119] - 1  # one event before the previous chunk's last one
+    with pytest.raises(ValueError, match="follow each other in time"):
+        session(late)
+    # The refused chunk left nothing behind: the rest of the stream still gives the batch.
+    out = np.concatenate([head, session(arr[120:]), session.flush()])
+    np.testing.assert_array_equal(out, transform(arr))
+
+
+def test_a_chunk_with_other_timestamps_or_outside_the_sensor_is_refused(rng):
+    session = Downsample(SENSOR, factor=2).session()
+    session(torch.tensor([[0, 0, 5, 1]]))
+    with pytest.raises(ValueError, match="timestamps are torch.float64"):
+        session(torch.tensor([[0.0, 0.0, 6.0, 1.0]], dtype=torch.float64))
+    with pytest.raises(ValueError):
+        session(torch.tensor([[SENSOR[0], 0, 7, 1]]))
+    assert session(torch.tensor([[2, 3, 8, 1]])).tolist() == [[1, 1, 8, 1]]
+
+
+def test_flush_ends_the_stream_and_keeps_the_kind(rng):
+    arr = random_stream(rng, 50, SENSOR)
+    session = EventCount(SENSOR, factor=2).session()
+    assert isinstance(session.flush(), Events)  # nothing fed: empty Events
+    session(arr)
+    tail = session.flush()
+    assert tail.dtype == DVS_DTYPE and len(tail) == 0  # causal: nothing left for the end
+    assert session.state is None and session.last_t is None
+    # A flushed session starts a new stream: earlier timestamps are fine again.
+    np.testing.assert_array_equal(session(arr), EventCount(SENSOR, factor=2)(arr))
+
+
+def test_empty_chunks_come_back_empty_in_their_own_kind():
+    session = EventFunnelling(SENSOR, factor=2).session()
+    out = session(torch.zeros((0, 4), dtype=torch.int32))
+    assert out.shape == (0, 4) and out.dtype == torch.int32
+    out = session(np.empty(0, dtype=DVS_DTYPE))
+    assert out.dtype == DVS_DTYPE and len(out) == 0
+    assert session.state is None
+
+
+def test_every_session_is_the_common_session():
+    for transform in TRANSFORMS.values():
+        assert type(transform.session()) is Session
+
+
+def test_chain_refuses_what_cannot_stream():
+    with pytest.raises(ValueError, match="at least one"):
+        Chain()
+    with pytest.raises(TypeError, match="evdown_torch transforms"):
+        Chain(lambda ev: ev)
+
+
+# --- Bounded delay: LinearEstimation and CubicEstimation ------------------------------------
+
+ESTIMATORS = {
+    "linear": (LinearEstimation, 1),
+    "cubic": (CubicEstimation, 2),
+}
+
+
+REFERENCE_KNOTS = test_estimation.reference_knots
+
+
+def delayed_knots(arr: np.ndarray, max_delay: int) -> tuple[dict, float, float]:
+    """The oracle's knots with the contract's held knots ``(t_next - D, previous level)``."""
+    knots, t_start, t_end = REFERENCE_KNOTS(arr)
+    for pixel in knots.values():
+        held = list(pixel[:1])
+        for (t0, level0), (t1, level1) in zip(pixel[:-1], pixel[1:]):
+            if t1 - t0 > max_delay and (t1, level1) != (t_end, level0):  # not the back knot
+                held.append((t1 - max_delay, level0))
+            held.append((t1, level1))
+        pixel[:] = held
+    return knots, t_start, t_end
+
+
+@pytest.mark.parametrize("kind", sorted(ESTIMATORS))
+@pytest.mark.parametrize(("factor", "threshold", "max_delay"),
+                         [(2, 0.1, 40), ((3, 2), 0.5, 7), (3, 0.25, 1)])
+def test_bounded_delay_matches_the_slow_reference(kind, factor, threshold, max_delay, rng,
+                                                  monkeypatch):
+    cls, _ = ESTIMATORS[kind]
+    arr = random_stream(rng, 300, SENSOR, t_max=3000)
+    out = cls(SENSOR, factor=factor, threshold=threshold, max_delay=max_delay)(arr)
+    monkeypatch.setattr(test_estimation, "reference_knots",
+                        lambda a: delayed_knots(a, max_delay))
+    fxy = (factor, factor) if isinstance(factor, int) else factor
+    expected = test_estimation.reference(arr, SENSOR, fxy, threshold, kind)
+    test_estimation.assert_matches_reference(out, expected, True)
+
+
+def test_bounded_delay_hand_computed():
+    # Pixel (0, 0): ON at 0, OFF at 30 -> held knot (27, 1). Pixel (1, 0): ON at 10 and 31
+    # -> held knots (7, 0) and (28, 1). The mean rises from 0.5 to 1 on [7, 10] (0.75 at
+    # 8.5, rounded to 9), dips to 5/6 on [28, 30] (no OFF at 0.75) and is 1 again at 31.
+    ev = torch.tensor([[0, 0, 0, 1], [1, 0, 10, 1], [0, 0, 30, 0], [1, 0, 31, 1]])
+    out = LinearEstimation((2, 1, 2), factor=(2, 1), threshold=0.25, max_delay=3)(ev)
+    assert out.tolist() == [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 9, 1], [0, 0, 10, 1]]
+
+
+def test_a_delay_longer_than_the_stream_changes_nothing(rng):
+    arr = random_stream(rng, 300, SENSOR, t_max=1000)
+    for cls, _ in ESTIMATORS.values():
+        np.testing.assert_array_equal(cls(SENSOR, factor=2, max_delay=10**6)(arr),
+                                      cls(SENSOR, factor=2)(arr))
+
+
+@pytest.mark.parametrize("kind", sorted(ESTIMATORS))
+@settings(max_examples=15, deadline=None, derandomize=True)
+@given(case=chunkings, max_delay=st.sampled_from([1, 5, 30]))
+def test_estimator_sessions_equal_the_batch_and_keep_the_delay_bound(kind, case, max_delay):
+    cls, lag = ESTIMATORS[kind]
+    seed, n, fractions = case
+    rng = np.random.default_rng(seed)
+    arr = random_stream(rng, n, SENSOR, t_max=400)
+    transform = cls(SENSOR, factor=(3, 2), threshold=0.3, max_delay=max_delay)
+    batch = transform(arr)
+    session = transform.session()
+    parts = []
+    for chunk in np.split(arr, sorted(int(f * n) for f in fractions)):
+        parts.append(session(chunk))
+        if len(chunk):
+            # Exactly the batch events earlier than tau - lag * D are out by now: each event
+            # comes out with the first chunk that reaches past t + lag * D, and none sooner.
+            horizon = chunk["t"][-1] - lag * max_delay
+            np.testing.assert_array_equal(np.concatenate(parts), batch[batch["t"] < horizon])
+    parts.append(session.flush())
+    np.testing.assert_array_equal(np.concatenate(parts), batch)
+
+
+@pytest.mark.parametrize("kind", sorted(ESTIMATORS))
+def test_estimator_session_needs_a_finite_delay(kind):
+    cls, _ = ESTIMATORS[kind]
+    with pytest.raises(ValueError, match="needs a finite delay|max_delay=D"):
+        cls(SENSOR, factor=2).session()
+
+
+@pytest.mark.parametrize("max_delay", [0, -3, float("nan")])
+def test_bad_max_delay_is_refused(max_delay):
+    with pytest.raises(ValueError, match="max_delay"):
+        LinearEstimation(SENSOR, factor=2, max_delay=max_delay)
+
+
+def test_fractional_delay_is_refused_for_integer_timestamps():
+    with pytest.raises(ValueError, match="whole number"):
+        CubicEstimation(SENSOR, factor=2, max_delay=2.5)(torch.tensor([[0, 0, 1, 1]]))
+
+
+@pytest.mark.parametrize("name", ["funnelling", "event_count", "temporal_then_count"])
+def test_sessions_stay_on_the_chunks_device(name, device, rng):
+    arr = random_stream(rng, 400, SENSOR, t_max=80)
+    data = torch.tensor(np.stack([arr["x"], arr["y"], arr["t"], arr["p"]], 1).astype(np.int64),
+                        device=device)
+    transform = TRANSFORMS[name]
+    session = transform.session()
+    parts = [session(chunk) for chunk in torch.split(data, 70)] + [session.flush()]
+    assert all(part.device == data.device for part in parts)
+    assert torch.equal(torch.cat(parts), transform(data))
