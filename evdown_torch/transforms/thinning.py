@@ -72,6 +72,17 @@ class ThinnedDownsample(Downscaler):
         object.__setattr__(self, "keep", check_unit_interval("keep", self.keep))
         check_non_negative_int("seed", self.seed)
 
+    def session(self):
+        """Not available: the draws are seeded by the whole recording, unknown before its end.
+
+        Raises:
+            NotImplementedError: always.
+        """
+        raise NotImplementedError(
+            "ThinnedDownsample has no streaming session: its random draws are seeded by the "
+            "whole recording, which a stream only knows at its end"
+        )
+
     def kernel(self, events: Events) -> Events:
         """Downsample ``events`` and keep a seeded random subset."""
         out = downsample(events, factor=self.factor_xy)

@@ -114,3 +114,5 @@ def test_control_is_seeded_by_the_recording(recordings):
                               first)
     with pytest.raises(ValueError, match="keep"):
         ThinnedDownsample(SENSOR, 2, keep=1.5)
+    with pytest.raises(NotImplementedError, match="seeded by the whole recording"):
+        control.session()
