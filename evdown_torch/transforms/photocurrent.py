@@ -6,8 +6,8 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from evdown_torch.checks import check_non_negative_float, check_positive_float
-from evdown_torch.events import Events, EventsLike, from_events, to_events
-from evdown_torch.transforms._base import Downscaler
+from evdown_torch.events import Events
+from evdown_torch.transforms._base import Downscaler, Session
 from evdown_torch.transforms.functional.photocurrent import (
     PhotocurrentState,
     check_contrast_range,
@@ -99,63 +99,42 @@ class PhotocurrentPooling(Downscaler):
         )
         return out
 
-    def session(self) -> PhotocurrentSession:
-        """Start a streaming session over consecutive chunks of one stream (events mode)."""
+    def stream(
+        self, events: Events, state: PhotocurrentState | None
+    ) -> tuple[Events, PhotocurrentState]:
+        """One chunk of a stream (events mode): causal, so every output is decided by its chunk.
+
+        The state (:class:`~evdown_torch.transforms.functional.photocurrent.PhotocurrentState`)
+        holds every pixel's integer level and every region's reference index.
+        """
+        return photocurrent_events(
+            events, sensor_size=self.sensor_size, factor=self.factor_xy,
+            contrast=self.contrast, threshold=self.threshold, state=state,
+        )
+
+    def session(self) -> Session:
+        """Start a streaming session over consecutive chunks of one stream (events mode).
+
+        The common :class:`~evdown_torch.transforms._base.Session`: ``session(chunk)``,
+        ``flush()`` (nothing is left at the end: the events mode is causal) and ``reset()``.
+
+        Raises:
+            ValueError: in the frames mode (``fps`` set), which is batch only.
+
+        Example:
+            >>> import torch
+            >>> ev = torch.tensor([[0, 0, 10, 1], [1, 0, 20, 1], [1, 0, 30, 0]])
+            >>> session = PhotocurrentPooling((2, 1, 2), factor=(2, 1), contrast=0.5).session()
+            >>> [session(chunk).tolist() for chunk in (ev[:1], ev[1:1], ev[1:])]
+            [[], [], [[0, 0, 20, 1]]]
+        """
         if self.fps is not None:
             raise ValueError(
                 "a streaming session needs the events mode (fps=None): the frames mode "
                 "interpolates between frames and is batch only"
             )
-        return PhotocurrentSession(self)
+        return super().session()
 
 
-class PhotocurrentSession:
-    """Streaming PhotocurrentPooling (events mode): feed consecutive chunks, get their events.
-
-    The concatenation of the outputs equals ``PhotocurrentPooling`` applied to the whole
-    stream. Chunks must follow each other in time (a chunk may not start before the previous
-    one's last timestamp; equal timestamps are fine and keep chunk order). The state (every
-    pixel's integer level and every region's reference index) is held in :attr:`state`.
-
-    Args:
-        transform: the :class:`PhotocurrentPooling` settings (events mode).
-
-    Example:
-        >>> import torch
-        >>> ev = torch.tensor([[0, 0, 10, 1], [1, 0, 20, 1], [1, 0, 30, 0]])
-        >>> session = PhotocurrentPooling((2, 1, 2), factor=(2, 1), contrast=0.5).session()
-        >>> [session(chunk).tolist() for chunk in (ev[:1], ev[1:1], ev[1:])]
-        [[], [], [[0, 0, 20, 1]]]
-    """
-
-    def __init__(self, transform: PhotocurrentPooling) -> None:
-        self.transform = transform
-        self.state: PhotocurrentState | None = None
-
-    def reset(self) -> None:
-        """Forget the stream: the next chunk starts a new one."""
-        self.state = None
-
-    def __call__(self, chunk: EventsLike) -> EventsLike:
-        """Downscale the next chunk; returns the events it produces, in the chunk's kind."""
-        transform = self.transform
-        events, fmt = to_events(chunk, transform.sensor_size)
-        last_t = None if self.state is None else self.state.last_t
-        if last_t is not None and events.num_events:
-            if last_t.device != events.device:
-                raise ValueError(
-                    f"chunk is on {events.device} but the session's state is on {last_t.device}"
-                )
-            first = events.t.min()
-            if bool(first < last_t):
-                raise ValueError(
-                    f"chunks must follow each other in time: this chunk starts at {first.item()}, "
-                    f"before the previous chunk's last event at {last_t.item()}"
-                )
-        out, state = photocurrent_events(
-            events, sensor_size=transform.sensor_size, factor=transform.factor_xy,
-            contrast=transform.contrast, threshold=transform.threshold, state=self.state,
-        )
-        if events.num_events or self.state is None:
-            self.state = state
-        return from_events(out, fmt)
+#: The PhotocurrentPooling session is the common :class:`~evdown_torch.transforms._base.Session`.
+PhotocurrentSession = Session

@@ -16,6 +16,7 @@ from evdown_torch import (
     EventFunnelling,
     Events,
     LinearEstimation,
+    PhotocurrentPooling,
     TemporalFunnelling,
 )
 from evdown_torch.transforms import Session
@@ -29,6 +30,7 @@ TRANSFORMS = {
     "funnelling": EventFunnelling(SENSOR, factor=(3, 2)),
     "event_count": EventCount(SENSOR, factor=3, threshold=0.3),
     "temporal": TemporalFunnelling(dt=7, sensor_size=SENSOR),
+    "photocurrent": PhotocurrentPooling(SENSOR, factor=(2, 3), contrast=0.3, threshold=0.2),
     "temporal_then_count": Chain(
         TemporalFunnelling(dt=5), EventCount(SENSOR, factor=2, threshold=0.5)
     ),
