@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import (
@@ -103,6 +103,8 @@ class LIFPooling(Downscaler):
         >>> pool(ev).tolist()  # four ON events in block (0, 0) within 1 ms
         [(0, 0, True, 1100)]
     """
+
+    budget_setting: ClassVar[str | None] = "weight"
 
     dt: float = DEFAULT_DT
     tau: float = DEFAULT_TAU
