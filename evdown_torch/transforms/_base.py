@@ -226,10 +226,11 @@ class Downscaler(Streaming):
         The recordings go through the kernel together (``docs/semantics.md``: processing
         several recordings in one batched call gives, for each, the same events as processing
         it alone), which costs much less than one call per recording when they are small.
-        The frames mode of :class:`~evdown_torch.transforms.PhotocurrentPooling` has no
-        batched kernel yet and processes the recordings one by one. The output limit
-        (:func:`evdown_torch.set_max_output_events`, or ``LIFPooling.max_output_events``)
-        applies to the batch as a whole.
+        The frames mode of :class:`~evdown_torch.transforms.PhotocurrentPooling` and
+        :class:`~evdown_torch.transforms.thinning.ThinnedDownsample` (random draws seeded by
+        each recording) have no batched kernel and process the recordings one by one. The
+        output limit (:func:`evdown_torch.set_max_output_events`, or
+        ``LIFPooling.max_output_events``) applies to the batch as a whole.
 
         Args:
             recordings: a sequence of recordings of any accepted kind (on one device, all

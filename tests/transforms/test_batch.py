@@ -18,6 +18,7 @@ from evdown_torch import (
 )
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import DVS_DTYPE
+from evdown_torch.transforms.thinning import ThinnedDownsample
 from tests.helpers import random_stream
 
 SENSOR = (7, 5, 2)  # not a multiple of the factors: edge regions have fewer pixels
@@ -32,6 +33,7 @@ METHODS = {
     "cubic_delay": lambda f: CubicEstimation(SENSOR, factor=f, threshold=0.2, max_delay=9),
     "lif": lambda f: LIFPooling(SENSOR, factor=f, dt=50, tau=200),
     "photocurrent": lambda f: PhotocurrentPooling(SENSOR, factor=f, contrast=0.3, threshold=0.2),
+    "thinned": lambda f: ThinnedDownsample(SENSOR, factor=f, keep=0.5, seed=3),
     "photocurrent_frames": lambda f: PhotocurrentPooling(SENSOR, factor=f, contrast=0.3,
                                                          threshold=0.2, fps=20_000),
 }
