@@ -13,8 +13,10 @@ from evdown_torch.checks import (
     check_positive_int,
     check_time_constant,
 )
+from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.lif import (
     DEFAULT_DT,
     DEFAULT_MAX_OUTPUT_EVENTS,
@@ -162,6 +164,27 @@ class LIFPooling(Downscaler):
             reset_mechanism=self.reset_mechanism,
             max_output_events=self.max_output_events,
         )
+
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """The kernel once on the stacked batch, each recording binned from its own
+        ``t_start`` and ending at its own ``t_end``."""
+
+        def kernel(stacked: Stacked) -> Events:
+            return lif_pooling(
+                stacked.events,
+                sensor_size=self.sensor_size,
+                factor=self.factor_xy,
+                dt=float(self.dt),
+                beta=self.beta,
+                threshold=float(self.threshold),
+                weight=float(self.weight),
+                mutual_inhibition=float(self.mutual_inhibition),
+                reset_mechanism=self.reset_mechanism,
+                max_output_events=self.max_output_events,
+                bounds=(stacked.starts, stacked.ends),
+            )
+
+        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
 
 
 #: How far below its target :func:`calibrate_weight` may end before it calls the target

@@ -126,12 +126,46 @@ def _step_indices(t: Tensor, dt: float) -> tuple[Tensor, int, float]:
             f"{span / dt:.3g} steps, more than the 2**62 an int64 step index can hold; "
             "use a larger dt"
         )
-    relative = t - t_start
-    if not relative.is_floating_point() and dt.is_integer():
-        steps = torch.div(relative, int(dt), rounding_mode="floor")
-    else:
-        steps = torch.floor(relative.to(torch.float64) / dt).to(torch.int64)
+    steps = _steps(t - t_start, dt)
     return steps, int(steps[-1]), dt
+
+
+def _steps(relative: Tensor, dt: float) -> Tensor:
+    """``floor(relative / dt)`` as int64 (exact for integer times and a whole ``dt``)."""
+    if not relative.is_floating_point() and dt.is_integer():
+        return torch.div(relative, int(dt), rounding_mode="floor")
+    return torch.floor(relative.to(torch.float64) / dt).to(torch.int64)
+
+
+def _batch_step_indices(
+    t: Tensor, recording: Tensor, bounds: tuple[Tensor, Tensor], dt: float
+) -> tuple[Tensor, Tensor, float]:
+    """:func:`_step_indices` for a batch: each event's step from its own recording's
+    ``t_start``, each recording's last step ``(B,)`` and the ``dt`` to compute end times
+    with (see :func:`lif_pooling`)."""
+    starts, ends = bounds
+    spans = ends - starts
+    widest = spans.max()
+    if t.is_floating_point():
+        span = float(widest)
+        if not math.isfinite(span):
+            raise ValueError(f"LIF pooling needs finite timestamps, got a span of {span}")
+    else:
+        span = int(widest)
+        if span >= MAX_STEPS:
+            raise ValueError(
+                f"a recording spans {span} time units, more than 2**62 that int64 step "
+                "arithmetic can hold; split it"
+            )
+        if dt > span:  # every recording in its step 0, ending at its t_end (as one stream)
+            dt = float(span + 1)
+    if span / dt >= MAX_STEPS:
+        raise ValueError(
+            f"dt = {dt!r} cuts a recording's span of {span} time units into about "
+            f"{span / dt:.3g} steps, more than the 2**62 an int64 step index can hold; "
+            "use a larger dt"
+        )
+    return _steps(t - starts.index_select(0, recording), dt), _steps(spans, dt), dt
 
 
 def _step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -> Tensor:
@@ -147,7 +181,7 @@ def _step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) 
         start = steps * int(dt)  # <= span: the step begins inside the stream
         return torch.where(span - start > int(dt), t_start + start + int(dt), t_end)
     offset = torch.floor((steps + 1).to(torch.float64) * dt + 0.5)
-    offset = torch.minimum(offset.clamp_max(float(span)).to(torch.int64), span)
+    offset = torch.minimum(torch.minimum(offset, span.to(torch.float64)).to(torch.int64), span)
     return t_start + offset
 
 
@@ -269,6 +303,7 @@ def lif_pooling(
     mutual_inhibition: float = 0.0,
     reset_mechanism: ResetMechanism = "subtract",
     max_output_events: int | None = DEFAULT_MAX_OUTPUT_EVENTS,
+    bounds: tuple[Tensor, Tensor] | None = None,
 ) -> Events:
     """Downscale a stream through one leaky integrate-and-fire neuron per region and polarity.
 
@@ -291,6 +326,12 @@ def lif_pooling(
         mutual_inhibition: weight of each opposite-polarity input event, subtracted, ``>= 0``.
         reset_mechanism: ``"subtract"``, ``"zero"`` or ``"none"``.
         max_output_events: refuse to emit more events than this (``None``: no bound).
+        bounds: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
+            ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
+            :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps of
+            each recording: each is binned from its own ``t_start`` and its spikes end at
+            its own ``t_end``; the output is then sorted by recording, then step. ``None``
+            for one stream.
 
     Returns:
         Output events sorted by ``t`` (within a step: OFF before ON, then row-major region),
@@ -315,7 +356,14 @@ def lif_pooling(
     fx, fy = factor
     wo, ho, _ = output_size(sensor_size, factor)
     plane = wo * ho
-    steps, last_step, dt = _step_indices(events.t, float(dt))
+    recording_bounds = bounds  # (the name "bounds" is reused for the rounds below)
+    if recording_bounds is None:
+        steps, last_step, dt = _step_indices(events.t, float(dt))
+    else:  # one block of plane regions per recording
+        recording = divide(events.y, ho * fy)
+        steps, last_step, dt = _batch_step_indices(events.t, recording, bounds, float(dt))
+        del recording
+        plane *= bounds[0].shape[0]
     f32 = torch.float32
     beta32 = torch.tensor(beta, dtype=f32, device=device)  # the neuron's buffers, as snntorch
     threshold32 = torch.tensor(threshold, dtype=f32, device=device)
@@ -358,6 +406,9 @@ def lif_pooling(
     gap_after[:-1] = gap_before[1:]
     region_last = torch.roll(region_first, -1).sub_(1)
     region_last[-1] = n_cells - 1
+    if recording_bounds is not None:  # each region's own recording's last step
+        last_step = last_step.index_select(
+            0, divide(cell_region.index_select(0, region_last), wo * ho))
     gap_after.index_copy_(0, region_last, last_step - cell_step.index_select(0, region_last))
 
     # Rounds: lanes are regions by decreasing cell count, so round r's lanes are a prefix.
@@ -474,7 +525,15 @@ def lif_pooling(
     spike_step, neuron = spike_step[by_neuron], neuron[by_neuron]
     by_step = torch.sort(spike_step, stable=True).indices
     spike_step, neuron = spike_step[by_step], neuron[by_step]
-    t = _step_end_time(spike_step, t_start=events.t[0], t_end=events.t[-1], dt=dt)
+    if recording_bounds is None:
+        t = _step_end_time(spike_step, t_start=events.t[0], t_end=events.t[-1], dt=dt)
+    else:  # recording by recording, each at its own clock
+        starts, ends = recording_bounds
+        recording = divide(torch.remainder(neuron, plane), wo * ho)
+        recording, by_recording = stable_sort_small(recording, starts.shape[0])
+        spike_step, neuron = spike_step[by_recording], neuron[by_recording]
+        t = _step_end_time(spike_step, t_start=starts.index_select(0, recording),
+                           t_end=ends.index_select(0, recording), dt=dt)
     polarity = neuron >= plane
     x, y = region_xy(neuron - polarity * plane, wo)
     return Events(x, y, t, polarity)
