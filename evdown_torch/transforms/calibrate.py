@@ -198,7 +198,8 @@ class _Search:
         if value not in self.counts:
             down = self.build(value)
             try:
-                self.counts[value] = float(sum(down.kernel(s).num_events for s in self.streams))
+                outputs = down.batch(self.streams)  # one pass over every recording
+                self.counts[value] = float(sum(out.num_events for out in outputs))
             except ValueError:  # an output too large to produce: more than any target
                 self.counts[value] = math.inf
         return self.counts[value]
