@@ -48,7 +48,7 @@ cases = st.tuples(
 
 
 @settings(max_examples=60, deadline=None, derandomize=True)
-@given(case=cases, dt=st.sampled_from([1, 4, 7.5, 30]), offset=st.sampled_from([0, 2**50]))
+@given(case=cases, dt=st.sampled_from([1, 2.4, 4, 7.5, 30]), offset=st.sampled_from([0, 2**50]))
 def test_any_chunking_of_integer_times_gives_the_batch_result(case, dt, offset):
     which, seed, n, fractions, bursty = case
     rng = np.random.default_rng(seed)
@@ -113,6 +113,18 @@ def test_a_chunk_returns_the_steps_it_closes():
         (0, 0, True, 13)
     ]
     assert session.flush().tolist() == []  # step 1: ON 1.2 - 1 = 0.2, OFF 0.6
+
+
+def test_a_step_whose_rounded_end_is_reached_stays_open_until_it_closes():
+    # Integer t, dt 2.4: step 0 is [0, 2.4) and its end rounds to t = 2, so a chunk ending
+    # at t = 2 has reached the step's output time while the step can still get events at 2.
+    pool = LIFPooling((2, 2, 2), factor=2, dt=2.4, tau=math.inf, weight=0.4)
+    arr = np.array([(0, 0, True, 0), (1, 0, True, 2), (0, 1, True, 2)], dtype=DVS_DTYPE)
+    session = pool.session()
+    assert session(arr[:2]).tolist() == []
+    assert session(arr[2:]).tolist() == []
+    assert session.flush().tolist() == [(0, 0, True, 2)]  # 3 * 0.4 > 1 in step 0
+    assert pool(arr).tolist() == [(0, 0, True, 2)]
 
 
 def test_going_back_in_time_is_refused_and_the_session_stays_usable():
