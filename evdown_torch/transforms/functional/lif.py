@@ -26,6 +26,12 @@ that follows the events:
   tensor operations each) is the largest number of cells of one region, at most the number
   of steps that hold events.
 
+State. The core, :func:`lif_spikes`, can start from a :class:`LIFState` (each region's
+membranes at its last input, and that step: a state cell in front of the region's cells), run
+up to a given last step and return the spikes from a given step on; the streaming session
+(:mod:`evdown_torch.transforms.functional.lif_stream`) continues the neurons chunk by chunk
+with it, computing every gap exactly as one call does.
+
 Exactness. The update at a cell is snntorch's float32 arithmetic, in its order, so runs of
 consecutive active steps, and gaps of one step, are bit-identical to the module. Over a longer
 gap the decay ``beta ** g`` is one float32 power where stepping rounds ``g`` products
@@ -60,8 +66,10 @@ __all__ = [
     "MAX_STEPS",
     "RESET_MECHANISMS",
     "ResetMechanism",
+    "LIFState",
     "decay_factor",
     "lif_pooling",
+    "lif_spikes",
 ]
 
 ResetMechanism = Literal["subtract", "zero", "none"]
