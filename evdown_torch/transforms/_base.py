@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
@@ -163,6 +163,10 @@ class Downscaler(Streaming):
             ``(x // fx, y // fy)``.
     """
 
+    #: The one setting that sets the output's event budget (see ``transforms.calibrate``);
+    #: ``None`` for methods whose output count is fixed by the input.
+    budget_setting: ClassVar[str | None] = None
+
     sensor_size: tuple[int, int, int]
     factor: int | tuple[int, int] = 2
 
@@ -214,6 +218,8 @@ class ThresholdDownscaler(Downscaler):
     linear and cubic estimators also refuse integer timestamps spanning 2**53 or more, whose
     crossing times float64 cannot hold.
     """
+
+    budget_setting: ClassVar[str | None] = "threshold"
 
     threshold: float = 1.0
 
