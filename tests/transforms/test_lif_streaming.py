@@ -173,3 +173,27 @@ def test_one_step_streams_emit_at_the_end_only():
     parts = run_in_chunks(pool, arr, [10, 20, 30])
     assert all(len(part) == 0 for part in parts[:-1])
     np.testing.assert_array_equal(parts[-1], pool(arr))
+
+
+def test_a_session_stays_on_the_chunks_device(device):
+    rng = np.random.default_rng(9)
+    arr = random_stream(rng, 300, SENSOR, t_max=120)
+    columns = [arr["x"], arr["y"], arr["t"], np.where(arr["p"], 1, -1)]
+    data = torch.tensor(np.stack(columns, 1).astype(np.int64), device=device)
+    pool = LIFPooling(SENSOR, factor=2, dt=5, tau=40.0, weight=0.5)
+    session = pool.session()
+    parts = [session(chunk) for chunk in torch.split(data, 45)] + [session.flush()]
+    assert all(part.device == data.device for part in parts)
+    assert torch.equal(torch.cat(parts), pool(data))
+
+
+def test_a_chunk_the_steps_cannot_index_is_refused_and_the_session_stays_usable():
+    pool = LIFPooling((2, 2, 2), factor=2, dt=1, tau=math.inf, weight=0.6)
+    arr = np.array([(0, 0, True, 0), (1, 1, True, 0), (0, 1, True, 5)], dtype=DVS_DTYPE)
+    far = np.array([(0, 0, True, 2**62)], dtype=DVS_DTYPE)
+    session = pool.session()
+    parts = [session(arr[:2])]
+    with pytest.raises(ValueError, match="2\\*\\*62"):
+        session(far)
+    parts += [session(arr[2:]), session.flush()]
+    assert np.concatenate(parts).tolist() == pool(arr).tolist() == [(0, 0, True, 1)]
