@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import (
@@ -27,6 +27,11 @@ from evdown_torch.transforms.functional.lif import (
     ResetMechanism,
     decay_factor,
     lif_pooling,
+)
+from evdown_torch.transforms.functional.lif_stream import (
+    LIFStreamState,
+    lif_pooling_stream,
+    lif_pooling_stream_end,
 )
 
 if TYPE_CHECKING:
@@ -150,20 +155,40 @@ class LIFPooling(Downscaler):
             reset_mechanism=self.reset_mechanism,
         )
 
+    def _settings(self) -> dict[str, Any]:
+        """The kernel's keyword arguments."""
+        return {
+            "sensor_size": self.sensor_size,
+            "factor": self.factor_xy,
+            "dt": float(self.dt),
+            "beta": self.beta,
+            "threshold": float(self.threshold),
+            "weight": float(self.weight),
+            "mutual_inhibition": float(self.mutual_inhibition),
+            "reset_mechanism": self.reset_mechanism,
+            "max_output_events": self.max_output_events,
+        }
+
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.lif.lif_pooling`."""
-        return lif_pooling(
-            events,
-            sensor_size=self.sensor_size,
-            factor=self.factor_xy,
-            dt=float(self.dt),
-            beta=self.beta,
-            threshold=float(self.threshold),
-            weight=float(self.weight),
-            mutual_inhibition=float(self.mutual_inhibition),
-            reset_mechanism=self.reset_mechanism,
-            max_output_events=self.max_output_events,
-        )
+        return lif_pooling(events, **self._settings())
+
+    def stream(
+        self, events: Events, state: LIFStreamState | None
+    ) -> tuple[Events, LIFStreamState | None]:
+        """One chunk of a stream: the spikes of the steps it closes, at their batch times.
+
+        A spike of step ``k`` is returned by the first chunk whose last timestamp is at least
+        ``t_start + (k + 1) * dt`` and lies in a later step; the rest come at the flush. The
+        state (:class:`~evdown_torch.transforms.functional.lif_stream.LIFStreamState`) holds
+        ``t_start``, every region's membranes at its last input and the input of the open
+        step. ``max_output_events`` bounds each chunk's output.
+        """
+        return lif_pooling_stream(events, state, **self._settings())
+
+    def stream_end(self, state: LIFStreamState | None) -> Events | None:
+        """The open step's spikes and the firing chains up to the end, clipped to ``t_end``."""
+        return lif_pooling_stream_end(state, **self._settings())
 
     def batch_kernel(self, batch: EventBatch) -> EventBatch:
         """The kernel once on the stacked batch, each recording binned from its own
