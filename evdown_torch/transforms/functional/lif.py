@@ -36,7 +36,8 @@ Exactness. The update at a cell is snntorch's float32 arithmetic, in its order, 
 consecutive active steps, and gaps of one step, are bit-identical to the module. Over a longer
 gap the decay ``beta ** g`` is one float32 power where stepping rounds ``g`` products
 (identical when ``beta`` is 0, 1 or a power of two), and a chain longer than
-:data:`EXACT_CHAIN_STEPS` is one float64 evaluation rounded once; a spike can differ only where
+:data:`~evdown_torch.transforms.functional.lif_chains.EXACT_CHAIN_STEPS` is one float64
+evaluation rounded once; a spike can differ only where
 a membrane lies within float32 rounding of the threshold.
 
 Limits. Step indices are int64: a ``dt`` that would cut the stream into more than ``2 ** 62``
@@ -56,6 +57,13 @@ from torch import Tensor
 from evdown_torch._tensors import divide, region_xy, sort_by_time, stable_sort_small
 from evdown_torch.checks import check_positive_float, check_time_constant, output_size
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.lif_chains import Leak
+from evdown_torch.transforms.functional.lif_steps import (
+    MAX_STEPS,
+    batch_step_indices,
+    step_end_time,
+    step_indices,
+)
 
 __all__ = [
     "DEFAULT_DT",
@@ -82,8 +90,6 @@ DEFAULT_TAU = 10_000.0
 DEFAULT_THRESHOLD = 1.0
 DEFAULT_WEIGHT = 0.3
 
-#: Largest number of steps a stream may be cut into (step indices are int64, with headroom).
-MAX_STEPS = 1 << 62
 #: Default bound on the number of output events (LIFPooling's ``max_output_events``).
 DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
 
@@ -106,204 +112,6 @@ def decay_factor(dt: float, tau: float) -> float:
     dt = check_positive_float("dt", dt)
     tau = check_time_constant("tau", tau)
     return math.exp(-dt / tau)
-
-
-def _step_indices(
-    t: Tensor, dt: float, t_start: Tensor | None = None
-) -> tuple[Tensor, int, float]:
-    """Step of every (sorted) event, the last step, and the ``dt`` to compute end times with.
-
-    Steps count from ``t_start`` (default: the first event; a streaming session passes its
-    stream's first timestamp), the last step is that of ``t[-1]``.
-
-    Raises:
-        ValueError: when the stream's span or its number of steps cannot be represented.
-    """
-    if t_start is None:
-        t_start = t[0]
-    t_end = t[-1]
-    if t.is_floating_point():
-        span = float(t_end) - float(t_start)
-        if not math.isfinite(span):
-            raise ValueError(f"LIF pooling needs finite timestamps, got a span of {span}")
-    else:
-        span = int(t_end) - int(t_start)  # exact, as a Python int
-        if span >= MAX_STEPS:
-            raise ValueError(
-                f"the stream spans {span} time units, more than 2**62 that int64 step "
-                "arithmetic can hold; split the stream"
-            )
-        if dt > span:  # one step holds everything; ends at t_start + dt > t_end, clipped
-            dt = float(span + 1)
-    if span / dt >= MAX_STEPS:
-        raise ValueError(
-            f"dt = {dt!r} cuts the stream's span of {span} time units into about "
-            f"{span / dt:.3g} steps, more than the 2**62 an int64 step index can hold; "
-            "use a larger dt"
-        )
-    steps = _steps(t - t_start, dt)
-    return steps, int(steps[-1]), dt
-
-
-def _steps(relative: Tensor, dt: float) -> Tensor:
-    """``floor(relative / dt)`` as int64 (exact for integer times and a whole ``dt``)."""
-    if not relative.is_floating_point() and dt.is_integer():
-        return torch.div(relative, int(dt), rounding_mode="floor")
-    return torch.floor(relative.to(torch.float64) / dt).to(torch.int64)
-
-
-def _batch_step_indices(
-    t: Tensor, recording: Tensor, bounds: tuple[Tensor, Tensor], dt: float
-) -> tuple[Tensor, Tensor, float]:
-    """:func:`_step_indices` for a batch: each event's step from its own recording's
-    ``t_start``, each recording's last step ``(B,)`` and the ``dt`` to compute end times
-    with (see :func:`lif_pooling`)."""
-    starts, ends = bounds
-    spans = ends - starts
-    widest = spans.max()
-    if t.is_floating_point():
-        span = float(widest)
-        if not math.isfinite(span):
-            raise ValueError(f"LIF pooling needs finite timestamps, got a span of {span}")
-    else:
-        span = int(widest)
-        if span >= MAX_STEPS:
-            raise ValueError(
-                f"a recording spans {span} time units, more than 2**62 that int64 step "
-                "arithmetic can hold; split it"
-            )
-        if dt > span:  # every recording in its step 0, ending at its t_end (as one stream)
-            dt = float(span + 1)
-    if span / dt >= MAX_STEPS:
-        raise ValueError(
-            f"dt = {dt!r} cuts a recording's span of {span} time units into about "
-            f"{span / dt:.3g} steps, more than the 2**62 an int64 step index can hold; "
-            "use a larger dt"
-        )
-    return _steps(t - starts.index_select(0, recording), dt), _steps(spans, dt), dt
-
-
-def _step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -> Tensor:
-    """Output timestamp ``t_start + (k + 1) * dt`` of steps ``k``, clipped to ``t_end``.
-
-    Integer timestamps stay int64 and nothing overflows: with a whole ``dt`` the sum is exact;
-    otherwise the offset ``(k + 1) * dt`` is rounded to the nearest integer, halves upward.
-    """
-    if t_start.is_floating_point():
-        return torch.minimum(t_start + (steps + 1).to(torch.float64) * dt, t_end)
-    span = t_end - t_start
-    if dt.is_integer():
-        start = steps * int(dt)  # <= span: the step begins inside the stream
-        return torch.where(span - start > int(dt), t_start + start + int(dt), t_end)
-    offset = torch.floor((steps + 1).to(torch.float64) * dt + 0.5)
-    offset = torch.minimum(torch.minimum(offset, span.to(torch.float64)).to(torch.int64), span)
-    return t_start + offset
-
-
-#: Steps of a firing chain computed with snntorch's float32 arithmetic, one at a time, before
-#: the closed form takes over (a chain rarely lasts longer unless ``beta`` is about 1).
-EXACT_CHAIN_STEPS = 8
-
-
-class _Leak:
-    """A neuron without input, for one ``(beta, threshold, reset)``: decay and firing chains.
-
-    Membranes are float32 as in snntorch; the closed forms run in float64 on exact copies.
-    """
-
-    def __init__(self, beta: Tensor, threshold: Tensor, reset: str) -> None:
-        self.beta32, self.threshold32, self.reset = beta, threshold, reset
-        self.beta, self.threshold = float(beta), float(threshold)
-        b = self.beta
-        self.log_beta = math.log(b) if 0.0 < b < 1.0 else 0.0
-        self.offset = self.threshold / (1.0 - b) if b < 1.0 else math.inf  # A, module docstring
-
-    def decay(self, u: Tensor, steps: Tensor) -> Tensor:
-        """``u`` after ``steps`` steps of pure decay: ``u * beta ** steps`` (float32 power)."""
-        return u * torch.pow(self.beta32, steps.to(u.dtype))
-
-    def chain(self, u: Tensor, j: Tensor) -> Tensor:
-        """Membrane ``j`` steps after ``u`` (float64), firing (and resetting) at every one."""
-        b, theta = self.beta, self.threshold
-        if self.reset == "none":
-            return u * torch.pow(b, j) if b < 1.0 else u
-        if b == 1.0:
-            return u - j * theta
-        return torch.pow(b, j) * (u + self.offset) - self.offset  # b = 0: -theta for j >= 1
-
-    def run(self, u: Tensor) -> Tensor:
-        """Number of ``j >= 1`` at which the chain from ``u > threshold`` stays above it.
-
-        Float64 in and out; "none" with ``beta = 1`` never stops (returns ``MAX_STEPS``).
-        """
-        b, theta = self.beta, self.threshold
-        if self.reset == "zero" or b == 0.0 or u.numel() == 0:
-            return torch.zeros_like(u)
-        if self.reset == "none":
-            if b == 1.0:
-                return torch.full_like(u, float(MAX_STEPS))
-            bound = torch.log(theta / u) / self.log_beta  # b^j u > theta  <=>  j < bound
-        elif b == 1.0:
-            bound = u / theta - 1.0  # u - j theta > theta  <=>  j < u / theta - 1
-        else:  # b^j (u + A) - A > theta  <=>  j < log((theta + A) / (u + A)) / log(b)
-            bound = torch.log((theta + self.offset) / (u + self.offset)) / self.log_beta
-        count = (torch.ceil(bound) - 1.0).clamp(0.0, float(MAX_STEPS))
-        # Settle the rounding of the logarithms on the chain's own values.
-        count -= ((count >= 1.0) & (self.chain(u, count) <= theta)).to(count.dtype)
-        count += (self.chain(u, count + 1.0) > theta).to(count.dtype)
-        return count.clamp_(0.0, float(MAX_STEPS))
-
-    def fire_through(
-        self, u: Tensor, gap: Tensor, alive: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Neurons that fired (float32 membrane ``u > threshold``), then ``gap`` empty steps.
-
-        The first :data:`EXACT_CHAIN_STEPS` steps of a chain use snntorch's float32
-        arithmetic, all lanes at once; a chain still firing after them continues in closed
-        form.
-
-        Args:
-            u: float32 membranes, above threshold where ``alive``.
-            gap: int64 numbers of empty steps, broadcastable to ``u``, at least 1 where
-                ``alive``.
-            alive: bool, the lanes to compute; the others are returned as they came
-                (``count`` 0, ``W = u``, ``R = u > threshold``).
-
-        Returns:
-            ``(count, W, R)``: int64 spikes fired in the gap (in its first ``count`` steps),
-            float32 membranes after the gap and bool resets (fired at its last step).
-        """
-        if self.reset == "zero":  # reset to zero at the first empty step: silent afterwards
-            return (torch.zeros(u.shape, dtype=torch.int64, device=u.device),
-                    u.masked_fill(alive, 0.0), (u > self.threshold32) & ~alive)
-        v = u
-        took_step = []  # per step: the lanes that took it (a chain stops for good)
-        fired = []  # per step: the lanes that fired in it
-        for j in range(EXACT_CHAIN_STEPS):  # a bounded number of steps, all lanes at once
-            if j and not bool(alive.any()):
-                break
-            after = self.beta32 * v  # + a zero current: exact
-            if self.reset == "subtract":
-                after = after - self.threshold32
-            v = torch.where(alive, after, v)
-            took_step.append(alive)
-            alive = alive & (v > self.threshold32)
-            fired.append(alive)
-            alive = alive & (gap > j + 1)
-        steps = torch.stack(took_step).sum(0)
-        count = torch.stack(fired).sum(0)
-        w = v * torch.pow(self.beta32, (gap - steps).to(v.dtype))  # ended chains only decay
-        still = v > self.threshold32  # above threshold only where the gap ended the chain
-        if bool(alive.any()):  # chains longer than EXACT_CHAIN_STEPS: closed form
-            lanes = alive.nonzero(as_tuple=True)
-            left = (gap.expand_as(v)[lanes] - steps[lanes]).to(torch.float64)
-            v64 = v[lanes].to(torch.float64)
-            run = self.run(v64)
-            chained = torch.minimum(left, run + 1.0)  # steps of the firing chain, then decay
-            w[lanes] = (torch.pow(self.beta, left - chained) * self.chain(v64, chained)).to(u.dtype)
-            still[lanes] = run >= left
-            count[lanes] += torch.minimum(run, left).to(torch.int64)
-        return count, w, still
 
 
 def _event_cells(
@@ -448,11 +256,11 @@ def lif_pooling(
         return Events.empty(events.t.dtype, events.device)
     wo, ho, _ = output_size(sensor_size, factor)
     if bounds is None:
-        steps, last_step, dt = _step_indices(events.t, float(dt))
+        steps, last_step, dt = step_indices(events.t, float(dt))
         batch_size = 1
     else:  # one block of Ho * Wo regions per recording
         recording = divide(events.y, ho * factor[1])
-        steps, last_step, dt = _batch_step_indices(events.t, recording, bounds, float(dt))
+        steps, last_step, dt = batch_step_indices(events.t, recording, bounds, float(dt))
         del recording
         batch_size = bounds[0].shape[0]
     spike_step, neuron, _ = lif_spikes(
@@ -462,13 +270,13 @@ def lif_pooling(
         max_output_events=max_output_events, batch_size=batch_size,
     )
     if bounds is None:
-        t = _step_end_time(spike_step, t_start=events.t[0], t_end=events.t[-1], dt=dt)
+        t = step_end_time(spike_step, t_start=events.t[0], t_end=events.t[-1], dt=dt)
     else:  # recording by recording, each at its own clock
         starts, ends = bounds
         recording = divide(torch.remainder(neuron, batch_size * wo * ho), wo * ho)
         recording, by_recording = stable_sort_small(recording, batch_size)
         spike_step, neuron = spike_step[by_recording], neuron[by_recording]
-        t = _step_end_time(spike_step, t_start=starts.index_select(0, recording),
+        t = step_end_time(spike_step, t_start=starts.index_select(0, recording),
                            t_end=ends.index_select(0, recording), dt=dt)
     return spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor,
                             batch_size=batch_size)
@@ -564,7 +372,7 @@ def lif_spikes(
     f32 = torch.float32
     beta32 = torch.tensor(beta, dtype=f32, device=device)  # the neuron's buffers, as snntorch
     threshold32 = torch.tensor(threshold, dtype=f32, device=device)
-    leak = _Leak(beta32, threshold32, reset_mechanism)
+    leak = Leak(beta32, threshold32, reset_mechanism)
     cell_region, cell_step, current = _event_cells(
         events, steps, fx=fx, fy=fy, wo=wo, plane=plane, weight=weight,
         mutual_inhibition=mutual_inhibition,

@@ -36,12 +36,11 @@ from evdown_torch.events import Events
 from evdown_torch.transforms.functional.lif import (
     LIFState,
     ResetMechanism,
-    _step_end_time,
-    _step_indices,
     initial_state,
     lif_spikes,
     spikes_to_events,
 )
+from evdown_torch.transforms.functional.lif_steps import step_end_time, step_indices
 
 __all__ = ["LIFStreamState", "lif_pooling_stream", "lif_pooling_stream_end"]
 
@@ -67,7 +66,7 @@ class LIFStreamState(NamedTuple):
 def _spike_time_within(step: int, *, t_start: Tensor, last_t: Tensor, dt: float) -> bool:
     """Whether ``t_start + (step + 1) * dt``, as the kernel computes it, is at most ``last_t``.
 
-    The same arithmetic as :func:`~evdown_torch.transforms.functional.lif._step_end_time`
+    The same arithmetic as :func:`~evdown_torch.transforms.functional.lif.step_end_time`
     before its clip (Python ints and IEEE doubles, as torch's int64 and float64).
     """
     if t_start.is_floating_point():
@@ -153,7 +152,7 @@ def lif_pooling_stream(
             Events.empty(events.t.dtype, events.device),
         )
     pending = Events(*(torch.cat(pair) for pair in zip(state.pending, events, strict=True)))
-    steps, last_step, end_dt = _step_indices(pending.t, float(dt), t_start=state.t_start)
+    steps, last_step, end_dt = step_indices(pending.t, float(dt), t_start=state.t_start)
     last_t = pending.t[-1]
     decided = _last_decided_step(
         last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=float(dt)
@@ -170,7 +169,7 @@ def lif_pooling_stream(
         mutual_inhibition=mutual_inhibition, reset_mechanism=reset_mechanism,
         max_output_events=max_output_events,
     )
-    t = _step_end_time(spike_step, t_start=state.t_start, t_end=last_t, dt=end_dt)
+    t = step_end_time(spike_step, t_start=state.t_start, t_end=last_t, dt=end_dt)
     out = spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
     rest = pending.select(torch.arange(n, pending.num_events, device=events.device))
     return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest)
@@ -206,12 +205,12 @@ def lif_pooling_stream_end(
         return None
     pending = state.pending
     times = torch.cat([pending.t, state.last_t.reshape(1)])
-    steps, last_step, end_dt = _step_indices(times, float(dt), t_start=state.t_start)
+    steps, last_step, end_dt = step_indices(times, float(dt), t_start=state.t_start)
     spike_step, neuron, _ = lif_spikes(
         pending, steps[:-1], state=state.neurons, last_step=last_step,
         from_step=state.decided + 1, sensor_size=sensor_size, factor=factor, beta=beta,
         threshold=threshold, weight=weight, mutual_inhibition=mutual_inhibition,
         reset_mechanism=reset_mechanism, max_output_events=max_output_events,
     )
-    t = _step_end_time(spike_step, t_start=state.t_start, t_end=state.last_t, dt=end_dt)
+    t = step_end_time(spike_step, t_start=state.t_start, t_end=state.last_t, dt=end_dt)
     return spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
