@@ -233,6 +233,9 @@ def region_pixel_count(
 ) -> Tensor:
     """``n_r``: number of sensor pixels in each region (fewer in the last column/row).
 
+    Region ids past ``Ho * Wo`` are those of a batch of recordings stacked vertically
+    (recording ``b``'s region ``r`` is ``b * Ho * Wo + r``): each has the ``n_r`` of ``r``.
+
     Args:
         region: int64 region ids ``ry * Wo + rx``.
         sensor_size: input ``(W, H, P)``.
@@ -247,5 +250,7 @@ def region_pixel_count(
     """
     w, h, _ = sensor_size
     fx, fy = factor
-    rx, ry = region_xy(region, output_size(sensor_size, factor)[0])
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    rx, ry = region_xy(region, out_w)
+    ry = torch.remainder(ry, out_h)
     return torch.clamp(w - rx * fx, max=fx) * torch.clamp(h - ry * fy, max=fy)

@@ -8,7 +8,8 @@ Subcommands (``evdown COMMAND --help`` for each):
 * ``evdown bench --out DIR [--short] [--input FILE.npy ...]``: benchmark every method against
   its peers (Tonic) and write a report with plots (see :mod:`evdown_torch.bench`).
 * ``evdown evaluate --config FILE [--output DIR]``: measure every method's speed/accuracy
-  trade (:mod:`evdown_torch.evaluate`).
+  trade (:mod:`evdown_torch.evaluation`) and write ``results.csv``, ``report.md`` and
+  ``tradeoff.png``.
 * ``evdown preprocess --dataset NAME --method NAME --factor F --out DIR``: downscale a whole
   dataset once into a cache (see :mod:`evdown_torch.data`).
 * ``evdown show IN --factor F [--out FILE.gif|FILE.png] [--curve X,Y]``: see what each method
@@ -278,14 +279,15 @@ def add_bench_command(commands: argparse._SubParsersAction) -> None:
 
 def _evaluate(args: argparse.Namespace) -> int:
     from evdown_torch.config import load_config
-    from evdown_torch.evaluate import markdown_table, run_evaluation, write_report
+    from evdown_torch.evaluation import markdown_table, run_evaluation, write_report
 
     try:
         config = load_config(args.config)
-        result = run_evaluation(config)
+        result = run_evaluation(config, cache=not args.no_cache)
     except (OSError, RuntimeError) as error:
         raise CommandError(str(error)) from None
-    write_report(result, args.output or config.output.directory)
+    write_report(result, args.output or config.output.directory,
+                 log=lambda line: print(line, file=sys.stderr))
     print(markdown_table(result), end="")
     return 0
 
@@ -300,6 +302,9 @@ def add_evaluate_command(commands: argparse._SubParsersAction) -> None:
                           help="TOML configuration, e.g. configs/quick.toml")
     evaluate.add_argument("--output", metavar="DIR",
                           help="output directory (default: the config's [output] directory)")
+    evaluate.add_argument("--no-cache", action="store_true",
+                          help="neither read nor keep the cache of recordings, frames and "
+                          "predictions (work in a temporary directory)")
     evaluate.set_defaults(run=_evaluate)
 
 

@@ -1,6 +1,6 @@
 """Configuration of ``evdown evaluate``: TOML files mapped onto typed dataclasses.
 
-A config file has up to six tables; every key maps to a field below, so an unknown key, a
+A config file has up to eight tables; every key maps to a field below, so an unknown key, a
 value of the wrong type or a missing file is an error that names the problem, never a silent
 default. Keys left out take the defaults shown.
 
@@ -10,37 +10,56 @@ default. Keys left out take the defaults shown.
     dataset = "synthetic"      # "synthetic" (evdown_torch.synthetic) or "dvsgesture" (tonic)
     root = "data"              # dvsgesture: tonic's save_to (the dataset lies in ROOT/DVSGesture)
     download = false           # dvsgesture: let tonic download it when absent
-    sensor_size = [32, 32]     # synthetic: sensor width and height, pixels
-    duration_us = 1_500_000    # synthetic: recording length; dvsgesture: crop (0 = whole), us
-    train_samples = 330        # synthetic: number of samples; dvsgesture: at most (0 = all)
-    test_samples = 165         # as train_samples, for the test split
+    sensor_size = [128, 128]   # synthetic: sensor width and height, pixels
+    duration_us = 6_000_000    # synthetic: recording length; dvsgesture: crop (0 = whole), us
+    train_samples = 264        # synthetic: number of samples; dvsgesture: at most (0 = all)
+    test_samples = 264         # as train_samples, for the test split
+    calibration_samples = 22   # the first training recordings, on which budgets are calibrated
     seed = 0                   # which samples (synthetic scenes, dvsgesture subset)
-    time_bins = 8              # frames per sample fed to the classifier
+    time_bins = 6              # frames per sample fed to the classifier
 
     [methods]
     include = ["downsample", "event_count"]   # default: every method of the registry
     factors = [2, 4]           # each an integer or a pair [fx, fy]
+    budget_reference = "camera"  # "camera": the ground truth's count; "input": the input's
+    budgets = [1.0, 4.0]       # each a multiple of the reference ([] : methods' own settings)
+    control = true             # the thinning control (ThinnedDownsample) at each budget
 
-    [settings.event_count]     # one table per method: its settings (see `method_settings`)
-    threshold = 1.0
+    [settings.event_count]     # one table per method: its settings (see `method_settings`);
+    threshold = 1.0            # a budget setting given here is where calibration starts
 
     [model]                    # SpikingClassifier
-    channels = [16, 32]
-    pool_size = 4
+    channels = [16, 32, 32, 32]
+    pool_size = 1
     beta = 0.9
     threshold = 1.0
+    grid = 16                  # stem stride = ceil(input side / grid); 0: no stem
+    stem_channels = 8
 
     [training]
     epochs = 10
     batch_size = 16
     learning_rate = 0.005
-    seeds = [0]                # one training run per seed; accuracy is reported as mean and spread
+    seeds = [0, 1, 2, 3, 4]    # one training run per seed
+    full_resolution_seeds = 3  # the full-resolution cell trains on the first 3 (0: all)
     encoding = "log"           # classifier input: "counts", "log" (log1p of counts) or "binary"
-    device = "cpu"             # "cpu", "cuda", "cuda:1", ... or "auto"
-    num_threads = 1            # torch threads during the run (0: leave torch's setting)
+    device = "auto"            # "cpu", "cuda", "cuda:1", ... or "auto"
+    num_threads = 1            # torch threads of each process (0: leave torch's setting)
+    workers = 2                # worker processes (0: everything in this process)
+
+    [statistics]
+    confidence = 0.95          # bootstrap intervals
+    resamples = 2000
+    alpha = 0.05               # family-wise, Holm-corrected, per study
+    seed = 0
+
+    [measures]
+    consistency_bin_us = 10_000  # optical consistency's time bins
+    throughput_recordings = 4    # test recordings timed per cell, one thread, idle
 
     [output]
     directory = "results"      # relative to the working directory
+    cache = "results/cache"    # recordings, renders, frames and predictions, keyed by settings
 """
 
 from __future__ import annotations
@@ -65,14 +84,17 @@ __all__ = [
     "DataConfig",
     "EvaluationConfig",
     "MethodsConfig",
+    "MeasuresConfig",
     "ModelConfig",
     "OutputConfig",
+    "StatisticsConfig",
     "TrainingConfig",
     "load_config",
     "parse_config",
 ]
 
 DATASETS = ("synthetic", "dvsgesture")
+REFERENCES = ("camera", "input")
 ENCODINGS = ("counts", "log", "binary")
 DVS_GESTURE_SENSOR = (128, 128, 2)
 
@@ -84,12 +106,13 @@ class DataConfig:
     dataset: str = "synthetic"
     root: str = "data"
     download: bool = False
-    sensor_size: tuple[int, int] = (32, 32)
-    duration_us: int = 1_500_000
-    train_samples: int = 330
-    test_samples: int = 165
+    sensor_size: tuple[int, int] = (128, 128)
+    duration_us: int = 6_000_000
+    train_samples: int = 264
+    test_samples: int = 264
+    calibration_samples: int = 22
     seed: int = 0
-    time_bins: int = 8
+    time_bins: int = 6
 
     def __post_init__(self) -> None:
         check_choice("data.dataset", self.dataset, DATASETS)
@@ -97,6 +120,7 @@ class DataConfig:
             check_positive_int(f"data.sensor_size {name}", self.sensor_size[i])
         check_positive_int("data.time_bins", self.time_bins)
         check_non_negative_int("data.seed", self.seed)
+        check_positive_int("data.calibration_samples", self.calibration_samples)
         if self.dataset == "synthetic":
             check_positive_int("data.duration_us", self.duration_us)
             check_positive_int("data.train_samples", self.train_samples)
@@ -119,8 +143,16 @@ class MethodsConfig:
 
     include: tuple[str, ...] | None = None
     factors: tuple[int | tuple[int, int], ...] = (2, 4)
+    budget_reference: str = "camera"
+    budgets: tuple[float, ...] = (1.0, 4.0)
+    control: bool = True
 
     def __post_init__(self) -> None:
+        check_choice("methods.budget_reference", self.budget_reference, REFERENCES)
+        for budget in self.budgets:
+            check_positive_float("methods.budgets", budget)
+        if len(set(self.budgets)) != len(self.budgets):
+            raise ValueError(f"methods.budgets must be distinct, got {list(self.budgets)}")
         if not self.factors:
             raise ValueError("methods.factors must list at least one factor, got []")
         for factor in self.factors:
@@ -145,12 +177,16 @@ class MethodsConfig:
 class ModelConfig:
     """Settings of :class:`~evdown_torch.models.SpikingClassifier` (table ``[model]``)."""
 
-    channels: tuple[int, ...] = (16, 32)
-    pool_size: int = 4
+    channels: tuple[int, ...] = (16, 32, 32, 32)
+    pool_size: int = 1
     beta: float = 0.9
     threshold: float = 1.0
+    grid: int = 16
+    stem_channels: int = 8
 
     def __post_init__(self) -> None:
+        check_non_negative_int("model.grid", self.grid)
+        check_positive_int("model.stem_channels", self.stem_channels)
         if not self.channels:
             raise ValueError("model.channels must list at least one block, got []")
         for c in self.channels:
@@ -168,10 +204,12 @@ class TrainingConfig:
     epochs: int = 10
     batch_size: int = 16
     learning_rate: float = 5e-3
-    seeds: tuple[int, ...] = (0,)
+    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
+    full_resolution_seeds: int = 3
     encoding: str = "log"
-    device: str = "cpu"
+    device: str = "auto"
     num_threads: int = 1
+    workers: int = 2
 
     def __post_init__(self) -> None:
         check_positive_int("training.epochs", self.epochs)
@@ -185,15 +223,54 @@ class TrainingConfig:
             raise ValueError(f"training.seeds must be distinct, got {list(self.seeds)}")
         check_choice("training.encoding", self.encoding, ENCODINGS)
         check_non_negative_int("training.num_threads", self.num_threads)
+        check_non_negative_int("training.workers", self.workers)
+        check_non_negative_int("training.full_resolution_seeds", self.full_resolution_seeds)
         if not self.device:
             raise ValueError("training.device must name a device, got ''")
 
 
+    @property
+    def baseline_seeds(self) -> tuple[int, ...]:
+        """The seeds of the full-resolution cell."""
+        return self.seeds[: self.full_resolution_seeds or len(self.seeds)]
+
+
+@dataclass(frozen=True)
+class StatisticsConfig:
+    """Intervals and tests (table ``[statistics]``)."""
+
+    confidence: float = 0.95
+    resamples: int = 2000
+    alpha: float = 0.05
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("confidence", "alpha"):
+            value = check_positive_float(f"statistics.{name}", getattr(self, name))
+            if value >= 1:
+                raise ValueError(f"statistics.{name} must lie in (0, 1), got {value!r}")
+        check_positive_int("statistics.resamples", self.resamples)
+        check_non_negative_int("statistics.seed", self.seed)
+
+
+@dataclass(frozen=True)
+class MeasuresConfig:
+    """Settings of the per-cell measures (table ``[measures]``)."""
+
+    consistency_bin_us: int = 10_000
+    throughput_recordings: int = 4
+
+    def __post_init__(self) -> None:
+        check_positive_int("measures.consistency_bin_us", self.consistency_bin_us)
+        check_non_negative_int("measures.throughput_recordings", self.throughput_recordings)
+
+
 @dataclass(frozen=True)
 class OutputConfig:
-    """Where the report goes (table ``[output]``)."""
+    """Where the report and the cache go (table ``[output]``)."""
 
     directory: str = "results"
+    cache: str = "results/cache"
 
 
 @dataclass(frozen=True)
@@ -201,7 +278,8 @@ class EvaluationConfig:
     """A whole ``evdown evaluate`` configuration.
 
     Attributes:
-        data, methods, model, training, output: the tables of the same names.
+        data, methods, model, training, statistics, measures, output: the tables of the
+            same names.
         settings: method name -> that method's settings (keyword arguments of
             :func:`~evdown_torch.transforms.registry.make_method`).
         name: a label for the report (the config file's stem).
@@ -212,11 +290,19 @@ class EvaluationConfig:
     settings: dict[str, dict[str, Any]] = field(default_factory=dict)
     model: ModelConfig = field(default_factory=ModelConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
+    statistics: StatisticsConfig = field(default_factory=StatisticsConfig)
+    measures: MeasuresConfig = field(default_factory=MeasuresConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     name: str = "evaluation"
 
     def __post_init__(self) -> None:
         sensor = self.data.full_sensor_size
+        if self.data.dataset != "synthetic" and self.methods.budget_reference == "camera" \
+                and self.methods.budgets:
+            raise ValueError(
+                "methods.budget_reference = 'camera' needs the synthetic dataset's ground truth; "
+                f"use 'input' for {self.data.dataset!r}"
+            )
         for factor in self.methods.factors:
             try:
                 check_factor(factor, sensor)
@@ -244,6 +330,8 @@ _SECTIONS = {
     "methods": MethodsConfig,
     "model": ModelConfig,
     "training": TrainingConfig,
+    "statistics": StatisticsConfig,
+    "measures": MeasuresConfig,
     "output": OutputConfig,
 }
 

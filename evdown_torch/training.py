@@ -36,7 +36,7 @@ from torch import Tensor, nn
 from evdown_torch.checks import check_positive_float, check_positive_int
 from evdown_torch.models.classifier import class_scores
 
-__all__ = ["evaluate_classifier", "train_classifier"]
+__all__ = ["evaluate_classifier", "predict_classifier", "train_classifier"]
 
 Batches = Iterable[tuple[Tensor, Tensor]]
 
@@ -142,14 +142,31 @@ def evaluate_classifier(model: nn.Module, loader: Batches) -> float:
     Raises:
         ValueError: if the loader yields no samples.
     """
+    predicted, labels = predict_classifier(model, loader)
+    return float((predicted == labels).to(torch.float64).mean())
+
+
+@torch.no_grad()
+def predict_classifier(model: nn.Module, loader: Batches) -> tuple[Tensor, Tensor]:
+    """The class a spiking classifier gives each sample, and the sample's label.
+
+    Args:
+        model: as for :func:`train_classifier`.
+        loader: batches ``(frames [B, T, 2, H, W], labels [B])``, in the order wanted.
+
+    Returns:
+        ``(predicted, labels)``: two ``[N]`` int64 CPU tensors, in the loader's order.
+
+    Raises:
+        ValueError: if the loader yields no samples.
+    """
     device = _device_of(model)
     model.eval()
-    correct, count = 0, 0
+    predicted, truth = [], []
     for frames, labels in loader:
         spikes, membrane, _ = model(_time_first(frames, device))
-        predicted = class_scores(spikes, membrane).argmax(1)
-        correct += int((predicted.cpu() == labels.to(torch.int64).cpu()).sum())
-        count += labels.shape[0]
-    if count == 0:
+        predicted.append(class_scores(spikes, membrane).argmax(1).cpu())
+        truth.append(labels.to(torch.int64).cpu())
+    if not predicted:
         raise ValueError("the evaluation loader yielded no samples")
-    return correct / count
+    return torch.cat(predicted), torch.cat(truth)

@@ -42,11 +42,33 @@ def test_the_documented_example_is_valid(tmp_path):
     assert config.settings == {"event_count": {"threshold": 1.0}}
 
 
-@pytest.mark.parametrize("name", ["quick", "tiny", "dvsgesture"])
+@pytest.mark.parametrize("name", ["quick", "full", "tiny", "dvsgesture"])
 def test_shipped_configs_load(name):
     config = load_config(CONFIGS / f"{name}.toml")
     assert config.name == name
     assert config.methods.names == tuple(METHODS)
+
+
+@pytest.mark.parametrize("name", ["quick", "full"])
+def test_the_study_configs_meet_the_issue(name):
+    config = load_config(CONFIGS / f"{name}.toml")
+    assert config.data.full_sensor_size == (128, 128, 2)
+    assert config.data.duration_us == 6_000_000 and config.data.test_samples >= 264
+    assert config.methods.factors == (2, 4, 8) and len(config.methods.budgets) == 2
+    assert config.methods.budget_reference == "camera" and config.methods.budgets[0] == 1.0
+    assert config.methods.control and len(config.training.seeds) >= 5
+    assert len(config.training.baseline_seeds) >= 3 and config.training.device == "auto"
+    assert config.data.calibration_samples <= config.data.train_samples
+    if name == "full":
+        assert (config.data.train_samples, config.data.test_samples) == (1077, 264)
+
+
+def test_study_settings():
+    config = parse_config({"training": {"seeds": [4, 5, 6], "full_resolution_seeds": 2},
+                           "methods": {"budgets": [2.0, 0.5]}})
+    assert config.training.baseline_seeds == (4, 5) and config.methods.budgets == (2.0, 0.5)
+    assert parse_config({"training": {"full_resolution_seeds": 0}}).training.baseline_seeds \
+        == config.training.seeds[:0] + (0, 1, 2, 3, 4)
 
 
 @pytest.mark.parametrize(
@@ -71,7 +93,7 @@ def test_shipped_configs_load(name):
         ({"methods": {"factors": [2.5]}}, TypeError, r"methods.factors\[0\] must be an integer "
                                                      "or an array of 2"),
         ({"methods": {"factors": []}}, ValueError, "at least one factor"),
-        ({"methods": {"factors": [100]}}, ValueError, "methods.factors: factor 100 is larger"),
+        ({"methods": {"factors": [200]}}, ValueError, "methods.factors: factor 200 is larger"),
         ({"methods": {"include": ["nope"]}}, ValueError, r"unknown method\(s\) \['nope'\]"),
         ({"settings": {"nope": {}}}, ValueError, r"\[settings.nope\] names an unknown method"),
         ({"settings": {"event_count": {"thresh": 1}}}, ValueError,
@@ -79,6 +101,15 @@ def test_shipped_configs_load(name):
         ({"settings": {"event_count": {"threshold": -1.0}}}, ValueError,
          r"\[settings.event_count\]: threshold must be a positive"),
         ({"settings": {"event_count": 1}}, TypeError, "one table per method"),
+        ({"methods": {"budgets": [1.0, 1.0]}}, ValueError, "budgets must be distinct"),
+        ({"methods": {"budgets": [0.0]}}, ValueError, "methods.budgets must be a positive"),
+        ({"methods": {"budget_reference": "sensor"}}, ValueError, "budget_reference must be one"),
+        ({"statistics": {"alpha": 1.5}}, ValueError, r"statistics.alpha must lie in \(0, 1\)"),
+        ({"statistics": {"resamples": 0}}, ValueError, "statistics.resamples must be a positive"),
+        ({"measures": {"consistency_bin_us": 0}}, ValueError, "consistency_bin_us must be a "),
+        ({"model": {"grid": -1}}, ValueError, "model.grid must be a non-negative"),
+        ({"training": {"workers": -2}}, ValueError, "training.workers must be a non-negative"),
+        ({"output": {"cache": 3}}, TypeError, "output.cache must be a string"),
     ],
 )
 def test_mistakes_are_named(document, error, message):

@@ -112,32 +112,46 @@ def _write_one_shard(
     source, transform, size = state["source"], state["transform"], state["shard_size"]
     first, stop = shard * size, min((shard + 1) * size, len(source))
     shards.remove_stale_temporaries(state["out"], shard)
-    chunks, rows, skipped = [], [], []
-    events_in = events_out = 0
+    loaded, skipped = [], []
     read_s = transform_s = 0.0
+
+    def skip(index: int, error: Exception) -> None:
+        reason = f"{type(error).__name__}: {error}"
+        if state["on_error"] == "stop":
+            raise RecordingError(
+                f"cannot preprocess {source.source_name(index)}: {reason}") from None
+        skipped.append({"index": index, "source": source.source_name(index), "error": reason})
+
     for index in range(first, stop):
         start = time.perf_counter()
         try:
             events, label = source.load(index)
-            label = check_label(label)
-            read_s += time.perf_counter() - start
-            start = time.perf_counter()
-            out = transform(events)
-            transform_s += time.perf_counter() - start
+            loaded.append((index, check_label(label), events))
         except (OSError, EOFError, ValueError, TypeError) as error:
-            reason = f"{type(error).__name__}: {error}"
-            if state["on_error"] == "stop":
-                raise RecordingError(
-                    f"cannot preprocess {source.source_name(index)}: {reason}") from None
-            skipped.append({"index": index, "source": source.source_name(index),
-                            "error": reason})
+            skip(index, error)
             state["tick"]()
-            continue
-        offset = events_out
-        chunks.append(out)
-        events_in += len(events)
-        events_out += len(out)
-        rows.append((index, label, offset, events_out))
+        read_s += time.perf_counter() - start
+    start = time.perf_counter()
+    try:  # the whole shard in one batched pass of the transform
+        outputs = transform.batch([events for _, _, events in loaded])
+    except (ValueError, TypeError):  # one recording is bad: find it, keep the others
+        outputs = []
+        for index, _, events in loaded:
+            try:
+                outputs.append(transform(events))
+            except (ValueError, TypeError) as error:
+                skip(index, error)
+                outputs.append(None)
+    transform_s += time.perf_counter() - start
+    chunks, rows = [], []
+    events_in = events_out = 0
+    for (index, label, events), out in zip(loaded, outputs):
+        if out is not None:
+            offset = events_out
+            chunks.append(out)
+            events_in += len(events)
+            events_out += len(out)
+            rows.append((index, label, offset, events_out))
         state["tick"]()
     start = time.perf_counter()
     events = np.concatenate(chunks) if chunks else np.empty(0, dtype=source.dtype)

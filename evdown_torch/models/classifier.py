@@ -9,11 +9,12 @@ import snntorch
 import torch
 from snntorch import surrogate
 from torch import Tensor, nn
+from torch.nn import functional
 
 from evdown_torch.checks import check_positive_float, check_positive_int
 from evdown_torch.models._snn import unregistered
 
-__all__ = ["ClassifierState", "SpikingClassifier", "class_scores"]
+__all__ = ["ClassifierState", "SpikingClassifier", "class_scores", "stem_stride_for"]
 
 
 class ClassifierState(NamedTuple):
@@ -38,13 +39,15 @@ def _leaky(beta: float, threshold: float) -> snntorch.Leaky:
 class SpikingClassifier(nn.Module):
     """Convolutional leaky integrate-and-fire network classifying event frames.
 
-    Each time step goes through ``len(channels)`` blocks of ``3x3`` convolution, ``2x2`` max
-    pooling (rounding up, so a ``1x1`` input stays ``1x1``) and a leaky integrate-and-fire
-    layer (``snntorch.Leaky``, subtract reset, fast-sigmoid surrogate gradient); then an
-    adaptive average pooling to ``pool_size x pool_size`` (which makes the network take any
-    input size), a linear layer and a leaky output layer with one neuron per class. The class
-    is read from the output spike counts (:meth:`predict`); train it with a snntorch loss on
-    the output spikes, e.g. ``snntorch.functional.mse_count_loss()``.
+    Each time step goes through an optional strided stem (a ``stem_stride x stem_stride``
+    convolution with the same stride to ``stem_channels`` channels, the input zero-padded on the
+    right and bottom to a multiple of the stride), then ``len(channels)`` blocks of ``3x3``
+    convolution, ``2x2`` max pooling (rounding up, so a ``1x1`` input stays ``1x1``) and a
+    leaky integrate-and-fire layer (``snntorch.Leaky``, subtract reset, fast-sigmoid surrogate
+    gradient); then an adaptive average pooling to ``pool_size x pool_size`` (which makes the
+    network take any input size), a linear layer and a leaky output layer with one neuron per
+    class. The class is read from the output spike counts (:meth:`predict`); train it with a
+    snntorch loss on the output spikes, e.g. ``snntorch.functional.mse_count_loss()``.
 
     Args:
         num_classes: number of classes (11 for DVS128 Gesture).
@@ -53,6 +56,11 @@ class SpikingClassifier(nn.Module):
         pool_size: side of the adaptive pooling's output.
         beta: membrane decay per time step, in ``(0, 1]``.
         threshold: firing threshold of every layer.
+        stem_stride: side and stride of the stem convolution (1: no stem). A stride that brings
+            a large input down to a small working grid (:func:`stem_stride_for`) keeps the cost
+            of the blocks the same for every input size and lets their receptive field cover
+            the whole input (with four blocks, a grid of 16 is covered).
+        stem_channels: output channels of the stem (default: ``channels[0]``).
 
     Example:
         >>> import torch
@@ -71,6 +79,8 @@ class SpikingClassifier(nn.Module):
         pool_size: int = 4,
         beta: float = 0.9,
         threshold: float = 1.0,
+        stem_stride: int = 1,
+        stem_channels: int | None = None,
     ) -> None:
         super().__init__()
         self.num_classes = check_positive_int("num_classes", num_classes)
@@ -85,7 +95,17 @@ class SpikingClassifier(nn.Module):
         if beta > 1:
             raise ValueError(f"beta must lie in (0, 1], got {beta!r}")
         threshold = check_positive_float("threshold", threshold)
-        widths = (self.in_channels, *self.channels)
+        self.stem_stride = check_positive_int("stem_stride", stem_stride)
+        if stem_channels is None:
+            stem_channels = self.channels[0]
+        self.stem_channels = check_positive_int("stem_channels", stem_channels)
+        self.stem = (
+            nn.Conv2d(self.in_channels, self.stem_channels, kernel_size=self.stem_stride,
+                      stride=self.stem_stride)
+            if self.stem_stride > 1 else None
+        )
+        first = self.stem_channels if self.stem is not None else self.in_channels
+        widths = (first, *self.channels)
         self.convs = nn.ModuleList(
             nn.Conv2d(a, b, kernel_size=3, padding=1) for a, b in zip(widths, widths[1:])
         )
@@ -98,13 +118,16 @@ class SpikingClassifier(nn.Module):
     def extra_repr(self) -> str:
         return (
             f"num_classes={self.num_classes}, channels={self.channels}, "
-            f"pool_size={self.pool_size}, beta={float(self.out_neuron.beta):g}, "
+            f"pool_size={self.pool_size}, stem_stride={self.stem_stride}, "
+            f"beta={float(self.out_neuron.beta):g}, "
             f"threshold={float(self.out_neuron.threshold):g}"
         )
 
     def initial_state(self, x: Tensor) -> ClassifierState:
         """Zero membranes for a ``[T, B, C, H, W]`` input."""
         _, b, _, h, w = x.shape
+        if self.stem is not None:
+            h, w = -(-h // self.stem_stride), -(-w // self.stem_stride)
         conv = []
         for c in self.channels:
             h, w = -(-h // 2), -(-w // 2)
@@ -136,7 +159,7 @@ class SpikingClassifier(nn.Module):
         out_mem = state.out
         spikes, membranes = [], []
         for step in x:
-            current = step
+            current = self._stem(step)
             for i, (conv, neuron) in enumerate(zip(self.convs, self.conv_neurons)):
                 current, conv_mem[i] = neuron(self.pool(conv(current)), conv_mem[i])
             current = self.fc(self.squeeze(current).flatten(1))
@@ -148,6 +171,33 @@ class SpikingClassifier(nn.Module):
             torch.stack(membranes),
             ClassifierState(tuple(conv_mem), out_mem),
         )
+
+    def _stem(self, step: Tensor) -> Tensor:
+        if self.stem is None:
+            return step
+        s = self.stem_stride
+        pad_w, pad_h = -step.shape[-1] % s, -step.shape[-2] % s
+        if pad_w or pad_h:
+            step = functional.pad(step, (0, pad_w, 0, pad_h))
+        return self.stem(step)
+
+    def macs_per_step(self, height: int, width: int) -> int:
+        """Multiply-accumulates of one time step of one sample of size ``height x width``.
+
+        Counts the convolutions (stem and blocks, at their output sizes) and the linear layer;
+        pooling and neurons are not counted.
+        """
+        h, w = check_positive_int("height", height), check_positive_int("width", width)
+        macs = 0
+        c_in = self.in_channels
+        if self.stem is not None:
+            h, w = -(-h // self.stem_stride), -(-w // self.stem_stride)
+            macs += h * w * self.stem_channels * c_in * self.stem_stride**2
+            c_in = self.stem_channels
+        for c in self.channels:
+            macs += h * w * c * c_in * 9
+            h, w, c_in = -(-h // 2), -(-w // 2), c
+        return macs + self.fc.in_features * self.fc.out_features
 
     @torch.no_grad()
     def predict(self, x: Tensor) -> Tensor:
@@ -170,3 +220,14 @@ def class_scores(spikes: Tensor, membrane: Tensor) -> Tensor:
     equal spike counts.
     """
     return spikes.sum(0) + torch.sigmoid(membrane.sum(0))
+
+
+def stem_stride_for(size: tuple[int, int], grid: int) -> int:
+    """The stem stride that brings a ``(W, H)`` input to at most ``grid x grid``.
+
+    Example:
+        >>> stem_stride_for((128, 128), 16), stem_stride_for((16, 16), 16)
+        (8, 1)
+    """
+    grid = check_positive_int("grid", grid)
+    return max(1, -(-max(size) // grid))

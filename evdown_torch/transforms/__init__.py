@@ -1,14 +1,17 @@
 """Downscaling transforms, usable alone or inside ``tonic.transforms.Compose``."""
 
 from evdown_torch.transforms._base import Chain, Downscaler, Session, Streaming
+from evdown_torch.transforms.calibrate import BudgetTarget, calibrate
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount, EventCountSession
 from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
 from evdown_torch.transforms.photocurrent import PhotocurrentPooling, PhotocurrentSession
 from evdown_torch.transforms.temporal import TemporalFunnelling
+from evdown_torch.transforms.thinning import ThinnedDownsample
 
 __all__ = [
+    "BudgetTarget",
     "Chain",
     "CubicEstimation",
     "Downscaler",
@@ -23,5 +26,7 @@ __all__ = [
     "Session",
     "Streaming",
     "TemporalFunnelling",
+    "ThinnedDownsample",
+    "calibrate",
     "calibrate_weight",
 ]

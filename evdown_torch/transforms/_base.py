@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar, overload
 
 import torch
 
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import check_factor, check_positive_float, check_sensor_size, output_size
+from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.events import EventFormat, Events, EventsLike, from_events, to_events
 from evdown_torch.transforms.functional._reference import threshold_fraction
 
@@ -163,6 +165,10 @@ class Downscaler(Streaming):
             ``(x // fx, y // fy)``.
     """
 
+    #: The one setting that sets the output's event budget (see ``transforms.calibrate``);
+    #: ``None`` for methods whose output count is fixed by the input.
+    budget_setting: ClassVar[str | None] = None
+
     sensor_size: tuple[int, int, int]
     factor: int | tuple[int, int] = 2
 
@@ -198,6 +204,67 @@ class Downscaler(Streaming):
         ev, fmt = to_events(events, self.sensor_size)
         return from_events(self.kernel(ev), fmt)
 
+    def batch_kernel(self, batch: EventBatch) -> EventBatch | None:
+        """Downscale a batch of validated recordings in one pass.
+
+        Methods run their kernel once on the recordings stacked on one virtual sensor
+        (:func:`~evdown_torch.transforms._batch.run_stacked`), passing it each recording's
+        stream bounds where the method needs them. The default, ``None``, means the method
+        has no batched kernel: :meth:`batch` then processes the recordings one by one.
+        """
+        return None
+
+    @overload
+    def batch(self, recordings: EventBatch) -> EventBatch: ...
+
+    @overload
+    def batch(self, recordings: Sequence[EventsLike]) -> list[EventsLike]: ...
+
+    def batch(self, recordings):
+        """Downscale many recordings in one pass; each output equals the recording's own call.
+
+        The recordings go through the kernel together (``docs/semantics.md``: processing
+        several recordings in one batched call gives, for each, the same events as processing
+        it alone), which costs much less than one call per recording when they are small.
+        The frames mode of :class:`~evdown_torch.transforms.PhotocurrentPooling` and
+        :class:`~evdown_torch.transforms.thinning.ThinnedDownsample` (random draws seeded by
+        each recording) have no batched kernel and process the recordings one by one. The
+        output limit (:func:`evdown_torch.set_max_output_events`, or
+        ``LIFPooling.max_output_events``) applies to the batch as a whole.
+
+        Args:
+            recordings: a sequence of recordings of any accepted kind (on one device, all
+                with integer or all with float timestamps), or an
+                :class:`~evdown_torch.collate.EventBatch`.
+
+        Returns:
+            A list with each recording's output in its own kind, dtype and polarity encoding;
+            an :class:`~evdown_torch.collate.EventBatch` (on the input's device) for an
+            :class:`~evdown_torch.collate.EventBatch`.
+
+        Example:
+            >>> import torch
+            >>> from evdown_torch import Downsample
+            >>> down = Downsample((4, 4, 2), factor=2)
+            >>> a, b = torch.tensor([[3, 1, 0, 1]]), torch.tensor([[2, 2, 5, 0], [0, 0, 6, 1]])
+            >>> [out.tolist() for out in down.batch([a, b])]
+            [[[1, 0, 0, 1]], [[1, 1, 5, 0], [0, 0, 6, 1]]]
+        """
+        if isinstance(recordings, EventBatch):
+            events, _ = to_events(recordings.events, self.sensor_size)
+            return self._batch_events(EventBatch(events, recordings.lengths))
+        batch, formats = to_batch(recordings, self.sensor_size)
+        return from_batch(self._batch_events(batch), formats)
+
+    def _batch_events(self, batch: EventBatch) -> EventBatch:
+        """:meth:`batch` on validated events."""
+        out = self.batch_kernel(batch)
+        if out is None:  # no batched kernel: one recording at a time
+            parts = [self.kernel(part) for part in batch.unbind()]
+            events = Events(*(torch.cat(columns) for columns in zip(*parts, strict=True)))
+            out = EventBatch(events, tuple(part.num_events for part in parts))
+        return out
+
 
 @dataclass(frozen=True)
 class ThresholdDownscaler(Downscaler):
@@ -214,6 +281,8 @@ class ThresholdDownscaler(Downscaler):
     linear and cubic estimators also refuse integer timestamps spanning 2**53 or more, whose
     crossing times float64 cannot hold.
     """
+
+    budget_setting: ClassVar[str | None] = "threshold"
 
     threshold: float = 1.0
 

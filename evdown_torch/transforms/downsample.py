@@ -5,8 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from evdown_torch._tensors import region_of
+from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms._batch import run_stacked, sorted_within
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.funnelling import (
     drop_repeats,
@@ -37,6 +40,14 @@ class Downsample(Downscaler):
         """Apply :func:`~evdown_torch.transforms.functional.downsample.downsample`."""
         return downsample(events, factor=self.factor_xy)
 
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """Events do not interact: recordings in time order need only the division."""
+        events = batch.events
+        if sorted_within(events.t, batch.lengths):
+            x, y = region_of(events, self.factor_xy)
+            return EventBatch(Events(x, y, events.t.clone(), events.p.clone()), batch.lengths)
+        return run_stacked(batch, lambda s: downsample(s.events, factor=self.factor_xy),
+                           sensor_size=self.sensor_size, factor=self.factor_xy)
     def stream(self, events: Events, state: Any | None) -> tuple[Events, None]:
         """One chunk of a stream: stateless, every event is decided at once."""
         return self.kernel(events), None
@@ -62,6 +73,10 @@ class EventFunnelling(Downscaler):
         """Apply :func:`~evdown_torch.transforms.functional.funnelling.event_funnelling`."""
         return event_funnelling(events, factor=self.factor_xy)
 
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """Regions are independent: the kernel runs once on the stacked batch."""
+        return run_stacked(batch, lambda s: event_funnelling(s.events, factor=self.factor_xy),
+                           sensor_size=self.sensor_size, factor=self.factor_xy)
     def stream(self, events: Events, state: Events | None) -> tuple[Events, Events | None]:
         """One chunk of a stream.
 

@@ -6,8 +6,10 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from evdown_torch.checks import check_positive_float
+from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Session, ThresholdDownscaler
+from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional._knots import RegionSolver
 from evdown_torch.transforms.functional.cubic import cubic_estimation, cubic_regions
 from evdown_torch.transforms.functional.estimation_stream import (
@@ -121,6 +123,18 @@ class LinearEstimation(_Estimation):
             threshold=self.threshold, max_delay=self.max_delay,
         )
 
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """The kernel once on the stacked batch, with each recording's own stream bounds."""
+
+        def kernel(stacked: Stacked) -> Events:
+            return linear_estimation(
+                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
+                threshold=self.threshold, max_delay=self.max_delay,
+                bounds=(stacked.starts, stacked.ends),
+            )
+
+        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
+
 
 @dataclass(frozen=True)
 class CubicEstimation(_Estimation):
@@ -162,3 +176,15 @@ class CubicEstimation(_Estimation):
             events, sensor_size=self.sensor_size, factor=self.factor_xy,
             threshold=self.threshold, max_delay=self.max_delay,
         )
+
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """The kernel once on the stacked batch, with each recording's own stream bounds."""
+
+        def kernel(stacked: Stacked) -> Events:
+            return cubic_estimation(
+                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
+                threshold=self.threshold, max_delay=self.max_delay,
+                bounds=(stacked.starts, stacked.ends),
+            )
+
+        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)

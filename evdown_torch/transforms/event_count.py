@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Session, ThresholdDownscaler
+from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.event_count import (
     EventCountState,
     event_count,
@@ -40,6 +42,18 @@ class EventCount(ThresholdDownscaler):
             events, sensor_size=self.sensor_size, factor=self.factor_xy, threshold=self.threshold
         )
         return out
+
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """The kernel once on the stacked batch, with one block of regions per recording."""
+
+        def kernel(stacked: Stacked) -> Events:
+            out, _ = event_count(
+                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
+                threshold=self.threshold, recordings=stacked.recordings,
+            )
+            return out
+
+        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
 
     def stream(
         self, events: Events, state: EventCountState | None

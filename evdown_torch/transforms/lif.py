@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import (
@@ -14,8 +13,10 @@ from evdown_torch.checks import (
     check_positive_int,
     check_time_constant,
 )
+from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.lif import (
     DEFAULT_DT,
     DEFAULT_MAX_OUTPUT_EVENTS,
@@ -26,6 +27,11 @@ from evdown_torch.transforms.functional.lif import (
     ResetMechanism,
     decay_factor,
     lif_pooling,
+)
+from evdown_torch.transforms.functional.lif_stream import (
+    LIFStreamState,
+    lif_pooling_stream,
+    lif_pooling_stream_end,
 )
 
 if TYPE_CHECKING:
@@ -104,6 +110,8 @@ class LIFPooling(Downscaler):
         [(0, 0, True, 1100)]
     """
 
+    budget_setting: ClassVar[str | None] = "weight"
+
     dt: float = DEFAULT_DT
     tau: float = DEFAULT_TAU
     threshold: float = DEFAULT_THRESHOLD
@@ -147,20 +155,66 @@ class LIFPooling(Downscaler):
             reset_mechanism=self.reset_mechanism,
         )
 
+    def _settings(self) -> dict[str, Any]:
+        """The kernel's keyword arguments."""
+        return {
+            "sensor_size": self.sensor_size,
+            "factor": self.factor_xy,
+            "dt": float(self.dt),
+            "beta": self.beta,
+            "threshold": float(self.threshold),
+            "weight": float(self.weight),
+            "mutual_inhibition": float(self.mutual_inhibition),
+            "reset_mechanism": self.reset_mechanism,
+            "max_output_events": self.max_output_events,
+        }
+
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.lif.lif_pooling`."""
-        return lif_pooling(
-            events,
-            sensor_size=self.sensor_size,
-            factor=self.factor_xy,
-            dt=float(self.dt),
-            beta=self.beta,
-            threshold=float(self.threshold),
-            weight=float(self.weight),
-            mutual_inhibition=float(self.mutual_inhibition),
-            reset_mechanism=self.reset_mechanism,
-            max_output_events=self.max_output_events,
-        )
+        return lif_pooling(events, **self._settings())
+
+    def stream(
+        self, events: Events, state: LIFStreamState | None
+    ) -> tuple[Events, LIFStreamState | None]:
+        """One chunk of a stream: the spikes of the steps it closes, at their batch times.
+
+        A spike of step ``k`` is returned by the first chunk whose last timestamp is at least
+        ``t_start + (k + 1) * dt`` and lies in a later step; the rest come at the flush. The
+        state (:class:`~evdown_torch.transforms.functional.lif_stream.LIFStreamState`) holds
+        ``t_start``, every region's membranes at its last input and the input of the open
+        step. ``max_output_events`` bounds each chunk's output.
+        """
+        return lif_pooling_stream(events, state, **self._settings())
+
+    def stream_end(self, state: LIFStreamState | None) -> Events | None:
+        """The open step's spikes and the firing chains up to the end, clipped to ``t_end``."""
+        return lif_pooling_stream_end(state, **self._settings())
+
+    def batch_kernel(self, batch: EventBatch) -> EventBatch:
+        """The kernel once on the stacked batch, each recording binned from its own
+        ``t_start`` and ending at its own ``t_end``."""
+
+        def kernel(stacked: Stacked) -> Events:
+            return lif_pooling(
+                stacked.events,
+                sensor_size=self.sensor_size,
+                factor=self.factor_xy,
+                dt=float(self.dt),
+                beta=self.beta,
+                threshold=float(self.threshold),
+                weight=float(self.weight),
+                mutual_inhibition=float(self.mutual_inhibition),
+                reset_mechanism=self.reset_mechanism,
+                max_output_events=self.max_output_events,
+                bounds=(stacked.starts, stacked.ends),
+            )
+
+        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
+
+
+#: How far below its target :func:`calibrate_weight` may end before it calls the target
+#: unreachable (the contract's 5 %).
+MISS_TOLERANCE = 0.05
 
 
 def calibrate_weight(
@@ -181,10 +235,12 @@ def calibrate_weight(
 ) -> float:
     """The LIFPooling ``weight`` whose output has a wanted event rate on a sample stream.
 
-    The output count grows with the weight (stepwise), so the weight is found by bisection on
-    a log scale: each evaluation runs the (vectorised) transform once on the sample. Give the
-    target as exactly one of ``target_ratio`` (output events per input event) and
-    ``target_rate`` (output events per second, timestamps counting ``time_unit`` seconds).
+    The LIF case of :func:`~evdown_torch.transforms.calibrate.calibrate` (the weight is
+    LIFPooling's budget setting), on one sample stream: the output count grows with the
+    weight (stepwise), and the deterministic search runs the (vectorised) transform once per
+    weight it tries, starting from ``threshold``. Give the target as exactly one of
+    ``target_ratio`` (output events per input event) and ``target_rate`` (output events per
+    second, timestamps counting ``time_unit`` seconds).
 
     Args:
         events: the sample, any kind :class:`LIFPooling` accepts.
@@ -194,11 +250,12 @@ def calibrate_weight(
         target_rate: wanted output events per second, positive.
         time_unit: seconds per timestamp unit (1e-6 for microseconds), for ``target_rate``.
         dt, tau, threshold, mutual_inhibition, reset_mechanism: the other LIFPooling settings.
-        rtol: stop when the bracketing weights differ by less than this relative amount.
+        rtol: stop once the output count is within this fraction of the target.
         max_evaluations: at most this many runs of the transform.
 
     Returns:
-        The weight whose output count is closest to the target among those evaluated.
+        The weight whose output count is closest to the target among those evaluated (within
+        ``rtol`` of it wherever the stepwise count can get there).
 
     Raises:
         ValueError: for an empty sample, an unreachable target or a bad setting.
@@ -215,8 +272,15 @@ def calibrate_weight(
         >>> abs(len(out) / len(ev) - 0.1) < 0.01
         True
     """
+    from evdown_torch.transforms.calibrate import BudgetTarget, calibration
+
     if (target_ratio is None) == (target_rate is None):
         raise ValueError("give exactly one of target_ratio and target_rate")
+    if target_ratio is not None:
+        target = BudgetTarget.ratio(check_positive_float("target_ratio", target_ratio))
+    else:
+        target = BudgetTarget.rate(check_positive_float("target_rate", target_rate),
+                                   check_positive_float("time_unit", time_unit))
     template = LIFPooling(
         sensor_size,
         factor,
@@ -225,46 +289,19 @@ def calibrate_weight(
         threshold=threshold,
         mutual_inhibition=mutual_inhibition,
         reset_mechanism=reset_mechanism,
+        weight=threshold,
     )
-    rtol = check_positive_float("rtol", rtol)
-    max_evaluations = check_positive_int("max_evaluations", max_evaluations)
     sample, _ = to_events(events, template.sensor_size)
-    sample = sort_by_time(sample)  # once, not at every evaluation
     if sample.num_events == 0:
         raise ValueError("calibrate_weight needs a non-empty sample stream")
-    if target_ratio is not None:
-        target = check_positive_float("target_ratio", target_ratio) * sample.num_events
-    else:
-        rate = check_positive_float("target_rate", target_rate)
-        unit = check_positive_float("time_unit", time_unit)
-        duration = float(sample.t.max() - sample.t.min()) * unit
-        if duration <= 0:
-            raise ValueError("target_rate needs a sample that spans a positive duration")
-        target = rate * duration
-
-    evaluated: dict[float, int] = {}
-
-    def output_count(weight: float) -> int:
-        if weight not in evaluated:
-            evaluated[weight] = replace(template, weight=weight).kernel(sample).num_events
-        return evaluated[weight]
-
-    # Bracket the target: [low, high] with count(low) < target <= count(high).
-    high = float(threshold)
-    while output_count(high) < target and len(evaluated) < max_evaluations:
-        high *= 4.0
-    if output_count(high) < target:
-        raise ValueError(
-            f"no weight up to {high:.3g} reaches the target of {target:.0f} output events "
-            f"(at most {output_count(high)} on this sample); lower the target"
-        )
-    low = high / 4.0
-    while output_count(low) >= target and len(evaluated) < max_evaluations and low > 1e-12:
-        high, low = low, low / 4.0
-    while high / low - 1.0 > rtol and len(evaluated) < max_evaluations:
-        middle = math.sqrt(low * high)
-        if output_count(middle) < target:
-            low = middle
-        else:
-            high = middle
-    return min(evaluated, key=lambda w: (abs(evaluated[w] - target), w))
+    sample = sort_by_time(sample)
+    found = calibration(template, [sample], target, rtol=rtol, max_evaluations=max_evaluations)
+    if found.count < (1 - MISS_TOLERANCE) * found.target:
+        larger = replace(found.transform, weight=4 * found.value).kernel(sample).num_events
+        if larger < (1 - MISS_TOLERANCE) * found.target:
+            raise ValueError(
+                f"no weight up to {4 * found.value:.3g} reaches the target of "
+                f"{found.target:.0f} output events (at most {larger} on this sample after "
+                f"{found.evaluations + 1} evaluations); lower the target"
+            )
+    return found.value

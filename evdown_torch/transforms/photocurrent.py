@@ -6,8 +6,10 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from evdown_torch.checks import check_non_negative_float, check_positive_float
+from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Downscaler, Session
+from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.photocurrent import (
     PhotocurrentState,
     check_contrast_range,
@@ -98,6 +100,22 @@ class PhotocurrentPooling(Downscaler):
             contrast=self.contrast, threshold=self.threshold,
         )
         return out
+
+    def batch_kernel(self, batch: EventBatch) -> EventBatch | None:
+        """Events mode: the kernel once on the stacked batch, one block of regions per
+        recording. The frames mode has no batched kernel (``None``: one by one)."""
+        if self.fps is not None:
+            return None
+
+        def kernel(stacked: Stacked) -> Events:
+            out, _ = photocurrent_events(
+                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
+                contrast=self.contrast, threshold=self.threshold,
+                recordings=stacked.recordings,
+            )
+            return out
+
+        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
 
     def stream(
         self, events: Events, state: PhotocurrentState | None

@@ -96,3 +96,69 @@ def test_device(device):
     net = SpikingClassifier(num_classes=2, channels=(2,), pool_size=1).to(device)
     spikes, _, state = net(torch.rand(2, 1, 2, 4, 4, device=device))
     assert spikes.device.type == device.type and state.out.device.type == device.type
+
+
+def _receptive_mask(model, size):
+    """Which input pixels reach the centre unit of the last block (convolutions and pooling only,
+    all weights 1, so nothing cancels)."""
+    x = torch.zeros(1, 2, size, size, requires_grad=True)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.fill_(1.0) if p.ndim > 1 else p.zero_()
+    current = model._stem(x)
+    for conv in model.convs:
+        current = model.pool(conv(current))
+    h, w = current.shape[-2:]
+    current[0, 0, h // 2, w // 2].backward()
+    return x.grad[0].abs().sum(0) > 0
+
+
+@pytest.mark.parametrize("size", [128, 64, 16])
+def test_receptive_field_covers_the_input(size):
+    from evdown_torch.models.classifier import stem_stride_for
+
+    stride = stem_stride_for((size, size), 16)
+    model = SpikingClassifier(11, channels=(16, 32, 32, 32), stem_stride=stride)
+    assert bool(_receptive_mask(model, size).all())
+    # without the stem, four blocks see only a corner of 128x128
+    if size == 128:
+        plain = SpikingClassifier(11, channels=(16, 32, 32, 32))
+        assert not bool(_receptive_mask(plain, size).all())
+
+
+def test_stem_shapes_and_macs():
+    model = SpikingClassifier(3, channels=(4,), pool_size=2, stem_stride=4, stem_channels=2)
+    spikes, _, state = model(torch.rand(2, 1, 2, 10, 9))
+    assert spikes.shape == (2, 1, 3) and state.conv[0].shape == (1, 4, 2, 2)
+    # stem: 3x3 outputs * 2 ch * 2 in * 16; block: 3x3 * 4 * 2 * 9; fc: 4*2*2 -> 3
+    assert model.macs_per_step(10, 9) == 9 * 2 * 2 * 16 + 9 * 4 * 2 * 9 + 16 * 3
+
+
+def test_the_quick_configs_classifier_sees_the_whole_sensor():
+    """configs/quick.toml at full resolution: every pixel reaches the linear layer's input, and
+    an inner unit of the last block sees 56 of the 128 pixels of a side (a hand's sweep; the
+    person is about 90 pixels tall). Without the stem it would see 10."""
+    from pathlib import Path
+
+    from evdown_torch.config import load_config
+    from evdown_torch.evaluation.cells import model_for
+
+    config = load_config(Path(__file__).resolve().parents[2] / "configs" / "quick.toml")
+    model = model_for(config, (128, 128), 11)
+    assert model.stem_stride > 1
+    x = torch.zeros(1, 2, 128, 128, requires_grad=True)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.fill_(1.0) if p.ndim > 1 else p.zero_()
+    current = model._stem(x)
+    for conv in model.convs:
+        current = model.pool(conv(current))
+    model.fc(model.squeeze(current).flatten(1)).sum().backward()
+    assert bool((x.grad.abs().sum(1) > 0).all())
+    x.grad = None
+    current = model._stem(x)
+    for conv in model.convs:
+        current = model.pool(conv(current))
+    current[0, 0, 1, 1].backward()
+    seen = (x.grad[0].abs().sum(0) > 0).nonzero()
+    assert int(seen[:, 0].max() - seen[:, 0].min()) + 1 >= 56

@@ -15,6 +15,7 @@ from evdown_torch import (
     EventCount,
     EventFunnelling,
     Events,
+    LIFPooling,
     LinearEstimation,
     PhotocurrentPooling,
     TemporalFunnelling,
@@ -31,6 +32,7 @@ TRANSFORMS = {
     "event_count": EventCount(SENSOR, factor=3, threshold=0.3),
     "temporal": TemporalFunnelling(dt=7, sensor_size=SENSOR),
     "photocurrent": PhotocurrentPooling(SENSOR, factor=(2, 3), contrast=0.3, threshold=0.2),
+    "lif": LIFPooling(SENSOR, factor=2, dt=7, tau=20.0, weight=0.6),
     "temporal_then_count": Chain(
         TemporalFunnelling(dt=5), EventCount(SENSOR, factor=2, threshold=0.5)
     ),

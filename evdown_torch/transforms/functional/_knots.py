@@ -39,6 +39,7 @@ from evdown_torch._tensors import (
     CHUNK_EVENTS,
     changes,
     differences,
+    divide,
     ends,
     region_of,
     region_pixel_count,
@@ -185,8 +186,9 @@ def pixel_knots(
     Args:
         chunk: the events of consecutive regions (see :func:`region_chunks`).
         factor: ``(fx, fy)``.
-        t_start: ``()`` first timestamp of the whole stream.
-        t_end: ``()`` last timestamp of the whole stream.
+        t_start: ``()`` first timestamp of the whole stream, or ``(n,)`` that of the stream
+            of each event of the chunk (a batch of recordings, see :func:`estimate`).
+        t_end: ``()`` last timestamp of the whole stream, or ``(n,)`` per event as ``t_start``.
 
     Returns:
         The :class:`Knots`.
@@ -220,8 +222,9 @@ def pixel_knots(
     first_at = where_true(region_start)
     last_at = where_true(ends(region_start))
     active_regions = take(region_r, first_at)
-    extra_front = take(t_r, first_at) > t_start
-    extra_back = take(t_r, last_at) < t_end
+    start_r, end_r = _at(t_start, first_at), _at(t_end, last_at)  # per active region
+    extra_front = take(t_r, first_at) > start_r
+    extra_back = take(t_r, last_at) < end_r
     front_i, back_i = extra_front.to(torch.int64), extra_back.to(torch.int64)
     # Breakpoint of each event: count the runs, plus the extra breakpoint before a region's
     # first run and the one after the previous region's last run.
@@ -240,9 +243,10 @@ def pixel_knots(
     bp_t = torch.empty(n_bp, dtype=t_r.dtype, device=device)
     bp_t.scatter_(0, take(event_bp, run_at), take(t_r, run_at))
     fill_at = region_first_bp[extra_front]
-    bp_t.scatter_(0, fill_at, t_start.expand(fill_at.shape))
+    bp_t.scatter_(0, fill_at, _at(start_r, where_true(extra_front)).expand(fill_at.shape))
     fill_at = region_last_bp[extra_back]
-    bp_t.scatter_(0, fill_at, t_end.expand(fill_at.shape))
+    bp_t.scatter_(0, fill_at, _at(end_r, where_true(extra_back)).expand(fill_at.shape))
+    del start_r, end_r
     del run_at, new_run, region_start, first_at, last_at, fill_at
     bp_first = torch.zeros(n_bp, dtype=torch.bool, device=device)
     bp_first.scatter_(0, region_first_bp, True)
@@ -263,8 +267,9 @@ def pixel_knots(
     ek_first = changes(ek_key)
     del ek_key
     ek_last = ends(ek_first)
-    front = ek_first & (ek_t > t_start)
-    back = ek_last & (ek_t < t_end)
+    ek_start, ek_end = _at(t_start, ek_rt), _at(t_end, ek_rt)
+    front = ek_first & (ek_t > ek_start)
+    back = ek_last & (ek_t < ek_end)
 
     # The full knot list in pixel order: front knot before, back knot after a pixel's knots.
     front_i, back_i = front.to(torch.int64), back.to(torch.int64)
@@ -276,8 +281,9 @@ def pixel_knots(
     total = ke + front_at.shape[0] + back_at.shape[0]
     knot_t = torch.empty(total, dtype=t_r.dtype, device=device)
     knot_t.scatter_(0, pos, ek_t)
-    knot_t.scatter_(0, front_pos, t_start.expand(front_pos.shape))
-    knot_t.scatter_(0, back_pos, t_end.expand(back_pos.shape))
+    knot_t.scatter_(0, front_pos, _at(ek_start, front_at).expand(front_pos.shape))
+    knot_t.scatter_(0, back_pos, _at(ek_end, back_at).expand(back_pos.shape))
+    del ek_start, ek_end
     knot_level = torch.empty(total, dtype=torch.int64, device=device)
     knot_level.scatter_(0, pos, ek_level)
     knot_level.scatter_(0, front_pos, 0)
@@ -295,6 +301,11 @@ def pixel_knots(
         knot_t, knot_level, first, ends(first), breakpoint, bp_t, bp_first, bp_last,
         active_regions, region_first_bp,
     )
+
+
+def _at(bound: Tensor, index: Tensor) -> Tensor:
+    """``bound`` itself when it is one ``()`` stream bound, else its entries at ``index``."""
+    return bound if bound.ndim == 0 else take(bound, index)
 
 
 def region_pixels(
@@ -362,9 +373,9 @@ def hold_knots(
     Args:
         events: ``N`` events in stable time order.
         max_delay: ``D`` > 0, in the stream's time unit (a whole number for int64 ``t``).
-        t_start: ``()`` first timestamp of the whole stream (the front knots' time), or
-            ``(N,)`` for each event the time of its pixel's last knot before these events
-            (a streaming session's next chunk; ``t_start`` for a pixel without one).
+        t_start: ``()`` first timestamp of the whole stream, or ``(N,)`` for each event that
+            of its own stream (a batch of recordings, see :func:`estimate`) or the time of its
+            pixel's last knot before these events (a streaming session's next chunk).
 
     Returns:
         ``(events, step)``: ``N + M`` events in stable time order (a held knot before the
@@ -393,9 +404,8 @@ def hold_knots(
     first = new_pixel[new_knot]
     previous = torch.empty_like(knot_t)
     previous[1:] = knot_t[:-1]
-    # The front knot (t_start, 0), or the pixel's knot before the chunk; a gap of 0 when
-    # they coincide.
-    previous[first] = t_start if t_start.ndim == 0 else take(t_start, order)[new_knot][first]
+    start = t_start if t_start.ndim == 0 else take(t_start, order)[new_knot][first]
+    previous[first] = start  # the front knot (t_start, 0); a gap of 0 when they coincide
     held = (knot_t - previous) > delay
     if not bool(held.any()):
         return events, step
@@ -419,6 +429,7 @@ def estimate(
     factor: tuple[int, int],
     threshold: float,
     solve_regions: RegionSolver,
+    bounds: tuple[Tensor, Tensor] | None = None,
     max_delay: float | None = None,
 ) -> Events:
     """The batch entry of the estimation kernels: the whole stream, then :func:`estimate_window`.
@@ -432,6 +443,10 @@ def estimate(
             resume=)`` returns the crossings ``(region, t, on, breakpoint)`` of the regions of
             one chunk, in region order (``emitted``: events of the chunks before, for the
             output limit; ``breakpoint``: the one ending each crossing's piece).
+        bounds: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
+            ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
+            :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps
+            of each recording, its ``t_start`` and ``t_end``; ``None`` for one stream.
         max_delay: the bounded delay ``D`` (:func:`hold_knots`), or ``None`` (the paper's
             method).
 
@@ -447,9 +462,15 @@ def estimate(
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device)
     t_start, t_end = events.t[0], events.t[-1]
+    if bounds is not None:
+        t_start, t_end = bounds
     step = None
     if max_delay is not None:
-        events, step = hold_knots(events, max_delay=max_delay, t_start=t_start)
+        start = t_start
+        if bounds is not None:  # each event's own recording's t_start
+            out_h = output_size(sensor_size, factor)[1]
+            start = take(t_start, divide(events.y, out_h * factor[1]))
+        events, step = hold_knots(events, max_delay=max_delay, t_start=start)
     out, _ = estimate_window(
         events, step=step, t_start=t_start, t_end=t_end, sensor_size=sensor_size,
         factor=factor, threshold=threshold, solve_regions=solve_regions,
@@ -472,14 +493,16 @@ def estimate_window(
 ) -> tuple[Events, Tensor | None]:
     """The driver the estimation kernels share: knots of each chunk of regions, then output.
 
-    Batch (:func:`estimate`): the whole stream. Streaming (a bounded-delay session): a window
-    of it, the knot events its pixels still need, resumed at ``resume``.
+    Batch (:func:`estimate`): the whole stream, or a batch of stacked recordings. Streaming
+    (a bounded-delay session): a window of one stream, the knot events its pixels still
+    need, resumed at ``resume``.
 
     Args:
         events: ``N >= 1`` knot events in stable time order, within ``[t_start, t_end]``.
         step: ``(N,)`` int8 or int64 level change of each event (``None``: +1 ON, -1 OFF).
-        t_start: ``()`` first timestamp of the stream (its front knots).
-        t_end: ``()`` last timestamp of the stream so far (the back knots).
+        t_start: ``()`` first timestamp of the stream (its front knots), or ``(B,)`` those of
+            a batch of stacked recordings (see :func:`estimate`).
+        t_end: ``()`` last timestamp of the stream so far (the back knots), or ``(B,)``.
         sensor_size, factor, threshold, solve_regions: as for :func:`estimate`.
         resume: where a window picks up
             (:class:`~evdown_torch.transforms.functional.estimation_stream.Resume`), or
@@ -494,17 +517,21 @@ def estimate_window(
     """
     n = events.num_events
     if not events.t.is_floating_point():
-        check_time_span(int(t_start), int(t_end))
+        check_time_span(0, int((t_end - t_start).max()))
     # Every curve stays within its knots' levels, at most sum |step| in size (PCHIP is
     # shape-preserving; a window's first knot of a pixel carries its whole level).
     bound = n if step is None else int(step.abs().sum())
     fraction = capped_threshold(threshold_fraction(threshold), bound)
-    out_w = output_size(sensor_size, factor)[0]
+    out_w, out_h, _ = output_size(sensor_size, factor)
     q = None if resume is None else resume.q.clone()
     outputs = []
     emitted = 0
     for chunk in region_chunks(events, factor=factor, out_width=out_w, step=step):
-        knots = pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end)
+        start, end = t_start, t_end
+        if t_start.ndim:  # each event's own recording's bounds
+            recording = divide(chunk.region, out_w * out_h)
+            start, end = take(t_start, recording), take(t_end, recording)
+        knots = pixel_knots(chunk, factor=factor, t_start=start, t_end=end)
         region, t, on, bp = solve_regions(knots, sensor_size=sensor_size, factor=factor,
                                           fraction=fraction, emitted=emitted, resume=resume)
         outputs.append((region, t, on))

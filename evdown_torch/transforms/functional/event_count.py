@@ -46,10 +46,12 @@ def initial_state(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     device: torch.device | str | None = None,
+    recordings: int = 1,
 ) -> EventCountState:
-    """A fresh state: every region at level 0 with reference index 0."""
+    """A fresh state: every region (of each of ``recordings`` stacked recordings) at level 0
+    with reference index 0."""
     out_w, out_h, _ = output_size(sensor_size, factor)
-    zeros = torch.zeros(out_w * out_h, dtype=torch.int64, device=device)
+    zeros = torch.zeros(out_w * out_h * recordings, dtype=torch.int64, device=device)
     return EventCountState(zeros, zeros.clone(), None)
 
 
@@ -60,6 +62,7 @@ def event_count(
     factor: tuple[int, int],
     threshold: float,
     state: EventCountState | None = None,
+    recordings: int = 1,
 ) -> tuple[Events, EventCountState]:
     """Downscale by the log-luminance event count (docs/semantics.md, method 3).
 
@@ -77,6 +80,9 @@ def event_count(
         threshold: contrast threshold ``theta`` on the region's mean level, > 0.
         state: the state returned for the previous chunk of the same stream, or ``None``
             for a fresh stream.
+        recordings: ``B``, for a batch of recordings stacked vertically: recording ``b``'s
+            pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)`` (regions never mix recordings;
+            see :mod:`evdown_torch.transforms._batch`). 1 for one stream.
 
     Returns:
         ``(output events sorted by t, state after the last event)``.
@@ -89,7 +95,7 @@ def event_count(
     """
     events = sort_by_time(events)
     if state is None:
-        state = initial_state(sensor_size, factor, events.device)
+        state = initial_state(sensor_size, factor, events.device, recordings)
     bounds = chunk_bounds(events.t)
     if len(bounds) == 2:
         return _event_count_sorted(events, sensor_size, factor, threshold, state)
@@ -138,7 +144,8 @@ def _event_count_sorted(
     level_sum += offset[region]
 
     # u = M / theta = b * S / (a * n_r), compared in integers.
-    pixels = region_pixel_count(torch.arange(out_w * out_h, device=device), sensor_size, factor)
+    regions = state.level_sum.shape[0]  # Ho * Wo per stacked recording
+    pixels = region_pixel_count(torch.arange(regions, device=device), sensor_size, factor)
     uniform = bool((pixels == pixels[0]).all())
     denominator = int(pixels[0]) * a if uniform else (pixels * a)[region]
     numerator = level_sum * b if b != 1 else level_sum

@@ -26,11 +26,18 @@ that follows the events:
   tensor operations each) is the largest number of cells of one region, at most the number
   of steps that hold events.
 
+State. The core, :func:`lif_spikes`, can start from a :class:`LIFState` (each region's
+membranes at its last input, and that step: a state cell in front of the region's cells), run
+up to a given last step and return the spikes from a given step on; the streaming session
+(:mod:`evdown_torch.transforms.functional.lif_stream`) continues the neurons chunk by chunk
+with it, computing every gap exactly as one call does.
+
 Exactness. The update at a cell is snntorch's float32 arithmetic, in its order, so runs of
 consecutive active steps, and gaps of one step, are bit-identical to the module. Over a longer
 gap the decay ``beta ** g`` is one float32 power where stepping rounds ``g`` products
 (identical when ``beta`` is 0, 1 or a power of two), and a chain longer than
-:data:`EXACT_CHAIN_STEPS` is one float64 evaluation rounded once; a spike can differ only where
+:data:`~evdown_torch.transforms.functional.lif_chains.EXACT_CHAIN_STEPS` is one float64
+evaluation rounded once; a spike can differ only where
 a membrane lies within float32 rounding of the threshold.
 
 Limits. Step indices are int64: a ``dt`` that would cut the stream into more than ``2 ** 62``
@@ -42,7 +49,7 @@ a very long gap) is refused with the expected count.
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -50,6 +57,13 @@ from torch import Tensor
 from evdown_torch._tensors import divide, region_xy, sort_by_time, stable_sort_small
 from evdown_torch.checks import check_positive_float, check_time_constant, output_size
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.lif_chains import Leak
+from evdown_torch.transforms.functional.lif_steps import (
+    MAX_STEPS,
+    batch_step_indices,
+    step_end_time,
+    step_indices,
+)
 
 __all__ = [
     "DEFAULT_DT",
@@ -60,8 +74,10 @@ __all__ = [
     "MAX_STEPS",
     "RESET_MECHANISMS",
     "ResetMechanism",
+    "LIFState",
     "decay_factor",
     "lif_pooling",
+    "lif_spikes",
 ]
 
 ResetMechanism = Literal["subtract", "zero", "none"]
@@ -74,8 +90,6 @@ DEFAULT_TAU = 10_000.0
 DEFAULT_THRESHOLD = 1.0
 DEFAULT_WEIGHT = 0.3
 
-#: Largest number of steps a stream may be cut into (step indices are int64, with headroom).
-MAX_STEPS = 1 << 62
 #: Default bound on the number of output events (LIFPooling's ``max_output_events``).
 DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
 
@@ -100,161 +114,83 @@ def decay_factor(dt: float, tau: float) -> float:
     return math.exp(-dt / tau)
 
 
-def _step_indices(t: Tensor, dt: float) -> tuple[Tensor, int, float]:
-    """Step of every (sorted) event, the last step, and the ``dt`` to compute end times with.
+def _event_cells(
+    events: Events,
+    steps: Tensor,
+    *,
+    fx: int,
+    fy: int,
+    wo: int,
+    plane: int,
+    weight: float,
+    mutual_inhibition: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Cells: the ``(region, step)`` pairs that hold events, ordered by region, then step.
 
-    Raises:
-        ValueError: when the stream's span or its number of steps cannot be represented.
+    Returns:
+        ``(cell_region, cell_step, current)``: int64, int64 and the ``(n_cells, 2)`` float32
+        input current of the region's (OFF, ON) neurons, ``w * S - w_inh * S'``.
     """
-    t_start, t_end = t[0], t[-1]
-    if t.is_floating_point():
-        span = float(t_end) - float(t_start)
-        if not math.isfinite(span):
-            raise ValueError(f"LIF pooling needs finite timestamps, got a span of {span}")
-    else:
-        span = int(t_end) - int(t_start)  # exact, as a Python int
-        if span >= MAX_STEPS:
-            raise ValueError(
-                f"the stream spans {span} time units, more than 2**62 that int64 step "
-                "arithmetic can hold; split the stream"
-            )
-        if dt > span:  # one step holds everything; ends at t_start + dt > t_end, clipped
-            dt = float(span + 1)
-    if span / dt >= MAX_STEPS:
-        raise ValueError(
-            f"dt = {dt!r} cuts the stream's span of {span} time units into about "
-            f"{span / dt:.3g} steps, more than the 2**62 an int64 step index can hold; "
-            "use a larger dt"
-        )
-    relative = t - t_start
-    if not relative.is_floating_point() and dt.is_integer():
-        steps = torch.div(relative, int(dt), rounding_mode="floor")
-    else:
-        steps = torch.floor(relative.to(torch.float64) / dt).to(torch.int64)
-    return steps, int(steps[-1]), dt
+    device = events.device
+    f32 = torch.float32
+    if events.num_events == 0:
+        empty = torch.empty(0, dtype=torch.int64, device=device)
+        return empty, empty, torch.empty(0, 2, dtype=f32, device=device)
+    region = divide(events.x, fx).add_(divide(events.y, fy), alpha=wo)
+    region, order = stable_sort_small(region, plane)  # stable: time order within a region
+    steps = steps.index_select(0, order)
+    polarity = events.p.index_select(0, order)
+    del order
+    n = region.shape[0]
+    starts = torch.ones(n, dtype=torch.bool, device=device)
+    torch.ne(region[1:], region[:-1], out=starts[1:])
+    starts[1:] |= steps[1:] != steps[:-1]
+    cell_of_event = torch.cumsum(starts, 0)
+    n_cells = int(cell_of_event[-1])
+    first = starts.nonzero().squeeze(1)
+    cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
+    del region, steps, starts, first
+    counts = torch.bincount(cell_of_event.mul_(2).add_(polarity).sub_(2), minlength=2 * n_cells)
+    counts = counts.to(f32).view(n_cells, 2)  # exact: fewer than 2**24 events per cell
+    del cell_of_event, polarity
+    current = counts * torch.tensor(weight, dtype=f32, device=device)
+    if mutual_inhibition != 0:
+        current -= counts.flip(1) * torch.tensor(mutual_inhibition, dtype=f32, device=device)
+    return cell_region, cell_step, current
 
 
-def _step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -> Tensor:
-    """Output timestamp ``t_start + (k + 1) * dt`` of steps ``k``, clipped to ``t_end``.
+def _with_state_cells(
+    cell_region: Tensor,
+    cell_step: Tensor,
+    current: Tensor,
+    state: LIFState,
+    *,
+    plane: int,
+    chains: bool,
+    threshold32: Tensor,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The cells, each region's last update in ``state`` put in front of its cells.
 
-    Integer timestamps stay int64 and nothing overflows: with a whole ``dt`` the sum is exact;
-    otherwise the offset ``(k + 1) * dt`` is rounded to the nearest integer, halves upward.
+    A state cell sits at the region's last updated step with the membrane as its "current"
+    (from rest, one update gives ``beta * 0 + I = I``), so the rounds continue from it exactly
+    as from an ordinary cell. Regions get one where they have cells, and, when the reset lets a
+    neuron fire through empty steps (``chains``), where a neuron is above threshold.
     """
-    if t_start.is_floating_point():
-        return torch.minimum(t_start + (steps + 1).to(torch.float64) * dt, t_end)
-    span = t_end - t_start
-    if dt.is_integer():
-        start = steps * int(dt)  # <= span: the step begins inside the stream
-        return torch.where(span - start > int(dt), t_start + start + int(dt), t_end)
-    offset = torch.floor((steps + 1).to(torch.float64) * dt + 0.5)
-    offset = torch.minimum(offset.clamp_max(float(span)).to(torch.int64), span)
-    return t_start + offset
-
-
-#: Steps of a firing chain computed with snntorch's float32 arithmetic, one at a time, before
-#: the closed form takes over (a chain rarely lasts longer unless ``beta`` is about 1).
-EXACT_CHAIN_STEPS = 8
-
-
-class _Leak:
-    """A neuron without input, for one ``(beta, threshold, reset)``: decay and firing chains.
-
-    Membranes are float32 as in snntorch; the closed forms run in float64 on exact copies.
-    """
-
-    def __init__(self, beta: Tensor, threshold: Tensor, reset: str) -> None:
-        self.beta32, self.threshold32, self.reset = beta, threshold, reset
-        self.beta, self.threshold = float(beta), float(threshold)
-        b = self.beta
-        self.log_beta = math.log(b) if 0.0 < b < 1.0 else 0.0
-        self.offset = self.threshold / (1.0 - b) if b < 1.0 else math.inf  # A, module docstring
-
-    def decay(self, u: Tensor, steps: Tensor) -> Tensor:
-        """``u`` after ``steps`` steps of pure decay: ``u * beta ** steps`` (float32 power)."""
-        return u * torch.pow(self.beta32, steps.to(u.dtype))
-
-    def chain(self, u: Tensor, j: Tensor) -> Tensor:
-        """Membrane ``j`` steps after ``u`` (float64), firing (and resetting) at every one."""
-        b, theta = self.beta, self.threshold
-        if self.reset == "none":
-            return u * torch.pow(b, j) if b < 1.0 else u
-        if b == 1.0:
-            return u - j * theta
-        return torch.pow(b, j) * (u + self.offset) - self.offset  # b = 0: -theta for j >= 1
-
-    def run(self, u: Tensor) -> Tensor:
-        """Number of ``j >= 1`` at which the chain from ``u > threshold`` stays above it.
-
-        Float64 in and out; "none" with ``beta = 1`` never stops (returns ``MAX_STEPS``).
-        """
-        b, theta = self.beta, self.threshold
-        if self.reset == "zero" or b == 0.0 or u.numel() == 0:
-            return torch.zeros_like(u)
-        if self.reset == "none":
-            if b == 1.0:
-                return torch.full_like(u, float(MAX_STEPS))
-            bound = torch.log(theta / u) / self.log_beta  # b^j u > theta  <=>  j < bound
-        elif b == 1.0:
-            bound = u / theta - 1.0  # u - j theta > theta  <=>  j < u / theta - 1
-        else:  # b^j (u + A) - A > theta  <=>  j < log((theta + A) / (u + A)) / log(b)
-            bound = torch.log((theta + self.offset) / (u + self.offset)) / self.log_beta
-        count = (torch.ceil(bound) - 1.0).clamp(0.0, float(MAX_STEPS))
-        # Settle the rounding of the logarithms on the chain's own values.
-        count -= ((count >= 1.0) & (self.chain(u, count) <= theta)).to(count.dtype)
-        count += (self.chain(u, count + 1.0) > theta).to(count.dtype)
-        return count.clamp_(0.0, float(MAX_STEPS))
-
-    def fire_through(
-        self, u: Tensor, gap: Tensor, alive: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Neurons that fired (float32 membrane ``u > threshold``), then ``gap`` empty steps.
-
-        The first :data:`EXACT_CHAIN_STEPS` steps of a chain use snntorch's float32
-        arithmetic, all lanes at once; a chain still firing after them continues in closed
-        form.
-
-        Args:
-            u: float32 membranes, above threshold where ``alive``.
-            gap: int64 numbers of empty steps, broadcastable to ``u``, at least 1 where
-                ``alive``.
-            alive: bool, the lanes to compute; the others are returned as they came
-                (``count`` 0, ``W = u``, ``R = u > threshold``).
-
-        Returns:
-            ``(count, W, R)``: int64 spikes fired in the gap (in its first ``count`` steps),
-            float32 membranes after the gap and bool resets (fired at its last step).
-        """
-        if self.reset == "zero":  # reset to zero at the first empty step: silent afterwards
-            return (torch.zeros(u.shape, dtype=torch.int64, device=u.device),
-                    u.masked_fill(alive, 0.0), (u > self.threshold32) & ~alive)
-        v = u
-        took_step = []  # per step: the lanes that took it (a chain stops for good)
-        fired = []  # per step: the lanes that fired in it
-        for j in range(EXACT_CHAIN_STEPS):  # a bounded number of steps, all lanes at once
-            if j and not bool(alive.any()):
-                break
-            after = self.beta32 * v  # + a zero current: exact
-            if self.reset == "subtract":
-                after = after - self.threshold32
-            v = torch.where(alive, after, v)
-            took_step.append(alive)
-            alive = alive & (v > self.threshold32)
-            fired.append(alive)
-            alive = alive & (gap > j + 1)
-        steps = torch.stack(took_step).sum(0)
-        count = torch.stack(fired).sum(0)
-        w = v * torch.pow(self.beta32, (gap - steps).to(v.dtype))  # ended chains only decay
-        still = v > self.threshold32  # above threshold only where the gap ended the chain
-        if bool(alive.any()):  # chains longer than EXACT_CHAIN_STEPS: closed form
-            lanes = alive.nonzero(as_tuple=True)
-            left = (gap.expand_as(v)[lanes] - steps[lanes]).to(torch.float64)
-            v64 = v[lanes].to(torch.float64)
-            run = self.run(v64)
-            chained = torch.minimum(left, run + 1.0)  # steps of the firing chain, then decay
-            w[lanes] = (torch.pow(self.beta, left - chained) * self.chain(v64, chained)).to(u.dtype)
-            still[lanes] = run >= left
-            count[lanes] += torch.minimum(run, left).to(torch.int64)
-        return count, w, still
+    wanted = torch.zeros(plane, dtype=torch.bool, device=cell_region.device)
+    wanted[cell_region] = True
+    if chains:
+        wanted |= (state.membrane > threshold32).any(1)
+    wanted &= state.last_step >= 0
+    region = wanted.nonzero().squeeze(1)
+    if region.shape[0] == 0:
+        return cell_region, cell_step, current
+    cell_region = torch.cat([region, cell_region])
+    order = stable_sort_small(cell_region, plane)[1]  # stable: the state cell first
+    return (
+        cell_region.index_select(0, order),
+        torch.cat([state.last_step.index_select(0, region), cell_step]).index_select(0, order),
+        torch.cat([state.membrane.index_select(0, region), current]).index_select(0, order),
+    )
 
 
 def lif_pooling(
@@ -269,6 +205,7 @@ def lif_pooling(
     mutual_inhibition: float = 0.0,
     reset_mechanism: ResetMechanism = "subtract",
     max_output_events: int | None = DEFAULT_MAX_OUTPUT_EVENTS,
+    bounds: tuple[Tensor, Tensor] | None = None,
 ) -> Events:
     """Downscale a stream through one leaky integrate-and-fire neuron per region and polarity.
 
@@ -291,6 +228,12 @@ def lif_pooling(
         mutual_inhibition: weight of each opposite-polarity input event, subtracted, ``>= 0``.
         reset_mechanism: ``"subtract"``, ``"zero"`` or ``"none"``.
         max_output_events: refuse to emit more events than this (``None``: no bound).
+        bounds: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
+            ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
+            :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps of
+            each recording: each is binned from its own ``t_start`` and its spikes end at
+            its own ``t_end``; the output is then sorted by recording, then step. ``None``
+            for one stream.
 
     Returns:
         Output events sorted by ``t`` (within a step: OFF before ON, then row-major region),
@@ -309,41 +252,140 @@ def lif_pooling(
         ([0], [0], [4], [True])
     """
     events = sort_by_time(events)
-    device = events.device
     if events.num_events == 0:
-        return Events.empty(events.t.dtype, device)
+        return Events.empty(events.t.dtype, events.device)
+    wo, ho, _ = output_size(sensor_size, factor)
+    if bounds is None:
+        steps, last_step, dt = step_indices(events.t, float(dt))
+        batch_size = 1
+    else:  # one block of Ho * Wo regions per recording
+        recording = divide(events.y, ho * factor[1])
+        steps, last_step, dt = batch_step_indices(events.t, recording, bounds, float(dt))
+        del recording
+        batch_size = bounds[0].shape[0]
+    spike_step, neuron, _ = lif_spikes(
+        events, steps, state=None, last_step=last_step, from_step=0, sensor_size=sensor_size,
+        factor=factor, beta=beta, threshold=threshold, weight=weight,
+        mutual_inhibition=mutual_inhibition, reset_mechanism=reset_mechanism,
+        max_output_events=max_output_events, batch_size=batch_size,
+    )
+    if bounds is None:
+        t = step_end_time(spike_step, t_start=events.t[0], t_end=events.t[-1], dt=dt)
+    else:  # recording by recording, each at its own clock
+        starts, ends = bounds
+        recording = divide(torch.remainder(neuron, batch_size * wo * ho), wo * ho)
+        recording, by_recording = stable_sort_small(recording, batch_size)
+        spike_step, neuron = spike_step[by_recording], neuron[by_recording]
+        t = step_end_time(spike_step, t_start=starts.index_select(0, recording),
+                           t_end=ends.index_select(0, recording), dt=dt)
+    return spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor,
+                            batch_size=batch_size)
+
+
+class LIFState(NamedTuple):
+    """The neurons between two calls of :func:`lif_spikes` (a streaming session's state).
+
+    A region's two neurons are updated together at the steps where the region has input, so
+    the state is each region's membranes after its last updated step, and that step.
+
+    Attributes:
+        membrane: ``(Ho * Wo, 2)`` float32 membranes (OFF, ON) after step ``last_step``.
+        last_step: ``(Ho * Wo,)`` int64 step of the region's last input, -1 for none yet.
+    """
+
+    membrane: Tensor
+    last_step: Tensor
+
+
+def initial_state(plane: int, device: torch.device | str | None = None) -> LIFState:
+    """Every neuron at rest (membrane 0), none updated yet, for ``plane = Ho * Wo`` regions."""
+    return LIFState(
+        torch.zeros(plane, 2, dtype=torch.float32, device=device),
+        torch.full((plane,), -1, dtype=torch.int64, device=device),
+    )
+
+
+def spikes_to_events(
+    spike_step: Tensor,
+    neuron: Tensor,
+    t: Tensor,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    batch_size: int = 1,
+) -> Events:
+    """Events of spikes of neurons ``polarity * plane + region`` at times ``t``, where
+    ``plane = batch_size * Ho * Wo`` (``batch_size`` recordings stacked vertically)."""
+    wo, ho, _ = output_size(sensor_size, factor)
+    plane = batch_size * wo * ho
+    polarity = neuron >= plane
+    x, y = region_xy(neuron - polarity * plane, wo)
+    return Events(x, y, t, polarity)
+
+
+def lif_spikes(
+    events: Events,
+    steps: Tensor,
+    *,
+    state: LIFState | None,
+    last_step: int | Tensor,
+    from_step: int,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    beta: float,
+    threshold: float,
+    weight: float,
+    mutual_inhibition: float,
+    reset_mechanism: ResetMechanism,
+    max_output_events: int | None,
+    batch_size: int = 1,
+) -> tuple[Tensor, Tensor, LIFState]:
+    """The spikes of the neurons over steps ``0 .. last_step``, from a state, event-driven.
+
+    The core of :func:`lif_pooling` (``state=None``, ``from_step=0``) and of its streaming
+    session (:mod:`evdown_torch.transforms.functional.lif_stream`), which continues from the
+    neurons of the steps processed so far and processes up to a bound.
+
+    Args:
+        events: time-sorted events, all in steps after every region's ``state.last_step``
+            and at most ``last_step``.
+        steps: ``(N,)`` int64 step of every event.
+        state: the neurons before these events (``None``: all at rest).
+        last_step: the last step to process: firing chains through the empty steps after a
+            region's last input run up to it; for a batch, a ``(B,)`` tensor, each
+            recording's own last step.
+        from_step: return only the spikes of steps ``>= from_step`` (those of earlier steps
+            were returned by an earlier call; they are neither built nor counted).
+        sensor_size, factor, beta, threshold, weight, mutual_inhibition, reset_mechanism,
+            max_output_events: as :func:`lif_pooling`.
+        batch_size: how many recordings are stacked vertically in ``events`` (see
+            :func:`lif_pooling`'s ``bounds``); a state is for one recording only.
+
+    Returns:
+        ``(spike_step, neuron, state)``: int64 steps and neurons (``polarity * Ho * Wo +
+        region``) of the spikes, sorted by step, then neuron; the neurons after the events.
+    """
+    device = events.device
     fx, fy = factor
     wo, ho, _ = output_size(sensor_size, factor)
-    plane = wo * ho
-    steps, last_step, dt = _step_indices(events.t, float(dt))
+    plane = batch_size * wo * ho  # batch_size recordings stacked vertically
     f32 = torch.float32
     beta32 = torch.tensor(beta, dtype=f32, device=device)  # the neuron's buffers, as snntorch
     threshold32 = torch.tensor(threshold, dtype=f32, device=device)
-    leak = _Leak(beta32, threshold32, reset_mechanism)
-
-    # Cells: the (region, step) pairs that hold events, ordered by region, then step.
-    region = divide(events.x, fx).add_(divide(events.y, fy), alpha=wo)
-    region, order = stable_sort_small(region, plane)  # stable: time order within a region
-    steps = steps.index_select(0, order)
-    polarity = events.p.index_select(0, order)
-    del order
-    n = region.shape[0]
-    starts = torch.ones(n, dtype=torch.bool, device=device)
-    torch.ne(region[1:], region[:-1], out=starts[1:])
-    starts[1:] |= steps[1:] != steps[:-1]
-    cell_of_event = torch.cumsum(starts, 0)
-    n_cells = int(cell_of_event[-1])
-    first = starts.nonzero().squeeze(1)
-    cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
-    del region, steps, starts, first
-    # Input current of the region's (OFF, ON) neurons: w * S - w_inh * S', in float32.
-    counts = torch.bincount(cell_of_event.mul_(2).add_(polarity).sub_(2), minlength=2 * n_cells)
-    counts = counts.to(f32).view(n_cells, 2)  # exact: fewer than 2**24 events per cell
-    del cell_of_event, polarity
-    current = counts * torch.tensor(weight, dtype=f32, device=device)
-    if mutual_inhibition != 0:
-        current -= counts.flip(1) * torch.tensor(mutual_inhibition, dtype=f32, device=device)
-    del counts
+    leak = Leak(beta32, threshold32, reset_mechanism)
+    cell_region, cell_step, current = _event_cells(
+        events, steps, fx=fx, fy=fy, wo=wo, plane=plane, weight=weight,
+        mutual_inhibition=mutual_inhibition,
+    )
+    if state is not None:  # each region's last update, as a cell whose current is its membrane
+        cell_region, cell_step, current = _with_state_cells(
+            cell_region, cell_step, current, state, plane=plane,
+            chains=reset_mechanism != "zero", threshold32=threshold32,
+        )
+    n_cells = cell_region.shape[0]
+    if n_cells == 0:
+        empty = torch.empty(0, dtype=torch.int64, device=device)
+        return empty, empty, state if state is not None else initial_state(plane, device)
 
     # Each region's cells: its first one, and the empty steps before and after each cell.
     new_region = torch.ones(n_cells, dtype=torch.bool, device=device)
@@ -358,6 +400,9 @@ def lif_pooling(
     gap_after[:-1] = gap_before[1:]
     region_last = torch.roll(region_first, -1).sub_(1)
     region_last[-1] = n_cells - 1
+    if isinstance(last_step, Tensor):  # a batch: each region's own recording's last step
+        last_step = last_step.index_select(
+            0, divide(cell_region.index_select(0, region_last), wo * ho))
     gap_after.index_copy_(0, region_last, last_step - cell_step.index_select(0, region_last))
 
     # Rounds: lanes are regions by decreasing cell count, so round r's lanes are a prefix.
@@ -434,8 +479,7 @@ def lif_pooling(
     # cell; every gap with reset "none", whose membrane does not depend on them).
     run_cell, run_polarity = (chain_before > 0).nonzero(as_tuple=True)
     run_length = chain_before[run_cell, run_polarity]
-    run_start = cell_step[run_cell] - gap_before[run_cell]
-    run_cell = run_cell - 1  # the cell the run follows
+    run_start = cell_step[run_cell] - gap_before[run_cell]  # run_cell: the region, for below
     if reset_mechanism != "zero":
         if reset_mechanism == "subtract":  # only the tails: the rounds found the others
             candidate = fired.index_select(0, region_last)
@@ -453,6 +497,13 @@ def lif_pooling(
         run_polarity = torch.cat([run_polarity, tail_polarity])
         run_length = torch.cat([run_length, tail_length])
         run_start = torch.cat([run_start, cell_step[tail_cell] + 1])
+    if from_step > 0:  # drop the spikes of steps an earlier call returned
+        keep = spike_step >= from_step
+        spike_cell, spike_polarity = spike_cell[keep], spike_polarity[keep]
+        spike_step = spike_step[keep]
+        run_end = run_start + run_length
+        run_start = run_start.clamp(min=from_step)
+        run_length = (run_end - run_start).clamp_(min=0)
     total = spike_cell.shape[0] + int(run_length.sum())
     if max_output_events is not None and total > max_output_events:
         raise ValueError(
@@ -474,7 +525,12 @@ def lif_pooling(
     spike_step, neuron = spike_step[by_neuron], neuron[by_neuron]
     by_step = torch.sort(spike_step, stable=True).indices
     spike_step, neuron = spike_step[by_step], neuron[by_step]
-    t = _step_end_time(spike_step, t_start=events.t[0], t_end=events.t[-1], dt=dt)
-    polarity = neuron >= plane
-    x, y = region_xy(neuron - polarity * plane, wo)
-    return Events(x, y, t, polarity)
+    # The neurons after the last update of every region here.
+    last_region = cell_region.index_select(0, region_last)
+    if state is None:
+        state = initial_state(plane, device)
+    state = LIFState(
+        state.membrane.index_put((last_region,), membrane.index_select(0, region_last)),
+        state.last_step.index_put((last_region,), cell_step.index_select(0, region_last)),
+    )
+    return spike_step, neuron, state

@@ -29,6 +29,7 @@ def linear_estimation(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     threshold: float,
+    bounds: tuple[Tensor, Tensor] | None = None,
     max_delay: float | None = None,
 ) -> Events:
     """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
@@ -52,6 +53,9 @@ def linear_estimation(
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
+        bounds: ``(B,)`` first and last timestamps of each recording of a batch stacked
+            vertically (see :func:`~evdown_torch.transforms.functional._knots.estimate`), or
+            ``None`` for one stream.
         max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
             "Bounded delay"; a whole number for int64 ``t``), or ``None`` for the paper's
             method. With ``D`` a pixel holds its level until ``D`` before its next knot.
@@ -67,7 +71,7 @@ def linear_estimation(
     """
     return estimate(
         events, sensor_size=sensor_size, factor=factor, threshold=threshold,
-        solve_regions=linear_regions, max_delay=max_delay,
+        solve_regions=linear_regions, bounds=bounds, max_delay=max_delay,
     )
 
 

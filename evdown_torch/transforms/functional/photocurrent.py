@@ -81,13 +81,20 @@ def initial_state(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     device: torch.device | str | None = None,
+    recordings: int = 1,
 ) -> PhotocurrentState:
-    """A fresh state: every pixel at level 0 (intensity 1), every region with ``q = 0``."""
+    """A fresh state: every pixel at level 0 (intensity 1), every region with ``q = 0``.
+
+    With ``recordings > 1``, the state of that many recordings stacked vertically (recording
+    ``b``'s pixel ``(x, y)`` at ``(x, y + b * Ho * fy)``, see
+    :mod:`evdown_torch.transforms._batch`).
+    """
     w, h, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
+    rows = h if recordings == 1 else out_h * factor[1] * recordings
     return PhotocurrentState(
-        torch.zeros(w * h, dtype=torch.int64, device=device),
-        torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
+        torch.zeros(w * rows, dtype=torch.int64, device=device),
+        torch.zeros(out_w * out_h * recordings, dtype=torch.int64, device=device),
         None,
     )
 
@@ -122,14 +129,16 @@ def region_pixels(
     regions: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
 ) -> tuple[Tensor, Tensor]:
     """Pixel ids ``y * W + x`` of every pixel of ``regions``: ``(R, fx * fy)`` int64 and a
-    same-shaped bool mask of those inside the sensor (ids outside are 0)."""
+    same-shaped bool mask of those inside the sensor (ids outside are 0). Regions of stacked
+    recordings (ids past ``Ho * Wo``) are inside where their recording's are."""
     w, h, _ = sensor_size
     fx, fy = factor
+    rows = -(-h // fy) * fy  # the sensor's rows padded to whole regions
     rx, ry = region_xy(regions, -(-w // fx))
     grid = torch.arange(fx * fy, device=regions.device)
     px = rx[:, None] * fx + grid % fx
     py = ry[:, None] * fy + torch.div(grid, fx, rounding_mode="floor")
-    inside = (px < w) & (py < h)
+    inside = (px < w) & (torch.remainder(py, rows) < h)
     return torch.where(inside, py * w + px, 0), inside
 
 
@@ -268,6 +277,7 @@ def photocurrent_events(
     contrast: float,
     threshold: float,
     state: PhotocurrentState | None = None,
+    recordings: int = 1,
 ) -> tuple[Events, PhotocurrentState]:
     """Photocurrent pooling, events mode (SEMANTICS.md method 7): causal, streamable.
 
@@ -282,6 +292,9 @@ def photocurrent_events(
         contrast: ``c``, the input camera's contrast threshold in log units, in [1e-6, 50].
         threshold: ``theta``, the output pixel's contrast threshold in log units.
         state: the state returned for the previous chunk of the same stream, or ``None``.
+        recordings: ``B``, for a batch of recordings stacked vertically (recording ``b``'s
+            pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
+            :mod:`evdown_torch.transforms._batch`). 1 for one stream.
 
     Returns:
         ``(output events sorted by t, state after the last event)``.
@@ -299,7 +312,7 @@ def photocurrent_events(
     check_contrast_range(contrast, threshold)
     events = sort_by_time(events)
     if state is None:
-        state = initial_state(sensor_size, factor, events.device)
+        state = initial_state(sensor_size, factor, events.device, recordings)
     n = events.num_events
     if n == 0:
         return Events.empty(events.t.dtype, events.device), state
@@ -342,7 +355,7 @@ def _events_piece(
     """
     w, h, _ = sensor_size
     out_w = output_size(sensor_size, factor)[0]
-    levels = pixel_levels(events, w, h, state.level)
+    levels = pixel_levels(events, w, state.level.shape[0] // w, state.level)  # stacked: more rows
     level_before = torch.empty_like(levels.level).scatter_(0, levels.order,
                                                            levels.level - levels.step)
     new_levels = levels.new_state

@@ -1,0 +1,280 @@
+"""The cells of a study and the jobs that fill them, each runnable in a worker process.
+
+A :class:`Cell` is one row of the table: a method (a registry name, the thinning
+:data:`CONTROL` or the :data:`BASELINE`), a factor, an event budget and the settings that
+were calibrated to it. The jobs below are plain functions of picklable arguments; each reads
+its inputs from the cache and stores what it made there, so that a second run reads it back.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+from torch.utils.data import DataLoader, TensorDataset
+
+from evdown_torch.checks import output_size
+from evdown_torch.config import EvaluationConfig
+from evdown_torch.evaluation.cache import Cache, code_fingerprint
+from evdown_torch.evaluation.data import Source, window
+from evdown_torch.events import to_events
+from evdown_torch.frames import to_frames
+from evdown_torch.metrics import event_metrics, optical_consistency
+from evdown_torch.models.classifier import SpikingClassifier, stem_stride_for
+from evdown_torch.training import predict_classifier, train_classifier
+from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms.calibrate import BudgetTarget, calibration
+from evdown_torch.transforms.registry import make_method
+from evdown_torch.transforms.thinning import ThinnedDownsample
+
+__all__ = ["BASELINE", "CONTROL", "Cell", "frames_of", "model_for"]
+
+#: The method name of the full-resolution row.
+BASELINE = "full resolution"
+#: The method name of the thinning control (Downsample thinned at random to the budget).
+CONTROL = "control"
+
+_TRANSFORM_CODE = ("transforms", "events.py", "checks.py")
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One row of the study.
+
+    Attributes:
+        method: a registry name, :data:`CONTROL` or :data:`BASELINE`.
+        factor: ``(fx, fy)``; ``(1, 1)`` for the baseline.
+        budget: the event budget as a multiple of the reference (the low-resolution camera's
+            count, or the input's), or ``None`` for a method run at its own settings.
+        settings: the transform's settings, the calibrated budget setting included, as
+            sorted ``(name, value)`` pairs.
+    """
+
+    method: str
+    factor: tuple[int, int]
+    budget: float | None = None
+    settings: tuple[tuple[str, Any], ...] = ()
+
+    def transform(self, sensor_size: tuple[int, int, int]) -> Downscaler | None:
+        """The downscaler of this cell (``None`` for the baseline)."""
+        if self.method == BASELINE:
+            return None
+        if self.method == CONTROL:
+            return ThinnedDownsample(sensor_size, self.factor, **dict(self.settings))
+        return make_method(self.method, sensor_size, self.factor, **dict(self.settings))
+
+    def output_size(self, sensor_size: tuple[int, int, int]) -> tuple[int, int, int]:
+        return output_size(sensor_size, self.factor)
+
+    def key(self) -> dict[str, Any]:
+        return {"method": self.method, "factor": list(self.factor), "budget": self.budget,
+                "settings": [[k, v] for k, v in self.settings]}
+
+    @property
+    def label(self) -> str:
+        if self.method == BASELINE:
+            return BASELINE
+        f = self.factor
+        text = f"{self.method} x{f[0] if f[0] == f[1] else f'{f[0]}x{f[1]}'}"
+        return text if self.budget is None else f"{text} @ {self.budget:g}"
+
+    def with_settings(self, **values: Any) -> Cell:
+        merged = {**dict(self.settings), **values}
+        return Cell(self.method, self.factor, self.budget, tuple(sorted(merged.items())))
+
+
+# ----------------------------------------------------------------------------- jobs
+
+
+def generate_job(source: Source, split: str, indices: list[int],
+                 factor: tuple[int, int] = (1, 1)) -> tuple[int, list[int]]:
+    """Cache recordings ``indices`` of ``split`` (or their renders at ``factor``).
+
+    Returns:
+        ``(generated, counts)``: how many were not cached yet, and each one's event count.
+    """
+    generated, counts = 0, []
+    for i in indices:
+        if factor == (1, 1):
+            generated += source.ensure(split, i)
+            counts.append(len(source.recording(split, i)[0]))
+        else:
+            generated += source.ensure(split, i, factor)
+            counts.append(len(source.ground_truth(split, i, factor)))
+    return generated, counts
+
+
+def calibrate_job(source: Source, cell: Cell, target_count: float, samples: int
+                  ) -> tuple[Cell, dict[str, Any]]:
+    """Calibrate ``cell``'s budget setting on the first ``samples`` training recordings.
+
+    The search starts from the cell's configured value of the setting (the method's default
+    when not configured) and targets ``target_count`` output events over those recordings.
+
+    Returns:
+        The cell with its calibrated settings, and what the search found.
+    """
+    sensor = source.sensor_size
+    transform = cell.transform(sensor)
+    setting = type(transform).budget_setting
+    key = {"data": source.key("train"), "samples": samples, "cell": cell.key(),
+           "target": target_count, "code": code_fingerprint(*_TRANSFORM_CODE)}
+    cache = source.cache
+    path = cache.path("calibrations", key, ".json")
+    if not path.is_file():
+        recordings = [source.recording("train", i)[0] for i in range(samples)]
+        found = calibration(transform, recordings, BudgetTarget.count(target_count))
+        cache.save_json(path, {"value": found.value, "count": found.count,
+                               "target": found.target, "evaluations": found.evaluations})
+    result = Cache.load_json(path)
+    return cell.with_settings(**{setting: result["value"]}), result
+
+
+def _frames_key(source: Source, cell: Cell, split: str, indices: list[int],
+                config: EvaluationConfig) -> dict[str, Any]:
+    return {"data": source.key(split), "indices": [indices[0], indices[-1] + 1],
+            "cell": cell.key(), "bins": config.data.time_bins,
+            "consistency_bin_us": config.measures.consistency_bin_us,
+            "code": code_fingerprint(*_TRANSFORM_CODE, "frames.py", "metrics.py",
+                                     "evaluation/cells.py")}
+
+
+def downscale_job(source: Source, cell: Cell, split: str, indices: list[int],
+                  config: EvaluationConfig) -> dict[str, list[float]]:
+    """Downscale recordings ``indices`` of ``split`` into ``cell``'s frames, and measure them.
+
+    The frames (``[n, T, 2, H, W]`` int16 event counts over each source recording's window)
+    and labels are cached; the per-recording measures are returned (and cached with them):
+    ``events_in``, ``events_out``, ``seconds`` (of the transform), ``duration`` (us),
+    ``density``, ``entropy`` and, with ground truth on the test split, ``camera_events`` and
+    ``consistency``.
+    """
+    cache = source.cache
+    path = cache.path("frames", _frames_key(source, cell, split, indices, config), ".pt")
+    if path.is_file():
+        return Cache.load_json(path.with_suffix(".json"))
+    sensor = source.sensor_size
+    transform = cell.transform(sensor)
+    out_sensor = cell.output_size(sensor)
+    compare = split == "test" and source.has_ground_truth and cell.method != BASELINE
+    stats: dict[str, list[float]] = {k: [] for k in (
+        "events_in", "events_out", "seconds", "duration", "density", "entropy",
+        "camera_events", "consistency")}
+    frames, labels = [], []
+    for i in indices:
+        raw, label = source.recording(split, i)
+        events, _ = to_events(raw, sensor)
+        start = time.perf_counter()
+        out = events if transform is None else transform.kernel(events)
+        stats["seconds"].append(time.perf_counter() - start)
+        t0, t1 = window(raw)
+        counts = to_frames(out, out_sensor, config.data.time_bins, t_start=t0, t_end=t1)
+        frames.append(counts.clamp(max=torch.iinfo(torch.int16).max).to(torch.int16))
+        labels.append(label)
+        metrics = event_metrics(out, out_sensor, duration=max(t1 - t0, 1))
+        stats["events_in"].append(events.num_events)
+        stats["events_out"].append(out.num_events)
+        stats["duration"].append(t1 - t0)
+        stats["density"].append(metrics.density)
+        stats["entropy"].append(metrics.entropy)
+        if compare:
+            camera = source.ground_truth(split, i, cell.factor)
+            stats["camera_events"].append(len(camera))
+            stats["consistency"].append(optical_consistency(
+                out, camera, out_sensor, bin_width=config.measures.consistency_bin_us,
+                t_start=t0, t_end=t1))
+    cache.save_tensors(path, {"frames": torch.stack(frames),
+                              "labels": torch.tensor(labels, dtype=torch.int64)})
+    cache.save_json(path.with_suffix(".json"), stats)
+    return stats
+
+
+def frames_of(source: Source, cell: Cell, split: str, chunks: list[list[int]],
+              config: EvaluationConfig) -> tuple[Tensor, Tensor]:
+    """A cell's cached frames and labels of ``split`` (after :func:`downscale_job`)."""
+    parts = [Cache.load_tensors(source.cache.path(
+        "frames", _frames_key(source, cell, split, c, config), ".pt")) for c in chunks]
+    return (torch.cat([p["frames"] for p in parts]), torch.cat([p["labels"] for p in parts]))
+
+
+def model_for(config: EvaluationConfig, size: tuple[int, int], num_classes: int
+              ) -> SpikingClassifier:
+    """The classifier of a cell whose frames are ``size = (W, H)``."""
+    m = config.model
+    return SpikingClassifier(
+        num_classes, channels=m.channels, pool_size=m.pool_size, beta=m.beta,
+        threshold=m.threshold, stem_stride=stem_stride_for(size, m.grid) if m.grid else 1,
+        stem_channels=m.stem_channels,
+    )
+
+
+def _encode(counts: Tensor, encoding: str) -> Tensor:
+    """Classifier input from event counts (float16 for ``log``, ``binary``; else float32)."""
+    counts = counts.to(torch.float32)
+    if encoding == "log":
+        return torch.log1p(counts).to(torch.float16)
+    if encoding == "binary":
+        return (counts > 0).to(torch.float16)
+    return counts
+
+
+def train_job(source: Source, cell: Cell, chunks: dict[str, list[list[int]]],
+              config: EvaluationConfig, seed: int, device: str) -> dict[str, Any]:
+    """Train a fresh classifier on ``cell``'s training frames under ``seed``; test it.
+
+    Returns:
+        ``{"correct": [bool per test recording], "seconds": training time}`` (cached).
+    """
+    frames_keys = {s: [_frames_key(source, cell, s, c, config) for c in chunks[s]]
+                   for s in ("train", "test")}
+    training = config.training
+    key = {"frames": frames_keys, "model": config.model.__dict__, "epochs": training.epochs,
+           "batch_size": training.batch_size, "learning_rate": training.learning_rate,
+           "encoding": training.encoding, "seed": seed, "device": torch.device(device).type,
+           "code": code_fingerprint("models", "training.py")}
+    cache = source.cache
+    path = cache.path("predictions", key, ".json")
+    if path.is_file():
+        return Cache.load_json(path)
+    train_x, train_y = frames_of(source, cell, "train", chunks["train"], config)
+    test_x, test_y = frames_of(source, cell, "test", chunks["test"], config)
+    train_x, test_x = _encode(train_x, training.encoding), _encode(test_x, training.encoding)
+    size = (train_x.shape[-1], train_x.shape[-2])
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = model_for(config, size, source.num_classes)
+    model.to(device)
+    order = torch.Generator().manual_seed(seed)
+    start = time.perf_counter()
+    train_classifier(model, DataLoader(TensorDataset(train_x, train_y),
+                                       batch_size=training.batch_size, shuffle=True,
+                                       generator=order),
+                     epochs=training.epochs, learning_rate=training.learning_rate)
+    seconds = time.perf_counter() - start
+    predicted, labels = predict_classifier(
+        model, DataLoader(TensorDataset(test_x, test_y), batch_size=training.batch_size))
+    result = {"correct": (predicted == labels).tolist(), "seconds": seconds}
+    cache.save_json(path, result)
+    return result
+
+
+def throughput(source: Source, cell: Cell, recordings: int) -> float | None:
+    """Input events per second of ``cell``'s transform on the first test recordings, timed
+    in this process (call it on one idle thread); ``None`` for the baseline or no recording."""
+    transform = cell.transform(source.sensor_size)
+    if transform is None or recordings == 0:
+        return None
+    streams = [to_events(source.recording("test", i)[0], source.sensor_size)[0]
+               for i in range(min(recordings, source.size("test")))]
+    transform.kernel(streams[0])  # warm up
+    start = time.perf_counter()
+    for events in streams:
+        transform.kernel(events)
+    seconds = time.perf_counter() - start
+    total = sum(e.num_events for e in streams)
+    return total / seconds if seconds > 0 else float("inf")
+
+

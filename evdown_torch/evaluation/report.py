@@ -1,0 +1,258 @@
+"""The study's report: ``results.csv``, ``report.md`` and ``tradeoff.png``."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+from evdown_torch.evaluation.cells import BASELINE, CONTROL
+from evdown_torch.evaluation.study import CellResult, EvaluationResult
+from evdown_torch.transforms.registry import METHODS
+
+__all__ = ["CSV_COLUMNS", "markdown_table", "pareto_front", "write_report"]
+
+Log = Callable[[str], None]
+
+CSV_COLUMNS = (
+    "method", "factor_x", "factor_y", "budget", "setting", "width", "height", "seeds",
+    "accuracy", "ci_low", "ci_high", "accuracies", "events_per_recording", "events_per_second",
+    "reduction", "rate_vs_camera", "consistency", "control_consistency", "difference_vs_control",
+    "p_value", "p_holm", "significant", "density", "entropy", "macs_per_recording",
+    "synops_per_recording", "throughput_events_per_s", "train_seconds",
+)
+
+
+def _setting(c: CellResult) -> str:
+    """The calibrated budget setting, e.g. ``threshold=0.31``."""
+    if c.calibration is None:
+        return ""
+    name = "keep" if c.method == CONTROL else METHODS[c.method].budget_setting
+    return f"{name}={c.calibration['value']:.4g}"
+
+
+def _factor(c: CellResult) -> str:
+    f = c.factor
+    return str(f[0]) if f[0] == f[1] else f"{f[0]}x{f[1]}"
+
+
+def _control(result: EvaluationResult, c: CellResult) -> CellResult | None:
+    for other in result.cells:
+        if other.method == CONTROL and other.factor == c.factor and other.budget == c.budget:
+            return other
+    return None
+
+
+def _number(value: float | None, fmt: str) -> str:
+    return "" if value is None else format(value, fmt)
+
+
+def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
+    rows = []
+    for c in result.cells:
+        control = _control(result, c)
+        k = c.comparison
+        rows.append({
+            "method": c.method, "factor_x": str(c.factor[0]), "factor_y": str(c.factor[1]),
+            "budget": _number(c.budget, "g"), "setting": _setting(c),
+            "width": str(c.output_size[0]), "height": str(c.output_size[1]),
+            "seeds": ";".join(map(str, c.seeds)),
+            "accuracy": f"{c.accuracy:.4f}", "ci_low": f"{c.interval[0]:.4f}",
+            "ci_high": f"{c.interval[1]:.4f}",
+            "accuracies": ";".join(f"{a:.4f}" for a in c.accuracies),
+            "events_per_recording": f"{c.events_per_recording:.1f}",
+            "events_per_second": f"{c.events_per_second:.1f}",
+            "reduction": f"{c.reduction:.4f}",
+            "rate_vs_camera": _number(c.rate_vs_camera, ".4f"),
+            "consistency": _number(c.consistency, ".4f"),
+            "control_consistency": _number(control.consistency if control else None, ".4f"),
+            "difference_vs_control": _number(k.difference if k else None, ".4f"),
+            "p_value": _number(k.p_value if k else None, ".4g"),
+            "p_holm": _number(k.p_holm if k else None, ".4g"),
+            "significant": "" if k is None else str(k.significant).lower(),
+            "density": f"{c.density:.6g}", "entropy": f"{c.entropy:.6g}",
+            "macs_per_recording": str(c.macs_per_recording),
+            "synops_per_recording": f"{c.synops_per_recording:.0f}",
+            "throughput_events_per_s": _number(c.throughput, ".0f"),
+            "train_seconds": f"{c.train_seconds:.1f}",
+        })
+    return rows
+
+
+def markdown_table(result: EvaluationResult) -> str:
+    """The cells as a Markdown table (no measured times, so equal settings give equal tables).
+
+    ``*`` marks a difference from the control that is significant after Holm's correction.
+    """
+    lines = [
+        "| method | factor | budget | setting | events/rec | x camera | accuracy [95% CI] | "
+        "vs control (Holm p) | consistency (control) | MMACs/rec | synops/rec |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in result.cells:
+        control = _control(result, c)
+        k = c.comparison
+        versus = "" if k is None else (f"{k.difference:+.3f} ({k.p_holm:.3g})"
+                                       + (" *" if k.significant else ""))
+        consistency = _number(c.consistency, ".3f")
+        if control is not None and c.method != CONTROL and control.consistency is not None:
+            consistency += f" ({control.consistency:.3f})"
+        lines.append(
+            f"| {c.method} | {_factor(c) if c.method != BASELINE else 1} "
+            f"| {_number(c.budget, 'g') or '–'} | {_setting(c) or '–'} "
+            f"| {c.events_per_recording:,.0f} | {_number(c.rate_vs_camera, '.2f') or 'n/a'} "
+            f"| {c.accuracy:.3f} [{c.interval[0]:.3f}, {c.interval[1]:.3f}] | {versus or '–'} "
+            f"| {consistency or '–'} | {c.macs_per_recording / 1e6:.1f} "
+            f"| {c.synops_per_recording:,.0f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _speed_table(result: EvaluationResult) -> str:
+    lines = ["| cell | throughput (M ev/s, 1 thread) | training s/seed |", "|---|---|---|"]
+    for c in result.cells:
+        speed = "–" if c.throughput is None else f"{c.throughput / 1e6:.2f}"
+        lines.append(f"| {c.cell.label} | {speed} | {c.train_seconds:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _markdown(result: EvaluationResult) -> str:
+    config = result.config
+    m, t, s = config.model, config.training, config.statistics
+    reference = ("the low-resolution camera's event count (the generator's ground truth)"
+                 if config.methods.budget_reference == "camera" else "the input's event count")
+    return (
+        f"# evdown evaluate: {config.name}\n\n"
+        f"Data: {result.description}; {config.data.time_bins} time bins per recording. "
+        f"Budgets: multiples of {reference}, calibrated on the first "
+        f"{config.data.calibration_samples} training recordings. "
+        f"Classifier: SpikingClassifier(channels={list(m.channels)}, grid={m.grid}, "
+        f"stem_channels={m.stem_channels}, pool_size={m.pool_size}), {t.epochs} epochs, "
+        f"batch {t.batch_size}, learning rate {t.learning_rate:g}, {t.encoding} input, "
+        f"seeds {list(t.seeds)} (full resolution {list(t.baseline_seeds)}), trained on "
+        f"{result.device}. Wall time {result.wall_seconds:.0f} s with {result.workers} worker "
+        f"process(es); {result.generated} recordings or renders generated.\n\n"
+        + markdown_table(result)
+        + f"\nevents/rec: mean output events per test recording; x camera: output events / the "
+        "low-resolution camera's events; accuracy: mean over test recordings and seeds, "
+        f"{s.confidence:.0%} bootstrap interval over recordings and seeds; vs control: "
+        "accuracy minus the thinning control's at the same factor and budget, paired bootstrap "
+        f"p-value Holm-corrected over all comparisons, * below {s.alpha:g}; consistency: "
+        f"1 - normalised L1 distance of counts in {config.measures.consistency_bin_us / 1000:g} "
+        "ms bins to the camera's recording (the control's in brackets); MMACs/rec: the "
+        "classifier's multiply-accumulates per recording; synops/rec: output events times "
+        "the first layer's fan-out.\n\n"
+        "Speed (each transform timed alone on one thread; training time per seed):\n\n"
+        + _speed_table(result)
+    )
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points ``(events, accuracy)`` that no other point beats with fewer or
+    as many events and higher accuracy, in order of events.
+
+    Example:
+        >>> pareto_front([(10, 0.5), (20, 0.4), (30, 0.9), (5, 0.2)])
+        [3, 0, 2]
+    """
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
+    front, best = [], -math.inf
+    for i in order:
+        if points[i][1] > best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def _plot(result: EvaluationResult, path: Path) -> bool:
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+        from matplotlib.ticker import NullFormatter
+    except ModuleNotFoundError:
+        return False
+    factors = list(dict.fromkeys(c.factor for c in result.cells if c.method != BASELINE))
+    figure = Figure(figsize=(4.2 * len(factors) + 2.5, 7.5), layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.subplots(2, len(factors), squeeze=False, sharey="row")
+    methods = list(dict.fromkeys(c.method for c in result.cells
+                                 if c.method not in (BASELINE, CONTROL)))
+    colours = {name: f"C{i % 10}" for i, name in enumerate(methods)}
+    colours[CONTROL] = "black"
+    baseline = next((c for c in result.cells if c.method == BASELINE), None)
+    for column, factor in enumerate(factors):
+        here = [c for c in result.cells if c.factor == factor]
+        top, bottom = axes[0][column], axes[1][column]
+        for name in [*methods, CONTROL]:
+            line = sorted((c for c in here if c.method == name), key=lambda c: c.events_per_second)
+            if not line:
+                continue
+            style = dict(color=colours[name], marker="o" if name != CONTROL else "s",
+                         linestyle="--" if name == CONTROL else "-", markersize=5, capsize=2)
+            x = [c.events_per_second for c in line]
+            top.errorbar(x, [c.accuracy for c in line],
+                         yerr=[[c.accuracy - c.interval[0] for c in line],
+                               [c.interval[1] - c.accuracy for c in line]], **style)
+            if all(c.consistency is not None for c in line):
+                bottom.plot(x, [c.consistency for c in line], **{k: v for k, v in style.items()
+                                                                   if k != "capsize"})
+        front = pareto_front([(c.events_per_second, c.accuracy) for c in here])
+        top.plot([here[i].events_per_second for i in front], [here[i].accuracy for i in front],
+                 color="gold", linewidth=6, alpha=0.35, zorder=0, drawstyle="steps-post")
+        if baseline is not None:
+            top.axhline(baseline.accuracy, color="grey", linestyle=":", linewidth=1)
+        top.set_title(f"factor {factor[0] if factor[0] == factor[1] else factor}")
+        for ax in (top, bottom):
+            ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(NullFormatter())
+            ax.grid(True, which="both", alpha=0.3)
+        bottom.set_xlabel("output events per second")
+    axes[0][0].set_ylabel("test accuracy (95% CI)")
+    axes[1][0].set_ylabel("optical consistency with the camera")
+    handles = [axes[0][0].plot([], [], color=colours[n], marker="o", label=n)[0] for n in methods]
+    handles.append(axes[0][0].plot([], [], color="black", marker="s", linestyle="--",
+                                   label="control (thinned Downsample)")[0])
+    handles.append(axes[0][0].plot([], [], color="gold", linewidth=6, alpha=0.35,
+                                   label="Pareto front")[0])
+    if baseline is not None:
+        handles.append(axes[0][0].plot([], [], color="grey", linestyle=":",
+                                       label=f"{BASELINE} ({baseline.accuracy:.3f})")[0])
+    figure.legend(handles=handles, loc="outside right center", frameon=False)
+    figure.suptitle(f"evdown evaluate: {result.config.name} ({result.description})",
+                    fontsize=10)
+    figure.savefig(path, dpi=110)
+    return True
+
+
+def write_report(
+    result: EvaluationResult, directory: str | Path, log: Log | None = None
+) -> dict[str, Path]:
+    """Write ``results.csv``, ``report.md`` and ``tradeoff.png`` into ``directory``.
+
+    Args:
+        result: what :func:`~evdown_torch.evaluation.run_evaluation` returned.
+        directory: created if needed; existing files of these names are replaced.
+        log: told where the files went, and when the plot is skipped for want of matplotlib.
+
+    Returns:
+        ``{"csv": ..., "markdown": ..., "plot": ...}`` for the files written (no ``"plot"``
+        without matplotlib).
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    paths = {"csv": directory / "results.csv", "markdown": directory / "report.md"}
+    with paths["csv"].open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        writer.writerows(_csv_rows(result))
+    paths["markdown"].write_text(_markdown(result), encoding="utf-8")
+    plot = directory / "tradeoff.png"
+    if _plot(result, plot):
+        paths["plot"] = plot
+    elif log is not None:
+        log("matplotlib is not installed: skipped tradeoff.png "
+            "(pip install matplotlib, or evdown_torch[plot])")
+    if log is not None:
+        log("wrote " + ", ".join(str(p) for p in paths.values()))
+    return paths

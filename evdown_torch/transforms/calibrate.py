@@ -1,0 +1,272 @@
+"""Event budgets: set a method's one budget setting so that its output hits a target count.
+
+docs/semantics.md, "Event budget": :func:`calibrate` returns a copy of a transform whose budget
+setting (the class attribute ``budget_setting``: the contrast ``threshold`` of the
+log-luminance methods, the ``weight`` of LIFPooling, the ``keep`` probability of the thinning
+control) makes the total output over some recordings as close as the setting allows to a
+target, by a deterministic search.
+
+The search works on the logarithm of the setting. It first finds in which direction the
+output grows (probing the setting times and divided by 4), then widens a bracket by factors
+of 4 until the target lies inside, then narrows it by regula falsi on ``log(count)`` (the
+Illinois variant, with bisection where a count is 0), and stops when the count is within
+``rtol`` of the target. Every evaluation runs the transform once on every recording; counts
+are remembered, so no setting is run twice. The result is the evaluated setting whose count
+is closest to the target.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Literal, NamedTuple
+
+from evdown_torch.checks import check_choice, check_positive_float, check_positive_int
+from evdown_torch.events import Events, EventsLike, to_events
+from evdown_torch.transforms._base import Downscaler
+
+__all__ = ["BudgetTarget", "Calibration", "calibrate", "calibration"]
+
+
+@dataclass(frozen=True)
+class BudgetTarget:
+    """What the total output over the calibration recordings should be.
+
+    Attributes:
+        kind: ``"ratio"`` (output events per input event), ``"count"`` (output events, all
+            recordings together) or ``"rate"`` (output events per second of recording).
+        value: the target, positive.
+        time_unit: seconds per timestamp unit, for ``"rate"`` (1e-6: microseconds).
+
+    Example:
+        >>> BudgetTarget.ratio(0.1).events(input_events=5000, duration=2e6)
+        500.0
+        >>> BudgetTarget.rate(300.0).events(input_events=5000, duration=2e6)
+        600.0
+    """
+
+    kind: Literal["ratio", "count", "rate"]
+    value: float
+    time_unit: float = 1e-6
+
+    def __post_init__(self) -> None:
+        check_choice("target kind", self.kind, ("ratio", "count", "rate"))
+        object.__setattr__(self, "value", check_positive_float("target", self.value))
+        check_positive_float("time_unit", self.time_unit)
+
+    @classmethod
+    def ratio(cls, value: float) -> BudgetTarget:
+        """``value`` output events per input event."""
+        return cls("ratio", value)
+
+    @classmethod
+    def count(cls, value: float) -> BudgetTarget:
+        """``value`` output events over all the recordings together."""
+        return cls("count", value)
+
+    @classmethod
+    def rate(cls, events_per_second: float, time_unit: float = 1e-6) -> BudgetTarget:
+        """``events_per_second`` output events per second (timestamps count ``time_unit`` s)."""
+        return cls("rate", events_per_second, time_unit)
+
+    def events(self, *, input_events: int, duration: float) -> float:
+        """The target as a total count, given the recordings' input events and summed duration
+        (in timestamp units)."""
+        if self.kind == "ratio":
+            return self.value * input_events
+        if self.kind == "count":
+            return self.value
+        if duration <= 0:
+            raise ValueError("a rate target needs recordings that span a positive duration")
+        return self.value * duration * self.time_unit
+
+
+class Calibration(NamedTuple):
+    """What :func:`calibration` found.
+
+    Attributes:
+        transform: the calibrated copy of the transform.
+        value: its budget setting.
+        count: its total output over the recordings.
+        target: the target as a total count.
+        evaluations: how many settings were run.
+    """
+
+    transform: Downscaler
+    value: float
+    count: int
+    target: float
+    evaluations: int
+
+
+def calibrate(
+    transform: Downscaler,
+    recordings: Sequence[EventsLike],
+    target: BudgetTarget,
+    *,
+    rtol: float = 0.01,
+    max_evaluations: int = 40,
+) -> Downscaler:
+    """A copy of ``transform`` whose budget setting makes the output hit ``target``.
+
+    Args:
+        transform: a downscaler whose class names a ``budget_setting`` (EventCount,
+            LinearEstimation, CubicEstimation, LIFPooling, ThinnedDownsample, ...); its
+            current setting is where the search starts, its other settings are kept.
+        recordings: the calibration streams, any kind the transform accepts (at least one
+            event in all).
+        target: the wanted total output (:class:`BudgetTarget`).
+        rtol: stop once the count is within this fraction of the target.
+        max_evaluations: run the transform with at most this many settings.
+
+    Returns:
+        The calibrated transform (the input transform is not modified).
+
+    Raises:
+        ValueError: for a transform without a budget setting, no events, or an output that
+            does not depend on the setting.
+
+    Example:
+        >>> import torch
+        >>> from evdown_torch.transforms import EventCount
+        >>> g = torch.Generator().manual_seed(0)
+        >>> ev = torch.stack([torch.randint(0, 32, (20_000,), generator=g),
+        ...                   torch.randint(0, 32, (20_000,), generator=g),
+        ...                   torch.arange(20_000), torch.randint(0, 2, (20_000,), generator=g)], 1)
+        >>> down = calibrate(EventCount((32, 32, 2), 4), [ev], BudgetTarget.ratio(0.05))
+        >>> abs(len(down(ev)) / 20_000 - 0.05) < 0.05 * 0.05
+        True
+    """
+    return calibration(transform, recordings, target, rtol=rtol,
+                       max_evaluations=max_evaluations).transform
+
+
+def calibration(
+    transform: Downscaler,
+    recordings: Sequence[EventsLike],
+    target: BudgetTarget,
+    *,
+    rtol: float = 0.01,
+    max_evaluations: int = 40,
+) -> Calibration:
+    """As :func:`calibrate`, returning what the search found (:class:`Calibration`)."""
+    if not isinstance(transform, Downscaler):
+        raise TypeError(f"transform must be a Downscaler, got {type(transform).__name__}")
+    setting = type(transform).budget_setting
+    if setting is None:
+        raise ValueError(
+            f"{type(transform).__name__} has no budget setting: its output count is fixed by "
+            "its input"
+        )
+    if not isinstance(target, BudgetTarget):
+        raise TypeError(f"target must be a BudgetTarget, got {type(target).__name__}")
+    rtol = check_positive_float("rtol", rtol)
+    max_evaluations = check_positive_int("max_evaluations", max_evaluations)
+    streams = [to_events(r, transform.sensor_size)[0] for r in recordings]
+    inputs = sum(s.num_events for s in streams)
+    if inputs == 0:
+        raise ValueError("calibrate needs recordings with at least one event")
+    duration = sum(float(s.t.max() - s.t.min()) for s in streams if s.num_events)
+    wanted = target.events(input_events=inputs, duration=duration)
+    search = _Search(transform, setting, streams, wanted, max_evaluations)
+    best = search.run(float(getattr(transform, setting)), rtol)
+    return Calibration(search.build(best), best, int(search.counts[best]), wanted,
+                       len(search.counts))
+
+
+class _Search:
+    """The output count as a function of the setting, remembered, and the search over it."""
+
+    def __init__(self, transform: Downscaler, setting: str, streams: list[Events],
+                 wanted: float, max_evaluations: int) -> None:
+        self.transform, self.setting, self.streams = transform, setting, streams
+        self.wanted, self.max_evaluations = wanted, max_evaluations
+        self.counts: dict[float, float] = {}
+
+    def build(self, value: float) -> Downscaler:
+        return replace(self.transform, **{self.setting: value})
+
+    def valid(self, value: float) -> bool:
+        try:
+            self.build(value)
+        except (ValueError, TypeError):
+            return False
+        return math.isfinite(value) and value > 0
+
+    def count(self, value: float) -> float:
+        if value not in self.counts:
+            down = self.build(value)
+            try:
+                outputs = down.batch(self.streams)  # one pass over every recording
+                self.counts[value] = float(sum(out.num_events for out in outputs))
+            except ValueError:  # an output too large to produce: more than any target
+                self.counts[value] = math.inf
+        return self.counts[value]
+
+    def spent(self) -> bool:
+        return len(self.counts) >= self.max_evaluations
+
+    def close(self, value: float, rtol: float) -> bool:
+        return abs(self.count(value) - self.wanted) <= rtol * self.wanted
+
+    def best(self) -> float:
+        return min(self.counts, key=lambda v: (abs(self.counts[v] - self.wanted), v))
+
+    def direction(self, start: float) -> int:
+        """+1 when the count grows with the setting, -1 when it falls."""
+        base = self.count(start)
+        for k in (1, 2, 3):
+            for sign in (1, -1):
+                probe = start * 4.0 ** (sign * k)
+                if not self.valid(probe) or self.spent():
+                    continue
+                if self.count(probe) != base:
+                    return sign if self.count(probe) > base else -sign
+        raise ValueError(
+            f"the output of {type(self.transform).__name__} does not change with "
+            f"{self.setting} around {start:g} (always {base:.0f} events); it cannot be calibrated"
+        )
+
+    def run(self, start: float, rtol: float) -> float:
+        if not self.valid(start):
+            raise ValueError(f"{self.setting} = {start!r} is not a valid starting point")
+        if self.close(start, rtol):
+            return start
+        grows = self.direction(start)
+        # Widen: step the setting (by 4x) the way that moves the count toward the target.
+        value = self.best()
+        below = self.count(value) < self.wanted
+        step = 4.0 ** (grows if below else -grows)
+        other = value
+        while (self.count(other) < self.wanted) == below:
+            if self.close(other, rtol) or self.spent() or not self.valid(other * step):
+                return self.best()
+            value, other = other, other * step
+        # Narrow: regula falsi (Illinois) on log(count) against log(setting).
+        lo, hi = sorted((value, other))
+        log_target = math.log(self.wanted)
+        keep_lo = keep_hi = 1.0
+        side = 0
+        while not self.spent():
+            c_lo, c_hi = self.count(lo), self.count(hi)
+            if self.close(lo, rtol) or self.close(hi, rtol) or hi / lo - 1.0 < 1e-9:
+                break
+            u_lo, u_hi = math.log(lo), math.log(hi)
+            if 0 < c_lo < math.inf and 0 < c_hi < math.inf and c_lo != c_hi:
+                g_lo = (math.log(c_lo) - log_target) * keep_lo
+                g_hi = (math.log(c_hi) - log_target) * keep_hi
+                u = u_lo - g_lo * (u_hi - u_lo) / (g_hi - g_lo)
+                u = min(max(u, u_lo + 1e-3 * (u_hi - u_lo)), u_hi - 1e-3 * (u_hi - u_lo))
+            else:
+                u = 0.5 * (u_lo + u_hi)
+            middle = math.exp(u)
+            if (self.count(middle) < self.wanted) == (c_lo < self.wanted):
+                lo = middle
+                keep_hi = keep_hi * 0.5 if side == -1 else 1.0
+                keep_lo, side = 1.0, -1
+            else:
+                hi = middle
+                keep_lo = keep_lo * 0.5 if side == 1 else 1.0
+                keep_hi, side = 1.0, 1
+        return self.best()

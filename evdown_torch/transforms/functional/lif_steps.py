@@ -1,0 +1,112 @@
+"""LIF pooling's clock: the step of every event, the last step, and a spike's time.
+
+A stream is cut into steps of ``dt`` from its ``t_start`` (its first timestamp, or each
+recording's own in a batch); a spike in step ``k`` becomes an event at
+``t_start + (k + 1) * dt`` clipped to ``t_end`` (docs/semantics.md, method 6). Integer
+timestamps with a whole ``dt`` are stepped exactly in int64; settings whose steps int64 cannot
+index are refused.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+__all__ = ["MAX_STEPS", "batch_step_indices", "step_end_time", "step_indices"]
+
+#: Largest number of steps a stream may be cut into (step indices are int64, with headroom).
+MAX_STEPS = 1 << 62
+
+
+def step_indices(
+    t: Tensor, dt: float, t_start: Tensor | None = None
+) -> tuple[Tensor, int, float]:
+    """Step of every (sorted) event, the last step, and the ``dt`` to compute end times with.
+
+    Steps count from ``t_start`` (default: the first event; a streaming session passes its
+    stream's first timestamp), the last step is that of ``t[-1]``.
+
+    Raises:
+        ValueError: when the stream's span or its number of steps cannot be represented.
+    """
+    if t_start is None:
+        t_start = t[0]
+    t_end = t[-1]
+    if t.is_floating_point():
+        span = float(t_end) - float(t_start)
+        if not math.isfinite(span):
+            raise ValueError(f"LIF pooling needs finite timestamps, got a span of {span}")
+    else:
+        span = int(t_end) - int(t_start)  # exact, as a Python int
+        if span >= MAX_STEPS:
+            raise ValueError(
+                f"the stream spans {span} time units, more than 2**62 that int64 step "
+                "arithmetic can hold; split the stream"
+            )
+        if dt > span:  # one step holds everything; ends at t_start + dt > t_end, clipped
+            dt = float(span + 1)
+    if span / dt >= MAX_STEPS:
+        raise ValueError(
+            f"dt = {dt!r} cuts the stream's span of {span} time units into about "
+            f"{span / dt:.3g} steps, more than the 2**62 an int64 step index can hold; "
+            "use a larger dt"
+        )
+    steps = _steps(t - t_start, dt)
+    return steps, int(steps[-1]), dt
+
+
+def _steps(relative: Tensor, dt: float) -> Tensor:
+    """``floor(relative / dt)`` as int64 (exact for integer times and a whole ``dt``)."""
+    if not relative.is_floating_point() and dt.is_integer():
+        return torch.div(relative, int(dt), rounding_mode="floor")
+    return torch.floor(relative.to(torch.float64) / dt).to(torch.int64)
+
+
+def batch_step_indices(
+    t: Tensor, recording: Tensor, bounds: tuple[Tensor, Tensor], dt: float
+) -> tuple[Tensor, Tensor, float]:
+    """:func:`step_indices` for a batch: each event's step from its own recording's
+    ``t_start``, each recording's last step ``(B,)`` and the ``dt`` to compute end times
+    with (see :func:`lif_pooling`)."""
+    starts, ends = bounds
+    spans = ends - starts
+    widest = spans.max()
+    if t.is_floating_point():
+        span = float(widest)
+        if not math.isfinite(span):
+            raise ValueError(f"LIF pooling needs finite timestamps, got a span of {span}")
+    else:
+        span = int(widest)
+        if span >= MAX_STEPS:
+            raise ValueError(
+                f"a recording spans {span} time units, more than 2**62 that int64 step "
+                "arithmetic can hold; split it"
+            )
+        if dt > span:  # every recording in its step 0, ending at its t_end (as one stream)
+            dt = float(span + 1)
+    if span / dt >= MAX_STEPS:
+        raise ValueError(
+            f"dt = {dt!r} cuts a recording's span of {span} time units into about "
+            f"{span / dt:.3g} steps, more than the 2**62 an int64 step index can hold; "
+            "use a larger dt"
+        )
+    return _steps(t - starts.index_select(0, recording), dt), _steps(spans, dt), dt
+
+
+def step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -> Tensor:
+    """Output timestamp ``t_start + (k + 1) * dt`` of steps ``k``, clipped to ``t_end``.
+
+    Integer timestamps stay int64 and nothing overflows: with a whole ``dt`` the sum is exact;
+    otherwise the offset ``(k + 1) * dt`` is rounded to the nearest integer, halves upward.
+    """
+    if t_start.is_floating_point():
+        return torch.minimum(t_start + (steps + 1).to(torch.float64) * dt, t_end)
+    span = t_end - t_start
+    if dt.is_integer():
+        start = steps * int(dt)  # <= span: the step begins inside the stream
+        return torch.where(span - start > int(dt), t_start + start + int(dt), t_end)
+    offset = torch.floor((steps + 1).to(torch.float64) * dt + 0.5)
+    offset = torch.minimum(torch.minimum(offset, span.to(torch.float64)).to(torch.int64), span)
+    return t_start + offset

@@ -1,0 +1,216 @@
+"""LIF pooling (method 6) as a stream: consecutive chunks give exactly the batch spikes.
+
+The batch kernel (:func:`~evdown_torch.transforms.functional.lif.lif_pooling`) bins the stream
+into steps of ``dt`` from ``t_start`` and turns a spike of step ``k`` into an event at
+``t_start + (k + 1) * dt`` clipped to ``t_end``. A chunk ending at ``t`` (its last timestamp)
+*decides* the spikes of a step ``k`` when
+
+- the step is closed: it ends before the step of ``t`` begins, so no later event (all at
+  ``t`` or after) can fall into it; the firing chains of neurons through empty steps up to
+  ``k`` are then fixed too (they change only where input arrives);
+- its time ``t_start + (k + 1) * dt`` is at most ``t``, so the clip to the stream's end,
+  which is at least ``t``, cannot move it.
+
+The decided steps are a prefix of the steps; a chunk returns the spikes of the steps it newly
+decides, in the batch order (by step, then neuron). The state holds the stream's ``t_start``,
+the neurons after the decided steps (:class:`~evdown_torch.transforms.functional.lif.LIFState`:
+each region's membranes at its last input, and that step, so the kernel continues through a
+gap exactly as it does in one call) and the input of the undecided steps. The end of the stream
+processes that input and the chains up to the last step, with times clipped to ``t_end``. The
+kernel is the batch one (:func:`~evdown_torch.transforms.functional.lif.lif_spikes`), so the
+cost still follows the events: a call touches the regions with input and the neurons that are
+firing through empty steps.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from evdown_torch._tensors import sort_by_time
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional.lif import (
+    LIFState,
+    ResetMechanism,
+    initial_state,
+    lif_spikes,
+    spikes_to_events,
+)
+from evdown_torch.transforms.functional.lif_steps import step_end_time, step_indices
+
+__all__ = ["LIFStreamState", "lif_pooling_stream", "lif_pooling_stream_end"]
+
+
+class LIFStreamState(NamedTuple):
+    """State of a LIF pooling stream between chunks.
+
+    Attributes:
+        t_start: ``()`` tensor, the stream's first timestamp (steps count from it).
+        last_t: ``()`` tensor, the latest timestamp seen.
+        neurons: the neurons after the decided steps.
+        decided: the last step whose spikes were returned (-1: none yet).
+        pending: the events of the steps after ``decided``, time-sorted.
+    """
+
+    t_start: Tensor
+    last_t: Tensor
+    neurons: LIFState
+    decided: int
+    pending: Events
+
+
+def _spike_time_within(step: int, *, t_start: Tensor, last_t: Tensor, dt: float) -> bool:
+    """Whether ``t_start + (step + 1) * dt``, as the kernel computes it, is at most ``last_t``.
+
+    The same arithmetic as :func:`~evdown_torch.transforms.functional.lif.step_end_time`
+    before its clip (Python ints and IEEE doubles, as torch's int64 and float64).
+    """
+    if t_start.is_floating_point():
+        return float(t_start) + float(step + 1) * dt <= float(last_t)
+    span = int(last_t) - int(t_start)
+    if dt.is_integer():
+        return (step + 1) * int(dt) <= span
+    return math.floor(float(step + 1) * dt + 0.5) <= span
+
+
+def _last_decided_step(
+    last_step: int, decided: int, *, t_start: Tensor, last_t: Tensor, dt: float
+) -> int:
+    """The last step a stream that has reached ``last_t`` (in step ``last_step``) decides.
+
+    Steps before ``last_step`` are closed; of those, the ones whose time is at most ``last_t``
+    (all of them but for rounding, so the search below rarely runs) are decided.
+    """
+    low, high = decided, last_step - 1  # low is decided; find the last decided in (low, high]
+    if high <= low or _spike_time_within(high, t_start=t_start, last_t=last_t, dt=dt):
+        return max(high, low)
+    high -= 1
+    while low < high:  # bisection on a monotone predicate: O(log) tests
+        middle = (low + high + 1) // 2
+        if _spike_time_within(middle, t_start=t_start, last_t=last_t, dt=dt):
+            low = middle
+        else:
+            high = middle - 1
+    return low
+
+
+def lif_pooling_stream(
+    events: Events,
+    state: LIFStreamState | None,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    dt: float,
+    beta: float,
+    threshold: float,
+    weight: float,
+    mutual_inhibition: float = 0.0,
+    reset_mechanism: ResetMechanism = "subtract",
+    max_output_events: int | None = None,
+) -> tuple[Events, LIFStreamState | None]:
+    """One chunk of a LIF pooling stream: the spikes it decides, and the new state.
+
+    Args:
+        events: the chunk, no earlier than the previous chunks' last event.
+        state: the state after the previous chunks, ``None`` for the first.
+        sensor_size, factor, dt, beta, threshold, weight, mutual_inhibition, reset_mechanism:
+            as :func:`~evdown_torch.transforms.functional.lif.lif_pooling`.
+        max_output_events: refuse a chunk whose output would exceed this (``None``: no bound).
+
+    Returns:
+        ``(output, state)``: the events of the newly decided steps (sorted by ``t``; the
+        concatenation over the chunks and :func:`lif_pooling_stream_end` is the batch output),
+        and the new state (``state`` itself for an empty chunk).
+
+    Raises:
+        ValueError: when the stream's steps cannot be indexed in int64, or the output exceeds
+            ``max_output_events``; ``state`` is not modified.
+
+    Example:
+        >>> ev = Events.from_columns([0, 1, 0, 1, 3], [0, 0, 1, 1, 0], [0, 1, 2, 3, 9],
+        ...                          [1, 1, 1, 1, 0])
+        >>> settings = dict(sensor_size=(4, 2, 2), factor=(2, 2), dt=2, beta=1.0,
+        ...                 threshold=1.0, weight=0.3)
+        >>> out, state = lif_pooling_stream(ev.select(torch.arange(4)), None, **settings)
+        >>> out.t.tolist()  # step 1 ([2, 4)) is still open at t = 3
+        []
+        >>> out, state = lif_pooling_stream(ev.select(torch.tensor([4])), state, **settings)
+        >>> out.t.tolist(), state.decided
+        ([4], 3)
+    """
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device), state
+    events = sort_by_time(events)
+    if state is None:
+        wo, ho, _ = output_size(sensor_size, factor)
+        state = LIFStreamState(
+            events.t[0], events.t[-1], initial_state(wo * ho, events.device), -1,
+            Events.empty(events.t.dtype, events.device),
+        )
+    pending = Events(*(torch.cat(pair) for pair in zip(state.pending, events, strict=True)))
+    steps, last_step, end_dt = step_indices(pending.t, float(dt), t_start=state.t_start)
+    last_t = pending.t[-1]
+    decided = _last_decided_step(
+        last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=float(dt)
+    )
+    if decided == state.decided:
+        return Events.empty(events.t.dtype, events.device), state._replace(
+            last_t=last_t, pending=pending
+        )
+    n = int(torch.searchsorted(steps, decided, right=True))  # the events of decided steps
+    spike_step, neuron, neurons = lif_spikes(
+        pending.select(torch.arange(n, device=events.device)), steps[:n],
+        state=state.neurons, last_step=decided, from_step=state.decided + 1,
+        sensor_size=sensor_size, factor=factor, beta=beta, threshold=threshold, weight=weight,
+        mutual_inhibition=mutual_inhibition, reset_mechanism=reset_mechanism,
+        max_output_events=max_output_events,
+    )
+    t = step_end_time(spike_step, t_start=state.t_start, t_end=last_t, dt=end_dt)
+    out = spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
+    rest = pending.select(torch.arange(n, pending.num_events, device=events.device))
+    return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest)
+
+
+def lif_pooling_stream_end(
+    state: LIFStreamState | None,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    dt: float,
+    beta: float,
+    threshold: float,
+    weight: float,
+    mutual_inhibition: float = 0.0,
+    reset_mechanism: ResetMechanism = "subtract",
+    max_output_events: int | None = None,
+) -> Events | None:
+    """The end of a LIF pooling stream: the spikes of the steps no chunk decided.
+
+    The pending input is processed and the neurons' firing chains run up to the step of
+    ``t_end`` (the stream's last timestamp); times are clipped to ``t_end``, as in the batch.
+
+    Args:
+        state: the state after the last chunk (``None``: no event, returns ``None``).
+        sensor_size, factor, dt, beta, threshold, weight, mutual_inhibition, reset_mechanism,
+            max_output_events: as :func:`lif_pooling_stream`.
+
+    Returns:
+        The remaining events, sorted by ``t``, or ``None`` when no event was streamed.
+    """
+    if state is None:
+        return None
+    pending = state.pending
+    times = torch.cat([pending.t, state.last_t.reshape(1)])
+    steps, last_step, end_dt = step_indices(times, float(dt), t_start=state.t_start)
+    spike_step, neuron, _ = lif_spikes(
+        pending, steps[:-1], state=state.neurons, last_step=last_step,
+        from_step=state.decided + 1, sensor_size=sensor_size, factor=factor, beta=beta,
+        threshold=threshold, weight=weight, mutual_inhibition=mutual_inhibition,
+        reset_mechanism=reset_mechanism, max_output_events=max_output_events,
+    )
+    t = step_end_time(spike_step, t_start=state.t_start, t_end=state.last_t, dt=end_dt)
+    return spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
