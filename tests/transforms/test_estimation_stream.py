@@ -170,3 +170,20 @@ def test_cubic_front_slope_is_decided_within_the_delay():
     head = session(ev[:3])
     batch = transform(ev)
     assert torch.equal(head, batch[batch[:, 2] < 100 - 2 * 10])
+
+
+@pytest.mark.parametrize("cls", [LinearEstimation, CubicEstimation])
+def test_a_refused_chunk_leaves_the_state_as_it_was(cls, rng):
+    sensor = (9, 7, 2)
+    arr = random_stream(rng, 300, sensor, t_max=3000)
+    transform = cls(sensor, factor=2, threshold=0.3, max_delay=40)
+    session = transform.session()
+    head = session(arr[:150])
+    knots_before = session.state.knots.num_events
+    late = arr[150:].copy()
+    late["t"][-1] = arr["t"][149] - 1
+    with pytest.raises(ValueError, match="follow each other in time"):
+        session(late)
+    assert session.state.knots.num_events == knots_before
+    out = np.concatenate([head, session(arr[150:]), session.flush()])
+    np.testing.assert_array_equal(out, transform(arr))
