@@ -261,8 +261,7 @@ def realtime_benchmark(
         methods: labels of :data:`REALTIME_METHODS` (default: all).
         chunks_us: chunk durations (microseconds).
         rates: replayed rates in events per second; ``None`` is the recording's own.
-        max_chunks: timed chunks per replay at most (a fifth of it for the estimators,
-            whose sessions recompute the stream so far).
+        max_chunks: timed chunks per replay at most.
 
     Returns:
         One :class:`ReplayResult` per method, rate and chunk size.
@@ -287,10 +286,8 @@ def realtime_benchmark(
                         f"{type(session).__name__} is not the common session (no flush)")))
                     continue
                 lagging = "max_delay" in REALTIME_METHODS[label][1]
-                # The estimators' sessions recompute the stream so far: fewer chunks.
-                cap = max(1, max_chunks // 5) if lagging else max_chunks
                 results.append(replay(transform, stream, chunk_us=chunk_us, label=label,
-                                      rate=actual, max_chunks=cap, lagging=lagging))
+                                      rate=actual, max_chunks=max_chunks, lagging=lagging))
     return results
 
 

@@ -3,29 +3,21 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
-
-import torch
+from typing import ClassVar
 
 from evdown_torch.checks import check_positive_float
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Session, ThresholdDownscaler
 from evdown_torch.transforms._batch import Stacked, run_stacked
-from evdown_torch.transforms.functional.cubic import cubic_estimation
-from evdown_torch.transforms.functional.linear import linear_estimation
-
-
-class EstimationState(NamedTuple):
-    """State of a bounded-delay estimation stream between chunks.
-
-    Attributes:
-        history: every input event of the stream so far, in time order.
-        horizon: output events earlier than this time have been returned already.
-    """
-
-    history: Events
-    horizon: int | float
+from evdown_torch.transforms.functional._knots import RegionSolver
+from evdown_torch.transforms.functional.cubic import cubic_estimation, cubic_regions
+from evdown_torch.transforms.functional.estimation_stream import (
+    WindowState,
+    window_end,
+    window_step,
+)
+from evdown_torch.transforms.functional.linear import linear_estimation, linear_regions
 
 
 @dataclass(frozen=True)
@@ -40,7 +32,9 @@ class _Estimation(ThresholdDownscaler):
     max_delay: float | None = None
 
     #: Output up to ``tau - lag * D`` is decided by input up to ``tau``.
-    lag = 1
+    lag: ClassVar[int] = 1
+    #: The kernel's solver of one chunk of regions (shared with the batch kernel).
+    solver: ClassVar[RegionSolver] = staticmethod(linear_regions)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -62,38 +56,29 @@ class _Estimation(ThresholdDownscaler):
             )
         return Session(self)
 
-    def stream(
-        self, events: Events, state: EstimationState | None
-    ) -> tuple[Events, EstimationState]:
+    def stream(self, events: Events, state: WindowState | None) -> tuple[Events, WindowState]:
         """One chunk of a stream: returns the output events earlier than ``tau - lag * D``.
 
         ``tau`` is the chunk's last timestamp and ``lag`` 1 (linear) or 2 (cubic): with the
         bounded delay, output up to there no longer depends on later input
         (docs/semantics.md, "Bounded delay"), so every output event at ``t`` comes out with
-        the first chunk that reaches past ``t + lag * D``. The session recomputes the stream
-        so far and keeps its input: exact, but its cost and memory grow with the stream.
+        the first chunk that reaches past ``t + lag * D``. The state keeps only what later
+        output needs (:class:`~evdown_torch.transforms.functional.estimation_stream.WindowState`:
+        each pixel's last knots, the undecided input, each region's reference index), so a
+        chunk's cost follows its events and the sensor's active pixels, not the stream so far.
         """
-        if state is None:
-            history, horizon = events, None
-        else:
-            history = Events(*(torch.cat(pair) for pair in zip(state.history, events)))
-            horizon = state.horizon
-        out = self.kernel(history)
-        tau = events.t[-1].item()
-        delay = self.max_delay if events.t.is_floating_point() else int(self.max_delay)
-        new_horizon = tau - self.lag * delay  # type: ignore[operator]
-        keep = out.t < new_horizon
-        if horizon is not None:
-            keep &= out.t >= horizon
-            new_horizon = max(new_horizon, horizon)
-        return out.select(keep.nonzero().squeeze(1)), EstimationState(history, new_horizon)
+        return window_step(
+            events, state, sensor_size=self.sensor_size, factor=self.factor_xy,
+            threshold=self.threshold, max_delay=self.max_delay,  # type: ignore[arg-type]
+            lag=self.lag, solve_regions=self.solver,
+        )
 
-    def stream_end(self, state: EstimationState | None) -> Events | None:
+    def stream_end(self, state: WindowState | None) -> Events | None:
         """The output from the last horizon to the end of the stream."""
         if state is None:
             return None
-        out = self.kernel(state.history)
-        return out.select((out.t >= state.horizon).nonzero().squeeze(1))
+        return window_end(state, sensor_size=self.sensor_size, factor=self.factor_xy,
+                          threshold=self.threshold, solve_regions=self.solver)
 
 
 @dataclass(frozen=True)
@@ -182,7 +167,8 @@ class CubicEstimation(_Estimation):
         [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 6, 1], [0, 0, 20, 0]]
     """
 
-    lag = 2
+    lag: ClassVar[int] = 2
+    solver: ClassVar[RegionSolver] = staticmethod(cubic_regions)
 
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.cubic.cubic_estimation`."""

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor
@@ -54,6 +54,9 @@ from evdown_torch.checks import check_time_span, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import capped_threshold, threshold_fraction
 
+if TYPE_CHECKING:
+    from evdown_torch.transforms.functional.estimation_stream import Resume
+
 __all__ = [
     "HALF_TOLERANCE",
     "Knots",
@@ -61,6 +64,7 @@ __all__ = [
     "RegionSolver",
     "emit",
     "estimate",
+    "estimate_window",
     "hold_knots",
     "level_changes",
     "piece_time",
@@ -118,7 +122,8 @@ class RegionChunk(NamedTuple):
         local: ``(n,)`` int64 pixel index inside the region, ``(y % fy) * fx + x % fx``.
         t: ``(n,)`` timestamps, ascending inside each region.
         step: ``(n,)`` int8 level change of the event: +1 (ON), -1 (OFF) or 0 (a held knot
-            of :func:`hold_knots`).
+            of :func:`hold_knots`); int64 in a streaming window, whose first knot of a pixel
+            carries the pixel's whole level.
     """
 
     region: Tensor
@@ -146,7 +151,8 @@ def region_chunks(
         factor: ``(fx, fy)``.
         out_width: ``Wo``, the output sensor width.
         size: target number of events per chunk (a chunk holds at least one whole region).
-        step: ``(N,)`` int8 level change of each event (default: +1 for ON, -1 for OFF).
+        step: ``(N,)`` int8 or int64 level change of each event (default: +1 for ON, -1 for
+            OFF).
 
     Yields:
         :class:`RegionChunk` s covering the stream, regions ascending.
@@ -367,8 +373,9 @@ def hold_knots(
     Args:
         events: ``N`` events in stable time order.
         max_delay: ``D`` > 0, in the stream's time unit (a whole number for int64 ``t``).
-        t_start: ``()`` first timestamp of the whole stream, or ``(N,)`` that of each event's
-            own stream (a batch of recordings, see :func:`estimate`).
+        t_start: ``()`` first timestamp of the whole stream, or ``(N,)`` for each event that
+            of its own stream (a batch of recordings, see :func:`estimate`) or the time of its
+            pixel's last knot before these events (a streaming session's next chunk).
 
     Returns:
         ``(events, step)``: ``N + M`` events in stable time order (a held knot before the
@@ -412,7 +419,7 @@ def hold_knots(
     return merged.select(order), take(merged_step, order)
 
 
-RegionSolver = Callable[..., tuple[Tensor, Tensor, Tensor]]
+RegionSolver = Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]]
 
 
 def estimate(
@@ -425,16 +432,17 @@ def estimate(
     bounds: tuple[Tensor, Tensor] | None = None,
     max_delay: float | None = None,
 ) -> Events:
-    """The driver the estimation kernels share: knots of each chunk of regions, then output.
+    """The batch entry of the estimation kernels: the whole stream, then :func:`estimate_window`.
 
     Args:
         events: ``N`` input events (any order; sorted stably by ``t`` here).
         sensor_size: input ``(W, H, P)``.
         factor: ``(fx, fy)``.
         threshold: contrast threshold, > 0.
-        solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=, emitted=)``
-            returns the crossings ``(region, t, on)`` of the regions of one chunk, in region
-            order (``emitted``: events of the chunks before, for the output limit).
+        solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=, emitted=,
+            resume=)`` returns the crossings ``(region, t, on, breakpoint)`` of the regions of
+            one chunk, in region order (``emitted``: events of the chunks before, for the
+            output limit; ``breakpoint``: the one ending each crossing's piece).
         bounds: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
             ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
             :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps
@@ -451,33 +459,86 @@ def estimate(
             :func:`~evdown_torch.checks.max_output_events`.
     """
     events = sort_by_time(events)
-    n = events.num_events
-    if n == 0:
+    if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device)
     t_start, t_end = events.t[0], events.t[-1]
     if bounds is not None:
         t_start, t_end = bounds
-    if not events.t.is_floating_point():
-        check_time_span(0, int((t_end - t_start).max()))
-    # Every curve stays within its knots' levels, at most n in size (PCHIP is shape-preserving).
-    fraction = capped_threshold(threshold_fraction(threshold), n)
-    out_w, out_h, _ = output_size(sensor_size, factor)
     step = None
     if max_delay is not None:
         start = t_start
         if bounds is not None:  # each event's own recording's t_start
+            out_h = output_size(sensor_size, factor)[1]
             start = take(t_start, divide(events.y, out_h * factor[1]))
         events, step = hold_knots(events, max_delay=max_delay, t_start=start)
+    out, _ = estimate_window(
+        events, step=step, t_start=t_start, t_end=t_end, sensor_size=sensor_size,
+        factor=factor, threshold=threshold, solve_regions=solve_regions,
+    )
+    return out
+
+
+def estimate_window(
+    events: Events,
+    *,
+    step: Tensor | None,
+    t_start: Tensor,
+    t_end: Tensor,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: float,
+    solve_regions: RegionSolver,
+    resume: Resume | None = None,
+    next_cut: Tensor | None = None,
+) -> tuple[Events, Tensor | None]:
+    """The driver the estimation kernels share: knots of each chunk of regions, then output.
+
+    Batch (:func:`estimate`): the whole stream, or a batch of stacked recordings. Streaming
+    (a bounded-delay session): a window of one stream, the knot events its pixels still
+    need, resumed at ``resume``.
+
+    Args:
+        events: ``N >= 1`` knot events in stable time order, within ``[t_start, t_end]``.
+        step: ``(N,)`` int8 or int64 level change of each event (``None``: +1 ON, -1 OFF).
+        t_start: ``()`` first timestamp of the stream (its front knots), or ``(B,)`` those of
+            a batch of stacked recordings (see :func:`estimate`).
+        t_end: ``()`` last timestamp of the stream so far (the back knots), or ``(B,)``.
+        sensor_size, factor, threshold, solve_regions: as for :func:`estimate`.
+        resume: where a window picks up
+            (:class:`~evdown_torch.transforms.functional.estimation_stream.Resume`), or
+            ``None`` (from ``t_start``).
+        next_cut: with ``resume``, the next window's cut: the returned ``q`` is each region's
+            reference index after its last breakpoint earlier than it.
+
+    Returns:
+        ``(events, q)``: output events sorted by ``t`` (``t`` of the input's dtype; with
+        ``resume``, only crossings after its cut), and with ``resume`` the ``(Wo * Ho,)``
+        int64 ``q`` at ``next_cut`` (``None`` without).
+    """
+    n = events.num_events
+    if not events.t.is_floating_point():
+        check_time_span(0, int((t_end - t_start).max()))
+    # Every curve stays within its knots' levels, at most sum |step| in size (PCHIP is
+    # shape-preserving; a window's first knot of a pixel carries its whole level).
+    bound = n if step is None else int(step.abs().sum())
+    fraction = capped_threshold(threshold_fraction(threshold), bound)
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    q = None if resume is None else resume.q.clone()
     outputs = []
     emitted = 0
     for chunk in region_chunks(events, factor=factor, out_width=out_w, step=step):
         start, end = t_start, t_end
-        if bounds is not None:  # each event's own recording's bounds
+        if t_start.ndim:  # each event's own recording's bounds
             recording = divide(chunk.region, out_w * out_h)
             start, end = take(t_start, recording), take(t_end, recording)
         knots = pixel_knots(chunk, factor=factor, t_start=start, t_end=end)
-        outputs.append(solve_regions(knots, sensor_size=sensor_size, factor=factor,
-                                     fraction=fraction, emitted=emitted))
-        emitted += outputs[-1][0].shape[0]
+        region, t, on, bp = solve_regions(knots, sensor_size=sensor_size, factor=factor,
+                                          fraction=fraction, emitted=emitted, resume=resume)
+        outputs.append((region, t, on))
+        emitted += region.shape[0]
+        if q is not None and next_cut is not None:
+            decided = where_true(take(knots.bp_t, bp) < next_cut)
+            sign = take(on, decided).to(torch.int64) * 2 - 1
+            q.index_add_(0, take(region, decided), sign)
     region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
-    return emit(region, t, on, out_w)
+    return emit(region, t, on, out_w), q

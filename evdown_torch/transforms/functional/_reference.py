@@ -262,9 +262,10 @@ def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Ten
 
 
 def step_crossings(
-    floor_u: Tensor, on_level: Tensor, first: Tensor, *, emitted: int = 0
+    floor_u: Tensor, on_level: Tensor, first: Tensor, *, emitted: int = 0,
+    q_start: Tensor | None = None,
 ) -> Crossings:
-    """The reference rule over monotone steps grouped by region, from ``q = 0``.
+    """The reference rule over monotone steps grouped by region, from ``q = q_start``.
 
     Applies :func:`~evdown_torch.transforms.functional._reference.reference_index` and
     :func:`~evdown_torch.transforms.functional._reference.crossings` to the steps that can
@@ -276,6 +277,8 @@ def step_crossings(
         on_level: ``(S,)`` bool, the step ends on a level.
         first: ``(S,)`` bool, the step is its region's first.
         emitted: events the call already emitted (see :func:`crossings`).
+        q_start: ``(S,)`` int64 ``q`` of each step's region before its first step (read
+            where ``first``; a resumed stream), or ``None`` for 0 (a fresh one).
 
     Returns:
         The crossings, with ``step`` indexing the given steps.
@@ -284,10 +287,11 @@ def step_crossings(
     moved[1:] |= on_level[:-1]
     kept = where_true(moved)
     floor_k, first_k = take(floor_u, kept), take(first, kept)
-    q = reference_index(floor_k, take(on_level, kept), first_k, torch.zeros_like(floor_k))
-    q_before = torch.zeros_like(q)
+    q0 = torch.zeros_like(floor_k) if q_start is None else take(q_start, kept)
+    q = reference_index(floor_k, take(on_level, kept), first_k, q0)
+    q_before = torch.empty_like(q)
     q_before[1:] = q[:-1]
-    q_before.masked_fill_(first_k, 0)
+    q_before = torch.where(first_k, q0, q_before)
     cross = crossings(q_before, q, emitted=emitted)
     return Crossings(take(kept, cross.step), cross.level, cross.on)
 

@@ -17,8 +17,9 @@ from evdown_torch.transforms.functional._knots import (
     region_pixels,
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
+from evdown_torch.transforms.functional.estimation_stream import Resume, resume_steps
 
-__all__ = ["cubic_estimation", "pchip_slopes"]
+__all__ = ["cubic_estimation", "cubic_regions", "pchip_slopes"]
 
 #: Pixel-segment evaluations per chunk: bounds the kernel's memory and keeps its temporary
 #: tensors small enough to be recycled by the allocator instead of faulted in afresh.
@@ -355,22 +356,25 @@ def cubic_estimation(
     """
     return estimate(
         events, sensor_size=sensor_size, factor=factor, threshold=threshold,
-        solve_regions=_cubic_regions, bounds=bounds, max_delay=max_delay,
+        solve_regions=cubic_regions, bounds=bounds, max_delay=max_delay,
     )
 
 
-def _cubic_regions(
+def cubic_regions(
     knots: Knots,
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     fraction: Fraction,
     emitted: int = 0,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Crossings of the regions of one chunk: ``(region, t, on)`` in region order.
+    resume: Resume | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Crossings of the regions of one chunk: ``(region, t, on, breakpoint)`` in region order.
 
     ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``;
-    ``emitted`` counts the events of the chunks before (for the output limit).
+    ``emitted`` counts the events of the chunks before (for the output limit); ``resume``
+    starts a streaming window (:func:`~evdown_torch.transforms.functional._knots.resume_steps`).
+    ``breakpoint`` is the one that ends each crossing's piece.
     """
     device = knots.t.device
     slope, width, rise = pchip_slopes(knots)
@@ -412,7 +416,8 @@ def _cubic_regions(
     step_pixels = pixels if isinstance(pixels, int) else take(pixels, step_bp)
     floor_u, on_level = level_index(step_whole, step_part, step_pixels, fraction)
     step_first = take(bp_first, step_bp) & is_end
-    cross = step_crossings(floor_u, on_level, step_first, emitted=emitted)
+    floor_u, on_level, q_start = resume_steps(knots, step_bp, floor_u, on_level, resume)
+    cross = step_crossings(floor_u, on_level, step_first, emitted=emitted, q_start=q_start)
     del step_first, is_end, step_whole, step_part
 
     # Solve each crossing on its monotone step (the step before it ends where it starts), in
@@ -440,4 +445,5 @@ def _cubic_regions(
                        cross.on[lo:lo + CHUNK_EVENTS])
         for lo in range(0, max(k, 1), CHUNK_EVENTS)
     ])
-    return knots.bp_region(take(step_bp, cross.step)), t, cross.on
+    bp = take(step_bp, cross.step)
+    return knots.bp_region(bp), t, cross.on, bp

@@ -18,8 +18,9 @@ from evdown_torch.transforms.functional._knots import (
     region_pixels,
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
+from evdown_torch.transforms.functional.estimation_stream import Resume, resume_steps
 
-__all__ = ["linear_estimation"]
+__all__ = ["linear_estimation", "linear_regions"]
 
 
 def linear_estimation(
@@ -70,22 +71,25 @@ def linear_estimation(
     """
     return estimate(
         events, sensor_size=sensor_size, factor=factor, threshold=threshold,
-        solve_regions=_linear_regions, bounds=bounds, max_delay=max_delay,
+        solve_regions=linear_regions, bounds=bounds, max_delay=max_delay,
     )
 
 
-def _linear_regions(
+def linear_regions(
     knots: Knots,
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     fraction: Fraction,
     emitted: int = 0,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Crossings of the regions of one chunk: ``(region, t, on)`` in region order.
+    resume: Resume | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Crossings of the regions of one chunk: ``(region, t, on, breakpoint)`` in region order.
 
     ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``;
-    ``emitted`` counts the events of the chunks before (for the output limit).
+    ``emitted`` counts the events of the chunks before (for the output limit); ``resume``
+    starts a streaming window (:func:`~evdown_torch.transforms.functional._knots.resume_steps`).
+    ``breakpoint`` is the one that ends each crossing's piece.
     """
     device = knots.t.device
 
@@ -150,7 +154,10 @@ def _linear_regions(
     # Reference rule on the breakpoints (each piece between breakpoints is monotone).
     pixels = region_pixels(knots, sensor_size, factor)
     floor_u, on_level = level_index(whole, part, pixels, fraction)
-    cross = step_crossings(floor_u, on_level, bp_first, emitted=emitted)
+    floor_u, on_level, q_start = resume_steps(
+        knots, torch.arange(floor_u.shape[0], device=device), floor_u, on_level, resume
+    )
+    cross = step_crossings(floor_u, on_level, bp_first, emitted=emitted, q_start=q_start)
 
     # Crossing times: linear interpolation on the piece that ends at the crossing's step.
     end = cross.step
@@ -166,4 +173,4 @@ def _linear_regions(
     at_end = jump | (take(on_level, end) & (cross.level == take(floor_u, end)))
     ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
     t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, end), ratio)
-    return knots.bp_region(end), t, cross.on
+    return knots.bp_region(end), t, cross.on, end

@@ -1,0 +1,293 @@
+"""Bounded-state streaming of the linear and cubic estimators (a finite ``max_delay``).
+
+docs/semantics.md, "Bounded delay": with a delay ``D``, output earlier than
+``tau - lag * D`` (``lag`` 1 for the linear method, 2 for the cubic one) is decided by the
+input up to ``tau``. A session step therefore solves a *window* of the stream, with the one
+driver of the batch kernels
+(:func:`~evdown_torch.transforms.functional._knots.estimate_window`), and keeps only what the
+future needs (:class:`WindowState`):
+
+* the stream's ``t_start`` (the front knots) and last timestamp;
+* the *horizon* ``F``: every output event earlier than it has been returned;
+* the knot events the curves after ``F`` still need: of each pixel that has fired, its last
+  knot earlier than ``F`` (the last two for the cubic method: PCHIP slopes look one knot
+  back), with its whole level as its step, and all its knots since (held knots included);
+* each output region's reference index after its last breakpoint earlier than ``F``;
+* each pixel's last knot time (where the next chunk's held knots start from).
+
+Its size follows the sensor's active pixels and the last ``lag * D`` of input, not the
+stream's length. Only the regions with a knot at or after ``F`` are solved: the others hold
+their level until their next event, whose held knot comes after the next horizon.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from evdown_torch._tensors import (
+    changes,
+    differences,
+    ends,
+    region_of,
+    run_index,
+    stable_sort_small,
+    take,
+    where_true,
+)
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional._knots import (
+    Knots,
+    RegionSolver,
+    estimate_window,
+    hold_knots,
+)
+
+__all__ = ["Resume", "WindowState", "resume_steps", "window_end", "window_step"]
+
+
+class Resume(NamedTuple):
+    """Where a streaming window of the stream picks up (a bounded-delay session's state).
+
+    The window holds, for each of its pixels, the knots it had before ``cut`` that the curves
+    after ``cut`` still need (the last one, or the last two for PCHIP slopes) and every knot
+    since. Each region resumes at its last breakpoint earlier than ``cut`` with the reference
+    index it had there; the pieces before are not solved (the window's curves are not the
+    stream's there).
+
+    Attributes:
+        cut: ``()`` time, or ``None`` for a window that starts at ``t_start`` (from ``q = 0``).
+        q: ``(Wo * Ho,)`` int64 reference index of every output region after its last
+            breakpoint earlier than ``cut`` (0 for a region without one).
+    """
+
+    cut: Tensor | None
+    q: Tensor
+
+
+def resume_steps(
+    knots: Knots, step_bp: Tensor, floor_u: Tensor, on_level: Tensor, resume: Resume | None
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The steps of a window as the reference rule must see them, and each step's ``q_start``.
+
+    Steps whose piece ends at a breakpoint earlier than ``resume.cut`` take the value of
+    their region's last such step (the cut), so that they cross nothing: the region starts
+    there from ``resume.q``, which is consistent with that value.
+
+    Args:
+        knots: the window's :class:`Knots` (one chunk of regions).
+        step_bp: ``(S,)`` int64 breakpoint at the end of each step's piece, ascending.
+        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
+        on_level: ``(S,)`` bool, the step ends on a level.
+        resume: where the window picks up, or ``None`` (the whole stream from ``q = 0``).
+
+    Returns:
+        ``(floor_u, on_level, q_start)`` for
+        :func:`~evdown_torch.transforms.functional._reference.step_crossings`.
+    """
+    if resume is None:
+        return floor_u, on_level, None
+    bp_rank = run_index(knots.bp_first)
+    step_rank = take(bp_rank, step_bp)
+    q_start = take(take(resume.q, knots.regions), step_rank)
+    if resume.cut is None:
+        return floor_u, on_level, q_start
+    done = knots.bp_t < resume.cut  # a prefix of each region's breakpoints
+    n_done = torch.zeros_like(knots.regions).index_add_(0, bp_rank, done.to(torch.int64))
+    cut_bp = knots.region_first_bp + n_done - 1
+    cut_step = torch.searchsorted(step_bp, cut_bp, right=True) - 1
+    at = where_true(take(done, step_bp))
+    source = take(cut_step, take(step_rank, at))
+    floor_u, on_level = floor_u.clone(), on_level.clone()
+    floor_u[at] = take(floor_u, source)
+    on_level[at] = take(on_level, source)
+    return floor_u, on_level, q_start
+
+
+class WindowState(NamedTuple):
+    """What a bounded-delay estimation stream keeps between chunks.
+
+    Attributes:
+        t_start: ``()`` first timestamp of the stream (the events' ``t`` dtype).
+        t_last: ``()`` last timestamp so far.
+        horizon: output events earlier than this time have been returned (a Python number).
+        knots: the knot events the future needs, one per (pixel, time), in no particular
+            order (see the module docstring).
+        step: ``(K,)`` int64 level change of each knot event (a pixel's first carries its
+            whole level).
+        pixel_t: ``(W * H,)`` time of each pixel's last knot (``t_start`` before its first).
+        q: ``(Wo * Ho,)`` int64 reference index of each output region after its last
+            breakpoint earlier than ``horizon``.
+    """
+
+    t_start: Tensor
+    t_last: Tensor
+    horizon: int | float
+    knots: Events
+    step: Tensor
+    pixel_t: Tensor
+    q: Tensor
+
+
+def _cat(a: Events, b: Events) -> Events:
+    return Events(*(torch.cat(pair) for pair in zip(a, b, strict=True)))
+
+
+def _regions(events: Events, factor: tuple[int, int], out_width: int) -> Tensor:
+    rx, ry = region_of(events, factor)
+    return ry * out_width + rx
+
+
+def _trim(
+    events: Events, step: Tensor, *, before: Tensor, keep: int, width: int
+) -> tuple[Events, Tensor]:
+    """One event per knot, dropping each pixel's knots earlier than ``before`` but ``keep``.
+
+    The first knot kept of a pixel carries the pixel's whole level as its step.
+    """
+    pixel = events.y * width + events.x
+    pixel, order = stable_sort_small(pixel)  # pixel order, time order inside a pixel
+    t, step = take(events.t, order), take(step, order)
+    new_pixel = changes(pixel)
+    level = torch.cumsum(step, 0)
+    level -= take(take(level - step, where_true(new_pixel)), run_index(new_pixel))
+    at = where_true(ends(new_pixel | changes(t)))  # last event of each (pixel, t): a knot
+    pixel, t, level = take(pixel, at), take(t, at), take(level, at)
+    first = changes(pixel)
+    rank = run_index(first)
+    position = torch.arange(pixel.shape[0], device=pixel.device)
+    position -= take(where_true(first), rank)
+    done = t < before  # a prefix of each pixel's knots
+    n_done = torch.zeros(int(rank[-1]) + 1, dtype=torch.int64, device=pixel.device)
+    n_done.index_add_(0, rank, done.to(torch.int64))
+    kept = where_true(~done | (position >= take(n_done, rank) - keep))
+    pixel, t, level = take(pixel, kept), take(t, kept), take(level, kept)
+    step = differences(level, where_true(changes(pixel)))
+    y = torch.div(pixel, width, rounding_mode="floor")
+    return Events(pixel - y * width, y, t, step > 0), step
+
+
+def window_step(
+    events: Events,
+    state: WindowState | None,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: float,
+    max_delay: float,
+    lag: int,
+    solve_regions: RegionSolver,
+) -> tuple[Events, WindowState]:
+    """One chunk of a bounded-delay stream: the output events earlier than ``tau - lag * D``
+    not returned yet (``tau``: the chunk's last timestamp), and the new state.
+
+    Args:
+        events: ``N >= 1`` events in stable time order, none earlier than the previous
+            chunk's last.
+        state: the state after the previous chunk, ``None`` for the first.
+        sensor_size, factor, threshold: the transform's settings.
+        max_delay: ``D`` (a whole number for int64 ``t``).
+        lag: 1 (linear) or 2 (cubic).
+        solve_regions: the method's region solver (see
+            :func:`~evdown_torch.transforms.functional._knots.estimate`).
+
+    Returns:
+        ``(output, state)``: output sorted by ``t``, ``t`` of the input's dtype.
+
+    Example:
+        Two pixels of one region (threshold 0.25); pixel (1, 0) holds 0 until ``10 - D``:
+
+        >>> from evdown_torch.transforms.functional.linear import linear_regions
+        >>> settings = dict(sensor_size=(2, 1, 2), factor=(2, 1), threshold=0.25,
+        ...                 solve_regions=linear_regions)
+        >>> out, state = window_step(Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1]), None,
+        ...                          max_delay=3, lag=1, **settings)
+        >>> out.t.tolist(), state.horizon  # decided: before 10 - 3
+        ([0, 0], 7)
+        >>> window_end(state, **settings).t.tolist()  # the ramp on [7, 10]
+        [9, 10]
+    """
+    device, t_dtype = events.t.device, events.t.dtype
+    width, height, _ = sensor_size
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    if state is None:
+        t_start = events.t[0]
+        state = WindowState(
+            t_start, t_start, None, Events.empty(t_dtype, device),  # type: ignore[arg-type]
+            torch.zeros(0, dtype=torch.int64, device=device),
+            torch.full((width * height,), t_start.item(), dtype=t_dtype, device=device),
+            torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
+        )
+    pixel = events.y * width + events.x
+    new, new_step = hold_knots(events, max_delay=max_delay, t_start=take(state.pixel_t, pixel))
+    pixel_t = state.pixel_t.clone()
+    pixel_t.scatter_reduce_(0, pixel, events.t, "amax")
+    tau = events.t[-1]
+    delay = max_delay if events.t.is_floating_point() else int(max_delay)
+    horizon = tau.item() - lag * delay
+    if state.horizon is not None:
+        horizon = max(horizon, state.horizon)
+    cut = None if state.horizon is None else torch.tensor(state.horizon, dtype=t_dtype,
+                                                          device=device)
+
+    # The window: every knot event of the regions with something undecided.
+    touched = torch.zeros(out_w * out_h, dtype=torch.bool, device=device)
+    touched[_regions(new, factor, out_w)] = True
+    old_region = _regions(state.knots, factor, out_w)
+    if cut is not None:
+        touched[take(old_region, where_true(state.knots.t >= cut))] = True
+    in_window = take(touched, old_region)
+    window = _cat(state.knots.select(in_window), new)
+    steps = torch.cat([state.step[in_window], new_step.to(torch.int64)])
+    order = torch.sort(window.t, stable=True).indices
+    window, steps = window.select(order), take(steps, order)
+
+    next_cut = torch.tensor(horizon, dtype=t_dtype, device=device)
+    out, q = estimate_window(
+        window, step=steps, t_start=state.t_start, t_end=tau, sensor_size=sensor_size,
+        factor=factor, threshold=threshold, solve_regions=solve_regions,
+        resume=Resume(cut, state.q), next_cut=next_cut,
+    )
+    decided = out.t < next_cut
+    if cut is not None:
+        decided &= out.t >= cut
+    kept, kept_step = _trim(window, steps, before=next_cut, keep=lag, width=width)
+    outside = ~in_window
+    knots = _cat(state.knots.select(outside), kept)
+    step = torch.cat([state.step[outside], kept_step])
+    new_state = WindowState(state.t_start, tau, horizon, knots, step, pixel_t, q)  # type: ignore[arg-type]
+    return out.select(where_true(decided)), new_state
+
+
+def window_end(
+    state: WindowState,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: float,
+    solve_regions: RegionSolver,
+) -> Events | None:
+    """The output from the horizon to the end of the stream (its last timestamp).
+
+    Returns:
+        The remaining output events sorted by ``t``, or ``None`` when there are none.
+    """
+    out_w = output_size(sensor_size, factor)[0]
+    cut = torch.tensor(state.horizon, dtype=state.t_last.dtype, device=state.t_last.device)
+    region = _regions(state.knots, factor, out_w)
+    touched = torch.zeros_like(state.q, dtype=torch.bool)
+    touched[take(region, where_true(state.knots.t >= cut))] = True
+    in_window = where_true(take(touched, region))
+    if in_window.shape[0] == 0:
+        return None
+    window, step = state.knots.select(in_window), take(state.step, in_window)
+    order = torch.sort(window.t, stable=True).indices
+    out, _ = estimate_window(
+        window.select(order), step=take(step, order), t_start=state.t_start, t_end=state.t_last,
+        sensor_size=sensor_size, factor=factor, threshold=threshold,
+        solve_regions=solve_regions, resume=Resume(cut, state.q),
+    )
+    return out.select(where_true(out.t >= cut))
