@@ -33,7 +33,6 @@ from torch import Tensor
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
     changes,
-    ends,
     region_of,
     region_pixel_count,
     region_xy,
@@ -274,7 +273,9 @@ def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> Pix
     pixel, order = sort_small(pixel, width * height)
     step = take(events.p, order).to(torch.int64).mul_(2).sub_(1)
     new_pixel = changes(pixel)
-    starts, last = where_true(new_pixel), where_true(ends(new_pixel))
+    starts = where_true(new_pixel)
+    n = pixel.shape[0]
+    last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1] if n else [])])  # run ends
     # One cumulative sum whose first step of each pixel also moves from the previous pixel's
     # last level to this pixel's starting level (a telescoping correction).
     plain = torch.cumsum(step, 0)
@@ -453,7 +454,7 @@ def _events_piece(
     out_x, out_y = region_xy(take(region, take(cross.step, by_time)), out_w)
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
-    lasts = where_true(ends(groups.first))
+    lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
     new_index = state.index.clone()
     new_index.scatter_(0, take(region, lasts), take(q, lasts))
     return out, PhotocurrentState(new_levels, new_index, events.t[-1].clone()), n
