@@ -237,6 +237,10 @@ def _sum_changes(before: Tensor, on: Tensor, contrast: float) -> tuple[Tensor, T
 #: shorter ones go through a comparison sort, about 15 times slower per key.
 RADIX_SORT_MIN = 1 << 15
 
+#: torch's CPU sort has that radix sort (FBGEMM's, accelerated with OpenMP) in this build.
+RADIX_SORT = ("fbgemm" in torch.backends.quantized.supported_engines
+              and torch.backends.openmp.is_available())
+
 #: Shortest key tensor worth padding to :data:`RADIX_SORT_MIN` keys.
 PAD_SORT_MIN = 1 << 12
 
@@ -246,10 +250,11 @@ def sort_small(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:
 
     A piece cut short by the running sums' error bound holds a few thousand to 32k events;
     its keys are padded with ``bound - 1`` (stable: the padding sorts after every real key) so
-    that torch sorts them by radix sort. Same result as the plain stable sort.
+    that torch sorts them by radix sort (where the build has it). Same result as the plain
+    stable sort.
     """
     n = keys.shape[0]
-    if keys.device.type != "cpu" or not PAD_SORT_MIN <= n < RADIX_SORT_MIN:
+    if not RADIX_SORT or keys.device.type != "cpu" or not PAD_SORT_MIN <= n < RADIX_SORT_MIN:
         return stable_sort_small(keys, bound)
     padded = torch.full((RADIX_SORT_MIN,), bound - 1, dtype=keys.dtype, device=keys.device)
     padded[:n] = keys
