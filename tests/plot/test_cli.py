@@ -82,8 +82,11 @@ def test_a_file_that_records_its_sensor_size_is_shown_on_that_sensor(npy, tmp_pa
 
 
 def test_duration_keeps_the_first_milliseconds_of_a_file(npy):
-    whole = load_source(str(npy))
-    first = load_source(str(npy), duration_ms=50)
+    from evdown_torch.io import SensorSizeGuessWarning
+
+    with pytest.warns(SensorSizeGuessWarning, match=r"guessed \(16, 12, 2\)"):
+        whole = load_source(str(npy))  # a .npy file does not record its sensor size
+    first = load_source(str(npy), duration_ms=50, sensor_size=SENSOR)
     t = whole.events.t
     assert first.events.num_events == int((t < t[0] + 50_000).sum()) < whole.events.num_events
     assert first.sensor_size == whole.sensor_size == (16, 12, 2)
