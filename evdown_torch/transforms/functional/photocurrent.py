@@ -33,7 +33,6 @@ from torch import Tensor
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
     changes,
-    ends,
     region_of,
     region_pixel_count,
     region_xy,
@@ -50,7 +49,6 @@ from evdown_torch.transforms.functional._reference import (
     SNAP,
     RegionGroups,
     crossings,
-    group_by_region,
     reference_index,
 )
 
@@ -235,6 +233,35 @@ def _sum_changes(before: Tensor, on: Tensor, contrast: float) -> tuple[Tensor, T
     return change.mul_(take(steps, on.to(torch.int64))), too_bright
 
 
+#: Shortest key tensor that torch's CPU sort orders by radix sort (``at::internal::GRAIN_SIZE``);
+#: shorter ones go through a comparison sort, about 15 times slower per key.
+RADIX_SORT_MIN = 1 << 15
+
+#: torch's CPU sort has that radix sort (FBGEMM's, accelerated with OpenMP) in this build.
+RADIX_SORT = ("fbgemm" in torch.backends.quantized.supported_engines
+              and torch.backends.openmp.is_available())
+
+#: Shortest key tensor worth padding to :data:`RADIX_SORT_MIN` keys.
+PAD_SORT_MIN = 1 << 12
+
+
+def sort_small(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:
+    """:func:`~evdown_torch._tensors.stable_sort_small` of ``keys < bound``, padded on the CPU.
+
+    A piece cut short by the running sums' error bound holds a few thousand to 32k events;
+    its keys are padded with ``bound - 1`` (stable: the padding sorts after every real key) so
+    that torch sorts them by radix sort (where the build has it). Same result as the plain
+    stable sort.
+    """
+    n = keys.shape[0]
+    if not RADIX_SORT or keys.device.type != "cpu" or not PAD_SORT_MIN <= n < RADIX_SORT_MIN:
+        return stable_sort_small(keys, bound)
+    padded = torch.full((RADIX_SORT_MIN,), bound - 1, dtype=keys.dtype, device=keys.device)
+    padded[:n] = keys
+    values, order = stable_sort_small(padded, bound)
+    return values[:n], order[:n]
+
+
 class PixelLevels(NamedTuple):
     """Levels after each event of a time-ordered piece, in pixel order."""
 
@@ -248,10 +275,12 @@ class PixelLevels(NamedTuple):
 def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> PixelLevels:
     """Exact level of its pixel after every event, starting from ``levels``."""
     pixel = events.y * width + events.x
-    pixel, order = stable_sort_small(pixel, width * height)
+    pixel, order = sort_small(pixel, width * height)
     step = take(events.p, order).to(torch.int64).mul_(2).sub_(1)
     new_pixel = changes(pixel)
-    starts, last = where_true(new_pixel), where_true(ends(new_pixel))
+    starts = where_true(new_pixel)
+    n = pixel.shape[0]
+    last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1] if n else [])])  # run ends
     # One cumulative sum whose first step of each pixel also moves from the previous pixel's
     # last level to this pixel's starting level (a telescoping correction).
     plain = torch.cumsum(step, 0)
@@ -361,9 +390,10 @@ def _events_piece(
     new_levels = levels.new_state
     del levels
     rx, ry = region_of(events, factor)
-    groups = group_by_region(rx, ry, out_w)
-    region = groups.region
-    del rx, ry
+    ry *= out_w
+    region, order = sort_small(ry.add_(rx), state.index.shape[0])
+    groups = RegionGroups(order, region, changes(region))
+    del rx, ry, order
     firsts = where_true(groups.first)
     rank = run_index(groups.first)
     touched = take(region, firsts)
@@ -425,11 +455,11 @@ def _events_piece(
     cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one step keep their level order.
-    source, by_time = torch.sort(take(groups.order, cross.step), stable=True)
+    source, by_time = sort_small(take(groups.order, cross.step), n)
     out_x, out_y = region_xy(take(region, take(cross.step, by_time)), out_w)
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
-    lasts = where_true(ends(groups.first))
+    lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
     new_index = state.index.clone()
     new_index.scatter_(0, take(region, lasts), take(q, lasts))
     return out, PhotocurrentState(new_levels, new_index, events.t[-1].clone()), n
