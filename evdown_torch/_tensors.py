@@ -153,14 +153,45 @@ def chunk_bounds(t: Tensor, chunk: int | None = None, *, split_ties: bool = True
     return sorted({0, n, *starts.tolist()})
 
 
+#: Shortest key tensor that torch's CPU sort orders by radix sort (``at::internal::GRAIN_SIZE``);
+#: shorter ones go through a comparison sort, about 15 times slower per key.
+RADIX_SORT_MIN = 1 << 15
+
+#: torch's CPU sort has that radix sort (FBGEMM's, accelerated with OpenMP) in this build.
+RADIX_SORT = ("fbgemm" in torch.backends.quantized.supported_engines
+              and torch.backends.openmp.is_available())
+
+#: Shortest key tensor worth padding to :data:`RADIX_SORT_MIN` keys.
+PAD_SORT_MIN = 1 << 12
+
+
 def stable_sort_small(keys: Tensor, bound: int | None = None) -> tuple[Tensor, Tensor]:
     """Stable sort of non-negative int64 ``keys < bound``: ``(sorted int64 keys, permutation)``.
 
     The keys are sorted as int16 or int32 when ``bound`` (by default ``max(keys) + 1``)
-    allows: two to three times faster than int64 on the CPU.
+    allows: two to three times faster than int64 on the CPU. On a CPU whose torch build has
+    the radix sort, 4,096 to 32,767 keys are padded to :data:`RADIX_SORT_MIN` with
+    ``bound - 1`` (the sort is stable, so the padding lands after every real key and the
+    first ``n`` results are the plain sort's), which is several times faster there.
+
+    Example:
+        >>> keys = torch.tensor([2, 0, 2, 1])
+        >>> values, order = stable_sort_small(keys, 3)
+        >>> values.tolist(), order.tolist()
+        ([0, 1, 2, 2], [1, 3, 0, 2])
     """
     if bound is None:
         bound = int(keys.max()) + 1 if keys.numel() else 0
+    n = keys.shape[0]
+    if RADIX_SORT and keys.device.type == "cpu" and PAD_SORT_MIN <= n < RADIX_SORT_MIN:
+        padded = torch.full((RADIX_SORT_MIN,), bound - 1, dtype=keys.dtype)
+        padded[:n] = keys
+        values, order = _sort_narrow(padded, bound)
+        return values[:n], order[:n]
+    return _sort_narrow(keys, bound)
+
+
+def _sort_narrow(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:
     if bound <= 1 << 15:
         small = keys.to(torch.int16)
     elif bound <= 1 << 31:

@@ -347,18 +347,3 @@ def test_frames_mode_float_timestamps(rng):
     assert len(got) == len(expected) > 20
     for (x, y, t, on), (ex, ey, et, eon) in zip(got, expected, strict=True):
         assert (x, y, on) == (ex, ey, eon) and abs(t - et) <= 0.5 + 1e-6
-
-
-@pytest.mark.parametrize("n", [0, 100, 4096, 9000, 32767, 40000])
-@pytest.mark.parametrize("bound", [7, 1 << 15, 921_600])
-def test_padded_sort_is_the_stable_sort(n, bound, rng):
-    # Keys padded to radix-sort length (ties with the padding key bound - 1 included) must
-    # sort exactly as torch's plain stable sort.
-    from evdown_torch.transforms.functional.photocurrent import sort_small
-
-    keys = torch.as_tensor(rng.integers(0, bound, n))
-    keys[: n // 3] = bound - 1
-    values, order = sort_small(keys, bound)
-    expected = torch.sort(keys, stable=True)
-    assert torch.equal(values, expected.values)
-    assert torch.equal(order, expected.indices)

@@ -233,35 +233,6 @@ def _sum_changes(before: Tensor, on: Tensor, contrast: float) -> tuple[Tensor, T
     return change.mul_(take(steps, on.to(torch.int64))), too_bright
 
 
-#: Shortest key tensor that torch's CPU sort orders by radix sort (``at::internal::GRAIN_SIZE``);
-#: shorter ones go through a comparison sort, about 15 times slower per key.
-RADIX_SORT_MIN = 1 << 15
-
-#: torch's CPU sort has that radix sort (FBGEMM's, accelerated with OpenMP) in this build.
-RADIX_SORT = ("fbgemm" in torch.backends.quantized.supported_engines
-              and torch.backends.openmp.is_available())
-
-#: Shortest key tensor worth padding to :data:`RADIX_SORT_MIN` keys.
-PAD_SORT_MIN = 1 << 12
-
-
-def sort_small(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:
-    """:func:`~evdown_torch._tensors.stable_sort_small` of ``keys < bound``, padded on the CPU.
-
-    A piece cut short by the running sums' error bound holds a few thousand to 32k events;
-    its keys are padded with ``bound - 1`` (stable: the padding sorts after every real key) so
-    that torch sorts them by radix sort (where the build has it). Same result as the plain
-    stable sort.
-    """
-    n = keys.shape[0]
-    if not RADIX_SORT or keys.device.type != "cpu" or not PAD_SORT_MIN <= n < RADIX_SORT_MIN:
-        return stable_sort_small(keys, bound)
-    padded = torch.full((RADIX_SORT_MIN,), bound - 1, dtype=keys.dtype, device=keys.device)
-    padded[:n] = keys
-    values, order = stable_sort_small(padded, bound)
-    return values[:n], order[:n]
-
-
 class PixelLevels(NamedTuple):
     """Levels after each event of a time-ordered piece, in pixel order."""
 
@@ -275,7 +246,7 @@ class PixelLevels(NamedTuple):
 def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> PixelLevels:
     """Exact level of its pixel after every event, starting from ``levels``."""
     pixel = events.y * width + events.x
-    pixel, order = sort_small(pixel, width * height)
+    pixel, order = stable_sort_small(pixel, width * height)
     step = take(events.p, order).to(torch.int64).mul_(2).sub_(1)
     new_pixel = changes(pixel)
     starts = where_true(new_pixel)
@@ -391,7 +362,7 @@ def _events_piece(
     del levels
     rx, ry = region_of(events, factor)
     ry *= out_w
-    region, order = sort_small(ry.add_(rx), state.index.shape[0])
+    region, order = stable_sort_small(ry.add_(rx), state.index.shape[0])
     groups = RegionGroups(order, region, changes(region))
     del rx, ry, order
     firsts = where_true(groups.first)
@@ -455,7 +426,7 @@ def _events_piece(
     cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one step keep their level order.
-    source, by_time = sort_small(take(groups.order, cross.step), n)
+    source, by_time = stable_sort_small(take(groups.order, cross.step), n)
     out_x, out_y = region_xy(take(region, take(cross.step, by_time)), out_w)
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
