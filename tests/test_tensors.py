@@ -8,7 +8,7 @@ import torch
 from evdown_torch._tensors import stable_sort_small
 
 
-@pytest.mark.parametrize("n", [0, 100, 4096, 9000, 32767, 40000])
+@pytest.mark.parametrize("n", [0, 100, 4096, 8191, 8192, 9000, 32767, 40000])
 @pytest.mark.parametrize("bound", [7, 1 << 15, 921_600])
 def test_padded_sort_is_the_stable_sort(n, bound, rng):
     # Keys padded to radix-sort length (ties with the padding key bound - 1 included) must
