@@ -161,13 +161,18 @@ def _plan(paths: Sequence[str], output_format: str) -> list[tuple[Path, Path]]:
     return pairs
 
 
-def _downscale(args: argparse.Namespace) -> int:
-    if args.threshold is not None:
+def refuse_threshold_flag(args: argparse.Namespace) -> None:
+    """Explain the retired ``--threshold`` flag (registered hidden by a subcommand)."""
+    if getattr(args, "threshold", None) is not None:
         raise CommandError(
             "--threshold is gone: it meant a contrast threshold for some methods and a firing "
             "threshold for lif; give --set threshold=T (evdown downscale --help lists each "
             "method's settings)"
         )
+
+
+def _downscale(args: argparse.Namespace) -> int:
+    refuse_threshold_flag(args)
     settings = dict(args.set or [])
     unknown = sorted(set(settings) - set(method_settings(args.method)))
     if unknown:  # before reading anything

@@ -41,10 +41,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--method", required=True, choices=sorted(METHODS), metavar="NAME",
                         help=f"one of {', '.join(sorted(METHODS))}")
     parser.add_argument("--factor", required=True, type=_factor, help="F or FX,FY")
-    parser.add_argument("--threshold", type=float,
-                        help="contrast threshold (log-luminance methods)")
     parser.add_argument("--set", type=_setting, action="append", metavar="KEY=VALUE",
-                        help="any other setting of the method, e.g. --set dt=1000")
+                        help="a setting of the method, e.g. --set threshold=0.5 (a contrast "
+                        "threshold for most methods, the firing threshold for lif)")
     parser.add_argument("--out", required=True, metavar="DIR", help="the cache folder")
     parser.add_argument("--split", choices=("train", "test"), default="train",
                         help="dataset split (synthetic, dvsgesture, nmnist; default train)")
@@ -66,6 +65,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="a recording that cannot be read: report and skip it (default), "
                         "or stop the run, keeping the complete shards")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--threshold", help=argparse.SUPPRESS)  # gone: explains itself
     parser.set_defaults(run=run)
     return parser
 
@@ -74,6 +74,9 @@ def run(args: argparse.Namespace) -> int:
     """Run ``evdown preprocess`` (also one rank of a ``torchrun`` launch)."""
     import torch.distributed as dist
 
+    from evdown_torch.cli import refuse_threshold_flag
+
+    refuse_threshold_flag(args)
     launched = dist.is_available() and dist.is_torchelastic_launched()
     if launched and not dist.is_initialized():
         # Ranks finish their shares at different times; the manifest collective waits.
@@ -85,8 +88,6 @@ def run(args: argparse.Namespace) -> int:
             samples_per_class=args.samples_per_class, duration_us=args.duration_us,
             seed=args.seed)
         settings = dict(args.set or [])
-        if args.threshold is not None:
-            settings["threshold"] = args.threshold
         try:
             result = preprocess(source, args.out, args.method, args.factor, settings,
                                 shard_size=args.shard_size, workers=args.workers,

@@ -339,6 +339,7 @@ def test_absent_tonic_files_say_where_they_go(tmp_path, capsys, dataset):
         (["--dataset", "nmnist", "--root", "x", "--seed", "3"], "seed is a setting of the"),
         (["--dataset", "synthetic", "--shard-size", "0"], "shard_size must be"),
         (["--dataset", "synthetic", "--set", "dt=3"], "does not take setting"),
+        (["--dataset", "synthetic", "--threshold", "0.5"], "--threshold is gone"),
     ],
 )
 def test_bad_arguments_get_one_line(tmp_path, capsys, extra, message):
