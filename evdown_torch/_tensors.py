@@ -169,10 +169,10 @@ PAD_SORT_MIN = 1 << 13
 def stable_sort_small(keys: Tensor, bound: int | None = None) -> tuple[Tensor, Tensor]:
     """Stable sort of non-negative int64 ``keys < bound``: ``(sorted int64 keys, permutation)``.
 
-    The keys are sorted as int16 or int32 when ``bound`` (by default ``max(keys) + 1``)
-    allows: two to three times faster than int64 on the CPU. On a CPU whose torch build has
-    the radix sort, 8,192 to 32,767 keys are padded to :data:`RADIX_SORT_MIN` with
-    ``bound - 1`` (the sort is stable, so the padding lands after every real key and the
+    The keys are sorted as uint8, int16 or int32 when ``bound`` (by default
+    ``max(keys) + 1``) allows: two to five times faster than int64 on the CPU. On a CPU whose
+    torch build has the radix sort, 8,192 to 32,767 keys are padded to :data:`RADIX_SORT_MIN`
+    with ``bound - 1`` (the sort is stable, so the padding lands after every real key and the
     first ``n`` results are the plain sort's), which is several times faster there.
 
     Example:
@@ -193,7 +193,9 @@ def stable_sort_small(keys: Tensor, bound: int | None = None) -> tuple[Tensor, T
 
 
 def _sort_narrow(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:
-    if bound <= 1 << 15:
+    if bound <= 1 << 8:
+        small = keys.to(torch.uint8)  # one radix pass: about twice as fast as int16
+    elif bound <= 1 << 15:
         small = keys.to(torch.int16)
     elif bound <= 1 << 31:
         small = keys.to(torch.int32)

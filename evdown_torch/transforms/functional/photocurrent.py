@@ -33,6 +33,7 @@ from torch import Tensor
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
     changes,
+    divide,
     region_of,
     region_pixel_count,
     region_xy,
@@ -157,80 +158,143 @@ def log_mean_exp(levels: Tensor, inside: Tensor, contrast: float) -> tuple[Tenso
     return m, torch.where(inside, torch.exp(below), 0.0).sum(1)
 
 
-class _SegmentSums(NamedTuple):
-    """Running sums of :func:`_segment_sum` and what an error bound needs of them."""
-
-    total: Tensor  # (N,) float64 running sums
-    grid: Tensor  # (N,) int64 grid parts of the values
-    scale: Tensor  # (N,) or () float64 grid scale of each value's segment
-
-
-def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> _SegmentSums:
-    """Running sum of float64 ``values`` restarting at each segment, without cross-talk.
-
-    Each segment is put on its own fixed-point grid (a power of two fitted to its largest
-    value): the grid parts add exactly in int64 and only the remainders, below half a grid
-    step, are summed in float64, so a segment's sum carries no rounding of other segments,
-    however much larger their values are.
-
-    Args:
-        values: ``(N,)`` float64.
-        starts_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
-        segment: ``(N,)`` int64 segment of each element.
-    """
-    n = values.shape[0]
-    largest = torch.zeros(starts_at.shape[0], dtype=torch.float64, device=values.device)
-    largest.scatter_reduce_(0, segment, values.abs(), "amax")
-    top = float(largest.max())
-    if top == 0.0 or float(largest.min()) >= top * 2.0**-24:
-        # Segments of similar magnitudes share one grid: the remainders' sum then drifts by
-        # at most n * 2**-53 grid steps, 2**-60 of the smallest segment's largest value.
-        scale = torch.tensor(math.ldexp(1.0, 61 - n.bit_length() - math.frexp(top)[1]),
-                             dtype=torch.float64, device=values.device)
-    else:
-        exponent = torch.frexp(largest).exponent.to(torch.float64)
-        scale = take(torch.exp2((61 - n.bit_length()) - exponent), segment)
-    scaled = values * scale
-    high_f = torch.round(scaled)
-    rest = scaled.sub_(high_f)
-    high = high_f.to(torch.int64)
-    del high_f
-    total = segmented_cumsum(high, starts_at, segment).to(torch.float64)
-    total += segmented_cumsum(rest, starts_at, segment)
-    return _SegmentSums(total.div_(scale), high, scale)
-
-
-def _running_magnitude(sums: _SegmentSums, starts_at: Tensor, segment: Tensor) -> Tensor:
-    """Running sums of ``|value|`` from the grid parts (exact to a grid step per value)."""
-    size = sums.grid.abs().add_(1)
-    return segmented_cumsum(size, starts_at, segment).to(torch.float64).div_(sums.scale)
-
-
-#: Largest table of ``exp(c * j)`` values :func:`_sum_changes` builds instead of calling exp.
+#: Largest table of ``exp(c * j)`` values :func:`fixed_point` builds instead of calling exp
+#: per event.
 TABLE_SIZE = 1 << 16
 
 
-def _sum_changes(before: Tensor, on: Tensor, contrast: float) -> tuple[Tensor, Tensor | None]:
-    """``exp(c * (before + s)) - exp(c * before)`` for int64 ``before`` (level minus anchor)
-    and step ``s = +-1``, from a table of ``exp(c * j) * expm1(+-c)`` when the levels span
-    little; and where ``c * before`` exceeds :data:`MAX_EXPONENT` (else ``None``)."""
-    lowest, highest = int(before.min()), int(before.max())
-    too_bright = None
-    if highest * contrast > MAX_EXPONENT:
-        too_bright = before > MAX_EXPONENT / contrast
-        highest = math.floor(MAX_EXPONENT / contrast)
-        before = before.clamp(max=highest)
-    expm1 = (math.expm1(-contrast), math.expm1(contrast))
-    floor = max(lowest, -math.ceil(800 / contrast))  # exp(c * j) is 0 below
-    if highest - floor < TABLE_SIZE:
-        j = torch.arange(floor, highest + 1, device=before.device, dtype=torch.float64)
-        table = torch.exp(j.mul_(contrast))[:, None] * torch.tensor(
-            expm1, dtype=torch.float64, device=before.device)
-        index = (before.clamp(min=floor) - floor).mul_(2).add_(on.to(torch.int64))
-        return take(table.reshape(-1), index), too_bright
-    steps = torch.tensor(expm1, dtype=torch.float64, device=before.device)
-    change = torch.exp(before.to(torch.float64).mul_(contrast))
-    return change.mul_(take(steps, on.to(torch.int64))), too_bright
+def grouped_levels(
+    region: Tensor,
+    local: Tensor,
+    step: Tensor,
+    levels: Tensor,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+) -> tuple[Tensor, Tensor]:
+    """Level of its pixel before each event, for events grouped by region.
+
+    One stable sort of the events by their pixel's place in its region (at most ``fx * fy``
+    values: a one-byte sort) groups them by pixel: ``(place, region, time)`` order, no second
+    sort over all pixels.
+
+    Args:
+        region: ``(N,)`` int64 region id of each event, ascending, time order inside a region.
+        local: ``(N,)`` int64 place ``(x - fx * rx) + fx * (y - fy * ry)`` of its pixel.
+        step: ``(N,)`` int64 step of each event, +1 (ON) or -1 (OFF).
+        levels: ``(H * W,)`` int64 pixel levels before the events (index ``y * W + x``).
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+
+    Returns:
+        ``(before, new_levels)``: ``(N,)`` int64 level of the event's pixel just before it,
+        and a new ``(H * W,)`` tensor of the levels after all the events.
+    """
+    fx, fy = factor
+    n = region.shape[0]
+    if fx * fy == 1:
+        perm, region_q, step_q, local_q = None, region, step, local
+        new_pixel = changes(region_q)
+    else:
+        local_q, perm = stable_sort_small(local, fx * fy)
+        region_q, step_q = take(region, perm), take(step, perm)
+        new_pixel = changes(region_q)
+        new_pixel |= changes(local_q)
+    starts = where_true(new_pixel)
+    del new_pixel
+    last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1])])
+    # Pixel id of each run: its region's corner plus its place.
+    start_local = take(local_q, starts)
+    rx, ry = region_xy(take(region_q, starts), -(-sensor_size[0] // fx))
+    ly = divide(start_local, fx)
+    pixel = (ry * fy + ly) * sensor_size[0] + rx * fx + (start_local - ly * fx)
+    del rx, ry, ly, start_local
+    # One cumulative sum whose first step of each pixel also moves from the previous pixel's
+    # last level to this pixel's starting level (a telescoping correction).
+    plain = torch.cumsum(step_q, 0)
+    first_level = take(levels, pixel)
+    final = take(plain, last) - take(plain, starts) + take(step_q, starts) + first_level
+    del plain
+    jump = first_level
+    jump[1:] -= final[:-1]
+    after = step_q.index_add(0, starts, jump).cumsum_(0)
+    after -= step_q  # the level before each event
+    new_levels = levels.clone()
+    new_levels.scatter_(0, pixel, final)
+    if perm is None:
+        return after, new_levels
+    return torch.empty_like(after).scatter_(0, perm, after), new_levels
+
+
+def _zero_sum_cumsum(values: Tensor, rank: Tensor, lasts: Tensor, segments: int) -> Tensor:
+    """Running sums of ``values`` restarting at each segment (consecutive runs of ``rank``).
+
+    Each segment's last value is lowered by the segment's total before one global cumulative
+    sum, so that the global sum returns to 0 after every segment: its partial sums never
+    exceed one segment's (exact for int64 that fit, no cross-talk for floats). ``values`` is
+    overwritten.
+
+    Args:
+        values: ``(N,)`` values, overwritten.
+        rank: ``(N,)`` int64 segment of each element, ascending.
+        lasts: ``(S,)`` int64 last position of each segment.
+        segments: ``S``.
+    """
+    total = values.new_zeros(segments).index_add_(0, rank, values)
+    values.index_add_(0, lasts, total.neg())
+    values = values.cumsum_(0)
+    return values.index_copy_(0, lasts, total)
+
+
+def _split(j: Tensor, contrast: float, scale: float, fine: float) -> tuple[Tensor, Tensor]:
+    """``exp(c * j) * scale`` of int64 ``j`` in two int64 words: ``high + low / fine``."""
+    scaled = torch.exp(j.to(torch.float64).mul_(contrast)).mul_(scale)
+    high = torch.round(scaled)
+    low = torch.round(scaled.sub_(high).mul_(fine))
+    return high.to(torch.int64), low.to(torch.int64)
+
+
+class FixedPoint(NamedTuple):
+    """Intensities of a piece in two-word fixed point, ``exp(c * j) * scale ~ high + low /
+    fine`` (the error below ``1 / (2 * fine)``): integer sums are exact, and a pixel's
+    changes telescope to its current intensity however many events it has."""
+
+    anchor: tuple[Tensor, Tensor]  # (S,) int64 sums of each region's pixels' (high, low)
+    change: tuple[Tensor, Tensor]  # (N,) int64 change of (high, low) at each event
+
+
+def fixed_point(
+    key: Tensor, pixel_j: Tensor, inside: Tensor, lo: int, hi: int, contrast: float,
+    scale: float, fine: float,
+) -> FixedPoint:
+    """The :class:`FixedPoint` sums of the anchors and changes of the events.
+
+    Args:
+        key: ``(N,)`` int64 ``2 * j + on`` of each event, ``j`` the level of its pixel before
+            it relative to its region's anchor, in ``[lo, hi]`` (``on``: 1 ON, 0 OFF).
+        pixel_j: ``(S, n)`` int64 level of every pixel of each region relative to its anchor,
+            in ``[lo, hi]``.
+        inside: ``(S, n)`` bool, the entry is a sensor pixel.
+        lo, hi: bounds of ``j``.
+        contrast: ``c``.
+        scale, fine: powers of two.
+    """
+    if hi - lo + 3 <= TABLE_SIZE:  # a table of intensities, then look-ups
+        words = _split(torch.arange(lo - 1, hi + 2, device=key.device), contrast, scale, fine)
+        index = pixel_j - (lo - 1)
+        anchor = tuple(torch.where(inside, word[index], 0).sum(1) for word in words)
+        # Row i (j = lo + i): [change by OFF, change by ON].
+        index = key - 2 * lo
+        change = tuple(take(torch.stack([word[:-2] - word[1:-1], word[2:] - word[1:-1]], 1)
+                            .reshape(-1), index) for word in words)
+        return FixedPoint(anchor, change)
+    anchor = tuple(torch.where(inside, word, 0).sum(1)
+                   for word in _split(pixel_j, contrast, scale, fine))
+    before = divide(key, 2)
+    after = torch.where(key - 2 * before == 1, before + 1, before - 1)
+    change = tuple(a.sub_(b) for a, b in zip(_split(after, contrast, scale, fine),
+                                              _split(before, contrast, scale, fine),
+                                              strict=True))
+    return FixedPoint(anchor, change)
 
 
 class PixelLevels(NamedTuple):
@@ -353,84 +417,112 @@ def _events_piece(
     hold are used (``used >= 1`` events, the output and state are theirs); the caller
     re-anchors there.
     """
-    w, h, _ = sensor_size
+    fx, fy = factor
     out_w = output_size(sensor_size, factor)[0]
-    levels = pixel_levels(events, w, state.level.shape[0] // w, state.level)  # stacked: more rows
-    level_before = torch.empty_like(levels.level).scatter_(0, levels.order,
-                                                           levels.level - levels.step)
-    new_levels = levels.new_state
-    del levels
+    per_region = fx * fy
+    n = events.num_events
     rx, ry = region_of(events, factor)
+    local = events.x - rx * fx
+    local.add_(events.y - ry * fy, alpha=fx)
     ry *= out_w
     region, order = stable_sort_small(ry.add_(rx), state.index.shape[0])
-    groups = RegionGroups(order, region, changes(region))
-    del rx, ry, order
-    firsts = where_true(groups.first)
-    rank = run_index(groups.first)
+    del rx, ry
+    first = changes(region)
+    firsts = where_true(first)
+    lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
+    rank = run_index(first)
     touched = take(region, firsts)
+    segments = touched.shape[0]
+    on = take(events.p, order).to(torch.int64)
+    before, new_levels = grouped_levels(region, take(local, order), on * 2 - 1, state.level,
+                                        sensor_size, factor)
+    del local
 
-    # Anchor: each touched region's sum recomputed from the integer levels before the piece.
+    # Anchor: each touched region's brightest pixel m before the piece, and every pixel's
+    # level relative to it (j <= 0); the same j of each event's pixel before it.
     ids, inside = region_pixels(touched, sensor_size, factor)
-    m, anchor = log_mean_exp(state.level[ids], inside, contrast)
-    del ids, inside
+    pixel_j = state.level[ids]
+    del ids
+    m = torch.where(inside, pixel_j, torch.iinfo(torch.int64).min).amax(1)
+    pixel_j -= m[:, None]
+    pixel_j.masked_fill_(~inside, 0)
+    key = torch.add(on, before, alpha=2)  # 2 * j + on
+    del before, on
+    key -= take(m * 2, rank)
+    lo, hi = (int(v) // 2 for v in torch.aminmax(key))
+    lo, hi = min(lo, int(pixel_j.min())), max(hi, 0)
+    darkest = -math.ceil(800 / contrast)  # exp(c * j) is 0 for j <= darkest + 1
+    if lo < darkest:
+        key.clamp_(min=2 * darkest)
+        pixel_j.clamp_(min=darkest)
+        lo = darkest
+    brightest = math.floor(MAX_EXPONENT / contrast) - 1
+    bad = None
+    if hi > brightest:  # a pixel too far above its anchor: cut before its event
+        bad = key > 2 * brightest + 1
+        key.clamp_(max=2 * brightest + 1)
+        hi = brightest
+    # Two-word fixed point: a region's sum of either word stays below 2**61.
+    top = max(math.exp(contrast * (hi + 1)), 1.0)
+    bits = 61 - (2 * per_region).bit_length()
+    scale = math.ldexp(1.0, bits - math.frexp(top)[1])
+    fine = math.ldexp(1.0, bits)
+    sums = fixed_point(key, pixel_j, inside, lo, hi, contrast, scale, fine)
+    del key, pixel_j, inside
+    total = None
+    for anchor, change, weight in zip(sums.anchor, sums.change, (1 / scale, 1 / (scale * fine)),
+                                      strict=True):
+        word = _zero_sum_cumsum(change, rank, lasts, segments)
+        word += take(anchor, rank)
+        if total is None:
+            total = word.to(torch.float64).mul_(weight)
+        else:
+            total.add_(word.to(torch.float64), alpha=weight)
+        del word
+    del sums
 
-    # Change of the region's sum at each event, relative to its brightest anchored pixel.
-    on = take(events.p, groups.order)
-    before = take(level_before, groups.order)
-    before -= take(m, rank)
-    del level_before
-    change, too_bright = _sum_changes(before, on, contrast)
-    del before
-    sums = _segment_sum(change, firsts, rank)
-    total = sums.total
-    # Error bound of each running sum: a few ulps of every term (anchor and changes) so far.
-    # First a cheap one (all the region's changes in the piece), the exact one where it fails.
-    tolerance = max(1e-10 * threshold, 16 * EPS)
-    magnitude = torch.zeros_like(anchor).index_add_(0, rank, change.abs_()).add_(anchor)
-    del change
-    total += take(anchor, rank)
-    lowest = torch.full_like(anchor, math.inf).scatter_reduce_(0, rank, total, "amin")
-    bad = too_bright
-    if not bool((magnitude.mul_(4 * EPS) <= lowest.mul_(tolerance)).all()):  # NaN fails too
-        bound = _running_magnitude(sums, firsts, rank).add_(take(anchor, rank)).mul_(4 * EPS)
-        bad = ~(bound <= total * tolerance) if bad is None else bad | ~(bound <= total * tolerance)
-        del bound
-    del sums, magnitude, lowest
-    n = events.num_events
+    # Error bound of each sum, relative to it: exp's error and that of its argument c * j
+    # (a few ulps of every intensity), the conversions, and the fixed point's rounding of
+    # every pixel's intensity (half a step of the fine word each).
+    slack = 6 + contrast * max(-lo, hi + 1)
+    tolerance = max(1e-10 * threshold, 4 * slack * EPS)
+    floor_bound = per_region / (2 * scale * fine)
+    if not bool((total * (tolerance - slack * EPS) >= floor_bound).all()):  # NaN fails too
+        weak = ~(total * (tolerance - slack * EPS) >= floor_bound)
+        bad = weak if bad is None else bad | weak
     if n > 1 and bad is not None and bool(bad.any()):
-        used = int(take(groups.order, where_true(bad)).min())
+        used = int(take(order, where_true(bad)).min())
         if used == 0:  # the first event alone: its sum is the anchor plus one change
             return _events_piece(Events(*(column[:1] for column in events)), sensor_size,
                                  factor, contrast, threshold, state, emitted)
         # Keep the events before the cut (each region keeps a prefix of its own events).
-        kept = where_true(groups.order < used)
-        groups = RegionGroups(*(take(column, kept) for column in groups))
-        region, total, rank = groups.region, take(total, kept), take(rank, kept)
+        kept = where_true(order < used)
+        order, region, total = take(order, kept), take(region, kept), take(total, kept)
+        first, rank = take(first, kept), take(rank, kept)
         new_levels = state.level.clone()
-        new_levels.index_add_(0, events.y[:used] * w + events.x[:used],
+        new_levels.index_add_(0, events.y[:used] * sensor_size[0] + events.x[:used],
                               events.p[:used].to(torch.int64).mul_(2).sub_(1))
         events = Events(*(column[:used] for column in events))
         n = used
-        firsts = where_true(groups.first)
+        firsts = where_true(first)
+        lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
 
-    # u = log(I_r) / theta = (c * m + log(sum / n_r)) / theta, then the reference rule.
-    # Per region: c * m / theta - log(n_r) / theta, added to log(sum) / theta.
+    # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
     log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
     offset = m.to(torch.float64).mul_(contrast / threshold).sub_(log_pixels.div_(threshold))
-    u = torch.log(total).div_(threshold).add_(take(offset, rank))
+    u = torch.log(total).mul_(1 / threshold).add_(take(offset, rank))
     floor_u, on_level = snap(u)
     del u, total
-    q = reference_index(floor_u, on_level, groups.first, take(state.index, region))
+    q = reference_index(floor_u, on_level, first, take(state.index, region))
     q_before = q.roll(1)
     q_before[firsts] = take(state.index, take(region, firsts))
     cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one step keep their level order.
-    source, by_time = stable_sort_small(take(groups.order, cross.step), n)
+    source, by_time = stable_sort_small(take(order, cross.step), n)
     out_x, out_y = region_xy(take(region, take(cross.step, by_time)), out_w)
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
-    lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
     new_index = state.index.clone()
     new_index.scatter_(0, take(region, lasts), take(q, lasts))
     return out, PhotocurrentState(new_levels, new_index, events.t[-1].clone()), n
