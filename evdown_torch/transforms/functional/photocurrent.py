@@ -25,6 +25,7 @@ the pixel levels, region geometry and level snap defined here.
 from __future__ import annotations
 
 import math
+import os
 from typing import NamedTuple
 
 import torch
@@ -56,7 +57,7 @@ from evdown_torch.transforms.functional._reference import (
 #: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: a pixel rising this
 #: far above its region's anchor would make the region's running sum span too many orders of
 #: magnitude for its early values to keep their precision (exp(709) overflows anyway).
-MAX_EXPONENT = 24.0
+MAX_EXPONENT = 32.0
 
 #: Unit roundoff of float64.
 EPS = 2.0**-53
@@ -164,85 +165,71 @@ TABLE_SIZE = 1 << 16
 
 
 def grouped_levels(
-    region: Tensor,
-    local: Tensor,
-    step: Tensor,
-    levels: Tensor,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
+    pixel_on: Tensor, local: Tensor, levels: Tensor, per_region: int
 ) -> tuple[Tensor, Tensor]:
     """Level of its pixel before each event, for events grouped by region.
 
-    One stable sort of the events by their pixel's place in its region (at most ``fx * fy``
-    values: a one-byte sort) groups them by pixel: ``(place, region, time)`` order, no second
-    sort over all pixels.
+    One stable sort of the events by their pixel's place in its region (``fx * fy`` values:
+    a one-byte sort up to 256) groups them by pixel, in ``(place, region, time)`` order: no
+    second sort over all pixels.
 
     Args:
-        region: ``(N,)`` int64 region id of each event, ascending, time order inside a region.
-        local: ``(N,)`` int64 place ``(x - fx * rx) + fx * (y - fy * ry)`` of its pixel.
-        step: ``(N,)`` int64 step of each event, +1 (ON) or -1 (OFF).
-        levels: ``(H * W,)`` int64 pixel levels before the events (index ``y * W + x``).
-        sensor_size: input ``(W, H, P)``.
-        factor: ``(fx, fy)``.
+        pixel_on: ``(N,)`` int64 ``2 * (y * W + x) + on`` of each event (``on``: 1 for ON, 0
+            for OFF), grouped by region, time order inside a region.
+        local: ``(N,)`` int64 place of the pixel in its region, in ``[0, per_region)``.
+        levels: ``(H * W,)`` int64 pixel levels before the events.
+        per_region: ``fx * fy``.
 
     Returns:
         ``(before, new_levels)``: ``(N,)`` int64 level of the event's pixel just before it,
         and a new ``(H * W,)`` tensor of the levels after all the events.
     """
-    fx, fy = factor
-    n = region.shape[0]
-    if fx * fy == 1:
-        perm, region_q, step_q, local_q = None, region, step, local
-        new_pixel = changes(region_q)
-    else:
-        local_q, perm = stable_sort_small(local, fx * fy)
-        region_q, step_q = take(region, perm), take(step, perm)
-        new_pixel = changes(region_q)
-        new_pixel |= changes(local_q)
-    starts = where_true(new_pixel)
-    del new_pixel
+    n = pixel_on.shape[0]
+    perm = None
+    if per_region > 1:  # one look-up of the packed pixel and polarity: far cheaper than two
+        perm = stable_sort_small(local, per_region)[1]
+        pixel_on = take(pixel_on, perm)
+    step = torch.bitwise_and(pixel_on, 1).mul_(2).sub_(1)
+    pixel = pixel_on.bitwise_right_shift_(1) if perm is not None else pixel_on >> 1
+    starts = where_true(changes(pixel))
     last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1])])
-    # Pixel id of each run: its region's corner plus its place.
-    start_local = take(local_q, starts)
-    rx, ry = region_xy(take(region_q, starts), -(-sensor_size[0] // fx))
-    ly = divide(start_local, fx)
-    pixel = (ry * fy + ly) * sensor_size[0] + rx * fx + (start_local - ly * fx)
-    del rx, ry, ly, start_local
+    pixel = take(pixel, starts)
     # One cumulative sum whose first step of each pixel also moves from the previous pixel's
     # last level to this pixel's starting level (a telescoping correction).
-    plain = torch.cumsum(step_q, 0)
+    plain = torch.cumsum(step, 0)
     first_level = take(levels, pixel)
-    final = take(plain, last) - take(plain, starts) + take(step_q, starts) + first_level
+    final = take(plain, last) - take(plain, starts) + take(step, starts) + first_level
     del plain
     jump = first_level
     jump[1:] -= final[:-1]
-    after = step_q.index_add(0, starts, jump).cumsum_(0)
-    after -= step_q  # the level before each event
+    before = step.index_add(0, starts, jump).cumsum_(0).sub_(step)
     new_levels = levels.clone()
     new_levels.scatter_(0, pixel, final)
     if perm is None:
-        return after, new_levels
-    return torch.empty_like(after).scatter_(0, perm, after), new_levels
+        return before, new_levels
+    return torch.empty_like(before).scatter_(0, perm, before), new_levels
 
 
-def _zero_sum_cumsum(values: Tensor, rank: Tensor, lasts: Tensor, segments: int) -> Tensor:
-    """Running sums of ``values`` restarting at each segment (consecutive runs of ``rank``).
+def _zero_sum_cumsum(
+    values: Tensor, start: Tensor, firsts: Tensor, lasts: Tensor, rank: Tensor
+) -> Tensor:
+    """Running sums ``start + cumsum(values)`` restarting at each segment (runs of ``rank``).
 
     Each segment's last value is lowered by the segment's total before one global cumulative
     sum, so that the global sum returns to 0 after every segment: its partial sums never
-    exceed one segment's (exact for int64 that fit, no cross-talk for floats). ``values`` is
-    overwritten.
+    exceed one segment's (exact for int64 that fit). ``values`` is overwritten.
 
     Args:
         values: ``(N,)`` values, overwritten.
-        rank: ``(N,)`` int64 segment of each element, ascending.
+        start: ``(S,)`` value of each segment before its first element.
+        firsts: ``(S,)`` int64 first position of each segment.
         lasts: ``(S,)`` int64 last position of each segment.
-        segments: ``S``.
+        rank: ``(N,)`` int64 segment of each element, ascending.
     """
-    total = values.new_zeros(segments).index_add_(0, rank, values)
+    values.index_add_(0, firsts, start)
+    total = torch.zeros_like(start).index_add_(0, rank, values)
     values.index_add_(0, lasts, total.neg())
-    values = values.cumsum_(0)
-    return values.index_copy_(0, lasts, total)
+    return values.cumsum_(0).index_copy_(0, lasts, total)
 
 
 def _split(j: Tensor, contrast: float, scale: float, fine: float) -> tuple[Tensor, Tensor]:
@@ -382,9 +369,10 @@ def photocurrent_events(
         return Events.empty(events.t.dtype, events.device), state
     check_level_range(int(state.level.abs().max()) + n, contrast, threshold)
     outputs = []
-    # Pieces of a few events per pixel: re-anchoring then costs little (at most the sensor's
-    # pixels per piece), and a piece that has to be cut wastes little.
-    largest = min(max(4 * sensor_size[0] * sensor_size[1], 1 << 16), CHUNK_EVENTS)
+    # Pieces of about 16 events per pixel: re-anchoring then costs little (at most the
+    # sensor's pixels per piece) and a small sensor's pieces stay in the CPU's caches.
+    largest = int(os.environ.get("PIECE", min(max(16 * sensor_size[0] * sensor_size[1],
+                                                  1 << 16), CHUNK_EVENTS)))
     start, size, emitted = 0, largest, 0
     while start < n:
         stop = min(start + size, n)
@@ -417,11 +405,13 @@ def _events_piece(
     hold are used (``used >= 1`` events, the output and state are theirs); the caller
     re-anchors there.
     """
+    w = sensor_size[0]
     fx, fy = factor
     out_w = output_size(sensor_size, factor)[0]
     per_region = fx * fy
     n = events.num_events
     rx, ry = region_of(events, factor)
+    pixel = events.y * w + events.x
     local = events.x - rx * fx
     local.add_(events.y - ry * fy, alpha=fx)
     ry *= out_w
@@ -432,11 +422,12 @@ def _events_piece(
     lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
     rank = run_index(first)
     touched = take(region, firsts)
-    segments = touched.shape[0]
-    on = take(events.p, order).to(torch.int64)
-    before, new_levels = grouped_levels(region, take(local, order), on * 2 - 1, state.level,
-                                        sensor_size, factor)
-    del local
+    pixel.mul_(2).add_(events.p)
+    pixel_on = take(pixel, order)
+    del pixel
+    on = torch.bitwise_and(pixel_on, 1)
+    before, new_levels = grouped_levels(pixel_on, take(local, order), state.level, per_region)
+    del local, pixel_on
 
     # Anchor: each touched region's brightest pixel m before the piece, and every pixel's
     # level relative to it (j <= 0); the same j of each event's pixel before it.
@@ -469,26 +460,24 @@ def _events_piece(
     fine = math.ldexp(1.0, bits)
     sums = fixed_point(key, pixel_j, inside, lo, hi, contrast, scale, fine)
     del key, pixel_j, inside
-    total = None
-    for anchor, change, weight in zip(sums.anchor, sums.change, (1 / scale, 1 / (scale * fine)),
-                                      strict=True):
-        word = _zero_sum_cumsum(change, rank, lasts, segments)
-        word += take(anchor, rank)
-        if total is None:
-            total = word.to(torch.float64).mul_(weight)
-        else:
-            total.add_(word.to(torch.float64), alpha=weight)
-        del word
+    # The region's sum after each event, times scale (a power of two: log(scale) is taken
+    # off u below).
+    high, low = (_zero_sum_cumsum(change, anchor, firsts, lasts, rank)
+                 for anchor, change in zip(sums.anchor, sums.change, strict=True))
     del sums
+    total = high.to(torch.float64)
+    del high
+    total.add_(low.to(torch.float64), alpha=1 / fine)
+    del low
 
     # Error bound of each sum, relative to it: exp's error and that of its argument c * j
     # (a few ulps of every intensity), the conversions, and the fixed point's rounding of
     # every pixel's intensity (half a step of the fine word each).
     slack = 6 + contrast * max(-lo, hi + 1)
     tolerance = max(1e-10 * threshold, 4 * slack * EPS)
-    floor_bound = per_region / (2 * scale * fine)
-    if not bool((total * (tolerance - slack * EPS) >= floor_bound).all()):  # NaN fails too
-        weak = ~(total * (tolerance - slack * EPS) >= floor_bound)
+    lowest = per_region / (2 * fine) / (tolerance - slack * EPS)  # of total, in scaled units
+    if not float(total.min()) >= lowest:  # NaN fails too
+        weak = ~(total >= lowest)
         bad = weak if bad is None else bad | weak
     if n > 1 and bad is not None and bool(bad.any()):
         used = int(take(order, where_true(bad)).min())
@@ -500,7 +489,7 @@ def _events_piece(
         order, region, total = take(order, kept), take(region, kept), take(total, kept)
         first, rank = take(first, kept), take(rank, kept)
         new_levels = state.level.clone()
-        new_levels.index_add_(0, events.y[:used] * sensor_size[0] + events.x[:used],
+        new_levels.index_add_(0, events.y[:used] * w + events.x[:used],
                               events.p[:used].to(torch.int64).mul_(2).sub_(1))
         events = Events(*(column[:used] for column in events))
         n = used
@@ -509,8 +498,8 @@ def _events_piece(
 
     # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
     log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
-    offset = m.to(torch.float64).mul_(contrast / threshold).sub_(log_pixels.div_(threshold))
-    u = torch.log(total).mul_(1 / threshold).add_(take(offset, rank))
+    offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels.add_(math.log(scale)))
+    u = torch.add(take(offset.div_(threshold), rank), torch.log(total), alpha=1 / threshold)
     floor_u, on_level = snap(u)
     del u, total
     q = reference_index(floor_u, on_level, first, take(state.index, region))
