@@ -33,13 +33,12 @@ from torch import Tensor
 
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
+    RADIX_SORT_MIN,
     changes,
     divide,
     region_of,
     region_pixel_count,
     region_xy,
-    run_index,
-    segmented_cumsum,
     sort_by_time,
     stable_sort_small,
     take,
@@ -49,7 +48,6 @@ from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import (
     SNAP,
-    RegionGroups,
     crossings,
     reference_index,
 )
@@ -121,38 +119,50 @@ def check_level_range(max_level: int, contrast: float, threshold: float) -> None
 def snap(u: Tensor) -> tuple[Tensor, Tensor]:
     """``(floor(u), u is on a level)``, a ``u`` within :data:`SNAP` of an integer on it."""
     nearest = torch.round(u)
-    on_level = (u - nearest).abs() <= SNAP
-    return torch.where(on_level, nearest, torch.floor(u)).to(torch.int64), on_level
+    offset = u - nearest
+    on_level = offset.abs() <= SNAP
+    # Below the nearest integer by more than SNAP (|offset| <= 1/2): floor(u) = nearest - 1.
+    return nearest.sub_(offset.lt_(-SNAP)).to(torch.int64), on_level
 
 
 def region_pixels(
     regions: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor | None]:
     """Pixel ids ``y * W + x`` of every pixel of ``regions``: ``(R, fx * fy)`` int64 and a
-    same-shaped bool mask of those inside the sensor (ids outside are 0). Regions of stacked
-    recordings (ids past ``Ho * Wo``) are inside where their recording's are."""
+    same-shaped bool mask of those inside the sensor (ids outside are 0), ``None`` when the
+    factor divides the sensor (every pixel is inside). Regions of stacked recordings (ids past
+    ``Ho * Wo``) are inside where their recording's are."""
     w, h, _ = sensor_size
     fx, fy = factor
     rows = -(-h // fy) * fy  # the sensor's rows padded to whole regions
     rx, ry = region_xy(regions, -(-w // fx))
     grid = torch.arange(fx * fy, device=regions.device)
-    px = rx[:, None] * fx + grid % fx
-    py = ry[:, None] * fy + torch.div(grid, fx, rounding_mode="floor")
+    gx, gy = grid % fx, torch.div(grid, fx, rounding_mode="floor")
+    if w % fx == 0 and h % fy == 0:
+        corner = ry.mul_(fy * w).add_(rx, alpha=fx)
+        return corner[:, None] + (gy * w + gx), None
+    px = rx[:, None] * fx + gx
+    py = ry[:, None] * fy + gy
     inside = (px < w) & (torch.remainder(py, rows) < h)
     return torch.where(inside, py * w + px, 0), inside
 
 
-def log_mean_exp(levels: Tensor, inside: Tensor, contrast: float) -> tuple[Tensor, Tensor]:
+def log_mean_exp(
+    levels: Tensor, inside: Tensor | None, contrast: float
+) -> tuple[Tensor, Tensor]:
     """Per row: brightest level ``m`` and ``sum exp(c * (L - m))`` over the ``inside`` entries.
 
     Args:
         levels: ``(R, n)`` int64 pixel levels.
-        inside: ``(R, n)`` bool, the entry is a sensor pixel.
+        inside: ``(R, n)`` bool, the entry is a sensor pixel (``None``: all are).
         contrast: ``c``.
 
     Returns:
         ``(m, s)``: ``(R,)`` int64 and ``(R,)`` float64 in ``[1, n]``.
     """
+    if inside is None:
+        m = levels.amax(1)
+        return m, torch.exp((levels - m[:, None]).to(torch.float64).mul_(contrast)).sum(1)
     lowest = torch.iinfo(torch.int64).min
     m = torch.where(inside, levels, lowest).amax(1)
     below = torch.where(inside, levels - m[:, None], 0).to(torch.float64).mul_(contrast)
@@ -165,32 +175,40 @@ TABLE_SIZE = 1 << 16
 
 
 def grouped_levels(
-    pixel_on: Tensor, local: Tensor, levels: Tensor, per_region: int
+    pixel_on: Tensor, place: Tensor | None, bound: int, levels: Tensor
 ) -> tuple[Tensor, Tensor]:
-    """Level of its pixel before each event, for events grouped by region.
+    """``2 * level + on`` of each event's pixel just before it, for events grouped by region.
 
-    One stable sort of the events by their pixel's place in its region (``fx * fy`` values:
-    a one-byte sort up to 256) groups them by pixel, in ``(place, region, time)`` order: no
-    second sort over all pixels.
+    A stable sort of the events by a small key ``place`` groups them by pixel: events of one
+    pixel share a key and distinct pixels of one region have distinct keys, so in ``(place,
+    region, time)`` order each pixel's events are consecutive. With at most 256 keys (the
+    pixel's place in its region, plus a few bits of the region so that a key's events stay
+    close together in memory) it is a one-byte sort: no second sort over all pixels.
 
     Args:
         pixel_on: ``(N,)`` int64 ``2 * (y * W + x) + on`` of each event (``on``: 1 for ON, 0
-            for OFF), grouped by region, time order inside a region.
-        local: ``(N,)`` int64 place of the pixel in its region, in ``[0, per_region)``.
+            for OFF), grouped by region, time order inside a region; overwritten.
+        place: ``(N,)`` uint8 (or int64 when ``bound > 256``) key in ``[0, bound)`` as above,
+            or ``None`` when every region is one pixel.
+        bound: bound of ``place``.
         levels: ``(H * W,)`` int64 pixel levels before the events.
-        per_region: ``fx * fy``.
 
     Returns:
-        ``(before, new_levels)``: ``(N,)`` int64 level of the event's pixel just before it,
-        and a new ``(H * W,)`` tensor of the levels after all the events.
+        ``(key, new_levels)``: ``(N,)`` int64 ``2 * L + on`` with ``L`` the level of the
+        event's pixel just before it, and a new ``(H * W,)`` tensor of the levels after all
+        the events.
     """
     n = pixel_on.shape[0]
     perm = None
-    if per_region > 1:  # one look-up of the packed pixel and polarity: far cheaper than two
-        perm = stable_sort_small(local, per_region)[1]
+    if place is not None:  # one look-up of the packed pixel and polarity: far cheaper than two
+        if place.dtype == torch.uint8 and n >= RADIX_SORT_MIN:
+            perm = torch.sort(place, stable=True).indices
+        else:
+            perm = stable_sort_small(place, bound)[1]
         pixel_on = take(pixel_on, perm)
-    step = torch.bitwise_and(pixel_on, 1).mul_(2).sub_(1)
-    pixel = pixel_on.bitwise_right_shift_(1) if perm is not None else pixel_on >> 1
+    on = torch.bitwise_and(pixel_on, 1)
+    step = torch.mul(on, 2).sub_(1)
+    pixel = pixel_on.bitwise_right_shift_(1)
     starts = where_true(changes(pixel))
     last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1])])
     pixel = take(pixel, starts)
@@ -203,11 +221,14 @@ def grouped_levels(
     jump = first_level
     jump[1:] -= final[:-1]
     before = step.index_add(0, starts, jump).cumsum_(0).sub_(step)
+    del step
+    key = on.add_(before, alpha=2)
+    del before
     new_levels = levels.clone()
     new_levels.scatter_(0, pixel, final)
     if perm is None:
-        return before, new_levels
-    return torch.empty_like(before).scatter_(0, perm, before), new_levels
+        return key, new_levels
+    return torch.empty_like(key).scatter_(0, perm, key), new_levels
 
 
 def _zero_sum_cumsum(
@@ -250,32 +271,36 @@ class FixedPoint(NamedTuple):
 
 
 def fixed_point(
-    key: Tensor, pixel_j: Tensor, inside: Tensor, lo: int, hi: int, contrast: float,
+    key: Tensor, pixel_j: Tensor, inside: Tensor | None, lo: int, hi: int, contrast: float,
     scale: float, fine: float,
 ) -> FixedPoint:
     """The :class:`FixedPoint` sums of the anchors and changes of the events.
 
     Args:
         key: ``(N,)`` int64 ``2 * j + on`` of each event, ``j`` the level of its pixel before
-            it relative to its region's anchor, in ``[lo, hi]`` (``on``: 1 ON, 0 OFF).
+            it relative to its region's anchor, in ``[lo, hi]`` (``on``: 1 ON, 0 OFF);
+            overwritten.
         pixel_j: ``(S, n)`` int64 level of every pixel of each region relative to its anchor,
-            in ``[lo, hi]``.
-        inside: ``(S, n)`` bool, the entry is a sensor pixel.
+            in ``[lo, hi]``; overwritten.
+        inside: ``(S, n)`` bool, the entry is a sensor pixel (``None``: all are).
         lo, hi: bounds of ``j``.
         contrast: ``c``.
         scale, fine: powers of two.
     """
+
+    def region_sums(values: Tensor) -> Tensor:
+        return (values if inside is None else values.masked_fill_(~inside, 0)).sum(1)
+
     if hi - lo + 3 <= TABLE_SIZE:  # a table of intensities, then look-ups
         words = _split(torch.arange(lo - 1, hi + 2, device=key.device), contrast, scale, fine)
-        index = pixel_j - (lo - 1)
-        anchor = tuple(torch.where(inside, word[index], 0).sum(1) for word in words)
+        index = pixel_j.sub_(lo - 1).view(-1)
+        anchor = tuple(region_sums(take(word, index).view_as(pixel_j)) for word in words)
         # Row i (j = lo + i): [change by OFF, change by ON].
-        index = key - 2 * lo
+        index = key.sub_(2 * lo)
         change = tuple(take(torch.stack([word[:-2] - word[1:-1], word[2:] - word[1:-1]], 1)
                             .reshape(-1), index) for word in words)
         return FixedPoint(anchor, change)
-    anchor = tuple(torch.where(inside, word, 0).sum(1)
-                   for word in _split(pixel_j, contrast, scale, fine))
+    anchor = tuple(region_sums(word) for word in _split(pixel_j, contrast, scale, fine))
     before = divide(key, 2)
     after = torch.where(key - 2 * before == 1, before + 1, before - 1)
     change = tuple(a.sub_(b) for a, b in zip(_split(after, contrast, scale, fine),
@@ -411,34 +436,41 @@ def _events_piece(
     per_region = fx * fy
     n = events.num_events
     rx, ry = region_of(events, factor)
-    pixel = events.y * w + events.x
-    local = events.x - rx * fx
-    local.add_(events.y - ry * fy, alpha=fx)
-    ry *= out_w
-    region, order = stable_sort_small(ry.add_(rx), state.index.shape[0])
+    pixel_on = torch.add(events.x, events.y, alpha=w).mul_(2).add_(events.p)
+    place, bound = None, 1
+    if per_region > 1:  # the pixel's place in its region, and a few high bits of the region
+        chunks = max(1, 256 // per_region)
+        bound = chunks * per_region
+        shift = max(0, (state.index.shape[0] - 1).bit_length() - (chunks.bit_length() - 1))
+        place = torch.add(events.x, rx, alpha=-fx)
+        place.add_(events.y, alpha=fx).add_(ry, alpha=-fx * fy)
+    ry.mul_(out_w).add_(rx)
+    region, order = stable_sort_small(ry, state.index.shape[0])
+    if place is not None:
+        place.add_(ry.bitwise_right_shift_(shift), alpha=per_region)
+        place = take(place.to(torch.uint8) if bound <= 256 else place, order)
     del rx, ry
     first = changes(region)
     firsts = where_true(first)
     lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
-    rank = run_index(first)
+    rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
     touched = take(region, firsts)
-    pixel.mul_(2).add_(events.p)
-    pixel_on = take(pixel, order)
-    del pixel
-    on = torch.bitwise_and(pixel_on, 1)
-    before, new_levels = grouped_levels(pixel_on, take(local, order), state.level, per_region)
-    del local, pixel_on
+    key, new_levels = grouped_levels(take(pixel_on, order), place, bound, state.level)
+    del place, pixel_on
 
     # Anchor: each touched region's brightest pixel m before the piece, and every pixel's
-    # level relative to it (j <= 0); the same j of each event's pixel before it.
+    # level relative to it (j <= 0); the same j of each event's pixel before it, in
+    # key = 2 * j + on.
     ids, inside = region_pixels(touched, sensor_size, factor)
-    pixel_j = state.level[ids]
+    pixel_j = take(state.level, ids.view(-1)).view_as(ids)
     del ids
-    m = torch.where(inside, pixel_j, torch.iinfo(torch.int64).min).amax(1)
+    if inside is None:
+        m = pixel_j.amax(1)
+    else:
+        m = pixel_j.masked_fill(~inside, torch.iinfo(torch.int64).min).amax(1)
     pixel_j -= m[:, None]
-    pixel_j.masked_fill_(~inside, 0)
-    key = torch.add(on, before, alpha=2)  # 2 * j + on
-    del before, on
+    if inside is not None:
+        pixel_j.masked_fill_(~inside, 0)
     key -= take(m * 2, rank)
     lo, hi = (int(v) // 2 for v in torch.aminmax(key))
     lo, hi = min(lo, int(pixel_j.min())), max(hi, 0)
@@ -465,10 +497,8 @@ def _events_piece(
     high, low = (_zero_sum_cumsum(change, anchor, firsts, lasts, rank)
                  for anchor, change in zip(sums.anchor, sums.change, strict=True))
     del sums
-    total = high.to(torch.float64)
-    del high
-    total.add_(low.to(torch.float64), alpha=1 / fine)
-    del low
+    total = low.to(torch.float64).mul_(1 / fine).add_(high)
+    del high, low
 
     # Error bound of each sum, relative to it: exp's error and that of its argument c * j
     # (a few ulps of every intensity), the conversions, and the fixed point's rounding of
@@ -499,7 +529,7 @@ def _events_piece(
     # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
     log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
     offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels.add_(math.log(scale)))
-    u = torch.add(take(offset.div_(threshold), rank), torch.log(total), alpha=1 / threshold)
+    u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
     floor_u, on_level = snap(u)
     del u, total
     q = reference_index(floor_u, on_level, first, take(state.index, region))
