@@ -347,3 +347,89 @@ def test_frames_mode_float_timestamps(rng):
     assert len(got) == len(expected) > 20
     for (x, y, t, on), (ex, ey, et, eon) in zip(got, expected, strict=True):
         assert (x, y, on) == (ex, ey, eon) and abs(t - et) <= 0.5 + 1e-6
+
+
+# --- Paths of the events-mode kernel chosen by size (table, place keys, anchors, cuts) ------
+
+
+def _pieces(monkeypatch):
+    """Spy on the kernel's pieces: a list that gets the length of every piece it used."""
+    from evdown_torch.transforms.functional import photocurrent as kernel
+
+    used, piece = [], kernel._events_piece
+
+    def spy(*args, **kwargs):
+        out = piece(*args, **kwargs)
+        used.append(out[2])
+        return out
+
+    monkeypatch.setattr(kernel, "_events_piece", spy)
+    return used
+
+
+@pytest.mark.parametrize(("sensor", "factor", "threshold"), [
+    ((40, 40, 2), 2, 0.1), ((48, 36, 2), (4, 3), 0.1), ((40, 30, 2), (20, 15), 0.004),
+    ((40, 40, 2), 1, 0.1)])
+def test_events_mode_matches_reference_on_wider_sensors(sensor, factor, threshold, rng):
+    # More regions than the one-byte place key's region bits (40x40 / 2: 400 > 64), whole
+    # regions (no edge mask), 300 pixels a region (a two-byte place key) and factor 1.
+    arr = random_stream(rng, 4000, sensor, t_max=3000)
+    pool = PhotocurrentPooling(sensor, factor=factor, contrast=0.3, threshold=threshold)
+    expected = events_reference(arr, sensor, factor, 0.3, threshold)
+    assert len(expected) > 100
+    assert rows(pool(arr)) == expected
+
+
+def test_levels_spanning_more_than_the_table(monkeypatch):
+    # 70,000 ON at one pixel of a 2x1 region (c * L reaches 7): a piece's levels span more
+    # than TABLE_SIZE, so the intensities are computed per event instead of looked up.
+    from evdown_torch.transforms.functional.photocurrent import TABLE_SIZE
+
+    n = 70_000
+    arr = np.zeros(n + 2, dtype=DVS_DTYPE)
+    arr["t"] = np.arange(n + 2)
+    arr["p"][:n] = True
+    arr["x"][n:] = 1  # then the other pixel goes down twice
+    pool = PhotocurrentPooling((2, 1, 2), factor=(2, 1), contrast=1e-4, threshold=1e-3)
+    pieces = _pieces(monkeypatch)
+    out = rows(pool(arr))
+    assert max(pieces) > TABLE_SIZE - 3
+    expected = events_reference(arr, (2, 1, 2), (2, 1), 1e-4, 1e-3)
+    assert len(expected) > 500
+    assert out == expected
+
+
+def test_region_far_below_its_anchor_is_reanchored(monkeypatch, rng):
+    # Every pixel of a 2x2 region falls 130 levels (c = 0.5: a photocurrent e^-65 of its
+    # anchor's) within one piece: the fixed-point sums lose their precision there, so the
+    # kernel cuts the piece and re-anchors; the result still equals the reference.
+    fall = np.zeros(520, dtype=DVS_DTYPE)
+    fall["x"], fall["y"] = np.tile([0, 1, 0, 1], 130), np.tile([0, 0, 1, 1], 130)
+    fall["t"] = np.arange(520) * 2
+    rest = random_stream(rng, 300, (4, 4, 2), t_max=1040)
+    arr = np.sort(np.concatenate([fall, rest]), order="t", kind="stable")
+    pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.5, threshold=0.3)
+    pieces = _pieces(monkeypatch)
+    out = rows(pool(arr))
+    assert len(pieces) > 1  # cut at least once
+    assert sorted(out) == sorted(events_reference(arr, (4, 4, 2), 2, 0.5, 0.3))
+
+
+def test_pixels_too_dark_to_count(rng):
+    # c = 20: exp(c * j) underflows to 0 for pixels 40 levels below their region's brightest,
+    # which the kernel clamps there; regions with such pixels still match the reference.
+    arr = random_stream(rng, 1000, (4, 2, 2), t_max=3000)
+    arr["p"] = (arr["x"] % 2 == 0) | (np.arange(1000) % 7 == 0)  # odd columns mostly fall
+    pool = PhotocurrentPooling((4, 2, 2), factor=2, contrast=20.0, threshold=5.0)
+    expected = events_reference(arr, (4, 2, 2), 2, 20.0, 5.0)
+    assert len(expected) > 50
+    assert rows(pool(arr)) == expected
+
+
+def test_frames_mode_with_whole_regions_matches_reference(rng):
+    sensor = (8, 6, 2)  # the factor divides the sensor: no edge regions
+    arr = random_stream(rng, 300, sensor, t_max=20_000)
+    pool = PhotocurrentPooling(sensor, factor=2, contrast=0.3, threshold=0.15, fps=1000.0)
+    expected = frames_reference(arr, sensor, 2, 0.3, 0.15, 1000.0)
+    assert len(expected) > 20
+    assert sorted(rows(pool(arr))) == expected
