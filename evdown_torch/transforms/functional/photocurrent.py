@@ -8,15 +8,20 @@ Each input pixel keeps an integer level ``L_p`` (ON +1, OFF -1) and its log inte
 level, a ``u`` within :data:`~evdown_torch.transforms.functional._knots.SNAP` of an integer
 counting as on it).
 
-*Events mode* (:func:`photocurrent_events`): ``log I_r`` changes only at input events. Per
-region, the photocurrent after each event is a running sum of the changes ``exp(c * L_after) -
-exp(c * L_before)``. Levels stay exact int64; the sums are *re-anchored*: at the start of every
-piece of the stream each touched region's sum is recomputed from its pixels' integer levels,
-relative to the region's brightest pixel (``sum exp(c * (L_p - m_r))`` lies in ``[1, n_r]``,
-so nothing overflows), and inside a piece the changes are summed in fixed point (exact int64
-high parts, float64 remainders) so that regions do not pollute each other. Where the running
-sum's error bound (a few ulps per change) would exceed ``1e-11 * theta`` of the sum, or an
-exponent would leave float64's range, the piece is cut there and the rest re-anchored.
+*Events mode* (:func:`photocurrent_events`): ``log I_r`` changes only at input events. The
+stream goes in pieces (about 16 events per pixel, at most :data:`CHUNK_EVENTS`). In a piece,
+one sort groups the events by region (time order inside) and a one-byte sort of that order by
+the pixel's place in its region groups them by pixel, which gives every pixel's exact int64
+level before each of its events (:func:`grouped_levels`). Each touched region is *anchored* at
+its brightest pixel ``m_r`` at the start of the piece, and every intensity ``exp(c * (L -
+m_r))`` is written in two-word int64 fixed point (:func:`fixed_point`): the region's sum after
+each event is the anchor's sum plus a running sum of integer changes, exact, in which a
+pixel's changes telescope to its current intensity however many events it has, and regions
+do not mix (:func:`_zero_sum_cumsum`). The only errors are a few ulps of each current intensity
+and half a step of the fine word per pixel. Where that bound would exceed ``1e-10 * theta`` of
+the sum (all of a region's pixels falling some 50 log units below its anchor), or a pixel rises
+more than :data:`MAX_EXPONENT` above its anchor, the piece is cut before that event and the
+rest re-anchored.
 
 *Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent_frames`, which shares
 the pixel levels, region geometry and level snap defined here.
@@ -25,7 +30,6 @@ the pixel levels, region geometry and level snap defined here.
 from __future__ import annotations
 
 import math
-import os
 from typing import NamedTuple
 
 import torch
@@ -52,9 +56,9 @@ from evdown_torch.transforms.functional._reference import (
     reference_index,
 )
 
-#: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: a pixel rising this
-#: far above its region's anchor would make the region's running sum span too many orders of
-#: magnitude for its early values to keep their precision (exp(709) overflows anyway).
+#: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: the fixed point's
+#: scale is fitted to the brightest intensity of the piece, so a pixel rising far above its
+#: region's anchor would coarsen every region's fine step (``2**-65`` of an anchor at 32).
 MAX_EXPONENT = 32.0
 
 #: Unit roundoff of float64.
@@ -396,8 +400,7 @@ def photocurrent_events(
     outputs = []
     # Pieces of about 16 events per pixel: re-anchoring then costs little (at most the
     # sensor's pixels per piece) and a small sensor's pieces stay in the CPU's caches.
-    largest = int(os.environ.get("PIECE", min(max(16 * sensor_size[0] * sensor_size[1],
-                                                  1 << 16), CHUNK_EVENTS)))
+    largest = min(max(16 * sensor_size[0] * sensor_size[1], 1 << 16), CHUNK_EVENTS)
     start, size, emitted = 0, largest, 0
     while start < n:
         stop = min(start + size, n)
