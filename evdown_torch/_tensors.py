@@ -166,14 +166,17 @@ RADIX_SORT = ("fbgemm" in torch.backends.quantized.supported_engines
 PAD_SORT_MIN = 1 << 13
 
 
-def stable_sort_small(keys: Tensor, bound: int | None = None) -> tuple[Tensor, Tensor]:
+def stable_sort_small(
+    keys: Tensor, bound: int | None = None, *, int64_keys: bool = True
+) -> tuple[Tensor, Tensor]:
     """Stable sort of non-negative int64 ``keys < bound``: ``(sorted int64 keys, permutation)``.
 
     The keys are sorted as uint8, int16 or int32 when ``bound`` (by default
     ``max(keys) + 1``) allows: two to five times faster than int64 on the CPU. On a CPU whose
     torch build has the radix sort, 8,192 to 32,767 keys are padded to :data:`RADIX_SORT_MIN`
     with ``bound - 1`` (the sort is stable, so the padding lands after every real key and the
-    first ``n`` results are the plain sort's), which is several times faster there.
+    first ``n`` results are the plain sort's), which is several times faster there. With
+    ``int64_keys=False`` the sorted keys keep the narrow dtype they were sorted in (no copy).
 
     Example:
         >>> keys = torch.tensor([2, 0, 2, 1])
@@ -187,12 +190,12 @@ def stable_sort_small(keys: Tensor, bound: int | None = None) -> tuple[Tensor, T
     if RADIX_SORT and keys.device.type == "cpu" and PAD_SORT_MIN <= n < RADIX_SORT_MIN:
         padded = torch.full((RADIX_SORT_MIN,), bound - 1, dtype=keys.dtype)
         padded[:n] = keys
-        values, order = _sort_narrow(padded, bound)
+        values, order = _sort_narrow(padded, bound, int64_keys)
         return values[:n], order[:n]
-    return _sort_narrow(keys, bound)
+    return _sort_narrow(keys, bound, int64_keys)
 
 
-def _sort_narrow(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:
+def _sort_narrow(keys: Tensor, bound: int, int64_keys: bool = True) -> tuple[Tensor, Tensor]:
     if bound <= 1 << 8:
         small = keys.to(torch.uint8)  # one radix pass: about twice as fast as int16
     elif bound <= 1 << 15:
@@ -202,7 +205,7 @@ def _sort_narrow(keys: Tensor, bound: int) -> tuple[Tensor, Tensor]:
     else:
         small = keys
     values, order = torch.sort(small, stable=True)
-    return values.to(torch.int64), order
+    return (values.to(torch.int64) if int64_keys else values), order
 
 
 # --- Integer division ----------------------------------------------------------------------

@@ -369,10 +369,11 @@ def _pieces(monkeypatch):
 
 @pytest.mark.parametrize(("sensor", "factor", "threshold"), [
     ((40, 40, 2), 2, 0.1), ((48, 36, 2), (4, 3), 0.1), ((40, 30, 2), (20, 15), 0.004),
-    ((40, 40, 2), 1, 0.1)])
+    ((40, 40, 2), 1, 0.1), ((512, 300, 2), 2, 0.1), ((256, 256, 2), 1, 0.1)])
 def test_events_mode_matches_reference_on_wider_sensors(sensor, factor, threshold, rng):
     # More regions than the one-byte place key's region bits (40x40 / 2: 400 > 64), whole
-    # regions (no edge mask), 300 pixels a region (a two-byte place key) and factor 1.
+    # regions (no edge mask), 300 pixels a region (a two-byte place key), factor 1, and more
+    # than 2**15 regions (int32 region ids).
     arr = random_stream(rng, 4000, sensor, t_max=3000)
     pool = PhotocurrentPooling(sensor, factor=factor, contrast=0.3, threshold=threshold)
     expected = events_reference(arr, sensor, factor, 0.3, threshold)

@@ -448,7 +448,9 @@ def _events_piece(
         place = torch.add(events.x, rx, alpha=-fx)
         place.add_(events.y, alpha=fx).add_(ry, alpha=-fx * fy)
     ry.mul_(out_w).add_(rx)
-    region, order = stable_sort_small(ry, state.index.shape[0])
+    # Region ids stay int32 when they were sorted as such (look-ups take int32 indices).
+    regions = state.index.shape[0]
+    region, order = stable_sort_small(ry, regions, int64_keys=regions <= 1 << 15)
     if place is not None:
         place.add_(ry.bitwise_right_shift_(shift), alpha=per_region)
         place = take(place.to(torch.uint8) if bound <= 256 else place, order)
@@ -457,7 +459,7 @@ def _events_piece(
     firsts = where_true(first)
     lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
     rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
-    touched = take(region, firsts)
+    touched = take(region, firsts).long()
     key, new_levels = grouped_levels(take(pixel_on, order), place, bound, state.level)
     del place, pixel_on
 
@@ -535,16 +537,20 @@ def _events_piece(
     u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
     floor_u, on_level = snap(u)
     del u, total
-    q = reference_index(floor_u, on_level, first, take(state.index, region))
+    # Every region's q before the piece (a 0-d zero while all are 0: no look-up).
+    q_start = take(state.index, region) if bool(state.index.any()) else first.new_zeros(
+        (), dtype=torch.int64)
+    q = reference_index(floor_u, on_level, first, q_start)
+    del q_start
     q_before = q.roll(1)
     q_before[firsts] = take(state.index, take(region, firsts))
     cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one step keep their level order.
     source, by_time = stable_sort_small(take(order, cross.step), n)
-    out_x, out_y = region_xy(take(region, take(cross.step, by_time)), out_w)
+    out_x, out_y = region_xy(take(region, take(cross.step, by_time)).long(), out_w)
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
     new_index = state.index.clone()
-    new_index.scatter_(0, take(region, lasts), take(q, lasts))
+    new_index.scatter_(0, take(region, lasts).long(), take(q, lasts))
     return out, PhotocurrentState(new_levels, new_index, events.t[-1].clone()), n
