@@ -434,3 +434,23 @@ def test_frames_mode_with_whole_regions_matches_reference(rng):
     expected = frames_reference(arr, sensor, 2, 0.3, 0.15, 1000.0)
     assert len(expected) > 20
     assert sorted(rows(pool(arr))) == expected
+
+
+@pytest.mark.parametrize("contrast", [0.2, 1e-4, 37.3])
+def test_fixed_point_intensities_are_within_a_few_ulps(contrast):
+    # exp(c * j) however large |c * j| is (the float product c * j alone would be off by
+    # |c * j| / 2 ulps): against exact decimal arithmetic.
+    from decimal import Decimal, localcontext
+
+    from evdown_torch.transforms.functional.photocurrent import _split
+
+    scale, fine = 2.0**10, 2.0**40
+    js = sorted(j for j in {0, 1, -1, 7, -7, 150, -3000, -int(700 / contrast),
+                            int(30 / contrast)} if -700 <= contrast * j <= 30)
+    high, low = _split(torch.tensor(js), contrast, scale, fine)
+    with localcontext() as context:
+        context.prec = 60
+        for j, h, lo in zip(js, high.tolist(), low.tolist(), strict=True):
+            exact = (Decimal(contrast) * j).exp() * Decimal(scale)
+            got = Decimal(h) + Decimal(lo) / Decimal(fine)
+            assert abs(got - exact) <= exact * Decimal(4 * 2.0**-53) + Decimal(0.5 / fine)

@@ -258,8 +258,16 @@ def _zero_sum_cumsum(
 
 
 def _split(j: Tensor, contrast: float, scale: float, fine: float) -> tuple[Tensor, Tensor]:
-    """``exp(c * j) * scale`` of int64 ``j`` in two int64 words: ``high + low / fine``."""
-    scaled = torch.exp(j.to(torch.float64).mul_(contrast)).mul_(scale)
+    """``exp(c * j) * scale`` of int64 ``j`` in two int64 words: ``high + low / fine``.
+
+    ``c * j`` is rarely a float; ``exp(c * j)`` is taken as ``exp(c_hi * j) * exp(c_lo * j)``
+    with ``c_hi`` (``c`` to 22 bits) times ``|j| < 2**31`` exact and ``c_lo * j`` tiny, so the
+    intensity is within 3 ulps of the exact value however large ``|c * j|`` is.
+    """
+    mantissa, exponent = math.frexp(contrast)
+    c_hi = math.ldexp(math.floor(math.ldexp(mantissa, 22)), exponent - 22)
+    j = j.to(torch.float64)
+    scaled = torch.exp(j * c_hi).mul_(torch.exp(j.mul_(contrast - c_hi))).mul_(scale)
     high = torch.round(scaled)
     low = torch.round(scaled.sub_(high).mul_(fine))
     return high.to(torch.int64), low.to(torch.int64)
@@ -497,20 +505,18 @@ def _events_piece(
     fine = math.ldexp(1.0, bits)
     sums = fixed_point(key, pixel_j, inside, lo, hi, contrast, scale, fine)
     del key, pixel_j, inside
-    # The region's sum after each event, times scale (a power of two: log(scale) is taken
-    # off u below).
+    # The region's sum after each event, times scale.
     high, low = (_zero_sum_cumsum(change, anchor, firsts, lasts, rank)
                  for anchor, change in zip(sums.anchor, sums.change, strict=True))
     del sums
     total = low.to(torch.float64).mul_(1 / fine).add_(high)
     del high, low
 
-    # Error bound of each sum, relative to it: exp's error and that of its argument c * j
-    # (a few ulps of every intensity), the conversions, and the fixed point's rounding of
-    # every pixel's intensity (half a step of the fine word each).
-    slack = 6 + contrast * max(-lo, hi + 1)
+    # Error bound of each sum (in units of 1 / scale): a few ulps of every intensity (exp,
+    # see _split, and the conversions) and half a step of the fine word per pixel.
+    slack = 6
     tolerance = max(1e-10 * threshold, 4 * slack * EPS)
-    lowest = per_region / (2 * fine) / (tolerance - slack * EPS)  # of total, in scaled units
+    lowest = per_region / (2 * fine) / (tolerance - slack * EPS)  # the smallest sum held
     if not float(total.min()) >= lowest:  # NaN fails too
         weak = ~(total >= lowest)
         bad = weak if bad is None else bad | weak
@@ -533,8 +539,8 @@ def _events_piece(
 
     # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
     log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
-    offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels.add_(math.log(scale)))
-    u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
+    offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels)
+    u = take(offset.div_(threshold), rank).add_(total.mul_(1 / scale).log_(), alpha=1 / threshold)
     floor_u, on_level = snap(u)
     del u, total
     # Every region's q before the piece (a 0-d zero while all are 0: no look-up).
