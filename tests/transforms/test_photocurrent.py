@@ -416,6 +416,17 @@ def test_region_far_below_its_anchor_is_reanchored(monkeypatch, rng):
     assert sorted(out) == sorted(events_reference(arr, (4, 4, 2), 2, 0.5, 0.3))
 
 
+@pytest.mark.parametrize(("contrast", "threshold"), [(45.0, 20.0), (33.0, 50.0)])
+def test_contrasts_above_the_exponent_cap(contrast, threshold, rng):
+    # One level is more than MAX_EXPONENT (32) in log units: every piece is cut at a pixel
+    # rising twice above its anchor, and a lone event must still be exact.
+    arr = random_stream(rng, 300, (4, 2, 2), t_max=1000)
+    pool = PhotocurrentPooling((4, 2, 2), factor=2, contrast=contrast, threshold=threshold)
+    expected = events_reference(arr, (4, 2, 2), 2, contrast, threshold)
+    assert len(expected) > 20
+    assert rows(pool(arr)) == expected
+
+
 def test_pixels_too_dark_to_count(rng):
     # c = 20: exp(c * j) underflows to 0 for pixels 40 levels below their region's brightest,
     # which the kernel clamps there; regions with such pixels still match the reference.

@@ -21,7 +21,8 @@ do not mix (:func:`_zero_sum_cumsum`). The only errors are a few ulps of each cu
 and half a step of the fine word per pixel. Where that bound would exceed ``1e-10 * theta`` of
 the sum (all of a region's pixels falling some 50 log units below its anchor), or a pixel rises
 more than :data:`MAX_EXPONENT` above its anchor, the piece is cut before that event and the
-rest re-anchored.
+rest re-anchored; a piece cut down to one event takes its region's sum straight from the
+levels after it.
 
 *Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent_frames`, which shares
 the pixel levels, region geometry and level snap defined here.
@@ -424,6 +425,84 @@ def photocurrent_events(
     return Events(*(torch.cat(columns) for columns in zip(*outputs, strict=True))), state
 
 
+def _running_sums(
+    key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, firsts: Tensor,
+    lasts: Tensor, rank: Tensor, per_region: int, contrast: float, threshold: float,
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Each region's anchor and its sum after each of its events, for a piece of ``N > 1``.
+
+    Args:
+        key: ``(N,)`` int64 ``2 * L + on`` of each event (``L``: its pixel's level before it),
+            grouped by region; overwritten.
+        ids: ``(S, n)`` int64 pixel ids of the touched regions (:func:`region_pixels`).
+        inside: their mask (``None``: all inside).
+        levels: ``(H * W,)`` int64 pixel levels before the piece.
+        firsts, lasts: ``(S,)`` int64 first and last position of each region's events.
+        rank: ``(N,)`` int64 region (segment) of each event.
+        per_region: ``fx * fy``.
+        contrast, threshold: ``c`` and ``theta``.
+
+    Returns:
+        ``(m, total, bad)``: ``(S,)`` int64 brightest level of each region before the piece,
+        ``(N,)`` float64 ``sum exp(c * (L_p - m))`` over the region after each event, and
+        ``None``, or an ``(N,)`` bool mask of the events the sums cannot hold (a pixel more
+        than :data:`MAX_EXPONENT` above its anchor, or a sum below what the fixed point
+        resolves to the tolerance); only the events before the first of those are valid.
+    """
+    # Anchor: each touched region's brightest pixel m before the piece, and every pixel's
+    # level relative to it (j <= 0); the same j of each event's pixel before it, in
+    # key = 2 * j + on.
+    pixel_j = take(levels, ids.view(-1)).view_as(ids)
+    if inside is None:
+        m = pixel_j.amax(1)
+    else:
+        m = pixel_j.masked_fill(~inside, torch.iinfo(torch.int64).min).amax(1)
+    pixel_j -= m[:, None]
+    if inside is not None:
+        pixel_j.masked_fill_(~inside, 0)
+    key -= take(m * 2, rank)
+    lo, hi = (int(v) // 2 for v in torch.aminmax(key))
+    lo, hi = min(lo, int(pixel_j.min())), max(hi, 0)
+    darkest = -math.ceil(800 / contrast)  # exp(c * j) is 0 for j <= darkest + 1
+    if lo < darkest:
+        key.clamp_(min=2 * darkest)
+        pixel_j.clamp_(min=darkest)
+        lo = darkest
+    # A pixel may end a step at most MAX_EXPONENT above its anchor (one level at least, for
+    # contrasts above MAX_EXPONENT).
+    brightest = max(math.floor(MAX_EXPONENT / contrast) - 1, 0)
+    bad = None
+    if hi > brightest:  # a pixel too far above its anchor: cut before its event
+        bad = key > 2 * brightest + 1
+        key.clamp_(max=2 * brightest + 1)
+        hi = brightest
+    # Two-word fixed point: a region's sum of either word stays below 2**61.
+    top = max(math.exp(contrast * (hi + 1)), 1.0)
+    bits = 61 - (2 * per_region).bit_length()
+    scale = math.ldexp(1.0, bits - math.frexp(top)[1])
+    fine = math.ldexp(1.0, bits)
+    sums = fixed_point(key, pixel_j, inside, lo, hi, contrast, scale, fine)
+    del pixel_j
+    # The region's sum after each event, times scale.
+    high, low = (_zero_sum_cumsum(change, anchor, firsts, lasts, rank)
+                 for anchor, change in zip(sums.anchor, sums.change, strict=True))
+    del sums
+    total = low.to(torch.float64).mul_(1 / fine).add_(high)
+    del high, low
+
+    # Error bound of each sum (in units of 1 / scale): a few ulps of every intensity (exp,
+    # see _split, and the conversions) and half a step of the fine word per pixel.
+    slack = 6
+    tolerance = max(1e-10 * threshold, 4 * slack * EPS)
+    lowest = per_region / (2 * fine) / (tolerance - slack * EPS)  # the smallest sum held
+    if not float(total.min()) >= lowest:  # NaN fails too
+        weak = ~(total >= lowest)
+        bad = weak if bad is None else bad | weak
+    if bad is not None and not bool(bad.any()):
+        bad = None
+    return m, total.mul_(1 / scale), bad
+
+
 def _events_piece(
     events: Events,
     sensor_size: tuple[int, int, int],
@@ -471,58 +550,17 @@ def _events_piece(
     key, new_levels = grouped_levels(take(pixel_on, order), place, bound, state.level)
     del place, pixel_on
 
-    # Anchor: each touched region's brightest pixel m before the piece, and every pixel's
-    # level relative to it (j <= 0); the same j of each event's pixel before it, in
-    # key = 2 * j + on.
     ids, inside = region_pixels(touched, sensor_size, factor)
-    pixel_j = take(state.level, ids.view(-1)).view_as(ids)
-    del ids
-    if inside is None:
-        m = pixel_j.amax(1)
+    if n == 1:  # a lone event (after a cut): its region's sum straight from the levels after it
+        m, total = log_mean_exp(new_levels[ids], inside, contrast)
+        bad = None
     else:
-        m = pixel_j.masked_fill(~inside, torch.iinfo(torch.int64).min).amax(1)
-    pixel_j -= m[:, None]
-    if inside is not None:
-        pixel_j.masked_fill_(~inside, 0)
-    key -= take(m * 2, rank)
-    lo, hi = (int(v) // 2 for v in torch.aminmax(key))
-    lo, hi = min(lo, int(pixel_j.min())), max(hi, 0)
-    darkest = -math.ceil(800 / contrast)  # exp(c * j) is 0 for j <= darkest + 1
-    if lo < darkest:
-        key.clamp_(min=2 * darkest)
-        pixel_j.clamp_(min=darkest)
-        lo = darkest
-    brightest = math.floor(MAX_EXPONENT / contrast) - 1
-    bad = None
-    if hi > brightest:  # a pixel too far above its anchor: cut before its event
-        bad = key > 2 * brightest + 1
-        key.clamp_(max=2 * brightest + 1)
-        hi = brightest
-    # Two-word fixed point: a region's sum of either word stays below 2**61.
-    top = max(math.exp(contrast * (hi + 1)), 1.0)
-    bits = 61 - (2 * per_region).bit_length()
-    scale = math.ldexp(1.0, bits - math.frexp(top)[1])
-    fine = math.ldexp(1.0, bits)
-    sums = fixed_point(key, pixel_j, inside, lo, hi, contrast, scale, fine)
-    del key, pixel_j, inside
-    # The region's sum after each event, times scale.
-    high, low = (_zero_sum_cumsum(change, anchor, firsts, lasts, rank)
-                 for anchor, change in zip(sums.anchor, sums.change, strict=True))
-    del sums
-    total = low.to(torch.float64).mul_(1 / fine).add_(high)
-    del high, low
-
-    # Error bound of each sum (in units of 1 / scale): a few ulps of every intensity (exp,
-    # see _split, and the conversions) and half a step of the fine word per pixel.
-    slack = 6
-    tolerance = max(1e-10 * threshold, 4 * slack * EPS)
-    lowest = per_region / (2 * fine) / (tolerance - slack * EPS)  # the smallest sum held
-    if not float(total.min()) >= lowest:  # NaN fails too
-        weak = ~(total >= lowest)
-        bad = weak if bad is None else bad | weak
-    if n > 1 and bad is not None and bool(bad.any()):
+        m, total, bad = _running_sums(key, ids, inside, state.level, firsts, lasts, rank,
+                                      per_region, contrast, threshold)
+    del ids, inside, key
+    if bad is not None:  # the running sums cannot hold an event: cut the piece before it
         used = int(take(order, where_true(bad)).min())
-        if used == 0:  # the first event alone: its sum is the anchor plus one change
+        if used == 0:
             return _events_piece(Events(*(column[:1] for column in events)), sensor_size,
                                  factor, contrast, threshold, state, emitted)
         # Keep the events before the cut (each region keeps a prefix of its own events).
@@ -540,7 +578,7 @@ def _events_piece(
     # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
     log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
     offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels)
-    u = take(offset.div_(threshold), rank).add_(total.mul_(1 / scale).log_(), alpha=1 / threshold)
+    u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
     floor_u, on_level = snap(u)
     del u, total
     # Every region's q before the piece (a 0-d zero while all are 0: no look-up).
