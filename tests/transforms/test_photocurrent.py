@@ -9,10 +9,12 @@ from fractions import Fraction
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
 
 from evdown_torch import EventCount, PhotocurrentPooling
 from evdown_torch.transforms.registry import make_method
 from tests.helpers import DVS_DTYPE, as_tuples, random_stream
+from tests.transforms.test_streaming import chunkings, run_in_chunks
 
 SENSOR = (10, 7, 2)
 SNAP = 1e-9
@@ -245,13 +247,12 @@ def test_streaming_equals_batch(seed):
     assert rows(np.concatenate(pieces)) == rows(pool(arr))
 
 
-def test_session_rejects_out_of_order_chunks_and_frames_mode():
-    session = PhotocurrentPooling(SENSOR).session()
+@pytest.mark.parametrize("fps", [None, 100.0])
+def test_session_rejects_out_of_order_chunks(fps):
+    session = PhotocurrentPooling(SENSOR, fps=fps).session()
     session(torch.tensor([[0, 0, 10, 1]]))
     with pytest.raises(ValueError, match="follow each other in time"):
         session(torch.tensor([[0, 0, 5, 1]]))
-    with pytest.raises(ValueError, match="events mode"):
-        PhotocurrentPooling(SENSOR, fps=100.0).session()
 
 
 @pytest.mark.parametrize("fps", [None, 500.0])
@@ -465,3 +466,42 @@ def test_fixed_point_intensities_are_within_a_few_ulps(contrast):
             exact = (Decimal(contrast) * j).exp() * Decimal(scale)
             got = Decimal(h) + Decimal(lo) / Decimal(fine)
             assert abs(got - exact) <= exact * Decimal(4 * 2.0**-53) + Decimal(0.5 / fine)
+
+
+# --- Frames mode streaming ---------------------------------------------------------------
+
+FRAME_POOLS = {
+    "frames": PhotocurrentPooling(SENSOR, factor=(2, 3), contrast=0.3, threshold=0.1,
+                                  fps=100_000.0),  # a frame every 10 us
+    "frames_leak": PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1,
+                                       fps=100_000.0, cutoff_hz=3000.0),  # 5 frames a chunk
+}
+
+
+@pytest.mark.parametrize("name", sorted(FRAME_POOLS))
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(case=chunkings)
+def test_frames_mode_any_chunking_gives_the_batch_result(name, case):
+    seed, n, fractions = case
+    rng = np.random.default_rng(seed)
+    arr = random_stream(rng, n, SENSOR, t_max=120)  # many equal timestamps and frame edges
+    pool = FRAME_POOLS[name]
+    cuts = [int(f * n) for f in fractions]
+    np.testing.assert_array_equal(run_in_chunks(pool, arr, cuts), pool(arr))
+
+
+@pytest.mark.parametrize("cutoff_hz", [0.0, 200.0])
+def test_frames_session_emits_complete_frames_and_the_rest_at_flush(cutoff_hz, rng):
+    arr = random_stream(rng, 400, SENSOR, t_max=20_000)
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=1000.0,
+                               cutoff_hz=cutoff_hz)
+    expected = frames_reference(arr, SENSOR, 2, 0.3, 0.1, 1000.0, cutoff_hz)
+    session = pool.session()
+    first = session(arr[:200])
+    # Everything out so far belongs to frames before the chunk's last event (t_start + k ms).
+    assert len(first) > 0 and first["t"].max() <= arr["t"][199]
+    rest = session(arr[200:])
+    tail = session.flush()
+    assert len(tail) > 0  # the last frame waits for the end of the stream
+    assert sorted(rows(np.concatenate([first, rest, tail]))) == expected
+    assert session.flush().num_events == 0  # a flushed session starts afresh
