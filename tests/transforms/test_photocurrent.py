@@ -505,3 +505,18 @@ def test_frames_session_emits_complete_frames_and_the_rest_at_flush(cutoff_hz, r
     assert len(tail) > 0  # the last frame waits for the end of the stream
     assert sorted(rows(np.concatenate([first, rest, tail]))) == expected
     assert session.flush().num_events == 0  # a flushed session starts afresh
+
+
+@pytest.mark.parametrize("cutoff_hz", [0.0, 3000.0])
+def test_frames_session_with_float_timestamps(cutoff_hz, rng):
+    arr = random_stream(rng, 500, SENSOR, t_max=300)
+    tensor = torch.as_tensor(np.stack([arr["x"], arr["y"], arr["t"] + 0.25, arr["p"]], axis=1)
+                             .astype(np.float64))
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=100_000.0,
+                               cutoff_hz=cutoff_hz)
+    session = pool.session()
+    parts = [session(tensor[a:b]) for a, b in ((0, 120), (120, 121), (121, 121), (121, 500))]
+    streamed = torch.cat([*parts, session.flush()])
+    batch = pool(tensor)
+    assert batch.shape[0] > 20
+    assert torch.equal(streamed, batch)
