@@ -520,3 +520,20 @@ def test_frames_session_with_float_timestamps(cutoff_hz, rng):
     batch = pool(tensor)
     assert batch.shape[0] > 20
     assert torch.equal(streamed, batch)
+
+
+def test_levels_beyond_float_resolution_are_refused():
+    # contrast / threshold = 1e6 output levels per input level: a pixel 2**40 levels up would
+    # put u beyond 2**50, where float64 cannot tell levels apart.
+    from evdown_torch.events import Events
+    from evdown_torch.transforms.functional.photocurrent import (
+        initial_state,
+        photocurrent_events,
+    )
+
+    state = initial_state(SENSOR, (2, 2))
+    state.level[3 * SENSOR[0] + 4] = 2**40
+    ev = Events.from_columns([4], [3], [10], [1])
+    with pytest.raises(ValueError, match="2\\*\\*50"):
+        photocurrent_events(ev, sensor_size=SENSOR, factor=(2, 2), contrast=1.0,
+                            threshold=1e-6, state=state)

@@ -405,7 +405,10 @@ def photocurrent_events(
     n = events.num_events
     if n == 0:
         return Events.empty(events.t.dtype, events.device), state
-    check_level_range(int(state.level.abs().max()) + n, contrast, threshold)
+    # Untouched pixels keep levels already checked: the events' pixels bound the new ones.
+    touched = take(state.level, events.y * sensor_size[0] + events.x)
+    check_level_range(int(touched.abs().max()) + n, contrast, threshold)
+    del touched
     outputs = []
     # Pieces of about 16 events per pixel: re-anchoring then costs little (at most the
     # sensor's pixels per piece) and a small sensor's pieces stay in the CPU's caches.
