@@ -90,9 +90,9 @@ def test_lighting_is_drawn_per_recording_with_mains_flicker():
 
 @pytest.mark.parametrize(("lighting", "hz"), [("fluorescent", 100.0), ("led", 120.0)])
 def test_flicker_frequency_shows_in_a_static_lit_pixel(lighting, hz):
-    scene = dataclasses.replace(
+    scene = dataclasses.replace(  # a still body: its brightest pixels stay static
         GestureScene.sample(1, 3, sensor_size=(48, 48, 2), duration_us=1_000_000),
-        lighting=lighting, flicker_hz=hz, flicker_depth=0.3)
+        lighting=lighting, flicker_hz=hz, flicker_depth=0.3, sway=())
     events = render_events(scene, QUIET)
     static = ~swept_mask(scene, QUIET)[events.y, events.x]
     pixel = events.y[static] * 48 + events.x[static]
@@ -114,7 +114,7 @@ def test_flicker_frequency_shows_in_a_static_lit_pixel(lighting, hz):
 def test_low_resolution_sees_the_same_lamp():
     scene = dataclasses.replace(
         GestureScene.sample(1, 3, sensor_size=(48, 48, 2), duration_us=500_000),
-        lighting="fluorescent", flicker_hz=100.0, flicker_depth=0.6)
+        lighting="fluorescent", flicker_hz=100.0, flicker_depth=0.6, sway=())
     low = render_events(scene, QUIET, factor=2)
     static = ~swept_mask(scene, QUIET, factor=2)[low.y, low.x]
     assert int(static.sum()) > 0  # the flicker of the lit blocks
@@ -126,13 +126,13 @@ def test_gesture_life_idle_pauses_and_variation():
     assert 0.08 * 6e6 <= start <= 0.24 * 6e6 and 0.76 * 6e6 <= end <= 0.92 * 6e6
     assert 1 <= len(scene.pauses) <= 3
     t = torch.tensor([0.0, start - 1.0, (start + end) / 2], dtype=torch.float64)
-    right, _ = scene.arm_keypoints(t)
+    right, _ = scene.arm_keypoints(t, sway=False)
     torch.testing.assert_close(right[0], right[1])  # at rest until the gesture starts
     at, length = scene.pauses[0]
     ramp = 0.04 * 6e6
     hold = torch.linspace(at + ramp, at + length, 5, dtype=torch.float64)
     if length > ramp:  # fully stopped within the pause
-        pose = scene.arm_keypoints(hold)[0]
+        pose = scene.arm_keypoints(hold, sway=False)[0]
         assert float((pose - pose[:1]).abs().max()) < 1e-6
     speeds = {round(GestureScene.sample(3, s).speed, 3) for s in range(30)}
     assert max(speeds) / min(speeds) > 1.6  # tempo varies widely between recordings
@@ -141,7 +141,7 @@ def test_gesture_life_idle_pauses_and_variation():
 def test_lamp_batches_and_chunks_do_not_change_the_result():
     scene = dataclasses.replace(
         GestureScene.sample(4, 6, sensor_size=(48, 40, 2), duration_us=400_000),
-        lighting="led", flicker_hz=120.0, flicker_depth=0.4)
+        lighting="led", flicker_hz=120.0, flicker_depth=0.4, sway=())
     whole = render_events(scene)
     for budget in (500, 3000, 20_000):  # several limb chunks and lamp batches
         part = render_events(scene, max_fragments=budget)
