@@ -156,9 +156,10 @@ class GestureScene:
             swing in and out over :data:`RAMP_FRACTION` of the recording.
         pauses: ``(start_us, length_us)`` of each pause inside the gesture (1 to 3, each 4 %
             to 10 % of the recording): the motion slows to a halt and resumes, holding its pose.
-        accent: depth of the speed change within each repetition (0.5 to 0.9): the motion
-            phase is ``psi + accent * sin(psi)``, so within a cycle the limbs speed up to
-            ``1 + accent`` and slow down to ``1 - accent`` times their mean speed.
+        accent: depth ``a`` of the speed change within each repetition (0.5 to 0.9): the
+            motion phase advances at ``(1 + a cos(psi))**3 / (1 + 3 a**2 / 2)`` times its mean
+            rate, so within a cycle the limbs accelerate to ``(1 + a)**3 / (1 + 3 a**2 / 2)``
+            (2.5 to 3.0) times their mean speed and nearly stop (``(1 - a)**3 / ...``).
         lighting: ``"natural"``, ``"fluorescent"`` or ``"led"`` (DVS128 Gesture's three
             conditions, equally likely).
         flicker_hz: lamp flicker frequency, twice the mains frequency (100 or 120 Hz; 0 under
@@ -396,7 +397,9 @@ class GestureScene:
         moving = self._moving_time(t)  # the tempo wobble too holds still in pauses
         psi = (2 * math.pi * freq * moving + self.phase
                + depth * torch.sin(2 * math.pi * wobble * moving + wobble_phase))
-        return psi + self.accent * torch.sin(psi)
+        a, sin = self.accent, torch.sin(psi)  # the integral of (1 + a cos)**3 / (1 + 1.5 a**2)
+        return psi + (3 * a * sin + 0.75 * a * a * torch.sin(2 * psi)
+                      + a**3 * (sin - sin**3 / 3)) / (1 + 1.5 * a * a)
 
     def presence(self, t: Tensor) -> Tensor:
         """How far the arms are out of their rest pose at ``t`` (seconds): 0 to 1."""
