@@ -45,7 +45,7 @@ def test_event_counts_within_dvs128_gesture_range(recordings):
 
 def test_on_share_varies_by_recording(recordings):
     shares = [float(events.p.float().mean()) for _, events in recordings]
-    assert all(0.38 <= s <= 0.62 for s in shares), shares
+    assert all(0.4 <= s <= 0.6 for s in shares), shares
     assert max(shares) - min(shares) >= 0.08, shares  # not 0.50 everywhere
 
 
@@ -58,14 +58,18 @@ def test_rate_is_bursty_in_10_ms_bins(recordings):
         edge = scene.duration_us // 20
         quiet = int(((events.t < edge) | (events.t >= scene.duration_us - edge)).sum())
         assert quiet < 0.1 * 0.5 * events.num_events / 0.9, scene.label
-    assert statistics.median(ratios) >= 3, ratios
-    assert min(ratios) >= 2, ratios
+    assert min(ratios) >= 3, ratios
 
 
 def test_funnelling_at_factor_4_removes_a_few_percent(recordings):
     shares = [funnel_share(events) for _, events in recordings]
     assert 0.02 <= statistics.mean(shares) <= 0.06, shares
-    assert all(0.005 <= s <= 0.09 for s in shares), shares
+    # per recording it follows how fast edges sweep: big arm circles most, small hand rolls
+    # least (not the lighting: the lamp's flicker adds few duplicates)
+    assert all(0.01 <= s <= 0.09 for s in shares), shares
+    circles = statistics.mean(shares[3:7])
+    small = statistics.mean(shares[7:10])  # arm roll, air drums, air guitar
+    assert circles > 2 * small, shares
 
 
 def test_readout_stamps_bursts_on_its_grid():
