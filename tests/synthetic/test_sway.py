@@ -104,6 +104,6 @@ def test_ground_truth_follows_the_sway():
     # signal (not noise) lies on blocks the arms or the sway change
     on_mask = mask[torch.tensor(low["y"].astype("int64")), torch.tensor(low["x"].astype("int64"))]
     assert float(on_mask.float().mean()) > 0.9
-    still = dataclasses.replace(scene, sway=())
-    assert int((swept_mask(still, data.pixel_model, factor=3) & ~mask).sum()) == 0
-    assert int((mask & ~swept_mask(still, data.pixel_model, factor=3)).sum()) > 0
+    # the body's blocks join the arms' (which move a little with it)
+    still = swept_mask(dataclasses.replace(scene, sway=()), data.pixel_model, factor=3)
+    assert int(mask.sum()) > int(still.sum())
