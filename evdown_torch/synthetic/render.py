@@ -5,8 +5,9 @@ over the body, which :mod:`evdown_torch.synthetic.grid` renders at the few key s
 slow sway, over a static background). A pixel's log intensity is thus known at the steps where
 a moving part covers it and, if the body's sway changes it, at the body's key steps (linear in
 time between them); between such samples it sits at its static value or on the body's line,
-which is inserted as a sample just before and after each covered stretch. The pixel model (:mod:`evdown_torch.synthetic.pixel_model`,
-separate ON and OFF thresholds with per-pixel mismatch) runs on these samples; the cost
+which is inserted as a sample just before and after each covered stretch. The pixel model
+(:mod:`evdown_torch.synthetic.pixel_model`, separate ON and OFF thresholds with per-pixel
+mismatch) runs on these samples; the cost
 follows the moving parts and the events, never sensor area times steps. Steps are processed
 in chunks that bound memory; per-pixel state (the reference's ON and OFF counts) carries
 across chunks, so the result does not depend on the chunking. Under a flickering lamp the lit
@@ -16,8 +17,8 @@ last.
 
 At a lower resolution (``factor`` ``(fx, fy)``), each output pixel sees the mean linear
 intensity (photocurrent) of the block of sensor pixels it covers (edge blocks: the pixels
-inside the sensor), computed from the same fragments, and the same pixel model, lamp, noise
-and readout run on that.
+inside the sensor), computed from the same fragments and the same swaying body (block means
+of its key images), and the same pixel model, lamp, noise and readout run on that.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from torch import Tensor
 from evdown_torch._tensors import region_xy
 from evdown_torch.checks import check_factor, check_positive_int, output_size
 from evdown_torch.events import Events
+from evdown_torch.synthetic.grid import Grid
 from evdown_torch.synthetic.lighting import flicker_depth, flicker_samples
 from evdown_torch.synthetic.pixel_model import (
     PixelModelConfig,
@@ -41,7 +43,6 @@ from evdown_torch.synthetic.pixel_model import (
     round_time,
     start_reference,
 )
-from evdown_torch.synthetic.grid import Grid
 from evdown_torch.synthetic.raster import (
     _nonzero,
     _Part,

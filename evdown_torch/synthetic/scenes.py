@@ -159,7 +159,7 @@ class GestureScene:
         accent: depth ``a`` of the speed change within each repetition (0.5 to 0.9): the
             motion phase advances at ``(1 + a cos(psi))**3 / (1 + 3 a**2 / 2)`` times its mean
             rate, so within a cycle the limbs accelerate to ``(1 + a)**3 / (1 + 3 a**2 / 2)``
-            (2.5 to 3.0) times their mean speed and nearly stop (``(1 - a)**3 / ...``).
+            (2.5 to 3.1) times their mean speed and nearly stop (``(1 - a)**3 / ...``).
         lighting: ``"natural"``, ``"fluorescent"`` or ``"led"`` (DVS128 Gesture's three
             conditions, equally likely).
         flicker_hz: lamp flicker frequency, twice the mains frequency (100 or 120 Hz; 0 under
