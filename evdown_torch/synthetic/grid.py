@@ -23,6 +23,7 @@ from torch import Tensor
 from evdown_torch._tensors import stable_sort_small
 from evdown_torch.checks import output_size
 from evdown_torch.synthetic.raster import (
+    _nonzero,
     _Part,
     background_image,
     block_of,
@@ -87,7 +88,7 @@ class KeyedImage:
     def _sway(self, pixel: Tensor, step: Tensor) -> tuple[Tensor, Tensor]:
         """Which samples sway, and their log intensity."""
         row = self.row.index_select(0, pixel)
-        where = (row >= 0).nonzero().squeeze(1)
+        where = _nonzero(row >= 0)
         row, step = row.index_select(0, where), step.index_select(0, where)
         k = self._key.index_select(0, step)
         w = self._weight.index_select(0, step)
@@ -214,14 +215,13 @@ class Grid:
         sway_key, at = sway_key[~taken], at[~taken]
         sway_pixel, sway_step = sway_key >> bits, (sway_key & ((1 << bits) - 1)) + s0
         total = arm_key.numel() + sway_key.numel()
-        is_sway = torch.zeros(total, dtype=torch.bool)
-        is_sway[at + torch.arange(sway_key.numel())] = True
-        merged_pixel = torch.empty(total, dtype=torch.int64)
-        merged_step = torch.empty(total, dtype=torch.int64)
-        merged_level = torch.empty(total, dtype=torch.float64)
-        for target, arm, sway in ((merged_pixel, pixel, sway_pixel),
-                                  (merged_step, step + s0, sway_step),
-                                  (merged_level, level, out.level(sway_pixel, sway_step))):
-            target[is_sway] = sway
-            target[~is_sway] = arm
-        return merged_pixel, merged_step, merged_level, ~is_sway
+        sway_at = at + torch.arange(sway_key.numel())  # places in the merged order
+        covered = torch.ones(total, dtype=torch.bool)
+        covered[sway_at] = False
+        arm_at = _nonzero(covered)
+        merged = []
+        for arm, sway in ((pixel, sway_pixel), (step + s0, sway_step),
+                          (level, out.level(sway_pixel, sway_step))):
+            merged.append(torch.empty(total, dtype=arm.dtype).index_copy_(0, arm_at, arm)
+                          .index_copy_(0, sway_at, sway))
+        return merged[0], merged[1], merged[2], covered
