@@ -84,10 +84,13 @@ def to_frames(
         if int(span) < 0:
             raise ValueError(f"t_end must not be before t_start, got {int(start)} and {int(end)}")
         offset = t - start
-        index = offset * bins // span if int(span) > 0 else torch.zeros_like(offset)
+        scaled = offset * bins
+        index = scaled // span if int(span) > 0 else torch.zeros_like(offset)
         # position within the bin, exactly in [0, 1): (offset * T - index * D) / D
-        within = ((offset * bins - index * span).to(torch.float64) / int(span)
-                  if int(span) > 0 else torch.zeros_like(offset, dtype=torch.float64))
+        within = None
+        if mean_time:
+            within = ((scaled - index * span).to(torch.float64) / int(span)
+                      if int(span) > 0 else torch.zeros_like(offset, dtype=torch.float64))
     else:
         t = t.to(torch.float64)
         start, end = start.to(torch.float64), end.to(torch.float64)
@@ -101,8 +104,8 @@ def to_frames(
         index = torch.floor(scaled).to(torch.int64)
         within = scaled - index
     inside = (offset >= 0) & (t <= end)
-    last = index >= bins  # only t_end itself: it belongs to the last bin, at its end
-    within = torch.where(last, 1.0, within)[inside]
+    if mean_time:  # t_end itself (index T) belongs to the last bin, at its end
+        within = torch.where(index >= bins, 1.0, within)[inside]
     index = index.clamp(max=bins - 1)[inside]
     flat = ((index * 2 + ev.p[inside].to(torch.int64)) * h + ev.y[inside]) * w + ev.x[inside]
     counts = torch.bincount(flat, minlength=size)
