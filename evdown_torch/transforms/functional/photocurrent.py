@@ -41,6 +41,7 @@ from evdown_torch._tensors import (
     RADIX_SORT_MIN,
     changes,
     divide,
+    ends,
     region_of,
     region_pixel_count,
     region_xy,
@@ -584,20 +585,34 @@ def _events_piece(
     u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
     floor_u, on_level = snap(u)
     del u, total
+    # The reference rule on the steps that can change q only (a step that stays strictly
+    # inside the cell its predecessor ended in keeps q and crosses nothing): a tenth or less
+    # of the events when a level takes several events to cross.
+    moved = changes(floor_u)
+    moved |= first
+    moved |= on_level
+    moved[1:] |= on_level[:-1]
+    kept = where_true(moved)
+    del moved
+    region, first = take(region, kept), take(first, kept)
+    floor_u, on_level = take(floor_u, kept), take(on_level, kept)
+    firsts = where_true(first)
     # Every region's q before the piece (a 0-d zero while all are 0: no look-up).
     q_start = take(state.index, region) if bool(state.index.any()) else first.new_zeros(
         (), dtype=torch.int64)
     q = reference_index(floor_u, on_level, first, q_start)
-    del q_start
+    del q_start, floor_u, on_level
     q_before = q.roll(1)
     q_before[firsts] = take(state.index, take(region, firsts))
     cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one step keep their level order.
-    source, by_time = stable_sort_small(take(order, cross.step), n)
+    step = take(kept, cross.step)
+    source, by_time = stable_sort_small(take(order, step), n)
     out_x, out_y = region_xy(take(region, take(cross.step, by_time)).long(), out_w)
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
+    lasts = where_true(ends(first))
     new_index = state.index.clone()
     new_index.scatter_(0, take(region, lasts).long(), take(q, lasts))
     return out, PhotocurrentState(new_levels, new_index, events.t[-1].clone()), n
