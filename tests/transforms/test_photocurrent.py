@@ -385,7 +385,7 @@ def test_events_mode_matches_reference_on_wider_sensors(sensor, factor, threshol
 def test_levels_spanning_more_than_the_table(monkeypatch):
     # 70,000 ON at one pixel of a 2x1 region (c * L reaches 7): a piece's levels span more
     # than TABLE_SIZE, so the intensities are computed per event instead of looked up.
-    from evdown_torch.transforms.functional.photocurrent import TABLE_SIZE
+    from evdown_torch.transforms.functional.photocurrent_sums import TABLE_SIZE
 
     n = 70_000
     arr = np.zeros(n + 2, dtype=DVS_DTYPE)
@@ -454,7 +454,7 @@ def test_fixed_point_intensities_are_within_a_few_ulps(contrast):
     # |c * j| / 2 ulps): against exact decimal arithmetic.
     from decimal import Decimal, localcontext
 
-    from evdown_torch.transforms.functional.photocurrent import _split
+    from evdown_torch.transforms.functional.photocurrent_sums import _split
 
     scale, fine = 2.0**10, 2.0**40
     js = sorted(j for j in {0, 1, -1, 7, -7, 150, -3000, -int(700 / contrast),

@@ -10,19 +10,15 @@ counting as on it).
 
 *Events mode* (:func:`photocurrent_events`): ``log I_r`` changes only at input events. The
 stream goes in pieces (about 16 events per pixel, at most :data:`CHUNK_EVENTS`). In a piece,
-one sort groups the events by region (time order inside) and a one-byte sort of that order by
-the pixel's place in its region groups them by pixel, which gives every pixel's exact int64
-level before each of its events (:func:`grouped_levels`). Each touched region is *anchored* at
-its brightest pixel ``m_r`` at the start of the piece, and every intensity ``exp(c * (L -
-m_r))`` is written in two-word int64 fixed point (:func:`fixed_point`): the region's sum after
-each event is the anchor's sum plus a running sum of integer changes, exact, in which a
-pixel's changes telescope to its current intensity however many events it has, and regions
-do not mix (:func:`_zero_sum_cumsum`). The only errors are a few ulps of each current intensity
-and half a step of the fine word per pixel. Where that bound would exceed ``1e-10 * theta`` of
-the sum (all of a region's pixels falling some 50 log units below its anchor), or a pixel rises
-more than :data:`MAX_EXPONENT` above its anchor, the piece is cut before that event and the
-rest re-anchored; a piece cut down to one event takes its region's sum straight from the
-levels after it.
+one sort groups the events by region (time order inside); each region's photocurrent after
+each of its events comes from exact int64 fixed-point running sums anchored at its brightest
+pixel (:mod:`~evdown_torch.transforms.functional.photocurrent_sums`), to a few ulps however
+many events the piece has. Where the sums cannot hold an event to ``1e-10 * theta`` (all of a
+region's pixels falling some 50 log units below its anchor), or a pixel rises more than
+:data:`~evdown_torch.transforms.functional.photocurrent_sums.MAX_EXPONENT` above it, the
+piece is cut before that event and the rest re-anchored; a piece cut down to one event takes
+its region's sum straight from the levels after it. The reference rule then runs on the
+events that can change a region's reference index.
 
 *Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent_frames`, which shares
 the pixel levels, region geometry and level snap defined here.
@@ -30,7 +26,6 @@ the pixel levels, region geometry and level snap defined here.
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import torch
@@ -38,9 +33,7 @@ from torch import Tensor
 
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
-    RADIX_SORT_MIN,
     changes,
-    divide,
     ends,
     region_of,
     region_pixel_count,
@@ -57,14 +50,10 @@ from evdown_torch.transforms.functional._reference import (
     crossings,
     reference_index,
 )
-
-#: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: the fixed point's
-#: scale is fitted to the brightest intensity of the piece, so a pixel rising far above its
-#: region's anchor would coarsen every region's fine step (``2**-65`` of an anchor at 32).
-MAX_EXPONENT = 32.0
-
-#: Unit roundoff of float64.
-EPS = 2.0**-53
+from evdown_torch.transforms.functional.photocurrent_sums import (
+    grouped_levels,
+    running_sums,
+)
 
 
 class PhotocurrentState(NamedTuple):
@@ -175,154 +164,6 @@ def log_mean_exp(
     return m, torch.where(inside, torch.exp(below), 0.0).sum(1)
 
 
-#: Largest table of ``exp(c * j)`` values :func:`fixed_point` builds instead of calling exp
-#: per event.
-TABLE_SIZE = 1 << 16
-
-
-def grouped_levels(
-    pixel_on: Tensor, place: Tensor | None, bound: int, levels: Tensor
-) -> tuple[Tensor, Tensor]:
-    """``2 * level + on`` of each event's pixel just before it, for events grouped by region.
-
-    A stable sort of the events by a small key ``place`` groups them by pixel: events of one
-    pixel share a key and distinct pixels of one region have distinct keys, so in ``(place,
-    region, time)`` order each pixel's events are consecutive. With at most 256 keys (the
-    pixel's place in its region, plus a few bits of the region so that a key's events stay
-    close together in memory) it is a one-byte sort: no second sort over all pixels.
-
-    Args:
-        pixel_on: ``(N,)`` int64 ``2 * (y * W + x) + on`` of each event (``on``: 1 for ON, 0
-            for OFF), grouped by region, time order inside a region; overwritten.
-        place: ``(N,)`` uint8 (or int64 when ``bound > 256``) key in ``[0, bound)`` as above,
-            or ``None`` when every region is one pixel.
-        bound: bound of ``place``.
-        levels: ``(H * W,)`` int64 pixel levels before the events.
-
-    Returns:
-        ``(key, new_levels)``: ``(N,)`` int64 ``2 * L + on`` with ``L`` the level of the
-        event's pixel just before it, and a new ``(H * W,)`` tensor of the levels after all
-        the events.
-    """
-    n = pixel_on.shape[0]
-    perm = None
-    if place is not None:  # one look-up of the packed pixel and polarity: far cheaper than two
-        if place.dtype == torch.uint8 and n >= RADIX_SORT_MIN:
-            perm = torch.sort(place, stable=True).indices
-        else:
-            perm = stable_sort_small(place, bound)[1]
-        pixel_on = take(pixel_on, perm)
-    on = torch.bitwise_and(pixel_on, 1)
-    step = torch.mul(on, 2).sub_(1)
-    pixel = pixel_on.bitwise_right_shift_(1)
-    starts = where_true(changes(pixel))
-    last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1])])
-    pixel = take(pixel, starts)
-    # One cumulative sum whose first step of each pixel also moves from the previous pixel's
-    # last level to this pixel's starting level (a telescoping correction).
-    plain = torch.cumsum(step, 0)
-    first_level = take(levels, pixel)
-    final = take(plain, last) - take(plain, starts) + take(step, starts) + first_level
-    del plain
-    jump = first_level
-    jump[1:] -= final[:-1]
-    before = step.index_add(0, starts, jump).cumsum_(0).sub_(step)
-    del step
-    key = on.add_(before, alpha=2)
-    del before
-    new_levels = levels.clone()
-    new_levels.scatter_(0, pixel, final)
-    if perm is None:
-        return key, new_levels
-    return torch.empty_like(key).scatter_(0, perm, key), new_levels
-
-
-def _zero_sum_cumsum(
-    values: Tensor, start: Tensor, firsts: Tensor, lasts: Tensor, rank: Tensor
-) -> Tensor:
-    """Running sums ``start + cumsum(values)`` restarting at each segment (runs of ``rank``).
-
-    Each segment's last value is lowered by the segment's total before one global cumulative
-    sum, so that the global sum returns to 0 after every segment: its partial sums never
-    exceed one segment's (exact for int64 that fit). ``values`` is overwritten.
-
-    Args:
-        values: ``(N,)`` values, overwritten.
-        start: ``(S,)`` value of each segment before its first element.
-        firsts: ``(S,)`` int64 first position of each segment.
-        lasts: ``(S,)`` int64 last position of each segment.
-        rank: ``(N,)`` int64 segment of each element, ascending.
-    """
-    values.index_add_(0, firsts, start)
-    total = torch.zeros_like(start).index_add_(0, rank, values)
-    values.index_add_(0, lasts, total.neg())
-    return values.cumsum_(0).index_copy_(0, lasts, total)
-
-
-def _split(j: Tensor, contrast: float, scale: float, fine: float) -> tuple[Tensor, Tensor]:
-    """``exp(c * j) * scale`` of int64 ``j`` in two int64 words: ``high + low / fine``.
-
-    ``c * j`` is rarely a float; ``exp(c * j)`` is taken as ``exp(c_hi * j) * exp(c_lo * j)``
-    with ``c_hi`` (``c`` to 22 bits) times ``|j| < 2**31`` exact and ``c_lo * j`` tiny, so the
-    intensity is within 3 ulps of the exact value however large ``|c * j|`` is.
-    """
-    mantissa, exponent = math.frexp(contrast)
-    c_hi = math.ldexp(math.floor(math.ldexp(mantissa, 22)), exponent - 22)
-    j = j.to(torch.float64)
-    scaled = torch.exp(j * c_hi).mul_(torch.exp(j.mul_(contrast - c_hi))).mul_(scale)
-    high = torch.round(scaled)
-    low = torch.round(scaled.sub_(high).mul_(fine))
-    return high.to(torch.int64), low.to(torch.int64)
-
-
-class FixedPoint(NamedTuple):
-    """Intensities of a piece in two-word fixed point, ``exp(c * j) * scale ~ high + low /
-    fine`` (the error below ``1 / (2 * fine)``): integer sums are exact, and a pixel's
-    changes telescope to its current intensity however many events it has."""
-
-    anchor: tuple[Tensor, Tensor]  # (S,) int64 sums of each region's pixels' (high, low)
-    change: tuple[Tensor, Tensor]  # (N,) int64 change of (high, low) at each event
-
-
-def fixed_point(
-    key: Tensor, pixel_j: Tensor, inside: Tensor | None, lo: int, hi: int, contrast: float,
-    scale: float, fine: float,
-) -> FixedPoint:
-    """The :class:`FixedPoint` sums of the anchors and changes of the events.
-
-    Args:
-        key: ``(N,)`` int64 ``2 * j + on`` of each event, ``j`` the level of its pixel before
-            it relative to its region's anchor, in ``[lo, hi]`` (``on``: 1 ON, 0 OFF);
-            overwritten.
-        pixel_j: ``(S, n)`` int64 level of every pixel of each region relative to its anchor,
-            in ``[lo, hi]``; overwritten.
-        inside: ``(S, n)`` bool, the entry is a sensor pixel (``None``: all are).
-        lo, hi: bounds of ``j``.
-        contrast: ``c``.
-        scale, fine: powers of two.
-    """
-
-    def region_sums(values: Tensor) -> Tensor:
-        return (values if inside is None else values.masked_fill_(~inside, 0)).sum(1)
-
-    if hi - lo + 3 <= TABLE_SIZE:  # a table of intensities, then look-ups
-        words = _split(torch.arange(lo - 1, hi + 2, device=key.device), contrast, scale, fine)
-        index = pixel_j.sub_(lo - 1).view(-1)
-        anchor = tuple(region_sums(take(word, index).view_as(pixel_j)) for word in words)
-        # Row i (j = lo + i): [change by OFF, change by ON].
-        index = key.sub_(2 * lo)
-        change = tuple(take(torch.stack([word[:-2] - word[1:-1], word[2:] - word[1:-1]], 1)
-                            .reshape(-1), index) for word in words)
-        return FixedPoint(anchor, change)
-    anchor = tuple(region_sums(word) for word in _split(pixel_j, contrast, scale, fine))
-    before = divide(key, 2)
-    after = torch.where(key - 2 * before == 1, before + 1, before - 1)
-    change = tuple(a.sub_(b) for a, b in zip(_split(after, contrast, scale, fine),
-                                              _split(before, contrast, scale, fine),
-                                              strict=True))
-    return FixedPoint(anchor, change)
-
-
 class PixelLevels(NamedTuple):
     """Levels after each event of a time-ordered piece, in pixel order."""
 
@@ -393,6 +234,7 @@ def photocurrent_events(
         Two ON events in a 2x1 region at contrast ln 2: the photocurrent goes 1 -> 1.5 -> 2,
         so only the second event reaches the level ``ln 2``.
 
+        >>> import math
         >>> ev = Events.from_columns([0, 1], [0, 0], [5, 9], [1, 1])
         >>> out, _ = photocurrent_events(ev, sensor_size=(2, 1, 2), factor=(2, 1),
         ...                              contrast=math.log(2), threshold=math.log(2))
@@ -427,84 +269,6 @@ def photocurrent_events(
         size = min(size + size // 4, largest) if start + used == stop else max(used, 1024)
         start += used
     return Events(*(torch.cat(columns) for columns in zip(*outputs, strict=True))), state
-
-
-def _running_sums(
-    key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, firsts: Tensor,
-    lasts: Tensor, rank: Tensor, per_region: int, contrast: float, threshold: float,
-) -> tuple[Tensor, Tensor, Tensor | None]:
-    """Each region's anchor and its sum after each of its events, for a piece of ``N > 1``.
-
-    Args:
-        key: ``(N,)`` int64 ``2 * L + on`` of each event (``L``: its pixel's level before it),
-            grouped by region; overwritten.
-        ids: ``(S, n)`` int64 pixel ids of the touched regions (:func:`region_pixels`).
-        inside: their mask (``None``: all inside).
-        levels: ``(H * W,)`` int64 pixel levels before the piece.
-        firsts, lasts: ``(S,)`` int64 first and last position of each region's events.
-        rank: ``(N,)`` int64 region (segment) of each event.
-        per_region: ``fx * fy``.
-        contrast, threshold: ``c`` and ``theta``.
-
-    Returns:
-        ``(m, total, bad)``: ``(S,)`` int64 brightest level of each region before the piece,
-        ``(N,)`` float64 ``sum exp(c * (L_p - m))`` over the region after each event, and
-        ``None``, or an ``(N,)`` bool mask of the events the sums cannot hold (a pixel more
-        than :data:`MAX_EXPONENT` above its anchor, or a sum below what the fixed point
-        resolves to the tolerance); only the events before the first of those are valid.
-    """
-    # Anchor: each touched region's brightest pixel m before the piece, and every pixel's
-    # level relative to it (j <= 0); the same j of each event's pixel before it, in
-    # key = 2 * j + on.
-    pixel_j = take(levels, ids.view(-1)).view_as(ids)
-    if inside is None:
-        m = pixel_j.amax(1)
-    else:
-        m = pixel_j.masked_fill(~inside, torch.iinfo(torch.int64).min).amax(1)
-    pixel_j -= m[:, None]
-    if inside is not None:
-        pixel_j.masked_fill_(~inside, 0)
-    key -= take(m * 2, rank)
-    lo, hi = (int(v) // 2 for v in torch.aminmax(key))
-    lo, hi = min(lo, int(pixel_j.min())), max(hi, 0)
-    darkest = -math.ceil(800 / contrast)  # exp(c * j) is 0 for j <= darkest + 1
-    if lo < darkest:
-        key.clamp_(min=2 * darkest)
-        pixel_j.clamp_(min=darkest)
-        lo = darkest
-    # A pixel may end a step at most MAX_EXPONENT above its anchor (one level at least, for
-    # contrasts above MAX_EXPONENT).
-    brightest = max(math.floor(MAX_EXPONENT / contrast) - 1, 0)
-    bad = None
-    if hi > brightest:  # a pixel too far above its anchor: cut before its event
-        bad = key > 2 * brightest + 1
-        key.clamp_(max=2 * brightest + 1)
-        hi = brightest
-    # Two-word fixed point: a region's sum of either word stays below 2**61.
-    top = max(math.exp(contrast * (hi + 1)), 1.0)
-    bits = 61 - (2 * per_region).bit_length()
-    scale = math.ldexp(1.0, bits - math.frexp(top)[1])
-    fine = math.ldexp(1.0, bits)
-    sums = fixed_point(key, pixel_j, inside, lo, hi, contrast, scale, fine)
-    del pixel_j
-    # The region's sum after each event, times scale.
-    high, low = (_zero_sum_cumsum(change, anchor, firsts, lasts, rank)
-                 for anchor, change in zip(sums.anchor, sums.change, strict=True))
-    del sums
-    total = low.to(torch.float64).mul_(1 / fine).add_(high)
-    del high, low
-
-    # Error bound of each sum (in units of 1 / scale): a few ulps of every intensity (exp,
-    # see _split, and the conversions) and half a step of the fine word per pixel.
-    slack = 6
-    tolerance = max(1e-10 * threshold, 4 * slack * EPS)
-    lowest = per_region / (2 * fine) / (tolerance - slack * EPS)  # the smallest sum held
-    if not float(total.min()) >= lowest:  # NaN fails too
-        weak = ~(total >= lowest)
-        bad = weak if bad is None else bad | weak
-    if bad is not None and not bool(bad.any()):
-        bad = None
-    return m, total.mul_(1 / scale), bad
 
 
 def _events_piece(
@@ -559,7 +323,7 @@ def _events_piece(
         m, total = log_mean_exp(new_levels[ids], inside, contrast)
         bad = None
     else:
-        m, total, bad = _running_sums(key, ids, inside, state.level, firsts, lasts, rank,
+        m, total, bad = running_sums(key, ids, inside, state.level, firsts, lasts, rank,
                                       per_region, contrast, threshold)
     del ids, inside, key
     if bad is not None:  # the running sums cannot hold an event: cut the piece before it
