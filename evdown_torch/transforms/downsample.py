@@ -12,8 +12,8 @@ from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms._batch import run_stacked, sorted_within
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.funnelling import (
-    drop_repeats,
     event_funnelling,
+    funnel_sorted,
     last_instant,
 )
 
@@ -84,5 +84,6 @@ class EventFunnelling(Downscaler):
         a later chunk can repeat (a repeat shares ``t``), so duplicates that straddle a chunk
         boundary are still dropped.
         """
-        out = drop_repeats(downsample(events, factor=self.factor_xy), seen=state)
+        width, height, _ = self.output_sensor_size
+        out = funnel_sorted(events, self.factor_xy, seen=state, size=(width, height))
         return out, last_instant(out, state)

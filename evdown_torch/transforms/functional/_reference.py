@@ -263,7 +263,7 @@ def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Ten
 
 def step_crossings(
     floor_u: Tensor, on_level: Tensor, first: Tensor, *, emitted: int = 0,
-    q_start: Tensor | None = None,
+    q_start: Tensor | None = None, q_first: Tensor | None = None,
 ) -> Crossings:
     """The reference rule over monotone steps grouped by region, from ``q = q_start``.
 
@@ -279,6 +279,8 @@ def step_crossings(
         emitted: events the call already emitted (see :func:`crossings`).
         q_start: ``(S,)`` int64 ``q`` of each step's region before its first step (read
             where ``first``; a resumed stream), or ``None`` for 0 (a fresh one).
+        q_first: the same values given once per region instead: ``(F,)`` int64, one for
+            each True of ``first`` in order (``q_start`` must then be ``None``).
 
     Returns:
         The crossings, with ``step`` indexing the given steps.
@@ -287,7 +289,12 @@ def step_crossings(
     moved[1:] |= on_level[:-1]
     kept = where_true(moved)
     floor_k, first_k = take(floor_u, kept), take(first, kept)
-    q0 = torch.zeros_like(floor_k) if q_start is None else take(q_start, kept)
+    if q_start is not None:
+        q0 = take(q_start, kept)
+    else:
+        q0 = torch.zeros_like(floor_k)
+        if q_first is not None:  # every first step is kept, in order
+            q0[first_k] = q_first.to(q0.dtype)
     q = reference_index(floor_k, take(on_level, kept), first_k, q0)
     q_before = torch.empty_like(q)
     q_before[1:] = q[:-1]
