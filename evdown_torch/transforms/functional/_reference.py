@@ -147,16 +147,16 @@ def reference_index(floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: T
     starts |= on_level
     starts |= on_level.roll(1)
     starts |= first
-    at = starts.nonzero().squeeze(1)
-    m = floor_u[at]
-    value = m + (prev_floor[at] > m)  # entered from above: m + 1; from below: m
-    first_at = first[at]
-    q0 = q_start[at] if q_start.ndim else q_start.expand_as(m)
+    at = where_true(starts)
+    m = take(floor_u, at)
+    value = m + (take(prev_floor, at) > m)  # entered from above: m + 1; from below: m
+    first_at = take(first, at)
+    q0 = take(q_start, at) if q_start.ndim else q_start.expand_as(m)
     value = torch.where(first_at, torch.minimum(torch.maximum(q0, m), m + 1), value)
-    value = torch.where(on_level[at], m, value)
+    value = torch.where(take(on_level, at), m, value)
     run = torch.cumsum(starts, 0)
     run -= 1
-    return value[run]
+    return take(value, run)
 
 
 class Crossings(NamedTuple):
@@ -198,17 +198,17 @@ def crossings(q_before: Tensor, q_after: Tensor, *, emitted: int = 0) -> Crossin
         ([0, 0, 2], [1, 2, 1], [True, True, False])
     """
     delta = q_after - q_before
-    changed = delta.nonzero().squeeze(1)
-    delta = delta[changed]
+    changed = where_true(delta != 0)
+    delta = take(delta, changed)
     count = delta.abs()
     check_output_count(emitted + int(count.sum()))
     pick = torch.repeat_interleave(torch.arange(changed.shape[0], device=delta.device), count)
     offsets = torch.cumsum(count, 0) - count
-    within = torch.arange(pick.shape[0], device=delta.device) - offsets[pick]
-    on = delta[pick] > 0
-    base = q_before[changed][pick]
+    within = torch.arange(pick.shape[0], device=delta.device) - take(offsets, pick)
+    on = take(delta, pick) > 0
+    base = take(take(q_before, changed), pick)
     level = torch.where(on, base + 1 + within, base - 1 - within)
-    return Crossings(changed[pick], level, on)
+    return Crossings(take(changed, pick), level, on)
 
 
 def level_index(
