@@ -22,6 +22,7 @@ __all__ = [
     "divide",
     "ends",
     "floor_divide_exact",
+    "narrow_dtype",
     "region_of",
     "region_pixel_count",
     "region_xy",
@@ -196,14 +197,22 @@ def stable_sort_small(
     return _sort_narrow(keys, bound, narrow)
 
 
-def _sort_narrow(keys: Tensor, bound: int, narrow: bool) -> tuple[Tensor, Tensor]:
+def narrow_dtype(bound: int) -> torch.dtype:
+    """The narrowest of int16, int32 and int64 that holds every integer in ``[0, bound)``.
+
+    Example:
+        >>> narrow_dtype(1 << 15), narrow_dtype((1 << 15) + 1), narrow_dtype(1 << 40)
+        (torch.int16, torch.int32, torch.int64)
+    """
     if bound <= 1 << 15:
-        small = keys.to(torch.int16)
-    elif bound <= 1 << 31:
-        small = keys.to(torch.int32)
-    else:
-        small = keys
-    values, order = torch.sort(small, stable=True)
+        return torch.int16
+    if bound <= 1 << 31:
+        return torch.int32
+    return torch.int64
+
+
+def _sort_narrow(keys: Tensor, bound: int, narrow: bool) -> tuple[Tensor, Tensor]:
+    values, order = torch.sort(keys.to(narrow_dtype(bound)), stable=True)
     return (values if narrow else values.to(torch.int64)), order
 
 

@@ -13,6 +13,7 @@ from evdown_torch._tensors import (
     divide,
     ends,
     floor_divide_exact,
+    narrow_dtype,
     region_pixel_count,
     region_xy,
     sort_by_time,
@@ -162,9 +163,14 @@ def _event_count_sorted(
     # int32 arithmetic is exact when every b * S and a * n_r fits (the usual case).
     dtype = torch.int32 if 4 * bound * b < 2**31 and most * a < 2**31 else torch.int64
 
-    # Group by region, time order kept inside each group.
-    region_id = divide(events.y, factor[1])
-    region_id.mul_(out_w).add_(divide(events.x, factor[0]))
+    # Group by region, time order kept inside each group: region ids computed in the narrowest
+    # integer type that holds the coordinates and the ids (int16 for sensors up to 32,768).
+    narrow = narrow_dtype(max(out_w * factor[0], regions // out_w * factor[1], regions))
+    region_id = events.y.to(narrow, copy=True)
+    divide(region_id, factor[1], out=region_id).mul_(out_w)
+    column = events.x.to(narrow, copy=True)
+    region_id += divide(column, factor[0], out=column)
+    del column
     region, order = stable_sort_small(region_id, regions, narrow=True)
     del region_id
     # Each region's first and last grouped event, by bisection on the sorted region ids.

@@ -8,6 +8,7 @@ from torch import Tensor
 from evdown_torch._tensors import (
     chunk_bounds,
     divide,
+    narrow_dtype,
     sort_by_time,
     stable_sort_small,
     take,
@@ -115,19 +116,28 @@ def funnel_sorted(
         The kept events in output coordinates (new tensors), in their order.
     """
     n = events.num_events
-    x = events.x if factor[0] == 1 else divide(events.x, factor[0])
-    y = events.y if factor[1] == 1 else divide(events.y, factor[1])
+    fx, fy = factor
     if n == 0:
-        return Events(x.clone(), y.clone(), events.t.clone(), events.p.clone())
+        return Events(divide(events.x, fx), divide(events.y, fy), events.t.clone(),
+                      events.p.clone())
     if size is None:
-        width, height = int(x.max()) + 1, int(y.max()) + 1
+        width, height = int(events.x.max()) // fx + 1, int(events.y.max()) // fy + 1
         if seen is not None and seen.num_events:
             width = max(width, int(seen.x.max()) + 1)
     else:
         width, height = size
+    # Output coordinates and keys in the narrowest integer type that holds them (int16 for
+    # sensors up to 128x128 output pixels): a quarter of the memory traffic of int64.
+    narrow = narrow_dtype(max(2 * width * height, width * fx, height * fy))
+    x = events.x.to(narrow, copy=True)
+    y = events.y.to(narrow, copy=True)
+    if fx != 1:
+        divide(x, fx, out=x)
+    if fy != 1:
+        divide(y, fy, out=y)
     repeat = None
     if n > 1:
-        key = torch.mul(y, 2 * width)
+        key = y * (2 * width)
         key.add_(x, alpha=2).add_(events.p)
         sorted_key, order = stable_sort_small(key, 2 * width * height, narrow=True)
         del key
@@ -143,19 +153,16 @@ def funnel_sorted(
         head = int(torch.searchsorted(events.t, seen.t[-1:], side="right"))
         if head:
             seen_key = seen.y * (2 * width) + seen.x * 2 + seen.p
-            head_key = y[:head] * (2 * width) + x[:head] * 2 + events.p[:head]
+            head_key = y[:head].to(torch.int64) * (2 * width) + x[:head] * 2 + events.p[:head]
             again = torch.isin(head_key, seen_key)
             if repeat is None:
                 repeat = torch.zeros(n, dtype=torch.bool, device=events.device)
             repeat[:head] |= again
     if repeat is None or not bool(repeat.any()):
-        return Events(
-            x.clone() if x is events.x else x,
-            y.clone() if y is events.y else y,
-            events.t.clone(),
-            events.p.clone(),
-        )
-    return _compact(Events(x, y, events.t, events.p), ~repeat)
+        kept = Events(x, y, events.t.clone(), events.p.clone())
+    else:
+        kept = _compact(Events(x, y, events.t, events.p), ~repeat)
+    return Events(kept.x.to(torch.int64), kept.y.to(torch.int64), kept.t, kept.p)
 
 
 def _compact(events: Events, keep: Tensor) -> Events:
