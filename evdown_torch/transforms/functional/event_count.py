@@ -176,10 +176,9 @@ def _event_count_sorted(
     # Each region's first and last grouped event, by bisection on the sorted region ids.
     ids = torch.arange(regions, dtype=region.dtype, device=device)
     edges = torch.cat([torch.searchsorted(region, ids), ids.new_tensor([n], dtype=torch.int64)])
-    touched = where_true(edges[1:] > edges[:-1])
+    touched = where_true(edges[1:] > edges[:-1])  # regions with events in this chunk
     firsts = take(edges, touched)
     lasts = take(edges[1:], touched) - 1
-    first_region = touched
     first = torch.zeros(n, dtype=torch.bool, device=device).index_fill_(0, firsts, True)
 
     # Level sum S of each region after each of its events: one running sum over the grouped
@@ -188,7 +187,7 @@ def _event_count_sorted(
     step = take(events.p, order).to(dtype).mul_(2).sub_(1)
     total = torch.cumsum(step, 0, dtype=dtype)
     before = take(total, firsts) - take(step, firsts)  # running sum before each first step
-    offset = take(state.level_sum, first_region) - before
+    offset = take(state.level_sum, touched) - before
     offset[1:] -= offset[:-1].clone()
     step.index_add_(0, firsts, offset.to(dtype))
     level_sum = torch.cumsum(step, 0, dtype=dtype, out=total)
@@ -204,7 +203,7 @@ def _event_count_sorted(
         denominator = take((pixels * a).to(dtype), region.to(torch.int32))
     floor_u, on_level = floor_divide_exact(numerator, denominator)
     del numerator, level_sum
-    q_first = None if not bool(state.index.any()) else take(state.index, first_region)
+    q_first = None if not bool(state.index.any()) else take(state.index, touched)
     cross = step_crossings(floor_u, on_level, first, emitted=emitted, q_first=q_first)
 
     # Back to time order: crossings of one step keep their level order.
