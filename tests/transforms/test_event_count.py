@@ -266,3 +266,26 @@ def test_step_crossings_from_one_start_per_region_equal_one_per_step(rng):
     assert expected.step.numel() > 0
     for a, b in zip(got, expected):
         assert torch.equal(a, b)
+
+
+def test_step_crossings_of_steps_that_land_on_every_level_skip_nothing(rng):
+    from evdown_torch.transforms.functional._reference import step_crossings
+
+    # Steps of a quarter level (as b * S moves by one against levels of 4): each level the
+    # walk reaches, it lands on; only first steps and steps on a level need solving.
+    sizes = rng.integers(1, 60, 30)
+    first = np.zeros(sizes.sum(), dtype=bool)
+    first[np.cumsum(sizes) - sizes] = True
+    steps = rng.choice([-1, 1], sizes.sum())
+    u4 = np.cumsum(steps)
+    floor_u = torch.as_tensor(np.floor_divide(u4, 4))
+    on_level = torch.as_tensor(u4 % 4 == 0)
+    start_u4 = u4[first] - steps[first]  # the walk just before each region's first step
+    q_region = torch.as_tensor(np.floor_divide(start_u4, 4) + (start_u4 % 4 != 0)
+                               * rng.integers(0, 2, len(sizes)))
+    first = torch.as_tensor(first)
+    expected = step_crossings(floor_u, on_level, first, q_first=q_region)
+    got = step_crossings(floor_u, on_level, first, q_first=q_region, lands_on_levels=True)
+    assert expected.step.numel() > 10
+    for a, b in zip(got, expected):
+        assert torch.equal(a, b)

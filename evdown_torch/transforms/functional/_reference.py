@@ -263,7 +263,7 @@ def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Ten
 
 def step_crossings(
     floor_u: Tensor, on_level: Tensor, first: Tensor, *, emitted: int = 0,
-    q_start: Tensor | None = None, q_first: Tensor | None = None,
+    q_start: Tensor | None = None, q_first: Tensor | None = None, lands_on_levels: bool = False,
 ) -> Crossings:
     """The reference rule over monotone steps grouped by region, from ``q = q_start``.
 
@@ -281,12 +281,19 @@ def step_crossings(
             where ``first``; a resumed stream), or ``None`` for 0 (a fresh one).
         q_first: the same values given once per region instead: ``(F,)`` int64, one for
             each True of ``first`` in order (``q_start`` must then be ``None``).
+        lands_on_levels: every step ends on each level it reaches (EventCount with an integer
+            threshold: a step moves ``b * S`` by one, the levels are multiples of the integer
+            ``a * n_r``). A step that ends off every level then keeps ``q``, so only first
+            steps and steps on a level are solved.
 
     Returns:
         The crossings, with ``step`` indexing the given steps.
     """
-    moved = first | on_level | changes(floor_u)
-    moved[1:] |= on_level[:-1]
+    if lands_on_levels:
+        moved = first | on_level
+    else:
+        moved = first | on_level | changes(floor_u)
+        moved[1:] |= on_level[:-1]
     kept = where_true(moved)
     floor_k, first_k = take(floor_u, kept), take(first, kept)
     if q_start is not None:

@@ -204,7 +204,9 @@ def _event_count_sorted(
     floor_u, on_level = floor_divide_exact(numerator, denominator)
     del numerator, level_sum
     q_first = None if not bool(state.index.any()) else take(state.index, touched)
-    cross = step_crossings(floor_u, on_level, first, emitted=emitted, q_first=q_first)
+    # With an integer threshold (b == 1) a step moves b * S by one: it lands on every level.
+    cross = step_crossings(floor_u, on_level, first, emitted=emitted, q_first=q_first,
+                           lands_on_levels=b == 1)
 
     # Back to time order: crossings of one step keep their level order.
     step_at = cross.step
