@@ -22,6 +22,7 @@ __all__ = [
     "divide",
     "ends",
     "floor_divide_exact",
+    "narrow_dtype",
     "region_of",
     "region_pixel_count",
     "region_xy",
@@ -167,16 +168,17 @@ PAD_SORT_MIN = 1 << 13
 
 
 def stable_sort_small(
-    keys: Tensor, bound: int | None = None, *, int64_keys: bool = True
+    keys: Tensor, bound: int | None = None, *, narrow: bool = False
 ) -> tuple[Tensor, Tensor]:
     """Stable sort of non-negative int64 ``keys < bound``: ``(sorted int64 keys, permutation)``.
 
-    The keys are sorted as uint8, int16 or int32 when ``bound`` (by default
-    ``max(keys) + 1``) allows: two to five times faster than int64 on the CPU. On a CPU whose
-    torch build has the radix sort, 8,192 to 32,767 keys are padded to :data:`RADIX_SORT_MIN`
-    with ``bound - 1`` (the sort is stable, so the padding lands after every real key and the
-    first ``n`` results are the plain sort's), which is several times faster there. With
-    ``int64_keys=False`` the sorted keys keep the narrow dtype they were sorted in (no copy).
+    The keys are sorted as uint8 (below 256), int16 or int32 when ``bound`` (by default
+    ``max(keys) + 1``) allows: two to five times faster than int64 on the CPU. On a CPU whose torch build has
+    the radix sort, 8,192 to 32,767 keys are padded to :data:`RADIX_SORT_MIN` with
+    ``bound - 1`` (the sort is stable, so the padding lands after every real key and the
+    first ``n`` results are the plain sort's), which is several times faster there.
+    With ``narrow=True`` the sorted keys come back as :func:`narrow_dtype` ``(bound)`` (int16,
+    int32 or int64: a quarter or half of the memory of int64 keys).
 
     Example:
         >>> keys = torch.tensor([2, 0, 2, 1])
@@ -190,22 +192,32 @@ def stable_sort_small(
     if RADIX_SORT and keys.device.type == "cpu" and PAD_SORT_MIN <= n < RADIX_SORT_MIN:
         padded = torch.full((RADIX_SORT_MIN,), bound - 1, dtype=keys.dtype)
         padded[:n] = keys
-        values, order = _sort_narrow(padded, bound, int64_keys)
+        values, order = _sort_narrow(padded, bound, narrow)
         return values[:n], order[:n]
-    return _sort_narrow(keys, bound, int64_keys)
+    return _sort_narrow(keys, bound, narrow)
 
 
-def _sort_narrow(keys: Tensor, bound: int, int64_keys: bool = True) -> tuple[Tensor, Tensor]:
-    if bound <= 1 << 8:
-        small = keys.to(torch.uint8)  # one radix pass: about twice as fast as int16
-    elif bound <= 1 << 15:
-        small = keys.to(torch.int16)
-    elif bound <= 1 << 31:
-        small = keys.to(torch.int32)
-    else:
-        small = keys
-    values, order = torch.sort(small, stable=True)
-    return (values.to(torch.int64) if int64_keys else values), order
+def narrow_dtype(bound: int) -> torch.dtype:
+    """The narrowest of int16, int32 and int64 that holds every integer in ``[0, bound)``.
+
+    Example:
+        >>> narrow_dtype(1 << 15), narrow_dtype((1 << 15) + 1), narrow_dtype(1 << 40)
+        (torch.int16, torch.int32, torch.int64)
+    """
+    if bound <= 1 << 15:
+        return torch.int16
+    if bound <= 1 << 31:
+        return torch.int32
+    return torch.int64
+
+
+def _sort_narrow(keys: Tensor, bound: int, narrow: bool) -> tuple[Tensor, Tensor]:
+    dtype = narrow_dtype(bound)
+    if bound <= 1 << 8:  # sorted as uint8: one radix pass, about twice as fast as int16
+        values, order = torch.sort(keys.to(torch.uint8), stable=True)
+        return values.to(dtype if narrow else torch.int64), order
+    values, order = torch.sort(keys.to(dtype), stable=True)
+    return (values if narrow else values.to(torch.int64)), order
 
 
 # --- Integer division ----------------------------------------------------------------------

@@ -392,6 +392,9 @@ def test_replay_gives_the_batch_output_and_bounded_delays(rng):
     summary = result.summary()
     assert summary["keeps_up"] == (summary["p99_s"] < 1e-3)
     assert summary["delay_us"]["max"] == max(result.delays_us)
+    # Page faults are counted for each timed chunk (never negative).
+    assert len(result.faults) == result.chunks and min(result.faults) >= 0
+    assert min(result.faults) <= summary["median_faults"] <= max(result.faults)
 
 
 def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_path, capsys):
@@ -416,7 +419,8 @@ def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_pat
                for d in data if "delay_us" in d)
     skipped = {d["method"] for d in data if d["note"]}
     assert skipped <= {"lif", "photocurrent"}  # only methods without the common session
-    assert "realtime.md" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "realtime.md" in printed and "Memory allocator: " in printed
 
 
 def test_sustained_rate_scales_the_replayed_rate_to_the_p99():

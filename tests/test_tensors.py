@@ -19,8 +19,20 @@ def test_padded_sort_is_the_stable_sort(n, bound, rng):
     expected = torch.sort(keys, stable=True)
     assert torch.equal(values, expected.values)
     assert torch.equal(order, expected.indices)
-    narrow, narrow_order = stable_sort_small(keys, bound, int64_keys=False)
-    assert narrow.dtype == (torch.uint8 if bound <= 256 else torch.int16 if bound <= 1 << 15
-                            else torch.int32)
-    assert torch.equal(narrow.long(), expected.values)
-    assert torch.equal(narrow_order, expected.indices)
+
+
+@pytest.mark.parametrize(
+    ("bound", "dtype"),
+    [(7, torch.int16), (256, torch.int16), (257, torch.int16), (1 << 15, torch.int16),
+     ((1 << 15) + 1, torch.int32),
+     (1 << 31, torch.int32), ((1 << 31) + 1, torch.int64)],
+)
+@pytest.mark.parametrize("n", [100, 9000, 40000])
+def test_narrow_sort_returns_the_keys_in_the_dtype_they_were_sorted_as(bound, dtype, n, rng):
+    keys = torch.as_tensor(rng.integers(0, bound, n))
+    keys[: n // 4] = bound - 1
+    values, order = stable_sort_small(keys, bound, narrow=True)
+    expected = torch.sort(keys, stable=True)
+    assert values.dtype == dtype and order.dtype == torch.int64
+    assert torch.equal(values.to(torch.int64), expected.values)
+    assert torch.equal(order, expected.indices)

@@ -46,6 +46,7 @@ def _realtime_from_args(args: argparse.Namespace) -> int:
     from evdown_torch.bench.inputs import gesture_stream
     from evdown_torch.bench.realtime import (
         REALTIME_RATE,
+        allocator_settings,
         realtime_benchmark,
         write_realtime_report,
     )
@@ -68,7 +69,8 @@ def _realtime_from_args(args: argparse.Namespace) -> int:
     header = (
         f"Real-time replay of {source}, {sensor[0]}x{sensor[1]}, factor 4, one thread; "
         f"at its own rate and at {REALTIME_RATE / 1e6:g} M events/s; up to {max_chunks} timed "
-        f"chunks per replay; {time.perf_counter() - start:.0f} s.\n\n"
+        f"chunks per replay; {time.perf_counter() - start:.0f} s. Memory allocator: "
+        f"{allocator_settings()}.\n\n"
     )
     written = write_realtime_report(results, args.out, header=header)
     print(header + (Path(written[0]).read_text()[len(header):]))

@@ -21,11 +21,20 @@ Only the chunks of a replay are timed (the recording is loaded and retimed first
 chunk's call warms up and the stream's last chunk (cut short by the end of the recording) is
 processed but not counted. A method without a session of the common shape
 (:class:`~evdown_torch.transforms.Session`) is skipped with a note.
+
+**Memory allocator.** With glibc's default settings, the memory a chunk's temporaries free
+goes back to the system, and the next chunk pays a page fault for every 4 KiB it touches
+again: on a small VM that is a large share of a short chunk's time. A live process keeps its
+memory instead, with glibc's documented environment variables (no code change), e.g.
+``MALLOC_TRIM_THRESHOLD_=1073741824 MALLOC_MMAP_THRESHOLD_=33554432``. The report's header
+names the settings it ran under (:func:`allocator_settings`) and the JSON gives the minor page
+faults of the median chunk, so runs under both settings can be told apart and compared.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import time
 from collections.abc import Sequence
@@ -41,10 +50,12 @@ from evdown_torch.transforms import Chain, Streaming, TemporalFunnelling
 from evdown_torch.transforms.registry import make_method
 
 __all__ = [
+    "ALLOCATOR_VARIABLES",
     "REALTIME_CHUNKS_US",
     "REALTIME_METHODS",
     "REALTIME_RATE",
     "ReplayResult",
+    "allocator_settings",
     "chunk_bounds_us",
     "realtime_benchmark",
     "realtime_markdown",
@@ -72,6 +83,34 @@ REALTIME_METHODS: dict[str, tuple[str, dict[str, Any]]] = {
 }
 
 
+#: Environment variables that set glibc's malloc (read once, when the process starts).
+ALLOCATOR_VARIABLES = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TOP_PAD_",
+                       "MALLOC_MMAP_MAX_", "GLIBC_TUNABLES", "LD_PRELOAD")
+
+
+def allocator_settings(environ: dict[str, str] | None = None) -> str:
+    """The memory allocator settings this process runs under, in words (for the report).
+
+    Example:
+        >>> allocator_settings({})
+        'glibc defaults (freed memory goes back to the system)'
+        >>> allocator_settings({"MALLOC_TRIM_THRESHOLD_": "1073741824", "HOME": "/root"})
+        'MALLOC_TRIM_THRESHOLD_=1073741824'
+    """
+    environ = os.environ if environ is None else environ
+    named = [f"{name}={environ[name]}" for name in ALLOCATOR_VARIABLES if environ.get(name)]
+    return ", ".join(named) if named else "glibc defaults (freed memory goes back to the system)"
+
+
+def _minor_faults() -> int:
+    """Minor page faults of this process so far (0 where the platform does not count them)."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not on Unix
+        return 0
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_minflt)
+
+
 @dataclass
 class ReplayResult:
     """One method replayed at one rate in chunks of one duration.
@@ -86,6 +125,8 @@ class ReplayResult:
         seconds: wall-clock seconds of each timed chunk.
         cpu_seconds: process CPU seconds of each timed chunk.
         chunk_events: input events of each timed chunk.
+        faults: minor page faults (memory the process had given back and touched again)
+            during each timed chunk.
         delays_us: output delay of every output event (only for lagging methods).
         note: why a method was skipped, else empty.
     """
@@ -99,6 +140,7 @@ class ReplayResult:
     seconds: list[float] = field(default_factory=list)
     cpu_seconds: list[float] = field(default_factory=list)
     chunk_events: list[int] = field(default_factory=list)
+    faults: list[int] = field(default_factory=list)
     delays_us: list[float] = field(default_factory=list)
     note: str = ""
 
@@ -135,12 +177,13 @@ class ReplayResult:
     def summary(self) -> dict[str, Any]:
         """The result with its statistics, for JSON."""
         out = asdict(self)
-        for name in ("seconds", "cpu_seconds", "chunk_events"):
+        for name in ("seconds", "cpu_seconds", "chunk_events", "faults"):
             out.pop(name)
         delays = out.pop("delays_us")
         out.update(median_s=self.median_s, p99_s=self.p99_s, p99_cpu_s=self.p99_cpu_s,
                    keeps_up=self.keeps_up,
-                   sustained_rate=self.sustained_rate)
+                   sustained_rate=self.sustained_rate,
+                   median_faults=statistics.median(self.faults) if self.faults else None)
         if delays:
             out["delay_us"] = {q: float(np.percentile(delays, p)) for q, p in
                                (("median", 50), ("p99", 99), ("max", 100))}
@@ -223,10 +266,12 @@ def replay(
     last = len(bounds) - 1 if max_chunks is None else min(len(bounds) - 1, max_chunks + 1)
     for k in range(last):
         chunk = events[bounds[k]:bounds[k + 1]]
+        faults = _minor_faults()
         start, start_cpu = time.perf_counter(), time.process_time()
         out = session(chunk)
         elapsed, cpu = time.perf_counter() - start, time.process_time() - start_cpu
         if 0 < k < len(bounds) - 2:  # neither the warm-up nor the stream's last chunk
+            result.faults.append(_minor_faults() - faults)
             result.seconds.append(elapsed)
             result.cpu_seconds.append(cpu)
             result.chunk_events.append(len(chunk))

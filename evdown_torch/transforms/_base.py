@@ -119,15 +119,16 @@ class Session:
                 raise ValueError(
                     f"chunk timestamps are {events.t.dtype} but the stream's are {self._t_dtype}"
                 )
-        first = events.t.min().item()
+        events = sort_by_time(events)
+        first = events.t[0].item()
         if self.last_t is not None and first < self.last_t:
             raise ValueError(
                 f"chunks must follow each other in time: this chunk holds t={first}, before "
                 f"the previous chunks' last event at t={self.last_t}"
             )
-        out, state = self.transform.stream(sort_by_time(events), self.state)
+        out, state = self.transform.stream(events, self.state)
         self.state = state
-        self.last_t = events.t.max().item()
+        self.last_t = events.t[-1].item()
         self._fmt, self._t_dtype, self._device = fmt, events.t.dtype, events.device
         return from_events(out, fmt)
 

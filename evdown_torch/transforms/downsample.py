@@ -12,8 +12,8 @@ from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms._batch import run_stacked, sorted_within
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.funnelling import (
-    drop_repeats,
     event_funnelling,
+    funnel_sorted,
     last_instant,
 )
 
@@ -49,8 +49,10 @@ class Downsample(Downscaler):
         return run_stacked(batch, lambda s: downsample(s.events, factor=self.factor_xy),
                            sensor_size=self.sensor_size, factor=self.factor_xy)
     def stream(self, events: Events, state: Any | None) -> tuple[Events, None]:
-        """One chunk of a stream: stateless, every event is decided at once."""
-        return self.kernel(events), None
+        """One chunk of a stream (already in time order): stateless, every event is decided
+        at once."""
+        x, y = region_of(events, self.factor_xy)
+        return Events(x, y, events.t.clone(), events.p.clone()), None
 
 
 @dataclass(frozen=True)
@@ -84,5 +86,6 @@ class EventFunnelling(Downscaler):
         a later chunk can repeat (a repeat shares ``t``), so duplicates that straddle a chunk
         boundary are still dropped.
         """
-        out = drop_repeats(downsample(events, factor=self.factor_xy), seen=state)
+        width, height, _ = self.output_sensor_size
+        out = funnel_sorted(events, self.factor_xy, seen=state, size=(width, height))
         return out, last_instant(out, state)

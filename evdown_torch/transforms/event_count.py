@@ -11,6 +11,7 @@ from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.event_count import (
     EventCountState,
     event_count,
+    event_count_sorted,
 )
 
 
@@ -63,7 +64,7 @@ class EventCount(ThresholdDownscaler):
         The state (:class:`~evdown_torch.transforms.functional.event_count.EventCountState`)
         holds each region's level sum and reference index.
         """
-        return event_count(
+        return event_count_sorted(
             events,
             sensor_size=self.sensor_size,
             factor=self.factor_xy,

@@ -176,3 +176,52 @@ def test_funnelling_in_chunks_never_splits_a_timestamp(rng, monkeypatch):
     got = list(zip(whole["x"].tolist(), whole["y"].tolist(), whole["t"].tolist(),
                    whole["p"].tolist()))
     assert got == funnel_reference(arr, 2, 2)
+
+
+WIDE_DTYPE = np.dtype([("x", "<i4"), ("y", "<i4"), ("p", "?"), ("t", "<i8")])
+
+
+@pytest.mark.parametrize(
+    ("sensor", "factor"),
+    [((200, 100, 2), 1),  # 40,000 keys: sorted as int32
+     ((70_000, 40_000, 2), 1),  # 5.6e9 keys: sorted as int64
+     ((70_000, 40_000, 2), (1000, 3))],
+)
+def test_funnelling_on_large_output_sensors_matches_the_reference(sensor, factor, rng):
+    # A few pixels far apart, repeated at few timestamps: many repeats on a wide key range.
+    pixels = np.stack([rng.integers(0, sensor[0], 12), rng.integers(0, sensor[1], 12)], 1)
+    pick = rng.integers(0, 12, 3000)
+    arr = np.empty(3000, dtype=WIDE_DTYPE)
+    arr["x"], arr["y"] = pixels[pick, 0], pixels[pick, 1]
+    arr["t"] = rng.integers(0, 30, 3000)
+    arr["p"] = rng.random(3000) < 0.5
+    fx, fy = (factor, factor) if isinstance(factor, int) else factor
+    transform = EventFunnelling(sensor, factor=factor)
+    out = transform(arr)
+    got = list(zip(out["x"].tolist(), out["y"].tolist(), out["t"].tolist(), out["p"].tolist()))
+    assert got == funnel_reference(arr, fx, fy)
+    in_order = arr[np.argsort(arr["t"], kind="stable")]
+    session = transform.session()
+    parts = [session(chunk) for chunk in np.array_split(in_order, 7)]
+    np.testing.assert_array_equal(np.concatenate(parts), out)
+
+
+def test_drop_repeats_compares_with_seen_events_beyond_the_chunks_coordinates():
+    from evdown_torch.transforms.functional.funnelling import drop_repeats
+
+    # seen (5, 0, ON) and the chunk's (2, 1, ON) would share a key built on the chunk's own
+    # width (3): 2 * (0 * 3 + 5) + 1 == 2 * (1 * 3 + 2) + 1.
+    seen = Events.from_columns([5], [0], [7], [1])
+    ev = Events.from_columns([2, 2, 0], [1, 1, 0], [7, 7, 8], [1, 1, 1])
+    out = drop_repeats(ev, seen=seen)
+    assert list(zip(out.x.tolist(), out.y.tolist(), out.t.tolist())) == [(2, 1, 7), (0, 0, 8)]
+
+
+def test_funnelling_output_never_shares_memory_with_the_input():
+    from evdown_torch.transforms.functional.funnelling import drop_repeats, event_funnelling
+
+    ev = Events.from_columns([0, 1, 2], [0, 0, 0], [1, 2, 3], [1, 0, 1])  # no repeats
+    for out in (event_funnelling(ev, factor=(1, 1)), drop_repeats(ev)):
+        for a, b in zip(out, ev):
+            assert torch.equal(a, b)
+            assert a.data_ptr() != b.data_ptr()

@@ -216,3 +216,76 @@ def test_property_matches_reference_and_flips(rows_in, factor, threshold):
     flipped = arr.copy()
     flipped["p"] = ~flipped["p"]
     np.testing.assert_array_equal(transform(flipped)["p"], ~out["p"])
+
+
+@pytest.mark.parametrize("threshold", [0.123457, 3.000001])
+@pytest.mark.parametrize("factor", [1, 3])
+def test_wide_level_sums_match_the_reference(threshold, factor, rng):
+    # Denominators of 10**6: b * S no longer fits int32, so the sums are kept in int64.
+    arr = random_stream(rng, 1500, SENSOR, t_max=400, sort=False)
+    transform = EventCount(SENSOR, factor=factor, threshold=threshold)
+    out = transform(arr)
+    assert rows(out) == event_count_reference(arr, SENSOR, factor, threshold)
+    session = transform.session()
+    in_order = arr[np.argsort(arr["t"], kind="stable")]
+    parts = [session(chunk) for chunk in np.array_split(in_order, 5)]
+    np.testing.assert_array_equal(np.concatenate(parts), out)
+
+
+@pytest.mark.parametrize("sensor", [(256, 128, 2), (257, 128, 2)])
+def test_region_ids_at_the_edge_of_the_narrow_sort(sensor, rng):
+    # 32,768 regions: region ids sorted as int16, the largest one 32,767; one more column of
+    # regions: sorted as int32.
+    arr = random_stream(rng, 4000, sensor, t_max=40)
+    arr["x"][:50] = sensor[0] - 1
+    arr["y"][:50] = sensor[1] - 1
+    transform = EventCount(sensor, factor=1, threshold=0.5)
+    out = transform(arr)
+    assert rows(out) == event_count_reference(arr, sensor, 1, 0.5)
+    session = transform.session()
+    parts = [session(chunk) for chunk in np.array_split(arr, 3)]
+    np.testing.assert_array_equal(np.concatenate(parts), out)
+
+
+def test_step_crossings_from_one_start_per_region_equal_one_per_step(rng):
+    from evdown_torch.transforms.functional._reference import step_crossings
+
+    # Steps grouped by region: a random walk of u = M / theta in quarters, per region.
+    sizes = rng.integers(1, 40, 25)
+    first = np.zeros(sizes.sum(), dtype=bool)
+    first[np.cumsum(sizes) - sizes] = True
+    u4 = np.cumsum(rng.choice([-3, -1, 1, 2], sizes.sum()))  # 4 * u
+    floor_u = torch.as_tensor(np.floor_divide(u4, 4))
+    on_level = torch.as_tensor(u4 % 4 == 0)
+    q_region = torch.as_tensor(np.floor_divide(u4[first], 4) + rng.integers(0, 2, len(sizes)))
+    q_step = torch.zeros(sizes.sum(), dtype=torch.int64)
+    q_step[torch.as_tensor(first)] = q_region
+    first = torch.as_tensor(first)
+    expected = step_crossings(floor_u, on_level, first, q_start=q_step)
+    got = step_crossings(floor_u, on_level, first, q_first=q_region)
+    assert expected.step.numel() > 0
+    for a, b in zip(got, expected):
+        assert torch.equal(a, b)
+
+
+def test_step_crossings_of_steps_that_land_on_every_level_skip_nothing(rng):
+    from evdown_torch.transforms.functional._reference import step_crossings
+
+    # Steps of a quarter level (as b * S moves by one against levels of 4): each level the
+    # walk reaches, it lands on; only first steps and steps on a level need solving.
+    sizes = rng.integers(1, 60, 30)
+    first = np.zeros(sizes.sum(), dtype=bool)
+    first[np.cumsum(sizes) - sizes] = True
+    steps = rng.choice([-1, 1], sizes.sum())
+    u4 = np.cumsum(steps)
+    floor_u = torch.as_tensor(np.floor_divide(u4, 4))
+    on_level = torch.as_tensor(u4 % 4 == 0)
+    start_u4 = u4[first] - steps[first]  # the walk just before each region's first step
+    q_region = torch.as_tensor(np.floor_divide(start_u4, 4) + (start_u4 % 4 != 0)
+                               * rng.integers(0, 2, len(sizes)))
+    first = torch.as_tensor(first)
+    expected = step_crossings(floor_u, on_level, first, q_first=q_region)
+    got = step_crossings(floor_u, on_level, first, q_first=q_region, lands_on_levels=True)
+    assert expected.step.numel() > 10
+    for a, b in zip(got, expected):
+        assert torch.equal(a, b)

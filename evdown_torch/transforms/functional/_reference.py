@@ -147,16 +147,16 @@ def reference_index(floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: T
     starts |= on_level
     starts |= on_level.roll(1)
     starts |= first
-    at = starts.nonzero().squeeze(1)
-    m = floor_u[at]
-    value = m + (prev_floor[at] > m)  # entered from above: m + 1; from below: m
-    first_at = first[at]
-    q0 = q_start[at] if q_start.ndim else q_start.expand_as(m)
+    at = where_true(starts)
+    m = take(floor_u, at)
+    value = m + (take(prev_floor, at) > m)  # entered from above: m + 1; from below: m
+    first_at = take(first, at)
+    q0 = take(q_start, at) if q_start.ndim else q_start.expand_as(m)
     value = torch.where(first_at, torch.minimum(torch.maximum(q0, m), m + 1), value)
-    value = torch.where(on_level[at], m, value)
+    value = torch.where(take(on_level, at), m, value)
     run = torch.cumsum(starts, 0)
     run -= 1
-    return value[run]
+    return take(value, run)
 
 
 class Crossings(NamedTuple):
@@ -198,17 +198,17 @@ def crossings(q_before: Tensor, q_after: Tensor, *, emitted: int = 0) -> Crossin
         ([0, 0, 2], [1, 2, 1], [True, True, False])
     """
     delta = q_after - q_before
-    changed = delta.nonzero().squeeze(1)
-    delta = delta[changed]
+    changed = where_true(delta != 0)
+    delta = take(delta, changed)
     count = delta.abs()
     check_output_count(emitted + int(count.sum()))
     pick = torch.repeat_interleave(torch.arange(changed.shape[0], device=delta.device), count)
     offsets = torch.cumsum(count, 0) - count
-    within = torch.arange(pick.shape[0], device=delta.device) - offsets[pick]
-    on = delta[pick] > 0
-    base = q_before[changed][pick]
+    within = torch.arange(pick.shape[0], device=delta.device) - take(offsets, pick)
+    on = take(delta, pick) > 0
+    base = take(take(q_before, changed), pick)
     level = torch.where(on, base + 1 + within, base - 1 - within)
-    return Crossings(changed[pick], level, on)
+    return Crossings(take(changed, pick), level, on)
 
 
 def level_index(
@@ -263,7 +263,7 @@ def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Ten
 
 def step_crossings(
     floor_u: Tensor, on_level: Tensor, first: Tensor, *, emitted: int = 0,
-    q_start: Tensor | None = None,
+    q_start: Tensor | None = None, q_first: Tensor | None = None, lands_on_levels: bool = False,
 ) -> Crossings:
     """The reference rule over monotone steps grouped by region, from ``q = q_start``.
 
@@ -279,15 +279,29 @@ def step_crossings(
         emitted: events the call already emitted (see :func:`crossings`).
         q_start: ``(S,)`` int64 ``q`` of each step's region before its first step (read
             where ``first``; a resumed stream), or ``None`` for 0 (a fresh one).
+        q_first: the same values given once per region instead: ``(F,)`` int64, one for
+            each True of ``first`` in order (``q_start`` must then be ``None``).
+        lands_on_levels: every step ends on each level it reaches (EventCount with an integer
+            threshold: a step moves ``b * S`` by one, the levels are multiples of the integer
+            ``a * n_r``). A step that ends off every level then keeps ``q``, so only first
+            steps and steps on a level are solved.
 
     Returns:
         The crossings, with ``step`` indexing the given steps.
     """
-    moved = first | on_level | changes(floor_u)
-    moved[1:] |= on_level[:-1]
+    if lands_on_levels:
+        moved = first | on_level
+    else:
+        moved = first | on_level | changes(floor_u)
+        moved[1:] |= on_level[:-1]
     kept = where_true(moved)
     floor_k, first_k = take(floor_u, kept), take(first, kept)
-    q0 = torch.zeros_like(floor_k) if q_start is None else take(q_start, kept)
+    if q_start is not None:
+        q0 = take(q_start, kept)
+    else:
+        q0 = torch.zeros_like(floor_k)
+        if q_first is not None:  # every first step is kept, in order
+            q0[first_k] = q_first.to(q0.dtype)
     q = reference_index(floor_k, take(on_level, kept), first_k, q0)
     q_before = torch.empty_like(q)
     q_before[1:] = q[:-1]

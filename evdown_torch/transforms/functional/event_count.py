@@ -8,24 +8,28 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import (
+    changes,
     chunk_bounds,
+    divide,
+    ends,
     floor_divide_exact,
-    region_of,
+    narrow_dtype,
     region_pixel_count,
     region_xy,
     sort_by_time,
+    stable_sort_small,
+    take,
+    where_true,
 )
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import (
     capped_threshold,
-    crossings,
-    group_by_region,
-    reference_index,
+    step_crossings,
     threshold_fraction,
 )
 
-__all__ = ["EventCountState", "event_count", "initial_state"]
+__all__ = ["EventCountState", "event_count", "event_count_sorted", "initial_state"]
 
 
 class EventCountState(NamedTuple):
@@ -93,7 +97,25 @@ def event_count(
         >>> out.t.tolist(), out.p.tolist()
         ([2, 4], [True, False])
     """
-    events = sort_by_time(events)
+    return event_count_sorted(
+        sort_by_time(events), sensor_size=sensor_size, factor=factor, threshold=threshold,
+        state=state, recordings=recordings,
+    )
+
+
+def event_count_sorted(
+    events: Events,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: float,
+    state: EventCountState | None = None,
+    recordings: int = 1,
+) -> tuple[Events, EventCountState]:
+    """:func:`event_count` on events already in time order (a streaming session's chunk).
+
+    Args and returns as :func:`event_count`; ``events`` must be sorted by ``t``.
+    """
     if state is None:
         state = initial_state(sensor_size, factor, events.device, recordings)
     bounds = chunk_bounds(events.t)
@@ -118,7 +140,13 @@ def _event_count_sorted(
     state: EventCountState,
     emitted: int = 0,
 ) -> tuple[Events, EventCountState]:
-    """:func:`event_count` on time-sorted events (``emitted``: events of earlier chunks)."""
+    """:func:`event_count` on time-sorted events (``emitted``: events of earlier chunks).
+
+    Few passes over the events, on narrow dtypes (the cost of a live chunk is its memory
+    traffic): the events are grouped by region with a small-key sort, each region's level sum
+    is one running sum (its start corrected once per region), and the reference rule runs on
+    the steps that can move ``q`` only (:func:`step_crossings`).
+    """
     device = events.device
     n = events.num_events
     if n == 0:
@@ -127,46 +155,70 @@ def _event_count_sorted(
     bound = int(state.level_sum.abs().max()) + n if state.level_sum.numel() else n
     fraction = capped_threshold(threshold_fraction(threshold), bound)
     a, b = fraction.numerator, fraction.denominator
-    out_w, out_h, _ = output_size(sensor_size, factor)
-    rx, ry = region_of(events, factor)
-    groups = group_by_region(rx, ry, out_w)
-    region = groups.region
-    del rx, ry
-
-    # Level sum S of each region after each of its events (exact int64): a running sum over
-    # the grouped events, minus its value before the region's first event, plus the state.
-    step = events.p[groups.order].to(torch.int64)
-    step.mul_(2).sub_(1)
-    level_sum = torch.cumsum(step, 0)
-    firsts = groups.first.nonzero().squeeze(1)
-    offset = state.level_sum.clone()
-    offset[region[firsts]] -= level_sum[firsts] - step[firsts]
-    level_sum += offset[region]
-
-    # u = M / theta = b * S / (a * n_r), compared in integers.
+    out_w, _, _ = output_size(sensor_size, factor)
     regions = state.level_sum.shape[0]  # Ho * Wo per stacked recording
     pixels = region_pixel_count(torch.arange(regions, device=device), sensor_size, factor)
-    uniform = bool((pixels == pixels[0]).all())
-    denominator = int(pixels[0]) * a if uniform else (pixels * a)[region]
-    numerator = level_sum * b if b != 1 else level_sum
-    floor_u, on_level = floor_divide_exact(numerator, denominator)
-    fresh = not bool(state.index.any())
-    q_start = torch.zeros((), dtype=torch.int64, device=device) if fresh else state.index[region]
-    q = reference_index(floor_u, on_level, groups.first, q_start)
+    most = int(pixels.max())
+    uniform = most == int(pixels.min())
+    # int32 arithmetic is exact when every b * S and a * n_r fits (the usual case).
+    dtype = torch.int32 if 4 * bound * b < 2**31 and most * a < 2**31 else torch.int64
 
-    q_before = q.roll(1)
-    q_before[firsts] = state.index[region[firsts]]
-    cross = crossings(q_before, q, emitted=emitted)
+    # Group by region, time order kept inside each group: region ids computed in the narrowest
+    # integer type that holds the coordinates and the ids (int16 for sensors up to 32,768).
+    narrow = narrow_dtype(max(out_w * factor[0], regions // out_w * factor[1], regions))
+    region_id = events.y.to(narrow, copy=True)
+    divide(region_id, factor[1], out=region_id).mul_(out_w)
+    column = events.x.to(narrow, copy=True)
+    region_id += divide(column, factor[0], out=column)
+    del column
+    region, order = stable_sort_small(region_id, regions, narrow=True)
+    del region_id
+    # Each region's first and last grouped event, by bisection on the sorted region ids.
+    ids = torch.arange(regions, dtype=region.dtype, device=device)
+    edges = torch.cat([torch.searchsorted(region, ids), ids.new_tensor([n], dtype=torch.int64)])
+    touched = where_true(edges[1:] > edges[:-1])  # regions with events in this chunk
+    firsts = take(edges, touched)
+    lasts = take(edges[1:], touched) - 1
+    first = torch.zeros(n, dtype=torch.bool, device=device).index_fill_(0, firsts, True)
+
+    # Level sum S of each region after each of its events: one running sum over the grouped
+    # steps (ON +1, OFF -1), each region's first step raised by what brings the running sum
+    # from the previous region's last S to this region's state.
+    step = take(events.p, order).to(dtype).mul_(2).sub_(1)
+    total = torch.cumsum(step, 0, dtype=dtype)
+    before = take(total, firsts) - take(step, firsts)  # running sum before each first step
+    offset = take(state.level_sum, touched) - before
+    offset[1:] -= offset[:-1].clone()
+    step.index_add_(0, firsts, offset.to(dtype))
+    level_sum = torch.cumsum(step, 0, dtype=dtype, out=total)
+    del step
+
+    # u = M / theta = b * S / (a * n_r), compared in integers.
+    new_sum = state.level_sum.clone()
+    new_sum[touched] = take(level_sum, lasts).to(torch.int64)
+    numerator = level_sum.mul_(b) if b != 1 else level_sum
+    if uniform:
+        denominator: int | Tensor = most * a
+    else:
+        denominator = take((pixels * a).to(dtype), region.to(torch.int32))
+    floor_u, on_level = floor_divide_exact(numerator, denominator)
+    del numerator, level_sum
+    q_first = None if not bool(state.index.any()) else take(state.index, touched)
+    # With an integer threshold (b == 1) a step moves b * S by one: it lands on every level.
+    cross = step_crossings(floor_u, on_level, first, emitted=emitted, q_first=q_first,
+                           lands_on_levels=b == 1)
 
     # Back to time order: crossings of one step keep their level order.
-    source, by_time = torch.sort(groups.order[cross.step], stable=True)
-    out_x, out_y = region_xy(region[cross.step[by_time]], out_w)
-    out = Events(out_x, out_y, events.t[source], cross.on[by_time])
+    step_at = cross.step
+    source, by_time = stable_sort_small(take(order, step_at), n)
+    step_at = take(step_at, by_time)
+    out_x, out_y = region_xy(take(region, step_at).to(torch.int64), out_w)
+    out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
-    # New state: each touched region's last sum and index.
-    lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
-    new_sum = state.level_sum.clone()
+    # New state: each touched region's last sum, and the level of its last crossing.
     new_index = state.index.clone()
-    new_sum[region[lasts]] = level_sum[lasts]
-    new_index[region[lasts]] = q[lasts]
+    if cross.step.shape[0]:
+        crossed = take(region, cross.step).to(torch.int64)
+        last = ends(changes(crossed))
+        new_index[crossed[last]] = cross.level[last].to(torch.int64)
     return out, EventCountState(new_sum, new_index, events.t[-1].clone())

@@ -305,7 +305,7 @@ def _events_piece(
     ry.mul_(out_w).add_(rx)
     # Region ids stay int32 when they were sorted as such (look-ups take int32 indices).
     regions = state.index.shape[0]
-    region, order = stable_sort_small(ry, regions, int64_keys=regions <= 1 << 15)
+    region, order = stable_sort_small(ry, regions, narrow=regions > 1 << 15)
     if place is not None:
         place.add_(ry.bitwise_right_shift_(shift), alpha=per_region)
         place = take(place.to(torch.uint8) if bound <= 256 else place, order)
