@@ -537,3 +537,19 @@ def test_levels_beyond_float_resolution_are_refused():
     with pytest.raises(ValueError, match="2\\*\\*50"):
         photocurrent_events(ev, sensor_size=SENSOR, factor=(2, 2), contrast=1.0,
                             threshold=1e-6, state=state)
+
+
+def test_int64_levels_give_the_int32_result(rng):
+    # Levels beyond 2**28 switch the kernel's level arithmetic from int32 to int64.
+    from evdown_torch.events import Events
+    from evdown_torch.transforms.functional import photocurrent as kernel
+
+    arr = random_stream(rng, 2000, SENSOR, t_max=1000)
+    events = Events.from_columns(arr["x"].astype(np.int64), arr["y"].astype(np.int64),
+                                 arr["t"], arr["p"])
+    state = kernel.initial_state(SENSOR, (2, 2))
+    settings_ = {"sensor_size": SENSOR, "factor": (2, 2), "contrast": 0.3, "threshold": 0.1}
+    narrow, _, _ = kernel._events_piece(events, state=state, level_bound=2000, **settings_)
+    wide, _, _ = kernel._events_piece(events, state=state, level_bound=2**40, **settings_)
+    assert narrow.num_events > 100
+    assert all(torch.equal(a, b) for a, b in zip(narrow, wide, strict=True))

@@ -34,8 +34,9 @@ from torch import Tensor
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
     changes,
+    divide,
     ends,
-    region_of,
+    narrow_dtype,
     region_pixel_count,
     region_xy,
     sort_by_time,
@@ -250,7 +251,8 @@ def photocurrent_events(
         return Events.empty(events.t.dtype, events.device), state
     # Untouched pixels keep levels already checked: the events' pixels bound the new ones.
     touched = take(state.level, events.y * sensor_size[0] + events.x)
-    check_level_range(int(touched.abs().max()) + n, contrast, threshold)
+    level_bound = int(touched.abs().max()) + n  # no level of the call exceeds it
+    check_level_range(level_bound, contrast, threshold)
     del touched
     outputs = []
     # Pieces of about 16 events per pixel: re-anchoring then costs little (at most the
@@ -261,7 +263,7 @@ def photocurrent_events(
         stop = min(start + size, n)
         piece = Events(*(column[start:stop] for column in events))
         out, state, used = _events_piece(piece, sensor_size, factor, contrast, threshold, state,
-                                         emitted)
+                                         emitted, level_bound)
         outputs.append(out)
         emitted += out.num_events
         # After a cut (the running sums could not hold the rest), re-anchor there and try
@@ -279,37 +281,47 @@ def _events_piece(
     threshold: float,
     state: PhotocurrentState,
     emitted: int = 0,
+    level_bound: int = 2**62,
 ) -> tuple[Events, PhotocurrentState, int]:
     """Events mode on one time-sorted piece anchored at ``state``: ``(output, state, used)``.
 
     ``emitted`` counts the events of earlier pieces, for the output cap of
-    :func:`~evdown_torch.checks.check_output_count`. Where the running sums cannot hold the
-    whole piece to the required accuracy, only its events before the first that they cannot
-    hold are used (``used >= 1`` events, the output and state are theirs); the caller
-    re-anchors there.
+    :func:`~evdown_torch.checks.check_output_count`; ``level_bound`` bounds every pixel level
+    before and after the piece (int32 arithmetic where it allows). Where the running sums
+    cannot hold the whole piece to the required accuracy, only its events before the first
+    that they cannot hold are used (``used >= 1`` events, the output and state are theirs);
+    the caller re-anchors there.
     """
     w = sensor_size[0]
     fx, fy = factor
     out_w = output_size(sensor_size, factor)[0]
     per_region = fx * fy
     n = events.num_events
-    rx, ry = region_of(events, factor)
-    pixel_on = torch.add(events.x, events.y, alpha=w).mul_(2).add_(events.p)
+    regions = state.index.shape[0]
+    # Region coordinates and ids in the narrowest integer type that holds them and the
+    # sensor's coordinates (int16 up to 32,768 regions), as EventCount's kernel does.
+    narrow = narrow_dtype(max(out_w * fx, regions // out_w * fy, regions))
+    rx = divide(events.x.to(narrow, copy=True), fx)
+    ry = divide(events.y.to(narrow, copy=True), fy)
+    # Pixel and polarity packed as 2 * (y * W + x) + on, in int32 where every level fits too.
+    wide = torch.int32 if 2 * state.level.shape[0] < 2**31 and level_bound < 2**28 else (
+        torch.int64)
+    pixel_on = events.y.to(wide, copy=True).mul_(w).add_(events.x).mul_(2).add_(events.p)
     place, bound = None, 1
     if per_region > 1:  # the pixel's place in its region, and a few high bits of the region
         chunks = max(1, 256 // per_region)
         bound = chunks * per_region
-        shift = max(0, (state.index.shape[0] - 1).bit_length() - (chunks.bit_length() - 1))
-        place = torch.add(events.x, rx, alpha=-fx)
-        place.add_(events.y, alpha=fx).add_(ry, alpha=-fx * fy)
+        shift = max(0, (regions - 1).bit_length() - (chunks.bit_length() - 1))
+        place = events.y.to(narrow, copy=True).sub_(ry * fy).mul_(fx)
+        place.add_(events.x.to(narrow)).sub_(rx * fx)
     ry.mul_(out_w).add_(rx)
-    # Region ids stay int32 when they were sorted as such (look-ups take int32 indices).
-    regions = state.index.shape[0]
-    region, order = stable_sort_small(ry, regions, narrow=regions > 1 << 15)
+    del rx
+    # Region ids stay narrow after the sort; look-ups convert the few they need.
+    region, order = stable_sort_small(ry, regions, narrow=True)
     if place is not None:
         place.add_(ry.bitwise_right_shift_(shift), alpha=per_region)
         place = take(place.to(torch.uint8) if bound <= 256 else place, order)
-    del rx, ry
+    del ry
     first = changes(region)
     firsts = where_true(first)
     lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
@@ -362,12 +374,12 @@ def _events_piece(
     floor_u, on_level = take(floor_u, kept), take(on_level, kept)
     firsts = where_true(first)
     # Every region's q before the piece (a 0-d zero while all are 0: no look-up).
-    q_start = take(state.index, region) if bool(state.index.any()) else first.new_zeros(
-        (), dtype=torch.int64)
+    q_start = take(state.index, region.long()) if bool(state.index.any()) else (
+        first.new_zeros((), dtype=torch.int64))
     q = reference_index(floor_u, on_level, first, q_start)
     del q_start, floor_u, on_level
     q_before = q.roll(1)
-    q_before[firsts] = take(state.index, take(region, firsts))
+    q_before[firsts] = take(state.index, take(region, firsts).long())
     cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one step keep their level order.

@@ -52,17 +52,18 @@ def grouped_levels(
     close together in memory) it is a one-byte sort: no second sort over all pixels.
 
     Args:
-        pixel_on: ``(N,)`` int64 ``2 * (y * W + x) + on`` of each event (``on``: 1 for ON, 0
-            for OFF), grouped by region, time order inside a region; overwritten.
+        pixel_on: ``(N,)`` int64 (or int32, when every level and id fits) ``2 * (y * W + x) +
+            on`` of each event (``on``: 1 for ON, 0 for OFF), grouped by region, time order
+            inside a region; overwritten.
         place: ``(N,)`` uint8 (or int64 when ``bound > 256``) key in ``[0, bound)`` as above,
             or ``None`` when every region is one pixel.
         bound: bound of ``place``.
         levels: ``(H * W,)`` int64 pixel levels before the events.
 
     Returns:
-        ``(key, new_levels)``: ``(N,)`` int64 ``2 * L + on`` with ``L`` the level of the
-        event's pixel just before it, and a new ``(H * W,)`` tensor of the levels after all
-        the events.
+        ``(key, new_levels)``: ``(N,)`` ``2 * L + on`` in ``pixel_on``'s dtype, ``L`` the
+        level of the event's pixel just before it, and a new ``(H * W,)`` int64 tensor of the
+        levels after all the events.
     """
     n = pixel_on.shape[0]
     perm = None
@@ -72,16 +73,17 @@ def grouped_levels(
         else:
             perm = stable_sort_small(place, bound)[1]
         pixel_on = take(pixel_on, perm)
+    dtype = pixel_on.dtype  # int32 where the caller found every level fits
     on = torch.bitwise_and(pixel_on, 1)
     step = torch.mul(on, 2).sub_(1)
     pixel = pixel_on.bitwise_right_shift_(1)
     starts = where_true(changes(pixel))
     last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1])])
-    pixel = take(pixel, starts)
+    pixel = take(pixel, starts).long()
     # One cumulative sum whose first step of each pixel also moves from the previous pixel's
     # last level to this pixel's starting level (a telescoping correction).
-    plain = torch.cumsum(step, 0)
-    first_level = take(levels, pixel)
+    plain = torch.cumsum(step, 0, dtype=dtype)
+    first_level = take(levels, pixel).to(dtype)
     final = take(plain, last) - take(plain, starts) + take(step, starts) + first_level
     del plain
     jump = first_level
@@ -91,7 +93,7 @@ def grouped_levels(
     key = on.add_(before, alpha=2)
     del before
     new_levels = levels.clone()
-    new_levels.scatter_(0, pixel, final)
+    new_levels.scatter_(0, pixel, final.long())
     if perm is None:
         return key, new_levels
     return torch.empty_like(key).scatter_(0, perm, key), new_levels
@@ -218,7 +220,7 @@ def running_sums(
     pixel_j -= m[:, None]
     if inside is not None:
         pixel_j.masked_fill_(~inside, 0)
-    key -= take(m * 2, rank)
+    key -= take((m * 2).to(key.dtype), rank)
     lo, hi = (int(v) // 2 for v in torch.aminmax(key))
     lo, hi = min(lo, int(pixel_j.min())), max(hi, 0)
     darkest = -math.ceil(800 / contrast)  # exp(c * j) is 0 for j <= darkest + 1
