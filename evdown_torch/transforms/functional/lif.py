@@ -423,8 +423,7 @@ def lif_spikes(
         certain = certain_spikes(cell_step, current, region_first, region_index, gap_after,
                                  rounds=rounds, leak=leak)
     if certain is not None:
-        fired, run_cell, run_polarity, run_start, run_length = certain
-        spike_cell, spike_polarity = fired.nonzero(as_tuple=True)  # cell-major
+        spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = certain
         spike_step = cell_step.index_select(0, spike_cell)
         membrane = None
     else:

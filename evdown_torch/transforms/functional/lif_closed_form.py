@@ -64,12 +64,13 @@ def certain_spikes(
     *,
     rounds: int,
     leak: Leak,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor] | None:
     """The spikes of the rounds, in closed form, or ``None`` where they are not certain.
 
     Args:
         cell_step: ``(n,)`` int64 steps of the cells, sorted by region, then step.
-        current: ``(n, 2)`` float32 input currents of the cells' (OFF, ON) neurons.
+        current: ``(n, 2)`` float32 input currents of the cells' (OFF, ON) neurons (a state
+            cell's current is its membrane).
         region_first: ``(R,)`` int64 index of every region's first cell.
         region_index: ``(n,)`` int64 region (row, ``0 .. R - 1``) of every cell.
         gap_after: ``(n,)`` int64 empty steps after every cell (to the next cell of its
@@ -78,189 +79,240 @@ def certain_spikes(
         leak: the neurons' ``beta``, threshold and reset.
 
     Returns:
-        ``(fired, run_cell, run_polarity, run_start, run_length)``: ``(n, 2)`` bool, the
-        neurons whose membrane exceeds the threshold after the update at the cell, and the
-        runs of spikes a neuron fires through the empty steps after a cell (reset "none":
-        ``run_length`` spikes from step ``run_start``); ``None`` when a decision is within
+        ``(spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length)``: the
+        neurons whose membrane exceeds the threshold after the update at a cell, and the runs
+        of spikes a neuron fires through the empty steps after a cell (reset "none":
+        ``run_length`` spikes from step ``run_start``); ``None`` when a decision lies within
         float32 rounding of the threshold or the call is left to the rounds.
     """
-    n_regions = region_first.shape[0]
-    beta, theta = leak.beta, leak.threshold
-    if beta == 0.0 or n_regions * rounds > MAX_TABLE or rounds > 1 << 14:
-        return None
-    if int(gap_after.max()) >= 1 << 24:  # the rounds' float32 powers round such gaps
+    n_regions, width = region_first.shape[0], rounds
+    beta, theta, reset = leak.beta, leak.threshold, leak.reset
+    if beta == 0.0 or n_regions * width > MAX_TABLE:
         return None
     device = cell_step.device
     f64 = torch.float64
     n = cell_step.shape[0]
-    width = rounds
-    col = torch.arange(n, device=device) - region_first.index_select(0, region_index)
+    col = torch.arange(n, device=device).sub_(region_first.index_select(0, region_index))
     pos = region_index * width + col
-    first_step = cell_step.index_select(0, region_first)
-    offset = cell_step - first_step.index_select(0, region_index)  # s_k - s_0, from 0
+    offset = cell_step - cell_step.index_select(0, region_first).index_select(0, region_index)
+    widest, longest_gap = torch.stack([offset.max(), gap_after.max()]).tolist()
     lam = -math.log(beta)  # 0 for beta = 1
-    if lam * float(offset.max()) > _MAX_EXPONENT:
-        return None
+    if lam * widest > _MAX_EXPONENT or longest_gap >= 1 << 24:
+        return None  # scaling would overflow; the rounds' float32 powers round such gaps
 
-    def table(values: Tensor, fill: float | Tensor = 0.0) -> Tensor:
-        """``(..., n)`` cell values into the ``(..., R, width)`` table (pads: ``fill``)."""
-        lead = values.shape[:-1]
-        out = torch.empty((*lead, n_regions * width), dtype=values.dtype, device=device)
-        if isinstance(fill, Tensor):
-            out.copy_(fill.reshape(*lead, n_regions * width) if fill.dim() > 1 else fill)
-        else:
-            out.fill_(fill)
-        out[..., pos] = values
-        return out.view(*lead, n_regions, width)
+    # The (R, width) table of s_k - s_0 (pads repeat their row's last: no effect on cells),
+    # the scale beta ** -(s_k - s_0), and the (2, R, width) inputs (exact float32 copies).
+    dist = torch.zeros(n_regions * width, dtype=f64, device=device)
+    dist[pos] = offset.to(f64)
+    dist = torch.cummax(dist.view(n_regions, width), -1).values
+    scale = dist.mul_(lam).exp_()
+    valid = torch.zeros(n_regions * width, dtype=torch.bool, device=device)
+    valid[pos] = True
+    valid = valid.view(n_regions, width)
+    inputs = torch.zeros(2, n_regions * width, dtype=f64, device=device)
+    inputs[:, pos] = current.t().to(f64)
+    inputs = inputs.view(2, n_regions, width)
+    level = scale * theta  # the threshold, scaled
+    summed = torch.cumsum(inputs * scale, -1)
 
-    valid = table(torch.ones(n, dtype=torch.bool, device=device), False)
-    # Pads repeat their row's last offset: no scaling overflow, no effect on the cells.
-    last_offset = torch.empty(n_regions, dtype=torch.int64, device=device)
-    last_offset.index_copy_(0, region_index, offset)  # in order: each row's last cell wins
-    pad_offset = last_offset[:, None].expand(n_regions, width).reshape(-1)
-    dist = table(offset.to(f64), pad_offset.to(f64))  # (R, width)
-    scale = torch.exp(dist * lam)
-    unscale = torch.exp(dist * -lam)
-    inputs = table(current.t().to(f64))  # (2, R, width), exact copies of the float32 currents
-    # Per cell: the decay from the previous cell, beta ** (s_k - s_{k-1}) (0 at a row start),
-    # and the reset's share after a firing, theta * beta ** gap.
-    step_gap = torch.zeros_like(dist)
-    torch.sub(dist[:, 1:], dist[:, :-1], out=step_gap[:, 1:])
-    decay = torch.exp(step_gap * -lam)
-    decay[:, 0] = 0.0
-    reset_share = torch.exp((step_gap - 1.0).clamp_(min=0.0) * -lam).mul_(theta)
-    columns = torch.arange(width, device=device)
-    reset = leak.reset
-
-    def membranes(fired: Tensor) -> tuple[Tensor, Tensor | None]:
-        """Every membrane given the firings, and the row restarts (reset "zero")."""
+    # The firings, then every membrane, scaled (Y_k = v_k * scale_k), checked against them.
+    between = None  # reset "subtract": empty steps to the next cell of the row (0 after the last)
+    if reset == "subtract":
+        between = torch.zeros(n_regions * width, dtype=torch.int64, device=device)
+        between[pos] = gap_after
+        between = between.view(n_regions, width)
+        between.scatter_(1, (valid.sum(1, keepdim=True) - 1), 0)
+    fired, chains = _greedy_firings(summed, level, valid, scale, between, leak=leak)
+    if reset == "subtract":  # a firing at i subtracts theta at steps s_i + 1 .. s_i + 1 + m
+        share = fired * (level * (1.0 / beta))
+        if chains is not None:  # m spikes in the empty steps after the cell
+            share *= _geometric(chains, beta)
+        scaled = (summed - torch.cumsum(share, -1)).add_(share)
+    elif reset == "zero":  # the membrane restarts after a firing: the sum from there on
         before = torch.zeros_like(fired)
         before[..., 1:] = fired[..., :-1]
-        if reset == "subtract":
-            drive = inputs - before * reset_share
-        else:
-            drive = inputs
-        summed = torch.cumsum(drive * scale, -1)
-        if reset != "zero":
-            return summed * unscale, None
-        restart = torch.where(before, columns, 0).cummax(-1).values
-        earlier = torch.where(restart > 0, summed.gather(-1, (restart - 1).clamp_(min=0)), 0.0)
-        return (summed - earlier) * unscale, restart
-
-    fired = _greedy_firings(inputs, scale, theta=theta, beta=beta, reset=reset) & valid
-    v, restart = membranes(fired)
-    if not torch.equal((v > theta) & valid, fired):  # a decision within float64 rounding
+        restart = torch.where(before, torch.arange(width, device=device), 0).cummax(-1).values
+        earlier = summed.gather(-1, (restart - 1).clamp_(min=0))
+        scaled = summed - earlier.masked_fill_(restart == 0, 0.0)  # 0: from the row's start
+    else:
+        scaled = summed
+    if not torch.equal((scaled > level) & valid, fired):  # a decision within float64 rounding
         return None
 
-    # The float32 rounding the rounds accumulate, decaying as the membrane does; pads add
-    # nothing. With reset "zero" a restart's update is beta * 0 + I, exact.
-    previous = torch.zeros_like(v)
-    previous[..., 1:] = v[..., :-1]
-    local = (decay * previous.abs()).add_(inputs.abs()).add_(v.abs()).add_(theta)
-    local.mul_(_KAPPA)
-    local[..., 0] = 0.0
-    local.masked_fill_(~valid, 0.0)
-    summed = torch.cumsum(local * scale, -1)
-    if restart is not None:
-        summed -= torch.where(restart > 0, summed.gather(-1, (restart - 1).clamp_(min=0)), 0.0)
-    rounding = summed * unscale
-    # Each update also scales the earlier error by at most (1 + 8 eps): compounded here.
-    rounding *= (1.0 + 8 * _EPS32) ** width * 1.01
-    # float64's own error: cumulative sums of scaled terms over a row, relative to their
-    # magnitude (the unrestarted envelope of every input).
-    envelope = torch.cumsum((inputs.abs() + theta) * scale, -1).mul_(unscale)
-    rounding += envelope * (16 * _EPS64 * (width + lam * float(offset.max()) + 16))
-    if not bool(((v - theta).abs() > rounding).logical_or_(~valid).all()):
+    # The float32 rounding the rounds accumulate: at each update at most KAPPA times the sizes
+    # it involves (beta ** gap * |v_{k-1}|, |I_k|, |v_k|, theta), and the earlier error scaled
+    # by beta ** gap * (1 + 8 eps). Scaled, the sum of the sizes up to k is at most
+    # 2 * sum |Y| + sum (|I| + theta) * scale (ignoring the restarts of reset "zero" only
+    # makes it larger); float64's own error is a small share of the latter. A firing chain
+    # through the empty steps before a cell adds at most 16 KAPPA (|v| + theta) there.
+    local = inputs.abs().add_(theta).mul_(scale)
+    if chains is not None:
+        ratio = scale[:, 1:] / scale[:, :-1]
+        local[..., 1:] += (chains[..., :-1] > 0) * (scaled[..., :-1].abs() * ratio
+                                                    + level[:, 1:]).mul_(16)
+    sizes = torch.cumsum(local, -1)
+    growth = (1.0 + 8 * _EPS32) ** width * 1.01
+    float64_error = 16 * _EPS64 * (width + lam * widest + 16)
+    bound = torch.cumsum(scaled.abs(), -1).mul_(2 * _KAPPA * growth)
+    bound.add_(sizes, alpha=_KAPPA * growth + float64_error)
+    if not bool(((scaled - level).abs_() > bound).logical_or_(~valid).all()):
         return None
 
-    fired_cells = fired.flatten(1)[:, pos].t()  # (n, 2), cell order
-    v_cells = v.flatten(1)[:, pos].t()
-    bound_cells = rounding.flatten(1)[:, pos].t()
-    chain = fired_cells & (gap_after > 0)[:, None]  # fired, then empty steps
+    polarity, row, rank = fired.nonzero(as_tuple=True)
+    cell = region_first.index_select(0, row).add_(rank)
     empty = torch.empty(0, dtype=torch.int64, device=device)
-    if reset == "zero" or not bool(chain.any()):
-        return fired_cells, empty, empty, empty, empty
-    chain_cell, chain_polarity = chain.nonzero(as_tuple=True)
-    u = v_cells[chain_cell, chain_polarity]
-    bound = bound_cells[chain_cell, chain_polarity]
-    if reset == "subtract":  # the first empty step, U - theta after the decay, must not fire
-        first = beta * u - theta
-        if not bool((first < theta - (beta * bound + _KAPPA * (beta * u.abs() + theta))).all()):
-            return None
-        return fired_cells, empty, empty, empty, empty
-    # Reset "none": the membrane only decays, beta ** j * U; the neuron fires while it stays
-    # above threshold (every step for beta = 1), certain where both ends of the run are.
+    if reset == "zero":
+        return cell, polarity, empty, empty, empty, empty
+    chain = gap_after.index_select(0, cell) > 0  # fired, then empty steps
+    if not bool(chain.any()):
+        return cell, polarity, empty, empty, empty, empty
+    chain_cell, chain_polarity = cell[chain], polarity[chain]
+    at = (chain_polarity, row[chain], rank[chain])
     gap = gap_after.index_select(0, chain_cell)
-    if beta == 1.0:
-        return fired_cells, chain_cell, chain_polarity, cell_step[chain_cell] + 1, gap
+    if reset == "none" and beta == 1.0:  # the membrane stays: fires at every empty step
+        return cell, polarity, chain_cell, chain_polarity, cell_step[chain_cell] + 1, gap
+    unscale = 1.0 / scale[at[1:]]
+    u = scaled[at] * unscale  # the membranes, and their bounds
+    error = bound[at] * unscale
+    # The neuron fires on while the chain (membrane decaying, less theta at every step with
+    # reset "subtract") stays above threshold: certain where both ends of the run are.
     run = torch.minimum(leak.run(u), gap.to(f64))
+    if between is not None:  # the chains between cells are those the greedy pass counted
+        inner = between[at[1:]] > 0
+        counted = chains[at][inner].to(f64) if chains is not None else 0.0
+        if not bool((run[inner] == counted).all()):
+            return None
+    offset_a = leak.offset if beta < 1.0 else 0.0
     last = run.clamp(min=1.0)  # the last step that fires (checked where run >= 1)
     after = run + 1.0  # the first that does not (checked where run < gap)
-    margin_last = torch.pow(beta, last) * (bound + _KAPPA * (last.clamp(max=8.0) + 2) * u.abs())
-    margin_after = torch.pow(beta, after) * (bound + _KAPPA * (after.clamp(max=8.0) + 2) * u)
-    ok = (run < 1.0) | (leak.chain(u, last) - theta > margin_last)
-    ok &= (run >= gap.to(f64)) | (theta - leak.chain(u, after) > margin_after)
+    margins = [
+        torch.pow(beta, j) * error + _KAPPA * (2 * j.clamp(max=9.0) + 4) * (u + theta)
+        + 1e-12 * (u + offset_a + j * theta)
+        for j in (last, after)
+    ]
+    ok = (run < 1.0) | (leak.chain(u, last) - theta > margins[0])
+    ok &= (run >= gap.to(f64)) | (theta - leak.chain(u, after) > margins[1])
     if not bool(ok.all()):
         return None
     length = run.to(torch.int64)
     keep = length > 0
     chain_cell, chain_polarity, length = chain_cell[keep], chain_polarity[keep], length[keep]
-    return fired_cells, chain_cell, chain_polarity, cell_step[chain_cell] + 1, length
+    return cell, polarity, chain_cell, chain_polarity, cell_step[chain_cell] + 1, length
+
+
+def _geometric(count: Tensor, beta: float) -> Tensor:
+    """``sum_{t = 0}^{m} beta ** -t`` for counts ``m`` (a firing and ``m`` chained spikes,
+    each subtracting theta one step later, scaled to the firing's own reset)."""
+    m = count.to(torch.float64)
+    if beta == 1.0:
+        return m + 1.0
+    return torch.pow(1.0 / beta, m + 1.0).sub_(1.0).div_(1.0 / beta - 1.0)
 
 
 def _greedy_firings(
-    inputs: Tensor, scale: Tensor, *, theta: float, beta: float, reset: str
-) -> Tensor:
+    summed: Tensor,
+    level: Tensor,
+    valid: Tensor,
+    scale: Tensor,
+    between: Tensor | None,
+    *,
+    leak: Leak,
+) -> tuple[Tensor, Tensor | None]:
     """Every neuron's firings, one firing of every neuron per pass, by binary search.
 
     Scaled by ``beta ** -(s_k - s_0)``, a neuron's membrane at cell ``k`` exceeds the
-    threshold when ``X_k = S_k - theta * scale_k`` (``S``: its cumulative scaled input)
-    exceeds ``D``, the scaled resets of its firings so far (reset "subtract": ``D`` grows by
-    ``theta * scale_i / beta`` at a firing at cell ``i``; reset "zero": the membrane restarts
-    after it, ``D = S_i``). After a firing at ``i`` the next one is the first cell after ``i``
-    whose ``X`` exceeds ``D``: the first cell whose running maximum of ``X`` exceeds ``D``,
-    once the ``X`` up to ``i`` are masked out where one of them exceeds ``D`` (a neuron still
-    above threshold after its reset). In exact arithmetic these are the firings of the
-    recurrence; the caller checks them against the float64 membranes.
+    threshold when ``X_k = S_k - theta * scale_k`` (``S``: its cumulative scaled input,
+    ``summed``; ``theta * scale``: ``level``) exceeds ``D``, the scaled resets of its
+    firings so far (reset "subtract": ``D`` grows by ``theta * scale_i / beta`` at a firing
+    at cell ``i``; reset "zero": the membrane restarts after it, ``D = S_i``). After a firing
+    at ``i`` the next one is the first cell after ``i`` whose ``X`` exceeds ``D``: the first
+    cell whose running maximum of ``X`` exceeds ``D`` (a binary search), once the ``X`` up to
+    ``i`` are masked out where one of them exceeds ``D``. That happens where the neuron is
+    still above threshold after its reset: with reset "subtract" and empty steps after the
+    cell (``between``), it fires on through them, ``m`` more spikes (counted in closed form)
+    whose resets add to ``D``. In exact arithmetic these are the recurrence's firings; the
+    caller checks them against the float64 membranes.
 
     Returns:
-        ``(2, R, width)`` bool, the firings (on pads too; the caller masks them).
+        ``(fired, chains)``: ``(2, R, width)`` bool, the firings (none on pads), and int64
+        spikes chained into the empty steps after each firing (``None`` where there are
+        none).
     """
-    lead = inputs.shape[:-1]
-    width = inputs.shape[-1]
-    device = inputs.device
-    summed = torch.cumsum(inputs * scale, -1)
-    rise = (summed - scale * theta).reshape(-1, width)
+    width = summed.shape[-1]
+    device = summed.device
+    theta, beta, reset = leak.threshold, leak.beta, leak.reset
+    rise = (summed - level).masked_fill_(~valid, -math.inf)
     if reset == "none":
-        return (rise > 0).view(*lead, width)
-    peak = torch.cummax(rise, -1).values.contiguous()
+        return rise > 0, None
+    lead = rise.shape[:-1]
+    rise = rise.view(-1, width)
+    peak = torch.cummax(rise, -1).values
     lanes = peak.shape[0]
-    step = torch.full((lanes, width + 1), math.inf, dtype=inputs.dtype, device=device)
+    step = torch.full((lanes, width + 1), math.inf, dtype=summed.dtype, device=device)
     if reset == "subtract":
-        step[:, :width] = (scale * (theta / beta)).expand(*lead, width).reshape(-1, width)
+        step[:, :width] = (level * (1.0 / beta)).expand(*lead, width).reshape(-1, width)
     else:
         step[:, :width] = summed.reshape(-1, width)
-    columns = torch.arange(width, device=device)
-    debt = torch.zeros(lanes, 1, dtype=inputs.dtype, device=device)
-    last = torch.full((lanes, 1), -1, dtype=torch.int64, device=device)  # (no more: D = inf)
+    debt = torch.zeros(lanes, 1, dtype=summed.dtype, device=device)
+    # The last firing, as a column below ``width`` (a neuron with none left has D = inf and
+    # its search returns ``width``: never behind it).
+    last = torch.full((lanes, 1), -1, dtype=torch.int64, device=device)
+    chains = None
     firings = []
     for _ in range(width):
         at = torch.searchsorted(peak, debt, right=True)  # (lanes, 1); width: none left
-        behind = (at <= last) & (at < width)  # an X up to the last firing exceeds D
+        behind = at <= last  # the last firing's X exceeds D: the neuron is still above
         if bool(behind.any()):
             rows = behind.nonzero()[:, 0]
-            masked = rise[rows].masked_fill_(columns <= last[rows], -math.inf)
+            fired_at = last[rows]
+            if between is not None:  # reset "subtract": chained spikes, their resets
+                chains, debt = _chain(rows, fired_at, debt, chains, summed, step, scale,
+                                      between, leak)
+            masked = rise[rows].masked_fill_(torch.arange(width, device=device) <= fired_at,
+                                             -math.inf)
             peak[rows] = torch.cummax(masked, -1).values
             at[rows] = torch.searchsorted(peak[rows], debt[rows], right=True)
-        if int(at.min()) == width:
+        if len(firings) % 4 == 3 and int(at.min()) == width:
             break
         firings.append(at)
-        last = at
+        last = at.clamp(max=width - 1)
         if reset == "subtract":
-            debt = debt + step.gather(1, at)
+            debt += step.gather(1, at)
         else:
             debt = step.gather(1, at)
     fired = torch.zeros(lanes, width + 1, dtype=torch.bool, device=device)
     if firings:
         fired.scatter_(1, torch.cat(firings, 1), True)
-    return fired[:, :width].reshape(*lead, width)
+    fired = fired[:, :width].reshape(*lead, width)
+    return fired, None if chains is None else chains.view(*lead, width)
+
+
+def _chain(
+    lanes: Tensor,
+    column: Tensor,
+    debt: Tensor,
+    chains: Tensor | None,
+    summed: Tensor,
+    step: Tensor,
+    scale: Tensor,
+    between: Tensor,
+    leak: Leak,
+) -> tuple[Tensor, Tensor]:
+    """Reset "subtract": the spikes that neurons ``lanes``, still above threshold after their
+    firing at ``column``, chain into the empty steps after it; their resets join ``D``."""
+    n_regions, width = between.shape
+    row = lanes.remainder(n_regions)
+    col = column[:, 0]
+    gap = between[row, col]
+    if chains is None:
+        chains = torch.zeros(summed.numel(), dtype=torch.int64, device=summed.device)
+        chains = chains.view(-1, width)
+    d = step[lanes, col]
+    before = debt[lanes, 0] - d  # D before this firing's own reset
+    u = (summed.reshape(-1, width)[lanes, col] - before) / scale[row, col]
+    count = torch.minimum(leak.run(u), gap.to(u.dtype)).to(torch.int64)
+    count.masked_fill_(gap == 0, 0)
+    chains[lanes, col] = count
+    debt = debt.clone()
+    debt[lanes, 0] += d * (_geometric(count, leak.beta) - 1.0)
+    return chains, debt
