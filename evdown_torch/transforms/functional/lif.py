@@ -451,20 +451,20 @@ def lif_spikes(
             "fired by neurons that stay above threshold through silent steps), more than "
             f"max_output_events={max_output_events}; raise that bound or lower the weight"
         )
-    run_of_spike = torch.repeat_interleave(
-        torch.arange(run_length.shape[0], device=device), run_length
-    )
-    first_of_run = torch.cumsum(run_length, 0) - run_length
-    within_run = torch.arange(run_of_spike.shape[0], device=device) - first_of_run[run_of_spike]
-    spike_step = torch.cat([spike_step, run_start[run_of_spike] + within_run])
-    spike_cell = torch.cat([spike_cell, run_cell[run_of_spike]])
-    spike_polarity = torch.cat([spike_polarity, run_polarity[run_of_spike]])
+    if run_length.shape[0]:  # the spikes of the runs, one by one
+        run_of_spike = torch.repeat_interleave(
+            torch.arange(run_length.shape[0], device=device), run_length
+        )
+        first_of_run = torch.cumsum(run_length, 0) - run_length
+        within_run = (torch.arange(run_of_spike.shape[0], device=device)
+                      - first_of_run[run_of_spike])
+        spike_step = torch.cat([spike_step, run_start[run_of_spike] + within_run])
+        spike_cell = torch.cat([spike_cell, run_cell[run_of_spike]])
+        spike_polarity = torch.cat([spike_polarity, run_polarity[run_of_spike]])
     neuron = spike_polarity * plane + cell_region[spike_cell]
-    # Output order: by step, then neuron (OFF before ON, then row-major region).
-    _, by_neuron = stable_sort_small(neuron, 2 * plane)
-    spike_step, neuron = spike_step[by_neuron], neuron[by_neuron]
-    by_step = torch.sort(spike_step, stable=True).indices
-    spike_step, neuron = spike_step[by_step], neuron[by_step]
+    # Output order: by step, then neuron (OFF before ON, then row-major region); a neuron
+    # fires at most once per step.
+    spike_step, neuron = _by_step_then_neuron(spike_step, neuron, 2 * plane, last_step)
     if not keep_state:
         return spike_step, neuron, None
     # The neurons after the last update of every region here.
@@ -517,3 +517,18 @@ def _spikes_and_runs(
         run_length = torch.cat([run_length, tail_length])
         run_start = torch.cat([run_start, cell_step[tail_cell] + 1])
     return spike_step, spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length
+
+
+def _by_step_then_neuron(
+    spike_step: Tensor, neuron: Tensor, neurons: int, last_step: int | Tensor
+) -> tuple[Tensor, Tensor]:
+    """Spikes sorted by step, then neuron (``neurons`` of them): one sort of the combined key
+    where it fits in int64, else by neuron, then stably by step."""
+    top = int(last_step.max()) if isinstance(last_step, Tensor) else last_step
+    if (top + 1) * neurons < 1 << 62:
+        order = torch.sort(spike_step * neurons + neuron).indices
+    else:
+        _, order = stable_sort_small(neuron, neurons)
+        spike_step, neuron = spike_step[order], neuron[order]
+        order = torch.sort(spike_step, stable=True).indices
+    return spike_step[order], neuron[order]

@@ -122,21 +122,31 @@ def certain_spikes(
         between[pos] = gap_after
         between = between.view(n_regions, width)
         between.scatter_(1, (valid.sum(1, keepdim=True) - 1), 0)
-    fired, chains = _greedy_firings(summed, level, valid, scale, between, leak=leak)
-    if reset == "subtract":  # a firing at i subtracts theta at steps s_i + 1 .. s_i + 1 + m
-        share = fired * (level * (1.0 / beta))
-        if chains is not None:  # m spikes in the empty steps after the cell
-            share *= _geometric(chains, beta)
-        scaled = (summed - torch.cumsum(share, -1)).add_(share)
-    elif reset == "zero":  # the membrane restarts after a firing: the sum from there on
-        before = torch.zeros_like(fired)
-        before[..., 1:] = fired[..., :-1]
-        restart = torch.where(before, torch.arange(width, device=device), 0).cummax(-1).values
-        earlier = summed.gather(-1, (restart - 1).clamp_(min=0))
-        scaled = summed - earlier.masked_fill_(restart == 0, 0.0)  # 0: from the row's start
+
+    def membranes(fired: Tensor, chains: Tensor | None) -> Tensor:
+        """Every membrane given the firings, scaled."""
+        if reset == "subtract":  # a firing at i subtracts theta at steps s_i + 1 .. s_i + 1 + m
+            share = fired * (level * (1.0 / beta))
+            if chains is not None:  # m spikes in the empty steps after the cell
+                share *= _geometric(chains, beta)
+            return (summed - torch.cumsum(share, -1)).add_(share)
+        if reset == "zero":  # the membrane restarts after a firing: the sum from there on
+            before = torch.zeros_like(fired)
+            before[..., 1:] = fired[..., :-1]
+            restart = torch.where(before, torch.arange(width, device=device), 0).cummax(-1)
+            restart = restart.values
+            earlier = summed.gather(-1, (restart - 1).clamp_(min=0))
+            return summed - earlier.masked_fill_(restart == 0, 0.0)  # 0: from the row's start
+        return summed
+
+    # Long rows are searched in overlapping pieces at once (a guess, checked with the rest).
+    for pieces in ((True, False) if reset != "none" else (False,)):
+        fired, chains = _greedy_firings(summed, level, valid, scale, between, leak=leak,
+                                        pieces=pieces)
+        scaled = membranes(fired, chains)
+        if torch.equal((scaled > level) & valid, fired):  # else within float64 rounding
+            break
     else:
-        scaled = summed
-    if not torch.equal((scaled > level) & valid, fired):  # a decision within float64 rounding
         return None
 
     # The float32 rounding the rounds accumulate: at each update at most KAPPA times the sizes
@@ -174,15 +184,29 @@ def certain_spikes(
     unscale = 1.0 / scale[at[1:]]
     u = scaled[at] * unscale  # the membranes, and their bounds
     error = bound[at] * unscale
+    counted = chains[at] if chains is not None else torch.zeros_like(gap)
+    inner = between[at[1:]] > 0 if between is not None else None  # gaps between cells
     # The neuron fires on while the chain (membrane decaying, less theta at every step with
-    # reset "subtract") stays above threshold: certain where both ends of the run are.
-    run = torch.minimum(leak.run(u), gap.to(f64))
-    if between is not None:  # the chains between cells are those the greedy pass counted
-        inner = between[at[1:]] > 0
-        counted = chains[at][inner].to(f64) if chains is not None else 0.0
-        if not bool((run[inner] == counted).all()):
-            return None
+    # reset "subtract") stays above threshold. Most stop at once: certain where the first
+    # empty step's membrane lies below threshold by more than its bound.
     offset_a = leak.offset if beta < 1.0 else 0.0
+    first = beta * u - theta if reset == "subtract" else beta * u
+    quiet = first < theta - (beta * error + 6 * _KAPPA * (u + theta)
+                             + 1e-12 * (u + offset_a + theta))
+    if bool(quiet.all()):
+        if bool((counted == 0).all()):
+            return cell, polarity, empty, empty, empty, empty
+        return None  # the greedy pass counted a chain that is not there
+    if bool((counted[quiet] != 0).any()):
+        return None
+    loud = ~quiet
+    chain_cell, chain_polarity, gap, counted = (
+        chain_cell[loud], chain_polarity[loud], gap[loud], counted[loud])
+    u, error = u[loud], error[loud]
+    # The others, in closed form: certain where both ends of the run are.
+    run = torch.minimum(leak.run(u), gap.to(f64))
+    if inner is not None and not bool((run == counted)[inner[loud]].all()):
+        return None  # the chains between cells are those the greedy pass counted
     last = run.clamp(min=1.0)  # the last step that fires (checked where run >= 1)
     after = run + 1.0  # the first that does not (checked where run < gap)
     margins = [
@@ -209,6 +233,13 @@ def _geometric(count: Tensor, beta: float) -> Tensor:
     return torch.pow(1.0 / beta, m + 1.0).sub_(1.0).div_(1.0 / beta - 1.0)
 
 
+#: Columns of a piece of a long row searched at once, and of the warm-up before it (a
+#: guessed membrane forgets its error over the warm-up's steps, at least PIECE_DECAY time
+#: constants).
+PIECE = 32
+PIECE_DECAY = 12.0
+
+
 def _greedy_firings(
     summed: Tensor,
     level: Tensor,
@@ -217,6 +248,7 @@ def _greedy_firings(
     between: Tensor | None,
     *,
     leak: Leak,
+    pieces: bool,
 ) -> tuple[Tensor, Tensor | None]:
     """Every neuron's firings, one firing of every neuron per pass, by binary search.
 
@@ -230,61 +262,123 @@ def _greedy_firings(
     ``i`` are masked out where one of them exceeds ``D``. That happens where the neuron is
     still above threshold after its reset: with reset "subtract" and empty steps after the
     cell (``between``), it fires on through them, ``m`` more spikes (counted in closed form)
-    whose resets add to ``D``. In exact arithmetic these are the recurrence's firings; the
-    caller checks them against the float64 membranes.
+    whose resets add to ``D``. In exact arithmetic these are the recurrence's firings.
+
+    With ``pieces``, a row longer than two :data:`PIECE` is cut into pieces of that many
+    columns, each searched from a guess (the membrane at rest) :data:`PIECE` columns before
+    it, all at once: fewer passes, and the same firings wherever the warm-up has let the
+    guess's error decay; the caller checks the firings against the membranes either way.
 
     Returns:
         ``(fired, chains)``: ``(2, R, width)`` bool, the firings (none on pads), and int64
         spikes chained into the empty steps after each firing (``None`` where there are
         none).
     """
+    lead = summed.shape[:-1]
     width = summed.shape[-1]
     device = summed.device
     theta, beta, reset = leak.threshold, leak.beta, leak.reset
     rise = (summed - level).masked_fill_(~valid, -math.inf)
     if reset == "none":
         return rise > 0, None
-    lead = rise.shape[:-1]
-    rise = rise.view(-1, width)
-    peak = torch.cummax(rise, -1).values
-    lanes = peak.shape[0]
-    step = torch.full((lanes, width + 1), math.inf, dtype=summed.dtype, device=device)
+    lanes = lead.numel()
     if reset == "subtract":
-        step[:, :width] = (level * (1.0 / beta)).expand(*lead, width).reshape(-1, width)
+        gain = (level * (1.0 / beta)).expand(*lead, width)
     else:
-        step[:, :width] = summed.reshape(-1, width)
-    debt = torch.zeros(lanes, 1, dtype=summed.dtype, device=device)
+        gain = summed
+    tables = [rise, summed, gain, scale.expand(*lead, width)]
+    if between is not None:
+        tables.append(between.expand(*lead, width))
+    tables = [table.reshape(lanes, width) for table in tables]
+    if between is None:
+        tables.append(None)
+    start = torch.zeros(lanes, 1, dtype=summed.dtype, device=device)
+    n_pieces = -(-width // PIECE)
+    columns = None
+    if pieces and n_pieces > 2 and beta < 1.0:
+        # Warm-ups must span PIECE_DECAY time constants in every row that reaches them.
+        first = torch.arange(1, n_pieces, device=device) * PIECE
+        reach = valid[:, first]
+        warm = scale[:, first] >= math.exp(PIECE_DECAY) * scale[:, first - PIECE]
+        if bool((warm | ~reach).all()):
+            columns = (torch.arange(n_pieces, device=device)[:, None] * PIECE
+                       + torch.arange(-PIECE, PIECE, device=device))  # (pieces, 2 * PIECE)
+    if columns is not None:
+        outside = (columns < 0) | (columns >= width)
+        index = columns.clamp(0, width - 1).view(-1)
+        tables = [None if table is None else table[:, index].view(lanes * n_pieces, 2 * PIECE)
+                  for table in tables]
+        tables[0].masked_fill_(outside.repeat(lanes, 1), -math.inf)
+        # a piece's guess: at rest before its warm-up, D = S there (0 for the first piece)
+        before = (columns[:, 0] - 1).clamp(min=0)
+        start = summed.reshape(lanes, width)[:, before].reshape(-1, 1).clone()
+        start[:: n_pieces] = 0.0
+    fired, chains = _greedy_lanes(*tables, start, leak=leak)  # type: ignore[misc]
+    if columns is not None:  # each piece's own columns, after its warm-up
+        fired = fired.view(lanes, n_pieces, 2 * PIECE)[:, :, PIECE:].reshape(lanes, -1)
+        fired = fired[:, :width]
+        if chains is not None:
+            chains = chains.view(lanes, n_pieces, 2 * PIECE)[:, :, PIECE:].reshape(lanes, -1)
+            chains = chains[:, :width]
+    fired = fired.reshape(*lead, width)
+    return fired, None if chains is None else chains.reshape(*lead, width)
+
+
+def _greedy_lanes(
+    rise: Tensor,
+    summed: Tensor,
+    gain: Tensor,
+    scale: Tensor,
+    between: Tensor | None,
+    start: Tensor,
+    *,
+    leak: Leak,
+) -> tuple[Tensor, Tensor | None]:
+    """The greedy search of :func:`_greedy_firings` on ``(lanes, w)`` tables: ``X``
+    (``rise``), ``S``, what a firing adds to ``D`` (``gain``: "subtract") or sets it to
+    (``S``: "zero"), the scale, the empty steps after each cell (``between``, "subtract";
+    ``None`` otherwise), and every lane's ``D`` before its first column (``start``,
+    ``(lanes, 1)``)."""
+    lanes, width = rise.shape
+    device = rise.device
+    subtract = leak.reset == "subtract"
+    rise = rise.clone()  # masked as the search goes
+    peak = torch.cummax(rise, -1).values
+    step = torch.full((lanes, width + 1), math.inf, dtype=rise.dtype, device=device)
+    step[:, :width] = gain
+    debt = start.clone()
     # The last firing, as a column below ``width`` (a neuron with none left has D = inf and
     # its search returns ``width``: never behind it).
     last = torch.full((lanes, 1), -1, dtype=torch.int64, device=device)
     chains = None
     firings = []
+    columns = torch.arange(width, device=device)
     for _ in range(width):
         at = torch.searchsorted(peak, debt, right=True)  # (lanes, 1); width: none left
         behind = at <= last  # the last firing's X exceeds D: the neuron is still above
         if bool(behind.any()):
-            rows = behind.nonzero()[:, 0]
-            fired_at = last[rows]
             if between is not None:  # reset "subtract": chained spikes, their resets
-                chains, debt = _chain(rows, fired_at, debt, chains, summed, step, scale,
-                                      between, leak)
-            masked = rise[rows].masked_fill_(torch.arange(width, device=device) <= fired_at,
-                                             -math.inf)
-            peak[rows] = torch.cummax(masked, -1).values
-            at[rows] = torch.searchsorted(peak[rows], debt[rows], right=True)
-        if len(firings) % 4 == 3 and int(at.min()) == width:
+                onward = behind & (between.gather(1, last) > 0)
+                if bool(onward.any()):
+                    rows = onward.nonzero()[:, 0]
+                    chains, debt = _chain(rows, last[rows, 0], debt, chains, summed, step,
+                                          scale, between, leak)
+            # search after the last firing: its column and those before are decided
+            rise.masked_fill_(behind & (columns <= last), -math.inf)
+            peak = torch.cummax(rise, -1).values
+            at = torch.searchsorted(peak, debt, right=True)
+        if len(firings) % 8 == 7 and int(at.min()) == width:
             break
         firings.append(at)
         last = at.clamp(max=width - 1)
-        if reset == "subtract":
+        if subtract:
             debt += step.gather(1, at)
         else:
             debt = step.gather(1, at)
     fired = torch.zeros(lanes, width + 1, dtype=torch.bool, device=device)
     if firings:
         fired.scatter_(1, torch.cat(firings, 1), True)
-    fired = fired[:, :width].reshape(*lead, width)
-    return fired, None if chains is None else chains.view(*lead, width)
+    return fired[:, :width], chains
 
 
 def _chain(
@@ -300,19 +394,14 @@ def _chain(
 ) -> tuple[Tensor, Tensor]:
     """Reset "subtract": the spikes that neurons ``lanes``, still above threshold after their
     firing at ``column``, chain into the empty steps after it; their resets join ``D``."""
-    n_regions, width = between.shape
-    row = lanes.remainder(n_regions)
-    col = column[:, 0]
-    gap = between[row, col]
     if chains is None:
-        chains = torch.zeros(summed.numel(), dtype=torch.int64, device=summed.device)
-        chains = chains.view(-1, width)
-    d = step[lanes, col]
+        chains = torch.zeros(summed.shape, dtype=torch.int64, device=summed.device)
+    d = step[lanes, column]
     before = debt[lanes, 0] - d  # D before this firing's own reset
-    u = (summed.reshape(-1, width)[lanes, col] - before) / scale[row, col]
+    u = (summed[lanes, column] - before) / scale[lanes, column]
+    gap = between[lanes, column]
     count = torch.minimum(leak.run(u), gap.to(u.dtype)).to(torch.int64)
-    count.masked_fill_(gap == 0, 0)
-    chains[lanes, col] = count
+    chains[lanes, column] = count
     debt = debt.clone()
     debt[lanes, 0] += d * (_geometric(count, leak.beta) - 1.0)
     return chains, debt
