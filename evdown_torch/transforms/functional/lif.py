@@ -24,7 +24,14 @@ that follows the events:
   number of cells, so the regions of a round are a prefix and every update is a slice). The
   element work is proportional to the cells; the number of rounds (a fixed cost of a few
   tensor operations each) is the largest number of cells of one region, at most the number
-  of steps that hold events.
+  of steps that hold events (:mod:`~evdown_torch.transforms.functional.lif_rounds`).
+- **Small calls in closed form.** A call that needs no state back (a recording alone or a
+  small batch) and whose cells fit a small table takes
+  :mod:`~evdown_torch.transforms.functional.lif_closed_form` instead: the membranes between
+  firings as cumulative sums, the firings by binary search (one pass per firing of the
+  busiest neuron, not per active step), every decision certified against a bound on the
+  rounds' float32 rounding; where one is not certain the rounds compute the call, so the
+  spikes are the same either way.
 
 State. The core, :func:`lif_spikes`, can start from a :class:`LIFState` (each region's
 membranes at its last input, and that step: a state cell in front of the region's cells), run
@@ -59,7 +66,7 @@ from evdown_torch.checks import check_positive_float, check_time_constant, outpu
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.lif_chains import Leak
 from evdown_torch.transforms.functional.lif_closed_form import MIN_ROUNDS, certain_spikes
-from evdown_torch.transforms.functional.lif_rounds import membranes_by_rounds
+from evdown_torch.transforms.functional.lif_rounds import membranes_by_rounds, spikes_and_runs
 from evdown_torch.transforms.functional.lif_steps import (
     MAX_STEPS,
     batch_step_indices,
@@ -400,7 +407,6 @@ def lif_spikes(
     new_region = torch.ones(n_cells, dtype=torch.bool, device=device)
     torch.ne(cell_region[1:], cell_region[:-1], out=new_region[1:])
     region_first = new_region.nonzero().squeeze(1)
-    n_regions = region_first.shape[0]
     cells_per_region = torch.diff(region_first, append=region_first.new_tensor([n_cells]))
     gap_before = torch.empty_like(cell_step)
     torch.sub(cell_step[1:], cell_step[:-1], out=gap_before[1:]).sub_(1)
@@ -432,7 +438,7 @@ def lif_spikes(
             leak=leak,
         )
         spike_step, spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = (
-            _spikes_and_runs(membrane, chain_before, cell_step, gap_before, gap_after,
+            spikes_and_runs(membrane, chain_before, cell_step, gap_before, gap_after,
                              region_last, leak=leak)
         )
     del current, region_index
@@ -476,47 +482,6 @@ def lif_spikes(
         state.last_step.index_put((last_region,), cell_step.index_select(0, region_last)),
     )
     return spike_step, neuron, state
-
-
-def _spikes_and_runs(
-    membrane: Tensor,
-    chain_before: Tensor,
-    cell_step: Tensor,
-    gap_before: Tensor,
-    gap_after: Tensor,
-    region_last: Tensor,
-    *,
-    leak: Leak,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """The rounds' spikes: ``(spike_step, spike_cell, spike_polarity)`` at the cells, and
-    ``(run_cell, run_polarity, run_start, run_length)``, the runs of spikes of neurons that go
-    on firing through the silent steps after a cell."""
-    fired = membrane > leak.threshold32
-    spike_cell, spike_polarity = fired.nonzero(as_tuple=True)  # cell-major
-    spike_step = cell_step.index_select(0, spike_cell)
-    # Runs found in the rounds (reset "subtract", gaps between cells) or here (the tail after a
-    # region's last cell; every gap with reset "none", whose membrane does not depend on them).
-    run_cell, run_polarity = (chain_before > 0).nonzero(as_tuple=True)
-    run_length = chain_before[run_cell, run_polarity]
-    run_start = cell_step[run_cell] - gap_before[run_cell]  # run_cell: the region, for below
-    if leak.reset != "zero":
-        if leak.reset == "subtract":  # only the tails: the rounds found the others
-            candidate = fired.index_select(0, region_last)
-            candidate &= (gap_after.index_select(0, region_last) > 0)[:, None]
-            tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
-            tail_cell = region_last[tail_cell]
-        else:
-            candidate = fired & (gap_after > 0)[:, None]
-            tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
-        tail_gap = gap_after.index_select(0, tail_cell)
-        tail_length, _, _ = leak.fire_through(
-            membrane[tail_cell, tail_polarity], tail_gap, tail_gap > 0
-        )
-        run_cell = torch.cat([run_cell, tail_cell])
-        run_polarity = torch.cat([run_polarity, tail_polarity])
-        run_length = torch.cat([run_length, tail_length])
-        run_start = torch.cat([run_start, cell_step[tail_cell] + 1])
-    return spike_step, spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length
 
 
 def _by_step_then_neuron(

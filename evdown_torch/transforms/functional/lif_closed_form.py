@@ -139,14 +139,9 @@ def certain_spikes(
             return summed - earlier.masked_fill_(restart == 0, 0.0)  # 0: from the row's start
         return summed
 
-    # Long rows are searched in overlapping pieces at once (a guess, checked with the rest).
-    for pieces in ((True, False) if reset != "none" else (False,)):
-        fired, chains = _greedy_firings(summed, level, valid, scale, between, leak=leak,
-                                        pieces=pieces)
-        scaled = membranes(fired, chains)
-        if torch.equal((scaled > level) & valid, fired):  # else within float64 rounding
-            break
-    else:
+    fired, chains = _greedy_firings(summed, level, valid, scale, between, leak=leak)
+    scaled = membranes(fired, chains)
+    if not torch.equal((scaled > level) & valid, fired):  # a decision within float64 rounding
         return None
 
     # The float32 rounding the rounds accumulate: at each update at most KAPPA times the sizes
@@ -233,13 +228,6 @@ def _geometric(count: Tensor, beta: float) -> Tensor:
     return torch.pow(1.0 / beta, m + 1.0).sub_(1.0).div_(1.0 / beta - 1.0)
 
 
-#: Columns of a piece of a long row searched at once, and of the warm-up before it (a
-#: guessed membrane forgets its error over the warm-up's steps, at least PIECE_DECAY time
-#: constants).
-PIECE = 32
-PIECE_DECAY = 12.0
-
-
 def _greedy_firings(
     summed: Tensor,
     level: Tensor,
@@ -248,7 +236,6 @@ def _greedy_firings(
     between: Tensor | None,
     *,
     leak: Leak,
-    pieces: bool,
 ) -> tuple[Tensor, Tensor | None]:
     """Every neuron's firings, one firing of every neuron per pass, by binary search.
 
@@ -262,12 +249,8 @@ def _greedy_firings(
     ``i`` are masked out where one of them exceeds ``D``. That happens where the neuron is
     still above threshold after its reset: with reset "subtract" and empty steps after the
     cell (``between``), it fires on through them, ``m`` more spikes (counted in closed form)
-    whose resets add to ``D``. In exact arithmetic these are the recurrence's firings.
-
-    With ``pieces``, a row longer than two :data:`PIECE` is cut into pieces of that many
-    columns, each searched from a guess (the membrane at rest) :data:`PIECE` columns before
-    it, all at once: fewer passes, and the same firings wherever the warm-up has let the
-    guess's error decay; the caller checks the firings against the membranes either way.
+    whose resets add to ``D``. In exact arithmetic these are the recurrence's firings; the
+    caller checks them against the float64 membranes.
 
     Returns:
         ``(fired, chains)``: ``(2, R, width)`` bool, the firings (none on pads), and int64
@@ -277,15 +260,13 @@ def _greedy_firings(
     lead = summed.shape[:-1]
     width = summed.shape[-1]
     device = summed.device
-    theta, beta, reset = leak.threshold, leak.beta, leak.reset
+    beta, reset = leak.beta, leak.reset
     rise = (summed - level).masked_fill_(~valid, -math.inf)
     if reset == "none":
         return rise > 0, None
     lanes = lead.numel()
-    if reset == "subtract":
-        gain = (level * (1.0 / beta)).expand(*lead, width)
-    else:
-        gain = summed
+    # what a firing adds to D ("subtract") or sets it to ("zero")
+    gain = (level * (1.0 / beta)).expand(*lead, width) if reset == "subtract" else summed
     tables = [rise, summed, gain, scale.expand(*lead, width)]
     if between is not None:
         tables.append(between.expand(*lead, width))
@@ -293,33 +274,7 @@ def _greedy_firings(
     if between is None:
         tables.append(None)
     start = torch.zeros(lanes, 1, dtype=summed.dtype, device=device)
-    n_pieces = -(-width // PIECE)
-    columns = None
-    if pieces and n_pieces > 2 and beta < 1.0:
-        # Warm-ups must span PIECE_DECAY time constants in every row that reaches them.
-        first = torch.arange(1, n_pieces, device=device) * PIECE
-        reach = valid[:, first]
-        warm = scale[:, first] >= math.exp(PIECE_DECAY) * scale[:, first - PIECE]
-        if bool((warm | ~reach).all()):
-            columns = (torch.arange(n_pieces, device=device)[:, None] * PIECE
-                       + torch.arange(-PIECE, PIECE, device=device))  # (pieces, 2 * PIECE)
-    if columns is not None:
-        outside = (columns < 0) | (columns >= width)
-        index = columns.clamp(0, width - 1).view(-1)
-        tables = [None if table is None else table[:, index].view(lanes * n_pieces, 2 * PIECE)
-                  for table in tables]
-        tables[0].masked_fill_(outside.repeat(lanes, 1), -math.inf)
-        # a piece's guess: at rest before its warm-up, D = S there (0 for the first piece)
-        before = (columns[:, 0] - 1).clamp(min=0)
-        start = summed.reshape(lanes, width)[:, before].reshape(-1, 1).clone()
-        start[:: n_pieces] = 0.0
     fired, chains = _greedy_lanes(*tables, start, leak=leak)  # type: ignore[misc]
-    if columns is not None:  # each piece's own columns, after its warm-up
-        fired = fired.view(lanes, n_pieces, 2 * PIECE)[:, :, PIECE:].reshape(lanes, -1)
-        fired = fired[:, :width]
-        if chains is not None:
-            chains = chains.view(lanes, n_pieces, 2 * PIECE)[:, :, PIECE:].reshape(lanes, -1)
-            chains = chains[:, :width]
     fired = fired.reshape(*lead, width)
     return fired, None if chains is None else chains.reshape(*lead, width)
 

@@ -15,7 +15,7 @@ from torch import Tensor
 from evdown_torch._tensors import stable_sort_small
 from evdown_torch.transforms.functional.lif_chains import Leak
 
-__all__ = ["membranes_by_rounds"]
+__all__ = ["membranes_by_rounds", "spikes_and_runs"]
 
 
 def membranes_by_rounds(
@@ -108,4 +108,45 @@ def membranes_by_rounds(
             torch.where(reset, out - threshold32, out, out=out)
     # back to cell order
     return mem_in_rounds.index_select(0, slot), chain_in_rounds.index_select(0, slot)
+
+
+def spikes_and_runs(
+    membrane: Tensor,
+    chain_before: Tensor,
+    cell_step: Tensor,
+    gap_before: Tensor,
+    gap_after: Tensor,
+    region_last: Tensor,
+    *,
+    leak: Leak,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The rounds' spikes: ``(spike_step, spike_cell, spike_polarity)`` at the cells, and
+    ``(run_cell, run_polarity, run_start, run_length)``, the runs of spikes of neurons that go
+    on firing through the silent steps after a cell."""
+    fired = membrane > leak.threshold32
+    spike_cell, spike_polarity = fired.nonzero(as_tuple=True)  # cell-major
+    spike_step = cell_step.index_select(0, spike_cell)
+    # Runs found in the rounds (reset "subtract", gaps between cells) or here (the tail after a
+    # region's last cell; every gap with reset "none", whose membrane does not depend on them).
+    run_cell, run_polarity = (chain_before > 0).nonzero(as_tuple=True)
+    run_length = chain_before[run_cell, run_polarity]
+    run_start = cell_step[run_cell] - gap_before[run_cell]  # run_cell: the region, for below
+    if leak.reset != "zero":
+        if leak.reset == "subtract":  # only the tails: the rounds found the others
+            candidate = fired.index_select(0, region_last)
+            candidate &= (gap_after.index_select(0, region_last) > 0)[:, None]
+            tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
+            tail_cell = region_last[tail_cell]
+        else:
+            candidate = fired & (gap_after > 0)[:, None]
+            tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
+        tail_gap = gap_after.index_select(0, tail_cell)
+        tail_length, _, _ = leak.fire_through(
+            membrane[tail_cell, tail_polarity], tail_gap, tail_gap > 0
+        )
+        run_cell = torch.cat([run_cell, tail_cell])
+        run_polarity = torch.cat([run_polarity, tail_polarity])
+        run_length = torch.cat([run_length, tail_length])
+        run_start = torch.cat([run_start, cell_step[tail_cell] + 1])
+    return spike_step, spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length
 
