@@ -38,6 +38,9 @@ from evdown_torch.transforms.functional.lif_chains import Leak
 
 __all__ = ["MAX_TABLE", "MIN_ROUNDS", "certain_spikes"]
 
+#: Passes of the greedy search between two checks for a neuron still above threshold.
+_BLOCK = 8
+
 #: Largest padded table (regions x largest number of cells of one region) computed in closed
 #: form; larger calls (long streams, big batches) go through the rounds, whose fixed cost per
 #: round is then small against their work.
@@ -302,37 +305,47 @@ def _greedy_lanes(
     step = torch.full((lanes, width + 1), math.inf, dtype=rise.dtype, device=device)
     step[:, :width] = gain
     debt = start.clone()
-    # The last firing, as a column below ``width`` (a neuron with none left has D = inf and
-    # its search returns ``width``: never behind it).
+    # The last firing before the block (-1: none; a neuron with none left has D = inf and its
+    # search returns ``width``).
     last = torch.full((lanes, 1), -1, dtype=torch.int64, device=device)
     chains = None
-    firings = []
+    blocks = []
     columns = torch.arange(width, device=device)
-    for _ in range(width):
-        at = torch.searchsorted(peak, debt, right=True)  # (lanes, 1); width: none left
-        behind = at <= last  # the last firing's X exceeds D: the neuron is still above
+    ranks = torch.arange(_BLOCK, device=device)
+    for _ in range(width + 1):  # every block finds a firing of every neuron not done
+        # _BLOCK passes unchecked, then a look back: a neuron that found its last firing
+        # again (still above threshold after it) keeps its firings up to there and searches
+        # after it from then on.
+        found, debts = [], [debt]
+        for _ in range(_BLOCK):
+            at = torch.searchsorted(peak, debt, right=True)  # (lanes, 1); width: none left
+            debt = debt + step.gather(1, at) if subtract else step.gather(1, at)
+            found.append(at)
+            debts.append(debt)
+        block = torch.cat(found, 1)
+        before = torch.cat([last, block[:, :-1]], 1)
+        behind = (block <= before).logical_and_(block < width)
+        last = block[:, -1:]  # increasing along a block, up to width (none left)
         if bool(behind.any()):
+            wrong = behind.any(1, keepdim=True)
+            first = behind.to(torch.int8).argmax(1, keepdim=True)  # the first pass gone wrong
+            block.masked_fill_(wrong & (ranks >= first), width)
+            fired_at = before.gather(1, first).clamp_(0, width - 1)  # still above after it
+            debt = torch.where(wrong, torch.cat(debts, 1).gather(1, first), debt)  # D after it
             if between is not None:  # reset "subtract": chained spikes, their resets
-                onward = behind & (between.gather(1, last) > 0)
+                onward = wrong & (between.gather(1, fired_at) > 0)
                 if bool(onward.any()):
                     rows = onward.nonzero()[:, 0]
-                    chains, debt = _chain(rows, last[rows, 0], debt, chains, summed, step,
-                                          scale, between, leak)
-            # search after the last firing: its column and those before are decided
-            rise.masked_fill_(behind & (columns <= last), -math.inf)
+                    chains, debt = _chain(rows, fired_at[rows, 0], debt, chains, summed,
+                                          step, scale, between, leak)
+            rise.masked_fill_(wrong & (columns <= fired_at), -math.inf)
             peak = torch.cummax(rise, -1).values
-            at = torch.searchsorted(peak, debt, right=True)
-        if len(firings) % 8 == 7 and int(at.min()) == width:
+            last = torch.where(wrong, fired_at, last)
+        blocks.append(block)
+        if bool(torch.isinf(debt).all()):
             break
-        firings.append(at)
-        last = at.clamp(max=width - 1)
-        if subtract:
-            debt += step.gather(1, at)
-        else:
-            debt = step.gather(1, at)
     fired = torch.zeros(lanes, width + 1, dtype=torch.bool, device=device)
-    if firings:
-        fired.scatter_(1, torch.cat(firings, 1), True)
+    fired.scatter_(1, torch.cat(blocks, 1), True)
     return fired[:, :width], chains
 
 
