@@ -426,8 +426,8 @@ def lif_spikes(
     region_index = torch.cumsum(new_region, 0).sub_(1)
     certain = None
     if not keep_state and rounds >= MIN_ROUNDS:
-        certain = certain_spikes(cell_step, current, region_first, region_index, gap_after,
-                                 rounds=rounds, leak=leak)
+        certain = certain_spikes(cell_step, current, region_first, region_index,
+                                 cells_per_region, gap_after, rounds=rounds, leak=leak)
     if certain is not None:
         spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = certain
         spike_step = cell_step.index_select(0, spike_cell)
