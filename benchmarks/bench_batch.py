@@ -15,7 +15,7 @@ issue 16 asks the per-call overhead of such calls at least halved). With ``--dev
 (when available) the batch goes through :class:`~evdown_torch.collate.EventBatch` on the GPU.
 
 Timing: the batch and the stream of a method are timed alternately in the same loop (so a
-change of machine load hits both), each call after a garbage collection, for at least
+change of machine load hits both), with Python's garbage collector paused, for at least
 ``--repeats`` rounds and at least ``--min-seconds`` of calls; the figures are medians. The
 single calls and the N-MNIST call are medians likewise.
 
@@ -52,8 +52,7 @@ NMNIST_FILE = Path(__file__).resolve().parents[2] / "shared" / "data" / "sample_
 
 
 def timed(call: Callable[[], object]) -> float:
-    """Seconds of one call (after a garbage collection, GPU work included)."""
-    gc.collect()
+    """Seconds of one call (GPU work included)."""
     start = time.perf_counter()
     call()
     if torch.cuda.is_available():
@@ -69,10 +68,15 @@ def median_times(
     for call in calls:
         call()
     times: list[list[float]] = [[] for _ in calls]
-    start = time.perf_counter()
-    while len(times[0]) < repeats or time.perf_counter() - start < min_seconds:
-        for call, record in zip(calls, times, strict=True):
-            record.append(timed(call))
+    gc.collect()
+    gc.disable()  # no collection pause inside a timed call
+    try:
+        start = time.perf_counter()
+        while len(times[0]) < repeats or time.perf_counter() - start < min_seconds:
+            for call, record in zip(calls, times, strict=True):
+                record.append(timed(call))
+    finally:
+        gc.enable()
     return [statistics.median(record) for record in times]
 
 
