@@ -17,6 +17,7 @@ default. Keys left out take the defaults shown.
     calibration_samples = 22   # the first training recordings, on which budgets are calibrated
     seed = 0                   # which samples (synthetic scenes, dvsgesture subset)
     time_bins = 6              # frames per sample fed to the classifier
+    mean_time = false          # add each bin's mean event time (OFF, ON) as two more channels
 
     [methods]
     include = ["downsample", "event_count"]   # default: every method of the registry
@@ -113,6 +114,7 @@ class DataConfig:
     calibration_samples: int = 22
     seed: int = 0
     time_bins: int = 6
+    mean_time: bool = False
 
     def __post_init__(self) -> None:
         check_choice("data.dataset", self.dataset, DATASETS)
@@ -128,6 +130,11 @@ class DataConfig:
         else:
             for name in ("duration_us", "train_samples", "test_samples"):
                 check_non_negative_int(f"data.{name}", getattr(self, name))
+
+    @property
+    def frame_channels(self) -> int:
+        """Channels of the classifier's input: OFF and ON counts, and their mean times."""
+        return 4 if self.mean_time else 2
 
     @property
     def full_sensor_size(self) -> tuple[int, int, int]:

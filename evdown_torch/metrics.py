@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import changes, ends, stable_sort_small, take, where_true
 from evdown_torch.checks import check_positive_float, check_sensor_size
 from evdown_torch.events import Events, EventsLike, to_events
 
@@ -212,9 +213,12 @@ def optical_consistency(
     total = keys_a.numel() + keys_b.numel()
     if total == 0:
         return 1.0
-    keys, inverse = torch.unique(torch.cat([keys_a, keys_b]), return_inverse=True)
-    signs = torch.cat([torch.ones(keys_a.numel(), dtype=torch.float64, device=keys.device),
-                       -torch.ones(keys_b.numel(), dtype=torch.float64, device=keys.device)])
-    diff = torch.zeros(keys.numel(), dtype=torch.float64, device=keys.device)
-    diff.index_add_(0, inverse, signs)
-    return 1.0 - float(diff.abs().sum()) / total
+    # sort the bins of both streams together; each run of one bin sums +1 per event of
+    # ``events`` and -1 per event of ``reference``: its absolute value is that bin's |a - b|
+    keys, order = stable_sort_small(torch.cat([keys_a, keys_b]))
+    signs = torch.ones(total, dtype=torch.int64, device=keys.device)
+    signs[keys_a.numel():] = -1
+    running = torch.cumsum(take(signs, order), 0)
+    at_ends = take(running, where_true(ends(changes(keys))))
+    at_ends[1:] -= at_ends[:-1].clone()
+    return 1.0 - float(at_ends.abs().sum()) / total

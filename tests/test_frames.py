@@ -100,3 +100,52 @@ def test_bad_arguments():
         to_frames(ev, (1, 1, 2), 2, t_start=5, t_end=1)
     with pytest.raises(ValueError, match="must lie in"):
         to_frames(torch.tensor([[3, 0, 0, 1]]), (2, 2, 2), 2)
+
+
+def reference_mean_times(events, sensor_size, bins, t_start, t_end):
+    """Mean position of each pixel's events in their bin, -1 to 1, exact rationals."""
+    w, h, _ = sensor_size
+    sums = {}
+    span = Fraction(t_end) - Fraction(t_start)
+    for x, y, t, p in zip(events["x"], events["y"], events["t"], events["p"]):
+        if not t_start <= t <= t_end:
+            continue
+        scaled = (Fraction(int(t)) - t_start) * bins / span
+        k = min(int(scaled), bins - 1)
+        within = scaled - k  # 1 for t_end itself, at the end of the last bin
+        key = (k, int(p > 0), int(y), int(x))
+        total, count = sums.get(key, (Fraction(0), 0))
+        sums[key] = (total + 2 * within - 1, count + 1)
+    out = np.zeros((bins, 2, h, w), dtype=np.float64)
+    for (k, c, y, x), (total, count) in sums.items():
+        out[k, c, y, x] = float(total / count)
+    return out
+
+
+@pytest.mark.parametrize("bins", [1, 3, 7])
+def test_mean_time_matches_exact_reference(rng, bins):
+    sensor = (5, 4, 2)
+    ev = random_stream(rng, 400, sensor, t_max=1_000)
+    t0, t1 = 13, 977
+    frames = to_frames(ev, sensor, bins, t_start=t0, t_end=t1, mean_time=True)
+    assert frames.shape == (bins, 4, 4, 5) and frames.dtype == torch.float32
+    np.testing.assert_array_equal(frames[:, :2].numpy(),
+                                  reference_frames(ev, sensor, bins, t0, t1))
+    np.testing.assert_allclose(frames[:, 2:].numpy(),
+                               reference_mean_times(ev, sensor, bins, t0, t1), atol=1e-6)
+    floats = ev.astype([("x", "<i8"), ("y", "<i8"), ("p", "<i8"), ("t", "<f8")])
+    np.testing.assert_allclose(
+        to_frames(floats, sensor, bins, t_start=t0, t_end=t1, mean_time=True).numpy(),
+        frames.numpy(), atol=1e-6)
+
+
+def test_mean_time_hand_computed():
+    ev = np.array([(0, 0, True, 0), (0, 0, True, 2), (0, 0, False, 7), (1, 0, True, 8)],
+                  dtype=DVS_DTYPE)
+    frames = to_frames(ev, (2, 1, 2), 2, mean_time=True)  # bins [0, 4) and [4, 8]
+    assert frames[0, 3, 0, 0] == -0.5  # ON at 0 and 2: positions -1 and 0
+    assert frames[1, 2, 0, 0] == 0.5  # OFF at 7: 3/4 of the way, 2 * 0.75 - 1 = 0.5
+    assert frames[1, 3, 0, 1] == 1.0  # t_end itself
+    assert frames[0, 2].abs().sum() == 0  # no OFF event in bin 0
+    empty = to_frames(ev[:0], (2, 1, 2), 3, mean_time=True)
+    assert empty.shape == (3, 4, 1, 2) and not empty.any()

@@ -38,6 +38,8 @@ BASELINE = "full resolution"
 CONTROL = "control"
 
 _TRANSFORM_CODE = ("transforms", "events.py", "checks.py")
+#: Mean times in ``[-1, 1]`` are cached as int8 multiples of ``1 / TIME_SCALE``.
+TIME_SCALE = 127
 
 
 @dataclass(frozen=True)
@@ -137,6 +139,7 @@ def _frames_key(source: Source, cell: Cell, split: str, indices: list[int],
                 config: EvaluationConfig) -> dict[str, Any]:
     return {"data": source.key(split), "indices": [indices[0], indices[-1] + 1],
             "cell": cell.key(), "bins": config.data.time_bins,
+            "mean_time": config.data.mean_time,
             "consistency_bin_us": config.measures.consistency_bin_us,
             "code": code_fingerprint(*_TRANSFORM_CODE, "frames.py", "metrics.py",
                                      "evaluation/cells.py")}
@@ -146,8 +149,9 @@ def downscale_job(source: Source, cell: Cell, split: str, indices: list[int],
                   config: EvaluationConfig) -> dict[str, list[float]]:
     """Downscale recordings ``indices`` of ``split`` into ``cell``'s frames, and measure them.
 
-    The frames (``[n, T, 2, H, W]`` int16 event counts over each source recording's window)
-    and labels are cached; the per-recording measures are returned (and cached with them):
+    The frames (``[n, T, 2, H, W]`` int16 event counts over each source recording's window,
+    and with ``data.mean_time`` the ``[n, T, 2, H, W]`` int8 mean times, scaled by
+    :data:`TIME_SCALE`) and labels are cached; the per-recording measures are returned (and cached with them):
     ``events_in``, ``events_out``, ``seconds`` (of the transform), ``duration`` (us),
     ``density``, ``entropy`` and, with ground truth on the test split, ``camera_events`` and
     ``consistency``.
@@ -163,7 +167,7 @@ def downscale_job(source: Source, cell: Cell, split: str, indices: list[int],
     stats: dict[str, list[float]] = {k: [] for k in (
         "events_in", "events_out", "seconds", "duration", "density", "entropy",
         "camera_events", "consistency")}
-    frames, labels = [], []
+    frames, times, labels = [], [], []
     for i in indices:
         raw, label = source.recording(split, i)
         events, _ = to_events(raw, sensor)
@@ -171,8 +175,11 @@ def downscale_job(source: Source, cell: Cell, split: str, indices: list[int],
         out = events if transform is None else transform.kernel(events)
         stats["seconds"].append(time.perf_counter() - start)
         t0, t1 = window(raw)
-        counts = to_frames(out, out_sensor, config.data.time_bins, t_start=t0, t_end=t1)
-        frames.append(counts.clamp(max=torch.iinfo(torch.int16).max).to(torch.int16))
+        binned = to_frames(out, out_sensor, config.data.time_bins, t_start=t0, t_end=t1,
+                           mean_time=config.data.mean_time)
+        frames.append(binned[:, :2].clamp(max=torch.iinfo(torch.int16).max).to(torch.int16))
+        if config.data.mean_time:
+            times.append(torch.round(binned[:, 2:] * TIME_SCALE).to(torch.int8))
         labels.append(label)
         metrics = event_metrics(out, out_sensor, duration=max(t1 - t0, 1))
         stats["events_in"].append(events.num_events)
@@ -186,18 +193,30 @@ def downscale_job(source: Source, cell: Cell, split: str, indices: list[int],
             stats["consistency"].append(optical_consistency(
                 out, camera, out_sensor, bin_width=config.measures.consistency_bin_us,
                 t_start=t0, t_end=t1))
-    cache.save_tensors(path, {"frames": torch.stack(frames),
-                              "labels": torch.tensor(labels, dtype=torch.int64)})
+    stored = {"frames": torch.stack(frames), "labels": torch.tensor(labels, dtype=torch.int64)}
+    if times:
+        stored["times"] = torch.stack(times)
+    cache.save_tensors(path, stored)
     cache.save_json(path.with_suffix(".json"), stats)
     return stats
 
 
 def frames_of(source: Source, cell: Cell, split: str, chunks: list[list[int]],
               config: EvaluationConfig) -> tuple[Tensor, Tensor]:
-    """A cell's cached frames and labels of ``split`` (after :func:`downscale_job`)."""
+    """A cell's classifier input and labels of ``split`` (after :func:`downscale_job`).
+
+    Returns:
+        ``[n, T, C, H, W]`` float16 input (``C`` = ``data.frame_channels``: the counts
+        encoded by ``training.encoding``, then the mean times in ``[-1, 1]``) and ``[n]``
+        labels.
+    """
     parts = [Cache.load_tensors(source.cache.path(
         "frames", _frames_key(source, cell, split, c, config), ".pt")) for c in chunks]
-    return (torch.cat([p["frames"] for p in parts]), torch.cat([p["labels"] for p in parts]))
+    x = _encode(torch.cat([p["frames"] for p in parts]), config.training.encoding)
+    if config.data.mean_time:
+        times = torch.cat([p["times"] for p in parts]).to(torch.float16) / TIME_SCALE
+        x = torch.cat([x.to(torch.float16), times], dim=2)
+    return x, torch.cat([p["labels"] for p in parts])
 
 
 def model_for(config: EvaluationConfig, size: tuple[int, int], num_classes: int
@@ -205,7 +224,7 @@ def model_for(config: EvaluationConfig, size: tuple[int, int], num_classes: int
     """The classifier of a cell whose frames are ``size = (W, H)``."""
     m = config.model
     return SpikingClassifier(
-        num_classes, channels=m.channels, pool_size=m.pool_size, beta=m.beta,
+        num_classes, in_channels=config.data.frame_channels, channels=m.channels, pool_size=m.pool_size, beta=m.beta,
         threshold=m.threshold, stem_stride=stem_stride_for(size, m.grid) if m.grid else 1,
         stem_channels=m.stem_channels,
     )
@@ -241,7 +260,6 @@ def train_job(source: Source, cell: Cell, chunks: dict[str, list[list[int]]],
         return Cache.load_json(path)
     train_x, train_y = frames_of(source, cell, "train", chunks["train"], config)
     test_x, test_y = frames_of(source, cell, "test", chunks["test"], config)
-    train_x, test_x = _encode(train_x, training.encoding), _encode(test_x, training.encoding)
     size = (train_x.shape[-1], train_x.shape[-2])
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)

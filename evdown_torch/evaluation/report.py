@@ -124,7 +124,8 @@ def _markdown(result: EvaluationResult) -> str:
                  if config.methods.budget_reference == "camera" else "the input's event count")
     return (
         f"# evdown evaluate: {config.name}\n\n"
-        f"Data: {result.description}; {config.data.time_bins} time bins per recording. "
+        f"Data: {result.description}; {config.data.time_bins} time bins per recording"
+        f"{', with mean-time channels' if config.data.mean_time else ''}. "
         f"Budgets: multiples of {reference}, calibrated on the first "
         f"{config.data.calibration_samples} training recordings. "
         f"Classifier: SpikingClassifier(channels={list(m.channels)}, grid={m.grid}, "

@@ -146,7 +146,7 @@ def test_the_quick_configs_classifier_sees_the_whole_sensor():
     config = load_config(Path(__file__).resolve().parents[2] / "configs" / "quick.toml")
     model = model_for(config, (128, 128), 11)
     assert model.stem_stride > 1
-    x = torch.zeros(1, 2, 128, 128, requires_grad=True)
+    x = torch.zeros(1, config.data.frame_channels, 128, 128, requires_grad=True)
     with torch.no_grad():
         for p in model.parameters():
             p.fill_(1.0) if p.ndim > 1 else p.zero_()
