@@ -133,7 +133,8 @@ def certain_spikes(
         if reset == "subtract":  # a firing at i subtracts theta at steps s_i + 1 .. s_i + 1 + m
             share = fired * (level * (1.0 / beta))
             if chains is not None:  # m spikes in the empty steps after the cell
-                share *= _geometric(chains, beta)
+                at = chains.nonzero(as_tuple=True)
+                share[at] *= _geometric(chains[at], beta)
             return (summed - torch.cumsum(share, -1)).add_(share)
         if reset == "zero":  # the membrane restarts after a firing: the sum from there on
             before = torch.zeros_like(fired)
@@ -156,10 +157,11 @@ def certain_spikes(
     # makes it larger); float64's own error is a small share of the latter. A firing chain
     # through the empty steps before a cell adds at most 16 KAPPA (|v| + theta) there.
     local = inputs.abs().add_(theta).mul_(scale)
-    if chains is not None:
-        ratio = scale[:, 1:] / scale[:, :-1]
-        local[..., 1:] += (chains[..., :-1] > 0) * (scaled[..., :-1].abs() * ratio
-                                                    + level[:, 1:]).mul_(16)
+    if chains is not None:  # at the cell after each chain
+        polarity, row, rank = chains.nonzero(as_tuple=True)
+        ratio = scale[row, rank + 1] / scale[row, rank]
+        local[polarity, row, rank + 1] += (scaled[polarity, row, rank].abs() * ratio
+                                           + level[row, rank + 1]) * 16
     sizes = torch.cumsum(local, -1)
     growth = (1.0 + 8 * _EPS32) ** width * 1.01
     float64_error = 16 * _EPS64 * (width + lam * widest + 16)
@@ -340,8 +342,10 @@ def _greedy_lanes(
                     rows = onward.nonzero()[:, 0]
                     chains, debt = _chain(rows, fired_at[rows, 0], debt, chains, summed,
                                           step, scale, between, leak)
-            rise.masked_fill_(wrong & (columns <= fired_at), -math.inf)
-            peak = torch.cummax(rise, -1).values
+            rows = wrong[:, 0].nonzero()[:, 0]  # search after the firing from then on
+            after = rise[rows].masked_fill_(columns <= fired_at[rows], -math.inf)
+            rise[rows] = after
+            peak[rows] = torch.cummax(after, -1).values
             last = torch.where(wrong, fired_at, last)
         blocks.append(block)
         if bool(torch.isinf(debt).all()):
