@@ -14,9 +14,10 @@ brightest surfaces. Model:
   the intensity-weighted mean of its pixels' depths, the same light seen by a larger pixel;
 * the flicker of the static image is simulated through the pixel model for every pixel whose
   peak-to-peak log modulation reaches its smaller threshold (a smaller modulation can only
-  ever emit one event, at the start, which is left out). The moving limbs are rendered without
-  the lamp's modulation and do not occlude the flicker (a simplification: limbs cover a lit
-  pixel for a few milliseconds at a time).
+  ever emit one event, at the start, which is left out), at the image of the recording's
+  start. The moving limbs and the swaying body are rendered without the lamp's modulation and
+  do not occlude or move the flicker (a simplification: limbs cover a lit pixel for a few
+  milliseconds at a time, and the body moves a few pixels over seconds).
 """
 
 from __future__ import annotations

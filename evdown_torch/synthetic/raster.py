@@ -1,17 +1,19 @@
-"""Rasterising a gesture scene: the static image, the moving limbs' fragments, block means.
+"""Rasterising a gesture scene: the background, the capsules' fragments, block means.
 
-The background, the torso, the head and resting arms form a static image, rendered once. At
-each simulation step every moving capsule is rasterised by scanlines to the pixels it covers
-(anti-aliased coverage, its own texture), and those fragments are composited over the static
-image, so the cost follows the moving parts, never the sensor area times the steps. At a lower
-resolution (``factor`` ``(fx, fy)``) each output pixel sees the mean linear intensity
-(photocurrent) of the block of sensor pixels it covers (edge blocks: the pixels inside the
-sensor), computed from the same fragments.
+The background is rendered once. The person's capsules are rasterised by scanlines, at many
+steps at once, to the pixels they cover (anti-aliased coverage, their own texture), and those
+fragments are composited over what lies beneath (:func:`composite`), so the cost follows the
+parts, never the sensor area times the steps: the gesturing arm parts at every simulation step
+(:func:`moving_parts`), the body and the arms at rest at the few key steps of its slow sway
+(:func:`body_parts`; :mod:`evdown_torch.synthetic.grid` assembles both). At a lower resolution
+(``factor`` ``(fx, fy)``) each output pixel sees the mean linear intensity (photocurrent) of the
+block of sensor pixels it covers (edge blocks: the pixels inside the sensor).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +23,6 @@ from torch import Tensor
 from evdown_torch._tensors import region_xy, stable_sort_small
 from evdown_torch.checks import check_factor, output_size
 from evdown_torch.synthetic.scenes import (
-    BODY,
     FOREARM,
     HAND,
     RADIUS_FORE,
@@ -33,9 +34,11 @@ from evdown_torch.synthetic.scenes import (
 )
 
 __all__ = [
-    "Grid",
+    "background_image",
     "block_of",
     "block_sums",
+    "body_parts",
+    "composite",
     "intensity_frame",
     "moving_parts",
     "rasterise",
@@ -45,7 +48,7 @@ __all__ = [
 
 @dataclass(frozen=True)
 class _Part:
-    """A moving capsule: endpoints per step (pixels), radius (pixels), appearance."""
+    """A capsule: endpoints per step (pixels), radius (pixels), appearance."""
 
     a: Tensor  # (S + 1, 2) float32
     b: Tensor  # (S + 1, 2) float32
@@ -57,12 +60,13 @@ class _Part:
 def _part_moves(scene: GestureScene) -> list[list[bool]]:
     """Whether each arm part (upper arm, forearm, hand of the right, then the left arm) moves.
 
-    Judged on a fine grid of times: a part whose endpoints stay put is drawn once, into the
-    static image (a waving arm's upper arm, say).
+    Judged on a fine grid of times, without the body's sway: a part that only sways with the
+    body belongs to the body (a waving arm's upper arm, say), drawn at its key steps.
     """
     probe = torch.linspace(0, scene.duration_us, 2001, dtype=torch.float64)
     out = []
-    for moving, points in zip(scene.moving_arms, scene.arm_keypoints(probe), strict=True):
+    for moving, points in zip(scene.moving_arms, scene.arm_keypoints(probe, sway=False),
+                              strict=True):
         drift = (points - points[:1]).abs().amax(dim=(0, 2))  # per keypoint, pixels
         out.append([moving and bool(max(drift[k], drift[k + 1]) > 1e-6) for k in range(3)])
     return out
@@ -84,20 +88,20 @@ def moving_parts(scene: GestureScene, times: Tensor) -> list[_Part]:
     return parts
 
 
-def _static_parts(scene: GestureScene) -> list[tuple[Tensor, Tensor, float, Look]]:
-    """Capsules that never move: body, then arm parts at rest; endpoints in pixels."""
-    origin = torch.tensor(scene.origin, dtype=torch.float64)
+def body_parts(scene: GestureScene, times: Tensor) -> list[_Part]:
+    """The body's capsules at ``times``, in compositing order: torso, shoulders, neck, head,
+    then the arm parts that do not take part in the gesture (they sway with the body)."""
     out = []
-    for _, a, b, radius, look in BODY:
-        out.append((origin + scene.scale * torch.tensor(a, dtype=torch.float64),
-                    origin + scene.scale * torch.tensor(b, dtype=torch.float64),
-                    radius * scene.scale, scene.looks[look]))
-    zero = torch.zeros(1, dtype=torch.float64)
-    for moves, points in zip(_part_moves(scene), scene.arm_keypoints(zero), strict=True):
+    for a, b, radius, look in scene.body_capsules(times):
+        length = float((b[0] - a[0]).norm())
+        out.append(_Part(a.to(torch.float32), b.to(torch.float32), radius, length,
+                         scene.looks[look]))
+    for moves, points in zip(_part_moves(scene), scene.arm_keypoints(times), strict=True):
+        points = points.to(torch.float32)
         for k in range(3):
             if not moves[k]:
-                out.append((points[0, k], points[0, k + 1], _RADII[k] * scene.scale,
-                            scene.looks[2 + k]))
+                out.append(_Part(points[:, k], points[:, k + 1], _RADII[k] * scene.scale,
+                                 _LENGTHS[k] * scene.scale, scene.looks[2 + k]))
     return out
 
 
@@ -161,27 +165,10 @@ def _shade(px: Tensor, py: Tensor, a: Tensor, b: Tensor, radius: float, look: Lo
     return alpha, colour
 
 
-def _static_image(scene: GestureScene) -> tuple[Tensor, float]:
-    """Background with the static capsules over it, ``(H, W)`` float32, and the background's
-    mean (the unit of every part's intensity)."""
-    w, h, _ = scene.sensor_size
+def background_image(scene: GestureScene) -> tuple[Tensor, float]:
+    """The background, ``(H, W)`` float32, and its mean (the unit of every part's intensity)."""
     image = _background(scene)
-    mean = float(image.mean())
-    for a, b, radius, look in _static_parts(scene):
-        reach = radius + 0.5
-        lo = torch.minimum(a, b) - reach
-        hi = torch.maximum(a, b) + reach
-        i0, i1 = max(0, math.floor(float(lo[0]))), min(w, math.ceil(float(hi[0])) + 1)
-        j0, j1 = max(0, math.floor(float(lo[1]))), min(h, math.ceil(float(hi[1])) + 1)
-        if i0 >= i1 or j0 >= j1:
-            continue
-        jj, ii = torch.meshgrid(torch.arange(j0, j1), torch.arange(i0, i1), indexing="ij")
-        alpha, colour = _shade(ii.reshape(-1).float() + 0.5, jj.reshape(-1).float() + 0.5,
-                               a.float(), b.float(), radius, look, scene.scale)
-        patch = image[j0:j1, i0:i1].reshape(-1)
-        image[j0:j1, i0:i1] = (patch * (1 - alpha) + alpha * (colour * mean)).reshape(
-            j1 - j0, i1 - i0)
-    return image, mean
+    return image, float(image.mean())
 
 
 def _nonzero(mask: Tensor) -> Tensor:
@@ -290,32 +277,35 @@ def rasterise(part: _Part, s0: int, s1: int, width: int, height: int, scale: flo
     return key, alpha, colour
 
 
-def _composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, scale: float,
-               static: Tensor, mean: float):
+def composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, scale: float,
+              base: Callable[[Tensor, Tensor], Tensor], mean: float):
     """Intensity of every covered (pixel, step) at steps ``s0..s1``, sorted by pixel, step.
 
-    Fragments of one (pixel, step) are composited over the static value in part order.
+    Fragments of one (pixel, step) are composited over ``base(pixel, step)`` (float32 linear
+    intensity beneath the parts; ``step`` relative to ``s0``) in part order.
 
     Returns:
-        ``(pixel, step, value)``: int64 sensor pixel, int64 step relative to ``s0`` and
-        float32 linear intensity.
+        ``(pixel, step, value, beneath)``: int64 sensor pixel, int64 step relative to ``s0``,
+        float32 linear intensity and the float32 ``base`` beneath it.
     """
     bits = step_bits(s0, s1)
     pieces = [rasterise(p, s0, s1, width, height, scale) for p in parts]
     if not pieces:
         empty = torch.empty(0, dtype=torch.int64)
-        return empty, empty.clone(), torch.empty(0)
+        return empty, empty.clone(), torch.empty(0), torch.empty(0)
     key, alpha, colour = (torch.cat(c) for c in zip(*pieces, strict=True))
     key, order = stable_sort_small(key)
     alpha = alpha.index_select(0, order)
     colour = colour.index_select(0, order) * mean
     pixel = key >> bits
-    value = static.index_select(0, pixel) * (1 - alpha) + alpha * colour
+    step = key & ((1 << bits) - 1)
+    beneath = base(pixel, step)
+    value = beneath * (1 - alpha) + alpha * colour
     repeat = torch.zeros(key.shape, dtype=torch.bool)
     repeat[1:] = key[1:] == key[:-1]
     later = _nonzero(repeat)
     if later.numel() == 0:
-        return pixel, key & ((1 << bits) - 1), value
+        return pixel, step, value, beneath
     index = torch.arange(key.numel())
     owner = torch.cummax(index * ~repeat, 0).values.index_select(0, later)
     rank = later - owner
@@ -325,8 +315,7 @@ def _composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, sc
         a = alpha.index_select(0, d)
         value.index_copy_(0, g, value.index_select(0, g) * (1 - a) + a * colour.index_select(0, d))
     starts = _nonzero(~repeat)
-    pixel, key, value = (c.index_select(0, starts) for c in (pixel, key, value))
-    return pixel, key & ((1 << bits) - 1), value
+    return tuple(c.index_select(0, starts) for c in (pixel, step, value, beneath))
 
 
 def block_sums(image: Tensor, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:
@@ -346,54 +335,13 @@ def block_sums(image: Tensor, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:
     return sums, counts
 
 
-class Grid:
-    """Sensor and output grids, the static image and its block means."""
-
-    def __init__(self, scene: GestureScene, factor: tuple[int, int]):
-        self.width, self.height, _ = scene.sensor_size
-        self.factor = factor
-        self.out_w, self.out_h, _ = output_size(scene.sensor_size, factor)
-        self.static, self.mean = _static_image(scene)
-        self.static_flat = self.static.reshape(-1)
-        self.scale = scene.scale
-        if factor == (1, 1):
-            self.static_out = self.static_flat
-        else:
-            sums, count = block_sums(self.static, factor)
-            self.sum_out, self.count = sums.reshape(-1), count.reshape(-1)
-            self.static_out = self.sum_out / self.count
-
-    def samples(self, parts: list[_Part], s0: int, s1: int):
-        """Output pixels' linear intensity at steps ``s0..s1`` where moving parts cover them.
-
-        Returns ``(pixel, step, intensity)`` sorted by output pixel then step (``step``
-        absolute, int64; intensity float32); pixels absent at a step sit at their static
-        value.
-        """
-        bits = step_bits(s0, s1)
-        pixel, step, value = _composite(parts, s0, s1, self.width, self.height, self.scale,
-                                        self.static_flat, self.mean)
-        if self.factor != (1, 1):
-            delta = value - self.static_flat.index_select(0, pixel)
-            block = block_of(pixel, self.width, self.factor, self.out_w)
-            key, order = stable_sort_small((block << bits) + step)
-            delta = delta.index_select(0, order)
-            new = torch.ones(key.shape, dtype=torch.bool)
-            new[1:] = key[1:] != key[:-1]
-            group = torch.cumsum(new, 0) - 1
-            sums = torch.zeros(int(group[-1]) + 1 if group.numel() else 0,
-                               dtype=delta.dtype).index_add_(0, group, delta)
-            key = key[new]
-            pixel = key >> bits
-            step = key & ((1 << bits) - 1)
-            value = (self.sum_out.index_select(0, pixel) + sums) / self.count.index_select(0, pixel)
-        return pixel, step + s0, value
-
-
 def intensity_frame(
     scene: GestureScene, t_us: float, *, factor: int | tuple[int, int] = 1
 ) -> Tensor:
     """The scene's linear intensity at one instant, rendered densely (for checks and plots).
+
+    The body is drawn where its sway has it at ``t_us`` (the event renderer interpolates it
+    between key steps; at a key step the two agree).
 
     Args:
         scene: the scene.
@@ -409,15 +357,15 @@ def intensity_frame(
         torch.Size([8, 10])
     """
     factor = check_factor(factor, scene.sensor_size)
-    grid = Grid(scene, (1, 1))
+    width, height, _ = scene.sensor_size
+    background, mean = background_image(scene)
     times = torch.tensor([float(t_us)], dtype=torch.float64)
-    image = grid.static.reshape(-1).clone()
-    width, height = grid.width, grid.height
+    image = background.reshape(-1).clone()
     jj, ii = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
     px, py = ii.reshape(-1).float() + 0.5, jj.reshape(-1).float() + 0.5
-    for part in moving_parts(scene, times):
+    for part in body_parts(scene, times) + moving_parts(scene, times):
         alpha, colour = _shade(px, py, part.a[0], part.b[0], part.radius, part.look, scene.scale)
-        image = image * (1 - alpha) + alpha * (colour * grid.mean)
+        image = image * (1 - alpha) + alpha * (colour * mean)
     image = image.reshape(height, width)
     if factor == (1, 1):
         return image

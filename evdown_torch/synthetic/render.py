@@ -1,10 +1,13 @@
 """Rendering a gesture scene through the DVS pixel model, at full or at lower resolution.
 
 Only what moves is simulated (:mod:`evdown_torch.synthetic.raster` rasterises the moving limbs
-over a static image). A pixel's log intensity is thus known at the steps where a moving part
-covers it; between such stretches it sits at its static value, which is inserted as a sample
-just before and after each stretch. The pixel model (:mod:`evdown_torch.synthetic.pixel_model`,
-separate ON and OFF thresholds with per-pixel mismatch) runs on these samples; the cost
+over the body, which :mod:`evdown_torch.synthetic.grid` renders at the few key steps of its
+slow sway, over a static background). A pixel's log intensity is thus known at the steps where
+a moving part covers it and, if the body's sway changes it, at the body's key steps (linear in
+time between them); between such samples it sits at its static value or on the body's line,
+which is inserted as a sample just before and after each covered stretch. The pixel model
+(:mod:`evdown_torch.synthetic.pixel_model`, separate ON and OFF thresholds with per-pixel
+mismatch) runs on these samples; the cost
 follows the moving parts and the events, never sensor area times steps. Steps are processed
 in chunks that bound memory; per-pixel state (the reference's ON and OFF counts) carries
 across chunks, so the result does not depend on the chunking. Under a flickering lamp the lit
@@ -14,13 +17,14 @@ last.
 
 At a lower resolution (``factor`` ``(fx, fy)``), each output pixel sees the mean linear
 intensity (photocurrent) of the block of sensor pixels it covers (edge blocks: the pixels
-inside the sensor), computed from the same fragments, and the same pixel model, lamp, noise
-and readout run on that.
+inside the sensor), computed from the same fragments and the same swaying body (block means
+of its key images), and the same pixel model, lamp, noise and readout run on that.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -28,6 +32,7 @@ from torch import Tensor
 from evdown_torch._tensors import region_xy
 from evdown_torch.checks import check_factor, check_positive_int, output_size
 from evdown_torch.events import Events
+from evdown_torch.synthetic.grid import Grid
 from evdown_torch.synthetic.lighting import flicker_depth, flicker_samples
 from evdown_torch.synthetic.pixel_model import (
     PixelModelConfig,
@@ -39,7 +44,6 @@ from evdown_torch.synthetic.pixel_model import (
     start_reference,
 )
 from evdown_torch.synthetic.raster import (
-    Grid,
     _nonzero,
     _Part,
     block_of,
@@ -103,13 +107,15 @@ def step_times(scene: GestureScene, config: PixelModelConfig) -> Tensor:
     return torch.cummax(times, 0).values
 
 
-def _with_static(pixel: Tensor, step: Tensor, x: Tensor, x_static: Tensor, s0: int, s1: int
+def _with_static(pixel: Tensor, step: Tensor, x: Tensor, covered: Tensor,
+                 level_at: Callable[[Tensor, Tensor], Tensor], s0: int, s1: int
                  ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Insert static samples just before and after each covered stretch of each pixel.
+    """Insert the uncovered level just before and after each covered stretch of each pixel.
 
     Args:
         pixel, step, x: samples sorted by pixel then step (steps within ``[s0, s1]``).
-        x_static: ``(P,)`` level of each pixel at its static intensity.
+        covered: a moving part covers the sample (else it lies on the pixel's own line).
+        level_at: ``(pixel, step) -> level`` of the pixel where no moving part covers it.
 
     Returns ``(pixel, step, x, first)`` where ``first`` marks each pixel's first sample.
     """
@@ -121,10 +127,14 @@ def _with_static(pixel: Tensor, step: Tensor, x: Tensor, x_static: Tensor, s0: i
     last = torch.ones(n, dtype=torch.bool)
     last[:-1] = first[1:]
     gap = step[1:] - step[:-1]
+    # before a covered sample (unless the previous covered one's "after" lands there), and
+    # after one
     pre = first & (step > s0)
-    pre[1:] |= ~first[1:] & (gap > 2)
+    pre[1:] |= ~first[1:] & ((gap > 2) | ((gap == 2) & ~covered[:-1]))
+    pre &= covered
     post = last & (step < s1)
     post[:-1] |= ~last[:-1] & (gap > 1)
+    post &= covered
     count = 1 + pre.to(torch.int64) + post.to(torch.int64)
     end = torch.cumsum(count, 0)
     total = int(end[-1])
@@ -135,8 +145,9 @@ def _with_static(pixel: Tensor, step: Tensor, x: Tensor, x_static: Tensor, s0: i
     for flag, shift in ((pre, -1), (post, 1)):
         where = _nonzero(flag)
         at = own.index_select(0, where) + shift
-        out_step.index_copy_(0, at, step.index_select(0, where) + shift)
-        out_x.index_copy_(0, at, x_static.index_select(0, pixel.index_select(0, where)))
+        steps = step.index_select(0, where) + shift
+        out_step.index_copy_(0, at, steps)
+        out_x.index_copy_(0, at, level_at(pixel.index_select(0, where), steps))
     out_first = torch.zeros(total, dtype=torch.bool)
     out_first[(end - count)[first]] = True
     return out_pixel, out_step, out_x, out_first
@@ -219,13 +230,13 @@ def render_events(
     max_fragments = check_positive_int("max_fragments", max_fragments)
     times = step_times(scene, config)
     parts = moving_parts(scene, times)
-    grid = Grid(scene, factor)
+    grid = Grid(scene, factor, times, config.max_step_px)
     n_out = grid.out_w * grid.out_h
     theta_on, theta_off, offset = pixel_parameters(scene, config, factor)
-    log_static = torch.log(grid.static_out).to(torch.float64)
-    pixel0, _, value0 = grid.samples(parts, 0, 0)
+    log_static = grid.out.log_static
+    pixel0, _, level0, _ = grid.samples(parts, 0, 0)
     log_start = log_static.clone()
-    log_start[pixel0] = torch.log(value0).to(torch.float64)
+    log_start[pixel0] = level0
     base = start_reference(log_start, offset, theta_on, theta_off)
     a_state = torch.zeros(n_out, dtype=torch.int64)
     b_state = torch.zeros(n_out, dtype=torch.int64)
@@ -261,9 +272,9 @@ def render_events(
         # pixels (no carried state), in one scan
         if index < len(chunks):
             s0, s1 = chunks[index]
-            pixel, step, value = grid.samples(parts, s0, s1)
-            level = torch.log(value).to(torch.float64)
-            pixel, step, level, first = _with_static(pixel, step, level, log_static, s0, s1)
+            pixel, step, level, covered = grid.samples(parts, s0, s1)
+            pixel, step, level, first = _with_static(pixel, step, level, covered,
+                                                     grid.out.level, s0, s1)
             t = times.index_select(0, step)
         else:
             pixel, t, level, first = empty, empty.double(), empty.double(), empty.bool()
@@ -320,10 +331,13 @@ def swept_mask(
     *,
     factor: int | tuple[int, int] = 1,
 ) -> Tensor:
-    """Output pixels that a moving part covers at some simulation step.
+    """Output pixels that a moving part covers at some simulation step, or that the body's
+    sway changes.
 
     Only these pixels can emit events other than noise and lamp flicker. Covering means a
-    coverage above 0 at a pixel of the block (``factor`` as in :func:`render_events`).
+    coverage above 0 at a pixel of the block (``factor`` as in :func:`render_events`); the
+    sway changes a block when it changes the intensity of one of its pixels between the
+    body's key steps.
 
     Returns:
         ``(H', W')`` bool tensor (``W' = ceil(W / fx)``, ``H' = ceil(H / fy)``).
@@ -341,6 +355,7 @@ def swept_mask(
     width, height, _ = scene.sensor_size
     out_w, out_h, _ = output_size(scene.sensor_size, factor)
     mask = torch.zeros(out_h * out_w, dtype=torch.bool)
+    mask[Grid(scene, factor, times, config.max_step_px).out.pixels] = True
     for s0, s1 in _chunks(parts, times.numel() - 1, width * height, MAX_FRAGMENTS):
         for part in parts:
             key, _, _ = rasterise(part, s0, s1, width, height, scene.scale)

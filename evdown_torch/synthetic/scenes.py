@@ -3,9 +3,12 @@
 A scene is drawn from a seed and holds everything needed to render it: where the person stands
 and how large, how fast and wide they move, what they and the background look like, and how
 noisy the sensor is. The person is a set of capsules (a segment thickened by a radius): torso,
-shoulders, neck and head are static; each arm is an upper arm, a forearm and a hand, driven by a
-wrist trajectory per class and two-link inverse kinematics. Arms that do not take part in a
-gesture hang at rest and are static too, so only the moving parts cost anything to render.
+shoulders, neck and head form the body; each arm is an upper arm, a forearm and a hand, driven
+by a wrist trajectory per class and two-link inverse kinematics. Arms that do not take part in
+a gesture hang at rest. The whole person sways slowly (:meth:`GestureScene.body_pose`): a rigid
+motion of a few pixels over seconds, far slower than the gesturing arms, which the renderer
+samples at its own few key steps (:mod:`evdown_torch.synthetic.body`), so the arms' motion
+keeps its shape and sense and only the moving parts cost anything to render.
 
 Coordinates: body units have the origin between the shoulders, ``x`` to the right of the
 image and ``y`` down; the "right" arm is the performer's right, on the image's left (the camera
@@ -63,6 +66,11 @@ BODY = (
     ("neck", (0.0, -0.07), (0.0, 0.02), 0.045, 1),
     ("head", (0.0, -0.21), (0.0, -0.15), 0.095, 1),
 )
+HIP = (0.0, 0.95)
+"""Pivot of the body's lean, body units (below the torso)."""
+BODY_REACH = 1.35
+"""Largest distance from :data:`HIP` of any point of the body and of arms at rest, body units
+(the head's top is 1.26 away); bounds the travel a lean causes."""
 # Per class: base frequency (Hz), which arms move (right, left), elbow bend of each arm
 # (+1: the elbow turns outward when the wrist is raised; -1: outward when it is lowered).
 MOTIONS = (
@@ -148,9 +156,10 @@ class GestureScene:
             swing in and out over :data:`RAMP_FRACTION` of the recording.
         pauses: ``(start_us, length_us)`` of each pause inside the gesture (1 to 3, each 4 %
             to 10 % of the recording): the motion slows to a halt and resumes, holding its pose.
-        accent: depth of the speed change within each repetition (0.5 to 0.9): the motion
-            phase is ``psi + accent * sin(psi)``, so within a cycle the limbs speed up to
-            ``1 + accent`` and slow down to ``1 - accent`` times their mean speed.
+        accent: depth ``a`` of the speed change within each repetition (0.5 to 0.9): the
+            motion phase advances at ``(1 + a cos(psi))**3 / (1 + 3 a**2 / 2)`` times its mean
+            rate, so within a cycle the limbs accelerate to ``(1 + a)**3 / (1 + 3 a**2 / 2)``
+            (2.5 to 3.1) times their mean speed and nearly stop (``(1 - a)**3 / ...``).
         lighting: ``"natural"``, ``"fluorescent"`` or ``"led"`` (DVS128 Gesture's three
             conditions, equally likely).
         flicker_hz: lamp flicker frequency, twice the mains frequency (100 or 120 Hz; 0 under
@@ -161,6 +170,11 @@ class GestureScene:
             ``log(theta_on / theta_off) = bias * PixelModelConfig.on_off_spread``.
         wander: for "Other gestures", per arm (right, left) a wrist centre and three waves
             ``(frequency_hz, amp_x, amp_y, phase_x, phase_y)``, body units; empty otherwise.
+        sway: the body's slow sway (:meth:`body_pose`): waves ``(amplitude, frequency_hz,
+            phase)`` of, in turn, the horizontal offset (two waves, amplitudes 0.01 to 0.025
+            and 0.003 to 0.01 body units, 0.08 to 0.25 Hz and 0.25 to 0.45 Hz), the vertical
+            offset (one, 0.002 to 0.006 body units, 0.1 to 0.35 Hz) and the lean about
+            :data:`HIP` (one, 0.004 to 0.012 rad, 0.08 to 0.25 Hz), flat; empty: no sway.
     """
 
     label: int
@@ -186,6 +200,7 @@ class GestureScene:
     flicker_hz: float = 0.0
     flicker_depth: float = 0.0
     bias: float = 0.0
+    sway: tuple[float, ...] = ()
 
     @classmethod
     def sample(
@@ -267,6 +282,11 @@ class GestureScene:
         lighting = LIGHTING[int(life.integers(0, 3))]
         flicker_hz = 0.0 if lighting == "natural" else (100.0 if life.random() < 0.5 else 120.0)
         depth = {"natural": 0.0, "fluorescent": v(0.08, 0.2), "led": v(0.05, 0.25)}[lighting]
+        body = np.random.default_rng(np.random.SeedSequence([seed, 2])).uniform  # the sway
+        sway = []
+        for low, high, f_low, f_high in ((0.01, 0.025, 0.08, 0.25), (0.003, 0.01, 0.25, 0.45),
+                                         (0.002, 0.006, 0.1, 0.35), (0.004, 0.012, 0.08, 0.25)):
+            sway += [body(low, high), body(f_low, f_high), body(0.0, 2 * math.pi)]
         return cls(
             label=label,
             seed=seed,
@@ -291,12 +311,70 @@ class GestureScene:
             flicker_hz=flicker_hz,
             flicker_depth=float(depth),
             bias=float(v(-1.0, 1.0)),
+            sway=tuple(float(x) for x in sway),
         )
 
     @property
     def moving_arms(self) -> tuple[bool, bool]:
         """Whether the right and the left arm move in this scene."""
         return MOTIONS[self.label][1]
+
+    def body_pose(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """The body's sway at times ``t`` (seconds): lean and offset.
+
+        A point ``p`` of the person (body units) is seen at
+        ``HIP + R(lean) (p - HIP) + offset``, ``R`` the rotation by ``lean`` (radians,
+        clockwise in the image). The sway goes on over the whole recording, idle stretches
+        and pauses included.
+
+        Returns:
+            ``(lean, offset)``: ``(S,)`` radians and ``(S, 2)`` body units, float64.
+
+        Example:
+            >>> scene = GestureScene.sample(0, 1)
+            >>> lean, offset = scene.body_pose(torch.linspace(0, 6, 61, dtype=torch.float64))
+            >>> bool(lean.abs().max() < 0.02 and offset.abs().max() < 0.05)
+            True
+        """
+        t = torch.as_tensor(t, dtype=torch.float64)
+        waves = [self.sway[k:k + 3] for k in range(0, len(self.sway), 3)]
+
+        def wave(*items: tuple[float, ...]) -> Tensor:
+            out = torch.zeros_like(t)
+            for amp, freq, phase in items:
+                out = out + amp * torch.sin(2 * math.pi * freq * t + phase)
+            return out
+
+        if not waves:
+            return torch.zeros_like(t), torch.zeros(t.shape + (2,), dtype=torch.float64)
+        offset = torch.stack([wave(*waves[:2]), wave(waves[2])], dim=-1)
+        return wave(waves[3]), offset
+
+    def _swayed(self, points: Tensor, t: Tensor) -> Tensor:
+        """Body-unit points ``(S, K, 2)`` at times ``t`` (seconds) moved by the sway."""
+        if not self.sway:
+            return points
+        lean, offset = self.body_pose(t)
+        hip = torch.tensor(HIP, dtype=torch.float64)
+        rel = points - hip
+        cos, sin = torch.cos(lean)[:, None], torch.sin(lean)[:, None]
+        turned = torch.stack([cos * rel[..., 0] - sin * rel[..., 1],
+                              sin * rel[..., 0] + cos * rel[..., 1]], dim=-1)
+        return hip + turned + offset[:, None, :]
+
+    def body_capsules(self, t_us: Tensor) -> list[tuple[Tensor, Tensor, float, int]]:
+        """Torso, shoulders, neck and head at times ``t_us`` (microseconds), swayed.
+
+        Returns:
+            Per capsule of ``BODY`` ``(a, b, radius, look)``: ``(S, 2)`` float64 pixel
+            coordinates of its ends, its radius in pixels and its index into :attr:`looks`.
+        """
+        t = torch.as_tensor(t_us, dtype=torch.float64) * 1e-6
+        ends = torch.tensor([[a, b] for _, a, b, _, _ in BODY], dtype=torch.float64)
+        points = self._swayed(ends.reshape(1, -1, 2).expand(t.numel(), -1, -1), t)
+        points = torch.tensor(self.origin, dtype=torch.float64) + self.scale * points
+        return [(points[:, 2 * k], points[:, 2 * k + 1], radius * self.scale, look)
+                for k, (_, _, _, radius, look) in enumerate(BODY)]
 
     def _moving_time(self, t: Tensor) -> Tensor:
         """Seconds of motion up to ``t`` (seconds): the integral of a gate that is 1 while the
@@ -319,7 +397,9 @@ class GestureScene:
         moving = self._moving_time(t)  # the tempo wobble too holds still in pauses
         psi = (2 * math.pi * freq * moving + self.phase
                + depth * torch.sin(2 * math.pi * wobble * moving + wobble_phase))
-        return psi + self.accent * torch.sin(psi)
+        a, sin = self.accent, torch.sin(psi)  # the integral of (1 + a cos)**3 / (1 + 1.5 a**2)
+        return psi + (3 * a * sin + 0.75 * a * a * torch.sin(2 * psi)
+                      + a**3 * (sin - sin**3 / 3)) / (1 + 1.5 * a * a)
 
     def presence(self, t: Tensor) -> Tensor:
         """How far the arms are out of their rest pose at ``t`` (seconds): 0 to 1."""
@@ -397,11 +477,13 @@ class GestureScene:
             out.append(torch.stack([x, y], dim=1))
         return out[0], out[1]
 
-    def arm_keypoints(self, t_us: Tensor) -> tuple[Tensor, Tensor]:
+    def arm_keypoints(self, t_us: Tensor, *, sway: bool = True) -> tuple[Tensor, Tensor]:
         """Shoulder, elbow, wrist and fingertip of each arm at times ``t_us``.
 
         Args:
             t_us: ``(S,)`` times, microseconds.
+            sway: move the arms with the body's sway (:meth:`body_pose`); without it, the
+                arms as the gesture alone moves them.
 
         Returns:
             ``(right, left)``, each ``(S, 4, 2)`` float64 pixel coordinates ``(x, y)`` of
@@ -421,6 +503,8 @@ class GestureScene:
             along = wrist - elbow
             tip = wrist + HAND * along / along.norm(dim=1, keepdim=True)
             points = torch.stack([shoulder.expand_as(wrist), elbow, wrist, tip], dim=1)
+            if sway:
+                points = self._swayed(points, t)
             origin = torch.tensor(self.origin, dtype=torch.float64)
             arms.append(origin + self.scale * points)
         return arms[0], arms[1]

@@ -45,7 +45,7 @@ def test_event_counts_within_dvs128_gesture_range(recordings):
 
 def test_on_share_varies_by_recording(recordings):
     shares = [float(events.p.float().mean()) for _, events in recordings]
-    assert all(0.38 <= s <= 0.62 for s in shares), shares
+    assert all(0.4 <= s <= 0.6 for s in shares), shares
     assert max(shares) - min(shares) >= 0.08, shares  # not 0.50 everywhere
 
 
@@ -58,14 +58,18 @@ def test_rate_is_bursty_in_10_ms_bins(recordings):
         edge = scene.duration_us // 20
         quiet = int(((events.t < edge) | (events.t >= scene.duration_us - edge)).sum())
         assert quiet < 0.1 * 0.5 * events.num_events / 0.9, scene.label
-    assert statistics.median(ratios) >= 3, ratios
-    assert min(ratios) >= 2, ratios
+    assert min(ratios) >= 3, ratios
 
 
 def test_funnelling_at_factor_4_removes_a_few_percent(recordings):
     shares = [funnel_share(events) for _, events in recordings]
     assert 0.02 <= statistics.mean(shares) <= 0.06, shares
-    assert all(0.005 <= s <= 0.09 for s in shares), shares
+    # per recording it follows how fast edges sweep: big arm circles most, small hand rolls
+    # least (not the lighting: the lamp's flicker adds few duplicates)
+    assert all(0.01 <= s <= 0.09 for s in shares), shares
+    circles = statistics.mean(shares[3:7])
+    small = statistics.mean(shares[7:10])  # arm roll, air drums, air guitar
+    assert circles > 2 * small, shares
 
 
 def test_readout_stamps_bursts_on_its_grid():
@@ -90,9 +94,9 @@ def test_lighting_is_drawn_per_recording_with_mains_flicker():
 
 @pytest.mark.parametrize(("lighting", "hz"), [("fluorescent", 100.0), ("led", 120.0)])
 def test_flicker_frequency_shows_in_a_static_lit_pixel(lighting, hz):
-    scene = dataclasses.replace(
+    scene = dataclasses.replace(  # a still body: its brightest pixels stay static
         GestureScene.sample(1, 3, sensor_size=(48, 48, 2), duration_us=1_000_000),
-        lighting=lighting, flicker_hz=hz, flicker_depth=0.3)
+        lighting=lighting, flicker_hz=hz, flicker_depth=0.3, sway=())
     events = render_events(scene, QUIET)
     static = ~swept_mask(scene, QUIET)[events.y, events.x]
     pixel = events.y[static] * 48 + events.x[static]
@@ -114,7 +118,7 @@ def test_flicker_frequency_shows_in_a_static_lit_pixel(lighting, hz):
 def test_low_resolution_sees_the_same_lamp():
     scene = dataclasses.replace(
         GestureScene.sample(1, 3, sensor_size=(48, 48, 2), duration_us=500_000),
-        lighting="fluorescent", flicker_hz=100.0, flicker_depth=0.6)
+        lighting="fluorescent", flicker_hz=100.0, flicker_depth=0.6, sway=())
     low = render_events(scene, QUIET, factor=2)
     static = ~swept_mask(scene, QUIET, factor=2)[low.y, low.x]
     assert int(static.sum()) > 0  # the flicker of the lit blocks
@@ -126,13 +130,13 @@ def test_gesture_life_idle_pauses_and_variation():
     assert 0.08 * 6e6 <= start <= 0.24 * 6e6 and 0.76 * 6e6 <= end <= 0.92 * 6e6
     assert 1 <= len(scene.pauses) <= 3
     t = torch.tensor([0.0, start - 1.0, (start + end) / 2], dtype=torch.float64)
-    right, _ = scene.arm_keypoints(t)
+    right, _ = scene.arm_keypoints(t, sway=False)
     torch.testing.assert_close(right[0], right[1])  # at rest until the gesture starts
     at, length = scene.pauses[0]
     ramp = 0.04 * 6e6
     hold = torch.linspace(at + ramp, at + length, 5, dtype=torch.float64)
     if length > ramp:  # fully stopped within the pause
-        pose = scene.arm_keypoints(hold)[0]
+        pose = scene.arm_keypoints(hold, sway=False)[0]
         assert float((pose - pose[:1]).abs().max()) < 1e-6
     speeds = {round(GestureScene.sample(3, s).speed, 3) for s in range(30)}
     assert max(speeds) / min(speeds) > 1.6  # tempo varies widely between recordings
@@ -141,7 +145,7 @@ def test_gesture_life_idle_pauses_and_variation():
 def test_lamp_batches_and_chunks_do_not_change_the_result():
     scene = dataclasses.replace(
         GestureScene.sample(4, 6, sensor_size=(48, 40, 2), duration_us=400_000),
-        lighting="led", flicker_hz=120.0, flicker_depth=0.4)
+        lighting="led", flicker_hz=120.0, flicker_depth=0.4, sway=())
     whole = render_events(scene)
     for budget in (500, 3000, 20_000):  # several limb chunks and lamp batches
         part = render_events(scene, max_fragments=budget)

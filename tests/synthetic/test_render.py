@@ -18,11 +18,18 @@ from evdown_torch.synthetic import (
     step_times,
     swept_mask,
 )
-from evdown_torch.synthetic.raster import Grid, moving_parts
+from evdown_torch.synthetic.grid import Grid
+from evdown_torch.synthetic.raster import moving_parts
 from evdown_torch.synthetic.render import pixel_parameters
 from evdown_torch.synthetic.scenes import FOREARM, HAND, REACH, UPPER_ARM
 
 QUIET = PixelModelConfig(background_rate_hz=0.0, hot_pixel_fraction=0.0)
+
+
+def with_sway(scene, gain):
+    """The scene with its sway's amplitudes (every third entry from the first) times ``gain``."""
+    sway = tuple(v * gain if k % 3 == 0 else v for k, v in enumerate(scene.sway))
+    return dataclasses.replace(scene, sway=sway)
 
 
 def as_list(events):
@@ -53,10 +60,16 @@ def test_arms_keep_their_lengths_and_person_scales_with_sensor(label):
         torch.testing.assert_close(seg[:, 2], torch.full_like(seg[:, 2], HAND))
         reach = (points[:, 2] - points[:, 0]).norm(dim=1) / scene.scale
         assert float(reach.max()) <= REACH + 1e-9
-    right, left = scene.arm_keypoints(t)
+    right, left = scene.arm_keypoints(t, sway=False)
     for arm, moving in zip((right, left), scene.moving_arms, strict=True):
         travelled = float((arm[1:, 3] - arm[:-1, 3]).norm(dim=1).sum())
         assert (travelled > 0.05 * scene.scale) if moving else travelled == 0.0
+    # with the sway, an arm at rest moves only with the body: a few pixels, slowly
+    for arm, still, moving in zip(scene.arm_keypoints(t), (right, left), scene.moving_arms,
+                                  strict=True):
+        if not moving:
+            shift = (arm - still).norm(dim=2)
+            assert 0 < float(shift.max()) < 0.1 * scene.scale
 
 
 def test_rotation_sense_of_arm_circles():
@@ -73,29 +86,33 @@ def test_rotation_sense_of_arm_circles():
 @pytest.mark.parametrize(("sensor", "factor"), [((37, 29, 2), 1), ((37, 29, 2), (3, 2)),
                                                 ((37, 29, 2), 5)])
 def test_sparse_intensity_matches_dense_frames(sensor, factor):
-    scene = GestureScene.sample(7, 3, sensor_size=sensor, duration_us=400_000)
-    times = step_times(scene, PixelModelConfig())
+    # a sway large enough for several key steps in 0.4 s on this small sensor
+    scene = with_sway(GestureScene.sample(7, 3, sensor_size=sensor, duration_us=400_000), 20)
+    config = PixelModelConfig()
+    times = step_times(scene, config)
     parts = moving_parts(scene, times)
     fx, fy = (factor, factor) if isinstance(factor, int) else factor
-    grid = Grid(scene, (fx, fy))
-    out_w, out_h = -(-sensor[0] // fx), -(-sensor[1] // fy)
-    static = grid.static_out.reshape(out_h, out_w)
+    grid = Grid(scene, (fx, fy), times, config.max_step_px)
+    assert grid.keys.numel() >= 3 and grid.out.pixels.numel() > 0
     checked = 0
-    for k in range(0, times.numel(), max(1, times.numel() // 6)):
-        pixel, step, value = grid.samples(parts, k, k)
+    # at the body's key steps the sparse samples are exact (in between its log intensity is
+    # interpolated)
+    for k in grid.keys.tolist():
+        pixel, step, level, covered = grid.samples(parts, k, k)
         assert bool((step == k).all())
-        sparse = static.clone().reshape(-1)
-        sparse[pixel] = value
+        sparse = grid.static_out.clone()
+        sparse[pixel] = torch.exp(level).float()
         dense = intensity_frame(scene, float(times[k]), factor=(fx, fy)).reshape(-1)
         torch.testing.assert_close(sparse, dense, rtol=1e-5, atol=1e-6)
-        checked += pixel.numel()
+        checked += int(covered.sum())
     assert checked > 30
 
 
 def test_block_means_of_the_static_image_handle_edge_blocks():
     scene = GestureScene.sample(1, 0, sensor_size=(10, 7, 2))
-    full = Grid(scene, (1, 1)).static
-    low = Grid(scene, (4, 3)).static_out.reshape(3, 3)
+    times = step_times(scene, PixelModelConfig())
+    full = Grid(scene, (1, 1), times, 1.0).static
+    low = Grid(scene, (4, 3), times, 1.0).static_out.reshape(3, 3)
     torch.testing.assert_close(low[0, 0], full[0:3, 0:4].mean())
     torch.testing.assert_close(low[2, 2], full[6:7, 8:10].mean())  # a 2 x 1 edge block
     torch.testing.assert_close(low[1, 2], full[3:6, 8:10].mean())
@@ -106,16 +123,21 @@ def test_render_equals_the_pixel_model_on_dense_sequences(factor):
     """Oracle: every output pixel's full log-intensity sequence through ``pixel_events``."""
     config = PixelModelConfig(background_rate_hz=0.0, hot_pixel_fraction=0.0,
                               refractory_us=300, max_step_px=0.7, readout_us=0)
-    scene = dataclasses.replace(
-        GestureScene.sample(5, 21, sensor_size=(40, 34, 2), duration_us=300_000),
+    scene = dataclasses.replace(  # a sway of several key steps
+        with_sway(GestureScene.sample(5, 21, sensor_size=(40, 34, 2), duration_us=300_000), 20),
         lighting="natural", flicker_hz=0.0, flicker_depth=0.0)
     fx, fy = (factor, factor) if isinstance(factor, int) else factor
     times = step_times(scene, config)
-    grid = Grid(scene, (fx, fy))
-    pixel, step, value = grid.samples(moving_parts(scene, times), 0, times.numel() - 1)
+    grid = Grid(scene, (fx, fy), times, config.max_step_px)
+    pixel, step, value, covered = grid.samples(moving_parts(scene, times), 0,
+                                               times.numel() - 1)
+    assert grid.keys.numel() > 3 and grid.out.pixels.numel() > 0  # the body sways
     n_out = grid.out_w * grid.out_h
-    level = torch.log(grid.static_out)[None, :].repeat(times.numel(), 1)
-    level[step, pixel] = torch.log(value)
+    # every pixel at every step: covered samples, else its static or swaying level
+    steps = torch.arange(times.numel())
+    level = grid.out.level(torch.arange(n_out).repeat(times.numel()),
+                           steps.repeat_interleave(n_out)).reshape(times.numel(), n_out)
+    level[step[covered], pixel[covered]] = value[covered]
     theta_on, theta_off, offset = pixel_parameters(scene, config, (fx, fy))
     ids = torch.arange(n_out).repeat_interleave(times.numel())
     pix, t, p = pixel_events(ids, times.repeat(n_out), level.t().reshape(-1).double(),
@@ -129,7 +151,8 @@ def test_render_equals_the_pixel_model_on_dense_sequences(factor):
 
 
 def test_chunking_does_not_change_the_result():
-    scene = GestureScene.sample(10, 8, sensor_size=(48, 40, 2), duration_us=600_000)
+    scene = with_sway(GestureScene.sample(10, 8, sensor_size=(48, 40, 2), duration_us=600_000),
+                      10)  # chunk ends between the body's key steps
     whole = as_list(render_events(scene))
     for budget in (700, 5000, 20_000):
         assert as_list(render_events(scene, max_fragments=budget)) == whole
