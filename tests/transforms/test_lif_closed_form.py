@@ -53,11 +53,12 @@ def test_closed_form_gives_the_rounds_spikes(which, kind, answers, monkeypatch):
         else:
             arr = random_stream(rng, 200, sensor, t_max=5000)
         pool = LIFPooling(sensor, (2, 3), dt=4, **SETTINGS[which])
-        answers.clear()
         np.testing.assert_array_equal(pool(arr), by_rounds(pool, arr, monkeypatch))
-        assert len(answers) == 1
+    assert len(answers) == 4
     if SETTINGS[which]["tau"] == 1e-3:  # beta = 0 has nothing to integrate: left to the rounds
-        assert answers == [False]
+        assert not any(answers)
+    elif SETTINGS[which]["tau"] != math.inf:  # (without leak, membranes exactly on the
+        assert any(answers)  # threshold are common: weight 0.25, say)
 
 
 def test_closed_form_answers_the_default_settings_on_nmnist(nmnist, answers, monkeypatch):

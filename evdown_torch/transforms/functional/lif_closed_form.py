@@ -274,14 +274,15 @@ def _greedy_firings(
     lanes = lead.numel()
     # what a firing adds to D ("subtract") or sets it to ("zero")
     gain = (level * (1.0 / beta)).expand(*lead, width) if reset == "subtract" else summed
-    tables = [rise, summed, gain, scale.expand(*lead, width)]
-    if between is not None:
-        tables.append(between.expand(*lead, width))
-    tables = [table.reshape(lanes, width) for table in tables]
-    if between is None:
-        tables.append(None)
-    start = torch.zeros(lanes, 1, dtype=summed.dtype, device=device)
-    fired, chains = _greedy_lanes(*tables, start, leak=leak)  # type: ignore[misc]
+    fired, chains = _greedy_lanes(
+        rise.reshape(lanes, width),
+        summed.reshape(lanes, width),
+        gain.reshape(lanes, width),
+        scale.expand(*lead, width).reshape(lanes, width),
+        None if between is None else between.expand(*lead, width).reshape(lanes, width),
+        torch.zeros(lanes, 1, dtype=summed.dtype, device=device),
+        leak=leak,
+    )
     fired = fired.reshape(*lead, width)
     return fired, None if chains is None else chains.reshape(*lead, width)
 
