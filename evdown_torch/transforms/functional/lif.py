@@ -24,7 +24,14 @@ that follows the events:
   number of cells, so the regions of a round are a prefix and every update is a slice). The
   element work is proportional to the cells; the number of rounds (a fixed cost of a few
   tensor operations each) is the largest number of cells of one region, at most the number
-  of steps that hold events.
+  of steps that hold events (:mod:`~evdown_torch.transforms.functional.lif_rounds`).
+- **Small calls in closed form.** A call that needs no state back (a recording alone or a
+  small batch) and whose cells fit a small table takes
+  :mod:`~evdown_torch.transforms.functional.lif_closed_form` instead: the membranes between
+  firings as cumulative sums, the firings by binary search (one pass per firing of the
+  busiest neuron, not per active step), every decision certified against a bound on the
+  rounds' float32 rounding; where one is not certain the rounds compute the call, so the
+  spikes are the same either way.
 
 State. The core, :func:`lif_spikes`, can start from a :class:`LIFState` (each region's
 membranes at its last input, and that step: a state cell in front of the region's cells), run
@@ -58,6 +65,8 @@ from evdown_torch._tensors import divide, region_xy, sort_by_time, stable_sort_s
 from evdown_torch.checks import check_positive_float, check_time_constant, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.lif_chains import Leak
+from evdown_torch.transforms.functional.lif_closed_form import MIN_ROUNDS, certain_spikes
+from evdown_torch.transforms.functional.lif_rounds import membranes_by_rounds, spikes_and_runs
 from evdown_torch.transforms.functional.lif_steps import (
     MAX_STEPS,
     batch_step_indices,
@@ -267,7 +276,7 @@ def lif_pooling(
         events, steps, state=None, last_step=last_step, from_step=0, sensor_size=sensor_size,
         factor=factor, beta=beta, threshold=threshold, weight=weight,
         mutual_inhibition=mutual_inhibition, reset_mechanism=reset_mechanism,
-        max_output_events=max_output_events, batch_size=batch_size,
+        max_output_events=max_output_events, batch_size=batch_size, keep_state=False,
     )
     if bounds is None:
         t = step_end_time(spike_step, t_start=events.t[0], t_end=events.t[-1], dt=dt)
@@ -339,7 +348,8 @@ def lif_spikes(
     reset_mechanism: ResetMechanism,
     max_output_events: int | None,
     batch_size: int = 1,
-) -> tuple[Tensor, Tensor, LIFState]:
+    keep_state: bool = True,
+) -> tuple[Tensor, Tensor, LIFState | None]:
     """The spikes of the neurons over steps ``0 .. last_step``, from a state, event-driven.
 
     The core of :func:`lif_pooling` (``state=None``, ``from_step=0``) and of its streaming
@@ -360,10 +370,14 @@ def lif_spikes(
             max_output_events: as :func:`lif_pooling`.
         batch_size: how many recordings are stacked vertically in ``events`` (see
             :func:`lif_pooling`'s ``bounds``); a state is for one recording only.
+        keep_state: return the neurons after the events; ``False`` returns ``None`` instead
+            and lets a small call compute its spikes in closed form
+            (:mod:`~evdown_torch.transforms.functional.lif_closed_form`), same spikes.
 
     Returns:
         ``(spike_step, neuron, state)``: int64 steps and neurons (``polarity * Ho * Wo +
-        region``) of the spikes, sorted by step, then neuron; the neurons after the events.
+        region``) of the spikes, sorted by step, then neuron; the neurons after the events
+        (``None`` unless ``keep_state``).
     """
     device = events.device
     fx, fy = factor
@@ -385,13 +399,14 @@ def lif_spikes(
     n_cells = cell_region.shape[0]
     if n_cells == 0:
         empty = torch.empty(0, dtype=torch.int64, device=device)
+        if not keep_state:
+            return empty, empty, None
         return empty, empty, state if state is not None else initial_state(plane, device)
 
     # Each region's cells: its first one, and the empty steps before and after each cell.
     new_region = torch.ones(n_cells, dtype=torch.bool, device=device)
     torch.ne(cell_region[1:], cell_region[:-1], out=new_region[1:])
     region_first = new_region.nonzero().squeeze(1)
-    n_regions = region_first.shape[0]
     cells_per_region = torch.diff(region_first, append=region_first.new_tensor([n_cells]))
     gap_before = torch.empty_like(cell_step)
     torch.sub(cell_step[1:], cell_step[:-1], out=gap_before[1:]).sub_(1)
@@ -405,98 +420,29 @@ def lif_spikes(
             0, divide(cell_region.index_select(0, region_last), wo * ho))
     gap_after.index_copy_(0, region_last, last_step - cell_step.index_select(0, region_last))
 
-    # Rounds: lanes are regions by decreasing cell count, so round r's lanes are a prefix.
+    # The membranes: in closed form where that is certain to give the rounds' spikes (calls
+    # whose new state is not needed), else by rounds.
     rounds = int(cells_per_region.max())
-    count_sorted, region_of_lane = stable_sort_small(rounds - cells_per_region, rounds + 1)
-    lane_of_region = torch.empty_like(region_of_lane)
-    lane_of_region.index_copy_(0, region_of_lane, torch.arange(n_regions, device=device))
     region_index = torch.cumsum(new_region, 0).sub_(1)
-    # lanes in round r: the regions with more than r cells
-    lanes_per_round = n_regions - torch.searchsorted(
-        count_sorted.flip(0).neg_().add_(rounds), torch.arange(rounds, device=device),
-        right=True,
-    )
-    round_start = torch.zeros(rounds + 1, dtype=torch.int64, device=device)
-    torch.cumsum(lanes_per_round, 0, out=round_start[1:])
-    # position in round order: round start of the cell's rank, plus its region's lane
-    slot = torch.arange(n_cells, device=device).sub_(region_first.index_select(0, region_index))
-    slot = round_start.index_select(0, slot).add_(lane_of_region.index_select(0, region_index))
-    del region_index, lane_of_region, region_of_lane, count_sorted
-    gap_in_rounds = torch.empty(n_cells, 1, dtype=torch.int64, device=device)
-    gap_in_rounds.index_copy_(0, slot, gap_before[:, None])
-    current_in_rounds = torch.empty_like(current).index_copy_(0, slot, current)
-    del current
-    # A membrane at or below threshold only decays through a gap: beta ** g, rounded once
-    # (exactly snntorch's product for g <= 1); after one step of a firing chain, beta ** (g - 1).
-    gap32 = gap_in_rounds.to(f32)
-    decay_in_rounds = torch.pow(beta32, gap32)
-    decay_after_one = torch.pow(beta32, gap32.sub_(1).clamp_(min=0))
-    del gap32
-    silent_in_rounds = gap_in_rounds > 0
-    chain_in_rounds = torch.zeros(n_cells, 2, dtype=torch.int64, device=device)
-
-    # The rounds: snntorch.Leaky's float32 update at every cell, in its order. The lanes of
-    # round r are the first lanes of round r - 1, so a lane's membrane is read back from there.
-    mem_in_rounds = torch.empty(n_cells, 2, dtype=f32, device=device)
-    bounds = round_start.tolist()
-    mem_in_rounds[: bounds[1]] = current_in_rounds[: bounds[1]]  # from zero: beta * 0 + I
-    for r in range(1, rounds):
-        a, b = bounds[r], bounds[r + 1]
-        u = mem_in_rounds[bounds[r - 1] : bounds[r - 1] + b - a]
-        fired = u > threshold32  # the reset signal of the next step, unless a gap follows
-        w = u * decay_in_rounds[a:b]
-        reset = None  # R = 1 where a neuron fired in the step just before this cell
-        if reset_mechanism == "zero":  # reset at the next step, then silent: W = 0 either way
-            w.masked_fill_(fired, 0.0)
-        elif reset_mechanism == "subtract" and bool(fired.any()):
-            silent = silent_in_rounds[a:b]
-            moving = fired & silent  # fired, then empty steps: one step of the chain, U - theta
-            chain = beta32 * u - threshold32  # (+ a zero current: exact)
-            w = torch.where(moving, chain * decay_after_one[a:b], w)
-            fired &= ~silent
-            longer = moving & (chain > threshold32)
-            if bool(longer.any()):  # still firing after one empty step: the chain goes on
-                count, chained, still = leak.fire_through(u, gap_in_rounds[a:b], longer)
-                w = torch.where(longer, chained, w)
-                fired = torch.where(longer, still, fired)
-                chain_in_rounds[a:b] = count
-            reset = fired
-        out = torch.mul(beta32, w, out=mem_in_rounds[a:b])
-        out += current_in_rounds[a:b]
-        if reset is not None:
-            torch.where(reset, out - threshold32, out, out=out)
-    membrane = mem_in_rounds.index_select(0, slot)  # back to cell order
-    chain_before = chain_in_rounds.index_select(0, slot)
-    del mem_in_rounds, current_in_rounds, gap_in_rounds, decay_in_rounds, decay_after_one
-    del silent_in_rounds, chain_in_rounds, slot
-
-    # Spikes at the cells.
-    fired = membrane > threshold32
-    spike_cell, spike_polarity = fired.nonzero(as_tuple=True)  # cell-major
-    spike_step = cell_step.index_select(0, spike_cell)
-    # Spikes of neurons that go on firing through the silent steps after a cell: found in the
-    # rounds (reset "subtract", gaps between cells) or here (the tail after a region's last
-    # cell; every gap with reset "none", whose membrane does not depend on them).
-    run_cell, run_polarity = (chain_before > 0).nonzero(as_tuple=True)
-    run_length = chain_before[run_cell, run_polarity]
-    run_start = cell_step[run_cell] - gap_before[run_cell]  # run_cell: the region, for below
-    if reset_mechanism != "zero":
-        if reset_mechanism == "subtract":  # only the tails: the rounds found the others
-            candidate = fired.index_select(0, region_last)
-            candidate &= (gap_after.index_select(0, region_last) > 0)[:, None]
-            tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
-            tail_cell = region_last[tail_cell]
-        else:
-            candidate = fired & (gap_after > 0)[:, None]
-            tail_cell, tail_polarity = candidate.nonzero(as_tuple=True)
-        tail_gap = gap_after.index_select(0, tail_cell)
-        tail_length, _, _ = leak.fire_through(
-            membrane[tail_cell, tail_polarity], tail_gap, tail_gap > 0
+    certain = None
+    if not keep_state and rounds >= MIN_ROUNDS:
+        certain = certain_spikes(cell_step, current, region_first, region_index,
+                                 cells_per_region, gap_after, rounds=rounds, leak=leak)
+    if certain is not None:
+        spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = certain
+        spike_step = cell_step.index_select(0, spike_cell)
+        membrane = None
+    else:
+        membrane, chain_before = membranes_by_rounds(
+            current, gap_before, region_first, region_index, cells_per_region, rounds=rounds,
+            leak=leak,
         )
-        run_cell = torch.cat([run_cell, tail_cell])
-        run_polarity = torch.cat([run_polarity, tail_polarity])
-        run_length = torch.cat([run_length, tail_length])
-        run_start = torch.cat([run_start, cell_step[tail_cell] + 1])
+        spike_step, spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = (
+            spikes_and_runs(membrane, chain_before, cell_step, gap_before, gap_after,
+                             region_last, leak=leak)
+        )
+    del current, region_index
+
     if from_step > 0:  # drop the spikes of steps an earlier call returned
         keep = spike_step >= from_step
         spike_cell, spike_polarity = spike_cell[keep], spike_polarity[keep]
@@ -511,20 +457,22 @@ def lif_spikes(
             "fired by neurons that stay above threshold through silent steps), more than "
             f"max_output_events={max_output_events}; raise that bound or lower the weight"
         )
-    run_of_spike = torch.repeat_interleave(
-        torch.arange(run_length.shape[0], device=device), run_length
-    )
-    first_of_run = torch.cumsum(run_length, 0) - run_length
-    within_run = torch.arange(run_of_spike.shape[0], device=device) - first_of_run[run_of_spike]
-    spike_step = torch.cat([spike_step, run_start[run_of_spike] + within_run])
-    spike_cell = torch.cat([spike_cell, run_cell[run_of_spike]])
-    spike_polarity = torch.cat([spike_polarity, run_polarity[run_of_spike]])
+    if run_length.shape[0]:  # the spikes of the runs, one by one
+        run_of_spike = torch.repeat_interleave(
+            torch.arange(run_length.shape[0], device=device), run_length
+        )
+        first_of_run = torch.cumsum(run_length, 0) - run_length
+        within_run = (torch.arange(run_of_spike.shape[0], device=device)
+                      - first_of_run[run_of_spike])
+        spike_step = torch.cat([spike_step, run_start[run_of_spike] + within_run])
+        spike_cell = torch.cat([spike_cell, run_cell[run_of_spike]])
+        spike_polarity = torch.cat([spike_polarity, run_polarity[run_of_spike]])
     neuron = spike_polarity * plane + cell_region[spike_cell]
-    # Output order: by step, then neuron (OFF before ON, then row-major region).
-    _, by_neuron = stable_sort_small(neuron, 2 * plane)
-    spike_step, neuron = spike_step[by_neuron], neuron[by_neuron]
-    by_step = torch.sort(spike_step, stable=True).indices
-    spike_step, neuron = spike_step[by_step], neuron[by_step]
+    # Output order: by step, then neuron (OFF before ON, then row-major region); a neuron
+    # fires at most once per step.
+    spike_step, neuron = _by_step_then_neuron(spike_step, neuron, 2 * plane, last_step)
+    if not keep_state:
+        return spike_step, neuron, None
     # The neurons after the last update of every region here.
     last_region = cell_region.index_select(0, region_last)
     if state is None:
@@ -534,3 +482,18 @@ def lif_spikes(
         state.last_step.index_put((last_region,), cell_step.index_select(0, region_last)),
     )
     return spike_step, neuron, state
+
+
+def _by_step_then_neuron(
+    spike_step: Tensor, neuron: Tensor, neurons: int, last_step: int | Tensor
+) -> tuple[Tensor, Tensor]:
+    """Spikes sorted by step, then neuron (``neurons`` of them): one sort of the combined key
+    where it fits in int64, else by neuron, then stably by step."""
+    top = int(last_step.max()) if isinstance(last_step, Tensor) else last_step
+    if (top + 1) * neurons < 1 << 62:
+        order = torch.sort(spike_step * neurons + neuron).indices
+    else:
+        _, order = stable_sort_small(neuron, neurons)
+        spike_step, neuron = spike_step[order], neuron[order]
+        order = torch.sort(spike_step, stable=True).indices
+    return spike_step[order], neuron[order]

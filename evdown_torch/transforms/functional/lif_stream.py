@@ -211,6 +211,7 @@ def lif_pooling_stream_end(
         from_step=state.decided + 1, sensor_size=sensor_size, factor=factor, beta=beta,
         threshold=threshold, weight=weight, mutual_inhibition=mutual_inhibition,
         reset_mechanism=reset_mechanism, max_output_events=max_output_events,
+        keep_state=False,
     )
     t = step_end_time(spike_step, t_start=state.t_start, t_end=state.last_t, dt=end_dt)
     return spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
