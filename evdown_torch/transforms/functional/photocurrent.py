@@ -249,11 +249,15 @@ def photocurrent_events(
     n = events.num_events
     if n == 0:
         return Events.empty(events.t.dtype, events.device), state
-    # Untouched pixels keep levels already checked: the events' pixels bound the new ones.
-    touched = take(state.level, events.y * sensor_size[0] + events.x)
-    level_bound = int(touched.abs().max()) + n  # no level of the call exceeds it
+    # No level of the call exceeds level_bound: the largest level so far plus one per event,
+    # read from the events' pixels when they are fewer than the sensor's (untouched pixels
+    # keep levels checked when they were last touched).
+    if n < state.level.shape[0]:
+        level_bound = int(take(state.level, events.y * sensor_size[0] + events.x).abs().max())
+    else:
+        level_bound = int(state.level.abs().max())
+    level_bound += n
     check_level_range(level_bound, contrast, threshold)
-    del touched
     outputs = []
     # Pieces of about 16 events per pixel: re-anchoring then costs little (at most the
     # sensor's pixels per piece) and a small sensor's pieces stay in the CPU's caches.
