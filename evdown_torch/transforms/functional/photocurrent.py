@@ -305,19 +305,19 @@ def _events_piece(
     # Region coordinates and ids in the narrowest integer type that holds them and the
     # sensor's coordinates (int16 up to 32,768 regions), as EventCount's kernel does.
     narrow = narrow_dtype(max(out_w * fx, regions // out_w * fy, regions))
-    rx = divide(events.x.to(narrow, copy=True), fx)
-    ry = divide(events.y.to(narrow, copy=True), fy)
+    x, y = events.x.to(narrow, copy=True), events.y.to(narrow, copy=True)
+    rx, ry = divide(x, fx), divide(y, fy)
     # Pixel and polarity packed as 2 * (y * W + x) + on, in int32 where every level fits too.
     wide = torch.int32 if 2 * state.level.shape[0] < 2**31 and level_bound < 2**28 else (
         torch.int64)
-    pixel_on = events.y.to(wide, copy=True).mul_(w).add_(events.x).mul_(2).add_(events.p)
+    pixel_on = y.to(wide, copy=True).mul_(w).add_(x).mul_(2).add_(events.p)
     place, bound = None, 1
     if per_region > 1:  # the pixel's place in its region, and a few high bits of the region
         chunks = max(1, 256 // per_region)
         bound = chunks * per_region
         shift = max(0, (regions - 1).bit_length() - (chunks.bit_length() - 1))
-        place = events.y.to(narrow, copy=True).sub_(ry * fy).mul_(fx)
-        place.add_(events.x.to(narrow)).sub_(rx * fx)
+        place = y.sub_(ry, alpha=fy).mul_(fx).add_(x).sub_(rx, alpha=fx)
+    del x, y
     ry.mul_(out_w).add_(rx)
     del rx
     # Region ids stay narrow after the sort; look-ups convert the few they need.

@@ -243,21 +243,21 @@ def running_sums(
     fine = math.ldexp(1.0, bits)
     sums = fixed_point(key, pixel_j, inside, lo, hi, contrast, scale, fine)
     del pixel_j
-    # The region's sum after each event, times scale.
+    # The region's sum after each event.
     high, low = (zero_sum_cumsum(change, anchor, firsts, lasts, rank)
                  for anchor, change in zip(sums.anchor, sums.change, strict=True))
     del sums
-    total = low.to(torch.float64).mul_(1 / fine).add_(high)
+    total = low.to(torch.float64).mul_(1 / (fine * scale)).add_(high, alpha=1 / scale)
     del high, low
 
-    # Error bound of each sum (in units of 1 / scale): a few ulps of every intensity (exp,
+    # Error bound of each sum: a few ulps of every intensity (exp,
     # see _split, and the conversions) and half a step of the fine word per pixel.
     slack = 6
     tolerance = max(1e-10 * threshold, 4 * slack * EPS)
-    lowest = per_region / (2 * fine) / (tolerance - slack * EPS)  # the smallest sum held
+    lowest = per_region / (2 * fine * scale) / (tolerance - slack * EPS)  # the smallest sum
     if not float(total.min()) >= lowest:  # NaN fails too
         weak = ~(total >= lowest)
         bad = weak if bad is None else bad | weak
     if bad is not None and not bool(bad.any()):
         bad = None
-    return m, total.mul_(1 / scale), bad
+    return m, total, bad
