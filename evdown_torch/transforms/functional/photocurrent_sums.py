@@ -88,10 +88,10 @@ def grouped_levels(
     del plain
     jump = first_level
     jump[1:] -= final[:-1]
-    before = step.index_add(0, starts, jump).cumsum_(0).sub_(step)
-    del step
-    key = on.add_(before, alpha=2)
-    del before
+    # The level after each event, then 2 * (after - s) + on = 2 * after - 3 * on + 2 with the
+    # step s = 2 * on - 1: the level before it, packed with its polarity.
+    key = step.index_add_(0, starts, jump).cumsum_(0).mul_(2).add_(2).sub_(on, alpha=3)
+    del step, on
     new_levels = levels.clone()
     new_levels.scatter_(0, pixel, final.long())
     if perm is None:
