@@ -172,12 +172,12 @@ def stable_sort_small(
 ) -> tuple[Tensor, Tensor]:
     """Stable sort of non-negative int64 ``keys < bound``: ``(sorted int64 keys, permutation)``.
 
-    The keys are sorted as int16 or int32 when ``bound`` (by default ``max(keys) + 1``)
-    allows: two to three times faster than int64 on the CPU. On a CPU whose torch build has
+    The keys are sorted as uint8 (below 256), int16 or int32 when ``bound`` (by default
+    ``max(keys) + 1``) allows: two to five times faster than int64 on the CPU. On a CPU whose torch build has
     the radix sort, 8,192 to 32,767 keys are padded to :data:`RADIX_SORT_MIN` with
     ``bound - 1`` (the sort is stable, so the padding lands after every real key and the
     first ``n`` results are the plain sort's), which is several times faster there.
-    With ``narrow=True`` the sorted keys come back in the dtype they were sorted as (int16,
+    With ``narrow=True`` the sorted keys come back as :func:`narrow_dtype` ``(bound)`` (int16,
     int32 or int64: a quarter or half of the memory of int64 keys).
 
     Example:
@@ -212,7 +212,11 @@ def narrow_dtype(bound: int) -> torch.dtype:
 
 
 def _sort_narrow(keys: Tensor, bound: int, narrow: bool) -> tuple[Tensor, Tensor]:
-    values, order = torch.sort(keys.to(narrow_dtype(bound)), stable=True)
+    dtype = narrow_dtype(bound)
+    if bound <= 1 << 8:  # sorted as uint8: one radix pass, about twice as fast as int16
+        values, order = torch.sort(keys.to(torch.uint8), stable=True)
+        return values.to(dtype if narrow else torch.int64), order
+    values, order = torch.sort(keys.to(dtype), stable=True)
     return (values if narrow else values.to(torch.int64)), order
 
 

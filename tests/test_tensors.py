@@ -9,7 +9,7 @@ from evdown_torch._tensors import stable_sort_small
 
 
 @pytest.mark.parametrize("n", [0, 100, 4096, 8191, 8192, 9000, 32767, 40000])
-@pytest.mark.parametrize("bound", [7, 1 << 15, 921_600])
+@pytest.mark.parametrize("bound", [7, 256, 257, 1 << 15, 921_600])
 def test_padded_sort_is_the_stable_sort(n, bound, rng):
     # Keys padded to radix-sort length (ties with the padding key bound - 1 included) must
     # sort exactly as torch's plain stable sort.
@@ -23,7 +23,8 @@ def test_padded_sort_is_the_stable_sort(n, bound, rng):
 
 @pytest.mark.parametrize(
     ("bound", "dtype"),
-    [(7, torch.int16), (1 << 15, torch.int16), ((1 << 15) + 1, torch.int32),
+    [(7, torch.int16), (256, torch.int16), (257, torch.int16), (1 << 15, torch.int16),
+     ((1 << 15) + 1, torch.int32),
      (1 << 31, torch.int32), ((1 << 31) + 1, torch.int64)],
 )
 @pytest.mark.parametrize("n", [100, 9000, 40000])

@@ -17,6 +17,8 @@ from evdown_torch.transforms.functional.photocurrent import (
 )
 from evdown_torch.transforms.functional.photocurrent_frames import (
     FrameClock,
+    FramesState,
+    frames_stream,
     photocurrent_frames,
 )
 
@@ -31,7 +33,8 @@ class PhotocurrentPooling(Downscaler):
     pixel of contrast ``threshold`` watching ``log I_r``.
 
     *Events mode* (``fps=None``, the default): ``I_r`` changes only at input events, so output
-    events take the triggering event's ``t``; causal, with a streaming :meth:`session`.
+    events take the triggering event's ``t``; causal, with a streaming :meth:`session` (the
+    frames mode has one too, which emits a frame's events once the frame is complete).
     *Frames mode* (``fps`` set): the paper's literal pipeline. Intensity frames at
     ``t_start + k / fps`` (optionally high-pass filtered with ``cutoff_hz``), area-averaged
     in linear intensity, and events between consecutive low-resolution frames by the reference
@@ -118,26 +121,50 @@ class PhotocurrentPooling(Downscaler):
         return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
 
     def stream(
-        self, events: Events, state: PhotocurrentState | None
-    ) -> tuple[Events, PhotocurrentState]:
-        """One chunk of a stream (events mode): causal, so every output is decided by its chunk.
+        self, events: Events, state: PhotocurrentState | FramesState | None
+    ) -> tuple[Events, PhotocurrentState | FramesState | None]:
+        """One chunk of a stream.
 
-        The state (:class:`~evdown_torch.transforms.functional.photocurrent.PhotocurrentState`)
-        holds every pixel's integer level and every region's reference index.
+        Events mode: causal, so every output is decided by its chunk; the state
+        (:class:`~evdown_torch.transforms.functional.photocurrent.PhotocurrentState`) holds
+        every pixel's integer level and every region's reference index. Frames mode: the
+        events of every frame complete so far (a frame is complete once a later event has
+        been seen; with a leak, in whole chunks of frames); the state
+        (:class:`~evdown_torch.transforms.functional.photocurrent_frames.FramesState`) also
+        holds the events of the frames still open.
         """
+        if self.fps is not None:
+            return self._frames(events, state, final=False)
         return photocurrent_events(
             events, sensor_size=self.sensor_size, factor=self.factor_xy,
             contrast=self.contrast, threshold=self.threshold, state=state,
         )
 
+    def stream_end(self, state: PhotocurrentState | FramesState | None) -> Events | None:
+        """Frames mode: the frames still open, the last clipped to the stream's end (the
+        events mode leaves nothing: it is causal)."""
+        if self.fps is None or state is None:
+            return None
+        return self._frames(Events(*(column[:0] for column in state.pending)), state,
+                            final=True)[0]
+
+    def _frames(
+        self, events: Events, state: FramesState | None, *, final: bool
+    ) -> tuple[Events, FramesState | None]:
+        return frames_stream(
+            events, sensor_size=self.sensor_size, factor=self.factor_xy,
+            contrast=self.contrast, threshold=self.threshold, fps=self.fps,
+            cutoff_hz=self.cutoff_hz, state=state, final=final,
+        )
+
     def session(self) -> Session:
-        """Start a streaming session over consecutive chunks of one stream (events mode).
+        """Start a streaming session over consecutive chunks of one stream (both modes).
 
         The common :class:`~evdown_torch.transforms._base.Session`: ``session(chunk)``,
-        ``flush()`` (nothing is left at the end: the events mode is causal) and ``reset()``.
-
-        Raises:
-            ValueError: in the frames mode (``fps`` set), which is batch only.
+        ``flush()`` and ``reset()``. The events mode is causal (``flush()`` returns nothing);
+        the frames mode returns a chunk's events once their frame is complete, and ``flush()``
+        the rest. Either way, the chunks' outputs and the flush concatenated equal one call on
+        the whole stream.
 
         Example:
             >>> import torch
@@ -146,11 +173,6 @@ class PhotocurrentPooling(Downscaler):
             >>> [session(chunk).tolist() for chunk in (ev[:1], ev[1:1], ev[1:])]
             [[], [], [[0, 0, 20, 1]]]
         """
-        if self.fps is not None:
-            raise ValueError(
-                "a streaming session needs the events mode (fps=None): the frames mode "
-                "interpolates between frames and is batch only"
-            )
         return super().session()
 
 

@@ -9,10 +9,12 @@ from fractions import Fraction
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
 
 from evdown_torch import EventCount, PhotocurrentPooling
 from evdown_torch.transforms.registry import make_method
 from tests.helpers import DVS_DTYPE, as_tuples, random_stream
+from tests.transforms.test_streaming import chunkings, run_in_chunks
 
 SENSOR = (10, 7, 2)
 SNAP = 1e-9
@@ -245,13 +247,12 @@ def test_streaming_equals_batch(seed):
     assert rows(np.concatenate(pieces)) == rows(pool(arr))
 
 
-def test_session_rejects_out_of_order_chunks_and_frames_mode():
-    session = PhotocurrentPooling(SENSOR).session()
+@pytest.mark.parametrize("fps", [None, 100.0])
+def test_session_rejects_out_of_order_chunks(fps):
+    session = PhotocurrentPooling(SENSOR, fps=fps).session()
     session(torch.tensor([[0, 0, 10, 1]]))
     with pytest.raises(ValueError, match="follow each other in time"):
         session(torch.tensor([[0, 0, 5, 1]]))
-    with pytest.raises(ValueError, match="events mode"):
-        PhotocurrentPooling(SENSOR, fps=100.0).session()
 
 
 @pytest.mark.parametrize("fps", [None, 500.0])
@@ -347,3 +348,208 @@ def test_frames_mode_float_timestamps(rng):
     assert len(got) == len(expected) > 20
     for (x, y, t, on), (ex, ey, et, eon) in zip(got, expected, strict=True):
         assert (x, y, on) == (ex, ey, eon) and abs(t - et) <= 0.5 + 1e-6
+
+
+# --- Paths of the events-mode kernel chosen by size (table, place keys, anchors, cuts) ------
+
+
+def _pieces(monkeypatch):
+    """Spy on the kernel's pieces: a list that gets the length of every piece it used."""
+    from evdown_torch.transforms.functional import photocurrent as kernel
+
+    used, piece = [], kernel._events_piece
+
+    def spy(*args, **kwargs):
+        out = piece(*args, **kwargs)
+        used.append(out[2])
+        return out
+
+    monkeypatch.setattr(kernel, "_events_piece", spy)
+    return used
+
+
+@pytest.mark.parametrize(("sensor", "factor", "threshold"), [
+    ((40, 40, 2), 2, 0.1), ((48, 36, 2), (4, 3), 0.1), ((40, 30, 2), (20, 15), 0.004),
+    ((40, 40, 2), 1, 0.1), ((512, 300, 2), 2, 0.1), ((256, 256, 2), 1, 0.1)])
+def test_events_mode_matches_reference_on_wider_sensors(sensor, factor, threshold, rng):
+    # More regions than the one-byte place key's region bits (40x40 / 2: 400 > 64), whole
+    # regions (no edge mask), 300 pixels a region (a two-byte place key), factor 1, and more
+    # than 2**15 regions (int32 region ids).
+    arr = random_stream(rng, 4000, sensor, t_max=3000)
+    pool = PhotocurrentPooling(sensor, factor=factor, contrast=0.3, threshold=threshold)
+    expected = events_reference(arr, sensor, factor, 0.3, threshold)
+    assert len(expected) > 100
+    assert rows(pool(arr)) == expected
+
+
+def test_levels_spanning_more_than_the_table(monkeypatch):
+    # 70,000 ON at one pixel of a 2x1 region (c * L reaches 7): a piece's levels span more
+    # than TABLE_SIZE, so the intensities are computed per event instead of looked up.
+    from evdown_torch.transforms.functional.photocurrent_sums import TABLE_SIZE
+
+    n = 70_000
+    arr = np.zeros(n + 2, dtype=DVS_DTYPE)
+    arr["t"] = np.arange(n + 2)
+    arr["p"][:n] = True
+    arr["x"][n:] = 1  # then the other pixel goes down twice
+    pool = PhotocurrentPooling((2, 1, 2), factor=(2, 1), contrast=1e-4, threshold=1e-3)
+    pieces = _pieces(monkeypatch)
+    out = rows(pool(arr))
+    assert max(pieces) > TABLE_SIZE - 3
+    expected = events_reference(arr, (2, 1, 2), (2, 1), 1e-4, 1e-3)
+    assert len(expected) > 500
+    assert out == expected
+
+
+def test_region_far_below_its_anchor_is_reanchored(monkeypatch, rng):
+    # Every pixel of a 2x2 region falls 130 levels (c = 0.5: a photocurrent e^-65 of its
+    # anchor's) within one piece: the fixed-point sums lose their precision there, so the
+    # kernel cuts the piece and re-anchors; the result still equals the reference.
+    fall = np.zeros(520, dtype=DVS_DTYPE)
+    fall["x"], fall["y"] = np.tile([0, 1, 0, 1], 130), np.tile([0, 0, 1, 1], 130)
+    fall["t"] = np.arange(520) * 2
+    rest = random_stream(rng, 300, (4, 4, 2), t_max=1040)
+    arr = np.sort(np.concatenate([fall, rest]), order="t", kind="stable")
+    pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.5, threshold=0.3)
+    pieces = _pieces(monkeypatch)
+    out = rows(pool(arr))
+    assert len(pieces) > 1  # cut at least once
+    assert sorted(out) == sorted(events_reference(arr, (4, 4, 2), 2, 0.5, 0.3))
+
+
+@pytest.mark.parametrize(("contrast", "threshold"), [(45.0, 20.0), (33.0, 50.0)])
+def test_contrasts_above_the_exponent_cap(contrast, threshold, rng):
+    # One level is more than MAX_EXPONENT (32) in log units: every piece is cut at a pixel
+    # rising twice above its anchor, and a lone event must still be exact.
+    arr = random_stream(rng, 300, (4, 2, 2), t_max=1000)
+    pool = PhotocurrentPooling((4, 2, 2), factor=2, contrast=contrast, threshold=threshold)
+    expected = events_reference(arr, (4, 2, 2), 2, contrast, threshold)
+    assert len(expected) > 20
+    assert rows(pool(arr)) == expected
+
+
+def test_pixels_too_dark_to_count(rng):
+    # c = 20: exp(c * j) underflows to 0 for pixels 40 levels below their region's brightest,
+    # which the kernel clamps there; regions with such pixels still match the reference.
+    arr = random_stream(rng, 1000, (4, 2, 2), t_max=3000)
+    arr["p"] = (arr["x"] % 2 == 0) | (np.arange(1000) % 7 == 0)  # odd columns mostly fall
+    pool = PhotocurrentPooling((4, 2, 2), factor=2, contrast=20.0, threshold=5.0)
+    expected = events_reference(arr, (4, 2, 2), 2, 20.0, 5.0)
+    assert len(expected) > 50
+    assert rows(pool(arr)) == expected
+
+
+def test_frames_mode_with_whole_regions_matches_reference(rng):
+    sensor = (8, 6, 2)  # the factor divides the sensor: no edge regions
+    arr = random_stream(rng, 300, sensor, t_max=20_000)
+    pool = PhotocurrentPooling(sensor, factor=2, contrast=0.3, threshold=0.15, fps=1000.0)
+    expected = frames_reference(arr, sensor, 2, 0.3, 0.15, 1000.0)
+    assert len(expected) > 20
+    assert sorted(rows(pool(arr))) == expected
+
+
+@pytest.mark.parametrize("contrast", [0.2, 1e-4, 37.3])
+def test_fixed_point_intensities_are_within_a_few_ulps(contrast):
+    # exp(c * j) however large |c * j| is (the float product c * j alone would be off by
+    # |c * j| / 2 ulps): against exact decimal arithmetic.
+    from decimal import Decimal, localcontext
+
+    from evdown_torch.transforms.functional.photocurrent_sums import _split
+
+    scale, fine = 2.0**10, 2.0**40
+    js = sorted(j for j in {0, 1, -1, 7, -7, 150, -3000, -int(700 / contrast),
+                            int(30 / contrast)} if -700 <= contrast * j <= 30)
+    high, low = _split(torch.tensor(js), contrast, scale, fine)
+    with localcontext() as context:
+        context.prec = 60
+        for j, h, lo in zip(js, high.tolist(), low.tolist(), strict=True):
+            exact = (Decimal(contrast) * j).exp() * Decimal(scale)
+            got = Decimal(h) + Decimal(lo) / Decimal(fine)
+            assert abs(got - exact) <= exact * Decimal(4 * 2.0**-53) + Decimal(0.5 / fine)
+
+
+# --- Frames mode streaming ---------------------------------------------------------------
+
+FRAME_POOLS = {
+    "frames": PhotocurrentPooling(SENSOR, factor=(2, 3), contrast=0.3, threshold=0.1,
+                                  fps=100_000.0),  # a frame every 10 us
+    "frames_leak": PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1,
+                                       fps=100_000.0, cutoff_hz=3000.0),  # 5 frames a chunk
+}
+
+
+@pytest.mark.parametrize("name", sorted(FRAME_POOLS))
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(case=chunkings)
+def test_frames_mode_any_chunking_gives_the_batch_result(name, case):
+    seed, n, fractions = case
+    rng = np.random.default_rng(seed)
+    arr = random_stream(rng, n, SENSOR, t_max=120)  # many equal timestamps and frame edges
+    pool = FRAME_POOLS[name]
+    cuts = [int(f * n) for f in fractions]
+    np.testing.assert_array_equal(run_in_chunks(pool, arr, cuts), pool(arr))
+
+
+@pytest.mark.parametrize("cutoff_hz", [0.0, 200.0])
+def test_frames_session_emits_complete_frames_and_the_rest_at_flush(cutoff_hz, rng):
+    arr = random_stream(rng, 400, SENSOR, t_max=20_000)
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=1000.0,
+                               cutoff_hz=cutoff_hz)
+    expected = frames_reference(arr, SENSOR, 2, 0.3, 0.1, 1000.0, cutoff_hz)
+    session = pool.session()
+    first = session(arr[:200])
+    # Everything out so far belongs to frames before the chunk's last event (t_start + k ms).
+    assert len(first) > 0 and first["t"].max() <= arr["t"][199]
+    rest = session(arr[200:])
+    tail = session.flush()
+    assert len(tail) > 0  # the last frame waits for the end of the stream
+    assert sorted(rows(np.concatenate([first, rest, tail]))) == expected
+    assert session.flush().num_events == 0  # a flushed session starts afresh
+
+
+@pytest.mark.parametrize("cutoff_hz", [0.0, 3000.0])
+def test_frames_session_with_float_timestamps(cutoff_hz, rng):
+    arr = random_stream(rng, 500, SENSOR, t_max=300)
+    tensor = torch.as_tensor(np.stack([arr["x"], arr["y"], arr["t"] + 0.25, arr["p"]], axis=1)
+                             .astype(np.float64))
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=100_000.0,
+                               cutoff_hz=cutoff_hz)
+    session = pool.session()
+    parts = [session(tensor[a:b]) for a, b in ((0, 120), (120, 121), (121, 121), (121, 500))]
+    streamed = torch.cat([*parts, session.flush()])
+    batch = pool(tensor)
+    assert batch.shape[0] > 20
+    assert torch.equal(streamed, batch)
+
+
+def test_levels_beyond_float_resolution_are_refused():
+    # contrast / threshold = 1e6 output levels per input level: a pixel 2**40 levels up would
+    # put u beyond 2**50, where float64 cannot tell levels apart.
+    from evdown_torch.events import Events
+    from evdown_torch.transforms.functional.photocurrent import (
+        initial_state,
+        photocurrent_events,
+    )
+
+    state = initial_state(SENSOR, (2, 2))
+    state.level[3 * SENSOR[0] + 4] = 2**40
+    ev = Events.from_columns([4], [3], [10], [1])
+    with pytest.raises(ValueError, match="2\\*\\*50"):
+        photocurrent_events(ev, sensor_size=SENSOR, factor=(2, 2), contrast=1.0,
+                            threshold=1e-6, state=state)
+
+
+def test_int64_levels_give_the_int32_result(rng):
+    # Levels beyond 2**28 switch the kernel's level arithmetic from int32 to int64.
+    from evdown_torch.events import Events
+    from evdown_torch.transforms.functional import photocurrent as kernel
+
+    arr = random_stream(rng, 2000, SENSOR, t_max=1000)
+    events = Events.from_columns(arr["x"].astype(np.int64), arr["y"].astype(np.int64),
+                                 arr["t"], arr["p"])
+    state = kernel.initial_state(SENSOR, (2, 2))
+    settings_ = {"sensor_size": SENSOR, "factor": (2, 2), "contrast": 0.3, "threshold": 0.1}
+    narrow, _, _ = kernel._events_piece(events, state=state, level_bound=2000, **settings_)
+    wide, _, _ = kernel._events_piece(events, state=state, level_bound=2**40, **settings_)
+    assert narrow.num_events > 100
+    assert all(torch.equal(a, b) for a, b in zip(narrow, wide, strict=True))

@@ -8,15 +8,17 @@ Each input pixel keeps an integer level ``L_p`` (ON +1, OFF -1) and its log inte
 level, a ``u`` within :data:`~evdown_torch.transforms.functional._knots.SNAP` of an integer
 counting as on it).
 
-*Events mode* (:func:`photocurrent_events`): ``log I_r`` changes only at input events. Per
-region, the photocurrent after each event is a running sum of the changes ``exp(c * L_after) -
-exp(c * L_before)``. Levels stay exact int64; the sums are *re-anchored*: at the start of every
-piece of the stream each touched region's sum is recomputed from its pixels' integer levels,
-relative to the region's brightest pixel (``sum exp(c * (L_p - m_r))`` lies in ``[1, n_r]``,
-so nothing overflows), and inside a piece the changes are summed in fixed point (exact int64
-high parts, float64 remainders) so that regions do not pollute each other. Where the running
-sum's error bound (a few ulps per change) would exceed ``1e-11 * theta`` of the sum, or an
-exponent would leave float64's range, the piece is cut there and the rest re-anchored.
+*Events mode* (:func:`photocurrent_events`): ``log I_r`` changes only at input events. The
+stream goes in pieces (about 16 events per pixel, at most :data:`CHUNK_EVENTS`). In a piece,
+one sort groups the events by region (time order inside); each region's photocurrent after
+each of its events comes from exact int64 fixed-point running sums anchored at its brightest
+pixel (:mod:`~evdown_torch.transforms.functional.photocurrent_sums`), to a few ulps however
+many events the piece has. Where the sums cannot hold an event to ``1e-10 * theta`` (all of a
+region's pixels falling some 50 log units below its anchor), or a pixel rises more than
+:data:`~evdown_torch.transforms.functional.photocurrent_sums.MAX_EXPONENT` above it, the
+piece is cut before that event and the rest re-anchored; a piece cut down to one event takes
+its region's sum straight from the levels after it. The reference rule then runs on the
+events that can change a region's reference index.
 
 *Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent_frames`, which shares
 the pixel levels, region geometry and level snap defined here.
@@ -24,7 +26,6 @@ the pixel levels, region geometry and level snap defined here.
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import torch
@@ -33,11 +34,11 @@ from torch import Tensor
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
     changes,
-    region_of,
+    divide,
+    ends,
+    narrow_dtype,
     region_pixel_count,
     region_xy,
-    run_index,
-    segmented_cumsum,
     sort_by_time,
     stable_sort_small,
     take,
@@ -47,18 +48,13 @@ from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import (
     SNAP,
-    RegionGroups,
     crossings,
     reference_index,
 )
-
-#: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: a pixel rising this
-#: far above its region's anchor would make the region's running sum span too many orders of
-#: magnitude for its early values to keep their precision (exp(709) overflows anyway).
-MAX_EXPONENT = 24.0
-
-#: Unit roundoff of float64.
-EPS = 2.0**-53
+from evdown_torch.transforms.functional.photocurrent_sums import (
+    grouped_levels,
+    running_sums,
+)
 
 
 class PhotocurrentState(NamedTuple):
@@ -119,118 +115,54 @@ def check_level_range(max_level: int, contrast: float, threshold: float) -> None
 def snap(u: Tensor) -> tuple[Tensor, Tensor]:
     """``(floor(u), u is on a level)``, a ``u`` within :data:`SNAP` of an integer on it."""
     nearest = torch.round(u)
-    on_level = (u - nearest).abs() <= SNAP
-    return torch.where(on_level, nearest, torch.floor(u)).to(torch.int64), on_level
+    offset = u - nearest
+    on_level = offset.abs() <= SNAP
+    # Below the nearest integer by more than SNAP (|offset| <= 1/2): floor(u) = nearest - 1.
+    return nearest.sub_(offset.lt_(-SNAP)).to(torch.int64), on_level
 
 
 def region_pixels(
     regions: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor | None]:
     """Pixel ids ``y * W + x`` of every pixel of ``regions``: ``(R, fx * fy)`` int64 and a
-    same-shaped bool mask of those inside the sensor (ids outside are 0). Regions of stacked
-    recordings (ids past ``Ho * Wo``) are inside where their recording's are."""
+    same-shaped bool mask of those inside the sensor (ids outside are 0), ``None`` when the
+    factor divides the sensor (every pixel is inside). Regions of stacked recordings (ids past
+    ``Ho * Wo``) are inside where their recording's are."""
     w, h, _ = sensor_size
     fx, fy = factor
     rows = -(-h // fy) * fy  # the sensor's rows padded to whole regions
     rx, ry = region_xy(regions, -(-w // fx))
     grid = torch.arange(fx * fy, device=regions.device)
-    px = rx[:, None] * fx + grid % fx
-    py = ry[:, None] * fy + torch.div(grid, fx, rounding_mode="floor")
+    gx, gy = grid % fx, torch.div(grid, fx, rounding_mode="floor")
+    if w % fx == 0 and h % fy == 0:
+        corner = ry.mul_(fy * w).add_(rx, alpha=fx)
+        return corner[:, None] + (gy * w + gx), None
+    px = rx[:, None] * fx + gx
+    py = ry[:, None] * fy + gy
     inside = (px < w) & (torch.remainder(py, rows) < h)
     return torch.where(inside, py * w + px, 0), inside
 
 
-def log_mean_exp(levels: Tensor, inside: Tensor, contrast: float) -> tuple[Tensor, Tensor]:
+def log_mean_exp(
+    levels: Tensor, inside: Tensor | None, contrast: float
+) -> tuple[Tensor, Tensor]:
     """Per row: brightest level ``m`` and ``sum exp(c * (L - m))`` over the ``inside`` entries.
 
     Args:
         levels: ``(R, n)`` int64 pixel levels.
-        inside: ``(R, n)`` bool, the entry is a sensor pixel.
+        inside: ``(R, n)`` bool, the entry is a sensor pixel (``None``: all are).
         contrast: ``c``.
 
     Returns:
         ``(m, s)``: ``(R,)`` int64 and ``(R,)`` float64 in ``[1, n]``.
     """
+    if inside is None:
+        m = levels.amax(1)
+        return m, torch.exp((levels - m[:, None]).to(torch.float64).mul_(contrast)).sum(1)
     lowest = torch.iinfo(torch.int64).min
     m = torch.where(inside, levels, lowest).amax(1)
     below = torch.where(inside, levels - m[:, None], 0).to(torch.float64).mul_(contrast)
     return m, torch.where(inside, torch.exp(below), 0.0).sum(1)
-
-
-class _SegmentSums(NamedTuple):
-    """Running sums of :func:`_segment_sum` and what an error bound needs of them."""
-
-    total: Tensor  # (N,) float64 running sums
-    grid: Tensor  # (N,) int64 grid parts of the values
-    scale: Tensor  # (N,) or () float64 grid scale of each value's segment
-
-
-def _segment_sum(values: Tensor, starts_at: Tensor, segment: Tensor) -> _SegmentSums:
-    """Running sum of float64 ``values`` restarting at each segment, without cross-talk.
-
-    Each segment is put on its own fixed-point grid (a power of two fitted to its largest
-    value): the grid parts add exactly in int64 and only the remainders, below half a grid
-    step, are summed in float64, so a segment's sum carries no rounding of other segments,
-    however much larger their values are.
-
-    Args:
-        values: ``(N,)`` float64.
-        starts_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
-        segment: ``(N,)`` int64 segment of each element.
-    """
-    n = values.shape[0]
-    largest = torch.zeros(starts_at.shape[0], dtype=torch.float64, device=values.device)
-    largest.scatter_reduce_(0, segment, values.abs(), "amax")
-    top = float(largest.max())
-    if top == 0.0 or float(largest.min()) >= top * 2.0**-24:
-        # Segments of similar magnitudes share one grid: the remainders' sum then drifts by
-        # at most n * 2**-53 grid steps, 2**-60 of the smallest segment's largest value.
-        scale = torch.tensor(math.ldexp(1.0, 61 - n.bit_length() - math.frexp(top)[1]),
-                             dtype=torch.float64, device=values.device)
-    else:
-        exponent = torch.frexp(largest).exponent.to(torch.float64)
-        scale = take(torch.exp2((61 - n.bit_length()) - exponent), segment)
-    scaled = values * scale
-    high_f = torch.round(scaled)
-    rest = scaled.sub_(high_f)
-    high = high_f.to(torch.int64)
-    del high_f
-    total = segmented_cumsum(high, starts_at, segment).to(torch.float64)
-    total += segmented_cumsum(rest, starts_at, segment)
-    return _SegmentSums(total.div_(scale), high, scale)
-
-
-def _running_magnitude(sums: _SegmentSums, starts_at: Tensor, segment: Tensor) -> Tensor:
-    """Running sums of ``|value|`` from the grid parts (exact to a grid step per value)."""
-    size = sums.grid.abs().add_(1)
-    return segmented_cumsum(size, starts_at, segment).to(torch.float64).div_(sums.scale)
-
-
-#: Largest table of ``exp(c * j)`` values :func:`_sum_changes` builds instead of calling exp.
-TABLE_SIZE = 1 << 16
-
-
-def _sum_changes(before: Tensor, on: Tensor, contrast: float) -> tuple[Tensor, Tensor | None]:
-    """``exp(c * (before + s)) - exp(c * before)`` for int64 ``before`` (level minus anchor)
-    and step ``s = +-1``, from a table of ``exp(c * j) * expm1(+-c)`` when the levels span
-    little; and where ``c * before`` exceeds :data:`MAX_EXPONENT` (else ``None``)."""
-    lowest, highest = int(before.min()), int(before.max())
-    too_bright = None
-    if highest * contrast > MAX_EXPONENT:
-        too_bright = before > MAX_EXPONENT / contrast
-        highest = math.floor(MAX_EXPONENT / contrast)
-        before = before.clamp(max=highest)
-    expm1 = (math.expm1(-contrast), math.expm1(contrast))
-    floor = max(lowest, -math.ceil(800 / contrast))  # exp(c * j) is 0 below
-    if highest - floor < TABLE_SIZE:
-        j = torch.arange(floor, highest + 1, device=before.device, dtype=torch.float64)
-        table = torch.exp(j.mul_(contrast))[:, None] * torch.tensor(
-            expm1, dtype=torch.float64, device=before.device)
-        index = (before.clamp(min=floor) - floor).mul_(2).add_(on.to(torch.int64))
-        return take(table.reshape(-1), index), too_bright
-    steps = torch.tensor(expm1, dtype=torch.float64, device=before.device)
-    change = torch.exp(before.to(torch.float64).mul_(contrast))
-    return change.mul_(take(steps, on.to(torch.int64))), too_bright
 
 
 class PixelLevels(NamedTuple):
@@ -303,6 +235,7 @@ def photocurrent_events(
         Two ON events in a 2x1 region at contrast ln 2: the photocurrent goes 1 -> 1.5 -> 2,
         so only the second event reaches the level ``ln 2``.
 
+        >>> import math
         >>> ev = Events.from_columns([0, 1], [0, 0], [5, 9], [1, 1])
         >>> out, _ = photocurrent_events(ev, sensor_size=(2, 1, 2), factor=(2, 1),
         ...                              contrast=math.log(2), threshold=math.log(2))
@@ -316,17 +249,25 @@ def photocurrent_events(
     n = events.num_events
     if n == 0:
         return Events.empty(events.t.dtype, events.device), state
-    check_level_range(int(state.level.abs().max()) + n, contrast, threshold)
+    # No level of the call exceeds level_bound: the largest level so far plus one per event,
+    # read from the events' pixels when they are fewer than the sensor's (untouched pixels
+    # keep levels checked when they were last touched).
+    if n < state.level.shape[0]:
+        level_bound = int(take(state.level, events.y * sensor_size[0] + events.x).abs().max())
+    else:
+        level_bound = int(state.level.abs().max())
+    level_bound += n
+    check_level_range(level_bound, contrast, threshold)
     outputs = []
-    # Pieces of a few events per pixel: re-anchoring then costs little (at most the sensor's
-    # pixels per piece), and a piece that has to be cut wastes little.
-    largest = min(max(4 * sensor_size[0] * sensor_size[1], 1 << 16), CHUNK_EVENTS)
+    # Pieces of about 16 events per pixel: re-anchoring then costs little (at most the
+    # sensor's pixels per piece) and a small sensor's pieces stay in the CPU's caches.
+    largest = min(max(16 * sensor_size[0] * sensor_size[1], 1 << 16), CHUNK_EVENTS)
     start, size, emitted = 0, largest, 0
     while start < n:
         stop = min(start + size, n)
         piece = Events(*(column[start:stop] for column in events))
         out, state, used = _events_piece(piece, sensor_size, factor, contrast, threshold, state,
-                                         emitted)
+                                         emitted, level_bound)
         outputs.append(out)
         emitted += out.num_events
         # After a cut (the running sums could not hold the rest), re-anchor there and try
@@ -344,93 +285,114 @@ def _events_piece(
     threshold: float,
     state: PhotocurrentState,
     emitted: int = 0,
+    level_bound: int = 2**62,
 ) -> tuple[Events, PhotocurrentState, int]:
     """Events mode on one time-sorted piece anchored at ``state``: ``(output, state, used)``.
 
     ``emitted`` counts the events of earlier pieces, for the output cap of
-    :func:`~evdown_torch.checks.check_output_count`. Where the running sums cannot hold the
-    whole piece to the required accuracy, only its events before the first that they cannot
-    hold are used (``used >= 1`` events, the output and state are theirs); the caller
-    re-anchors there.
+    :func:`~evdown_torch.checks.check_output_count`; ``level_bound`` bounds every pixel level
+    before and after the piece (int32 arithmetic where it allows). Where the running sums
+    cannot hold the whole piece to the required accuracy, only its events before the first
+    that they cannot hold are used (``used >= 1`` events, the output and state are theirs);
+    the caller re-anchors there.
     """
-    w, h, _ = sensor_size
+    w = sensor_size[0]
+    fx, fy = factor
     out_w = output_size(sensor_size, factor)[0]
-    levels = pixel_levels(events, w, state.level.shape[0] // w, state.level)  # stacked: more rows
-    level_before = torch.empty_like(levels.level).scatter_(0, levels.order,
-                                                           levels.level - levels.step)
-    new_levels = levels.new_state
-    del levels
-    rx, ry = region_of(events, factor)
-    ry *= out_w
-    region, order = stable_sort_small(ry.add_(rx), state.index.shape[0])
-    groups = RegionGroups(order, region, changes(region))
-    del rx, ry, order
-    firsts = where_true(groups.first)
-    rank = run_index(groups.first)
-    touched = take(region, firsts)
-
-    # Anchor: each touched region's sum recomputed from the integer levels before the piece.
-    ids, inside = region_pixels(touched, sensor_size, factor)
-    m, anchor = log_mean_exp(state.level[ids], inside, contrast)
-    del ids, inside
-
-    # Change of the region's sum at each event, relative to its brightest anchored pixel.
-    on = take(events.p, groups.order)
-    before = take(level_before, groups.order)
-    before -= take(m, rank)
-    del level_before
-    change, too_bright = _sum_changes(before, on, contrast)
-    del before
-    sums = _segment_sum(change, firsts, rank)
-    total = sums.total
-    # Error bound of each running sum: a few ulps of every term (anchor and changes) so far.
-    # First a cheap one (all the region's changes in the piece), the exact one where it fails.
-    tolerance = max(1e-10 * threshold, 16 * EPS)
-    magnitude = torch.zeros_like(anchor).index_add_(0, rank, change.abs_()).add_(anchor)
-    del change
-    total += take(anchor, rank)
-    lowest = torch.full_like(anchor, math.inf).scatter_reduce_(0, rank, total, "amin")
-    bad = too_bright
-    if not bool((magnitude.mul_(4 * EPS) <= lowest.mul_(tolerance)).all()):  # NaN fails too
-        bound = _running_magnitude(sums, firsts, rank).add_(take(anchor, rank)).mul_(4 * EPS)
-        bad = ~(bound <= total * tolerance) if bad is None else bad | ~(bound <= total * tolerance)
-        del bound
-    del sums, magnitude, lowest
+    per_region = fx * fy
     n = events.num_events
-    if n > 1 and bad is not None and bool(bad.any()):
-        used = int(take(groups.order, where_true(bad)).min())
-        if used == 0:  # the first event alone: its sum is the anchor plus one change
+    regions = state.index.shape[0]
+    # Region coordinates and ids in the narrowest integer type that holds them and the
+    # sensor's coordinates (int16 up to 32,768 regions), as EventCount's kernel does.
+    narrow = narrow_dtype(max(out_w * fx, regions // out_w * fy, regions))
+    x, y = events.x.to(narrow, copy=True), events.y.to(narrow, copy=True)
+    rx, ry = divide(x, fx), divide(y, fy)
+    # Pixel and polarity packed as 2 * (y * W + x) + on, in int32 where every level fits too.
+    wide = torch.int32 if 2 * state.level.shape[0] < 2**31 and level_bound < 2**28 else (
+        torch.int64)
+    pixel_on = y.to(wide, copy=True).mul_(w).add_(x).mul_(2).add_(events.p)
+    place, bound = None, 1
+    if per_region > 1:  # the pixel's place in its region, and a few high bits of the region
+        chunks = max(1, 256 // per_region)
+        bound = chunks * per_region
+        shift = max(0, (regions - 1).bit_length() - (chunks.bit_length() - 1))
+        place = y.sub_(ry, alpha=fy).mul_(fx).add_(x).sub_(rx, alpha=fx)
+    del x, y
+    ry.mul_(out_w).add_(rx)
+    del rx
+    # Region ids stay narrow after the sort; look-ups convert the few they need.
+    region, order = stable_sort_small(ry, regions, narrow=True)
+    if place is not None:
+        place.add_(ry.bitwise_right_shift_(shift), alpha=per_region)
+        place = take(place.to(torch.uint8) if bound <= 256 else place, order)
+    del ry
+    first = changes(region)
+    firsts = where_true(first)
+    lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
+    rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
+    touched = take(region, firsts).long()
+    key, new_levels = grouped_levels(take(pixel_on, order), place, bound, state.level)
+    del place, pixel_on
+
+    ids, inside = region_pixels(touched, sensor_size, factor)
+    if n == 1:  # a lone event (after a cut): its region's sum straight from the levels after it
+        m, total = log_mean_exp(new_levels[ids], inside, contrast)
+        bad = None
+    else:
+        m, total, bad = running_sums(key, ids, inside, state.level, firsts, lasts, rank,
+                                      per_region, contrast, threshold)
+    del ids, inside, key
+    if bad is not None:  # the running sums cannot hold an event: cut the piece before it
+        used = int(take(order, where_true(bad)).min())
+        if used == 0:
             return _events_piece(Events(*(column[:1] for column in events)), sensor_size,
                                  factor, contrast, threshold, state, emitted)
         # Keep the events before the cut (each region keeps a prefix of its own events).
-        kept = where_true(groups.order < used)
-        groups = RegionGroups(*(take(column, kept) for column in groups))
-        region, total, rank = groups.region, take(total, kept), take(rank, kept)
+        kept = where_true(order < used)
+        order, region, total = take(order, kept), take(region, kept), take(total, kept)
+        first, rank = take(first, kept), take(rank, kept)
         new_levels = state.level.clone()
         new_levels.index_add_(0, events.y[:used] * w + events.x[:used],
                               events.p[:used].to(torch.int64).mul_(2).sub_(1))
         events = Events(*(column[:used] for column in events))
         n = used
-        firsts = where_true(groups.first)
+        firsts = where_true(first)
+        lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
 
-    # u = log(I_r) / theta = (c * m + log(sum / n_r)) / theta, then the reference rule.
-    # Per region: c * m / theta - log(n_r) / theta, added to log(sum) / theta.
+    # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
     log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
-    offset = m.to(torch.float64).mul_(contrast / threshold).sub_(log_pixels.div_(threshold))
-    u = torch.log(total).div_(threshold).add_(take(offset, rank))
+    offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels)
+    u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
     floor_u, on_level = snap(u)
     del u, total
-    q = reference_index(floor_u, on_level, groups.first, take(state.index, region))
+    # The reference rule on the steps that can change q only (a step that stays strictly
+    # inside the cell its predecessor ended in keeps q and crosses nothing): a tenth or less
+    # of the events when a level takes several events to cross.
+    moved = changes(floor_u)
+    moved |= first
+    moved |= on_level
+    moved[1:] |= on_level[:-1]
+    kept = where_true(moved)
+    del moved
+    region, first = take(region, kept), take(first, kept)
+    floor_u, on_level = take(floor_u, kept), take(on_level, kept)
+    firsts = where_true(first)
+    # Every region's q before the piece (a 0-d zero while all are 0: no look-up).
+    q_start = take(state.index, region.long()) if bool(state.index.any()) else (
+        first.new_zeros((), dtype=torch.int64))
+    q = reference_index(floor_u, on_level, first, q_start)
+    del q_start, floor_u, on_level
     q_before = q.roll(1)
-    q_before[firsts] = take(state.index, take(region, firsts))
+    q_before[firsts] = take(state.index, take(region, firsts).long())
     cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one step keep their level order.
-    source, by_time = stable_sort_small(take(groups.order, cross.step), n)
-    out_x, out_y = region_xy(take(region, take(cross.step, by_time)), out_w)
+    step = take(kept, cross.step)
+    source, by_time = stable_sort_small(take(order, step), n)
+    out_x, out_y = region_xy(take(region, take(cross.step, by_time)).long(), out_w)
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
-    lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
+    lasts = where_true(ends(first))
     new_index = state.index.clone()
-    new_index.scatter_(0, take(region, lasts), take(q, lasts))
+    new_index.scatter_(0, take(region, lasts).long(), take(q, lasts))
     return out, PhotocurrentState(new_levels, new_index, events.t[-1].clone()), n

@@ -6,7 +6,10 @@ times. Without a leak a region's frame value changes only at frames that follow 
 the kernel works on (region, frame) pairs with events and recomputes each such frame value from
 the pixels' integer levels (relative to the region's brightest pixel): the cost follows the
 events. With a leak (``cutoff_hz > 0``) every pixel decays between frames, so frames are built
-densely in bounded chunks of frames (never the whole recording at once). The shared pieces
+densely in bounded chunks of frames (never the whole recording at once). A stream can go
+in chunks (:func:`frames_stream`): a frame is processed once an event later than it has been
+seen (with a leak, in the same chunks of frames as one call on the whole stream), so the
+chunks' outputs concatenated equal one call. The shared pieces
 (pixel levels, region geometry, the level snap) live in
 :mod:`~evdown_torch.transforms.functional.photocurrent`.
 """
@@ -145,37 +148,120 @@ def photocurrent_frames(
         >>> out.t.tolist(), out.p.tolist()
         ([2000], [True])
     """
+    return frames_stream(events, sensor_size=sensor_size, factor=factor, contrast=contrast,
+                         threshold=threshold, fps=fps, cutoff_hz=cutoff_hz, state=None,
+                         final=True)[0]
+
+
+class FramesState(NamedTuple):
+    """State of a frames-mode stream between chunks (:func:`frames_stream`).
+
+    Attributes:
+        t_start: ``()`` the stream's first timestamp (frame 0).
+        pending: the events of frames not complete yet (time-sorted).
+        seen: events seen so far.
+        next_frame: the first frame not processed yet.
+        carry: the processed frames' ``levels`` (no leak) or ``ell`` and ``ell_time`` (leak)
+            per pixel, and per region ``u``, ``q`` and the events ``emitted``.
+    """
+
+    t_start: Tensor
+    pending: Events
+    seen: int
+    next_frame: int
+    carry: dict
+
+
+def frames_stream(
+    events: Events,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    contrast: float,
+    threshold: float,
+    fps: float,
+    cutoff_hz: float,
+    state: FramesState | None,
+    final: bool,
+) -> tuple[Events, FramesState | None]:
+    """Frames mode on one chunk of a stream: the events of every frame complete so far.
+
+    A frame at ``t_start + k / fps`` is complete once an event later than it has been seen
+    (later events cannot change it); with a leak, frames go in whole chunks of
+    :func:`leak_chunk` frames, as in one call on the whole stream. ``final`` ends the stream:
+    every frame, the last one clipped to ``t_end``. Output events of frame ``k`` lie between
+    frames ``k - 1`` and ``k``; ties in ``t`` are ordered by frame, then region, so that the
+    chunks' outputs concatenated equal one call on the whole stream.
+
+    Args:
+        events: the chunk (time-sorted, at or after every earlier chunk's events; may be empty).
+        sensor_size, factor, contrast, threshold, fps, cutoff_hz: as for
+            :func:`photocurrent_frames`.
+        state: the state returned for the previous chunk, or ``None``.
+        final: the chunk ends the stream.
+
+    Returns:
+        ``(output events sorted by t, state)``.
+    """
     check_contrast_range(contrast, threshold)
     events = sort_by_time(events)
-    n = events.num_events
-    if n == 0:
-        return Events.empty(events.t.dtype, events.device)
-    check_level_range(n, contrast, threshold)
-    t_start = events.t[0]
+    seen = events.num_events + (state.seen if state is not None else 0)
+    if state is not None:
+        events = Events(*(torch.cat(pair) for pair in zip(state.pending, events, strict=True)))
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device), state
+    check_level_range(seen, contrast, threshold)
+    w, h, _ = sensor_size
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    device = events.device
+    t_start = events.t[0] if state is None else state.t_start
     offset = events.t - t_start
     clock = FrameClock.make(fps, offset[-1].item())
     frame = clock.index(offset)
-    out_w, out_h, _ = output_size(sensor_size, factor)
-    carry_u = torch.zeros(out_w * out_h, dtype=torch.float64, device=events.device)
-    carry_q = torch.zeros(out_w * out_h, dtype=torch.int64, device=events.device)
-    if cutoff_hz > 0:
-        steps = _leaky_frame_steps(events, offset, frame, clock, sensor_size, factor,
-                                   contrast, threshold, cutoff_hz)
+    if state is None:
+        carry = {"levels": torch.zeros(w * h, dtype=torch.int64, device=device),
+                 "ell": torch.zeros(w * h, dtype=torch.float64, device=device),
+                 "ell_time": 0.0,
+                 "u": torch.zeros(out_w * out_h, dtype=torch.float64, device=device),
+                 "q": torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
+                 "emitted": 0}
+        next_frame = 0
     else:
-        steps = _frame_steps(events, frame, sensor_size, factor, contrast, threshold)
-    outputs, emitted = [], 0
+        carry = {key: value.clone() if isinstance(value, Tensor) else value
+                 for key, value in state.carry.items()}
+        next_frame = state.next_frame
+    # Frames before `stop` are processed: all of them at the end, else the complete ones
+    # (before the latest event's frame), in whole leak chunks.
+    stop = int(frame[-1]) + (1 if final else 0)  # frame[-1]: the first frame not before t
+    if not final and cutoff_hz > 0:
+        per_chunk = leak_chunk(sensor_size, clock, cutoff_hz)
+        stop = next_frame + (stop - next_frame) // per_chunk * per_chunk
+    cut = int(torch.searchsorted(frame, torch.tensor([stop], device=device))[0])
+    done = Events(*(column[:cut] for column in events))
+    pending = Events(*(column[cut:] for column in events))
+    new_state = FramesState(t_start, pending, seen, max(stop, next_frame), carry)
+    if cutoff_hz > 0:
+        steps = _leaky_frame_steps(done, offset[:cut], frame[:cut], clock, sensor_size, factor,
+                                   contrast, threshold, cutoff_hz, (next_frame, stop), carry)
+    elif cut:
+        steps = _frame_steps(done, frame[:cut], sensor_size, factor, contrast, threshold, carry)
+    else:
+        steps = iter(())
+    outputs = []
     for step in steps:
-        outputs.append(_frame_crossings(*step, carry_u, carry_q, clock, emitted))
-        emitted += outputs[-1][0].shape[0]
+        outputs.append(_frame_crossings(*step, carry["u"], carry["q"], clock, carry["emitted"]))
+        carry["emitted"] += outputs[-1][0].shape[0]
     if not outputs:
-        return Events.empty(events.t.dtype, events.device)
-    region, at, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+        return Events.empty(events.t.dtype, device), new_state
+    region, k, at, on = (torch.cat(column) for column in zip(*outputs, strict=True))
     if events.t.is_floating_point():
         t = t_start + at
     else:
         tick = torch.floor(at.add_(0.5 + HALF_TOLERANCE)).clamp_(max=clock.duration)
         t = t_start + tick.to(torch.int64)
-    return emit(region, t, on, out_w)
+    # Ties in t: by frame, then region (emit sorts stably by t).
+    order = torch.sort(k * (out_w * out_h) + region, stable=True).indices
+    return emit(take(region, order), take(t, order), take(on, order), out_w), new_state
 
 
 def _log_photocurrent(
@@ -195,13 +281,15 @@ def _frame_steps(
     factor: tuple[int, int],
     contrast: float,
     threshold: float,
+    carry: dict,
 ) -> Steps:
     """Without a leak: ``(region, frame, u, first)`` of every (region, frame) pair whose value
-    changed (those following the region's events), region-major, in bounded batches."""
+    changed (those following the region's events), region-major, in bounded batches.
+    ``carry["levels"]`` holds the pixel levels before the events and gets those after."""
     w, h, _ = sensor_size
     out_w = output_size(sensor_size, factor)[0]
     per_region = factor[0] * factor[1]
-    level_state = torch.zeros(w * h, dtype=torch.int64, device=events.device)
+    level_state = carry["levels"]
     bounds = chunk_bounds(frame, max(1, CHUNK_VALUES // per_region), split_ties=False)
     for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
         piece = Events(*(column[lo:hi] for column in events))
@@ -233,8 +321,16 @@ def _frame_steps(
         del query, found, hit
         m, spread = log_mean_exp(lv, inside, contrast)
         u = _log_photocurrent(m, spread, region, sensor_size, factor, contrast, threshold)
-        level_state = levels.new_state
+        level_state = carry["levels"] = levels.new_state
         yield region, step_frame, u, changes(region)
+
+
+def leak_chunk(sensor_size: tuple[int, int, int], clock: FrameClock, cutoff_hz: float) -> int:
+    """Frames per chunk of the leaky frames mode: at most :data:`CHUNK_VALUES` pixel values,
+    and short enough that every decay factor stays within ``[1/e, e]`` (no precision lost)."""
+    omega = 2 * math.pi * cutoff_hz / TICKS_PER_SECOND  # per tick
+    return max(1, min(CHUNK_VALUES // (sensor_size[0] * sensor_size[1]),
+                      int(1 / (omega * clock.period))))
 
 
 def _leaky_frame_steps(
@@ -247,27 +343,28 @@ def _leaky_frame_steps(
     contrast: float,
     threshold: float,
     cutoff_hz: float,
+    frames: tuple[int, int],
+    carry: dict,
 ) -> Steps:
-    """With a leak: ``(region, frame, u, first)`` of every region at every frame, built from
-    dense frames in chunks of at most :data:`CHUNK_VALUES` pixel values."""
+    """With a leak: ``(region, frame, u, first)`` of every region at every frame of
+    ``range(*frames)`` (the first a multiple of :func:`leak_chunk`), built from dense frames in
+    chunks of :func:`leak_chunk` frames. ``carry["ell"]`` and ``carry["ell_time"]`` hold every
+    pixel's log intensity at the frame before and get those at the last frame."""
     w, h, _ = sensor_size
     fx, fy = factor
     out_w, out_h, _ = output_size(sensor_size, factor)
     device = events.device
     omega = 2 * math.pi * cutoff_hz / TICKS_PER_SECOND  # per tick
-    # Inside a chunk every factor exp(+-omega dt) stays within [1/e, e]: no precision lost.
-    per_chunk = max(1, min(CHUNK_VALUES // (w * h), int(1 / (omega * clock.period))))
-    last_frame = int(frame[-1])
+    per_chunk = leak_chunk(sensor_size, clock, cutoff_hz)
     pixel = events.y * w + events.x
     sign = events.p.to(torch.float64).mul_(2 * contrast).sub_(contrast)
     offset = offset.to(torch.float64)
     regions = torch.arange(out_w * out_h, device=device)
     log_pixels = region_pixel_count(regions, sensor_size, factor).to(torch.float64).log_()
-    ell = torch.zeros(w * h, dtype=torch.float64, device=device)  # log intensity, last frame
-    ell_time = 0.0
+    ell, ell_time = carry["ell"], carry["ell_time"]  # log intensity, last frame
     pad = (0, out_w * fx - w, 0, out_h * fy - h)
-    for k0 in range(0, last_frame + 1, per_chunk):
-        ks = torch.arange(k0, min(k0 + per_chunk, last_frame + 1), device=device)
+    for k0 in range(frames[0], frames[1], per_chunk):
+        ks = torch.arange(k0, min(k0 + per_chunk, frames[1]), device=device)
         times = clock.time(ks)
         end = float(times[-1])
         lo, hi = torch.searchsorted(frame, torch.stack([ks[0], ks[-1] + 1])).tolist()
@@ -278,6 +375,7 @@ def _leaky_frame_steps(
         inputs.cumsum_(0).mul_(torch.exp((end - times) * omega)[:, None])
         inputs += ell * torch.exp((ell_time - times) * omega)[:, None]
         ell, ell_time = inputs[-1].clone(), end
+        carry["ell"], carry["ell_time"] = ell, ell_time
         # Area average in linear intensity: log-sum-exp over each region (padding excluded).
         grid = torch.nn.functional.pad(inputs.view(-1, h, w), pad, value=-math.inf)
         grid = grid.view(-1, out_h, fy, out_w, fx).permute(0, 1, 3, 2, 4)
@@ -305,7 +403,7 @@ def _frame_crossings(
     ``carry_u`` and ``carry_q`` (per region ``u`` and ``q`` so far) are updated in place.
 
     Returns:
-        ``(region, offset from t_start as float64, on)`` of each crossing.
+        ``(region, frame, offset from t_start as float64, on)`` of each crossing.
     """
     floor_u, on_level = snap(u)
     firsts = where_true(first)
@@ -325,4 +423,4 @@ def _frame_crossings(
     ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
     k = take(frame, end)
     t0, t1 = clock.time(k - 1), clock.time(k)
-    return take(region, end), t0 + ratio * (t1 - t0), cross.on
+    return take(region, end), k, t0 + ratio * (t1 - t0), cross.on

@@ -1,0 +1,263 @@
+"""Running photocurrent sums of the photocurrent events mode (SEMANTICS.md method 7).
+
+Per piece of a stream: each event's pixel level before it, grouped by region with a one-byte
+sort (:func:`grouped_levels`); each touched region anchored at its brightest pixel, and every
+intensity ``exp(c * (L - m_r))`` in two-word int64 fixed point (:func:`fixed_point`), so that
+the region's sum after each event is an exact integer running sum in which a pixel's changes
+telescope to its current intensity (:func:`running_sums`, with the zero-sum segmented
+cumulative sum :func:`zero_sum_cumsum`). The error is a few ulps of each current sum plus
+half a fine step per pixel, however many events the piece has.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from evdown_torch._tensors import (
+    RADIX_SORT_MIN,
+    changes,
+    divide,
+    stable_sort_small,
+    take,
+    where_true,
+)
+
+#: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: the fixed point's
+#: scale is fitted to the brightest intensity of the piece, so a pixel rising far above its
+#: region's anchor would coarsen every region's fine step (``2**-65`` of an anchor at 32).
+MAX_EXPONENT = 32.0
+
+#: Unit roundoff of float64.
+EPS = 2.0**-53
+
+
+#: Largest table of ``exp(c * j)`` values :func:`fixed_point` builds instead of calling exp
+#: per event.
+TABLE_SIZE = 1 << 16
+
+
+def grouped_levels(
+    pixel_on: Tensor, place: Tensor | None, bound: int, levels: Tensor
+) -> tuple[Tensor, Tensor]:
+    """``2 * level + on`` of each event's pixel just before it, for events grouped by region.
+
+    A stable sort of the events by a small key ``place`` groups them by pixel: events of one
+    pixel share a key and distinct pixels of one region have distinct keys, so in ``(place,
+    region, time)`` order each pixel's events are consecutive. With at most 256 keys (the
+    pixel's place in its region, plus a few bits of the region so that a key's events stay
+    close together in memory) it is a one-byte sort: no second sort over all pixels.
+
+    Args:
+        pixel_on: ``(N,)`` int64 (or int32, when every level and id fits) ``2 * (y * W + x) +
+            on`` of each event (``on``: 1 for ON, 0 for OFF), grouped by region, time order
+            inside a region; overwritten.
+        place: ``(N,)`` uint8 (or int64 when ``bound > 256``) key in ``[0, bound)`` as above,
+            or ``None`` when every region is one pixel.
+        bound: bound of ``place``.
+        levels: ``(H * W,)`` int64 pixel levels before the events.
+
+    Returns:
+        ``(key, new_levels)``: ``(N,)`` ``2 * L + on`` in ``pixel_on``'s dtype, ``L`` the
+        level of the event's pixel just before it, and a new ``(H * W,)`` int64 tensor of the
+        levels after all the events.
+    """
+    n = pixel_on.shape[0]
+    perm = None
+    if place is not None:  # one look-up of the packed pixel and polarity: far cheaper than two
+        if place.dtype == torch.uint8 and n >= RADIX_SORT_MIN:
+            perm = torch.sort(place, stable=True).indices
+        else:
+            perm = stable_sort_small(place, bound)[1]
+        pixel_on = take(pixel_on, perm)
+    dtype = pixel_on.dtype  # int32 where the caller found every level fits
+    on = torch.bitwise_and(pixel_on, 1)
+    step = torch.mul(on, 2).sub_(1)
+    pixel = pixel_on.bitwise_right_shift_(1)
+    starts = where_true(changes(pixel))
+    last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1])])
+    pixel = take(pixel, starts).long()
+    # One cumulative sum whose first step of each pixel also moves from the previous pixel's
+    # last level to this pixel's starting level (a telescoping correction).
+    plain = torch.cumsum(step, 0, dtype=dtype)
+    first_level = take(levels, pixel).to(dtype)
+    final = take(plain, last) - take(plain, starts) + take(step, starts) + first_level
+    del plain
+    jump = first_level
+    jump[1:] -= final[:-1]
+    # The level after each event, then 2 * (after - s) + on = 2 * after - 3 * on + 2 with the
+    # step s = 2 * on - 1: the level before it, packed with its polarity.
+    key = step.index_add_(0, starts, jump).cumsum_(0).mul_(2).add_(2).sub_(on, alpha=3)
+    del step, on
+    new_levels = levels.clone()
+    new_levels.scatter_(0, pixel, final.long())
+    if perm is None:
+        return key, new_levels
+    return torch.empty_like(key).scatter_(0, perm, key), new_levels
+
+
+def zero_sum_cumsum(
+    values: Tensor, start: Tensor, firsts: Tensor, lasts: Tensor, rank: Tensor
+) -> Tensor:
+    """Running sums ``start + cumsum(values)`` restarting at each segment (runs of ``rank``).
+
+    Each segment's last value is lowered by the segment's total before one global cumulative
+    sum, so that the global sum returns to 0 after every segment: its partial sums never
+    exceed one segment's (exact for int64 that fit). ``values`` is overwritten.
+
+    Args:
+        values: ``(N,)`` values, overwritten.
+        start: ``(S,)`` value of each segment before its first element.
+        firsts: ``(S,)`` int64 first position of each segment.
+        lasts: ``(S,)`` int64 last position of each segment.
+        rank: ``(N,)`` int64 segment of each element, ascending.
+    """
+    values.index_add_(0, firsts, start)
+    total = torch.zeros_like(start).index_add_(0, rank, values)
+    values.index_add_(0, lasts, total.neg())
+    return values.cumsum_(0).index_copy_(0, lasts, total)
+
+
+def _split(j: Tensor, contrast: float, scale: float, fine: float) -> tuple[Tensor, Tensor]:
+    """``exp(c * j) * scale`` of int64 ``j`` in two int64 words: ``high + low / fine``.
+
+    ``c * j`` is rarely a float; ``exp(c * j)`` is taken as ``exp(c_hi * j) * exp(c_lo * j)``
+    with ``c_hi`` (``c`` to 22 bits) times ``|j| < 2**31`` exact and ``c_lo * j`` tiny, so the
+    intensity is within 3 ulps of the exact value however large ``|c * j|`` is.
+    """
+    mantissa, exponent = math.frexp(contrast)
+    c_hi = math.ldexp(math.floor(math.ldexp(mantissa, 22)), exponent - 22)
+    j = j.to(torch.float64)
+    scaled = torch.exp(j * c_hi).mul_(torch.exp(j.mul_(contrast - c_hi))).mul_(scale)
+    high = torch.round(scaled)
+    low = torch.round(scaled.sub_(high).mul_(fine))
+    return high.to(torch.int64), low.to(torch.int64)
+
+
+class FixedPoint(NamedTuple):
+    """Intensities of a piece in two-word fixed point, ``exp(c * j) * scale ~ high + low /
+    fine`` (the error below ``1 / (2 * fine)``): integer sums are exact, and a pixel's
+    changes telescope to its current intensity however many events it has."""
+
+    anchor: tuple[Tensor, Tensor]  # (S,) int64 sums of each region's pixels' (high, low)
+    change: tuple[Tensor, Tensor]  # (N,) int64 change of (high, low) at each event
+
+
+def fixed_point(
+    key: Tensor, pixel_j: Tensor, inside: Tensor | None, lo: int, hi: int, contrast: float,
+    scale: float, fine: float,
+) -> FixedPoint:
+    """The :class:`FixedPoint` sums of the anchors and changes of the events.
+
+    Args:
+        key: ``(N,)`` int64 ``2 * j + on`` of each event, ``j`` the level of its pixel before
+            it relative to its region's anchor, in ``[lo, hi]`` (``on``: 1 ON, 0 OFF);
+            overwritten.
+        pixel_j: ``(S, n)`` int64 level of every pixel of each region relative to its anchor,
+            in ``[lo, hi]``; overwritten.
+        inside: ``(S, n)`` bool, the entry is a sensor pixel (``None``: all are).
+        lo, hi: bounds of ``j``.
+        contrast: ``c``.
+        scale, fine: powers of two.
+    """
+
+    def region_sums(values: Tensor) -> Tensor:
+        return (values if inside is None else values.masked_fill_(~inside, 0)).sum(1)
+
+    if hi - lo + 3 <= TABLE_SIZE:  # a table of intensities, then look-ups
+        words = _split(torch.arange(lo - 1, hi + 2, device=key.device), contrast, scale, fine)
+        index = pixel_j.sub_(lo - 1).view(-1)
+        anchor = tuple(region_sums(take(word, index).view_as(pixel_j)) for word in words)
+        # Row i (j = lo + i): [change by OFF, change by ON].
+        index = key.sub_(2 * lo)
+        change = tuple(take(torch.stack([word[:-2] - word[1:-1], word[2:] - word[1:-1]], 1)
+                            .reshape(-1), index) for word in words)
+        return FixedPoint(anchor, change)
+    anchor = tuple(region_sums(word) for word in _split(pixel_j, contrast, scale, fine))
+    before = divide(key, 2)
+    after = torch.where(key - 2 * before == 1, before + 1, before - 1)
+    change = tuple(a.sub_(b) for a, b in zip(_split(after, contrast, scale, fine),
+                                              _split(before, contrast, scale, fine),
+                                              strict=True))
+    return FixedPoint(anchor, change)
+
+
+def running_sums(
+    key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, firsts: Tensor,
+    lasts: Tensor, rank: Tensor, per_region: int, contrast: float, threshold: float,
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Each region's anchor and its sum after each of its events, for a piece of ``N > 1``.
+
+    Args:
+        key: ``(N,)`` int64 ``2 * L + on`` of each event (``L``: its pixel's level before it),
+            grouped by region; overwritten.
+        ids: ``(S, n)`` int64 pixel ids of the touched regions (:func:`region_pixels`).
+        inside: their mask (``None``: all inside).
+        levels: ``(H * W,)`` int64 pixel levels before the piece.
+        firsts, lasts: ``(S,)`` int64 first and last position of each region's events.
+        rank: ``(N,)`` int64 region (segment) of each event.
+        per_region: ``fx * fy``.
+        contrast, threshold: ``c`` and ``theta``.
+
+    Returns:
+        ``(m, total, bad)``: ``(S,)`` int64 brightest level of each region before the piece,
+        ``(N,)`` float64 ``sum exp(c * (L_p - m))`` over the region after each event, and
+        ``None``, or an ``(N,)`` bool mask of the events the sums cannot hold (a pixel more
+        than :data:`MAX_EXPONENT` above its anchor, or a sum below what the fixed point
+        resolves to the tolerance); only the events before the first of those are valid.
+    """
+    # Anchor: each touched region's brightest pixel m before the piece, and every pixel's
+    # level relative to it (j <= 0); the same j of each event's pixel before it, in
+    # key = 2 * j + on.
+    pixel_j = take(levels, ids.view(-1)).view_as(ids)
+    if inside is None:
+        m = pixel_j.amax(1)
+    else:
+        m = pixel_j.masked_fill(~inside, torch.iinfo(torch.int64).min).amax(1)
+    pixel_j -= m[:, None]
+    if inside is not None:
+        pixel_j.masked_fill_(~inside, 0)
+    key -= take((m * 2).to(key.dtype), rank)
+    lo, hi = (int(v) // 2 for v in torch.aminmax(key))
+    lo, hi = min(lo, int(pixel_j.min())), max(hi, 0)
+    darkest = -math.ceil(800 / contrast)  # exp(c * j) is 0 for j <= darkest + 1
+    if lo < darkest:
+        key.clamp_(min=2 * darkest)
+        pixel_j.clamp_(min=darkest)
+        lo = darkest
+    # A pixel may end a step at most MAX_EXPONENT above its anchor (one level at least, for
+    # contrasts above MAX_EXPONENT).
+    brightest = max(math.floor(MAX_EXPONENT / contrast) - 1, 0)
+    bad = None
+    if hi > brightest:  # a pixel too far above its anchor: cut before its event
+        bad = key > 2 * brightest + 1
+        key.clamp_(max=2 * brightest + 1)
+        hi = brightest
+    # Two-word fixed point: a region's sum of either word stays below 2**61.
+    top = max(math.exp(contrast * (hi + 1)), 1.0)
+    bits = 61 - (2 * per_region).bit_length()
+    scale = math.ldexp(1.0, bits - math.frexp(top)[1])
+    fine = math.ldexp(1.0, bits)
+    sums = fixed_point(key, pixel_j, inside, lo, hi, contrast, scale, fine)
+    del pixel_j
+    # The region's sum after each event.
+    high, low = (zero_sum_cumsum(change, anchor, firsts, lasts, rank)
+                 for anchor, change in zip(sums.anchor, sums.change, strict=True))
+    del sums
+    total = low.to(torch.float64).mul_(1 / (fine * scale)).add_(high, alpha=1 / scale)
+    del high, low
+
+    # Error bound of each sum: a few ulps of every intensity (exp,
+    # see _split, and the conversions) and half a step of the fine word per pixel.
+    slack = 6
+    tolerance = max(1e-10 * threshold, 4 * slack * EPS)
+    lowest = per_region / (2 * fine * scale) / (tolerance - slack * EPS)  # the smallest sum
+    if not float(total.min()) >= lowest:  # NaN fails too
+        weak = ~(total >= lowest)
+        bad = weak if bad is None else bad | weak
+    if bad is not None and not bool(bad.any()):
+        bad = None
+    return m, total, bad
