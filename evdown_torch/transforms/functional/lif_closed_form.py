@@ -41,7 +41,7 @@ from evdown_torch.transforms.functional.lif_chains import Leak
 __all__ = ["MAX_TABLE", "MIN_ROUNDS", "certain_spikes"]
 
 #: Passes of the greedy search between two checks for a neuron still above threshold.
-_BLOCK = 12
+_BLOCK = 16
 
 #: Largest padded table (regions x largest number of cells of one region) computed in closed
 #: form; larger calls (long streams, big batches) go through the rounds, whose fixed cost per
