@@ -127,25 +127,28 @@ def funnel_batch(
     starts = ends[:-1][ends[:-1] < n].to(events.device)
     runs.index_fill_(0, starts, True)  # a recording starts a run of its own
     runs = torch.cumsum(runs, 0, dtype=torch.int32 if n < 1 << 31 else torch.int64)
-    # Repeats share their run: pieces that never split a run are independent.
+    # Repeats share their run: pieces that never split a run are independent. Only their
+    # repeat flags are kept; the output is built once (no concatenation of pieces).
     bounds = chunk_bounds(runs, split_ties=False)
-    pieces = []
-    dropped = []
-    for start, stop in zip(bounds[:-1], bounds[1:]):
-        piece = Events(*(column[start:stop] for column in events))
-        x, y, repeat = _repeats(piece, factor, size=size, runs=runs[start:stop])
-        pieces.append(_kept(piece, x, y, repeat))
-        if repeat is not None:
-            dropped.append(where_true(repeat) + start)
-    counts = lengths
-    if dropped:
-        # Drops per recording, by the recording each dropped event's position falls in.
-        where = torch.searchsorted(ends.to(events.device), torch.cat(dropped), right=True)
-        lost = torch.bincount(where, minlength=len(lengths)).tolist()
-        counts = tuple(length - drop for length, drop in zip(lengths, lost))
-    if len(pieces) == 1:
-        return pieces[0], counts
-    return Events(*(torch.cat(columns) for columns in zip(*pieces))), counts
+    if len(bounds) == 2:
+        x, y, repeat = _repeats(events, factor, size=size, runs=runs)
+        kept = _kept(events, x, y, repeat)
+    else:
+        repeat = None
+        for start, stop in zip(bounds[:-1], bounds[1:]):
+            piece = Events(*(column[start:stop] for column in events))
+            _, _, flags = _repeats(piece, factor, size=size, runs=runs[start:stop])
+            if flags is not None:
+                if repeat is None:
+                    repeat = torch.zeros(n, dtype=torch.bool, device=events.device)
+                repeat[start:stop] = flags
+        kept = _kept(events, divide(events.x, factor[0]), divide(events.y, factor[1]), repeat)
+    if repeat is None:
+        return kept, lengths
+    # Drops per recording, by the recording each dropped event's position falls in.
+    where = torch.searchsorted(ends.to(events.device), where_true(repeat), right=True)
+    lost = torch.bincount(where, minlength=len(lengths)).tolist()
+    return kept, tuple(length - drop for length, drop in zip(lengths, lost))
 
 
 def funnel_sorted(
