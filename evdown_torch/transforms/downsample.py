@@ -13,6 +13,7 @@ from evdown_torch.transforms._batch import run_stacked, sorted_within
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.funnelling import (
     event_funnelling,
+    funnel_batch,
     funnel_sorted,
     last_instant,
 )
@@ -76,7 +77,12 @@ class EventFunnelling(Downscaler):
         return event_funnelling(events, factor=self.factor_xy)
 
     def batch_kernel(self, batch: EventBatch) -> EventBatch:
-        """Regions are independent: the kernel runs once on the stacked batch."""
+        """Recordings in time order go through :func:`funnel_batch` (no stacking); others
+        through the kernel once on the stacked batch."""
+        if sorted_within(batch.events.t, batch.lengths):
+            width, height, _ = self.output_sensor_size
+            return EventBatch(*funnel_batch(batch.events, batch.lengths, self.factor_xy,
+                                            (width, height)))
         return run_stacked(batch, lambda s: event_funnelling(s.events, factor=self.factor_xy),
                            sensor_size=self.sensor_size, factor=self.factor_xy)
     def stream(self, events: Events, state: Events | None) -> tuple[Events, Events | None]:

@@ -7,10 +7,11 @@ from dataclasses import dataclass
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Session, ThresholdDownscaler
-from evdown_torch.transforms._batch import Stacked, run_stacked
+from evdown_torch.transforms._batch import Stacked, run_stacked, sorted_within
 from evdown_torch.transforms.functional.event_count import (
     EventCountState,
     event_count,
+    event_count_batch,
     event_count_sorted,
 )
 
@@ -45,7 +46,12 @@ class EventCount(ThresholdDownscaler):
         return out
 
     def batch_kernel(self, batch: EventBatch) -> EventBatch:
-        """The kernel once on the stacked batch, with one block of regions per recording."""
+        """The kernel once on the batch, with one block of regions per recording (recordings
+        in time order need no stacking: :func:`event_count_batch`)."""
+        if sorted_within(batch.events.t, batch.lengths):
+            return EventBatch(*event_count_batch(
+                batch.events, batch.lengths, sensor_size=self.sensor_size,
+                factor=self.factor_xy, threshold=self.threshold))
 
         def kernel(stacked: Stacked) -> Events:
             out, _ = event_count(

@@ -16,8 +16,10 @@ from evdown_torch import (
     LinearEstimation,
     PhotocurrentPooling,
 )
+from evdown_torch import _tensors as tensors
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import DVS_DTYPE
+from evdown_torch.transforms.functional.event_count import _region_dtype
 from evdown_torch.transforms.thinning import ThinnedDownsample
 from tests.helpers import random_stream
 
@@ -173,3 +175,75 @@ def test_batch_of_empty_recordings_and_of_one(name, rng):
     assert [len(out) for out in transform.batch([empty, empty.copy()])] == [0, 0]
     recording = random_stream(rng, 30, SENSOR)
     _assert_same(transform.batch([recording])[0], transform(recording))
+
+
+def _sorted_recordings(rng: np.random.Generator) -> list[np.ndarray]:
+    """Recordings each in time order (the batched kernels' path without stacking): empty ones,
+    one event, all at one time, a recording that starts with the pixel, time and polarity its
+    predecessor ends with (a repeat only if recordings were mixed), epoch clocks."""
+    recordings = [random_stream(rng, n, SENSOR, t_max=60) for n in (0, 1, 90, 7, 0, 150, 40)]
+    recordings[3]["t"] = 20
+    recordings[6]["t"] += 1_700_000_000_000_000
+    recordings[2][-1] = recordings[1][0]
+    recordings[3][0] = recordings[2][-1]
+    recordings[3][0]["t"] = 20
+    recordings[2][-1]["t"] = 20
+    recordings[2]["t"] = np.minimum(recordings[2]["t"], 20)
+    recordings[2].sort(order="t", kind="stable")
+    return recordings
+
+
+def _funnelled(recording: np.ndarray, factor: tuple[int, int]) -> list[tuple[int, ...]]:
+    """Slow reference: the first event of each distinct (x', y', t, p), in stable time order."""
+    seen, out = set(), []
+    for i in np.argsort(recording["t"], kind="stable"):
+        x, y, t, p = (int(recording[i][k]) for k in ("x", "y", "t", "p"))
+        key = (x // factor[0], y // factor[1], t, p)
+        if key not in seen:
+            seen.add(key)
+            out.append(key)
+    return out
+
+
+@pytest.mark.parametrize("chunk", [None, 16])
+@pytest.mark.parametrize("factor", [(2, 2), (3, 1), (1, 1)])
+def test_funnelling_batch_of_sorted_recordings(factor, chunk, rng, monkeypatch):
+    """Recordings in time order: against a slow reference and each recording alone (small
+    chunks: the pieces never split a recording's run of equal timestamps)."""
+    if chunk is not None:
+        monkeypatch.setattr(tensors, "CHUNK_EVENTS", chunk)
+    recordings = _sorted_recordings(rng)
+    assert all(bool(np.all(np.diff(r["t"]) >= 0)) for r in recordings)
+    transform = EventFunnelling(SENSOR, factor=factor)
+    outputs = transform.batch(recordings)
+    for recording, output in zip(recordings, outputs, strict=True):
+        want = _funnelled(recording, factor)
+        assert [(int(e["x"]), int(e["y"]), int(e["t"]), int(e["p"])) for e in output] == want
+        _assert_same(output, transform(recording))
+    assert sum(len(o) for o in outputs) < sum(len(r) for r in recordings)  # repeats dropped
+
+
+@pytest.mark.parametrize("chunk", [None, 16])
+def test_event_count_batch_of_sorted_recordings(chunk, rng, monkeypatch):
+    if chunk is not None:
+        monkeypatch.setattr(tensors, "CHUNK_EVENTS", chunk)
+    recordings = _sorted_recordings(rng)
+    for factor in (2, (3, 2)):
+        transform = EventCount(SENSOR, factor=factor, threshold=0.25)
+        outputs = transform.batch(recordings)
+        assert sum(len(o) for o in outputs) > 20
+        for recording, output in zip(recordings, outputs, strict=True):
+            _assert_same(output, transform(recording))
+
+
+def test_event_count_batch_with_int32_region_ids(rng):
+    """More regions in the batch than int16 holds: the region ids go to int32."""
+    sensor = (64, 64, 2)  # 4,096 regions at factor 1: nine recordings need 36,864 ids
+    assert _region_dtype(sensor, (1, 1), 9 * 64 * 64) == torch.int32
+    recordings = [random_stream(rng, 300, sensor, t_max=500) for _ in range(9)]
+    recordings[8]["x"], recordings[8]["y"] = 63, 63  # the batch's last region id
+    transform = EventCount(sensor, factor=1, threshold=0.5)
+    outputs = transform.batch(recordings)
+    assert len(outputs[8]) > 0
+    for recording, output in zip(recordings, outputs, strict=True):
+        _assert_same(output, transform(recording))

@@ -29,7 +29,13 @@ from evdown_torch.transforms.functional._reference import (
     threshold_fraction,
 )
 
-__all__ = ["EventCountState", "event_count", "event_count_sorted", "initial_state"]
+__all__ = [
+    "EventCountState",
+    "event_count",
+    "event_count_batch",
+    "event_count_sorted",
+    "initial_state",
+]
 
 
 class EventCountState(NamedTuple):
@@ -132,6 +138,75 @@ def event_count_sorted(
     return Events(*(torch.cat(columns) for columns in zip(*outputs))), state
 
 
+def event_count_batch(
+    events: Events,
+    lengths: tuple[int, ...],
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    threshold: float,
+) -> tuple[Events, tuple[int, ...]]:
+    """:func:`event_count` of each of a batch of recordings, each in time order, in one pass.
+
+    The recordings are not moved onto a virtual sensor or clock: recording ``b``'s regions
+    are the block ``[b * Ho * Wo, (b + 1) * Ho * Wo)`` of region ids (as in
+    :mod:`evdown_torch.transforms._batch`'s stacking), its events are taken in the batch's
+    order (recording after recording), and its output comes back in its own coordinates.
+
+    Args:
+        events: the recordings' events concatenated, recording 0 first, each recording sorted
+            by ``t`` (:func:`~evdown_torch.transforms._batch.sorted_within`).
+        lengths: number of events of each recording.
+        sensor_size, factor, threshold: as :func:`event_count`.
+
+    Returns:
+        ``(outputs, output count of each recording)``: each recording's :func:`event_count`
+        output, concatenated.
+
+    Example:
+        >>> ev = Events.from_columns([0, 1, 0, 1], [0, 0, 0, 1], [1, 2, 1, 2], [1, 1, 1, 1])
+        >>> out, counts = event_count_batch(ev, (2, 2), sensor_size=(2, 2, 2), factor=(2, 2),
+        ...                                 threshold=0.5)
+        >>> out.t.tolist(), counts
+        ([2, 2], (1, 1))
+    """
+    device = events.device
+    recordings = len(lengths)
+    state = initial_state(sensor_size, factor, device, recordings)
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    block_size = out_w * out_h
+    narrow = _region_dtype(sensor_size, factor, block_size * recordings)
+    counts = torch.tensor(lengths, dtype=torch.int64, device=device)
+    blocks = torch.repeat_interleave(
+        torch.arange(0, block_size * recordings, block_size, dtype=narrow, device=device),
+        counts, output_size=events.num_events)
+    bounds = chunk_bounds(events.t)
+    outputs = []
+    emitted = 0
+    for start, stop in zip(bounds[:-1], bounds[1:]):
+        piece = Events(*(column[start:stop] for column in events))
+        out, state = _event_count_sorted(piece, sensor_size, factor, threshold, state, emitted,
+                                         blocks=blocks[start:stop])
+        outputs.append(out)
+        emitted += out.num_events
+    if len(outputs) == 1:
+        out = outputs[0]
+    else:
+        out = Events(*(torch.cat(columns) for columns in zip(*outputs)))
+    # The output is in the batch's order: recording after recording, each on its block's rows.
+    recording = divide(out.y, out_h)
+    out_counts = tuple(torch.bincount(recording, minlength=recordings).tolist())
+    return Events(out.x, out.y.sub_(recording, alpha=out_h), out.t, out.p), out_counts
+
+
+def _region_dtype(sensor_size: tuple[int, int, int], factor: tuple[int, int],
+                  regions: int) -> torch.dtype:
+    """The narrowest integer type of a chunk's coordinates and region ids (``regions``: of all
+    the stacked recordings)."""
+    out_w = output_size(sensor_size, factor)[0]
+    return narrow_dtype(max(out_w * factor[0], regions // out_w * factor[1], regions))
+
+
 def _event_count_sorted(
     events: Events,
     sensor_size: tuple[int, int, int],
@@ -139,8 +214,11 @@ def _event_count_sorted(
     threshold: float,
     state: EventCountState,
     emitted: int = 0,
+    blocks: Tensor | None = None,
 ) -> tuple[Events, EventCountState]:
-    """:func:`event_count` on time-sorted events (``emitted``: events of earlier chunks).
+    """:func:`event_count` on time-sorted events (``emitted``: events of earlier chunks;
+    ``blocks``: each event's first region id, in :func:`_region_dtype`, for a batch's events
+    in their own coordinates).
 
     Few passes over the events, on narrow dtypes (the cost of a live chunk is its memory
     traffic): the events are grouped by region with a small-key sort, each region's level sum
@@ -165,12 +243,14 @@ def _event_count_sorted(
 
     # Group by region, time order kept inside each group: region ids computed in the narrowest
     # integer type that holds the coordinates and the ids (int16 for sensors up to 32,768).
-    narrow = narrow_dtype(max(out_w * factor[0], regions // out_w * factor[1], regions))
+    narrow = _region_dtype(sensor_size, factor, regions)
     region_id = events.y.to(narrow, copy=True)
     divide(region_id, factor[1], out=region_id).mul_(out_w)
     column = events.x.to(narrow, copy=True)
     region_id += divide(column, factor[0], out=column)
     del column
+    if blocks is not None:
+        region_id += blocks
     region, order = stable_sort_small(region_id, regions, narrow=True)
     del region_id
     # Each region's first and last grouped event, by bisection on the sorted region ids.

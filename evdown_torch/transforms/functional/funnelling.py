@@ -6,16 +6,18 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import (
+    changes,
     chunk_bounds,
     divide,
     narrow_dtype,
     sort_by_time,
     stable_sort_small,
     take,
+    where_true,
 )
 from evdown_torch.events import Events
 
-__all__ = ["drop_repeats", "event_funnelling", "funnel_sorted", "last_instant"]
+__all__ = ["drop_repeats", "event_funnelling", "funnel_batch", "funnel_sorted", "last_instant"]
 
 
 def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
@@ -90,6 +92,65 @@ def last_instant(events: Events, previous: Events | None) -> Events | None:
     return tail
 
 
+def funnel_batch(
+    events: Events, lengths: tuple[int, ...], factor: tuple[int, int], size: tuple[int, int]
+) -> tuple[Events, tuple[int, ...]]:
+    """:func:`event_funnelling` of each of a batch of recordings, each in time order.
+
+    No recording index enters the key: the key stays that of one recording (a one-byte
+    sort for sensors of up to 128 output pixels), and an event repeats its predecessor in key
+    order when both lie in one run of equal ``(recording, t)`` (the runs are numbered in the
+    batch's order: recording after recording, each in time order).
+
+    Args:
+        events: the recordings' events concatenated, recording 0 first, each recording sorted
+            by ``t`` (:func:`~evdown_torch.transforms._batch.sorted_within`).
+        lengths: number of events of each recording.
+        factor: ``(fx, fy)``.
+        size: one recording's output ``(width, height)``.
+
+    Returns:
+        ``(kept events in output coordinates, kept count of each recording)``: each
+        recording's :func:`event_funnelling` output, concatenated.
+
+    Example:
+        >>> ev = Events.from_columns([0, 1, 0, 1], [0, 0, 0, 0], [5, 5, 5, 5], [1, 1, 1, 1])
+        >>> out, counts = funnel_batch(ev, (2, 2), (2, 2), (1, 1))
+        >>> out.t.tolist(), counts
+        ([5, 5], (1, 1))
+    """
+    n = events.num_events
+    if n == 0:
+        return funnel_sorted(events, factor, size=size), lengths
+    runs = changes(events.t)
+    ends = torch.tensor(lengths, dtype=torch.int64).cumsum(0)
+    starts = ends[:-1][ends[:-1] < n].to(events.device)
+    runs.index_fill_(0, starts, True)  # a recording starts a run of its own
+    runs = torch.cumsum(runs, 0, dtype=torch.int32 if n < 1 << 31 else torch.int64)
+    # Repeats share their run: pieces that never split a run are independent. Only their
+    # repeat flags are kept; the output is built once (no concatenation of pieces).
+    bounds = chunk_bounds(runs, split_ties=False)
+    if len(bounds) == 2:
+        x, y, repeat = _repeats(events, factor, size=size, runs=runs)
+        kept = _kept(events, x, y, repeat)
+    else:
+        repeat = None
+        for start, stop in zip(bounds[:-1], bounds[1:]):
+            piece = Events(*(column[start:stop] for column in events))
+            _, _, flags = _repeats(piece, factor, size=size, runs=runs[start:stop])
+            if flags is not None:
+                if repeat is None:
+                    repeat = torch.zeros(n, dtype=torch.bool, device=events.device)
+                repeat[start:stop] = flags
+        kept = _kept(events, divide(events.x, factor[0]), divide(events.y, factor[1]), repeat)
+    if repeat is None:
+        return kept, lengths
+    # Drops per recording, by the recording each dropped event's position falls in.
+    where = torch.searchsorted(ends.to(events.device), where_true(repeat), right=True)
+    lost = torch.bincount(where, minlength=len(lengths)).tolist()
+    return kept, tuple(length - drop for length, drop in zip(lengths, lost))
+
+
 def funnel_sorted(
     events: Events,
     factor: tuple[int, int],
@@ -115,11 +176,27 @@ def funnel_sorted(
     Returns:
         The kept events in output coordinates (new tensors), in their order.
     """
-    n = events.num_events
-    fx, fy = factor
-    if n == 0:
+    if events.num_events == 0:
+        fx, fy = factor
         return Events(divide(events.x, fx), divide(events.y, fy), events.t.clone(),
                       events.p.clone())
+    x, y, repeat = _repeats(events, factor, seen=seen, size=size)
+    return _kept(events, x, y, repeat)
+
+
+def _repeats(
+    events: Events,
+    factor: tuple[int, int],
+    *,
+    seen: Events | None = None,
+    size: tuple[int, int] | None = None,
+    runs: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """:func:`funnel_sorted`'s output coordinates (narrow dtype) and repeat flags (``None``:
+    no repeat) of ``N >= 1`` events; ``runs``, when given, replaces ``t`` as what repeats
+    share (:func:`funnel_batch`)."""
+    n = events.num_events
+    fx, fy = factor
     if size is None:
         width, height = int(events.x.max()) // fx + 1, int(events.y.max()) // fy + 1
         if seen is not None and seen.num_events:
@@ -141,7 +218,7 @@ def funnel_sorted(
         key.add_(x, alpha=2).add_(events.p)
         sorted_key, order = stable_sort_small(key, 2 * width * height, narrow=True)
         del key
-        sorted_t = take(events.t, order)
+        sorted_t = take(events.t if runs is None else runs, order)
         same = torch.zeros(n, dtype=torch.bool, device=events.device)
         torch.eq(sorted_key[1:], sorted_key[:-1], out=same[1:])
         same[1:] &= sorted_t[1:] == sorted_t[:-1]
@@ -158,7 +235,15 @@ def funnel_sorted(
             if repeat is None:
                 repeat = torch.zeros(n, dtype=torch.bool, device=events.device)
             repeat[:head] |= again
-    if repeat is None or not bool(repeat.any()):
+    if repeat is not None and not bool(repeat.any()):
+        repeat = None
+    return x, y, repeat
+
+
+def _kept(events: Events, x: Tensor, y: Tensor, repeat: Tensor | None) -> Events:
+    """The events not flagged ``repeat``, with output coordinates ``x``, ``y``, as new int64
+    tensors."""
+    if repeat is None:
         kept = Events(x, y, events.t.clone(), events.p.clone())
     else:
         kept = _compact(Events(x, y, events.t, events.p), ~repeat)
