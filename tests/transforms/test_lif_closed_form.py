@@ -70,6 +70,21 @@ def test_closed_form_answers_the_default_settings_on_nmnist(nmnist, answers, mon
         np.testing.assert_array_equal(out, by_rounds(pool, nmnist, monkeypatch))
 
 
+@pytest.mark.parametrize("block", [2, 3, 8, 16])
+def test_greedy_block_length_does_not_change_the_spikes(block, nmnist, answers, monkeypatch):
+    # Passes between look-backs: 2 looks back after every other pass; longer blocks waste the
+    # passes after a neuron still above threshold and must undo them.
+    monkeypatch.setattr(lif_closed_form, "_BLOCK", block)
+    rng = np.random.default_rng(7)
+    dense = random_stream(rng, 1500, (10, 8, 2), t_max=400)
+    for pool, arr in ((LIFPooling((34, 34, 2), 4), nmnist),
+                      (LIFPooling((10, 8, 2), (2, 3), dt=4, **SETTINGS[2]), dense)):
+        answers.clear()
+        out = pool(arr)
+        assert answers == [True]
+        np.testing.assert_array_equal(out, by_rounds(pool, arr, monkeypatch))
+
+
 def test_a_decision_within_float32_rounding_is_left_to_the_rounds(answers):
     # No leak, weight 0.1: after ten ON events the float32 membrane is 1.0000001 > 1 (the
     # kernel and the module fire) while the exact sum of the ten float32 weights exceeds the

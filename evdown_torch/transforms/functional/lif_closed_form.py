@@ -41,7 +41,7 @@ from evdown_torch.transforms.functional.lif_chains import Leak
 __all__ = ["MAX_TABLE", "MIN_ROUNDS", "certain_spikes"]
 
 #: Passes of the greedy search between two checks for a neuron still above threshold.
-_BLOCK = 8
+_BLOCK = 16
 
 #: Largest padded table (regions x largest number of cells of one region) computed in closed
 #: form; larger calls (long streams, big batches) go through the rounds, whose fixed cost per
@@ -115,7 +115,7 @@ def certain_spikes(
     scale = dist.view(n_regions, width).mul_(lam).exp_()
     valid = torch.arange(width, device=device) < cells_per_region[:, None]
     inputs = torch.zeros(2, n_regions * width, dtype=f64, device=device)
-    inputs[:, pos] = current.t().to(f64)
+    inputs.index_copy_(1, pos, current.t().to(f64))
     inputs = inputs.view(2, n_regions, width)
     level = scale * theta  # the threshold, scaled
     summed = torch.cumsum(inputs * scale, -1)
@@ -162,11 +162,11 @@ def certain_spikes(
         ratio = scale[row, rank + 1] / scale[row, rank]
         local[polarity, row, rank + 1] += (scaled[polarity, row, rank].abs() * ratio
                                            + level[row, rank + 1]) * 16
-    sizes = torch.cumsum(local, -1)
     growth = (1.0 + 8 * _EPS32) ** width * 1.01
     float64_error = 16 * _EPS64 * (width + lam * widest + 16)
-    bound = torch.cumsum(scaled.abs(), -1).mul_(2 * _KAPPA * growth)
-    bound.add_(sizes, alpha=_KAPPA * growth + float64_error)
+    # one cumsum of both sums, weighted (its rounding is far inside the 1.01 of growth)
+    local.mul_(_KAPPA * growth + float64_error).add_(scaled.abs(), alpha=2 * _KAPPA * growth)
+    bound = torch.cumsum(local, -1)
     if not bool(((scaled - level).abs_() > bound).logical_or_(~valid).all()):
         return None
 
@@ -301,11 +301,11 @@ def _greedy_lanes(
     (``rise``), ``S``, what a firing adds to ``D`` (``gain``: "subtract") or sets it to
     (``S``: "zero"), the scale, the empty steps after each cell (``between``, "subtract";
     ``None`` otherwise), and every lane's ``D`` before its first column (``start``,
-    ``(lanes, 1)``)."""
+    ``(lanes, 1)``). ``rise`` is masked in place."""
     lanes, width = rise.shape
     device = rise.device
     subtract = leak.reset == "subtract"
-    rise = rise.clone()  # masked as the search goes
+    # ``rise`` is the caller's own table: masked as the search goes
     peak = torch.cummax(rise, -1).values
     step = torch.full((lanes, width + 1), math.inf, dtype=rise.dtype, device=device)
     step[:, :width] = gain
