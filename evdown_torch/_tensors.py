@@ -173,9 +173,9 @@ def stable_sort_small(
     """Stable sort of non-negative int64 ``keys < bound``: ``(sorted int64 keys, permutation)``.
 
     The keys are sorted as uint8 (below 256), int16 or int32 when ``bound`` (by default
-    ``max(keys) + 1``) allows: two to five times faster than int64 on the CPU. On a CPU whose torch build has
-    the radix sort, 8,192 to 32,767 keys are padded to :data:`RADIX_SORT_MIN` with
-    ``bound - 1`` (the sort is stable, so the padding lands after every real key and the
+    ``max(keys) + 1``) allows: two to five times faster than int64 on the CPU. On a CPU whose
+    torch build has the radix sort, 8,192 to 32,767 keys are padded to :data:`RADIX_SORT_MIN`
+    with ``bound - 1`` (the sort is stable, so the padding lands after every real key and the
     first ``n`` results are the plain sort's), which is several times faster there.
     With ``narrow=True`` the sorted keys come back as :func:`narrow_dtype` ``(bound)`` (int16,
     int32 or int64: a quarter or half of the memory of int64 keys).

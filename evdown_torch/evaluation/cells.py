@@ -151,7 +151,8 @@ def downscale_job(source: Source, cell: Cell, split: str, indices: list[int],
 
     The frames (``[n, T, 2, H, W]`` int16 event counts over each source recording's window,
     and with ``data.mean_time`` the ``[n, T, 2, H, W]`` int8 mean times, scaled by
-    :data:`TIME_SCALE`) and labels are cached; the per-recording measures are returned (and cached with them):
+    :data:`TIME_SCALE`) and labels are cached; the per-recording measures are returned (and
+    cached with them):
     ``events_in``, ``events_out``, ``seconds`` (of the transform), ``duration`` (us),
     ``density``, ``entropy`` and, with ground truth on the test split, ``camera_events`` and
     ``consistency``.
@@ -224,8 +225,9 @@ def model_for(config: EvaluationConfig, size: tuple[int, int], num_classes: int
     """The classifier of a cell whose frames are ``size = (W, H)``."""
     m = config.model
     return SpikingClassifier(
-        num_classes, in_channels=config.data.frame_channels, channels=m.channels, pool_size=m.pool_size, beta=m.beta,
-        threshold=m.threshold, stem_stride=stem_stride_for(size, m.grid) if m.grid else 1,
+        num_classes, in_channels=config.data.frame_channels, channels=m.channels,
+        pool_size=m.pool_size, beta=m.beta, threshold=m.threshold,
+        stem_stride=stem_stride_for(size, m.grid) if m.grid else 1,
         stem_channels=m.stem_channels,
     )
 
