@@ -162,3 +162,23 @@ def test_the_quick_configs_classifier_sees_the_whole_sensor():
     current[0, 0, 1, 1].backward()
     seen = (x.grad[0].abs().sum(0) > 0).nonzero()
     assert int(seen[:, 0].max() - seen[:, 0].min()) + 1 >= 56
+
+
+def test_all_steps_at_once_equal_one_step_at_a_time():
+    """The layer-by-layer forward (each convolution over all steps at once) is the network
+    stepped through time: one call on T steps equals T calls of one step carrying the state."""
+    torch.manual_seed(0)
+    net = SpikingClassifier(num_classes=4, in_channels=4, channels=(6, 8), pool_size=2,
+                            stem_stride=2, stem_channels=3, threshold=0.3)
+    x = torch.rand(7, 3, 4, 9, 10) * 2
+    spikes, membrane, state = net(x)
+    assert spikes.sum() > 0  # the comparison must see spikes
+    stepped_state, stepped_spikes, stepped_membrane = None, [], []
+    for t in range(x.shape[0]):
+        s, m, stepped_state = net(x[t:t + 1], stepped_state)
+        stepped_spikes.append(s)
+        stepped_membrane.append(m)
+    torch.testing.assert_close(torch.cat(stepped_spikes), spikes, rtol=0, atol=0)
+    torch.testing.assert_close(torch.cat(stepped_membrane), membrane, rtol=1e-6, atol=1e-6)
+    for a, b in zip(state.conv, stepped_state.conv):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6)
