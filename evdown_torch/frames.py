@@ -84,13 +84,12 @@ def to_frames(
         if int(span) < 0:
             raise ValueError(f"t_end must not be before t_start, got {int(start)} and {int(end)}")
         offset = t - start
+        length = int(span)
         scaled = offset * bins
-        index = scaled // span if int(span) > 0 else torch.zeros_like(offset)
-        # position within the bin, exactly in [0, 1): (offset * T - index * D) / D
-        within = None
-        if mean_time:
-            within = ((scaled - index * span).to(torch.float64) / int(span)
-                      if int(span) > 0 else torch.zeros_like(offset, dtype=torch.float64))
+        index = scaled // length if length > 0 else torch.zeros_like(offset)
+        if mean_time:  # position within the bin, exactly in [0, 1): (offset * T - index * D) / D
+            within = ((scaled - index * length).to(torch.float64) / length if length > 0
+                      else torch.zeros_like(offset, dtype=torch.float64))
     else:
         t = t.to(torch.float64)
         start, end = start.to(torch.float64), end.to(torch.float64)
@@ -102,7 +101,8 @@ def to_frames(
         offset = t - start
         scaled = offset * bins / span if float(span) > 0 else torch.zeros_like(offset)
         index = torch.floor(scaled).to(torch.int64)
-        within = scaled - index
+        if mean_time:
+            within = scaled - index
     inside = (offset >= 0) & (t <= end)
     if mean_time:  # t_end itself (index T) belongs to the last bin, at its end
         within = torch.where(index >= bins, 1.0, within)[inside]

@@ -216,9 +216,7 @@ def optical_consistency(
     # sort the bins of both streams together; each run of one bin sums +1 per event of
     # ``events`` and -1 per event of ``reference``: its absolute value is that bin's |a - b|
     keys, order = stable_sort_small(torch.cat([keys_a, keys_b]))
-    signs = torch.ones(total, dtype=torch.int64, device=keys.device)
-    signs[keys_a.numel():] = -1
-    running = torch.cumsum(take(signs, order), 0)
+    running = torch.cumsum(torch.where(order < keys_a.numel(), 1, -1), 0)
     at_ends = take(running, where_true(ends(changes(keys))))
-    at_ends[1:] -= at_ends[:-1].clone()
-    return 1.0 - float(at_ends.abs().sum()) / total
+    per_bin = torch.diff(at_ends, prepend=at_ends.new_zeros(1))
+    return 1.0 - float(per_bin.abs().sum()) / total

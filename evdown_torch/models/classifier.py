@@ -29,12 +29,13 @@ class ClassifierState(NamedTuple):
     out: Tensor
 
 
-def _run_neuron(neuron: snntorch.Leaky, current: Tensor, mem: Tensor, *,
-                keep_membrane: bool = False):
+def _run_neuron(
+    neuron: snntorch.Leaky, current: Tensor, mem: Tensor, *, keep_membrane: bool = False
+) -> tuple[Tensor, Tensor | None, Tensor]:
     """Step ``neuron`` through ``current`` (``[T, ...]``) from membrane ``mem``.
 
-    Returns ``(spikes [T, ...], last membrane)``, or ``(spikes, membranes [T, ...], last
-    membrane)`` with ``keep_membrane``.
+    Returns ``(spikes [T, ...], membranes [T, ...] or None, last membrane)``; the membranes
+    of every step are kept only with ``keep_membrane``.
     """
     spikes, membranes = [], []
     for step in current:
@@ -42,9 +43,7 @@ def _run_neuron(neuron: snntorch.Leaky, current: Tensor, mem: Tensor, *,
         spikes.append(spike)
         if keep_membrane:
             membranes.append(mem)
-    if keep_membrane:
-        return torch.stack(spikes), torch.stack(membranes), mem
-    return torch.stack(spikes), mem
+    return torch.stack(spikes), torch.stack(membranes) if keep_membrane else None, mem
 
 
 def _leaky(beta: float, threshold: float) -> snntorch.Leaky:
@@ -182,7 +181,7 @@ class SpikingClassifier(nn.Module):
         conv_mem = []
         for conv, neuron, mem in zip(self.convs, self.conv_neurons, state.conv):
             current = self.pool(conv(current))
-            current, mem = _run_neuron(neuron, current.unflatten(0, (steps, batch)), mem)
+            current, _, mem = _run_neuron(neuron, current.unflatten(0, (steps, batch)), mem)
             conv_mem.append(mem)
             current = current.flatten(0, 1)
         current = self.fc(self.squeeze(current).flatten(1)).unflatten(0, (steps, batch))
