@@ -102,6 +102,10 @@ DEFAULT_WEIGHT = 0.3
 #: Default bound on the number of output events (LIFPooling's ``max_output_events``).
 DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
 
+#: Most ``(region, step)`` keys per event for which the cells are found in a bool table of
+#: every key (bytes per event) rather than by sorting the events.
+OCCUPANCY_KEYS_PER_EVENT = 64
+
 
 def decay_factor(dt: float, tau: float) -> float:
     """Membrane decay per time step, ``beta = exp(-dt / tau)``.
@@ -131,10 +135,18 @@ def _event_cells(
     fy: int,
     wo: int,
     plane: int,
+    top_step: int,
     weight: float,
     mutual_inhibition: float,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Cells: the ``(region, step)`` pairs that hold events, ordered by region, then step.
+
+    A cell's key is ``region * (top_step + 1) + step``. Where there are at most
+    :data:`OCCUPANCY_KEYS_PER_EVENT` keys per event (small calls), the cells are the occupied
+    entries of a bool table of every key, found without sorting the events; otherwise the
+    events are sorted by key (the order of the events within a cell does not matter: only
+    their counts are kept), or, where the key would not fit in int64, stably by region (the
+    events are in time order within a region).
 
     Returns:
         ``(cell_region, cell_step, current)``: int64, int64 and the ``(n_cells, 2)`` float32
@@ -146,20 +158,42 @@ def _event_cells(
         empty = torch.empty(0, dtype=torch.int64, device=device)
         return empty, empty, torch.empty(0, 2, dtype=f32, device=device)
     region = divide(events.x, fx).add_(divide(events.y, fy), alpha=wo)
-    region, order = stable_sort_small(region, plane)  # stable: time order within a region
-    steps = steps.index_select(0, order)
-    polarity = events.p.index_select(0, order)
-    del order
     n = region.shape[0]
-    starts = torch.ones(n, dtype=torch.bool, device=device)
-    torch.ne(region[1:], region[:-1], out=starts[1:])
-    starts[1:] |= steps[1:] != steps[:-1]
-    cell_of_event = torch.cumsum(starts, 0)
-    n_cells = int(cell_of_event[-1])
-    first = starts.nonzero().squeeze(1)
-    cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
-    del region, steps, starts, first
-    counts = torch.bincount(cell_of_event.mul_(2).add_(polarity).sub_(2), minlength=2 * n_cells)
+    span = top_step + 1  # steps per region in the key
+    n_keys = plane * span
+    if n_keys <= OCCUPANCY_KEYS_PER_EVENT * n:
+        key = region.mul_(span).add_(steps)
+        occupied = torch.zeros(n_keys, dtype=torch.bool, device=device)
+        occupied[key] = True
+        cell_step = occupied.nonzero().squeeze(1)  # the cells' keys, sorted
+        cell_of_event = torch.cumsum(occupied, 0).index_select(0, key).sub_(1)
+        del occupied
+        polarity = events.p
+    elif n_keys < 1 << 62:
+        key, order = torch.sort(region.mul_(span).add_(steps))
+        polarity = events.p.index_select(0, order)
+        del order
+        starts = torch.ones(n, dtype=torch.bool, device=device)
+        torch.ne(key[1:], key[:-1], out=starts[1:])
+        cell_of_event = torch.cumsum(starts, 0).sub_(1)
+        cell_step = key.index_select(0, starts.nonzero().squeeze(1))
+    else:
+        region, order = stable_sort_small(region, plane)  # stable: time order within a region
+        steps = steps.index_select(0, order)
+        polarity = events.p.index_select(0, order)
+        del order
+        starts = torch.ones(n, dtype=torch.bool, device=device)
+        torch.ne(region[1:], region[:-1], out=starts[1:])
+        starts[1:] |= steps[1:] != steps[:-1]
+        cell_of_event = torch.cumsum(starts, 0).sub_(1)
+        first = starts.nonzero().squeeze(1)
+        cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
+        del region, steps, starts, first
+    if n_keys < 1 << 62:  # from the keys
+        cell_region = divide(cell_step, span)
+        cell_step = cell_step.sub_(cell_region * span)
+    n_cells = cell_step.shape[0]
+    counts = torch.bincount(cell_of_event.mul_(2).add_(polarity), minlength=2 * n_cells)
     counts = counts.to(f32).view(n_cells, 2)  # exact: fewer than 2**24 events per cell
     del cell_of_event, polarity
     current = counts * torch.tensor(weight, dtype=f32, device=device)
@@ -387,8 +421,9 @@ def lif_spikes(
     beta32 = torch.tensor(beta, dtype=f32, device=device)  # the neuron's buffers, as snntorch
     threshold32 = torch.tensor(threshold, dtype=f32, device=device)
     leak = Leak(beta32, threshold32, reset_mechanism)
+    top_step = int(last_step.max()) if isinstance(last_step, Tensor) else last_step
     cell_region, cell_step, current = _event_cells(
-        events, steps, fx=fx, fy=fy, wo=wo, plane=plane, weight=weight,
+        events, steps, fx=fx, fy=fy, wo=wo, plane=plane, top_step=top_step, weight=weight,
         mutual_inhibition=mutual_inhibition,
     )
     if state is not None:  # each region's last update, as a cell whose current is its membrane
@@ -470,7 +505,7 @@ def lif_spikes(
     neuron = spike_polarity * plane + cell_region[spike_cell]
     # Output order: by step, then neuron (OFF before ON, then row-major region); a neuron
     # fires at most once per step.
-    spike_step, neuron = _by_step_then_neuron(spike_step, neuron, 2 * plane, last_step)
+    spike_step, neuron = _by_step_then_neuron(spike_step, neuron, 2 * plane, top_step)
     if not keep_state:
         return spike_step, neuron, None
     # The neurons after the last update of every region here.
@@ -485,11 +520,10 @@ def lif_spikes(
 
 
 def _by_step_then_neuron(
-    spike_step: Tensor, neuron: Tensor, neurons: int, last_step: int | Tensor
+    spike_step: Tensor, neuron: Tensor, neurons: int, top: int
 ) -> tuple[Tensor, Tensor]:
-    """Spikes sorted by step, then neuron (``neurons`` of them): one sort of the combined key
-    where it fits in int64, else by neuron, then stably by step."""
-    top = int(last_step.max()) if isinstance(last_step, Tensor) else last_step
+    """Spikes (steps up to ``top``) sorted by step, then neuron (``neurons`` of them): one
+    sort of the combined key where it fits in int64, else by neuron, then stably by step."""
     if (top + 1) * neurons < 1 << 62:
         order = torch.sort(spike_step * neurons + neuron).indices
     else:
