@@ -442,14 +442,11 @@ def lif_spikes(
     new_region = torch.ones(n_cells, dtype=torch.bool, device=device)
     torch.ne(cell_region[1:], cell_region[:-1], out=new_region[1:])
     region_first = new_region.nonzero().squeeze(1)
-    cells_per_region = torch.diff(region_first, append=region_first.new_tensor([n_cells]))
-    gap_before = torch.empty_like(cell_step)
-    torch.sub(cell_step[1:], cell_step[:-1], out=gap_before[1:]).sub_(1)
-    gap_before.index_copy_(0, region_first, cell_step.index_select(0, region_first))  # from 0
-    gap_after = torch.empty_like(cell_step)
-    gap_after[:-1] = gap_before[1:]
     region_last = torch.roll(region_first, -1).sub_(1)
     region_last[-1] = n_cells - 1
+    cells_per_region = region_last - region_first + 1
+    gap_after = torch.empty_like(cell_step)
+    torch.sub(cell_step[1:], cell_step[:-1], out=gap_after[:-1]).sub_(1)
     if isinstance(last_step, Tensor):  # a batch: each region's own recording's last step
         last_step = last_step.index_select(
             0, divide(cell_region.index_select(0, region_last), wo * ho))
@@ -468,6 +465,9 @@ def lif_spikes(
         spike_step = cell_step.index_select(0, spike_cell)
         membrane = None
     else:
+        gap_before = torch.empty_like(gap_after)
+        gap_before[1:] = gap_after[:-1]
+        gap_before.index_copy_(0, region_first, cell_step.index_select(0, region_first))  # from 0
         membrane, chain_before = membranes_by_rounds(
             current, gap_before, region_first, region_index, cells_per_region, rounds=rounds,
             leak=leak,

@@ -181,20 +181,30 @@ def certain_spikes(
     chain = gap_after.index_select(0, cell) > 0  # fired, then empty steps
     if not bool(chain.any()):
         return cell, polarity, empty, empty, empty, empty
-    chain_cell, chain_polarity = cell[chain], polarity[chain]
-    at = (chain_polarity, row[chain], rank[chain])
-    gap = gap_after.index_select(0, chain_cell)
+    which = chain.nonzero().squeeze(1)
+    chain_cell, chain_polarity = cell.index_select(0, which), polarity.index_select(0, which)
+    at = (chain_polarity, row.index_select(0, which), rank.index_select(0, which))
     if reset == "none" and beta == 1.0:  # the membrane stays: fires at every empty step
-        return cell, polarity, chain_cell, chain_polarity, cell_step[chain_cell] + 1, gap
+        return (cell, polarity, chain_cell, chain_polarity, cell_step[chain_cell] + 1,
+                gap_after.index_select(0, chain_cell))
+    # The neuron fires on while the chain (membrane decaying, less theta at every step with
+    # reset "subtract") stays above threshold. Most stop at once: certain where the first
+    # empty step's membrane, beta * u (- theta), lies below threshold by more than its bound,
+    # beta * error + 6 KAPPA (u + theta) + 1e-12 (u + A + theta) (u: the membrane, error:
+    # its bound). First for all at once, scaled (Y = u * scale, bound = error * scale; the
+    # 1e-12 covers float64's rounding of either form), then unscaled for the others.
+    offset_a = leak.offset if beta < 1.0 else 0.0
+    below = 2.0 if reset == "subtract" else 1.0  # beta * u - theta < theta, or beta * u < theta
+    lead = (below - 6 * _KAPPA - 1e-12) * theta - 1e-12 * offset_a
+    ahead = torch.mul(scaled[at], beta + 6 * _KAPPA + 1e-12).add_(bound[at], alpha=beta)
+    if chains is None and bool((ahead < scale[at[1:]] * lead).all()):
+        return cell, polarity, empty, empty, empty, empty
+    gap = gap_after.index_select(0, chain_cell)
     unscale = 1.0 / scale[at[1:]]
     u = scaled[at] * unscale  # the membranes, and their bounds
     error = bound[at] * unscale
     counted = chains[at] if chains is not None else torch.zeros_like(gap)
     inner = between[at[1:]] > 0 if between is not None else None  # gaps between cells
-    # The neuron fires on while the chain (membrane decaying, less theta at every step with
-    # reset "subtract") stays above threshold. Most stop at once: certain where the first
-    # empty step's membrane lies below threshold by more than its bound.
-    offset_a = leak.offset if beta < 1.0 else 0.0
     first = beta * u - theta if reset == "subtract" else beta * u
     quiet = first < theta - (beta * error + 6 * _KAPPA * (u + theta)
                              + 1e-12 * (u + offset_a + theta))
