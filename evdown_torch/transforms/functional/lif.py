@@ -165,9 +165,12 @@ def _event_cells(
         key = region.mul_(span).add_(steps)
         occupied = torch.zeros(n_keys, dtype=torch.bool, device=device)
         occupied[key] = True
-        cell_step = occupied.nonzero().squeeze(1)  # the cells' keys, sorted
-        cell_of_event = torch.cumsum(occupied, 0).index_select(0, key).sub_(1)
+        rank = torch.cumsum(occupied, 0)  # cells up to each key
         del occupied
+        cell_of_event = rank.index_select(0, key).sub_(1)
+        cell_step = torch.empty(int(rank[-1]), dtype=torch.int64, device=device)
+        cell_step[cell_of_event] = key  # the cells' keys, sorted
+        del rank
         polarity = events.p
     elif n_keys < 1 << 62:
         key, order = torch.sort(region.mul_(span).add_(steps))
