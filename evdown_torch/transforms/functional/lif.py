@@ -165,7 +165,8 @@ def _event_cells(
         key = region.mul_(span).add_(steps)
         occupied = torch.zeros(n_keys, dtype=torch.bool, device=device)
         occupied[key] = True
-        rank = torch.cumsum(occupied, 0)  # cells up to each key
+        count_dtype = torch.int32 if n < 1 << 30 else torch.int64  # 2 * cells + 1 fits
+        rank = torch.cumsum(occupied, 0, dtype=count_dtype)  # cells up to each key
         del occupied
         cell_of_event = rank.index_select(0, key).sub_(1)
         cell_step = torch.empty(int(rank[-1]), dtype=torch.int64, device=device)
