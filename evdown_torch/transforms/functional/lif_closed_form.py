@@ -359,17 +359,18 @@ def _look_back(
     ``rise`` and ``peak``; the chains with spikes join ``chains``."""
     n_regions, width = rise.shape[-2:]
     passes = block.shape[-1]
-    lanes = behind.any(-1).view(-1).nonzero().squeeze(1)  # the neurons gone wrong
-    first = behind.view(-1, passes).index_select(0, lanes).to(torch.int8).argmax(1)
-    undone = block.view(-1, passes).index_select(0, lanes)
-    undone.masked_fill_(torch.arange(passes, device=lanes.device) >= first[:, None], width)
-    block.view(-1, passes).index_copy_(0, lanes, undone)
-    fired_at = before.view(-1, passes)[lanes, first]  # the firing it is still above after
-    debt.view(-1).index_copy_(0, lanes, torch.cat(debts, -1).view(-1, passes + 1)[lanes, first])
-    last.view(-1).index_copy_(0, lanes, fired_at)
+    undone = behind.cumsum(-1) > 0  # the passes from the first gone wrong on
+    block.masked_fill_(undone, width)
+    kept = undone.logical_not_().sum(-1, keepdim=True)  # passes kept, < passes where wrong
+    wrong = kept < passes
+    first = kept.clamp_(max=passes - 1)
+    fired_at = before.gather(-1, first)  # the firing it is still above after
+    debt.copy_(torch.where(wrong, torch.cat(debts, -1).gather(-1, first), debt))
+    last.copy_(torch.where(wrong, fired_at, last))
+    lanes = wrong.view(-1).nonzero().squeeze(1)  # the neurons gone wrong
+    fired_at = fired_at.view(-1).index_select(0, lanes)
     if between is not None:  # reset "subtract": chained spikes, their resets
-        row = lanes.remainder(n_regions)
-        onward = between[row, fired_at] > 0
+        onward = between[lanes.remainder(n_regions), fired_at] > 0
         if bool(onward.any()):
             _chain(lanes[onward], fired_at[onward], debt, chains, summed, step, scale, between,
                    leak)
