@@ -4,7 +4,9 @@ The loops take any ``torch.utils.data.DataLoader`` whose batches are ``(frames, 
 ``frames`` of shape ``[B, T, 2, H, W]`` (what a DataLoader stacks from samples of
 ``[T, 2, H, W]``, e.g. :func:`evdown_torch.frames.to_frames` or
 ``tonic.transforms.ToFrame(sensor_size, n_time_bins=T)``, any numeric dtype) and ``labels``
-of shape ``[B]``. They move each batch to the model's device and feed it time-first.
+of shape ``[B]``. They move each batch to the model's device and feed it time-first, integer
+frames as float32 and floating ones in their own dtype (the classifier copies its input into
+its parameters' dtype once).
 
 Example, on DVS128 Gesture (needs tonic and the dataset on disk)::
 
@@ -46,7 +48,10 @@ def _time_first(frames: Tensor, device: torch.device) -> Tensor:
         raise ValueError(
             f"a batch of frames must have shape [B, T, 2, H, W], got {tuple(frames.shape)}"
         )
-    return frames.to(device=device, dtype=torch.float32).transpose(0, 1)
+    # A floating batch goes as it is: the model copies it once into its own dtype (a
+    # conversion here would allocate and fill a second batch-sized tensor).
+    dtype = frames.dtype if frames.dtype.is_floating_point else torch.float32
+    return frames.to(device=device, dtype=dtype).transpose(0, 1)
 
 
 def _device_of(model: nn.Module) -> torch.device:

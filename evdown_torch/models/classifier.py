@@ -12,7 +12,7 @@ from torch import Tensor, nn
 from torch.nn import functional
 
 from evdown_torch.checks import check_positive_float, check_positive_int
-from evdown_torch.models._snn import unregistered
+from evdown_torch.models._snn import leaky_through_time, unregistered
 
 __all__ = ["ClassifierState", "SpikingClassifier", "class_scores", "stem_stride_for"]
 
@@ -29,6 +29,10 @@ class ClassifierState(NamedTuple):
     out: Tensor
 
 
+#: Slope of the fast-sigmoid surrogate gradient of every neuron.
+_SLOPE = 25.0
+
+
 def _run_neuron(
     neuron: snntorch.Leaky, current: Tensor, mem: Tensor, *, keep_membrane: bool = False
 ) -> tuple[Tensor, Tensor | None, Tensor]:
@@ -37,18 +41,13 @@ def _run_neuron(
     Returns ``(spikes [T, ...], membranes [T, ...] or None, last membrane)``; the membranes
     of every step are kept only with ``keep_membrane``.
     """
-    spikes, membranes = [], []
-    for step in current:
-        spike, mem = neuron(step, mem)
-        spikes.append(spike)
-        if keep_membrane:
-            membranes.append(mem)
-    return torch.stack(spikes), torch.stack(membranes) if keep_membrane else None, mem
+    spikes, membranes = leaky_through_time(neuron, current, mem, _SLOPE)
+    return spikes, membranes if keep_membrane else None, membranes[-1]
 
 
 def _leaky(beta: float, threshold: float) -> snntorch.Leaky:
     neuron = snntorch.Leaky(
-        beta=beta, threshold=threshold, spike_grad=surrogate.fast_sigmoid(slope=25)
+        beta=beta, threshold=threshold, spike_grad=surrogate.fast_sigmoid(slope=_SLOPE)
     )
     return unregistered(neuron)
 
@@ -141,15 +140,18 @@ class SpikingClassifier(nn.Module):
         )
 
     def initial_state(self, x: Tensor) -> ClassifierState:
-        """Zero membranes for a ``[T, B, C, H, W]`` input."""
+        """Zero membranes (in the parameters' dtype) for a ``[T, B, C, H, W]`` input."""
         _, b, _, h, w = x.shape
+        dtype = self.fc.weight.dtype
         if self.stem is not None:
             h, w = -(-h // self.stem_stride), -(-w // self.stem_stride)
         conv = []
         for c in self.channels:
             h, w = -(-h // 2), -(-w // 2)
-            conv.append(x.new_zeros(b, c, h, w).contiguous(memory_format=torch.channels_last))
-        return ClassifierState(tuple(conv), x.new_zeros(b, self.num_classes))
+            conv.append(torch.zeros(b, c, h, w, dtype=dtype, device=x.device)
+                        .contiguous(memory_format=torch.channels_last))
+        return ClassifierState(tuple(conv), torch.zeros(b, self.num_classes, dtype=dtype,
+                                                        device=x.device))
 
     def forward(
         self, x: Tensor, state: ClassifierState | None = None
@@ -157,8 +159,8 @@ class SpikingClassifier(nn.Module):
         """Run the network over the time steps of ``x``.
 
         Args:
-            x: ``[T, B, in_channels, H, W]`` float input (event counts or spikes), any
-                ``H, W >= 1``.
+            x: ``[T, B, in_channels, H, W]`` input (event counts or spikes, any real dtype:
+                it is copied once into the parameters' dtype), any ``H, W >= 1``.
             state: membranes to start from; zeros by default.
 
         Returns:
@@ -177,14 +179,20 @@ class SpikingClassifier(nn.Module):
         # runs once over all time steps (a batch of T * B); only the neurons step through time.
         # This is the same network as running each time step through every layer in turn.
         # Channels-last tensors take oneDNN's faster convolution and pooling paths on CPU.
-        current = self._stem(x.flatten(0, 1).contiguous(memory_format=torch.channels_last))
+        # One copy, whatever the layout and floating dtype of x, into the parameters' dtype.
+        flat = torch.empty((steps * batch, *x.shape[2:]), dtype=self.fc.weight.dtype,
+                           device=x.device, memory_format=torch.channels_last)
+        flat.unflatten(0, (steps, batch)).copy_(x)
+        current = self._stem(flat)
         conv_mem = []
         for conv, neuron, mem in zip(self.convs, self.conv_neurons, state.conv):
             current = self.pool(conv(current))
             current, _, mem = _run_neuron(neuron, current.unflatten(0, (steps, batch)), mem)
             conv_mem.append(mem)
             current = current.flatten(0, 1)
-        current = self.fc(self.squeeze(current).flatten(1)).unflatten(0, (steps, batch))
+        if current.shape[-2:] != (self.pool_size, self.pool_size):  # else the identity
+            current = self.squeeze(current)
+        current = self.fc(current.flatten(1)).unflatten(0, (steps, batch))
         spikes, membranes, out_mem = _run_neuron(self.out_neuron, current, state.out,
                                                  keep_membrane=True)
         return spikes, membranes, ClassifierState(tuple(conv_mem), out_mem)
