@@ -269,7 +269,7 @@ def test_event_cells_paths_group_events_alike(path, monkeypatch):
     # event by event; each of the three groupings (bool table of keys, sort of the keys,
     # stable sort of the regions where the key overflows int64).
     rng = np.random.default_rng(3)
-    n, sensor, factor = 3000, (12, 10, 2), (3, 2)
+    n, sensor = 3000, (12, 10, 2)  # factor (3, 2): 4 x 5 regions
     x, y = rng.integers(0, sensor[0], n), rng.integers(0, sensor[1], n)
     steps = np.sort(rng.integers(0, 700, n))
     p = rng.random(n) < 0.4
