@@ -102,9 +102,11 @@ DEFAULT_WEIGHT = 0.3
 #: Default bound on the number of output events (LIFPooling's ``max_output_events``).
 DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
 
-#: Most ``(region, step)`` keys per event for which the cells are found in a bool table of
-#: every key (bytes per event) rather than by sorting the events.
-OCCUPANCY_KEYS_PER_EVENT = 64
+#: Most ``(region, step)`` keys per event, and in all, for which the cells are found in a
+#: table of every key (a bool and an int32 running count each: at most 160 bytes per event,
+#: 80 MB in all) rather than by sorting the events.
+OCCUPANCY_KEYS_PER_EVENT = 32
+MAX_OCCUPANCY_KEYS = 1 << 24
 
 
 def decay_factor(dt: float, tau: float) -> float:
@@ -141,12 +143,13 @@ def _event_cells(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Cells: the ``(region, step)`` pairs that hold events, ordered by region, then step.
 
-    A cell's key is ``region * (top_step + 1) + step``. Where there are at most
-    :data:`OCCUPANCY_KEYS_PER_EVENT` keys per event (small calls), the cells are the occupied
-    entries of a bool table of every key, found without sorting the events; otherwise the
-    events are sorted by key (the order of the events within a cell does not matter: only
-    their counts are kept), or, where the key would not fit in int64, stably by region (the
-    events are in time order within a region).
+    A cell's key is ``region * (top_step + 1) + step``. Where there are few keys
+    (:data:`OCCUPANCY_KEYS_PER_EVENT` per event and :data:`MAX_OCCUPANCY_KEYS` in all), the
+    cells are the occupied entries of a bool table of every key, found without sorting the
+    events (its running count gives every event's cell); otherwise the events are sorted by
+    key (the order of the events within a cell does not matter: only their counts are kept),
+    or, where the key would not fit in int64, stably by region (the events are in time order
+    within a region).
 
     Returns:
         ``(cell_region, cell_step, current)``: int64, int64 and the ``(n_cells, 2)`` float32
@@ -161,7 +164,7 @@ def _event_cells(
     n = region.shape[0]
     span = top_step + 1  # steps per region in the key
     n_keys = plane * span
-    if n_keys <= OCCUPANCY_KEYS_PER_EVENT * n:
+    if n_keys <= min(OCCUPANCY_KEYS_PER_EVENT * n, MAX_OCCUPANCY_KEYS):
         key = region.mul_(span).add_(steps)
         occupied = torch.zeros(n_keys, dtype=torch.bool, device=device)
         occupied[key] = True
