@@ -492,7 +492,7 @@ def lif_spikes(
         run_end = run_start + run_length
         run_start = run_start.clamp(min=from_step)
         run_length = (run_end - run_start).clamp_(min=0)
-    total = spike_cell.shape[0] + int(run_length.sum())
+    total = spike_cell.shape[0] + (int(run_length.sum()) if run_length.shape[0] else 0)
     if max_output_events is not None and total > max_output_events:
         raise ValueError(
             f"LIF pooling would emit {total} events ({total - spike_cell.shape[0]} of them "
@@ -509,7 +509,7 @@ def lif_spikes(
         spike_step = torch.cat([spike_step, run_start[run_of_spike] + within_run])
         spike_cell = torch.cat([spike_cell, run_cell[run_of_spike]])
         spike_polarity = torch.cat([spike_polarity, run_polarity[run_of_spike]])
-    neuron = spike_polarity * plane + cell_region[spike_cell]
+    neuron = torch.add(cell_region.index_select(0, spike_cell), spike_polarity, alpha=plane)
     # Output order: by step, then neuron (OFF before ON, then row-major region); a neuron
     # fires at most once per step.
     spike_step, neuron = _by_step_then_neuron(spike_step, neuron, 2 * plane, top_step)

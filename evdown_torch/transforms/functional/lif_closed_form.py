@@ -319,12 +319,11 @@ def _greedy_firings(
         before = torch.cat([last, block[..., :-1]], -1)
         behind = (block <= before).logical_and_(block < width)
         last = found[-1]  # increasing along a block, up to width (none left)
-        wrong_any, done = torch.stack([behind.any(), last.eq(width).all()]).tolist()
-        if wrong_any:
+        blocks.append(block)
+        if bool(behind.any()):
             _look_back(block, before, behind, debts, debt, last, rise, peak, summed, step, scale,
                        between, chains, leak)
-        blocks.append(block)
-        if done and not wrong_any:
+        elif bool(last.eq(width).all()):
             break
     fired = torch.zeros(*lead, width + 1, dtype=torch.bool, device=summed.device)
     fired.scatter_(-1, torch.cat(blocks, -1), True)
