@@ -210,7 +210,7 @@ def _validate(events: Events, sensor_size: tuple[int, int, int] | None) -> None:
         return
     w, h, _ = sensor_size
     for name, column, size in (("x", events.x, w), ("y", events.y, h)):
-        lo, hi = int(column.min()), int(column.max())
+        lo, hi = (int(v) for v in torch.aminmax(column))
         if lo < 0 or hi >= size:
             raise ValueError(
                 f"event coordinate {name} must lie in [0, {size - 1}] for sensor_size "

@@ -6,12 +6,14 @@ import math
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from evdown_torch import LIFPooling
+from evdown_torch import Events, LIFPooling
 from evdown_torch.transforms.functional import lif as lif_kernel
 from evdown_torch.transforms.functional import lif_closed_form
+from evdown_torch.transforms.functional.lif_chains import Leak
 from tests.helpers import DVS_DTYPE, random_stream
 from tests.transforms import test_lif
 from tests.transforms.test_lif import SETTINGS, bursty_stream, dense_reference, tuples
@@ -180,3 +182,112 @@ def test_empty_steps_through_the_closed_form(reset, tau, answers):
 def test_long_chains_through_the_closed_form(reset, tau, answers):
     test_lif.test_long_firing_chains_equal_stepping(reset, tau)
     assert answers
+
+
+def _greedy_tables(rng: np.random.Generator, rows: int, width: int, beta: float, theta: float):
+    """Random (2, R, width) tables as certain_spikes builds them: rows of random lengths,
+    random empty steps between cells (0 to 4, some long), currents of 0 to 9 events of 0.3."""
+    lengths = rng.integers(1, width + 1, rows)
+    lengths[0] = width
+    lam = -math.log(beta)
+    scale = torch.ones(rows, width, dtype=torch.float64)
+    between = torch.zeros(rows, width, dtype=torch.int64)
+    inputs = torch.zeros(2, rows, width, dtype=torch.float64)
+    for r, n in enumerate(lengths.tolist()):
+        gaps = rng.choice([0, 0, 1, 2, 4, 9], n)
+        steps = np.concatenate([[0], np.cumsum(gaps[:-1] + 1)])
+        scale[r, :n] = torch.from_numpy(np.exp(lam * steps))
+        between[r, : n - 1] = torch.from_numpy(gaps[:-1])
+        counts = rng.integers(0, 10, (2, n)) * (rng.random((2, n)) < 0.7)
+        inputs[:, r, :n] = torch.from_numpy(np.float32(0.3) * counts.astype(np.float32)
+                                            ).double() * scale[r, :n]
+    invalid = torch.arange(width) >= torch.from_numpy(lengths)[:, None]
+    return torch.cumsum(inputs, -1), scale * theta, invalid, scale, between, lengths
+
+
+def _greedy_reference(summed, level, scale, between, lengths, beta, theta, reset):
+    """Slow oracle: the recurrence neuron by neuron, cell by cell, in float64 (firing at a
+    cell where the scaled membrane exceeds the scaled threshold; reset "subtract": a firing
+    still above threshold fires on through the empty steps after it, stepped one by one)."""
+    fired = torch.zeros(summed.shape, dtype=torch.bool)
+    chains = torch.zeros(summed.shape, dtype=torch.int64)
+    still_above = 0  # firings after which the search must look back
+    for p in range(summed.shape[0]):
+        for r, n in enumerate(lengths.tolist()):
+            debt = 0.0
+            for c in range(n):
+                s, lev, sc = summed[p, r, c].item(), level[r, c].item(), scale[r, c].item()
+                if s - lev <= debt:
+                    continue
+                fired[p, r, c] = True
+                if reset == "zero":
+                    debt = s
+                    continue
+                u, m, v = (s - debt) / sc, 0, (s - debt) / sc
+                while m < between[r, c].item():
+                    v = beta * v - theta
+                    if v <= theta:
+                        break
+                    m += 1
+                chains[p, r, c] = m
+                still_above += s - lev > debt + lev / beta
+                debt += lev / beta * sum(beta**-t for t in range(m + 1))
+                assert u > theta
+    return fired, chains, still_above
+
+
+@pytest.mark.parametrize("reset", ["subtract", "zero"])
+@pytest.mark.parametrize("seed", range(4))
+def test_greedy_search_matches_a_sequential_reference(reset, seed, monkeypatch):
+    # Heavy inputs (up to 2.7 per cell against a threshold of 1): many neurons still above
+    # threshold after a firing (look-backs) and chains through the empty steps (subtract).
+    monkeypatch.setattr(lif_closed_form, "_BLOCK", [16, 5, 3, 16][seed])
+    rng = np.random.default_rng(seed)
+    beta, theta = 0.9, 1.0
+    summed, level, invalid, scale, between, lengths = _greedy_tables(rng, 9, 40, beta, theta)
+    leak = Leak(torch.tensor(beta, dtype=torch.float32), torch.tensor(theta), reset)
+    gain = level * (1.0 / beta) if reset == "subtract" else None
+    fired, chains = lif_closed_form._greedy_firings(
+        summed, level, gain, invalid, scale, between if reset == "subtract" else None,
+        leak=leak,
+    )
+    want_fired, want_chains, still_above = _greedy_reference(
+        summed, level, scale, between, lengths, leak.beta, theta, reset)
+    assert torch.equal(fired, want_fired)
+    assert int(want_fired.sum()) > 50
+    if reset == "subtract":  # the case exercises look-backs and chains
+        assert still_above > 2 and int((want_chains > 0).sum()) > 0
+        assert torch.equal(chains if chains is not None else torch.zeros_like(want_chains),
+                           want_chains)
+    else:
+        assert chains is None
+
+
+@pytest.mark.parametrize("path", ["occupancy", "sort", "stable"])
+def test_event_cells_paths_group_events_alike(path, monkeypatch):
+    # The cells (region, step) with their (OFF, ON) counts, against a dictionary built
+    # event by event; each of the three groupings (bool table of keys, sort of the keys,
+    # stable sort of the regions where the key overflows int64).
+    rng = np.random.default_rng(3)
+    n, sensor = 3000, (12, 10, 2)  # factor (3, 2): 4 x 5 regions
+    x, y = rng.integers(0, sensor[0], n), rng.integers(0, sensor[1], n)
+    steps = np.sort(rng.integers(0, 700, n))
+    p = rng.random(n) < 0.4
+    events = Events.from_columns(x, y, steps, p)
+    wo, ho = 4, 5
+    top = int(steps.max())
+    if path == "sort":
+        monkeypatch.setattr(lif_kernel, "OCCUPANCY_KEYS_PER_EVENT", 0)
+    elif path == "stable":
+        top = (1 << 62) // (wo * ho) + 1
+    region, step, current = lif_kernel._event_cells(
+        events, torch.from_numpy(steps), fx=3, fy=2, wo=wo, plane=wo * ho, top_step=top,
+        weight=0.5, mutual_inhibition=0.25,
+    )
+    counts: dict[tuple[int, int], list[int]] = {}
+    for xi, yi, si, pi in zip(x.tolist(), y.tolist(), steps.tolist(), p.tolist(), strict=True):
+        counts.setdefault(((yi // 2) * wo + xi // 3, si), [0, 0])[int(pi)] += 1
+    keys = sorted(counts)
+    assert list(zip(region.tolist(), step.tolist(), strict=True)) == keys
+    want = [[0.5 * c[0] - 0.25 * c[1], 0.5 * c[1] - 0.25 * c[0]] for c in map(counts.get, keys)]
+    assert current.tolist() == want

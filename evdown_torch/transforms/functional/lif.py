@@ -102,6 +102,12 @@ DEFAULT_WEIGHT = 0.3
 #: Default bound on the number of output events (LIFPooling's ``max_output_events``).
 DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
 
+#: Most ``(region, step)`` keys per event, and in all, for which the cells are found in a
+#: table of every key (a bool and an int32 running count each: at most 160 bytes per event,
+#: 80 MB in all) rather than by sorting the events.
+OCCUPANCY_KEYS_PER_EVENT = 32
+MAX_OCCUPANCY_KEYS = 1 << 24
+
 
 def decay_factor(dt: float, tau: float) -> float:
     """Membrane decay per time step, ``beta = exp(-dt / tau)``.
@@ -131,10 +137,19 @@ def _event_cells(
     fy: int,
     wo: int,
     plane: int,
+    top_step: int,
     weight: float,
     mutual_inhibition: float,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Cells: the ``(region, step)`` pairs that hold events, ordered by region, then step.
+
+    A cell's key is ``region * (top_step + 1) + step``. Where there are few keys
+    (:data:`OCCUPANCY_KEYS_PER_EVENT` per event and :data:`MAX_OCCUPANCY_KEYS` in all), the
+    cells are the occupied entries of a bool table of every key, found without sorting the
+    events (its running count gives every event's cell); otherwise the events are sorted by
+    key (the order of the events within a cell does not matter: only their counts are kept),
+    or, where the key would not fit in int64, stably by region (the events are in time order
+    within a region).
 
     Returns:
         ``(cell_region, cell_step, current)``: int64, int64 and the ``(n_cells, 2)`` float32
@@ -146,20 +161,46 @@ def _event_cells(
         empty = torch.empty(0, dtype=torch.int64, device=device)
         return empty, empty, torch.empty(0, 2, dtype=f32, device=device)
     region = divide(events.x, fx).add_(divide(events.y, fy), alpha=wo)
-    region, order = stable_sort_small(region, plane)  # stable: time order within a region
-    steps = steps.index_select(0, order)
-    polarity = events.p.index_select(0, order)
-    del order
     n = region.shape[0]
-    starts = torch.ones(n, dtype=torch.bool, device=device)
-    torch.ne(region[1:], region[:-1], out=starts[1:])
-    starts[1:] |= steps[1:] != steps[:-1]
-    cell_of_event = torch.cumsum(starts, 0)
-    n_cells = int(cell_of_event[-1])
-    first = starts.nonzero().squeeze(1)
-    cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
-    del region, steps, starts, first
-    counts = torch.bincount(cell_of_event.mul_(2).add_(polarity).sub_(2), minlength=2 * n_cells)
+    span = top_step + 1  # steps per region in the key
+    n_keys = plane * span
+    if n_keys <= min(OCCUPANCY_KEYS_PER_EVENT * n, MAX_OCCUPANCY_KEYS):
+        key = region.mul_(span).add_(steps)
+        occupied = torch.zeros(n_keys, dtype=torch.bool, device=device)
+        occupied[key] = True
+        count_dtype = torch.int32 if n < 1 << 30 else torch.int64  # 2 * cells + 1 fits
+        rank = torch.cumsum(occupied, 0, dtype=count_dtype)  # cells up to each key
+        del occupied
+        cell_of_event = rank.index_select(0, key).sub_(1)
+        cell_step = torch.empty(int(rank[-1]), dtype=torch.int64, device=device)
+        cell_step[cell_of_event] = key  # the cells' keys, sorted
+        del rank
+        polarity = events.p
+    elif n_keys < 1 << 62:
+        key, order = torch.sort(region.mul_(span).add_(steps))
+        polarity = events.p.index_select(0, order)
+        del order
+        starts = torch.ones(n, dtype=torch.bool, device=device)
+        torch.ne(key[1:], key[:-1], out=starts[1:])
+        cell_of_event = torch.cumsum(starts, 0).sub_(1)
+        cell_step = key.index_select(0, starts.nonzero().squeeze(1))
+    else:
+        region, order = stable_sort_small(region, plane)  # stable: time order within a region
+        steps = steps.index_select(0, order)
+        polarity = events.p.index_select(0, order)
+        del order
+        starts = torch.ones(n, dtype=torch.bool, device=device)
+        torch.ne(region[1:], region[:-1], out=starts[1:])
+        starts[1:] |= steps[1:] != steps[:-1]
+        cell_of_event = torch.cumsum(starts, 0).sub_(1)
+        first = starts.nonzero().squeeze(1)
+        cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
+        del region, steps, starts, first
+    if n_keys < 1 << 62:  # from the keys
+        cell_region = divide(cell_step, span)
+        cell_step = cell_step.sub_(cell_region * span)
+    n_cells = cell_step.shape[0]
+    counts = torch.bincount(cell_of_event.mul_(2).add_(polarity), minlength=2 * n_cells)
     counts = counts.to(f32).view(n_cells, 2)  # exact: fewer than 2**24 events per cell
     del cell_of_event, polarity
     current = counts * torch.tensor(weight, dtype=f32, device=device)
@@ -387,8 +428,9 @@ def lif_spikes(
     beta32 = torch.tensor(beta, dtype=f32, device=device)  # the neuron's buffers, as snntorch
     threshold32 = torch.tensor(threshold, dtype=f32, device=device)
     leak = Leak(beta32, threshold32, reset_mechanism)
+    top_step = int(last_step.max()) if isinstance(last_step, Tensor) else last_step
     cell_region, cell_step, current = _event_cells(
-        events, steps, fx=fx, fy=fy, wo=wo, plane=plane, weight=weight,
+        events, steps, fx=fx, fy=fy, wo=wo, plane=plane, top_step=top_step, weight=weight,
         mutual_inhibition=mutual_inhibition,
     )
     if state is not None:  # each region's last update, as a cell whose current is its membrane
@@ -407,14 +449,11 @@ def lif_spikes(
     new_region = torch.ones(n_cells, dtype=torch.bool, device=device)
     torch.ne(cell_region[1:], cell_region[:-1], out=new_region[1:])
     region_first = new_region.nonzero().squeeze(1)
-    cells_per_region = torch.diff(region_first, append=region_first.new_tensor([n_cells]))
-    gap_before = torch.empty_like(cell_step)
-    torch.sub(cell_step[1:], cell_step[:-1], out=gap_before[1:]).sub_(1)
-    gap_before.index_copy_(0, region_first, cell_step.index_select(0, region_first))  # from 0
-    gap_after = torch.empty_like(cell_step)
-    gap_after[:-1] = gap_before[1:]
     region_last = torch.roll(region_first, -1).sub_(1)
     region_last[-1] = n_cells - 1
+    cells_per_region = region_last - region_first + 1
+    gap_after = torch.empty_like(cell_step)
+    torch.sub(cell_step[1:], cell_step[:-1], out=gap_after[:-1]).sub_(1)
     if isinstance(last_step, Tensor):  # a batch: each region's own recording's last step
         last_step = last_step.index_select(
             0, divide(cell_region.index_select(0, region_last), wo * ho))
@@ -433,6 +472,9 @@ def lif_spikes(
         spike_step = cell_step.index_select(0, spike_cell)
         membrane = None
     else:
+        gap_before = torch.empty_like(gap_after)
+        gap_before[1:] = gap_after[:-1]
+        gap_before.index_copy_(0, region_first, cell_step.index_select(0, region_first))  # from 0
         membrane, chain_before = membranes_by_rounds(
             current, gap_before, region_first, region_index, cells_per_region, rounds=rounds,
             leak=leak,
@@ -450,7 +492,7 @@ def lif_spikes(
         run_end = run_start + run_length
         run_start = run_start.clamp(min=from_step)
         run_length = (run_end - run_start).clamp_(min=0)
-    total = spike_cell.shape[0] + int(run_length.sum())
+    total = spike_cell.shape[0] + (int(run_length.sum()) if run_length.shape[0] else 0)
     if max_output_events is not None and total > max_output_events:
         raise ValueError(
             f"LIF pooling would emit {total} events ({total - spike_cell.shape[0]} of them "
@@ -467,10 +509,10 @@ def lif_spikes(
         spike_step = torch.cat([spike_step, run_start[run_of_spike] + within_run])
         spike_cell = torch.cat([spike_cell, run_cell[run_of_spike]])
         spike_polarity = torch.cat([spike_polarity, run_polarity[run_of_spike]])
-    neuron = spike_polarity * plane + cell_region[spike_cell]
+    neuron = torch.add(cell_region.index_select(0, spike_cell), spike_polarity, alpha=plane)
     # Output order: by step, then neuron (OFF before ON, then row-major region); a neuron
     # fires at most once per step.
-    spike_step, neuron = _by_step_then_neuron(spike_step, neuron, 2 * plane, last_step)
+    spike_step, neuron = _by_step_then_neuron(spike_step, neuron, 2 * plane, top_step)
     if not keep_state:
         return spike_step, neuron, None
     # The neurons after the last update of every region here.
@@ -485,11 +527,10 @@ def lif_spikes(
 
 
 def _by_step_then_neuron(
-    spike_step: Tensor, neuron: Tensor, neurons: int, last_step: int | Tensor
+    spike_step: Tensor, neuron: Tensor, neurons: int, top: int
 ) -> tuple[Tensor, Tensor]:
-    """Spikes sorted by step, then neuron (``neurons`` of them): one sort of the combined key
-    where it fits in int64, else by neuron, then stably by step."""
-    top = int(last_step.max()) if isinstance(last_step, Tensor) else last_step
+    """Spikes (steps up to ``top``) sorted by step, then neuron (``neurons`` of them): one
+    sort of the combined key where it fits in int64, else by neuron, then stably by step."""
     if (top + 1) * neurons < 1 << 62:
         order = torch.sort(spike_step * neurons + neuron).indices
     else:

@@ -99,30 +99,31 @@ def certain_spikes(
     device = cell_step.device
     f64 = torch.float64
     n = cell_step.shape[0]
-    col = torch.arange(n, device=device).sub_(region_first.index_select(0, region_index))
-    pos = region_index * width + col
-    offset = cell_step - cell_step.index_select(0, region_first).index_select(0, region_index)
+    base = region_first.index_select(0, region_index)  # the first cell of every cell's row
+    pos = torch.arange(n, device=device).sub_(base).add_(region_index, alpha=width)  # in table
+    offset = cell_step - cell_step.index_select(0, base)
     widest, longest_gap = torch.stack([offset.max(), gap_after.max()]).tolist()
     lam = -math.log(beta)  # 0 for beta = 1
     if lam * widest > _MAX_EXPONENT or longest_gap >= 1 << 24:
         return None  # scaling would overflow; the rounds' float32 powers round such gaps
 
-    # The (R, width) table of s_k - s_0 (0 on pads, after every cell of their row: no effect
-    # on the cells), the scale beta ** -(s_k - s_0), and the (2, R, width) inputs (exact
-    # float32 copies).
-    dist = torch.zeros(n_regions * width, dtype=f64, device=device)
-    dist[pos] = offset.to(f64)
-    scale = dist.view(n_regions, width).mul_(lam).exp_()
-    valid = torch.arange(width, device=device) < cells_per_region[:, None]
+    # The (R, width) scale beta ** -(s_k - s_0) (1 on pads, after every cell of their row: no
+    # effect on the cells) and the (2, R, width) scaled inputs (of exact float64 copies).
+    cell_scale = offset.to(f64).mul_(lam).exp_()
+    scale = torch.ones(n_regions * width, dtype=f64, device=device)
+    scale.index_copy_(0, pos, cell_scale)
+    scale = scale.view(n_regions, width)
+    invalid = torch.arange(width, device=device) >= cells_per_region[:, None]  # the pads
     inputs = torch.zeros(2, n_regions * width, dtype=f64, device=device)
-    inputs.index_copy_(1, pos, current.t().to(f64))
+    inputs.index_copy_(1, pos, current.t().to(f64).mul_(cell_scale))
     inputs = inputs.view(2, n_regions, width)
     level = scale * theta  # the threshold, scaled
-    summed = torch.cumsum(inputs * scale, -1)
+    summed = torch.cumsum(inputs, -1)
 
     # The firings, then every membrane, scaled (Y_k = v_k * scale_k), checked against them.
-    between = None  # reset "subtract": empty steps to the next cell of the row (0 after the last)
-    if reset == "subtract":
+    gain = between = None  # reset "subtract": a firing's reset, scaled; empty steps to the
+    if reset == "subtract":  # next cell of the row (0 after the last)
+        gain = level * (1.0 / beta)
         between = torch.zeros(n_regions * width, dtype=torch.int64, device=device)
         between[pos] = gap_after
         between = between.view(n_regions, width)
@@ -131,7 +132,7 @@ def certain_spikes(
     def membranes(fired: Tensor, chains: Tensor | None) -> Tensor:
         """Every membrane given the firings, scaled."""
         if reset == "subtract":  # a firing at i subtracts theta at steps s_i + 1 .. s_i + 1 + m
-            share = fired * (level * (1.0 / beta))
+            share = fired * gain
             if chains is not None:  # m spikes in the empty steps after the cell
                 at = chains.nonzero(as_tuple=True)
                 share[at] *= _geometric(chains[at], beta)
@@ -145,10 +146,8 @@ def certain_spikes(
             return summed - earlier.masked_fill_(restart == 0, 0.0)  # 0: from the row's start
         return summed
 
-    fired, chains = _greedy_firings(summed, level, valid, scale, between, leak=leak)
+    fired, chains = _greedy_firings(summed, level, gain, invalid, scale, between, leak=leak)
     scaled = membranes(fired, chains)
-    if not torch.equal((scaled > level) & valid, fired):  # a decision within float64 rounding
-        return None
 
     # The float32 rounding the rounds accumulate: at each update at most KAPPA times the sizes
     # it involves (beta ** gap * |v_{k-1}|, |I_k|, |v_k|, theta), and the earlier error scaled
@@ -156,7 +155,7 @@ def certain_spikes(
     # 2 * sum |Y| + sum (|I| + theta) * scale (ignoring the restarts of reset "zero" only
     # makes it larger); float64's own error is a small share of the latter. A firing chain
     # through the empty steps before a cell adds at most 16 KAPPA (|v| + theta) there.
-    local = inputs.abs().add_(theta).mul_(scale)
+    local = inputs.abs_().add_(level)  # (|I| + theta) * scale: inputs is not needed after this
     if chains is not None:  # at the cell after each chain
         polarity, row, rank = chains.nonzero(as_tuple=True)
         ratio = scale[row, rank + 1] / scale[row, rank]
@@ -167,7 +166,11 @@ def certain_spikes(
     # one cumsum of both sums, weighted (its rounding is far inside the 1.01 of growth)
     local.mul_(_KAPPA * growth + float64_error).add_(scaled.abs(), alpha=2 * _KAPPA * growth)
     bound = torch.cumsum(local, -1)
-    if not bool(((scaled - level).abs_() > bound).logical_or_(~valid).all()):
+    # Certain: every membrane on the side of the threshold that the firings say (else a
+    # decision within float64 rounding, or the greedy search wrong) by more than the bound.
+    margin = scaled - level
+    margin = torch.where(fired, margin, margin.neg())
+    if not bool((margin > bound).logical_or_(invalid).all()):
         return None
 
     polarity, row, rank = fired.nonzero(as_tuple=True)
@@ -178,20 +181,30 @@ def certain_spikes(
     chain = gap_after.index_select(0, cell) > 0  # fired, then empty steps
     if not bool(chain.any()):
         return cell, polarity, empty, empty, empty, empty
-    chain_cell, chain_polarity = cell[chain], polarity[chain]
-    at = (chain_polarity, row[chain], rank[chain])
-    gap = gap_after.index_select(0, chain_cell)
+    which = chain.nonzero().squeeze(1)
+    chain_cell, chain_polarity = cell.index_select(0, which), polarity.index_select(0, which)
+    at = (chain_polarity, row.index_select(0, which), rank.index_select(0, which))
     if reset == "none" and beta == 1.0:  # the membrane stays: fires at every empty step
-        return cell, polarity, chain_cell, chain_polarity, cell_step[chain_cell] + 1, gap
+        return (cell, polarity, chain_cell, chain_polarity, cell_step[chain_cell] + 1,
+                gap_after.index_select(0, chain_cell))
+    # The neuron fires on while the chain (membrane decaying, less theta at every step with
+    # reset "subtract") stays above threshold. Most stop at once: certain where the first
+    # empty step's membrane, beta * u (- theta), lies below threshold by more than its bound,
+    # beta * error + 6 KAPPA (u + theta) + 1e-12 (u + A + theta) (u: the membrane, error:
+    # its bound). First for all at once, scaled (Y = u * scale, bound = error * scale; the
+    # 1e-12 covers float64's rounding of either form), then unscaled for the others.
+    offset_a = leak.offset if beta < 1.0 else 0.0
+    below = 2.0 if reset == "subtract" else 1.0  # beta * u - theta < theta, or beta * u < theta
+    lead = (below - 6 * _KAPPA - 1e-12) * theta - 1e-12 * offset_a
+    ahead = torch.mul(scaled[at], beta + 6 * _KAPPA + 1e-12).add_(bound[at], alpha=beta)
+    if chains is None and bool((ahead < scale[at[1:]] * lead).all()):
+        return cell, polarity, empty, empty, empty, empty
+    gap = gap_after.index_select(0, chain_cell)
     unscale = 1.0 / scale[at[1:]]
     u = scaled[at] * unscale  # the membranes, and their bounds
     error = bound[at] * unscale
     counted = chains[at] if chains is not None else torch.zeros_like(gap)
     inner = between[at[1:]] > 0 if between is not None else None  # gaps between cells
-    # The neuron fires on while the chain (membrane decaying, less theta at every step with
-    # reset "subtract") stays above threshold. Most stop at once: certain where the first
-    # empty step's membrane lies below threshold by more than its bound.
-    offset_a = leak.offset if beta < 1.0 else 0.0
     first = beta * u - theta if reset == "subtract" else beta * u
     quiet = first < theta - (beta * error + 6 * _KAPPA * (u + theta)
                              + 1e-12 * (u + offset_a + theta))
@@ -238,7 +251,8 @@ def _geometric(count: Tensor, beta: float) -> Tensor:
 def _greedy_firings(
     summed: Tensor,
     level: Tensor,
-    valid: Tensor,
+    gain: Tensor | None,
+    invalid: Tensor,
     scale: Tensor,
     between: Tensor | None,
     *,
@@ -250,133 +264,147 @@ def _greedy_firings(
     threshold when ``X_k = S_k - theta * scale_k`` (``S``: its cumulative scaled input,
     ``summed``; ``theta * scale``: ``level``) exceeds ``D``, the scaled resets of its
     firings so far (reset "subtract": ``D`` grows by ``theta * scale_i / beta`` at a firing
-    at cell ``i``; reset "zero": the membrane restarts after it, ``D = S_i``). After a firing
-    at ``i`` the next one is the first cell after ``i`` whose ``X`` exceeds ``D``: the first
-    cell whose running maximum of ``X`` exceeds ``D`` (a binary search), once the ``X`` up to
-    ``i`` are masked out where one of them exceeds ``D``. That happens where the neuron is
-    still above threshold after its reset: with reset "subtract" and empty steps after the
-    cell (``between``), it fires on through them, ``m`` more spikes (counted in closed form)
-    whose resets add to ``D``. In exact arithmetic these are the recurrence's firings; the
-    caller checks them against the float64 membranes.
+    at cell ``i``, ``gain``; reset "zero": the membrane restarts after it, ``D = S_i``).
+    After a firing at ``i`` the next one is the first cell after ``i`` whose ``X`` exceeds
+    ``D``: the first cell whose running maximum of ``X`` exceeds ``D`` (a binary search),
+    once the ``X`` up to ``i`` are masked out where one of them exceeds ``D``. That happens
+    where the neuron is still above threshold after its reset: with reset "subtract" and
+    empty steps after the cell (``between``), it fires on through them, ``m`` more spikes
+    (counted in closed form) whose resets add to ``D``. In exact arithmetic these are the
+    recurrence's firings; the caller checks them against the float64 membranes.
+
+    Args:
+        summed: ``(2, R, width)`` float64 ``S``.
+        level: ``(R, width)`` float64 ``theta * scale``.
+        gain: ``(R, width)`` float64 ``theta * scale / beta`` (reset "subtract"; ``None``
+            otherwise).
+        invalid: ``(R, width)`` bool, the pads after every row's cells.
+        scale: ``(R, width)`` float64 ``beta ** -(s_k - s_0)``.
+        between: ``(R, width)`` int64 empty steps to the row's next cell (reset
+            "subtract"; ``None`` otherwise).
+        leak: the neurons' ``beta``, threshold and reset.
 
     Returns:
         ``(fired, chains)``: ``(2, R, width)`` bool, the firings (none on pads), and int64
         spikes chained into the empty steps after each firing (``None`` where there are
         none).
     """
-    lead = summed.shape[:-1]
-    width = summed.shape[-1]
-    device = summed.device
-    beta, reset = leak.beta, leak.reset
-    rise = (summed - level).masked_fill_(~valid, -math.inf)
-    if reset == "none":
+    lead, width = summed.shape[:-1], summed.shape[-1]
+    rise = torch.sub(summed, level).masked_fill_(invalid, -math.inf)
+    if leak.reset == "none":
         return rise > 0, None
-    lanes = lead.numel()
-    # what a firing adds to D ("subtract") or sets it to ("zero")
-    gain = (level * (1.0 / beta)).expand(*lead, width) if reset == "subtract" else summed
-    fired, chains = _greedy_lanes(
-        rise.reshape(lanes, width),
-        summed.reshape(lanes, width),
-        gain.reshape(lanes, width),
-        scale.expand(*lead, width).reshape(lanes, width),
-        None if between is None else between.expand(*lead, width).reshape(lanes, width),
-        torch.zeros(lanes, 1, dtype=summed.dtype, device=device),
-        leak=leak,
-    )
-    fired = fired.reshape(*lead, width)
-    return fired, None if chains is None else chains.reshape(*lead, width)
-
-
-def _greedy_lanes(
-    rise: Tensor,
-    summed: Tensor,
-    gain: Tensor,
-    scale: Tensor,
-    between: Tensor | None,
-    start: Tensor,
-    *,
-    leak: Leak,
-) -> tuple[Tensor, Tensor | None]:
-    """The greedy search of :func:`_greedy_firings` on ``(lanes, w)`` tables: ``X``
-    (``rise``), ``S``, what a firing adds to ``D`` (``gain``: "subtract") or sets it to
-    (``S``: "zero"), the scale, the empty steps after each cell (``between``, "subtract";
-    ``None`` otherwise), and every lane's ``D`` before its first column (``start``,
-    ``(lanes, 1)``). ``rise`` is masked in place."""
-    lanes, width = rise.shape
-    device = rise.device
-    subtract = leak.reset == "subtract"
-    # ``rise`` is the caller's own table: masked as the search goes
+    # What a firing adds to D ("subtract") or sets it to ("zero"); +inf after the last column
+    # (a search that finds nothing returns ``width``: D becomes inf, the neuron is done).
+    if gain is not None:
+        step = torch.nn.functional.pad(gain, (0, 1), value=math.inf).expand(*lead, width + 1)
+    else:
+        step = torch.nn.functional.pad(summed, (0, 1), value=math.inf)
     peak = torch.cummax(rise, -1).values
-    step = torch.full((lanes, width + 1), math.inf, dtype=rise.dtype, device=device)
-    step[:, :width] = gain
-    debt = start.clone()
-    # The last firing before the block (-1: none; a neuron with none left has D = inf and its
-    # search returns ``width``).
-    last = torch.full((lanes, 1), -1, dtype=torch.int64, device=device)
-    chains = None
+    debt = torch.zeros(*lead, 1, dtype=summed.dtype, device=summed.device)
+    # The last firing before the block (-1: none).
+    last = torch.full_like(debt, -1, dtype=torch.int64)
+    chains: list[tuple[Tensor, Tensor, Tensor, Tensor]] = []  # (polarity, row, column, count)
     blocks = []
-    columns = torch.arange(width, device=device)
-    ranks = torch.arange(_BLOCK, device=device)
-    for _ in range(width + 1):  # every block finds a firing of every neuron not done
+    for _ in range(2 * width + 2):  # a block finds a firing of, or masks, every neuron not done
         # _BLOCK passes unchecked, then a look back: a neuron that found its last firing
         # again (still above threshold after it) keeps its firings up to there and searches
         # after it from then on.
         found, debts = [], [debt]
         for _ in range(_BLOCK):
-            at = torch.searchsorted(peak, debt, right=True)  # (lanes, 1); width: none left
-            debt = debt + step.gather(1, at) if subtract else step.gather(1, at)
+            at = torch.searchsorted(peak, debt, right=True)  # width: none left
+            debt = step.gather(-1, at).add_(debt) if gain is not None else step.gather(-1, at)
             found.append(at)
             debts.append(debt)
-        block = torch.cat(found, 1)
-        before = torch.cat([last, block[:, :-1]], 1)
+        block = torch.cat(found, -1)
+        before = torch.cat([last, block[..., :-1]], -1)
         behind = (block <= before).logical_and_(block < width)
-        last = block[:, -1:]  # increasing along a block, up to width (none left)
-        if bool(behind.any()):
-            wrong = behind.any(1, keepdim=True)
-            first = behind.to(torch.int8).argmax(1, keepdim=True)  # the first pass gone wrong
-            block.masked_fill_(wrong & (ranks >= first), width)
-            fired_at = before.gather(1, first).clamp_(0, width - 1)  # still above after it
-            debt = torch.where(wrong, torch.cat(debts, 1).gather(1, first), debt)  # D after it
-            if between is not None:  # reset "subtract": chained spikes, their resets
-                onward = wrong & (between.gather(1, fired_at) > 0)
-                if bool(onward.any()):
-                    rows = onward.nonzero()[:, 0]
-                    chains, debt = _chain(rows, fired_at[rows, 0], debt, chains, summed,
-                                          step, scale, between, leak)
-            rows = wrong[:, 0].nonzero()[:, 0]  # search after the firing from then on
-            after = rise[rows].masked_fill_(columns <= fired_at[rows], -math.inf)
-            rise[rows] = after
-            peak[rows] = torch.cummax(after, -1).values
-            last = torch.where(wrong, fired_at, last)
+        last = found[-1]  # increasing along a block, up to width (none left)
         blocks.append(block)
-        if bool(torch.isinf(debt).all()):
+        if bool(behind.any()):
+            _look_back(block, before, behind, debts, debt, last, rise, peak, summed, step, scale,
+                       between, chains, leak)
+        elif bool(last.eq(width).all()):
             break
-    fired = torch.zeros(lanes, width + 1, dtype=torch.bool, device=device)
-    fired.scatter_(1, torch.cat(blocks, 1), True)
-    return fired[:, :width], chains
+    fired = torch.zeros(*lead, width + 1, dtype=torch.bool, device=summed.device)
+    fired.scatter_(-1, torch.cat(blocks, -1), True)
+    if not chains:
+        return fired[..., :width], None
+    table = torch.zeros(summed.shape, dtype=torch.int64, device=summed.device)
+    polarity, row, column, count = (torch.cat(part) for part in zip(*chains, strict=True))
+    table[polarity, row, column] = count
+    return fired[..., :width], table
+
+
+def _look_back(
+    block: Tensor,
+    before: Tensor,
+    behind: Tensor,
+    debts: list[Tensor],
+    debt: Tensor,
+    last: Tensor,
+    rise: Tensor,
+    peak: Tensor,
+    summed: Tensor,
+    step: Tensor,
+    scale: Tensor,
+    between: Tensor | None,
+    chains: list[tuple[Tensor, Tensor, Tensor, Tensor]],
+    leak: Leak,
+) -> None:
+    """A block's neurons still above threshold after a firing (``behind``: a pass found that
+    firing, or an earlier cell, again): their later passes are undone, their chained spikes
+    counted (reset "subtract") and their search masked up to the firing. Everything is
+    updated in place: ``block``, ``debt`` (their D after that firing), ``last`` (that firing),
+    ``rise`` and ``peak``; the chains with spikes join ``chains``."""
+    n_regions, width = rise.shape[-2:]
+    passes = block.shape[-1]
+    undone = behind.cumsum(-1) > 0  # the passes from the first gone wrong on
+    block.masked_fill_(undone, width)
+    kept = undone.logical_not_().sum(-1, keepdim=True)  # passes kept, < passes where wrong
+    wrong = kept < passes
+    first = kept.clamp_(max=passes - 1)
+    fired_at = before.gather(-1, first)  # the firing it is still above after
+    debt.copy_(torch.where(wrong, torch.cat(debts, -1).gather(-1, first), debt))
+    last.copy_(torch.where(wrong, fired_at, last))
+    lanes = wrong.view(-1).nonzero().squeeze(1)  # the neurons gone wrong
+    fired_at = fired_at.view(-1).index_select(0, lanes)
+    if between is not None:  # reset "subtract": chained spikes, their resets
+        onward = between[lanes.remainder(n_regions), fired_at] > 0
+        if bool(onward.any()):
+            _chain(lanes[onward], fired_at[onward], debt, chains, summed, step, scale, between,
+                   leak)
+    # search after the firing from then on
+    after = rise.view(-1, width).index_select(0, lanes)
+    after.masked_fill_(torch.arange(width, device=lanes.device) <= fired_at[:, None], -math.inf)
+    rise.view(-1, width).index_copy_(0, lanes, after)
+    peak.view(-1, width).index_copy_(0, lanes, torch.cummax(after, -1).values)
 
 
 def _chain(
     lanes: Tensor,
     column: Tensor,
     debt: Tensor,
-    chains: Tensor | None,
+    chains: list[tuple[Tensor, Tensor, Tensor, Tensor]],
     summed: Tensor,
     step: Tensor,
     scale: Tensor,
     between: Tensor,
     leak: Leak,
-) -> tuple[Tensor, Tensor]:
-    """Reset "subtract": the spikes that neurons ``lanes``, still above threshold after their
-    firing at ``column``, chain into the empty steps after it; their resets join ``D``."""
-    if chains is None:
-        chains = torch.zeros(summed.shape, dtype=torch.int64, device=summed.device)
-    d = step[lanes, column]
-    before = debt[lanes, 0] - d  # D before this firing's own reset
-    u = (summed[lanes, column] - before) / scale[lanes, column]
-    gap = between[lanes, column]
+) -> None:
+    """Reset "subtract": the spikes that neurons ``lanes`` (``polarity * R + row``), still
+    above threshold after their firing at ``column``, chain into the empty steps after it;
+    their resets join ``D`` (``debt``, in place), the chains with spikes join ``chains``."""
+    n_regions = scale.shape[0]
+    polarity, row = lanes.div(n_regions, rounding_mode="floor"), lanes.remainder(n_regions)
+    before = debt.view(-1)[lanes]  # D after this firing's own reset
+    d = step[polarity, row, column]
+    u = (summed[polarity, row, column] - (before - d)) / scale[row, column]
+    # Most chains stop at once (the first empty step's membrane below threshold): no spikes,
+    # nothing to add (leak.run gives 0 exactly where this is so).
+    if not bool((leak.chain(u, torch.ones_like(u)) > leak.threshold).any()):
+        return
+    gap = between[row, column]
     count = torch.minimum(leak.run(u), gap.to(u.dtype)).to(torch.int64)
-    chains[lanes, column] = count
-    debt = debt.clone()
-    debt[lanes, 0] += d * (_geometric(count, leak.beta) - 1.0)
-    return chains, debt
+    debt.view(-1).index_copy_(0, lanes, before + d * (_geometric(count, leak.beta) - 1.0))
+    some = count > 0
+    chains.append((polarity[some], row[some], column[some], count[some]))
