@@ -79,6 +79,12 @@ def test_measures_match_direct_computation(tiny):
                             t_start=int(r["t"].min()), t_end=int(r["t"].max()))
         for r, c in zip(test, camera)])
     assert cells["downsample"].consistency == pytest.approx(expected)
+    # LIFPooling's recordings go through its batched kernel: each as if alone
+    lifs = [c for c in result.cells if c.method == "lif"]
+    assert lifs
+    for lif in lifs:
+        pool = lif.cell.transform((32, 32, 2))
+        assert lif.events_per_recording == pytest.approx(np.mean([len(pool(r)) for r in test]))
     # the control spends the budget that it was calibrated to on the training recordings
     control = cells[CONTROL]
     assert control.calibration["count"] == pytest.approx(control.calibration["target"], rel=0.05)

@@ -8,7 +8,8 @@ worker processes, each reading what an earlier run cached:
 2. plan the cells: the full-resolution baseline; per factor, every method without a budget
    setting at its settings (Downsample, EventFunnelling), every method with one at each budget
    (calibrated on the first training recordings only), and the thinning control at each budget;
-3. downscale every recording of every cell into frames, measuring the streams;
+3. downscale every recording of every cell into frames, measuring the streams (a job reads
+   a chunk of recordings once for all the cells of one factor);
 4. train and test the classifier once per seed and cell;
 5. time each transform on one idle thread, in this process, after the workers are gone;
 6. compute the intervals and the paired tests against the control, Holm-corrected.
@@ -320,14 +321,20 @@ def _fill(config: EvaluationConfig, source: Source, pool: Any, device: torch.dev
     planned = _plan(config)
     cells, found = _calibrate(config, source, pool, planned, camera, calibration_samples,
                               progress)
-    work = [(c, s, part) for c in cells for s in ("train", "test") for part in chunks[s]]
+    # One job per factor, split and chunk: it reads the chunk's recordings once for the cells.
+    by_factor: dict[tuple[int, int], list[Cell]] = {}
+    for c in cells:
+        by_factor.setdefault(c.factor, []).append(c)
+    work = [(group, s, part) for group in by_factor.values() for s in ("train", "test")
+            for part in chunks[s]]
     out = list(pool.map(jobs.downscale_job, [source] * len(work), [w[0] for w in work],
                         [w[1] for w in work], [w[2] for w in work], [config] * len(work)))
     stats: dict[Cell, dict[str, dict[str, list[float]]]] = {c: {"train": {}, "test": {}}
                                                             for c in cells}
-    for (cell, split, _), part in zip(work, out):
-        for k, values in part.items():
-            stats[cell][split].setdefault(k, []).extend(values)
+    for (group, split, _), parts in zip(work, out):
+        for cell, part in zip(group, parts):
+            for k, values in part.items():
+                stats[cell][split].setdefault(k, []).extend(values)
     progress(f"downscaled every recording for {len(cells)} cells")
     runs = [(c, seed) for c in cells
             for seed in (config.training.baseline_seeds if c.method == BASELINE
