@@ -17,7 +17,6 @@ worker processes, each reading what an earlier run cached:
 
 from __future__ import annotations
 
-import ctypes
 import math
 import multiprocessing
 import statistics
@@ -42,7 +41,6 @@ __all__ = ["CellResult", "Comparison", "EvaluationResult", "run_evaluation"]
 
 Log = Callable[[str], None]
 CHUNK = 24  # recordings per downscaling job
-_M_TOP_PAD, _M_MMAP_MAX = -2, -4  # mallopt parameters (glibc malloc.h)
 
 
 @dataclass(frozen=True)
@@ -178,23 +176,6 @@ class _Inline:
 
 def _worker_init(threads: int) -> None:
     torch.set_num_threads(max(threads, 1))
-    _reuse_freed_memory()
-
-
-def _reuse_freed_memory() -> None:
-    """Have glibc's malloc keep large freed blocks for reuse (Linux; elsewhere a no-op).
-
-    glibc serves each allocation over 32 MB (a batch of full-resolution frames is 50 MB) from
-    fresh pages that the kernel must fault in and zero, and returns them on free: about half
-    of a full-resolution training step went to that. With mmap off and 256 MB of padding kept
-    at the top of the heap, a worker reuses its freed memory instead; its peak is unchanged.
-    """
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(_M_MMAP_MAX, 0)
-        libc.mallopt(_M_TOP_PAD, 256 << 20)
-    except (OSError, AttributeError):
-        pass
 
 
 def _resolve_device(name: str) -> torch.device:
