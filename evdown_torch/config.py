@@ -15,6 +15,8 @@ default. Keys left out take the defaults shown.
     train_samples = 264        # synthetic: number of samples; dvsgesture: at most (0 = all)
     test_samples = 264         # as train_samples, for the test split
     calibration_samples = 22   # the first training recordings, on which budgets are calibrated
+    train_per_seed = 0         # recordings each seed draws from the training pool (0: all)
+    validation_samples = 0     # the first training recordings, held out to pick the rate
     seed = 0                   # which samples (synthetic scenes, dvsgesture subset)
     time_bins = 6              # frames per sample fed to the classifier
     mean_time = false          # add each bin's mean event time (OFF, ON) as two more channels
@@ -25,6 +27,13 @@ default. Keys left out take the defaults shown.
     budget_reference = "camera"  # "camera": the ground truth's count; "input": the input's
     budgets = [1.0, 4.0]       # each a multiple of the reference ([] : methods' own settings)
     control = true             # the thinning control (ThinnedDownsample) at each budget
+    primary = ["event_count"]  # the primary family: each method against the control
+    primary_factors = [4]      # ... at these factors
+    primary_budget = 1.0       # ... at this budget (one-sided tests, Holm within the family)
+    sanity = true              # Downsample at its own rate against its thinning, per factor
+    live_delay = 0             # > 0: also LinearEstimation/CubicEstimation with this max_delay
+    equivalence_margin = 0.03  # TOST margin of the "no difference" verdicts
+    full_resolution = true     # the full-resolution recordings as a row
 
     [settings.event_count]     # one table per method: its settings (see `method_settings`);
     threshold = 1.0            # a budget setting given here is where calibration starts
@@ -41,7 +50,12 @@ default. Keys left out take the defaults shown.
     epochs = 10
     batch_size = 16
     learning_rate = 0.005
-    seeds = [0, 1, 2, 3, 4]    # one training run per seed
+    seeds = [0, 1, 2, 3, 4]    # one training run per seed (exploratory cells)
+    primary_seeds = 10         # seeds 0..n-1 of each primary (and sanity) cell
+    control_seeds = 0          # seeds of the primary control (0: ceil(sqrt(k) * primary_seeds))
+    learning_rates = []        # candidates chosen per factor on the validation split ([]: none)
+    selection_seeds = 2        # seeds per candidate rate
+    normalise = true           # count channels divided by their RMS over the seed's training set
     full_resolution_seeds = 3  # the full-resolution cell trains on the first 3 (0: all)
     encoding = "log"           # classifier input: "counts", "log" (log1p of counts) or "binary"
     device = "auto"            # "cpu", "cuda", "cuda:1", ... or "auto"
@@ -50,7 +64,7 @@ default. Keys left out take the defaults shown.
 
     [statistics]
     confidence = 0.95          # bootstrap intervals
-    resamples = 2000
+    resamples = 2000           # per interval and test (at least 50,000 for a primary family)
     alpha = 0.05               # family-wise, Holm-corrected, per study
     seed = 0
 
@@ -112,6 +126,8 @@ class DataConfig:
     train_samples: int = 264
     test_samples: int = 264
     calibration_samples: int = 22
+    train_per_seed: int = 0
+    validation_samples: int = 0
     seed: int = 0
     time_bins: int = 6
     mean_time: bool = False
@@ -123,6 +139,13 @@ class DataConfig:
         check_positive_int("data.time_bins", self.time_bins)
         check_non_negative_int("data.seed", self.seed)
         check_positive_int("data.calibration_samples", self.calibration_samples)
+        check_non_negative_int("data.train_per_seed", self.train_per_seed)
+        check_non_negative_int("data.validation_samples", self.validation_samples)
+        if self.dataset == "synthetic" and self.validation_samples >= self.train_samples:
+            raise ValueError(
+                f"data.validation_samples ({self.validation_samples}) must leave training "
+                f"recordings out of data.train_samples ({self.train_samples})"
+            )
         if self.dataset == "synthetic":
             check_positive_int("data.duration_us", self.duration_us)
             check_positive_int("data.train_samples", self.train_samples)
@@ -153,9 +176,30 @@ class MethodsConfig:
     budget_reference: str = "camera"
     budgets: tuple[float, ...] = (1.0, 4.0)
     control: bool = True
+    primary: tuple[str, ...] = ()
+    primary_factors: tuple[int | tuple[int, int], ...] = ()
+    primary_budget: float = 1.0
+    sanity: bool = True
+    live_delay: int = 0
+    equivalence_margin: float = 0.03
+    full_resolution: bool = True
 
     def __post_init__(self) -> None:
         check_choice("methods.budget_reference", self.budget_reference, REFERENCES)
+        check_positive_float("methods.primary_budget", self.primary_budget)
+        check_non_negative_int("methods.live_delay", self.live_delay)
+        check_positive_float("methods.equivalence_margin", self.equivalence_margin)
+        for factor in self.primary_factors:
+            check_factor(factor)
+        if self.primary and not self.primary_factors:
+            raise ValueError("methods.primary needs methods.primary_factors, got []")
+        for name in self.primary:
+            if name not in METHODS or METHODS[name].budget_setting is None:
+                raise ValueError(
+                    f"methods.primary names {name!r}, which is not a method with a budget "
+                    f"setting; those are "
+                    f"{[n for n, m in METHODS.items() if m.budget_setting is not None]}"
+                )
         for budget in self.budgets:
             check_positive_float("methods.budgets", budget)
         if len(set(self.budgets)) != len(self.budgets):
@@ -171,6 +215,11 @@ class MethodsConfig:
                     f"methods.include names unknown method(s) {unknown}; the registry has "
                     f"{list(METHODS)}"
                 )
+
+    @property
+    def all_factors(self) -> tuple[int | tuple[int, int], ...]:
+        """The exploratory factors, then the primary ones not among them."""
+        return tuple(dict.fromkeys((*self.factors, *self.primary_factors)))
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -212,6 +261,11 @@ class TrainingConfig:
     batch_size: int = 16
     learning_rate: float = 5e-3
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
+    primary_seeds: int = 10
+    control_seeds: int = 0
+    learning_rates: tuple[float, ...] = ()
+    selection_seeds: int = 2
+    normalise: bool = True
     full_resolution_seeds: int = 3
     encoding: str = "log"
     device: str = "auto"
@@ -229,6 +283,11 @@ class TrainingConfig:
         if len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"training.seeds must be distinct, got {list(self.seeds)}")
         check_choice("training.encoding", self.encoding, ENCODINGS)
+        check_positive_int("training.primary_seeds", self.primary_seeds)
+        check_non_negative_int("training.control_seeds", self.control_seeds)
+        check_positive_int("training.selection_seeds", self.selection_seeds)
+        for rate in self.learning_rates:
+            check_positive_float("training.learning_rates", rate)
         check_non_negative_int("training.num_threads", self.num_threads)
         check_non_negative_int("training.workers", self.workers)
         check_non_negative_int("training.full_resolution_seeds", self.full_resolution_seeds)
@@ -310,7 +369,7 @@ class EvaluationConfig:
                 "methods.budget_reference = 'camera' needs the synthetic dataset's ground truth; "
                 f"use 'input' for {self.data.dataset!r}"
             )
-        for factor in self.methods.factors:
+        for factor in self.methods.all_factors:
             try:
                 check_factor(factor, sensor)
             except ValueError as error:
@@ -321,7 +380,7 @@ class EvaluationConfig:
                     f"[settings.{method}] names an unknown method; the registry has "
                     f"{list(METHODS)}"
                 )
-            for factor in self.methods.factors:
+            for factor in self.methods.all_factors:
                 try:
                     make_method(method, sensor, factor, **settings)
                 except (ValueError, TypeError) as error:

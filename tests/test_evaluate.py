@@ -12,13 +12,15 @@ import pytest
 from evdown_torch.cli import main
 from evdown_torch.config import load_config, parse_config
 from evdown_torch.evaluation import BASELINE, CONTROL, markdown_table, run_evaluation, write_report
+from evdown_torch.evaluation import cells as jobs
 from evdown_torch.evaluation.data import Source, check_available
+from evdown_torch.evaluation.report import primary_table, question
 from evdown_torch.metrics import optical_consistency
 from evdown_torch.transforms import Downsample
 from evdown_torch.transforms.registry import METHODS
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-TIMES = ("throughput_events_per_s", "train_seconds")
+TIMES = ("throughput_events_per_s", "train_seconds", "cpu_us_per_recording")
 
 
 def _tiny(tmp_path, **training):
@@ -48,18 +50,57 @@ def test_every_cell_is_planned(tiny):
     config, result, _ = tiny
     budgeted = [n for n, cls in METHODS.items() if cls.budget_setting is not None]
     plain = [n for n in METHODS if n not in budgeted]
-    assert [c.method for c in result.cells] == [BASELINE, *METHODS, CONTROL]
+    exploratory = [n for n in METHODS if n not in ("event_count", "downsample")]
+    assert [(c.method, c.role) for c in result.cells] == [
+        (BASELINE, "exploratory"), ("event_count", "primary"), (CONTROL, "control"),
+        ("downsample", "sanity"), *[(n, "exploratory") for n in exploratory],
+        ("linear", "exploratory"), ("cubic", "exploratory")]
+    assert [dict(c.cell.settings).get("max_delay") for c in result.cells[-2:]] == [20_000] * 2
     for c in result.cells:
         assert (c.budget is None) == (c.method in (BASELINE, *plain))
         assert len(c.seeds) == (1 if c.method == BASELINE else 2)
         assert c.interval[0] <= c.accuracy <= c.interval[1]
-        assert (c.comparison is None) == (c.method not in budgeted)
-        if c.comparison is not None:
+        assert len(c.labels) == 6 and all(len(p) == 6 for p in c.predicted)
+        if c.method in budgeted or c.role == "sanity":
+            assert c.comparison is not None
+        else:
+            assert c.comparison is None
+        if c.role == "primary":
             assert c.comparison.p_holm >= c.comparison.p_value
+            assert len(c.comparison.halves) == 2
+        elif c.comparison is not None and c.role == "exploratory":
+            assert c.comparison.p_value is None and c.comparison.halves == ()
         if c.method != BASELINE:
             assert c.output_size == (16, 16) and 0 <= c.consistency <= 1
             assert c.throughput is not None and c.throughput > 0
-    assert result.generated == 11 + 6 + 3 + 6  # recordings, then camera renders at x2
+            assert c.cpu_us_per_recording > 0
+    # the sanity check is the control against Downsample, on the same recordings
+    sanity = result.sanity[(2, 2)]
+    cells = {(c.method, c.role): c for c in result.cells}
+    assert sanity.difference == pytest.approx(
+        cells[(CONTROL, "control")].accuracy - cells[("downsample", "sanity")].accuracy)
+    assert set(result.learning_rates[(2, 2)][1]) == {0.005, 0.01}
+    assert result.generated == 22 + 6 + 3 + 6  # recordings, then camera renders at x2
+
+
+def test_learning_rate_is_chosen_without_the_test_split(tiny, monkeypatch):
+    # check (d): the selection trains and scores on the training pool only
+    config, result, root = tiny
+    source = Source(config.data, str(root / "cache"))
+    read = []
+    original = jobs.frames_of
+
+    def spy(source, cell, split, *args, **kwargs):
+        read.append(split)
+        return original(source, cell, split, *args, **kwargs)
+
+    monkeypatch.setattr(jobs, "frames_of", spy)
+    control = next(c.cell for c in result.cells if c.role == "control")
+    chunks = {"train": [list(range(22))], "test": [list(range(6))]}
+    out = jobs.train_job(dataclasses.replace(source), control, chunks, config, 1, "cpu", 0.003,
+                         True)
+    assert read == ["train"] and len(out["correct"]) == config.data.validation_samples
+    assert out["labels"] == [i % 11 for i in range(config.data.validation_samples)]
 
 
 def test_measures_match_direct_computation(tiny):
@@ -116,7 +157,11 @@ def test_report_files(tiny, tmp_path):
     assert len(rows) == len(result.cells)
     report = paths["markdown"].read_text()
     assert markdown_table(result) in report
-    assert report.count("\n| ") == 2 * (len(result.cells) + 1)  # the table and the speed table
+    assert primary_table(result) in report and question(result.config) in report
+    for check in ("(a) x2", "(b) ", "(c) ", "(d) learning rate chosen"):
+        assert f"- {check}" in report
+    assert [r["role"] for r in rows] == [c.role for c in result.cells]
+    assert rows[1]["replicated"] in ("true", "false") and rows[1]["half_a"]
     pytest.importorskip("matplotlib")
     assert paths["plot"].stat().st_size > 0
 

@@ -60,13 +60,22 @@ class Cell:
     budget: float | None = None
     settings: tuple[tuple[str, Any], ...] = ()
 
-    def transform(self, sensor_size: tuple[int, int, int]) -> Downscaler | None:
-        """The downscaler of this cell (``None`` for the baseline)."""
+    def transform(self, sensor_size: tuple[int, int, int], draw: int = 0) -> Downscaler | None:
+        """The downscaler of this cell (``None`` for the baseline).
+
+        ``draw`` seeds the control's random thinning (each training seed has its own draw);
+        the other methods are deterministic and ignore it.
+        """
         if self.method == BASELINE:
             return None
         if self.method == CONTROL:
-            return ThinnedDownsample(sensor_size, self.factor, **dict(self.settings))
+            return ThinnedDownsample(sensor_size, self.factor, **dict(self.settings), seed=draw)
         return make_method(self.method, sensor_size, self.factor, **dict(self.settings))
+
+    @property
+    def random(self) -> bool:
+        """Whether the cell's output depends on the draw (the thinning control)."""
+        return self.method == CONTROL
 
     def output_size(self, sensor_size: tuple[int, int, int]) -> tuple[int, int, int]:
         return output_size(sensor_size, self.factor)
@@ -81,6 +90,9 @@ class Cell:
             return BASELINE
         f = self.factor
         text = f"{self.method} x{f[0] if f[0] == f[1] else f'{f[0]}x{f[1]}'}"
+        delay = dict(self.settings).get("max_delay")
+        if delay is not None:
+            text += f" (max_delay {delay:g})"
         return text if self.budget is None else f"{text} @ {self.budget:g}"
 
     def with_settings(self, **values: Any) -> Cell:
@@ -136,9 +148,10 @@ def calibrate_job(source: Source, cell: Cell, target_count: float, samples: int
 
 
 def _frames_key(source: Source, cell: Cell, split: str, indices: list[int],
-                config: EvaluationConfig) -> dict[str, Any]:
+                config: EvaluationConfig, draw: int = 0) -> dict[str, Any]:
     return {"data": source.key(split), "indices": [indices[0], indices[-1] + 1],
-            "cell": cell.key(), "bins": config.data.time_bins,
+            "cell": cell.key(), "draw": draw if cell.random else None,
+            "bins": config.data.time_bins,
             "mean_time": config.data.mean_time,
             "consistency_bin_us": config.measures.consistency_bin_us,
             "code": code_fingerprint(*_TRANSFORM_CODE, "frames.py", "metrics.py",
@@ -154,24 +167,25 @@ BATCHED = frozenset({"lif"})
 BATCH = 8
 
 
-def downscale_job(source: Source, cells: list[Cell], split: str, indices: list[int],
-                  config: EvaluationConfig) -> list[dict[str, list[float]]]:
-    """Downscale recordings ``indices`` of ``split`` into each cell's frames, and measure them.
+def downscale_job(source: Source, units: list[tuple[Cell, int]], split: str,
+                  indices: list[int], config: EvaluationConfig) -> list[dict[str, list[float]]]:
+    """Downscale recordings ``indices`` of ``split`` into each unit's frames, and measure them.
 
-    The recordings (and, on the test split, the camera's renders) are read once for all the
-    cells. Per cell, the frames (``[n, T, 2, H, W]`` int16 event counts over each source
+    A unit is a cell and a draw (the thinning control's seed; 0 for the other cells). The
+    recordings (and, on the test split, the camera's renders) are read once for all the
+    units. Per unit, the frames (``[n, T, 2, H, W]`` int16 event counts over each source
     recording's window, and with ``data.mean_time`` the ``[n, T, 2, H, W]`` int8 mean times,
-    scaled by :data:`TIME_SCALE`) and labels are cached; the per-recording measures are
-    returned (and cached with them): ``events_in``, ``events_out``, ``seconds`` (of the
+    scaled by :data:`TIME_SCALE`) and labels are cached; the per-recording measures of draw 0
+    are returned (and cached with them): ``events_in``, ``events_out``, ``seconds`` (of the
     transform), ``duration`` (us), ``density``, ``entropy`` and, with ground truth on the test
-    split, ``camera_events`` and ``consistency``.
+    split, ``camera_events`` and ``consistency``. Other draws return empty measures.
 
     Returns:
-        The measures of each cell, in the order of ``cells``.
+        The measures of each unit, in the order of ``units``.
     """
     cache = source.cache
-    paths = [cache.path("frames", _frames_key(source, c, split, indices, config), ".pt")
-             for c in cells]
+    paths = [cache.path("frames", _frames_key(source, c, split, indices, config, d), ".pt")
+             for c, d in units]
     todo = [j for j, path in enumerate(paths) if not path.is_file()]
     if todo:
         sensor = source.sensor_size
@@ -181,24 +195,25 @@ def downscale_job(source: Source, cells: list[Cell], split: str, indices: list[i
             inputs.append((to_events(raw, sensor)[0], label, window(raw)))
         cameras: dict[tuple[int, int], list[Any]] = {}
         for j in todo:
-            cell = cells[j]
-            if split == "test" and source.has_ground_truth and cell.method != BASELINE:
+            cell, draw = units[j]
+            camera = None
+            if (split == "test" and source.has_ground_truth and cell.method != BASELINE
+                    and draw == 0):
                 if cell.factor not in cameras:
                     cameras[cell.factor] = [source.ground_truth(split, i, cell.factor)
                                             for i in indices]
                 camera = cameras[cell.factor]
-            else:
-                camera = None
-            _downscale_cell(cache, paths[j], cell, inputs, camera, sensor, config)
+            _downscale_cell(cache, paths[j], cell, draw, inputs, camera, sensor, config)
     return [Cache.load_json(path.with_suffix(".json")) for path in paths]
 
 
-def _downscale_cell(cache: Cache, path: Any, cell: Cell, inputs: list[tuple[Any, int, Any]],
-                    cameras: list[Any] | None, sensor: tuple[int, int, int],
-                    config: EvaluationConfig) -> None:
-    """:func:`downscale_job` for one cell: ``inputs`` are ``(events, label, window)``."""
-    transform = cell.transform(sensor)
+def _downscale_cell(cache: Cache, path: Any, cell: Cell, draw: int,
+                    inputs: list[tuple[Any, int, Any]], cameras: list[Any] | None,
+                    sensor: tuple[int, int, int], config: EvaluationConfig) -> None:
+    """:func:`downscale_job` for one unit: ``inputs`` are ``(events, label, window)``."""
+    transform = cell.transform(sensor, draw)
     out_sensor = cell.output_size(sensor)
+    measure = draw == 0
     stats: dict[str, list[float]] = {k: [] for k in (
         "events_in", "events_out", "seconds", "duration", "density", "entropy",
         "camera_events", "consistency")}
@@ -223,10 +238,12 @@ def _downscale_cell(cache: Cache, path: Any, cell: Cell, inputs: list[tuple[Any,
         if config.data.mean_time:
             times.append(torch.round(binned[:, 2:] * TIME_SCALE).to(torch.int8))
         labels.append(label)
-        metrics = event_metrics(out, out_sensor, duration=max(t1 - t0, 1))
         stats["events_in"].append(events.num_events)
         stats["events_out"].append(out.num_events)
         stats["duration"].append(t1 - t0)
+        if not measure:
+            continue
+        metrics = event_metrics(out, out_sensor, duration=max(t1 - t0, 1))
         stats["density"].append(metrics.density)
         stats["entropy"].append(metrics.entropy)
         if cameras is not None:
@@ -242,7 +259,7 @@ def _downscale_cell(cache: Cache, path: Any, cell: Cell, inputs: list[tuple[Any,
 
 
 def frames_of(source: Source, cell: Cell, split: str, chunks: list[list[int]],
-              config: EvaluationConfig) -> tuple[Tensor, Tensor]:
+              config: EvaluationConfig, draw: int = 0) -> tuple[Tensor, Tensor]:
     """A cell's classifier input and labels of ``split`` (after :func:`downscale_job`).
 
     Returns:
@@ -251,7 +268,7 @@ def frames_of(source: Source, cell: Cell, split: str, chunks: list[list[int]],
         labels.
     """
     parts = [Cache.load_tensors(source.cache.path(
-        "frames", _frames_key(source, cell, split, c, config), ".pt")) for c in chunks]
+        "frames", _frames_key(source, cell, split, c, config, draw), ".pt")) for c in chunks]
     x = _encode(torch.cat([p["frames"] for p in parts]), config.training.encoding)
     if config.data.mean_time:
         times = torch.cat([p["times"] for p in parts]).to(torch.float16) / TIME_SCALE
@@ -281,26 +298,115 @@ def _encode(counts: Tensor, encoding: str) -> Tensor:
     return counts
 
 
-def train_job(source: Source, cell: Cell, chunks: dict[str, list[list[int]]],
-              config: EvaluationConfig, seed: int, device: str) -> dict[str, Any]:
-    """Train a fresh classifier on ``cell``'s training frames under ``seed``; test it.
+def count_scale(x: Tensor) -> float:
+    """The root mean square of the count channels (0 and 1) of ``[n, T, C, H, W]`` input.
+
+    Dividing a cell's input by the scale of its training frames gives every cell input of
+    the same energy, whatever its event rate: a dense cell (every event of Downsample) is not
+    fed currents many times those of a sparse one (the same events thinned), which would
+    saturate the first spiking layer and make a superset of events score below its subset.
+    An input without events has scale 1.
+
+    Example:
+        >>> import torch
+        >>> x = torch.zeros(2, 3, 4, 5, 5)
+        >>> x[:, :, :2] = 2.0
+        >>> count_scale(x), count_scale(torch.zeros(1, 1, 2, 1, 1))
+        (2.0, 1.0)
+    """
+    counts = x[:, :, :2].to(torch.float64)
+    rms = float(counts.square().mean().sqrt()) if counts.numel() else 0.0
+    return rms if rms > 0 else 1.0
+
+
+def draw_training_set(labels: Tensor, per_seed: int, seed: int,
+                      exclude: int = 0) -> Tensor:
+    """The training recordings of one seed: a class-stratified draw without replacement.
+
+    Each seed trains on its own draw from the training pool (its rows ``exclude:`` of
+    ``labels``; the first ``exclude`` are the validation recordings), so that seeds vary
+    the training set as a replication would. Each class gives ``per_seed // classes``
+    recordings, the remainder going one each to the classes in order; a class with fewer
+    gives all it has.
+
+    Args:
+        labels: ``[n]`` int64 labels of the pool.
+        per_seed: recordings wanted (0: the whole pool past ``exclude``).
+        seed: the draw's seed.
+        exclude: leading rows never drawn.
 
     Returns:
-        ``{"correct": [bool per test recording], "seconds": training time}`` (cached).
+        Sorted ``[m]`` int64 row indices into ``labels``.
+
+    Example:
+        >>> import torch
+        >>> labels = torch.arange(12) % 3
+        >>> rows = draw_training_set(labels, 6, seed=0)
+        >>> len(rows), torch.bincount(labels[rows]).tolist()
+        (6, [2, 2, 2])
+        >>> bool((draw_training_set(labels, 6, seed=1, exclude=3) >= 3).all())
+        True
     """
-    frames_keys = {s: [_frames_key(source, cell, s, c, config) for c in chunks[s]]
-                   for s in ("train", "test")}
+    rows = torch.arange(exclude, len(labels))
+    if per_seed == 0 or per_seed >= len(rows):
+        return rows
+    pool = labels[exclude:]
+    classes = torch.unique(pool)
+    g = torch.Generator().manual_seed(int(seed))
+    base, extra = divmod(per_seed, len(classes))
+    chosen = []
+    for k, c in enumerate(classes.tolist()):
+        members = rows[pool == c]
+        take = min(len(members), base + (k < extra))
+        chosen.append(members[torch.randperm(len(members), generator=g)[:take]])
+    return torch.sort(torch.cat(chosen)).values
+
+
+def train_job(source: Source, cell: Cell, chunks: dict[str, list[list[int]]],
+              config: EvaluationConfig, seed: int, device: str, learning_rate: float,
+              validation: bool = False) -> dict[str, Any]:
+    """Train a fresh classifier on ``cell``'s frames under ``seed``; test it.
+
+    Seed ``s`` fixes the initial weights, the order of the batches, the draw of training
+    recordings from the pool (:func:`draw_training_set`) and, for the thinning control, the
+    thinning draw. With ``validation`` the classifier trains on a draw from the pool less
+    its first ``data.validation_samples`` recordings and is tested on those (to choose the
+    learning rate); otherwise it trains on a draw from the whole pool and is tested on the
+    test split. With ``training.normalise`` the count channels are divided by their
+    :func:`count_scale` over the seed's training frames (train and test alike).
+
+    Returns:
+        ``{"correct": [bool per test recording], "predicted": [int per test recording],
+        "labels": [int per test recording], "seconds": training time}`` (cached).
+    """
     training = config.training
+    draw = seed if cell.random else 0
+    splits = ("train",) if validation else ("train", "test")
+    frames_keys = {s: [_frames_key(source, cell, s, c, config, draw) for c in chunks[s]]
+                   for s in splits}
+    held_out = config.data.validation_samples if validation else 0
     key = {"frames": frames_keys, "model": config.model.__dict__, "epochs": training.epochs,
-           "batch_size": training.batch_size, "learning_rate": training.learning_rate,
-           "encoding": training.encoding, "seed": seed, "device": torch.device(device).type,
-           "code": code_fingerprint("models", "training.py")}
+           "batch_size": training.batch_size, "learning_rate": learning_rate,
+           "encoding": training.encoding, "normalise": training.normalise,
+           "per_seed": config.data.train_per_seed, "validation": held_out, "seed": seed,
+           "device": torch.device(device).type, "code": code_fingerprint("models", "training.py",
+                                                                          "evaluation/cells.py")}
     cache = source.cache
     path = cache.path("predictions", key, ".json")
     if path.is_file():
         return Cache.load_json(path)
-    train_x, train_y = frames_of(source, cell, "train", chunks["train"], config)
-    test_x, test_y = frames_of(source, cell, "test", chunks["test"], config)
+    pool_x, pool_y = frames_of(source, cell, "train", chunks["train"], config, draw)
+    rows = draw_training_set(pool_y, config.data.train_per_seed, seed, exclude=held_out)
+    train_x, train_y = pool_x[rows], pool_y[rows]
+    if validation:
+        test_x, test_y = pool_x[:held_out], pool_y[:held_out]
+    else:
+        test_x, test_y = frames_of(source, cell, "test", chunks["test"], config, draw)
+    del pool_x
+    if training.normalise:
+        scale = count_scale(train_x)
+        for x in (train_x, test_x):
+            x[:, :, :2] /= scale
     size = (train_x.shape[-1], train_x.shape[-2])
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
@@ -311,29 +417,34 @@ def train_job(source: Source, cell: Cell, chunks: dict[str, list[list[int]]],
     train_classifier(model, DataLoader(TensorDataset(train_x, train_y),
                                        batch_size=training.batch_size, shuffle=True,
                                        generator=order),
-                     epochs=training.epochs, learning_rate=training.learning_rate)
+                     epochs=training.epochs, learning_rate=learning_rate)
     seconds = time.perf_counter() - start
     predicted, labels = predict_classifier(
         model, DataLoader(TensorDataset(test_x, test_y), batch_size=training.batch_size))
-    result = {"correct": (predicted == labels).tolist(), "seconds": seconds}
+    result = {"correct": (predicted == labels).tolist(), "predicted": predicted.tolist(),
+              "labels": labels.tolist(), "seconds": seconds}
     cache.save_json(path, result)
     return result
 
 
-def throughput(source: Source, cell: Cell, recordings: int) -> float | None:
-    """Input events per second of ``cell``'s transform on the first test recordings, timed
-    in this process (call it on one idle thread); ``None`` for the baseline or no recording."""
+def throughput(source: Source, cell: Cell, recordings: int
+               ) -> tuple[float, float] | None:
+    """Speed of ``cell``'s transform on the first test recordings, timed in this process
+    (call it on one idle thread).
+
+    Returns:
+        ``(input events per second, CPU microseconds per recording)``: the transform's kernel
+        alone, after one warm-up call; ``None`` for the baseline or no recording.
+    """
     transform = cell.transform(source.sensor_size)
     if transform is None or recordings == 0:
         return None
     streams = [to_events(source.recording("test", i)[0], source.sensor_size)[0]
                for i in range(min(recordings, source.size("test")))]
     transform.kernel(streams[0])  # warm up
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     for events in streams:
         transform.kernel(events)
-    seconds = time.perf_counter() - start
+    seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
     total = sum(e.num_events for e in streams)
-    return total / seconds if seconds > 0 else float("inf")
-
-
+    return (total / seconds if seconds > 0 else float("inf")), cpu / len(streams) * 1e6

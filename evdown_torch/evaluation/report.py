@@ -7,20 +7,28 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
+from evdown_torch.config import EvaluationConfig
+from evdown_torch.evaluation.analysis import replicated
 from evdown_torch.evaluation.cells import BASELINE, CONTROL
+from evdown_torch.evaluation.plan import CONTROL_ROLE, PRIMARY, SANITY, pair
+from evdown_torch.evaluation.statistics import dunnett_seeds
 from evdown_torch.evaluation.study import CellResult, EvaluationResult
 from evdown_torch.transforms.registry import METHODS
 
-__all__ = ["CSV_COLUMNS", "markdown_table", "pareto_front", "write_report"]
+__all__ = [
+    "CSV_COLUMNS", "markdown_table", "pareto_front", "primary_table", "question", "write_report",
+]
 
 Log = Callable[[str], None]
 
 CSV_COLUMNS = (
-    "method", "factor_x", "factor_y", "budget", "setting", "width", "height", "seeds",
-    "accuracy", "ci_low", "ci_high", "accuracies", "events_per_recording", "events_per_second",
-    "reduction", "rate_vs_camera", "consistency", "control_consistency", "difference_vs_control",
-    "p_value", "p_holm", "significant", "density", "entropy", "macs_per_recording",
-    "synops_per_recording", "throughput_events_per_s", "train_seconds",
+    "method", "role", "factor_x", "factor_y", "budget", "setting", "width", "height", "seeds",
+    "learning_rate", "accuracy", "ci_low", "ci_high", "accuracies", "events_per_recording",
+    "events_per_second", "reduction", "rate_vs_camera", "consistency", "control_consistency",
+    "difference_vs_control", "difference_low", "difference_high", "p_value", "p_holm",
+    "significant", "equivalence_p", "detectable_difference", "half_a", "half_b", "replicated",
+    "delay", "density", "entropy", "macs_per_recording", "synops_per_recording",
+    "cpu_us_per_recording", "throughput_events_per_s", "train_seconds",
 )
 
 
@@ -48,16 +56,23 @@ def _number(value: float | None, fmt: str) -> str:
     return "" if value is None else format(value, fmt)
 
 
+def _name(c: CellResult) -> str:
+    delay = dict(c.cell.settings).get("max_delay")
+    return c.method if delay is None else f"{c.method} (max_delay {delay / 1000:g} ms)"
+
+
 def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
     rows = []
     for c in result.cells:
         control = _control(result, c)
         k = c.comparison
+        halves = k.halves if k is not None else ()
         rows.append({
-            "method": c.method, "factor_x": str(c.factor[0]), "factor_y": str(c.factor[1]),
+            "method": _name(c), "role": c.role, "factor_x": str(c.factor[0]),
+            "factor_y": str(c.factor[1]),
             "budget": _number(c.budget, "g"), "setting": _setting(c),
             "width": str(c.output_size[0]), "height": str(c.output_size[1]),
-            "seeds": ";".join(map(str, c.seeds)),
+            "seeds": ";".join(map(str, c.seeds)), "learning_rate": f"{c.learning_rate:g}",
             "accuracy": f"{c.accuracy:.4f}", "ci_low": f"{c.interval[0]:.4f}",
             "ci_high": f"{c.interval[1]:.4f}",
             "accuracies": ";".join(f"{a:.4f}" for a in c.accuracies),
@@ -68,52 +83,162 @@ def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
             "consistency": _number(c.consistency, ".4f"),
             "control_consistency": _number(control.consistency if control else None, ".4f"),
             "difference_vs_control": _number(k.difference if k else None, ".4f"),
+            "difference_low": _number(k.interval[0] if k else None, ".4f"),
+            "difference_high": _number(k.interval[1] if k else None, ".4f"),
             "p_value": _number(k.p_value if k else None, ".4g"),
             "p_holm": _number(k.p_holm if k else None, ".4g"),
-            "significant": "" if k is None else str(k.significant).lower(),
+            "significant": "" if k is None or k.significant is None
+            else str(k.significant).lower(),
+            "equivalence_p": _number(k.equivalence_p if k else None, ".4g"),
+            "detectable_difference": _number(k.detectable if k else None, ".4f"),
+            "half_a": f"{halves[0].difference:.4f}" if halves else "",
+            "half_b": f"{halves[1].difference:.4f}" if halves else "",
+            "replicated": str(replicated(k)).lower() if c.role == PRIMARY and k else "",
+            "delay": c.delay,
             "density": f"{c.density:.6g}", "entropy": f"{c.entropy:.6g}",
             "macs_per_recording": str(c.macs_per_recording),
             "synops_per_recording": f"{c.synops_per_recording:.0f}",
+            "cpu_us_per_recording": _number(c.cpu_us_per_recording, ".0f"),
             "throughput_events_per_s": _number(c.throughput, ".0f"),
             "train_seconds": f"{c.train_seconds:.1f}",
         })
     return rows
 
 
-def markdown_table(result: EvaluationResult) -> str:
-    """The cells as a Markdown table (no measured times, so equal settings give equal tables).
+def _ci(low: float, high: float) -> str:
+    return f"[{low:+.3f}, {high:+.3f}]"
 
-    ``*`` marks a difference from the control that is significant after Holm's correction.
-    """
+
+def question(config: EvaluationConfig) -> str:
+    """The primary question of ``config``, in words (stated before the run)."""
+    m, t = config.methods, config.training
+    if not m.primary:
+        return "No primary question: every comparison is exploratory."
+    reference = ("the low-resolution camera's event count" if m.budget_reference == "camera"
+                 else "the input's event count")
+    factors = ", ".join(f"x{pair(f)[0]}" for f in m.primary_factors)
+    control = t.control_seeds or dunnett_seeds(t.primary_seeds, len(m.primary))
+    return (
+        f"At a budget of {m.primary_budget:g} x {reference}, at factors {factors}, does each "
+        f"of {', '.join(m.primary)} keep more accuracy than random thinning of Downsample to "
+        f"the same budget? {len(m.primary) * len(m.primary_factors)} one-sided comparisons, "
+        f"Holm-corrected within this family at alpha = {config.statistics.alpha:g}; "
+        f"{t.primary_seeds} training seeds per method cell, {control} on the shared control; "
+        "seeds are the unit of replication (hierarchical bootstrap, seeds outer, test "
+        f"recordings inner, {config.statistics.resamples:,} resamples)."
+    )
+
+
+def primary_table(result: EvaluationResult) -> str:
+    """The primary family: pooled verdict, the two halves of the seeds, and the power."""
+    lines = ["| method | factor | accuracy | control | difference [95% CI] | p (Holm) | "
+             "half A | half B | replicated | detectable at 80 % |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for c in result.primary():
+        k, control = c.comparison, _control(result, c)
+        if k is None or control is None:
+            continue
+        a, b = (f"{h.difference:+.3f} {_ci(*h.interval)}" for h in k.halves) if k.halves \
+            else ("–", "–")
+        lines.append(
+            f"| {c.method} | {_factor(c)} | {c.accuracy:.3f} | {control.accuracy:.3f} "
+            f"| {k.difference:+.3f} {_ci(*k.interval)} | {k.p_value:.2g} ({k.p_holm:.2g})"
+            f"{' *' if k.significant else ''} | {a} | {b} "
+            f"| {'yes' if replicated(k) else 'no'} | {k.detectable:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+def markdown_table(result: EvaluationResult) -> str:
+    """Every cell as a Markdown table (no measured times, so equal settings give equal
+    tables). Differences from the control carry their interval; only the primary family
+    has p-values (in :func:`primary_table`)."""
     lines = [
-        "| method | factor | budget | setting | events/rec | x camera | accuracy [95% CI] | "
-        "vs control (Holm p) | consistency (control) | MMACs/rec | synops/rec |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| method | role | factor | budget | setting | events/rec | x camera | seeds | "
+        "accuracy [95% CI] | vs control [95% CI] | equivalent (TOST p) | delay | "
+        "consistency (control) | MMACs/rec | synops/rec |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    margin = result.config.methods.equivalence_margin
+    alpha = result.config.statistics.alpha
     for c in result.cells:
         control = _control(result, c)
         k = c.comparison
-        versus = "" if k is None else (f"{k.difference:+.3f} ({k.p_holm:.3g})"
-                                       + (" *" if k.significant else ""))
+        versus = "–" if k is None else f"{k.difference:+.3f} {_ci(*k.interval)}"
+        if c.role == SANITY and k is not None:
+            versus = f"control {versus}"
+        equivalent = "–" if k is None else (
+            f"{'yes' if k.equivalence_p < alpha else 'no'} ({k.equivalence_p:.2g})")
         consistency = _number(c.consistency, ".3f")
         if control is not None and c.method != CONTROL and control.consistency is not None:
             consistency += f" ({control.consistency:.3f})"
         lines.append(
-            f"| {c.method} | {_factor(c) if c.method != BASELINE else 1} "
+            f"| {_name(c)} | {c.role} | {_factor(c) if c.method != BASELINE else 1} "
             f"| {_number(c.budget, 'g') or '–'} | {_setting(c) or '–'} "
             f"| {c.events_per_recording:,.0f} | {_number(c.rate_vs_camera, '.2f') or 'n/a'} "
-            f"| {c.accuracy:.3f} [{c.interval[0]:.3f}, {c.interval[1]:.3f}] | {versus or '–'} "
-            f"| {consistency or '–'} | {c.macs_per_recording / 1e6:.1f} "
-            f"| {c.synops_per_recording:,.0f} |"
+            f"| {len(c.seeds)} | {c.accuracy:.3f} [{c.interval[0]:.3f}, {c.interval[1]:.3f}] "
+            f"| {versus} | {equivalent} | {c.delay} | {consistency or '–'} "
+            f"| {c.macs_per_recording / 1e6:.1f} | {c.synops_per_recording:,.0f} |"
         )
+    return "\n".join(lines) + f"\n\nequivalent: TOST within +-{margin:g} at {alpha:g}.\n"
+
+
+def sanity_lines(result: EvaluationResult) -> str:
+    """The classifier's sanity checks (a) to (d), one line each."""
+    config = result.config
+    lines = []
+    for factor, k in result.sanity.items():
+        verdict = "FAILS" if k.significant else "passes"
+        lines.append(
+            f"- (a) x{factor[0]}: every event of Downsample against its random subset (the "
+            f"control): control - Downsample {k.difference:+.3f} {_ci(*k.interval)}, one-sided "
+            f"p {k.p_value:.2g}: {verdict} (a superset must not score significantly lower).")
+    if not result.sanity:
+        lines.append("- (a) not run (no sanity rows or no control at the primary budget).")
+    grid = config.model.grid
+    pooled = sorted({c.output_size for c in result.cells if c.method != BASELINE
+                     and grid and max(c.output_size) > grid})
+    lines.append(
+        "- (b) " + ("every downscaled cell reaches the first spiking layer at its full output "
+                    f"resolution (grid {grid})." if not pooled else
+                    f"cells of output size {', '.join(f'{w}x{h}' for w, h in pooled)} are pooled "
+                    f"to at most {grid}x{grid} by the stem before the first spiking layer."))
+    lines.append(
+        "- (c) " + ("the count channels are divided by their RMS over each seed's training "
+                    "frames, so dense and sparse cells feed inputs of the same energy."
+                    if config.training.normalise else
+                    "the count channels are not normalised: dense cells feed larger inputs."))
+    if result.learning_rates and any(means for _, means in result.learning_rates.values()):
+        chosen = "; ".join(
+            f"x{f[0]}: {rate:g} (" + ", ".join(f"{r:g}: {m:.3f}" for r, m in means.items())
+            + ")" for f, (rate, means) in result.learning_rates.items())
+        lines.append(f"- (d) learning rate chosen per factor on {config.data.validation_samples} "
+                     f"validation recordings of the training pool, never the test set: {chosen}.")
+    else:
+        lines.append(f"- (d) learning rate fixed at {config.training.learning_rate:g} (no "
+                     "candidates configured).")
+    return "\n".join(lines) + "\n"
+
+
+def per_class_table(result: EvaluationResult, num_classes: int = 11) -> str:
+    """Accuracy per class of the primary cells and their controls (over all seeds)."""
+    cells = [c for c in result.cells if c.role in (PRIMARY, CONTROL_ROLE, SANITY)]
+    if not cells:
+        return ""
+    head = "| cell | " + " | ".join(str(k) for k in range(num_classes)) + " |"
+    lines = [head, "|---|" + "---|" * num_classes]
+    for c in cells:
+        values = " | ".join(_number(v, ".2f") for v in c.per_class(num_classes))
+        lines.append(f"| {c.cell.label} | {values} |")
     return "\n".join(lines) + "\n"
 
 
 def _speed_table(result: EvaluationResult) -> str:
-    lines = ["| cell | throughput (M ev/s, 1 thread) | training s/seed |", "|---|---|---|"]
+    lines = ["| cell | CPU us/recording | throughput (M ev/s, 1 thread) | delay | "
+             "training s/seed |", "|---|---|---|---|---|"]
     for c in result.cells:
         speed = "–" if c.throughput is None else f"{c.throughput / 1e6:.2f}"
-        lines.append(f"| {c.cell.label} | {speed} | {c.train_seconds:.1f} |")
+        lines.append(f"| {c.cell.label} | {_number(c.cpu_us_per_recording, ',.0f') or '–'} "
+                     f"| {speed} | {c.delay} | {c.train_seconds:.1f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -122,29 +247,42 @@ def _markdown(result: EvaluationResult) -> str:
     m, t, s = config.model, config.training, config.statistics
     reference = ("the low-resolution camera's event count (the generator's ground truth)"
                  if config.methods.budget_reference == "camera" else "the input's event count")
+    per_seed = (f"{config.data.train_per_seed} recordings drawn per seed from a pool of "
+                f"{config.data.train_samples}" if config.data.train_per_seed
+                else f"all {config.data.train_samples} training recordings")
     return (
         f"# evdown evaluate: {config.name}\n\n"
-        f"Data: {result.description}; {config.data.time_bins} time bins per recording"
-        f"{', with mean-time channels' if config.data.mean_time else ''}. "
+        f"**Primary question.** {question(config)}\n\n"
+        + primary_table(result)
+        + "\nhalf A / half B: the seeds at even / odd positions of each cell (no extra "
+        "training); replicated: significant after Holm, interval above zero and the same sign "
+        "in both halves; detectable at 80 %: the smallest true gap this design detects with "
+        "probability 0.8 (normal approximation at Holm's strictest step).\n\n"
+        "**Sanity checks of the classifier.**\n\n" + sanity_lines(result)
+        + f"\n**Data.** {result.description}; {config.data.time_bins} time bins per recording"
+        f"{', with mean-time channels' if config.data.mean_time else ''}. Training: {per_seed}. "
         f"Budgets: multiples of {reference}, calibrated on the first "
         f"{config.data.calibration_samples} training recordings. "
         f"Classifier: SpikingClassifier(channels={list(m.channels)}, grid={m.grid}, "
         f"stem_channels={m.stem_channels}, pool_size={m.pool_size}), {t.epochs} epochs, "
-        f"batch {t.batch_size}, learning rate {t.learning_rate:g}, {t.encoding} input, "
-        f"seeds {list(t.seeds)} (full resolution {list(t.baseline_seeds)}), trained on "
-        f"{result.device}. Wall time {result.wall_seconds:.0f} s with {result.workers} worker "
-        f"process(es); {result.generated} recordings or renders generated.\n\n"
+        f"batch {t.batch_size}, {t.encoding} input, trained on {result.device}. "
+        f"Wall time {result.wall_seconds:.0f} s, {result.cpu_seconds:.0f} CPU s, with "
+        f"{result.workers} worker process(es); {result.generated} recordings or renders "
+        "generated.\n\n"
+        "**Every cell** (exploratory rows carry no p-value):\n\n"
         + markdown_table(result)
-        + f"\nevents/rec: mean output events per test recording; x camera: output events / the "
-        "low-resolution camera's events; accuracy: mean over test recordings and seeds, "
-        f"{s.confidence:.0%} bootstrap interval over recordings and seeds; vs control: "
-        "accuracy minus the thinning control's at the same factor and budget, paired bootstrap "
-        f"p-value Holm-corrected over all comparisons, * below {s.alpha:g}; consistency: "
-        f"1 - normalised L1 distance of counts in {config.measures.consistency_bin_us / 1000:g} "
-        "ms bins to the camera's recording (the control's in brackets); MMACs/rec: the "
-        "classifier's multiply-accumulates per recording; synops/rec: output events times "
-        "the first layer's fan-out.\n\n"
-        "Speed (each transform timed alone on one thread; training time per seed):\n\n"
+        + f"\nevents/rec: mean output events per test recording; x camera: output events / "
+        "the low-resolution camera's events; accuracy: mean over seeds and test recordings, "
+        f"{s.confidence:.0%} hierarchical bootstrap interval; vs control: accuracy minus the "
+        "thinning control's at the same factor and budget (for the sanity rows, the control "
+        "minus Downsample); delay: how long after an event the method's output is final; "
+        f"consistency: 1 - normalised L1 distance of counts in "
+        f"{config.measures.consistency_bin_us / 1000:g} ms bins to the camera's recording (the "
+        "control's in brackets); MMACs/rec: the classifier's multiply-accumulates per "
+        "recording; synops/rec: output events times the first layer's fan-out.\n\n"
+        "**Accuracy per class** (primary, control and sanity cells, all seeds):\n\n"
+        + per_class_table(result)
+        + "\n**Cost** (each transform timed alone on one thread; training time per seed):\n\n"
         + _speed_table(result)
     )
 

@@ -5,20 +5,24 @@ worker processes, each reading what an earlier run cached:
 
 1. generate the recordings (synthetic data), and the low-resolution camera's renders of the
    calibration and test recordings at every factor;
-2. plan the cells: the full-resolution baseline; per factor, every method without a budget
-   setting at its settings (Downsample, EventFunnelling), every method with one at each budget
-   (calibrated on the first training recordings only), and the thinning control at each budget;
+2. plan the cells (:mod:`.plan`: the primary family, its control, the sanity rows, the
+   exploratory cells) and calibrate each budget on the first training recordings only;
 3. downscale every recording of every cell into frames, measuring the streams (a job reads
-   a chunk of recordings once for all the cells of one factor);
-4. train and test the classifier once per seed and cell;
-5. time each transform on one idle thread, in this process, after the workers are gone;
-6. compute the intervals and the paired tests against the control, Holm-corrected.
+   a chunk of recordings once for all the cells of one factor; the control once per seed's
+   thinning draw);
+4. choose each factor's learning rate on the validation split of the training pool;
+5. train and test the classifier once per seed and cell, each seed on its own draw of
+   training recordings;
+6. time each transform on one idle thread, in this process, after the workers are gone;
+7. compare (:mod:`.analysis`): the primary family one-sided with Holm's correction and its
+   two halves of seeds, the sanity check, the exploratory intervals and equivalence tests.
 """
 
 from __future__ import annotations
 
 import math
 import multiprocessing
+import resource
 import statistics
 import sys
 import time
@@ -28,14 +32,17 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
+from torch import Tensor
+from tqdm import tqdm
 
 from evdown_torch.config import EvaluationConfig
 from evdown_torch.evaluation import cells as jobs
+from evdown_torch.evaluation.analysis import Comparison, compare, sanity_check
 from evdown_torch.evaluation.cache import Cache
 from evdown_torch.evaluation.cells import BASELINE, CONTROL, Cell, model_for
 from evdown_torch.evaluation.data import Source, check_available
-from evdown_torch.evaluation.statistics import bootstrap_interval, holm, paired_bootstrap
-from evdown_torch.transforms.registry import METHODS
+from evdown_torch.evaluation.plan import EXPLORATORY, PRIMARY, SANITY, Planned, delay_of, pair, plan
+from evdown_torch.evaluation.statistics import hierarchical_means, interval_of
 
 __all__ = ["CellResult", "Comparison", "EvaluationResult", "run_evaluation"]
 
@@ -44,33 +51,21 @@ CHUNK = 24  # recordings per downscaling job
 
 
 @dataclass(frozen=True)
-class Comparison:
-    """A cell against the thinning control at the same factor and budget.
-
-    Attributes:
-        difference: accuracy of the cell minus the control's (same test recordings, seeds).
-        p_value: two-sided paired-bootstrap p-value.
-        p_holm: Holm-adjusted over every comparison of the study.
-        significant: ``p_holm < alpha``.
-    """
-
-    difference: float
-    p_value: float
-    p_holm: float
-    significant: bool
-
-
-@dataclass(frozen=True)
 class CellResult:
     """The measurements of one cell (test split unless said otherwise).
 
     Attributes:
         cell: the :class:`~evdown_torch.evaluation.cells.Cell`.
+        role: ``"primary"``, ``"control"`` (the primary family's control), ``"sanity"``
+            (Downsample at its own rate, against its thinning) or ``"exploratory"``.
         output_size: ``(W, H)`` of the frames.
         seeds: training seeds.
         correct: per seed, per test recording: classified correctly.
+        predicted: per seed, per test recording: the class given.
+        labels: per test recording: its class.
+        learning_rate: the rate the classifier trained with (chosen per factor).
         accuracy: mean of ``correct``.
-        interval: bootstrap confidence interval of the accuracy (recordings and seeds).
+        interval: bootstrap confidence interval of the accuracy (seeds, then recordings).
         events_per_recording: mean output events per recording.
         events_per_second: output events per second of recording.
         reduction: input events / output events.
@@ -80,18 +75,25 @@ class CellResult:
             optical_consistency`); ``None`` without ground truth and for the baseline.
         density, entropy: the paper's measures, mean per recording.
         throughput: input events per second of the transform on one idle thread.
+        cpu_us_per_recording: CPU microseconds of the transform per test recording.
+        delay: the method's algorithmic delay, in words.
         macs_per_recording: the classifier's multiply-accumulates per recording (dense).
         synops_per_recording: synaptic operations of the classifier's first layer, output
             events times their fan-out.
         calibration: what the budget search found (``None`` without a budget).
         train_seconds: mean training time per seed.
-        comparison: against the control at the same budget; ``None`` for unbudgeted cells.
+        comparison: against the control at the same factor and budget (for the sanity
+            row, the control against it); ``None`` where there is none.
     """
 
     cell: Cell
+    role: str
     output_size: tuple[int, int]
     seeds: tuple[int, ...]
     correct: tuple[tuple[bool, ...], ...]
+    predicted: tuple[tuple[int, ...], ...]
+    labels: tuple[int, ...]
+    learning_rate: float
     accuracy: float
     interval: tuple[float, float]
     events_per_recording: float
@@ -102,6 +104,8 @@ class CellResult:
     density: float
     entropy: float
     throughput: float | None
+    cpu_us_per_recording: float | None
+    delay: str
     macs_per_recording: int
     synops_per_recording: float
     calibration: dict[str, Any] | None
@@ -125,6 +129,15 @@ class CellResult:
         """Test accuracy of each seed."""
         return tuple(sum(row) / len(row) for row in self.correct)
 
+    def per_class(self, num_classes: int) -> tuple[float, ...]:
+        """Accuracy on each class's test recordings, over every seed."""
+        totals, right = [0] * num_classes, [0] * num_classes
+        for row in self.correct:
+            for label, ok in zip(self.labels, row):
+                totals[label] += 1
+                right[label] += ok
+        return tuple(r / t if t else math.nan for r, t in zip(right, totals))
+
 
 @dataclass(frozen=True)
 class EvaluationResult:
@@ -133,9 +146,14 @@ class EvaluationResult:
     Attributes:
         config: the configuration.
         description: the data, in one line.
-        cells: baseline first, then per factor the methods in registry order (budgets
-            ascending), then the control.
+        cells: per factor: the primary cells, their control, the sanity row, then the
+            exploratory cells (the baseline first).
+        learning_rates: per factor, the rate chosen on the validation split, and the
+            validation accuracy of every candidate.
+        sanity: per factor, check (a): the control's accuracy minus Downsample's (a random
+            subset against its superset), one-sided; the check passes where not significant.
         wall_seconds: the run's wall time.
+        cpu_seconds: CPU seconds of this process and its workers.
         workers: worker processes used.
         generated: recordings and renders generated (not read from the cache).
         device: where the classifier trained.
@@ -144,10 +162,17 @@ class EvaluationResult:
     config: EvaluationConfig
     description: str
     cells: tuple[CellResult, ...]
+    learning_rates: dict[tuple[int, int], tuple[float, dict[float, float]]]
+    sanity: dict[tuple[int, int], Comparison]
     wall_seconds: float
+    cpu_seconds: float
     workers: int
     generated: int
     device: str
+
+    def primary(self) -> list[CellResult]:
+        """The primary family's method cells, in order."""
+        return [c for c in self.cells if c.role == PRIMARY]
 
 
 class _Progress:
@@ -194,24 +219,11 @@ def _chunks(indices: range, size: int = CHUNK) -> list[list[int]]:
     return [list(indices[i:i + size]) for i in range(0, len(indices), size)]
 
 
-def _pairs(config: EvaluationConfig) -> list[tuple[int, int]]:
-    return [(f, f) if isinstance(f, int) else tuple(f) for f in config.methods.factors]
-
-
-def _plan(config: EvaluationConfig) -> list[Cell]:
-    """Every cell, calibration still to do (budget settings at their configured start)."""
-    methods = config.methods
-    planned = [Cell(BASELINE, (1, 1))]
-    for factor in _pairs(config):
-        for name in methods.names:
-            settings = tuple(sorted(config.method_settings(name).items()))
-            if METHODS[name].budget_setting is None or not methods.budgets:
-                planned.append(Cell(name, factor, None, settings))
-            else:
-                planned += [Cell(name, factor, b, settings) for b in methods.budgets]
-        if methods.control and methods.budgets:
-            planned += [Cell(CONTROL, factor, b) for b in methods.budgets]
-    return planned
+def _cpu_seconds() -> float:
+    """CPU seconds of this process and of its finished children (the workers)."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
+        resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 def run_evaluation(
@@ -221,7 +233,8 @@ def run_evaluation(
 
     Args:
         config: the configuration (see :mod:`evdown_torch.config`).
-        log: receives one progress line per step (default: stderr); ``None`` for silence.
+        log: receives progress lines (default: stderr, with a progress bar per long stage);
+            ``None`` for silence.
         cache: reuse and keep what is cached under ``config.output.cache``; ``False`` works
             in a temporary directory removed at the end.
 
@@ -236,6 +249,7 @@ def run_evaluation(
         RuntimeError: if a needed optional package (tonic) is missing.
     """
     progress = _Progress(log)
+    cpu_start = _cpu_seconds()
     check_available(config.data)
     device = _resolve_device(config.training.device)
     store = Cache(config.output.cache if cache else None)
@@ -250,48 +264,70 @@ def run_evaluation(
             training.workers, mp_context=multiprocessing.get_context("spawn"),
             initializer=_worker_init, initargs=(training.num_threads,))
     try:
-        cells, stats, predictions, found, generated = _fill(config, source, pool, device, progress)
+        filled = _fill(config, source, pool, device, progress)
     finally:
         pool.shutdown()
     try:
         torch.set_num_threads(1)
-        speeds = {c: jobs.throughput(source, c, config.measures.throughput_recordings)
-                  for c in cells}
+        speeds = {p.cell: jobs.throughput(source, p.cell, config.measures.throughput_recordings)
+                  for p in filled.planned}
         progress("timed every transform on one thread")
-        results = _measure(config, source, cells, stats, predictions, found, speeds)
+        results = _measure(config, source, filled, speeds)
     finally:
         torch.set_num_threads(threads)
         store.close()
+    results, sanity = _compare(results, config)
     wall = time.perf_counter() - progress.start
-    progress(f"done: {len(results)} cells in {wall:.0f} s ({generated} recordings or renders "
-             "generated)")
-    return EvaluationResult(config, source.description(), tuple(results), wall,
-                            training.workers, generated, str(device))
+    cpu = _cpu_seconds() - cpu_start
+    progress(f"done: {len(results)} cells in {wall:.0f} s, {cpu:.0f} CPU s "
+             f"({filled.generated} recordings or renders generated)")
+    return EvaluationResult(config, source.description(), tuple(results), filled.rates, sanity,
+                            wall, cpu, training.workers, filled.generated, str(device))
+
+
+@dataclass
+class _Filled:
+    planned: list[Planned]
+    stats: dict
+    predictions: dict
+    found: dict
+    rates: dict
+    generated: int
+
+
+def _map(pool: Any, progress: _Progress, what: str, fn: Callable, *columns: list) -> list:
+    """``pool.map`` with a progress bar (to stderr while logging)."""
+    out = pool.map(fn, *columns)
+    if progress.log is not None:
+        out = tqdm(out, total=len(columns[0]), desc=what, unit="job", file=sys.stderr,
+                   leave=False, mininterval=2.0)
+    return list(out)
 
 
 def _fill(config: EvaluationConfig, source: Source, pool: Any, device: torch.device,
-          progress: _Progress) -> tuple[list[Cell], dict, dict, dict, int]:
+          progress: _Progress) -> _Filled:
     chunks = {s: _chunks(range(source.size(s))) for s in ("train", "test")}
     for split, parts in chunks.items():
         if not parts:
             raise ValueError(f"the {split} split has no recordings")
     calibration_samples = min(config.data.calibration_samples, source.size("train"))
     generated = 0
+    factors = [pair(f) for f in config.methods.all_factors]
     if source.synthetic:
         splits = [s for s in ("train", "test") for _ in chunks[s]]
-        out = list(pool.map(jobs.generate_job, [source] * len(splits), splits,
-                            chunks["train"] + chunks["test"]))
+        out = _map(pool, progress, "recordings", jobs.generate_job, [source] * len(splits),
+                   splits, chunks["train"] + chunks["test"])
         generated += sum(g for g, _ in out)
         progress(f"recordings: {source.size('train')} train and {source.size('test')} test "
                  f"({generated} generated)")
     camera: dict[tuple[int, int], int] = {}
     if source.has_ground_truth:
-        renders = [(s, c, f) for f in _pairs(config)
+        renders = [(s, c, f) for f in factors
                    for s, c in [("train", list(range(calibration_samples)))]
                    + [("test", c) for c in chunks["test"]]]
-        out = list(pool.map(jobs.generate_job, [source] * len(renders),
-                            [r[0] for r in renders], [r[1] for r in renders],
-                            [r[2] for r in renders]))
+        out = _map(pool, progress, "camera renders", jobs.generate_job,
+                   [source] * len(renders), [r[0] for r in renders], [r[1] for r in renders],
+                   [r[2] for r in renders])
         made = sum(g for g, _ in out)
         generated += made
         for (split, _, factor), (_, counts) in zip(renders, out):
@@ -299,74 +335,120 @@ def _fill(config: EvaluationConfig, source: Source, pool: Any, device: torch.dev
                 camera[factor] = sum(counts)
         progress(f"low-resolution camera renders at x{', x'.join(str(f[0]) for f in camera)} "
                  f"({made} generated)")
-    planned = _plan(config)
-    cells, found = _calibrate(config, source, pool, planned, camera, calibration_samples,
-                              progress)
-    # One job per factor, split and chunk: it reads the chunk's recordings once for the cells.
-    by_factor: dict[tuple[int, int], list[Cell]] = {}
-    for c in cells:
-        by_factor.setdefault(c.factor, []).append(c)
-    work = [(group, s, part) for group in by_factor.values() for s in ("train", "test")
+    planned, found = _calibrate(config, source, pool, plan(config), camera,
+                                calibration_samples, progress)
+    # One job per factor, split and chunk: it reads the chunk's recordings once for every
+    # unit (a cell and, for the control, each seed's thinning draw) of that factor.
+    by_factor: dict[tuple[int, int], list[tuple[Cell, int]]] = {}
+    for p in planned:
+        for draw in (p.seeds if p.cell.random else (0,)):
+            by_factor.setdefault(p.cell.factor, []).append((p.cell, draw))
+    work = [(units, s, part) for units in by_factor.values() for s in ("train", "test")
             for part in chunks[s]]
-    out = list(pool.map(jobs.downscale_job, [source] * len(work), [w[0] for w in work],
-                        [w[1] for w in work], [w[2] for w in work], [config] * len(work)))
-    stats: dict[Cell, dict[str, dict[str, list[float]]]] = {c: {"train": {}, "test": {}}
-                                                            for c in cells}
-    for (group, split, _), parts in zip(work, out):
-        for cell, part in zip(group, parts):
-            for k, values in part.items():
-                stats[cell][split].setdefault(k, []).extend(values)
-    progress(f"downscaled every recording for {len(cells)} cells")
-    runs = [(c, seed) for c in cells
-            for seed in (config.training.baseline_seeds if c.method == BASELINE
-                         else config.training.seeds)]
+    out = _map(pool, progress, "downscaling", jobs.downscale_job, [source] * len(work),
+               [w[0] for w in work], [w[1] for w in work], [w[2] for w in work],
+               [config] * len(work))
+    stats: dict[Cell, dict[str, dict[str, list[float]]]] = {
+        p.cell: {"train": {}, "test": {}} for p in planned}
+    for (units, split, _), parts in zip(work, out):
+        for (cell, draw), part in zip(units, parts):
+            if draw == min(d for c, d in units if c == cell):
+                for k, values in part.items():
+                    stats[cell][split].setdefault(k, []).extend(values)
+    progress(f"downscaled every recording for {len(planned)} cells "
+             f"({sum(len(u) for u in by_factor.values())} with the control's draws)")
     trainer = pool if device.type == "cpu" else _Inline()
-    out = trainer.map(jobs.train_job, [source] * len(runs), [r[0] for r in runs],
-                      [chunks] * len(runs), [config] * len(runs), [r[1] for r in runs],
-                      [str(device)] * len(runs))
-    predictions: dict[Cell, dict[int, dict[str, Any]]] = {c: {} for c in cells}
+    rates = _choose_rates(config, source, trainer, planned, chunks, device, progress)
+    runs = [(p.cell, seed) for p in planned for seed in p.seeds]
+    out = _map(trainer, progress, "training", jobs.train_job, [source] * len(runs),
+               [r[0] for r in runs], [chunks] * len(runs), [config] * len(runs),
+               [r[1] for r in runs], [str(device)] * len(runs),
+               [rates[r[0].factor][0] for r in runs])
+    predictions: dict[Cell, dict[int, dict[str, Any]]] = {p.cell: {} for p in planned}
     for (cell, seed), result in zip(runs, out):
         predictions[cell][seed] = result
-        if len(predictions[cell]) == (len(config.training.baseline_seeds)
-                                      if cell.method == BASELINE else len(config.training.seeds)):
-            accuracies = [sum(r["correct"]) / len(r["correct"])
-                          for r in predictions[cell].values()]
-            progress(f"{cell.label}: accuracy {statistics.fmean(accuracies):.3f} over "
-                     f"{len(accuracies)} seed(s)")
-    return cells, stats, predictions, found, generated
+    for p in planned:
+        accuracies = [sum(r["correct"]) / len(r["correct"]) for r in predictions[p.cell].values()]
+        progress(f"{p.cell.label} ({p.role}): accuracy {statistics.fmean(accuracies):.3f} over "
+                 f"{len(accuracies)} seed(s)")
+    return _Filled(planned, stats, predictions, found, rates, generated)
 
 
-def _calibrate(config: EvaluationConfig, source: Source, pool: Any, planned: list[Cell],
+def _choose_rates(config: EvaluationConfig, source: Source, trainer: Any,
+                  planned: list[Planned], chunks: dict, device: torch.device,
+                  progress: _Progress) -> dict[tuple[int, int], tuple[float, dict]]:
+    """The learning rate of each factor, chosen on the validation split of the training pool.
+
+    Each candidate of ``training.learning_rates`` trains the factor's selection cell (the
+    control at the primary budget, else the first control, else the first cell) on
+    ``training.selection_seeds`` seeds, on draws from the pool less its first
+    ``data.validation_samples`` recordings, and is scored on those; the best mean accuracy
+    wins (ties: the smaller rate). The test split is never read. Without candidates every
+    factor uses ``training.learning_rate``.
+    """
+    training = config.training
+    factors = list(dict.fromkeys(p.cell.factor for p in planned))
+    if not training.learning_rates or not config.data.validation_samples:
+        return {f: (training.learning_rate, {}) for f in factors}
+    chosen = {}
+    selection = {}
+    for f in factors:
+        cells = [p.cell for p in planned if p.cell.factor == f]
+        controls = [c for c in cells if c.method == CONTROL]
+        preferred = [c for c in controls if c.budget == config.methods.primary_budget]
+        selection[f] = (preferred or controls or cells)[0]
+    runs = [(f, rate, seed) for f in factors for rate in training.learning_rates
+            for seed in range(training.selection_seeds)]
+    out = _map(trainer, progress, "learning rates", jobs.train_job, [source] * len(runs),
+               [selection[r[0]] for r in runs], [chunks] * len(runs), [config] * len(runs),
+               [r[2] for r in runs], [str(device)] * len(runs), [r[1] for r in runs],
+               [True] * len(runs))
+    scores: dict[tuple[int, int], dict[float, list[float]]] = {f: {} for f in factors}
+    for (f, rate, _), result in zip(runs, out):
+        scores[f].setdefault(rate, []).append(sum(result["correct"]) / len(result["correct"]))
+    for f in factors:
+        means = {rate: statistics.fmean(v) for rate, v in scores[f].items()}
+        best = max(sorted(means), key=lambda rate: means[rate])
+        chosen[f] = (best, means)
+        progress(f"x{f[0]}: learning rate {best:g} on {config.data.validation_samples} "
+                 f"validation recordings ({selection[f].label}: " + ", ".join(
+                     f"{rate:g} -> {m:.3f}" for rate, m in means.items()) + ")")
+    return chosen
+
+
+def _calibrate(config: EvaluationConfig, source: Source, pool: Any, planned: list[Planned],
                camera: dict[tuple[int, int], int], samples: int, progress: _Progress
-               ) -> tuple[list[Cell], dict[Cell, dict[str, Any]]]:
+               ) -> tuple[list[Planned], dict[Cell, dict[str, Any]]]:
     """Calibrate every budgeted cell on the first ``samples`` training recordings."""
-    todo = [i for i, c in enumerate(planned) if c.budget is not None]
+    todo = [i for i, p in enumerate(planned) if p.cell.budget is not None]
     if not todo:
         return planned, {}
     if config.methods.budget_reference == "input":
         inputs = sum(len(source.recording("train", i)[0]) for i in range(samples))
-    targets = [planned[i].budget * (camera[planned[i].factor]
-                                    if config.methods.budget_reference == "camera" else inputs)
+    targets = [planned[i].cell.budget * (camera[planned[i].cell.factor]
+                                         if config.methods.budget_reference == "camera"
+                                         else inputs)
                for i in todo]
-    out = list(pool.map(jobs.calibrate_job, [source] * len(todo), [planned[i] for i in todo],
-                        targets, [samples] * len(todo)))
+    out = _map(pool, progress, "calibration", jobs.calibrate_job, [source] * len(todo),
+               [planned[i].cell for i in todo], targets, [samples] * len(todo))
     cells, found = list(planned), {}
     for i, (cell, search) in zip(todo, out):
-        cells[i], found[cell] = cell, search
+        cells[i], found[cell] = Planned(cell, planned[i].role, planned[i].seeds), search
     progress(f"calibrated {len(todo)} budgeted cells on {samples} training recordings")
     return cells, found
 
 
-def _measure(config: EvaluationConfig, source: Source, cells: list[Cell], stats: dict,
-             predictions: dict, found: dict, speeds: dict) -> list[CellResult]:
+def _measure(config: EvaluationConfig, source: Source, filled: _Filled, speeds: dict
+             ) -> list[CellResult]:
     sensor = source.sensor_size
     st = config.statistics
     results = []
-    for cell in cells:
-        test = stats[cell]["test"]
-        seeds = tuple(sorted(predictions[cell]))
-        correct = tuple(tuple(predictions[cell][s]["correct"]) for s in seeds)
-        matrix = torch.tensor(correct, dtype=torch.bool)
+    for p in filled.planned:
+        cell = p.cell
+        test = filled.stats[cell]["test"]
+        runs = filled.predictions[cell]
+        seeds = tuple(sorted(runs))
+        correct = tuple(tuple(runs[s]["correct"]) for s in seeds)
         w, h, _ = cell.output_size(sensor)
         model = model_for(config, (w, h), source.num_classes)
         n = len(test["events_out"])
@@ -376,14 +458,17 @@ def _measure(config: EvaluationConfig, source: Source, cells: list[Cell], stats:
         if source.has_ground_truth:
             camera = 1.0 if cell.method == BASELINE else (
                 out_total / sum(test["camera_events"]) if sum(test["camera_events"]) else math.inf)
+        speed = speeds[cell]
         results.append(CellResult(
-            cell=cell,
-            output_size=(w, h),
-            seeds=seeds,
-            correct=correct,
-            accuracy=float(matrix.double().mean()),
-            interval=bootstrap_interval(matrix, confidence=st.confidence,
-                                        resamples=st.resamples, seed=st.seed),
+            cell=cell, role=p.role, output_size=(w, h), seeds=seeds, correct=correct,
+            predicted=tuple(tuple(runs[s]["predicted"]) for s in seeds),
+            labels=tuple(runs[seeds[0]]["labels"]),
+            learning_rate=filled.rates[cell.factor][0],
+            accuracy=statistics.fmean(statistics.fmean(r) for r in correct),
+            interval=interval_of(hierarchical_means([torch.tensor(correct)],
+                                                    resamples=st.resamples,
+                                                    seed=st.seed)[:, 0],
+                                 confidence=st.confidence),
             events_per_recording=out_total / n,
             events_per_second=out_total / max(sum(test["duration"]) * 1e-6, 1e-9),
             reduction=in_total / out_total if out_total else math.inf,
@@ -391,25 +476,47 @@ def _measure(config: EvaluationConfig, source: Source, cells: list[Cell], stats:
             consistency=statistics.fmean(test["consistency"]) if test["consistency"] else None,
             density=statistics.fmean(test["density"]),
             entropy=statistics.fmean(test["entropy"]),
-            throughput=speeds[cell],
+            throughput=None if speed is None else speed[0],
+            cpu_us_per_recording=None if speed is None else speed[1],
+            delay=delay_of(cell),
             macs_per_recording=model.macs_per_step(h, w) * config.data.time_bins,
             synops_per_recording=out_total / n * fan_out,
-            calibration=found.get(cell),
-            train_seconds=statistics.fmean(r["seconds"] for r in predictions[cell].values()),
+            calibration=filled.found.get(cell),
+            train_seconds=statistics.fmean(r["seconds"] for r in runs.values()),
         ))
-    return _compare(results, config)
+    return results
 
 
-def _compare(results: list[CellResult], config: EvaluationConfig) -> list[CellResult]:
-    """Each budgeted method against the control at its factor and budget, Holm-corrected."""
-    st = config.statistics
-    controls = {(r.factor, r.budget): r for r in results if r.method == CONTROL}
-    pairs = [(i, controls[(r.factor, r.budget)]) for i, r in enumerate(results)
-             if r.budget is not None and r.method != CONTROL and (r.factor, r.budget) in controls]
-    tests = [paired_bootstrap(torch.tensor(results[i].correct), torch.tensor(c.correct),
-                              resamples=st.resamples, seed=st.seed) for i, c in pairs]
-    adjusted = holm([p for _, p in tests])
+def _compare(results: list[CellResult], config: EvaluationConfig
+             ) -> tuple[list[CellResult], dict[tuple[int, int], Comparison]]:
+    """The primary family against its control (one-sided, Holm within the family), the
+    sanity check per factor, and every other budgeted cell against the control at its
+    factor and budget (exploratory: interval and TOST only)."""
+    st, margin = config.statistics, config.methods.equivalence_margin
+    options = dict(resamples=st.resamples, seed=st.seed, confidence=st.confidence,
+                   alpha=st.alpha, margin=margin)
+    controls: dict[tuple, CellResult] = {}
+    for r in results:
+        if r.method == CONTROL and (r.factor, r.budget) not in controls:
+            controls[(r.factor, r.budget)] = r
+
+    def matrix(r: CellResult) -> Tensor:
+        return torch.tensor(r.correct, dtype=torch.bool)
+
     out = list(results)
-    for (i, _), (d, p), q in zip(pairs, tests, adjusted):
-        out[i] = replace(out[i], comparison=Comparison(d, p, q, q < st.alpha))
-    return out
+    family = [i for i, r in enumerate(results) if r.role == PRIMARY
+              and (r.factor, r.budget) in controls]
+    others = [i for i, r in enumerate(results) if r.role == EXPLORATORY and r.budget is not None
+              and r.method != CONTROL and (r.factor, r.budget) in controls]
+    for indices, primary in ((family, True), (others, False)):
+        pairs = [(matrix(results[i]), matrix(controls[(results[i].factor, results[i].budget)]))
+                 for i in indices]
+        for i, k in zip(indices, compare(pairs, primary=primary, **options)):
+            out[i] = replace(out[i], comparison=k)
+    sanity = {}
+    for i, r in enumerate(results):
+        control = controls.get((r.factor, config.methods.primary_budget))
+        if r.role == SANITY and control is not None:
+            sanity[r.factor] = sanity_check(matrix(r), matrix(control), **options)
+            out[i] = replace(out[i], comparison=sanity[r.factor])
+    return out, sanity

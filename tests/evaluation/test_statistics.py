@@ -7,53 +7,82 @@ import math
 import pytest
 import torch
 
-from evdown_torch.evaluation.statistics import bootstrap_interval, holm, mcnemar, paired_bootstrap
+from evdown_torch.evaluation.analysis import compare, halves, replicated, sanity_check
+from evdown_torch.evaluation.statistics import (
+    detectable_difference,
+    dunnett_seeds,
+    hierarchical_means,
+    holm,
+    interval_of,
+    one_sided_p,
+    tost,
+)
 
 
-def test_mcnemar_table():
-    # discordant pairs b = 2, c = 8: P[X <= 2] for Binomial(10, 1/2) = (1 + 10 + 45) / 1024
-    assert mcnemar(2, 8) == pytest.approx(2 * 56 / 1024)
-    assert mcnemar(8, 2) == mcnemar(2, 8)
-    assert mcnemar(5, 5) == 1.0 and mcnemar(0, 0) == 1.0
-    assert mcnemar(0, 6) == pytest.approx(2 / 64)
-    with pytest.raises(ValueError, match="only_a"):
-        mcnemar(-1, 2)
+def test_hierarchical_means_on_a_fixed_matrix():
+    # one recording, two seeds that disagree: only the seed draw matters, and the mean of two
+    # seeds drawn with replacement from {1, 0} is 1, 1/2, 0 with probabilities 1/4, 1/2, 1/4
+    means = hierarchical_means([torch.tensor([[1], [0]])], resamples=40_000, seed=1)[:, 0]
+    assert set(means.tolist()) == {0.0, 0.5, 1.0}
+    for value, share in ((1.0, 0.25), (0.5, 0.5), (0.0, 0.25)):
+        assert float((means == value).double().mean()) == pytest.approx(share, abs=0.01)
+    # one seed, four recordings 1, 1, 1, 0: only the recording draw matters; the variance of
+    # the mean of 4 draws is p (1 - p) / 4 = 3 / 64
+    means = hierarchical_means([torch.tensor([[1, 1, 1, 0]])], resamples=40_000, seed=2)[:, 0]
+    assert float(means.mean()) == pytest.approx(0.75, abs=0.005)
+    assert float(means.var()) == pytest.approx(3 / 64, rel=0.05)
+    # cells share the draw of recordings: a cell and its copy always agree when each has one
+    # seed (no seed draw to differ)
+    a = torch.tensor([[1, 0, 1, 1, 0]], dtype=torch.bool)
+    both = hierarchical_means([a, a], resamples=500, seed=3)
+    assert torch.equal(both[:, 0], both[:, 1])
+    # same seed, same draws
+    assert torch.equal(hierarchical_means([a], resamples=100, seed=4),
+                       hierarchical_means([a], resamples=100, seed=4))
 
 
-def test_bootstrap_interval_on_a_fixed_sample():
-    # 320 of 400 right, one seed: the percentile interval is close to the normal one,
-    # 0.8 +- 1.96 * sqrt(0.8 * 0.2 / 400) = 0.8 +- 0.0392
-    correct = torch.zeros(1, 400, dtype=torch.bool)
-    correct[0, :320] = True
-    low, high = bootstrap_interval(correct, resamples=4000, seed=3)
-    assert low == pytest.approx(0.8 - 0.0392, abs=0.008)
-    assert high == pytest.approx(0.8 + 0.0392, abs=0.008)
-    assert bootstrap_interval(correct, resamples=4000, seed=3) == (low, high)
-    assert bootstrap_interval(torch.ones(3, 20, dtype=torch.bool)) == (1.0, 1.0)
-    # seeds that disagree widen the interval
-    seeds = torch.zeros(2, 400, dtype=torch.bool)
-    seeds[0, :360] = True
-    seeds[1, :280] = True
-    wide = bootstrap_interval(seeds, resamples=4000, seed=3)
-    assert wide[1] - wide[0] > high - low
-    with pytest.raises(ValueError, match="confidence"):
-        bootstrap_interval(correct, confidence=1.5)
+def test_hierarchical_means_checks():
+    with pytest.raises(ValueError, match="same 3 recordings"):
+        hierarchical_means([torch.ones(2, 3), torch.ones(2, 4)])
+    with pytest.raises(ValueError, match="at least one"):
+        hierarchical_means([])
+    with pytest.raises(ValueError, match="resamples"):
+        hierarchical_means([torch.ones(2, 3)], resamples=0)
 
 
-def test_paired_bootstrap():
-    a = torch.ones(2, 100, dtype=torch.bool)
-    b = a.clone()
-    b[:, :30] = False  # a wins 30 recordings, b none
-    d, p = paired_bootstrap(a, b, resamples=1999)
-    assert d == pytest.approx(0.3) and p == pytest.approx(1 / 2000)
-    d, p = paired_bootstrap(b, a, resamples=1999)
-    assert d == pytest.approx(-0.3) and p == pytest.approx(1 / 2000)
-    # one recording of difference out of 100 is no evidence
-    c = a.clone()
-    c[:, 0] = False
-    assert paired_bootstrap(a, c, resamples=1999)[1] > 0.2
-    with pytest.raises(ValueError, match="same shape"):
-        paired_bootstrap(a, b[:, :50])
+def test_one_sided_p_and_interval():
+    samples = torch.tensor([0.1, 0.2, 0.3, 0.4])
+    # centred: d* - 0.25 >= 0.25 only for 0.5 (none here) -> (1 + 0) / 5
+    assert one_sided_p(samples, 0.25) == pytest.approx(1 / 5)
+    assert one_sided_p(samples, -0.1) == 1.0  # a negative difference is never significant
+    low, high = interval_of(torch.linspace(0, 1, 1001), confidence=0.9)
+    assert (low, high) == (pytest.approx(0.05), pytest.approx(0.95))
+
+
+def test_tost_known_cases():
+    inside = torch.linspace(-0.02, 0.02, 1999)
+    assert tost(inside, 0.03) == pytest.approx(1 / 2000)  # nothing beyond either margin
+    # 10 % of the samples at or above +0.03: p = (1 + 200) / 2000
+    shifted = torch.cat([torch.zeros(1800), torch.full((199,), 0.05)])
+    assert tost(shifted, 0.03) == pytest.approx(200 / 2000)
+    assert tost(torch.full((99,), -0.05), 0.03) == 1.0
+    with pytest.raises(ValueError, match="margin"):
+        tost(inside, 0.0)
+
+
+def test_dunnett_allocation():
+    assert dunnett_seeds(10, 3) == 18  # ceil(17.32)
+    assert dunnett_seeds(10, 4) == 20 and dunnett_seeds(10, 1) == 10
+    assert dunnett_seeds(7, 2) == 10  # ceil(9.899)
+    with pytest.raises(ValueError, match="per_method"):
+        dunnett_seeds(0, 3)
+
+
+def test_detectable_difference():
+    # z(1 - 0.05) + z(0.8) = 1.6449 + 0.8416
+    assert detectable_difference(0.01, alpha=0.05) == pytest.approx(0.024865, abs=1e-5)
+    # Holm's first step over 6 tests: z(1 - 0.05 / 6) = 2.3940
+    assert detectable_difference(0.01, alpha=0.05, tests=6) == pytest.approx(0.032356, abs=1e-5)
 
 
 def test_holm_adjusted_order():
@@ -65,3 +94,66 @@ def test_holm_adjusted_order():
     assert holm([]) == []
     assert holm([0.6, 0.7]) == [1.0, 1.0]
     assert all(math.isclose(a, b) for a, b in zip(holm([0.01]), [0.01]))
+
+
+def _cell(rng, seeds, recordings, accuracy_of_seed):
+    """Correctness of a cell whose seed ``s`` is right with probability accuracy_of_seed[s]."""
+    rates = torch.tensor(accuracy_of_seed, dtype=torch.float64).unsqueeze(1)
+    return torch.rand(seeds, recordings, generator=rng, dtype=torch.float64) < rates
+
+
+def test_compare_primary_family_halves_and_replication():
+    rng = torch.Generator().manual_seed(5)
+    control = _cell(rng, 18, 264, [0.75] * 18)
+    better = _cell(rng, 10, 264, [0.88] * 10)
+    same = _cell(rng, 10, 264, [0.75] * 10)
+    k_better, k_same = compare([(better, control), (same, control)], primary=True,
+                               resamples=20_000, seed=0, confidence=0.95, alpha=0.05, margin=0.06)
+    assert k_better.difference == pytest.approx(float(better.double().mean()
+                                                      - control.double().mean()))
+    assert k_better.significant and replicated(k_better)
+    assert k_better.p_holm == pytest.approx(min(1.0, 2 * k_better.p_value)) or \
+        k_better.p_holm >= k_better.p_value
+    assert len(k_better.halves) == 2 and all(h.difference > 0 for h in k_better.halves)
+    assert not k_same.significant and not replicated(k_same)
+    assert k_same.equivalence_p < 0.05  # equal rates: equivalent within the design's 0.06
+    # exploratory comparisons carry no p-value and no halves
+    (k,) = compare([(better, control)], primary=False, resamples=2000, seed=0, confidence=0.95,
+                   alpha=0.05, margin=0.03)
+    assert k.p_value is None and k.significant is None and k.halves == ()
+
+
+def test_halves_split_seeds_by_position():
+    x = torch.arange(10).unsqueeze(1)
+    a, b = halves(x)
+    assert a.flatten().tolist() == [0, 2, 4, 6, 8] and b.flatten().tolist() == [1, 3, 5, 7, 9]
+    with pytest.raises(ValueError, match="at least 2 seeds"):
+        halves(x[:1])
+
+
+def test_sanity_check_flags_a_superset_that_scores_lower():
+    rng = torch.Generator().manual_seed(6)
+    superset = _cell(rng, 10, 264, [0.58] * 10)
+    subset = _cell(rng, 18, 264, [0.68] * 18)
+    flagged = sanity_check(superset, subset, resamples=20_000, seed=0, confidence=0.95,
+                           alpha=0.05, margin=0.03)
+    assert flagged.difference > 0.05 and flagged.significant
+    fine = sanity_check(_cell(rng, 10, 264, [0.8] * 10), subset, resamples=20_000, seed=0,
+                        confidence=0.95, alpha=0.05, margin=0.03)
+    assert not fine.significant
+
+
+def test_false_positive_rate_of_the_design_under_the_null():
+    # Seeds differ (a per-seed spread of 0.05) and both cells have the same mean: one-sided
+    # tests at 0.05 must reject about 5 % of the time, not the 14-23 % of the 3-seed design.
+    rng = torch.Generator().manual_seed(7)
+    spread = torch.distributions.Normal(0.8, 0.05)
+    rejected = 0
+    trials = 60
+    for t in range(trials):
+        a = _cell(rng, 10, 264, spread.sample((10,)).clamp(0, 1).tolist())
+        b = _cell(rng, 18, 264, spread.sample((18,)).clamp(0, 1).tolist())
+        (k,) = compare([(a, b)], primary=True, resamples=2000, seed=t, confidence=0.95,
+                       alpha=0.05, margin=0.03)
+        rejected += bool(k.significant)
+    assert rejected <= 9  # 15 %: about 5 % expected, 3 sigma of a binomial(60, 0.05) is 5.1

@@ -1,0 +1,146 @@
+"""The study's plan: which cells, in which role, on which seeds; and each method's delay.
+
+The *primary family* is stated in the config before the run (``[methods] primary``,
+``primary_factors``, ``primary_budget``): each primary method against the thinning control at
+the same factor and budget, ``training.primary_seeds`` seeds per method cell and more on the
+shared control (``training.control_seeds``, by default Dunnett's ``ceil(sqrt(k) * n)``). The
+*sanity* rows run Downsample at its own rate on the primary seeds, to test that a superset of
+events does not score below its random subset (the control). Everything else is
+*exploratory*: the grid of ``[methods] include x factors x budgets`` with its controls, the
+estimators with ``max_delay = live_delay``, and the full-resolution row, on
+``training.seeds``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any
+
+from evdown_torch.config import EvaluationConfig
+from evdown_torch.evaluation.cells import BASELINE, CONTROL, Cell
+from evdown_torch.evaluation.statistics import dunnett_seeds
+from evdown_torch.transforms.registry import METHODS
+
+__all__ = ["CONTROL_ROLE", "EXPLORATORY", "PRIMARY", "SANITY", "Planned", "delay_of", "plan"]
+
+#: Roles of the cells: the primary family's methods, its shared control, the sanity check's
+#: Downsample, and every other (exploratory) cell.
+PRIMARY, CONTROL_ROLE, SANITY, EXPLORATORY = "primary", "control", "sanity", "exploratory"
+_ORDER = {PRIMARY: 0, CONTROL_ROLE: 1, SANITY: 2, EXPLORATORY: 3}
+#: The estimators, whose sessions need ``max_delay``.
+ESTIMATORS = ("linear", "cubic")
+
+
+@dataclass(frozen=True)
+class Planned:
+    """A cell of the plan: its role and the seeds it trains on."""
+
+    cell: Cell
+    role: str
+    seeds: tuple[int, ...]
+
+
+def pair(factor: Any) -> tuple[int, int]:
+    """A config factor as ``(fx, fy)``."""
+    return (factor, factor) if isinstance(factor, int) else tuple(factor)
+
+
+def plan(config: EvaluationConfig) -> list[Planned]:
+    """Every cell of ``config`` (budget settings still at their configured start).
+
+    Returns:
+        The full-resolution row first (if any), then per factor (primary factors first): the
+        primary cells, their control, the sanity row, then the exploratory cells. A cell
+        planned in two roles keeps the first role and the larger set of seeds.
+
+    Example:
+        >>> from evdown_torch.config import parse_config
+        >>> config = parse_config({"methods": {
+        ...     "include": ["event_count"], "factors": [4], "budgets": [0.25, 1.0],
+        ...     "primary": ["event_count", "linear"], "primary_factors": [4],
+        ...     "full_resolution": False}, "training": {"primary_seeds": 4, "seeds": [0, 1]}})
+        >>> [(p.cell.label, p.role, len(p.seeds))
+        ...  for p in plan(config)]  # doctest: +NORMALIZE_WHITESPACE
+        [('event_count x4 @ 1', 'primary', 4), ('linear x4 @ 1', 'primary', 4),
+         ('control x4 @ 1', 'control', 6), ('downsample x4', 'sanity', 4),
+         ('event_count x4 @ 0.25', 'exploratory', 2), ('control x4 @ 0.25', 'exploratory', 2)]
+    """
+    methods, training = config.methods, config.training
+    primary_seeds = tuple(range(training.primary_seeds))
+    control_seeds = tuple(range(training.control_seeds or (
+        dunnett_seeds(training.primary_seeds, len(methods.primary)) if methods.primary else 1)))
+    explore = tuple(training.seeds)
+    planned: list[Planned] = []
+
+    def settings(name: str, **extra: Any) -> tuple[tuple[str, Any], ...]:
+        return tuple(sorted({**config.method_settings(name), **extra}.items()))
+
+    def add(cell: Cell, role: str, seeds: tuple[int, ...]) -> None:
+        for i, p in enumerate(planned):
+            if p.cell == cell:
+                merged = tuple(sorted(set(p.seeds) | set(seeds)))
+                planned[i] = Planned(cell, p.role, merged)
+                return
+        planned.append(Planned(cell, role, seeds))
+
+    for factor in (pair(f) for f in methods.primary_factors):
+        b = methods.primary_budget
+        for name in methods.primary:
+            add(Cell(name, factor, b, settings(name)), PRIMARY, primary_seeds)
+        if methods.primary:
+            add(Cell(CONTROL, factor, b), CONTROL_ROLE, control_seeds)
+        if methods.sanity:
+            add(Cell("downsample", factor, None, settings("downsample")), SANITY, primary_seeds)
+    for factor in (pair(f) for f in methods.factors):
+        for name in methods.names:
+            if METHODS[name].budget_setting is None or not methods.budgets:
+                add(Cell(name, factor, None, settings(name)), EXPLORATORY, explore)
+                continue
+            for b in methods.budgets:
+                add(Cell(name, factor, b, settings(name)), EXPLORATORY, explore)
+        if methods.control:
+            for b in methods.budgets:
+                add(Cell(CONTROL, factor, b), EXPLORATORY, explore)
+        if methods.live_delay:
+            for name in ESTIMATORS:
+                add(Cell(name, factor, methods.primary_budget,
+                         settings(name, max_delay=methods.live_delay)), EXPLORATORY, explore)
+    factors = list(dict.fromkeys(pair(f) for f in methods.all_factors))
+    planned.sort(key=lambda p: (factors.index(p.cell.factor), _ORDER[p.role]))
+    if methods.full_resolution:
+        baseline = training.baseline_seeds
+        planned.insert(0, Planned(Cell(BASELINE, (1, 1)), EXPLORATORY, baseline))
+    return planned
+
+
+def _default(method: str, name: str) -> Any:
+    """The default of setting ``name`` of a registry method's transform."""
+    return next(f.default for f in fields(METHODS[method]) if f.name == name)
+
+
+def delay_of(cell: Cell) -> str:
+    """A cell's algorithmic delay: how long after an input event its output can be final.
+
+    0 for the causal methods (Downsample, EventFunnelling, EventCount, the events mode of
+    PhotocurrentPooling, the control); ``D`` (LinearEstimation) and ``2 * D``
+    (CubicEstimation) with ``max_delay = D``, and the whole recording without it; one time
+    step ``dt`` for LIFPooling; one frame for PhotocurrentPooling's frames mode.
+
+    Example:
+        >>> delay_of(Cell("cubic", (4, 4), 1.0, (("max_delay", 10000),)))
+        '20 ms'
+        >>> delay_of(Cell("linear", (4, 4), 1.0)), delay_of(Cell("event_count", (4, 4), 1.0))
+        ('whole recording', '0')
+    """
+    settings = dict(cell.settings)
+    if cell.method in ESTIMATORS:
+        d = settings.get("max_delay")
+        if d is None:
+            return "whole recording"
+        return f"{d * (2 if cell.method == 'cubic' else 1) / 1000:g} ms"
+    if cell.method == "lif":
+        dt = settings.get("dt", _default(cell.method, "dt"))
+        return f"{dt / 1000:g} ms"
+    if cell.method == "photocurrent" and settings.get("fps"):
+        return f"{1000 / settings['fps']:g} ms"
+    return "0" if cell.method != BASELINE else "–"

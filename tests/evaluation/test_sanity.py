@@ -1,0 +1,58 @@
+"""The classifier's sanity checks (b) to (d) of the trade study, on the shipped configs.
+
+Check (a), a superset of events never scoring significantly below its random subset, is a
+statistical test of each run (``evaluation.analysis.sanity_check``, tested in
+test_statistics.py and end to end in test_evaluate.py).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from evdown_torch.config import load_config
+from evdown_torch.evaluation.cells import count_scale, draw_training_set, model_for
+from evdown_torch.evaluation.plan import pair
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+@pytest.mark.parametrize("name", ["quick", "full"])
+def test_b_every_factor_reaches_the_first_spiking_layer_whole(name):
+    # The former grid of 16 pooled x2 and x4 (64x64, 32x32) to 16x16 before the first spike.
+    config = load_config(CONFIGS / f"{name}.toml")
+    for factor in config.methods.all_factors:
+        fx, fy = pair(factor)
+        size = (128 // fx, 128 // fy)
+        model = model_for(config, size, 11)
+        assert model.stem is None, f"x{fx} is pooled by a stem of stride {model.stem_stride}"
+
+
+def test_c_dense_and_sparse_inputs_get_the_same_energy():
+    g = torch.Generator().manual_seed(0)
+    dense = torch.poisson(torch.full((6, 12, 2, 8, 8), 20.0), generator=g)
+    sparse = (torch.rand(dense.shape, generator=g) < 0.05).float()  # a thinned subset
+    for counts in (dense, sparse):
+        x = torch.cat([counts, torch.zeros_like(counts)], dim=2)
+        x[:, :, :2] /= count_scale(x)
+        assert float(x[:, :, :2].square().mean().sqrt()) == pytest.approx(1.0, rel=1e-6)
+    # with the counts encoding the input does not depend on a uniform change of event rate
+    x = torch.cat([dense, dense], dim=2)
+    y = torch.cat([3 * dense, dense], dim=2)
+    assert torch.allclose(x[:, :, :2] / count_scale(x), y[:, :, :2] / count_scale(y))
+    for name in ("quick", "full", "dvsgesture"):
+        training = load_config(CONFIGS / f"{name}.toml").training
+        assert training.normalise and training.encoding == "counts"
+
+
+def test_d_seed_draws_leave_the_validation_recordings_out():
+    labels = torch.arange(198) % 11
+    for seed in range(5):
+        rows = draw_training_set(labels, 132, seed, exclude=33)
+        assert len(rows) == 132 and int(rows.min()) >= 33
+        assert torch.bincount(labels[rows], minlength=11).tolist() == [12] * 11
+    a, b = (draw_training_set(labels, 132, s) for s in (0, 1))
+    assert not torch.equal(a, b)  # each seed its own draw
+    assert torch.equal(draw_training_set(labels, 0, 0, exclude=33), torch.arange(33, 198))
