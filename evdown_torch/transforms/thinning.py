@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -14,6 +15,21 @@ from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.functional.downsample import downsample
 
 __all__ = ["ThinnedDownsample", "recording_seed"]
+
+
+def _content_digest(events: Events) -> bytes:
+    """A digest of a stream's content (``x, y, t, p`` in order), whatever its container."""
+    digest = hashlib.blake2b(digest_size=16)
+    for column in events:
+        digest.update(column.detach().cpu().contiguous().numpy().tobytes())
+    return digest.digest()
+
+
+def _mixed(content: bytes, seed: int) -> int:
+    """A 63-bit seed from a content digest and ``seed``."""
+    digest = hashlib.blake2b(content, digest_size=8)
+    digest.update(int(seed).to_bytes(8, "little", signed=False))
+    return int.from_bytes(digest.digest(), "little") >> 1
 
 
 def recording_seed(events: Events, seed: int = 0) -> int:
@@ -28,11 +44,7 @@ def recording_seed(events: Events, seed: int = 0) -> int:
         ...                                                          [True, False]))
         True
     """
-    digest = hashlib.blake2b(digest_size=8)
-    digest.update(int(seed).to_bytes(8, "little", signed=False))
-    for column in events:
-        digest.update(column.detach().cpu().contiguous().numpy().tobytes())
-    return int.from_bytes(digest.digest(), "little") >> 1
+    return _mixed(_content_digest(events), seed)
 
 
 @dataclass(frozen=True)
@@ -85,9 +97,23 @@ class ThinnedDownsample(Downscaler):
 
     def kernel(self, events: Events) -> Events:
         """Downsample ``events`` and keep a seeded random subset."""
+        return self.draws(events, (self.seed,))[0]
+
+    def draws(self, events: Events, seeds: Sequence[int]) -> list[Events]:
+        """The outputs of this control with each of ``seeds`` in place of ``self.seed``.
+
+        Equal to ``[replace(self, seed=s).kernel(events) for s in seeds]``, with the
+        downsampling and the digest of the recording done once (the trade study draws one
+        thinning per training seed).
+        """
         out = downsample(events, factor=self.factor_xy)
         if self.keep >= 1.0 or out.num_events == 0:
-            return out
-        generator = torch.Generator().manual_seed(recording_seed(events, self.seed))
-        draws = torch.rand(out.num_events, generator=generator, dtype=torch.float64)
-        return out.select((draws < self.keep).to(out.device))
+            return [out] * len(seeds)
+        content = _content_digest(events)
+        kept = []
+        for seed in seeds:
+            check_non_negative_int("seed", seed)
+            generator = torch.Generator().manual_seed(_mixed(content, seed))
+            draws = torch.rand(out.num_events, generator=generator, dtype=torch.float64)
+            kept.append(out.select((draws < self.keep).to(out.device)))
+        return kept
