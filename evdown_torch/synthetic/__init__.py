@@ -7,8 +7,8 @@ Scenes (:mod:`.scenes`: a person who sways slowly and gestures) are rasterised
 ``tonic.datasets.DVSGesture``'s interface.
 
 Measured against DVS128 Gesture (``python benchmarks/synthetic_stats.py --seeds 2``: 22
-recordings of 6 s at 128 x 128, one per class for seeds 0 to 10 and 1000 to 1010; the README's
-"Synthetic gestures" has the same table):
+recordings of 6 s at 128 x 128, one per class for seeds 0 to 10 and 1000 to 1010;
+docs/benchmarks.md, "Synthetic gestures", has the figures of every recording):
 
 =====================================  ============================  ========================
 statistic                              synthetic                     DVS128 Gesture / target

@@ -110,7 +110,7 @@ class Look:
 
     Attributes:
         gain: mean intensity relative to the background's (dimensionless, > 0).
-        side: side lighting across the part (dimensionless, |side| < 1).
+        side: side lighting across the part (dimensionless, ``abs(side) < 1``).
         rim: darkening toward the outline (dimensionless, in [0, 1)).
         stripe: contrast of stripes (folds) along the part (dimensionless, in [0, 1)).
         period: stripe period, body units.
