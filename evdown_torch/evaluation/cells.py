@@ -194,42 +194,60 @@ def downscale_job(source: Source, units: list[tuple[Cell, int]], split: str,
             raw, label = source.recording(split, i)
             inputs.append((to_events(raw, sensor)[0], label, window(raw)))
         cameras: dict[tuple[int, int], list[Any]] = {}
+        groups: dict[Cell, list[int]] = {}
         for j in todo:
-            cell, draw = units[j]
+            groups.setdefault(units[j][0], []).append(j)
+        for cell, members in groups.items():
             camera = None
-            if (split == "test" and source.has_ground_truth and cell.method != BASELINE
-                    and draw == 0):
+            if split == "test" and source.has_ground_truth and cell.method != BASELINE:
                 if cell.factor not in cameras:
                     cameras[cell.factor] = [source.ground_truth(split, i, cell.factor)
                                             for i in indices]
                 camera = cameras[cell.factor]
-            _downscale_cell(cache, paths[j], cell, draw, inputs, camera, sensor, config)
+            _downscale_cell(cache, [paths[j] for j in members], cell,
+                            [units[j][1] for j in members], inputs, camera, sensor, config)
     return [Cache.load_json(path.with_suffix(".json")) for path in paths]
 
 
-def _downscale_cell(cache: Cache, path: Any, cell: Cell, draw: int,
+def _downscale_cell(cache: Cache, paths: list[Any], cell: Cell, draws: list[int],
                     inputs: list[tuple[Any, int, Any]], cameras: list[Any] | None,
                     sensor: tuple[int, int, int], config: EvaluationConfig) -> None:
-    """:func:`downscale_job` for one unit: ``inputs`` are ``(events, label, window)``."""
-    transform = cell.transform(sensor, draw)
-    out_sensor = cell.output_size(sensor)
-    measure = draw == 0
-    stats: dict[str, list[float]] = {k: [] for k in (
-        "events_in", "events_out", "seconds", "duration", "density", "entropy",
-        "camera_events", "consistency")}
+    """:func:`downscale_job` for the ``draws`` of one cell: ``inputs`` are ``(events, label,
+    window)``. Draw 0 is measured (with ``cameras``, optical consistency too)."""
+    transform = cell.transform(sensor)
     streams = [events for events, _, _ in inputs]
-    outputs: list[Any] = []
+    outputs: list[list[Any]] = [[] for _ in draws]  # per draw, per recording
+    seconds: list[float] = []
     group = BATCH if cell.method in BATCHED else 1
     for lo in range(0, len(streams), group):
         part = streams[lo:lo + group]
         start = time.perf_counter()
         if transform is None:
-            outputs += part
+            made = [part]
+        elif cell.random:
+            per_stream = [transform.draws(events, draws) for events in part]
+            made = [[out[d] for out in per_stream] for d in range(len(draws))]
         elif group > 1:
-            outputs += transform.batch(part)
+            made = [transform.batch(part)]
         else:
-            outputs.append(transform.kernel(part[0]))
-        stats["seconds"] += [(time.perf_counter() - start) / len(part)] * len(part)
+            made = [[transform.kernel(part[0])]]
+        seconds += [(time.perf_counter() - start) / len(part) / len(draws)] * len(part)
+        for d, out in enumerate(made):
+            outputs[d] += out
+    for path, draw, out in zip(paths, draws, outputs):
+        _store_frames(cache, path, cell, inputs, out, seconds,
+                      cameras if draw == 0 else None, draw == 0, sensor, config)
+
+
+def _store_frames(cache: Cache, path: Any, cell: Cell, inputs: list[tuple[Any, int, Any]],
+                  outputs: list[Any], seconds: list[float], cameras: list[Any] | None,
+                  measure: bool, sensor: tuple[int, int, int], config: EvaluationConfig) -> None:
+    """Bin one draw's ``outputs`` into frames, cache them, and measure them if ``measure``."""
+    out_sensor = cell.output_size(sensor)
+    stats: dict[str, list[float]] = {k: [] for k in (
+        "events_in", "events_out", "seconds", "duration", "density", "entropy",
+        "camera_events", "consistency")}
+    stats["seconds"] = list(seconds)
     frames, times, labels = [], [], []
     for k, ((events, label, (t0, t1)), out) in enumerate(zip(inputs, outputs)):
         binned = to_frames(out, out_sensor, config.data.time_bins, t_start=t0, t_end=t1,

@@ -116,3 +116,20 @@ def test_control_is_seeded_by_the_recording(recordings):
         ThinnedDownsample(SENSOR, 2, keep=1.5)
     with pytest.raises(NotImplementedError, match="seeded by the whole recording"):
         control.session()
+
+
+def test_thinning_draws_equal_one_control_per_seed():
+    g = torch.Generator().manual_seed(3)
+    n = 5000
+    ev = torch.stack([torch.randint(0, 16, (n,), generator=g), torch.randint(0, 8, (n,),
+                      generator=g), torch.sort(torch.randint(0, 10**6, (n,), generator=g))[0],
+                      torch.randint(0, 2, (n,), generator=g)], 1)
+    control = ThinnedDownsample((16, 8, 2), 2, keep=0.3)
+    events = to_events(ev, (16, 8, 2))[0]
+    draws = control.draws(events, [0, 4, 9])
+    for seed, out in zip([0, 4, 9], draws):
+        assert out.equal(dataclasses.replace(control, seed=seed).kernel(events))
+    assert not draws[0].equal(draws[1])  # each seed its own thinning
+    assert all(o.equal(downsample_all) for o, downsample_all in zip(
+        dataclasses.replace(control, keep=1.0).draws(events, [0, 1]),
+        [dataclasses.replace(control, keep=1.0).kernel(events)] * 2))
