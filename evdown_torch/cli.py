@@ -285,6 +285,7 @@ def add_bench_command(commands: argparse._SubParsersAction) -> None:
 def _evaluate(args: argparse.Namespace) -> int:
     from evdown_torch.config import load_config
     from evdown_torch.evaluation import markdown_table, run_evaluation, write_report
+    from evdown_torch.evaluation.report import primary_table
 
     try:
         config = load_config(args.config)
@@ -293,7 +294,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise CommandError(str(error)) from None
     write_report(result, args.output or config.output.directory,
                  log=lambda line: print(line, file=sys.stderr))
-    print(markdown_table(result), end="")
+    print(primary_table(result) + "\n" + markdown_table(result), end="")
     return 0
 
 
