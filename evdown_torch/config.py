@@ -34,6 +34,8 @@ default. Keys left out take the defaults shown.
     live_delay = 0             # > 0: also LinearEstimation/CubicEstimation with this max_delay
     equivalence_margin = 0.03  # TOST margin of the "no difference" verdicts
     full_resolution = true     # the full-resolution recordings as a row
+    native = false             # each budgeted method also at its own settings (its native output)
+    tonic_peer = false         # Tonic's EventDownsampling (integrator) at each factor
 
     [settings.event_count]     # one table per method: its settings (see `method_settings`);
     threshold = 1.0            # a budget setting given here is where calibration starts
@@ -183,6 +185,8 @@ class MethodsConfig:
     live_delay: int = 0
     equivalence_margin: float = 0.03
     full_resolution: bool = True
+    native: bool = False
+    tonic_peer: bool = False
 
     def __post_init__(self) -> None:
         check_choice("methods.budget_reference", self.budget_reference, REFERENCES)

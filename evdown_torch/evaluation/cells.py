@@ -12,6 +12,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, TensorDataset
@@ -20,7 +21,7 @@ from evdown_torch.checks import output_size
 from evdown_torch.config import EvaluationConfig
 from evdown_torch.evaluation.cache import Cache, code_fingerprint
 from evdown_torch.evaluation.data import Source, window
-from evdown_torch.events import to_events
+from evdown_torch.events import DVS_DTYPE, Events, to_events
 from evdown_torch.frames import to_frames
 from evdown_torch.metrics import event_metrics, optical_consistency
 from evdown_torch.models.classifier import SpikingClassifier, stem_stride_for
@@ -30,12 +31,16 @@ from evdown_torch.transforms.calibrate import BudgetTarget, calibration
 from evdown_torch.transforms.registry import make_method
 from evdown_torch.transforms.thinning import ThinnedDownsample
 
-__all__ = ["BASELINE", "CONTROL", "Cell", "frames_of", "model_for"]
+__all__ = ["BASELINE", "CONTROL", "TONIC", "Cell", "TonicPeer", "frames_of", "model_for"]
 
 #: The method name of the full-resolution row.
 BASELINE = "full resolution"
 #: The method name of the thinning control (Downsample thinned at random to the budget).
 CONTROL = "control"
+#: The method name of the peer: Tonic's ``EventDownsampling`` (integrator, Ghosh et al. 2023).
+TONIC = "tonic integrator"
+#: Its time step (ms) and noise threshold, as in ``evdown bench``.
+TONIC_DT_MS, TONIC_NOISE_THRESHOLD = 1.0, 1
 
 _TRANSFORM_CODE = ("transforms", "events.py", "checks.py")
 #: Mean times in ``[-1, 1]`` are cached as int8 multiples of ``1 / TIME_SCALE``.
@@ -70,6 +75,8 @@ class Cell:
             return None
         if self.method == CONTROL:
             return ThinnedDownsample(sensor_size, self.factor, **dict(self.settings), seed=draw)
+        if self.method == TONIC:
+            return TonicPeer(sensor_size, self.factor)
         return make_method(self.method, sensor_size, self.factor, **dict(self.settings))
 
     @property
@@ -98,6 +105,38 @@ class Cell:
     def with_settings(self, **values: Any) -> Cell:
         merged = {**dict(self.settings), **values}
         return Cell(self.method, self.factor, self.budget, tuple(sorted(merged.items())))
+
+
+class TonicPeer:
+    """Tonic's ``EventDownsampling`` integrator as a study row: what a user would pick instead.
+
+    It integrates each output pixel's input on dense frames of ``TONIC_DT_MS`` and fires where
+    the integral passes ``TONIC_NOISE_THRESHOLD``; its output is its own (no budget setting is
+    searched: its threshold is an integer event count, too coarse to meet a budget). Needs
+    tonic; expects microsecond timestamps.
+    """
+
+    def __init__(self, sensor_size: tuple[int, int, int], factor: tuple[int, int]) -> None:
+        try:
+            import tonic
+        except ModuleNotFoundError:
+            raise RuntimeError("methods.tonic_peer needs tonic: pip install tonic (or "
+                               "evdown_torch[tonic])") from None
+
+        self.out_sensor = output_size(sensor_size, factor)
+        self.peer = tonic.transforms.EventDownsampling(
+            sensor_size=tuple(sensor_size), target_size=self.out_sensor[:2], dt=TONIC_DT_MS,
+            downsampling_method="integrator", noise_threshold=TONIC_NOISE_THRESHOLD)
+
+    def kernel(self, events: Events) -> Events:
+        """Downscale ``events`` through Tonic (a structured array there and back)."""
+        data = np.zeros(events.num_events, DVS_DTYPE)
+        for name, column in zip("xytp", events):
+            data[name] = column.cpu().numpy()
+        out = self.peer(data)
+        if len(out) == 0:
+            return Events.empty(device=events.device)
+        return to_events(out, self.out_sensor)[0]
 
 
 # ----------------------------------------------------------------------------- jobs

@@ -6,9 +6,10 @@ the same factor and budget, ``training.primary_seeds`` seeds per method cell and
 shared control (``training.control_seeds``, by default Dunnett's ``ceil(sqrt(k) * n)``). The
 *sanity* rows run Downsample at its own rate on the primary seeds, to test that a superset of
 events does not score below its random subset (the control). Everything else is
-*exploratory*: the grid of ``[methods] include x factors x budgets`` with its controls, the
-estimators with ``max_delay = live_delay``, and the full-resolution row, on
-``training.seeds``.
+*exploratory*: the grid of ``[methods] include x factors x budgets`` with its controls (and
+each budgeted method at its own settings with ``native``), the estimators with ``max_delay =
+live_delay``, Tonic's ``EventDownsampling`` with ``tonic_peer``, and the full-resolution row,
+on ``training.seeds``.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from evdown_torch.config import EvaluationConfig
-from evdown_torch.evaluation.cells import BASELINE, CONTROL, Cell
+from evdown_torch.evaluation.cells import BASELINE, CONTROL, TONIC, TONIC_DT_MS, Cell
 from evdown_torch.evaluation.statistics import dunnett_seeds
 from evdown_torch.transforms.registry import METHODS
 
@@ -98,6 +99,10 @@ def plan(config: EvaluationConfig) -> list[Planned]:
                 continue
             for b in methods.budgets:
                 add(Cell(name, factor, b, settings(name)), EXPLORATORY, explore)
+            if methods.native:
+                add(Cell(name, factor, None, settings(name)), EXPLORATORY, explore)
+        if methods.tonic_peer:
+            add(Cell(TONIC, factor), EXPLORATORY, explore)
         if methods.control:
             for b in methods.budgets:
                 add(Cell(CONTROL, factor, b), EXPLORATORY, explore)
@@ -141,6 +146,8 @@ def delay_of(cell: Cell) -> str:
     if cell.method == "lif":
         dt = settings.get("dt", _default(cell.method, "dt"))
         return f"{dt / 1000:g} ms"
+    if cell.method == TONIC:
+        return f"{TONIC_DT_MS:g} ms"
     if cell.method == "photocurrent" and settings.get("fps"):
         return f"{1000 / settings['fps']:g} ms"
     return "0" if cell.method != BASELINE else "–"

@@ -56,3 +56,36 @@ def test_d_seed_draws_leave_the_validation_recordings_out():
     a, b = (draw_training_set(labels, 132, s) for s in (0, 1))
     assert not torch.equal(a, b)  # each seed its own draw
     assert torch.equal(draw_training_set(labels, 0, 0, exclude=33), torch.arange(33, 198))
+
+
+def test_plan_adds_native_outputs_and_the_tonic_peer():
+    from evdown_torch.config import parse_config
+    from evdown_torch.evaluation.plan import delay_of, plan
+
+    config = parse_config({"methods": {"include": ["event_count"], "factors": [4],
+                                       "budgets": [1.0], "native": True, "tonic_peer": True,
+                                       "full_resolution": False}})
+    labels = [(p.cell.label, delay_of(p.cell)) for p in plan(config)]
+    assert labels == [("event_count x4 @ 1", "0"), ("event_count x4", "0"),
+                      ("tonic integrator x4", "1 ms"), ("control x4 @ 1", "0")]
+
+
+def test_tonic_peer_row_is_tonics_event_downsampling():
+    tonic = pytest.importorskip("tonic")
+    import numpy as np
+
+    from evdown_torch.evaluation.cells import TONIC, Cell
+    from evdown_torch.events import DVS_DTYPE, to_events
+
+    rng = np.random.default_rng(0)
+    ev = np.zeros(3000, DVS_DTYPE)
+    ev["x"], ev["y"] = rng.integers(0, 32, 3000), rng.integers(0, 32, 3000)
+    ev["t"], ev["p"] = np.sort(rng.integers(0, 50_000, 3000)), rng.random(3000) < 0.5
+    peer = Cell(TONIC, (4, 4)).transform((32, 32, 2))
+    out = peer.kernel(to_events(ev, (32, 32, 2))[0])
+    expected = tonic.transforms.EventDownsampling(
+        sensor_size=(32, 32, 2), target_size=(8, 8), dt=1.0, downsampling_method="integrator",
+        noise_threshold=1)(ev)
+    assert out.num_events == len(expected) > 0
+    for name, column in zip("xytp", out):
+        assert np.array_equal(column.numpy(), expected[name].astype(column.numpy().dtype))
