@@ -11,8 +11,14 @@ import pytest
 
 from evdown_torch.cli import main
 from evdown_torch.config import load_config, parse_config
-from evdown_torch.evaluation import BASELINE, CONTROL, markdown_table, run_evaluation, write_report
-from evdown_torch.evaluation import cells as jobs
+from evdown_torch.evaluation import (
+    BASELINE,
+    CONTROL,
+    classifier,
+    markdown_table,
+    run_evaluation,
+    write_report,
+)
 from evdown_torch.evaluation.data import Source, check_available
 from evdown_torch.evaluation.report import primary_table, question
 from evdown_torch.metrics import optical_consistency
@@ -88,16 +94,16 @@ def test_learning_rate_is_chosen_without_the_test_split(tiny, monkeypatch):
     config, result, root = tiny
     source = Source(config.data, str(root / "cache"))
     read = []
-    original = jobs.frames_of
+    original = classifier.frames_of
 
     def spy(source, cell, split, *args, **kwargs):
         read.append(split)
         return original(source, cell, split, *args, **kwargs)
 
-    monkeypatch.setattr(jobs, "frames_of", spy)
+    monkeypatch.setattr(classifier, "frames_of", spy)
     control = next(c.cell for c in result.cells if c.role == "control")
     chunks = {"train": [list(range(22))], "test": [list(range(6))]}
-    out = jobs.train_job(dataclasses.replace(source), control, chunks, config, 1, "cpu", 0.003,
+    out = classifier.train_job(dataclasses.replace(source), control, chunks, config, 1, "cpu", 0.003,
                          True)
     assert read == ["train"] and len(out["correct"]) == config.data.validation_samples
     assert out["labels"] == [i % 11 for i in range(config.data.validation_samples)]
@@ -203,7 +209,9 @@ def test_cli_evaluate_tiny_config(tmp_path, capsys):
     path.write_text(text.replace('cache = "results/tiny/cache"', f'cache = "{tmp_path}/c"'))
     assert main(["evaluate", "--config", str(path), "--output", str(tmp_path / "out")]) == 0
     captured = capsys.readouterr()
-    assert "done:" in captured.err and captured.out in (tmp_path / "out/report.md").read_text()
+    report = (tmp_path / "out/report.md").read_text()
+    assert "done:" in captured.err and "| p (Holm) |" in captured.out
+    assert all(part in report for part in captured.out.split("\n\n"))
     assert (tmp_path / "c").is_dir()
     assert main(["evaluate", "--config", str(path), "--output", str(tmp_path / "o2"),
                  "--no-cache"]) == 0

@@ -14,8 +14,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import Tensor
-from torch.utils.data import DataLoader, TensorDataset
 
 from evdown_torch.checks import output_size
 from evdown_torch.config import EvaluationConfig
@@ -24,14 +22,12 @@ from evdown_torch.evaluation.data import Source, window
 from evdown_torch.events import DVS_DTYPE, Events, to_events
 from evdown_torch.frames import to_frames
 from evdown_torch.metrics import event_metrics, optical_consistency
-from evdown_torch.models.classifier import SpikingClassifier, stem_stride_for
-from evdown_torch.training import predict_classifier, train_classifier
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.calibrate import BudgetTarget, calibration
 from evdown_torch.transforms.registry import make_method
 from evdown_torch.transforms.thinning import ThinnedDownsample
 
-__all__ = ["BASELINE", "CONTROL", "TONIC", "Cell", "TonicPeer", "frames_of", "model_for"]
+__all__ = ["BASELINE", "CONTROL", "TONIC", "Cell", "TonicPeer", "frames_key"]
 
 #: The method name of the full-resolution row.
 BASELINE = "full resolution"
@@ -186,7 +182,7 @@ def calibrate_job(source: Source, cell: Cell, target_count: float, samples: int
     return cell.with_settings(**{setting: result["value"]}), result
 
 
-def _frames_key(source: Source, cell: Cell, split: str, indices: list[int],
+def frames_key(source: Source, cell: Cell, split: str, indices: list[int],
                 config: EvaluationConfig, draw: int = 0) -> dict[str, Any]:
     return {"data": source.key(split), "indices": [indices[0], indices[-1] + 1],
             "cell": cell.key(), "draw": draw if cell.random else None,
@@ -223,7 +219,7 @@ def downscale_job(source: Source, units: list[tuple[Cell, int]], split: str,
         The measures of each unit, in the order of ``units``.
     """
     cache = source.cache
-    paths = [cache.path("frames", _frames_key(source, c, split, indices, config, d), ".pt")
+    paths = [cache.path("frames", frames_key(source, c, split, indices, config, d), ".pt")
              for c, d in units]
     todo = [j for j, path in enumerate(paths) if not path.is_file()]
     if todo:
@@ -313,175 +309,6 @@ def _store_frames(cache: Cache, path: Any, cell: Cell, inputs: list[tuple[Any, i
         stored["times"] = torch.stack(times)
     cache.save_tensors(path, stored)
     cache.save_json(path.with_suffix(".json"), stats)
-
-
-def frames_of(source: Source, cell: Cell, split: str, chunks: list[list[int]],
-              config: EvaluationConfig, draw: int = 0) -> tuple[Tensor, Tensor]:
-    """A cell's classifier input and labels of ``split`` (after :func:`downscale_job`).
-
-    Returns:
-        ``[n, T, C, H, W]`` float16 input (``C`` = ``data.frame_channels``: the counts
-        encoded by ``training.encoding``, then the mean times in ``[-1, 1]``) and ``[n]``
-        labels.
-    """
-    parts = [Cache.load_tensors(source.cache.path(
-        "frames", _frames_key(source, cell, split, c, config, draw), ".pt")) for c in chunks]
-    x = _encode(torch.cat([p["frames"] for p in parts]), config.training.encoding)
-    if config.data.mean_time:
-        times = torch.cat([p["times"] for p in parts]).to(torch.float16) / TIME_SCALE
-        x = torch.cat([x.to(torch.float16), times], dim=2)
-    return x, torch.cat([p["labels"] for p in parts])
-
-
-def model_for(config: EvaluationConfig, size: tuple[int, int], num_classes: int
-              ) -> SpikingClassifier:
-    """The classifier of a cell whose frames are ``size = (W, H)``."""
-    m = config.model
-    return SpikingClassifier(
-        num_classes, in_channels=config.data.frame_channels, channels=m.channels,
-        pool_size=m.pool_size, beta=m.beta, threshold=m.threshold,
-        stem_stride=stem_stride_for(size, m.grid) if m.grid else 1,
-        stem_channels=m.stem_channels,
-    )
-
-
-def _encode(counts: Tensor, encoding: str) -> Tensor:
-    """Classifier input from event counts (float16 for ``log``, ``binary``; else float32)."""
-    counts = counts.to(torch.float32)
-    if encoding == "log":
-        return torch.log1p(counts).to(torch.float16)
-    if encoding == "binary":
-        return (counts > 0).to(torch.float16)
-    return counts
-
-
-def count_scale(x: Tensor) -> float:
-    """The root mean square of the count channels (0 and 1) of ``[n, T, C, H, W]`` input.
-
-    Dividing a cell's input by the scale of its training frames gives every cell input of
-    the same energy, whatever its event rate: a dense cell (every event of Downsample) is not
-    fed currents many times those of a sparse one (the same events thinned), which would
-    saturate the first spiking layer and make a superset of events score below its subset.
-    An input without events has scale 1.
-
-    Example:
-        >>> import torch
-        >>> x = torch.zeros(2, 3, 4, 5, 5)
-        >>> x[:, :, :2] = 2.0
-        >>> count_scale(x), count_scale(torch.zeros(1, 1, 2, 1, 1))
-        (2.0, 1.0)
-    """
-    counts = x[:, :, :2].to(torch.float64)
-    rms = float(counts.square().mean().sqrt()) if counts.numel() else 0.0
-    return rms if rms > 0 else 1.0
-
-
-def draw_training_set(labels: Tensor, per_seed: int, seed: int,
-                      exclude: int = 0) -> Tensor:
-    """The training recordings of one seed: a class-stratified draw without replacement.
-
-    Each seed trains on its own draw from the training pool (its rows ``exclude:`` of
-    ``labels``; the first ``exclude`` are the validation recordings), so that seeds vary
-    the training set as a replication would. Each class gives ``per_seed // classes``
-    recordings, the remainder going one each to the classes in order; a class with fewer
-    gives all it has.
-
-    Args:
-        labels: ``[n]`` int64 labels of the pool.
-        per_seed: recordings wanted (0: the whole pool past ``exclude``).
-        seed: the draw's seed.
-        exclude: leading rows never drawn.
-
-    Returns:
-        Sorted ``[m]`` int64 row indices into ``labels``.
-
-    Example:
-        >>> import torch
-        >>> labels = torch.arange(12) % 3
-        >>> rows = draw_training_set(labels, 6, seed=0)
-        >>> len(rows), torch.bincount(labels[rows]).tolist()
-        (6, [2, 2, 2])
-        >>> bool((draw_training_set(labels, 6, seed=1, exclude=3) >= 3).all())
-        True
-    """
-    rows = torch.arange(exclude, len(labels))
-    if per_seed == 0 or per_seed >= len(rows):
-        return rows
-    pool = labels[exclude:]
-    classes = torch.unique(pool)
-    g = torch.Generator().manual_seed(int(seed))
-    base, extra = divmod(per_seed, len(classes))
-    chosen = []
-    for k, c in enumerate(classes.tolist()):
-        members = rows[pool == c]
-        take = min(len(members), base + (k < extra))
-        chosen.append(members[torch.randperm(len(members), generator=g)[:take]])
-    return torch.sort(torch.cat(chosen)).values
-
-
-def train_job(source: Source, cell: Cell, chunks: dict[str, list[list[int]]],
-              config: EvaluationConfig, seed: int, device: str, learning_rate: float,
-              validation: bool = False) -> dict[str, Any]:
-    """Train a fresh classifier on ``cell``'s frames under ``seed``; test it.
-
-    Seed ``s`` fixes the initial weights, the order of the batches, the draw of training
-    recordings from the pool (:func:`draw_training_set`) and, for the thinning control, the
-    thinning draw. With ``validation`` the classifier trains on a draw from the pool less
-    its first ``data.validation_samples`` recordings and is tested on those (to choose the
-    learning rate); otherwise it trains on a draw from the whole pool and is tested on the
-    test split. With ``training.normalise`` the count channels are divided by their
-    :func:`count_scale` over the seed's training frames (train and test alike).
-
-    Returns:
-        ``{"correct": [bool per test recording], "predicted": [int per test recording],
-        "labels": [int per test recording], "seconds": training time}`` (cached).
-    """
-    training = config.training
-    draw = seed if cell.random else 0
-    splits = ("train",) if validation else ("train", "test")
-    frames_keys = {s: [_frames_key(source, cell, s, c, config, draw) for c in chunks[s]]
-                   for s in splits}
-    held_out = config.data.validation_samples if validation else 0
-    key = {"frames": frames_keys, "model": config.model.__dict__, "epochs": training.epochs,
-           "batch_size": training.batch_size, "learning_rate": learning_rate,
-           "encoding": training.encoding, "normalise": training.normalise,
-           "per_seed": config.data.train_per_seed, "validation": held_out, "seed": seed,
-           "device": torch.device(device).type, "code": code_fingerprint("models", "training.py",
-                                                                          "evaluation/cells.py")}
-    cache = source.cache
-    path = cache.path("predictions", key, ".json")
-    if path.is_file():
-        return Cache.load_json(path)
-    pool_x, pool_y = frames_of(source, cell, "train", chunks["train"], config, draw)
-    rows = draw_training_set(pool_y, config.data.train_per_seed, seed, exclude=held_out)
-    train_x, train_y = pool_x[rows], pool_y[rows]
-    if validation:
-        test_x, test_y = pool_x[:held_out], pool_y[:held_out]
-    else:
-        test_x, test_y = frames_of(source, cell, "test", chunks["test"], config, draw)
-    del pool_x
-    if training.normalise:
-        scale = count_scale(train_x)
-        for x in (train_x, test_x):
-            x[:, :, :2] /= scale
-    size = (train_x.shape[-1], train_x.shape[-2])
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        model = model_for(config, size, source.num_classes)
-    model.to(device)
-    order = torch.Generator().manual_seed(seed)
-    start = time.perf_counter()
-    train_classifier(model, DataLoader(TensorDataset(train_x, train_y),
-                                       batch_size=training.batch_size, shuffle=True,
-                                       generator=order),
-                     epochs=training.epochs, learning_rate=learning_rate)
-    seconds = time.perf_counter() - start
-    predicted, labels = predict_classifier(
-        model, DataLoader(TensorDataset(test_x, test_y), batch_size=training.batch_size))
-    result = {"correct": (predicted == labels).tolist(), "predicted": predicted.tolist(),
-              "labels": labels.tolist(), "seconds": seconds}
-    cache.save_json(path, result)
-    return result
 
 
 def throughput(source: Source, cell: Cell, recordings: int

@@ -37,142 +37,19 @@ from tqdm import tqdm
 
 from evdown_torch.config import EvaluationConfig
 from evdown_torch.evaluation import cells as jobs
+from evdown_torch.evaluation import classifier
 from evdown_torch.evaluation.analysis import Comparison, compare, sanity_check
 from evdown_torch.evaluation.cache import Cache
-from evdown_torch.evaluation.cells import BASELINE, CONTROL, Cell, model_for
+from evdown_torch.evaluation.cells import BASELINE, CONTROL, Cell
 from evdown_torch.evaluation.data import Source, check_available
 from evdown_torch.evaluation.plan import EXPLORATORY, PRIMARY, SANITY, Planned, delay_of, pair, plan
+from evdown_torch.evaluation.results import CellResult, EvaluationResult
 from evdown_torch.evaluation.statistics import hierarchical_means, interval_of
 
 __all__ = ["CellResult", "Comparison", "EvaluationResult", "run_evaluation"]
 
 Log = Callable[[str], None]
 CHUNK = 24  # recordings per downscaling job
-
-
-@dataclass(frozen=True)
-class CellResult:
-    """The measurements of one cell (test split unless said otherwise).
-
-    Attributes:
-        cell: the :class:`~evdown_torch.evaluation.cells.Cell`.
-        role: ``"primary"``, ``"control"`` (the primary family's control), ``"sanity"``
-            (Downsample at its own rate, against its thinning) or ``"exploratory"``.
-        output_size: ``(W, H)`` of the frames.
-        seeds: training seeds.
-        correct: per seed, per test recording: classified correctly.
-        predicted: per seed, per test recording: the class given.
-        labels: per test recording: its class.
-        learning_rate: the rate the classifier trained with (chosen per factor).
-        accuracy: mean of ``correct``.
-        interval: bootstrap confidence interval of the accuracy (seeds, then recordings).
-        events_per_recording: mean output events per recording.
-        events_per_second: output events per second of recording.
-        reduction: input events / output events.
-        rate_vs_camera: output events / the low-resolution camera's events; ``None`` without
-            ground truth (1 for the baseline).
-        consistency: mean optical consistency with the camera (:func:`~evdown_torch.metrics.
-            optical_consistency`); ``None`` without ground truth and for the baseline.
-        density, entropy: the paper's measures, mean per recording.
-        throughput: input events per second of the transform on one idle thread.
-        cpu_us_per_recording: CPU microseconds of the transform per test recording.
-        delay: the method's algorithmic delay, in words.
-        macs_per_recording: the classifier's multiply-accumulates per recording (dense).
-        synops_per_recording: synaptic operations of the classifier's first layer, output
-            events times their fan-out.
-        calibration: what the budget search found (``None`` without a budget).
-        train_seconds: mean training time per seed.
-        comparison: against the control at the same factor and budget (for the sanity
-            row, the control against it); ``None`` where there is none.
-    """
-
-    cell: Cell
-    role: str
-    output_size: tuple[int, int]
-    seeds: tuple[int, ...]
-    correct: tuple[tuple[bool, ...], ...]
-    predicted: tuple[tuple[int, ...], ...]
-    labels: tuple[int, ...]
-    learning_rate: float
-    accuracy: float
-    interval: tuple[float, float]
-    events_per_recording: float
-    events_per_second: float
-    reduction: float
-    rate_vs_camera: float | None
-    consistency: float | None
-    density: float
-    entropy: float
-    throughput: float | None
-    cpu_us_per_recording: float | None
-    delay: str
-    macs_per_recording: int
-    synops_per_recording: float
-    calibration: dict[str, Any] | None
-    train_seconds: float
-    comparison: Comparison | None = None
-
-    @property
-    def method(self) -> str:
-        return self.cell.method
-
-    @property
-    def factor(self) -> tuple[int, int]:
-        return self.cell.factor
-
-    @property
-    def budget(self) -> float | None:
-        return self.cell.budget
-
-    @property
-    def accuracies(self) -> tuple[float, ...]:
-        """Test accuracy of each seed."""
-        return tuple(sum(row) / len(row) for row in self.correct)
-
-    def per_class(self, num_classes: int) -> tuple[float, ...]:
-        """Accuracy on each class's test recordings, over every seed."""
-        totals, right = [0] * num_classes, [0] * num_classes
-        for row in self.correct:
-            for label, ok in zip(self.labels, row):
-                totals[label] += 1
-                right[label] += ok
-        return tuple(r / t if t else math.nan for r, t in zip(right, totals))
-
-
-@dataclass(frozen=True)
-class EvaluationResult:
-    """All cells of one run and how the run went.
-
-    Attributes:
-        config: the configuration.
-        description: the data, in one line.
-        cells: per factor: the primary cells, their control, the sanity row, then the
-            exploratory cells (the baseline first).
-        learning_rates: per factor, the rate chosen on the validation split, and the
-            validation accuracy of every candidate.
-        sanity: per factor, check (a): the control's accuracy minus Downsample's (a random
-            subset against its superset), one-sided; the check passes where not significant.
-        wall_seconds: the run's wall time.
-        cpu_seconds: CPU seconds of this process and its workers.
-        workers: worker processes used.
-        generated: recordings and renders generated (not read from the cache).
-        device: where the classifier trained.
-    """
-
-    config: EvaluationConfig
-    description: str
-    cells: tuple[CellResult, ...]
-    learning_rates: dict[tuple[int, int], tuple[float, dict[float, float]]]
-    sanity: dict[tuple[int, int], Comparison]
-    wall_seconds: float
-    cpu_seconds: float
-    workers: int
-    generated: int
-    device: str
-
-    def primary(self) -> list[CellResult]:
-        """The primary family's method cells, in order."""
-        return [c for c in self.cells if c.role == PRIMARY]
 
 
 class _Progress:
@@ -360,7 +237,7 @@ def _fill(config: EvaluationConfig, source: Source, pool: Any, device: torch.dev
     trainer = pool if device.type == "cpu" else _Inline()
     rates = _choose_rates(config, source, trainer, planned, chunks, device, progress)
     runs = [(p.cell, seed) for p in planned for seed in p.seeds]
-    out = _map(trainer, progress, "training", jobs.train_job, [source] * len(runs),
+    out = _map(trainer, progress, "training", classifier.train_job, [source] * len(runs),
                [r[0] for r in runs], [chunks] * len(runs), [config] * len(runs),
                [r[1] for r in runs], [str(device)] * len(runs),
                [rates[r[0].factor][0] for r in runs])
@@ -399,7 +276,7 @@ def _choose_rates(config: EvaluationConfig, source: Source, trainer: Any,
         selection[f] = (preferred or controls or cells)[0]
     runs = [(f, rate, seed) for f in factors for rate in training.learning_rates
             for seed in range(training.selection_seeds)]
-    out = _map(trainer, progress, "learning rates", jobs.train_job, [source] * len(runs),
+    out = _map(trainer, progress, "learning rates", classifier.train_job, [source] * len(runs),
                [selection[r[0]] for r in runs], [chunks] * len(runs), [config] * len(runs),
                [r[2] for r in runs], [str(device)] * len(runs), [r[1] for r in runs],
                [True] * len(runs))
@@ -450,7 +327,7 @@ def _measure(config: EvaluationConfig, source: Source, filled: _Filled, speeds: 
         seeds = tuple(sorted(runs))
         correct = tuple(tuple(runs[s]["correct"]) for s in seeds)
         w, h, _ = cell.output_size(sensor)
-        model = model_for(config, (w, h), source.num_classes)
+        model = classifier.model_for(config, (w, h), source.num_classes)
         n = len(test["events_out"])
         out_total, in_total = sum(test["events_out"]), sum(test["events_in"])
         fan_out = (model.stem_channels if model.stem is not None else model.channels[0] * 9)
