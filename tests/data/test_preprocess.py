@@ -272,6 +272,21 @@ def test_folder_labels_and_unreadable_file(tmp_path, rng, capsys):
                                   np.load(tmp_path / "skip" / "shard-00000.events.npy"))
 
 
+def test_an_empty_first_file_is_skipped_like_any_other(tmp_path, rng, capsys):
+    data = _folder_dataset(tmp_path / "data", rng)
+    (data / "a" / "empty.npy").write_bytes(b"")  # sorts first: the file that sets the dtype
+    args = ["preprocess", "--dataset", f"folder:{data}", "--sensor-size", "64", "48", "2",
+            "--method", "downsample", "--factor", "2", "--workers", "1", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "skip")]) == 0
+    assert f"skipped {data / 'a' / 'empty.npy'}" in capsys.readouterr().err
+    cache = PreprocessedDataset(tmp_path / "skip")
+    assert cache.source_indices == [1, 2, 3, 4] and cache.targets == [0, 0, 1, 1]
+    assert main([*args, "--out", str(tmp_path / "stop"), "--on-error", "stop"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("evdown preprocess: error: cannot preprocess ")
+    assert "empty.npy" in err and err.count("\n") == 1
+
+
 def test_recording_error_in_the_api(tmp_path, rng):
     data = _folder_dataset(tmp_path / "data", rng)
     bad = random_stream(rng, 10, (64, 48, 2))
