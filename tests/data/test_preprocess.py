@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -242,6 +243,32 @@ def test_corrupt_shard_is_detected_and_redone(reference, tmp_path):
                         workers=1)
     assert result.written == (1, 3)
     assert _digests(out) == _digests(reference) and verify_cache(out) == []
+
+
+def test_damaged_manifests_are_refused_clearly(reference, tmp_path):
+    out = tmp_path / "cache"
+    shutil.copytree(reference, out)
+    good = json.loads((out / "manifest.json").read_text())
+    no_checksums = dict(good, shards=[{k: v for k, v in r.items() if k != "sha256"}
+                                      for r in good["shards"]])
+    damaged = [
+        ({k: v for k, v in good.items() if k != "shards"}, r"lacks 'shards'"),
+        ({k: v for k, v in good.items() if k not in ("dtype", "classes")},
+         r"lacks 'classes', 'dtype'"),
+        (dict(good, shards={"0": good["shards"][0]}), "not shard records"),
+        (no_checksums, "not shard records"),
+        (dict(good, format_version=99), "format version 99"),
+    ]
+    for manifest, message in damaged:
+        (out / "manifest.json").write_text(json.dumps(manifest))
+        for open_cache in (PreprocessedDataset, verify_cache):
+            with pytest.raises(ValueError, match=message):
+                open_cache(out)
+    (out / "manifest.json").write_text(json.dumps(damaged[0][0]))
+    # the rerun the message asks for puts the cache back
+    preprocess(open_source("synthetic", **SYNTHETIC), out, "event_count", 2,
+               {"threshold": 0.5}, shard_size=3, workers=1)
+    assert len(PreprocessedDataset(out)) == len(PreprocessedDataset(reference))
 
 
 def test_folder_labels_and_unreadable_file(tmp_path, rng, capsys):
