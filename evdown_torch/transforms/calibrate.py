@@ -11,9 +11,9 @@ output grows (probing the setting times and divided by 4), then widens a bracket
 of 4 until the target lies inside (a step past the end of the setting's allowed range goes
 to that end, exactly: a count reachable only there is reached), then narrows it by regula
 falsi on ``log(count)`` (the Illinois variant, with bisection where a count is 0), and stops
-when the count is within ``rtol`` of the target. Every evaluation runs the transform once on every recording; counts
-are remembered, so no setting is run twice. The result is the evaluated setting whose count
-is closest to the target.
+when the count is within ``rtol`` of the target. Every evaluation runs the transform once on
+every recording; counts are remembered, so no setting is run twice. The result is the
+evaluated setting whose count is closest to the target.
 """
 
 from __future__ import annotations
