@@ -18,8 +18,9 @@ Subcommands (``evdown COMMAND --help`` for each):
 Each subcommand is registered by one function in :data:`SUBCOMMANDS` that adds its parser
 to the subparsers and sets ``run`` (a function of the parsed arguments returning the exit
 status). A run that raises :class:`CommandError`, ``ValueError``, ``TypeError``,
-``ImportError`` or ``OSError`` ends with the one line ``evdown COMMAND: error: ...`` and exit
-status 2, as argparse does for bad arguments; warnings print as ``evdown COMMAND: warning:``.
+``ImportError``, ``OSError`` or ``EOFError`` (a file that ends too soon) ends with the one
+line ``evdown COMMAND: error: ...`` and exit status 2, as argparse does for bad arguments;
+warnings print as ``evdown COMMAND: warning:``.
 """
 
 from __future__ import annotations
@@ -364,7 +365,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         warnings.showwarning = show
         try:
             return args.run(args)
-        except (CommandError, ValueError, TypeError, ImportError, OSError) as error:
+        except (CommandError, ValueError, TypeError, ImportError, OSError, EOFError) as error:
             print(f"{prefix}: error: {error}", file=sys.stderr)
             return 2
         except KeyboardInterrupt:

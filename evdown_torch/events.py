@@ -387,7 +387,7 @@ def load_npy_events(path: str | Path) -> np.ndarray:
         raise ValueError(f"input file {str(path)!r} does not exist")
     try:
         events = np.load(path, allow_pickle=False)
-    except ValueError as error:
+    except (ValueError, EOFError) as error:  # EOFError: an empty file
         raise ValueError(f"cannot read {str(path)!r} as a .npy array: {error}") from None
     names = events.dtype.names or ()
     if events.ndim != 1 or not {"x", "y", "t", "p"} <= set(names):

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import importlib
 import warnings
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -171,7 +172,8 @@ def _read_npz(path: Path) -> _Read:
     try:
         with np.load(path, allow_pickle=False) as archive:
             arrays = {key: archive[key] for key in archive.files}
-    except (OSError, ValueError) as error:
+    # EOFError: an empty file; BadZipFile: a truncated or damaged archive
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
         raise ValueError(f"cannot read {source!r} as a .npz archive: {error}") from None
     recorded = _sensor_attribute(arrays, source) if "sensor_size" in arrays else None
     if {"x", "y", "t", "p"} <= set(arrays):

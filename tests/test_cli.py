@@ -108,6 +108,21 @@ def test_missing_output_folder_from_the_shell(npy, tmp_path):
     assert "Traceback" not in result.stderr and result.stderr.count("\n") == 1
 
 
+@pytest.mark.parametrize("name", ["empty.npy", "empty.npz"])
+def test_an_empty_file_is_one_error_line(tmp_path, capsys, name):
+    empty = tmp_path / name
+    empty.write_bytes(b"")
+    argv = ["downscale", str(empty), str(tmp_path / "o.npy"), "--method", "downsample",
+            "--factor", "2", "--sensor-size", "16", "12", "2"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("evdown downscale: error: cannot read ") and name in err, err
+    assert err.count("\n") == 1, err
+    result = _run(*argv)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
 def test_several_files_and_a_folder(tmp_path, rng, capsys):
     inputs = tmp_path / "recordings"
     inputs.mkdir()

@@ -279,6 +279,19 @@ def test_bad_paths_and_extensions(tmp_path):
         read_events(tmp_path / "broken.npz")
 
 
+def test_empty_and_truncated_numpy_files_are_value_errors(tmp_path, stream):
+    """A 0-byte .npy/.npz or a cut-off .npz archive is unreadable input, not an EOFError."""
+    (tmp_path / "empty.npy").write_bytes(b"")
+    (tmp_path / "empty.npz").write_bytes(b"")
+    np.savez(tmp_path / "whole.npz", x=stream["x"], y=stream["y"], t=stream["t"], p=stream["p"])
+    (tmp_path / "cut.npz").write_bytes((tmp_path / "whole.npz").read_bytes()[:-40])
+    with pytest.raises(ValueError, match=r"cannot read .*empty\.npy.* as a \.npy array"):
+        read_events(tmp_path / "empty.npy", sensor_size=(4, 4, 2))
+    for name in ("empty.npz", "cut.npz"):
+        with pytest.raises(ValueError, match=rf"cannot read .*{name}.* as a \.npz archive"):
+            read_events(tmp_path / name, sensor_size=(4, 4, 2))
+
+
 def test_missing_optional_reader_names_the_extra(tmp_path, monkeypatch):
     (tmp_path / "rec.raw").write_bytes(b"% evt 3.0\n")
     monkeypatch.setitem(sys.modules, "faery", None)  # as if not installed

@@ -29,7 +29,28 @@ def _read_manifest(root: Path) -> dict[str, Any]:
             f"{str(path)!r} has format version {manifest.get('format_version')!r}; this "
             f"evdown_torch reads version {shards.FORMAT_VERSION}"
         )
+    missing = [key for key in _MANIFEST_KEYS if key not in manifest]
+    if missing:
+        raise ValueError(f"{str(path)!r} lacks {', '.join(map(repr, missing))}: a damaged "
+                         f"{shards.FORMAT} manifest; {_REDO}")
+    records = manifest["shards"]
+    if not isinstance(records, list) or not all(_is_record(r) for r in records):
+        raise ValueError(f"{str(path)!r} has 'shards' that are not shard records (files and "
+                         f"checksums): a damaged {shards.FORMAT} manifest; {_REDO}")
     return manifest
+
+
+#: What a manifest must hold beside its format: what reading the cache uses.
+_MANIFEST_KEYS = ("method", "factor", "output_sensor_size", "classes", "dtype", "shards")
+
+_REDO = "rerun `evdown preprocess` with the same arguments to redo it"
+
+
+def _is_record(record: Any) -> bool:
+    """A shard record: its two files and their checksums."""
+    return (isinstance(record, dict) and isinstance(record.get("files"), dict)
+            and {"events", "index"} <= set(record["files"])
+            and isinstance(record.get("sha256"), dict))
 
 
 def verify_cache(root: str | Path) -> list[str]:
@@ -77,8 +98,9 @@ class PreprocessedDataset:
         source_indices: the source dataset's index of every item.
 
     Raises:
-        ValueError: if ``root`` is not a finished cache, or (``verify``) a shard is missing
-            or corrupt, naming the file.
+        ValueError: if ``root`` is not a finished cache, its manifest is damaged (not
+            JSON, another format or version, a key or a shard's record missing), or
+            (``verify``) a shard is missing or corrupt, naming the file.
 
     Example:
         >>> import tempfile

@@ -257,10 +257,7 @@ class SpikingPooling(nn.Module):
         Returns:
             ``(spikes, state)``: this step's spikes and membrane, both ``(B, 2, Ho, Wo)``.
         """
-        if x.ndim != 4:
-            raise ValueError(
-                f"one step of spikes must have shape (B, 2, H, W), got {tuple(x.shape)}"
-            )
+        _check_step(x)
         spikes, state = self._run(x.unsqueeze(0), state)
         return spikes[0], state
 
@@ -320,6 +317,16 @@ class SpikingPooling(nn.Module):
         )
 
 
+def _check_step(x: Tensor) -> None:
+    """Refuse one step of spikes that is not a ``(B, 2, H, W)`` tensor, naming its shape."""
+    if not isinstance(x, Tensor):
+        raise TypeError(f"one step of spikes must be a tensor, got {type(x).__name__}")
+    if x.ndim != 4:
+        raise ValueError(
+            f"one step of spikes must have shape (B, 2, H, W), got {tuple(x.shape)}"
+        )
+
+
 class SpikingPoolingLayer(nn.Module):
     """:class:`SpikingPooling` as a stateful layer for snntorch-style networks.
 
@@ -375,6 +382,7 @@ class SpikingPoolingLayer(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """One step: ``(B, 2, H, W)`` spikes in, ``(B, 2, Ho, Wo)`` spikes out."""
+        _check_step(x)
         if self.mem is not None and (
             self.mem.shape[0] != x.shape[0] or self.mem.device != x.device
         ):

@@ -338,6 +338,18 @@ class Chain(Streaming):
             events = transform(events)  # type: ignore[operator]
         return events
 
+    def session(self) -> Session:
+        """Start a streaming session through every stage (see :class:`Session`).
+
+        Raises:
+            ValueError, NotImplementedError: as the first stage that cannot stream raises
+                from its own ``session()`` (e.g. an estimator without ``max_delay``), before
+                any chunk.
+        """
+        for transform in self.transforms:
+            transform.session()  # refuses as the stage itself would
+        return Session(self)
+
     def stream(self, events: Events, state: Any | None) -> tuple[Events, Any]:
         """One chunk through every stage; the state is the tuple of the stages' states."""
         states = list(state) if state is not None else [None] * len(self.transforms)

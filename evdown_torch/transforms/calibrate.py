@@ -8,16 +8,18 @@ target, by a deterministic search.
 
 The search works on the logarithm of the setting. It first finds in which direction the
 output grows (probing the setting times and divided by 4), then widens a bracket by factors
-of 4 until the target lies inside, then narrows it by regula falsi on ``log(count)`` (the
-Illinois variant, with bisection where a count is 0), and stops when the count is within
-``rtol`` of the target. Every evaluation runs the transform once on every recording; counts
-are remembered, so no setting is run twice. The result is the evaluated setting whose count
-is closest to the target.
+of 4 until the target lies inside (a step past the end of the setting's allowed range goes
+to that end, exactly: a count reachable only there is reached), then narrows it by regula
+falsi on ``log(count)`` (the Illinois variant, with bisection where a count is 0), and stops
+when the count is within ``rtol`` of the target. Every evaluation runs the transform once on
+every recording; counts are remembered, so no setting is run twice. The result is the
+evaluated setting whose count is closest to the target.
 """
 
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Literal, NamedTuple
@@ -204,6 +206,25 @@ class _Search:
                 self.counts[value] = math.inf
         return self.counts[value]
 
+    def edge(self, inside: float, outside: float) -> float:
+        """The valid setting nearest ``outside``, from ``inside`` (valid) toward ``outside``
+        (not): a bisection over the floats between them, exact to the last one (positive
+        floats sort as their bit patterns do), and cheap, as it only builds transforms."""
+        def bits(value: float) -> int:
+            return struct.unpack("<q", struct.pack("<d", value))[0]
+
+        def value(pattern: int) -> float:
+            return struct.unpack("<d", struct.pack("<q", pattern))[0]
+
+        good, bad = bits(inside), bits(max(outside, 0.0))
+        while abs(bad - good) > 1:
+            middle = (good + bad) // 2
+            if self.valid(value(middle)):
+                good = middle
+            else:
+                bad = middle
+        return value(good)
+
     def spent(self) -> bool:
         return len(self.counts) >= self.max_evaluations
 
@@ -240,9 +261,14 @@ class _Search:
         step = 4.0 ** (grows if below else -grows)
         other = value
         while (self.count(other) < self.wanted) == below:
-            if self.close(other, rtol) or self.spent() or not self.valid(other * step):
+            if self.close(other, rtol) or self.spent():
                 return self.best()
-            value, other = other, other * step
+            following = other * step
+            if not self.valid(following):  # past the setting's range: try its end first
+                following = self.edge(other, following)
+                if following == other:
+                    return self.best()
+            value, other = other, following
         # Narrow: regula falsi (Illinois) on log(count) against log(setting).
         lo, hi = sorted((value, other))
         log_target = math.log(self.wanted)

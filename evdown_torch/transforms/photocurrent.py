@@ -55,7 +55,8 @@ class PhotocurrentPooling(Downscaler):
         cutoff_hz: high-pass leak of the frames mode in Hz (each event's log contribution
             decays as ``exp(-2 pi cutoff_hz dt)``, Scheerlinck et al. 2018), >= 0; 0 is no
             leak. With a leak, every frame of every region is computed (cost: frames x sensor
-            area, in bounded chunks).
+            area, in bounded chunks); a call whose frames times the sensor's pixels exceed
+            :func:`~evdown_torch.max_output_events` is refused, naming the frame count.
 
     Example:
         >>> import torch

@@ -36,7 +36,8 @@ class TemporalFunnelling(Streaming):
 
     Args:
         dt: bin length in the stream's own time unit (microseconds for Tonic), > 0; a whole
-            number for integer timestamps (checked at call time).
+            number for integer timestamps (checked at call time). A ``dt`` longer than the
+            recording (even beyond int64, e.g. ``1e300``) puts every event in one bin.
         sensor_size: ``(W, H, P)``; when given, coordinates are checked against it. The
             output sensor is the same.
 

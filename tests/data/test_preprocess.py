@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -244,6 +245,32 @@ def test_corrupt_shard_is_detected_and_redone(reference, tmp_path):
     assert _digests(out) == _digests(reference) and verify_cache(out) == []
 
 
+def test_damaged_manifests_are_refused_clearly(reference, tmp_path):
+    out = tmp_path / "cache"
+    shutil.copytree(reference, out)
+    good = json.loads((out / "manifest.json").read_text())
+    no_checksums = dict(good, shards=[{k: v for k, v in r.items() if k != "sha256"}
+                                      for r in good["shards"]])
+    damaged = [
+        ({k: v for k, v in good.items() if k != "shards"}, r"lacks 'shards'"),
+        ({k: v for k, v in good.items() if k not in ("dtype", "classes")},
+         r"lacks 'classes', 'dtype'"),
+        (dict(good, shards={"0": good["shards"][0]}), "not shard records"),
+        (no_checksums, "not shard records"),
+        (dict(good, format_version=99), "format version 99"),
+    ]
+    for manifest, message in damaged:
+        (out / "manifest.json").write_text(json.dumps(manifest))
+        for open_cache in (PreprocessedDataset, verify_cache):
+            with pytest.raises(ValueError, match=message):
+                open_cache(out)
+    (out / "manifest.json").write_text(json.dumps(damaged[0][0]))
+    # the rerun the message asks for puts the cache back
+    preprocess(open_source("synthetic", **SYNTHETIC), out, "event_count", 2,
+               {"threshold": 0.5}, shard_size=3, workers=1)
+    assert len(PreprocessedDataset(out)) == len(PreprocessedDataset(reference))
+
+
 def test_folder_labels_and_unreadable_file(tmp_path, rng, capsys):
     data = _folder_dataset(tmp_path / "data", rng)
     (data / "b" / "broken.npy").write_bytes(b"not an array")
@@ -270,6 +297,21 @@ def test_folder_labels_and_unreadable_file(tmp_path, rng, capsys):
     assert (kept / "shard-00000.json").is_file() and not (kept / "manifest.json").exists()
     np.testing.assert_array_equal(np.load(kept / "shard-00000.events.npy"),
                                   np.load(tmp_path / "skip" / "shard-00000.events.npy"))
+
+
+def test_an_empty_first_file_is_skipped_like_any_other(tmp_path, rng, capsys):
+    data = _folder_dataset(tmp_path / "data", rng)
+    (data / "a" / "empty.npy").write_bytes(b"")  # sorts first: the file that sets the dtype
+    args = ["preprocess", "--dataset", f"folder:{data}", "--sensor-size", "64", "48", "2",
+            "--method", "downsample", "--factor", "2", "--workers", "1", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "skip")]) == 0
+    assert f"skipped {data / 'a' / 'empty.npy'}" in capsys.readouterr().err
+    cache = PreprocessedDataset(tmp_path / "skip")
+    assert cache.source_indices == [1, 2, 3, 4] and cache.targets == [0, 0, 1, 1]
+    assert main([*args, "--out", str(tmp_path / "stop"), "--on-error", "stop"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("evdown preprocess: error: cannot preprocess ")
+    assert "empty.npy" in err and err.count("\n") == 1
 
 
 def test_recording_error_in_the_api(tmp_path, rng):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -252,6 +253,19 @@ def test_bad_input_shapes_raise():
         pool(torch.zeros(3, 1, 2, 4, 4), torch.zeros(1, 2, 3, 3))
     with pytest.raises(ValueError, match=r"\(B, 2, H, W\)"):
         pool.step(torch.zeros(1, 1, 2, 4, 4))
+
+
+@pytest.mark.parametrize("shape", [(), (2,), (1, 2, 4, 4, 1)])
+def test_the_layer_refuses_a_step_of_the_wrong_rank_naming_its_shape(shape):
+    layer = SpikingPoolingLayer(2)
+    for fresh in (True, False):  # before any step, and holding a membrane
+        if not fresh:
+            layer(torch.ones(1, 2, 4, 4))
+        with pytest.raises(ValueError, match=re.escape(f"(B, 2, H, W), got {shape}")):
+            layer(torch.zeros(shape))
+    with pytest.raises(TypeError, match="must be a tensor, got list"):
+        layer([[0.0]])
+    assert layer.mem.shape == (1, 2, 2, 2)  # the refused steps left the membrane alone
 
 
 def test_modules_stay_out_of_snntorchs_registry():

@@ -123,6 +123,16 @@ def test_bad_inputs_give_one_line_errors(capsys, spec, message):
     assert err.startswith("evdown show: error: ") and message in err and err.count("\n") == 1
 
 
+@pytest.mark.parametrize("name", ["empty.npy", "empty.npz"])
+def test_an_empty_file_is_one_error_line(tmp_path, capsys, name):
+    (tmp_path / name).write_bytes(b"")
+    assert main(["show", str(tmp_path / name), "--factor", "2", "--sensor-size", "8", "6", "2",
+                 "--out", str(tmp_path / "o.png")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("evdown show: error: cannot read ") and name in err, err
+    assert err.count("\n") == 1 and not (tmp_path / "o.png").exists()
+
+
 @pytest.mark.parametrize("argv", [["--curve", "1"], ["--methods", "cubic,nope"],
                                   ["--window", "0"], ["--factor", "0,x"]])
 def test_malformed_values_are_refused_by_the_parser(npy, capsys, argv):

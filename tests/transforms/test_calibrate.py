@@ -10,7 +10,7 @@ import torch
 
 from evdown_torch.events import to_events
 from evdown_torch.synthetic import SyntheticGestures
-from evdown_torch.transforms import Downsample, EventCount
+from evdown_torch.transforms import Downsample, EventCount, PhotocurrentPooling
 from evdown_torch.transforms.calibrate import BudgetTarget, calibrate, calibration
 from evdown_torch.transforms.registry import METHODS
 from evdown_torch.transforms.thinning import ThinnedDownsample, recording_seed
@@ -73,6 +73,21 @@ def test_unreachable_target_gives_the_closest(recordings):
     inputs = sum(len(r) for r in recordings)
     found = calibration(ThinnedDownsample(SENSOR, 2), recordings, BudgetTarget.ratio(3.0))
     assert found.transform.keep == 1.0 and found.count == inputs
+
+
+def test_a_count_reachable_only_at_the_end_of_the_range_is_reached():
+    # 60 ON events of one pixel. PhotocurrentPooling with factor 1 and threshold == contrast
+    # returns its input exactly: 60 events at threshold 1e-6, the smallest allowed; any larger
+    # threshold needs more than one input step per output event, so fewer come out. The
+    # widening steps by 4 from 1e-3 (to 2.4e-7, outside the range) must try 1e-6 itself.
+    ev = torch.tensor([[1, 2, 10 * i, 1] for i in range(60)])
+    camera = PhotocurrentPooling((4, 4, 2), 1, contrast=1e-6, threshold=1e-3)
+    found = calibration(camera, [ev], BudgetTarget.count(60))
+    assert found.value == 1e-6 and found.count == 60
+    # the same at the top of a range: keep = 1 keeps every one of Downsample's events
+    found = calibration(ThinnedDownsample((4, 4, 2), 1, keep=0.3), [ev],
+                        BudgetTarget.ratio(1.0))
+    assert found.value == 1.0 and found.count == 60
 
 
 def test_bad_calibrations(recordings):

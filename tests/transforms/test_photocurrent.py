@@ -11,6 +11,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 
+import evdown_torch
 from evdown_torch import EventCount, PhotocurrentPooling
 from evdown_torch.transforms.registry import make_method
 from tests.helpers import DVS_DTYPE, as_tuples, random_stream
@@ -309,6 +310,36 @@ def test_device(device, rng):
 def test_bad_settings_are_refused(settings, message):
     with pytest.raises(ValueError, match=message):
         PhotocurrentPooling(SENSOR, **settings)
+
+
+def test_leaky_frames_beyond_the_limit_are_refused_up_front_naming_the_count():
+    # Two events 1 s apart at 1e9 fps: 1,000,000,001 frames of 34 x 34 pixels (this ran for
+    # ever); refused before any work, by a call and by a session's chunk alike.
+    ev = torch.tensor([[0, 0, 0, 1], [1, 1, 1_000_000, 1]])
+    pool = PhotocurrentPooling((34, 34, 2), 2, fps=1e9, cutoff_hz=10.0)
+    with pytest.raises(ValueError, match=r"1,000,000,001 frames .* 1,156 pixels"):
+        pool(ev)
+    with pytest.raises(ValueError, match=r"frames .*set_max_output_events"):
+        pool.session()(ev)
+    # Without a leak the cost follows the events: the same call is fine.
+    assert len(PhotocurrentPooling((34, 34, 2), 2, fps=1e9)(ev)) == 0
+
+
+def test_the_leaky_frame_limit_is_the_output_limit():
+    # Events from 0 to 999 us at 1e6 fps: frames 0..999, 1,000 frames of 4 x 4 pixels.
+    arr = np.array([(0, 0, True, 0), (1, 1, True, 300), (0, 0, True, 600), (1, 0, True, 999)],
+                   dtype=DVS_DTYPE)
+    pool = PhotocurrentPooling((4, 4, 2), 2, contrast=0.5, threshold=0.1, fps=1e6,
+                               cutoff_hz=10.0)
+    previous = evdown_torch.set_max_output_events(15_999)
+    try:
+        with pytest.raises(ValueError, match=r"1,000 frames .* 16,000 values"):
+            pool(arr)
+        evdown_torch.set_max_output_events(16_000)
+        expected = frames_reference(arr, (4, 4, 2), 2, 0.5, 0.1, 1e6, 10.0)
+        assert len(expected) > 3 and sorted(rows(pool(arr))) == expected
+    finally:
+        evdown_torch.set_max_output_events(previous)
 
 
 def test_registry_and_budget_setting():

@@ -21,6 +21,7 @@ from evdown_torch import (
     TemporalFunnelling,
 )
 from evdown_torch.transforms import Session
+from evdown_torch.transforms.thinning import ThinnedDownsample
 from tests.helpers import DVS_DTYPE, random_stream
 from tests.transforms import test_estimation
 
@@ -143,6 +144,22 @@ def test_chain_refuses_what_cannot_stream():
         Chain()
     with pytest.raises(TypeError, match="evdown_torch transforms"):
         Chain(lambda ev: ev)
+
+
+@pytest.mark.parametrize("stage", [LinearEstimation(SENSOR, 4), CubicEstimation(SENSOR, 2),
+                                   ThinnedDownsample(SENSOR, 2, keep=0.5)])
+def test_a_chain_with_a_batch_only_stage_refuses_its_session_as_the_stage_does(stage):
+    with pytest.raises((ValueError, NotImplementedError)) as own:
+        stage.session()
+    for chain in (Chain(TemporalFunnelling(dt=10), stage), Chain(stage),
+                  Chain(Chain(stage), TemporalFunnelling(dt=10))):
+        with pytest.raises(own.type) as chained:
+            chain.session()
+        assert str(chained.value) == str(own.value)
+    # the batch call still works
+    arr = random_stream(np.random.default_rng(0), 50, SENSOR)
+    np.testing.assert_array_equal(Chain(TemporalFunnelling(dt=10), stage)(arr),
+                                  stage(TemporalFunnelling(dt=10)(arr)))
 
 
 # --- Bounded delay: LinearEstimation and CubicEstimation ------------------------------------

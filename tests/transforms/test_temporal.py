@@ -91,6 +91,23 @@ def test_fractional_dt_is_refused_for_integer_timestamps():
         TemporalFunnelling(dt=2.5)(torch.tensor([[0, 0, 1, 1]]))
 
 
+@pytest.mark.parametrize("dt", [2**63 - 1, 2**63, 1e19, 2**64, 1e300])
+def test_a_dt_beyond_every_int64_span_is_one_bin(dt):
+    # Offsets from the first t reach 2**62 + 5 < dt: every event lies in the first bin.
+    ev = torch.tensor([[0, 0, 5, 1], [0, 0, 9, 1], [1, 0, 2**62 + 10, 1], [0, 0, 2**62, 0]])
+    assert TemporalFunnelling(dt=dt)(ev).tolist() == [[0, 0, 5, 1], [0, 0, 5, 0],
+                                                       [1, 0, 5, 1]]
+    session = TemporalFunnelling(dt=dt).session()
+    assert session(ev[:2]).tolist() == [[0, 0, 5, 1]]
+    assert session(ev[2:]).tolist() == [[0, 0, 5, 0], [1, 0, 5, 1]]
+
+
+def test_integer_timestamps_spanning_2_to_the_63_are_refused():
+    ev = torch.tensor([[0, 0, -(2**62), 1], [0, 0, 2**62, 1]])
+    with pytest.raises(ValueError, match=r"span 2\*\*63 or more"):
+        TemporalFunnelling(dt=10)(ev)
+
+
 def test_coordinates_are_checked_against_the_sensor_when_given():
     with pytest.raises(ValueError):
         TemporalFunnelling(dt=5, sensor_size=(2, 2, 2))(torch.tensor([[2, 0, 1, 1]]))

@@ -34,7 +34,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import output_size
+from evdown_torch.checks import max_output_events, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import HALF_TOLERANCE, emit
 from evdown_torch.transforms.functional._reference import (
@@ -236,6 +236,8 @@ def frames_stream(
     if not final and cutoff_hz > 0:
         per_chunk = leak_chunk(sensor_size, clock, cutoff_hz)
         stop = next_frame + (stop - next_frame) // per_chunk * per_chunk
+    if cutoff_hz > 0:
+        check_leaky_frames(stop - next_frame, sensor_size, fps)
     cut = int(torch.searchsorted(frame, torch.tensor([stop], device=device))[0])
     done = Events(*(column[:cut] for column in events))
     pending = Events(*(column[cut:] for column in events))
@@ -323,6 +325,21 @@ def _frame_steps(
         u = _log_photocurrent(m, spread, region, sensor_size, factor, contrast, threshold)
         level_state = carry["levels"] = levels.new_state
         yield region, step_frame, u, changes(region)
+
+
+def check_leaky_frames(frames: int, sensor_size: tuple[int, int, int], fps: float) -> None:
+    """Refuse a leaky call that would build more frame values (``frames`` times the sensor's
+    pixels, each computed) than :func:`~evdown_torch.checks.max_output_events`, the one
+    bound on a call's work, before any is built."""
+    values = frames * sensor_size[0] * sensor_size[1]
+    if values > max_output_events():
+        raise ValueError(
+            f"fps={fps:g} with a leak (cutoff_hz > 0) means {frames:,} frames in this call, "
+            f"each computed for all {sensor_size[0] * sensor_size[1]:,} pixels: {values:,} "
+            f"values, more than the limit of {max_output_events():,}; a lower fps or no leak "
+            "(its cost follows the events) gives fewer, and "
+            "evdown_torch.set_max_output_events(n) raises the limit"
+        )
 
 
 def leak_chunk(sensor_size: tuple[int, int, int], clock: FrameClock, cutoff_hz: float) -> int:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import math
+import numbers
 
 import torch
 from torch import Tensor
@@ -13,9 +13,14 @@ from evdown_torch.transforms.functional.funnelling import drop_repeats
 
 __all__ = ["bin_start", "temporal_funnelling"]
 
+_INT64_MAX = torch.iinfo(torch.int64).max
+
 
 def bin_start(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
     """``t_start + floor((t - t_start) / dt) * dt``: the start of each timestamp's bin.
+
+    A ``dt`` longer than every span int64 ``t`` can have (``dt > 2**63 - 1``) puts every
+    timestamp in the first bin, as it does for float ``t``: it is not refused.
 
     Args:
         t: ``(N,)`` int64 or float64 timestamps, ``>= t_start``.
@@ -27,21 +32,33 @@ def bin_start(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
 
     Raises:
         ValueError: for int64 ``t`` and a ``dt`` that is not a whole number (its bin starts
-            would not be integers).
+            would not be integers), or int64 ``t`` spanning ``2**63`` or more from
+            ``t_start`` (their offsets would wrap).
 
     Example:
         >>> bin_start(torch.tensor([3, 9, 10, 25]), dt=10, t_start=3).tolist()
         [3, 3, 3, 23]
+        >>> bin_start(torch.tensor([3, 9, 2**62]), dt=1e300, t_start=3).tolist()
+        [3, 3, 3]
     """
     if t.is_floating_point():
         return (torch.floor((t - t_start) / dt) * dt).add_(t_start)
-    if float(dt) != math.floor(dt):
+    if not (isinstance(dt, numbers.Integral) or float(dt).is_integer()):
         raise ValueError(
             f"dt must be a whole number for integer timestamps (bin starts must stay "
             f"integers), got {dt!r}"
         )
+    origin = int(t_start)
+    offset = t - origin
+    if bool((offset < 0).any()):  # t >= t_start, so only a wrap past 2**63 - 1 is negative
+        raise ValueError(
+            f"the timestamps span 2**63 or more time units from {origin} (up to "
+            f"{int(t.max())}): their offsets do not fit in int64"
+        )
     step = int(dt)
-    return divide(t - int(t_start), step).mul_(step).add_(int(t_start))
+    if step > _INT64_MAX:  # longer than any offset: one bin (torch cannot take the int)
+        return torch.full_like(t, origin)
+    return divide(offset, step).mul_(step).add_(origin)
 
 
 def temporal_funnelling(
