@@ -83,13 +83,15 @@ def linear_regions(
     fraction: Fraction,
     emitted: int = 0,
     resume: Resume | None = None,
+    front_at_rest: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Crossings of the regions of one chunk: ``(region, t, on, breakpoint)`` in region order.
 
     ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``;
     ``emitted`` counts the events of the chunks before (for the output limit); ``resume``
     starts a streaming window (:func:`~evdown_torch.transforms.functional._knots.resume_steps`).
-    ``breakpoint`` is the one that ends each crossing's piece.
+    ``front_at_rest`` (a bounded delay) changes nothing for polylines. ``breakpoint`` is the
+    one that ends each crossing's piece.
     """
     device = knots.t.device
 
