@@ -134,8 +134,8 @@ def stack(
         ends.scatter_reduce_(0, recording, t, "amax", include_self=False)
     shift = None
     if not t.is_floating_point() and b > 1:
-        spans = ends - starts
-        if int(spans.max()) < MAX_SHIFTED_SPAN // b:  # the windows' total fits in int64
+        spans = ends - starts  # negative where a span of 2**63 or more wrapped
+        if int(spans.min()) >= 0 and int(spans.max()) < MAX_SHIFTED_SPAN // b:  # fits in int64
             base = torch.cumsum(spans + 1, 0) - (spans + 1)
             shift = base - starts
             t = t + take(shift, recording)

@@ -94,9 +94,9 @@ class LinearEstimation(_Estimation):
     Levels at knots are exact (integer arithmetic where no pixel is between knots, so
     ``factor=1, threshold=1`` returns the input). Elsewhere the kernel works in float64 and
     absorbs rounding where real arithmetic would be exact: a region within 1e-9 thresholds of
-    a level is on it, and an integer crossing time within 1e-9 of a tick below a half rounds
-    up. All time arithmetic is relative to breakpoints, so shifting the clock shifts the
-    output exactly.
+    a level is on it, and an integer crossing time within float error below a half tick (1e-9
+    of a tick plus ``32 * 2**-53`` of its piece's length) rounds up. All time arithmetic is
+    relative to breakpoints, so shifting the clock shifts the output exactly.
 
     Args:
         sensor_size: input sensor size ``(W, H, P)``.
@@ -153,7 +153,8 @@ class CubicEstimation(_Estimation):
             > 0. It is used as the nearest fraction with denominator at most 10**6.
         max_delay: bounded delay ``D`` as for :class:`LinearEstimation`; PCHIP slopes need
             one more knot, so a :meth:`session` returns each event at most ``2 * D`` after it
-            happens.
+            happens. With ``D`` each pixel is at rest before the stream: its slope at its
+            first knot is 0 (SciPy's end slope there would depend on input arbitrarily later).
 
     Example:
         Pixel (1, 0)'s curve rises faster than a straight line: on ``[0, 10]`` the sum of

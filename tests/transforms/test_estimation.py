@@ -27,6 +27,7 @@ from scipy.optimize import brentq
 
 import evdown_torch.transforms.functional._knots as knots_module
 import evdown_torch.transforms.functional.cubic as cubic_module
+import evdown_torch.transforms.functional.linear as linear_module
 from evdown_torch import CubicEstimation, EventCount, Events, LinearEstimation
 from tests.helpers import DVS_DTYPE, as_tuples, random_stream
 
@@ -432,6 +433,39 @@ def test_chunking_does_not_change_the_result(cls, rng, monkeypatch):
     monkeypatch.setattr(knots_module.region_chunks, "__defaults__", (97,))  # events per chunk
     monkeypatch.setattr(cubic_module, "CHUNK", 64)  # pixel-segment evaluations per chunk
     np.testing.assert_array_equal(transform(arr), whole)
+
+
+@pytest.mark.parametrize("cls", ESTIMATORS)
+@pytest.mark.parametrize("seed", range(6))
+def test_float_batch_equals_each_recording_bit_for_bit(cls, seed, monkeypatch):
+    # Recordings whose time scales differ by up to 1e9 (the steepest slope of a batch once set
+    # the linear kernel's fixed point for all, and sums ran on across regions): each one's
+    # output in a batch, or in a chunk with other regions, is its own output to the last bit.
+    rng = np.random.default_rng(seed)
+    recordings = []
+    for _ in range(4):
+        arr = random_stream(rng, 200, SENSOR, t_max=3000).astype(FLOAT_DTYPE)
+        arr["t"] = arr["t"] * 10.0 ** rng.uniform(-9, 0) + rng.uniform(0, 100)
+        recordings.append(arr)
+    transform = cls(SENSOR, factor=2, threshold=0.3)
+    alone = [transform(arr) for arr in recordings]
+    for got, expected in zip(transform.batch(recordings), alone, strict=True):
+        np.testing.assert_array_equal(got, expected)
+    stream = np.concatenate([recordings[0], recordings[1]])
+    stream["x"][len(recordings[0]):] = stream["x"][len(recordings[0]):] // 2  # other regions
+    stream["x"][: len(recordings[0])] = stream["x"][: len(recordings[0])] // 2 + 5
+    monkeypatch.setattr(knots_module.region_chunks, "__defaults__", (150,))
+    chunked = transform(stream)
+    monkeypatch.setattr(knots_module.region_chunks, "__defaults__", (10**9,))
+    np.testing.assert_array_equal(transform(stream), chunked)
+
+
+def test_local_cumsum_sums_each_segment_as_if_alone(rng):
+    values = torch.from_numpy(rng.normal(size=5000) * 10.0 ** rng.uniform(-12, 12, 5000))
+    first_at = torch.from_numpy(np.unique(np.concatenate([[0], rng.integers(1, 5000, 300)])))
+    bounds = [*first_at.tolist(), 5000]
+    expected = torch.cat([torch.cumsum(values[a:b], 0) for a, b in zip(bounds[:-1], bounds[1:])])
+    assert torch.equal(linear_module.local_cumsum(values, first_at), expected)
 
 
 @pytest.mark.parametrize("cls", LOG_LUMINANCE)

@@ -155,21 +155,41 @@ def test_session_on_a_random_stream_with_many_small_chunks(cls, rng):
     assert isinstance(session.flush(), Events)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "contract gap: SciPy's end slope at a pixel's front knot depends on the width of its "
-    "second segment, which a far later event decides, so the cubic output in the first D of "
-    "a stream is not decided by tau - 2 D (docs/semantics.md, 'Bounded delay')"))
-def test_cubic_front_slope_is_decided_within_the_delay():
-    # Pixel (1, 0): front knot (0, 0), ON at 5, then flat until its held knot (990, 1): the
-    # end slope at 0 is (2 * 5 + h1) / (5 + h1) * 0.2 with h1 = 985 in the whole stream, but
-    # h1 = 95 when the session must decide [0, 5] (at tau = 100).
-    ev = torch.tensor([[0, 0, 0, 1], [1, 0, 5, 1], [0, 0, 100, 1], [1, 0, 1000, 1]],
-                      dtype=torch.float64)
-    transform = CubicEstimation((2, 1, 2), factor=(2, 1), threshold=0.05, max_delay=10.0)
+@pytest.mark.parametrize("dtype", [torch.int64, torch.float64])
+def test_cubic_front_slope_is_decided_within_the_delay(dtype):
+    # Pixel (1, 0): front knot (0, 0), ON at 5, then flat until its held knot (990, 1). SciPy's
+    # end slope at 0 would be (2 * 5 + h1) / (5 + h1) * 0.2 with h1 = 985 in the whole stream
+    # but h1 = 95 when the session decides [0, 5] (at tau = 100); with a bounded delay it is 0
+    # (docs/semantics.md, "Bounded delay"), so the session's head is the batch's.
+    ev = torch.tensor([[0, 0, 0, 1], [1, 0, 5, 1], [0, 0, 100, 1], [1, 0, 1000, 1]], dtype=dtype)
+    transform = CubicEstimation((2, 1, 2), factor=(2, 1), threshold=0.05, max_delay=10)
     session = transform.session()
     head = session(ev[:3])
     batch = transform(ev)
     assert torch.equal(head, batch[batch[:, 2] < 100 - 2 * 10])
+    assert head.shape[0] > 2  # crossings on the front ramp are among them
+    assert torch.equal(torch.cat([head, session(ev[3:]), session.flush()]), batch)
+
+
+@pytest.mark.parametrize("shift", [0, EPOCH])
+def test_cubic_front_knot_at_rest_hand_computed(shift):
+    # Region 0 (pixels (0, 0) and (1, 0)), D = 100, threshold 0.25: the sum of levels S
+    # crosses a level every 0.5. Pixel (1, 0): front knot (0, 0), ON at 10, flat to the
+    # stream's end. At rest before the stream, its slope at 0 is 0, and 0 at 10 (flat after):
+    # the ramp is the smoothstep 3 s^2 - 2 s^3, so S = 1 + smoothstep crosses 1.5 at s = 1/2,
+    # t = 5 (SciPy's end slope 0.1005 would make it 1.005 s + 0.99 s^2 - 0.995 s^3: t = 4).
+    # Pixel (0, 0): ON at 0 and 500, held knot (400, 1), flat on both sides: S crosses 2.5 at
+    # 450. Pixel (2, 0) (region 1) only sets the stream's end, 2000.
+    ev = torch.tensor([[0, 0, 0, 1], [1, 0, 10, 1], [0, 0, 500, 1], [2, 0, 2000, 1]])
+    ev[:, 2] += shift
+    transform = CubicEstimation((4, 1, 2), factor=(2, 1), threshold=0.25, max_delay=100)
+    out = transform(ev)
+    region0 = out[out[:, 0] == 0]
+    assert (region0[:, 2] - shift).tolist() == [0, 0, 5, 10, 450, 500]
+    assert region0[:, 3].tolist() == [1] * 6
+    session = transform.session()
+    parts = [session(ev[i:i + 1]) for i in range(4)] + [session.flush()]
+    assert torch.equal(torch.cat(parts), out)
 
 
 @pytest.mark.parametrize("cls", [LinearEstimation, CubicEstimation])
@@ -187,3 +207,19 @@ def test_a_refused_chunk_leaves_the_state_as_it_was(cls, rng):
     assert session.state.knots.num_events == knots_before
     out = np.concatenate([head, session(arr[150:]), session.flush()])
     np.testing.assert_array_equal(out, transform(arr))
+
+
+@pytest.mark.parametrize("value", ["1e300", str(10**19)])
+def test_cli_downscale_with_a_huge_delay(value, tmp_path, rng, capsys):
+    # Issue 27: a delay longer than every gap holds nothing; the CLI downscales with it.
+    from evdown_torch.cli import main
+
+    sensor = (9, 7, 2)
+    arr = random_stream(rng, 300, sensor, t_max=3000)
+    source, target = tmp_path / "in.npy", tmp_path / "out.npy"
+    np.save(source, arr)
+    code = main(["downscale", str(source), str(target), "--method", "cubic", "--factor", "2",
+                 "--set", f"max_delay={value}", "--sensor-size", "9", "7", "2"])
+    assert code == 0, capsys.readouterr().err
+    expected = CubicEstimation(sensor, factor=2, max_delay=10**6)(arr)
+    np.testing.assert_array_equal(np.load(target), expected)

@@ -112,8 +112,8 @@ def test_spans_below_2_53_are_computed_and_shift_exactly_at_any_clock_offset(met
     assert base["p"].all()
     got = base["t"].tolist()
     assert got[:2] == [0, 0] and got[3] == span
-    # Halfway to within the documented rounding tolerance (1e-12 of the piece, plus a tick).
-    assert abs(got[2] - span // 2) <= 1e-12 * span + 1
+    # Halfway to within the documented rounding tolerance (32 * 2**-53 of the piece, a tick).
+    assert abs(got[2] - span // 2) <= 32 * 2.0**-53 * span + 1
     if span <= 10**11:
         assert got[2] == span // 2
     for t0 in (2**62, -(2**62), 12_345):
@@ -122,11 +122,34 @@ def test_spans_below_2_53_are_computed_and_shift_exactly_at_any_clock_offset(met
 
 
 @pytest.mark.parametrize("method", [LinearEstimation, CubicEstimation])
-@pytest.mark.parametrize("span", [MAX_EXACT_SPAN, 2**62 + 7, 2**63 - 1])
+@pytest.mark.parametrize("k", [10**6, 10**12, 10**13])
+def test_long_pieces_round_to_the_nearest_tick(method, k):
+    # Threshold 1/6: the region's sum 1 + s crosses 4/3 at s = 1/3 and 5/3 at s = 2/3 of a
+    # piece of 3k + 1 ticks, at k + 1/3 and 2k + 2/3: rounded to k and 2k + 1. The half-tick
+    # nudge follows the float error (a fixed 1e-12 of the piece moved them 3 to 30 ticks).
+    span = 3 * k + 1
+    out = method((2, 1, 2), (2, 1), threshold=1 / 6)(_two_pixel_ramp(-(2**60), span))
+    assert (out["t"] + 2**60).tolist() == [0] * 3 + [k, 2 * k + 1, span]
+    assert out["p"].all()
+
+
+@pytest.mark.parametrize("method", [LinearEstimation, CubicEstimation])
+@pytest.mark.parametrize("span", [MAX_EXACT_SPAN, 2**62 + 7, 2**63 - 1, 2**63, 2**64 - 1])
 def test_spans_the_arithmetic_cannot_hold_are_refused(method, span):
-    t0 = -(2**62) if span > 2**62 else 0
-    with pytest.raises(ValueError, match=r"span .* 2\*\*53"):
-        method((2, 1, 2), (2, 1), threshold=0.25)(_two_pixel_ramp(t0, span))
+    # Spans of 2**63 and more wrap in int64 (t_end - t_start < 0): refused all the same, in
+    # one call, in a batch and in a session, with the span measured exactly.
+    t0 = -(2**63) if span >= 2**63 else -(2**62) if span > 2**62 else 0
+    ev = _two_pixel_ramp(t0, span)
+    message = rf"span {span:,} .* 2\*\*53"
+    transform = method((2, 1, 2), (2, 1), threshold=0.25)
+    with pytest.raises(ValueError, match=message):
+        transform(ev)
+    with pytest.raises(ValueError, match=message):
+        transform.batch([ev[:1], ev])
+    session = method((2, 1, 2), (2, 1), threshold=0.25, max_delay=10).session()
+    session(ev[:1])
+    with pytest.raises(ValueError, match=message):
+        session(ev[1:])
 
 
 def test_float_timestamps_have_no_span_limit():

@@ -7,6 +7,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
 
 from evdown_torch import (
     Chain,
@@ -171,6 +172,20 @@ ESTIMATORS = {
 
 
 REFERENCE_KNOTS = test_estimation.reference_knots
+REFERENCE_CURVE = test_estimation.reference_curve
+
+
+def curve_at_rest(kind: str, knots: list) -> tuple:
+    """The oracle's pixel curve with a bounded delay: the cubic slope at the first knot is 0
+    (docs/semantics.md, "Bounded delay"), SciPy's PCHIP slopes at every other knot."""
+    if kind != "cubic" or len(knots) < 2:
+        return REFERENCE_CURVE(kind, knots)
+    ts = np.array([k[0] for k in knots], dtype=np.float64)
+    ls = np.array([k[1] for k in knots], dtype=np.float64)
+    slopes = PchipInterpolator(ts, ls).derivative()(ts)
+    slopes[0] = 0.0
+    curve = CubicHermiteSpline(ts, ls, slopes)
+    return curve, curve.derivative()
 
 
 def delayed_knots(arr: np.ndarray, max_delay: int) -> tuple[dict, float, float]:
@@ -188,7 +203,7 @@ def delayed_knots(arr: np.ndarray, max_delay: int) -> tuple[dict, float, float]:
 
 @pytest.mark.parametrize("kind", sorted(ESTIMATORS))
 @pytest.mark.parametrize(("factor", "threshold", "max_delay"),
-                         [(2, 0.1, 40), ((3, 2), 0.5, 7), (3, 0.25, 1)])
+                         [(2, 0.1, 40), ((3, 2), 0.5, 7), (3, 0.25, 1), (2, 0.2, 10**6)])
 def test_bounded_delay_matches_the_slow_reference(kind, factor, threshold, max_delay, rng,
                                                   monkeypatch):
     cls, _ = ESTIMATORS[kind]
@@ -196,6 +211,7 @@ def test_bounded_delay_matches_the_slow_reference(kind, factor, threshold, max_d
     out = cls(SENSOR, factor=factor, threshold=threshold, max_delay=max_delay)(arr)
     monkeypatch.setattr(test_estimation, "reference_knots",
                         lambda a: delayed_knots(a, max_delay))
+    monkeypatch.setattr(test_estimation, "reference_curve", curve_at_rest)
     fxy = (factor, factor) if isinstance(factor, int) else factor
     expected = test_estimation.reference(arr, SENSOR, fxy, threshold, kind)
     test_estimation.assert_matches_reference(out, expected, True)
@@ -211,10 +227,32 @@ def test_bounded_delay_hand_computed():
 
 
 def test_a_delay_longer_than_the_stream_changes_nothing(rng):
+    # Linear: the paper's method. Cubic: the paper's method but for the slope 0 at each
+    # pixel's first knot, which the bounded-delay oracle (no knot held) checks.
     arr = random_stream(rng, 300, SENSOR, t_max=1000)
-    for cls, _ in ESTIMATORS.values():
-        np.testing.assert_array_equal(cls(SENSOR, factor=2, max_delay=10**6)(arr),
-                                      cls(SENSOR, factor=2)(arr))
+    np.testing.assert_array_equal(LinearEstimation(SENSOR, factor=2, max_delay=10**6)(arr),
+                                  LinearEstimation(SENSOR, factor=2)(arr))
+    assert delayed_knots(arr, 10**6) == REFERENCE_KNOTS(arr)
+
+
+@pytest.mark.parametrize("kind", sorted(ESTIMATORS))
+@pytest.mark.parametrize("dtype", [np.int64, np.float64])
+@pytest.mark.parametrize("max_delay", [10**19, 1e300, 2**62])
+def test_a_huge_delay_holds_nothing_in_batch_and_session(kind, dtype, max_delay, rng):
+    # Longer than every gap: "never hold", as a delay just longer than the stream; the int64
+    # arithmetic on it (t - D, tau - lag * D) must not overflow.
+    cls, _ = ESTIMATORS[kind]
+    arr = random_stream(rng, 200, SENSOR, t_max=1000).astype(
+        [("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", dtype)])
+    arr["t"] += 2**61 if dtype == np.int64 else 0
+    long_enough = cls(SENSOR, factor=2, threshold=0.3, max_delay=2000)
+    transform = cls(SENSOR, factor=2, threshold=0.3, max_delay=max_delay)
+    batch = transform(arr)
+    np.testing.assert_array_equal(batch, long_enough(arr))
+    session = transform.session()
+    parts = [session(chunk) for chunk in np.array_split(arr, 7)]
+    assert sum(len(part) for part in parts) == 0  # nothing is decided before the end
+    np.testing.assert_array_equal(np.concatenate([*parts, session.flush()]), batch)
 
 
 @pytest.mark.parametrize("kind", sorted(ESTIMATORS))

@@ -50,7 +50,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import check_time_span, output_size
+from evdown_torch.checks import MAX_EXACT_SPAN, check_time_span, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import capped_threshold, threshold_fraction
 
@@ -59,9 +59,12 @@ if TYPE_CHECKING:
 
 __all__ = [
     "HALF_TOLERANCE",
+    "RELATIVE_ERROR",
     "Knots",
     "RegionChunk",
     "RegionSolver",
+    "check_span",
+    "effective_delay",
     "emit",
     "estimate",
     "estimate_window",
@@ -75,6 +78,10 @@ __all__ = [
 
 #: Integer crossing times: an offset this close below a half tick rounds up (see piece_time).
 HALF_TOLERANCE = 1e-9
+
+#: Integer crossing times: the float error of a crossing's offset in its piece, as a fraction
+#: of the piece's length, that still rounds a tie up (derived in piece_time).
+RELATIVE_ERROR = 32 * 2.0**-53
 
 
 class Knots(NamedTuple):
@@ -330,9 +337,22 @@ def piece_time(t0: Tensor, t1: Tensor, s: Tensor) -> Tensor:
 
     Integer times are rounded half up, ``t0 + floor(s * (t1 - t0) + 0.5)``, computed from the
     piece's start so that shifting the clock shifts the result exactly. An offset within float
-    noise (:data:`HALF_TOLERANCE`, plus 1e-12 of the piece) below a half counts as the half, so
-    that crossings exactly halfway between two ticks round up as they should. ``s == 1`` gives
-    ``t1`` exactly.
+    error below a half counts as the half, so that crossings exactly halfway between two ticks
+    round up as they should. ``s == 1`` gives ``t1`` exactly.
+
+    The float error, with ``u = 2**-53`` (float64's unit roundoff) and ``L = t1 - t0``: where
+    a crossing is a tie, the kernels compute ``s`` from exact values (integer levels, the
+    threshold's level): the linear kernel in three roundings (the level's value, a
+    difference, the quotient), each at most ``u`` relative; the cubic solver stops once its
+    Newton step is at most 1e-15 (``< 9 u``), and a converged step is larger than the error
+    it leaves. So ``s`` is within ``16 u`` of its real value. ``L`` is exact in float64
+    (spans below 2**53, :func:`check_span`); ``s * L`` and ``+ 0.5`` round once each, at most
+    ``u`` of the offset (``<= L``) each. The offset is therefore within ``18 u L`` of the
+    real one, and an offset that far below a half counts as the half:
+    :data:`RELATIVE_ERROR` (``32 u``, with margin) of the piece, plus :data:`HALF_TOLERANCE`
+    for the errors of inexact inputs on short pieces. On a piece of ``1e12`` time units the
+    nudge is 0.004 ticks (a fixed 1e-12 of the piece would be a whole tick); only above
+    ``2**48`` units does it reach half a tick, where float64 cannot round to the tick anyway.
     """
     span = t1 - t0
     if t0.is_floating_point():
@@ -340,7 +360,7 @@ def piece_time(t0: Tensor, t1: Tensor, s: Tensor) -> Tensor:
     span_f = span.to(torch.float64)
     offset = s * span_f
     offset += 0.5 + HALF_TOLERANCE
-    offset += 1e-12 * span_f
+    offset += RELATIVE_ERROR * span_f
     return t0 + torch.minimum(torch.floor(offset), span_f).to(torch.int64)
 
 
@@ -359,6 +379,46 @@ def check_max_delay(max_delay: float | None, t: Tensor) -> None:
             "max_delay must be a whole number for integer timestamps (held knots must fall "
             f"on ticks), got {max_delay!r}"
         )
+
+
+def effective_delay(max_delay: float, t: Tensor) -> int | float:
+    """``D`` as the kernels use it: a float for float ``t``, an int for integer ``t``.
+
+    For integer ``t`` a delay of :data:`~evdown_torch.checks.MAX_EXACT_SPAN` or more is
+    taken as exactly that: every gap between knots of a stream the estimators accept is
+    shorter (:func:`check_span`), so such a delay holds no knot either way ("never hold"),
+    and the int64 arithmetic on it (``t - D``, ``tau - lag * D``) cannot overflow. A float
+    delay is used as it is (float arithmetic saturates to infinities instead of wrapping).
+
+    Example:
+        >>> effective_delay(1e300, torch.tensor([0])), effective_delay(7.0, torch.tensor([0]))
+        (9007199254740992, 7)
+    """
+    check_max_delay(max_delay, t)
+    if t.is_floating_point():
+        return max_delay
+    return MAX_EXACT_SPAN if max_delay >= MAX_EXACT_SPAN else int(max_delay)
+
+
+def check_span(t_start: Tensor, t_end: Tensor) -> None:
+    """Refuse integer streams spanning 2**53 time units or more (``t_end >= t_start``).
+
+    ``t_start`` and ``t_end`` are ``()`` or ``(B,)`` (each recording of a batch). The spans are
+    differences of int64 values, which wrap past 2**63: since ``t_end >= t_start``, a wrapped
+    span is negative, and it is measured again in Python integers for the message.
+
+    Raises:
+        ValueError: see :func:`~evdown_torch.checks.check_time_span`.
+    """
+    if t_start.is_floating_point():
+        return
+    span = (t_end - t_start).reshape(-1)
+    wrapped = where_true(span < 0)
+    if wrapped.shape[0]:
+        i = int(wrapped[0])
+        check_time_span(int(t_start.reshape(-1)[i if t_start.ndim else 0]),
+                        int(t_end.reshape(-1)[i if t_end.ndim else 0]))
+    check_time_span(0, int(span.max()))
 
 
 def hold_knots(
@@ -387,8 +447,7 @@ def hold_knots(
         >>> held.t.tolist(), held.x.tolist(), step.tolist()
         ([0, 1, 4, 7, 10], [0, 1, 1, 0, 0], [1, 0, -1, 0, 1])
     """
-    check_max_delay(max_delay, events.t)
-    delay = max_delay if events.t.is_floating_point() else int(max_delay)
+    delay = effective_delay(max_delay, events.t)
     step = events.p.to(torch.int8) * 2 - 1
     n = events.num_events
     if n == 0:
@@ -440,9 +499,10 @@ def estimate(
         factor: ``(fx, fy)``.
         threshold: contrast threshold, > 0.
         solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=, emitted=,
-            resume=)`` returns the crossings ``(region, t, on, breakpoint)`` of the regions of
-            one chunk, in region order (``emitted``: events of the chunks before, for the
-            output limit; ``breakpoint``: the one ending each crossing's piece).
+            resume=, front_at_rest=)`` returns the crossings ``(region, t, on, breakpoint)``
+            of the regions of one chunk, in region order (``emitted``: events of the chunks
+            before, for the output limit; ``breakpoint``: the one ending each crossing's
+            piece; ``front_at_rest``: a bounded delay, see :func:`estimate_window`).
         bounds: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
             ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
             :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps
@@ -464,6 +524,7 @@ def estimate(
     t_start, t_end = events.t[0], events.t[-1]
     if bounds is not None:
         t_start, t_end = bounds
+    check_span(t_start, t_end)  # before any time arithmetic
     step = None
     if max_delay is not None:
         start = t_start
@@ -474,6 +535,7 @@ def estimate(
     out, _ = estimate_window(
         events, step=step, t_start=t_start, t_end=t_end, sensor_size=sensor_size,
         factor=factor, threshold=threshold, solve_regions=solve_regions,
+        front_at_rest=max_delay is not None,
     )
     return out
 
@@ -490,6 +552,7 @@ def estimate_window(
     solve_regions: RegionSolver,
     resume: Resume | None = None,
     next_cut: Tensor | None = None,
+    front_at_rest: bool = True,
 ) -> tuple[Events, Tensor | None]:
     """The driver the estimation kernels share: knots of each chunk of regions, then output.
 
@@ -509,6 +572,9 @@ def estimate_window(
             ``None`` (from ``t_start``).
         next_cut: with ``resume``, the next window's cut: the returned ``q`` is each region's
             reference index after its last breakpoint earlier than it.
+        front_at_rest: a bounded delay (always so in a streaming window): the pixels are at
+            rest before their first knot (docs/semantics.md, "Bounded delay"; the cubic
+            slope there is 0).
 
     Returns:
         ``(events, q)``: output events sorted by ``t`` (``t`` of the input's dtype; with
@@ -516,8 +582,6 @@ def estimate_window(
         int64 ``q`` at ``next_cut`` (``None`` without).
     """
     n = events.num_events
-    if not events.t.is_floating_point():
-        check_time_span(0, int((t_end - t_start).max()))
     # Every curve stays within its knots' levels, at most sum |step| in size (PCHIP is
     # shape-preserving; a window's first knot of a pixel carries its whole level).
     bound = n if step is None else int(step.abs().sum())
@@ -533,7 +597,8 @@ def estimate_window(
             start, end = take(t_start, recording), take(t_end, recording)
         knots = pixel_knots(chunk, factor=factor, t_start=start, t_end=end)
         region, t, on, bp = solve_regions(knots, sensor_size=sensor_size, factor=factor,
-                                          fraction=fraction, emitted=emitted, resume=resume)
+                                          fraction=fraction, emitted=emitted, resume=resume,
+                                          front_at_rest=front_at_rest)
         outputs.append((region, t, on))
         emitted += region.shape[0]
         if q is not None and next_cut is not None:

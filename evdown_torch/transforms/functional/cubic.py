@@ -56,11 +56,17 @@ def _edge_slope(h0: Tensor, h1: Tensor, m0: Tensor, m1: Tensor) -> Tensor:
     return torch.where(flip, 0.0, torch.where(steep, 3 * m0, d))
 
 
-def pchip_slopes(knots: Knots) -> tuple[Tensor, Tensor, Tensor]:
+def pchip_slopes(knots: Knots, *, front_at_rest: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """Derivative of every pixel's PCHIP curve at each knot, by SciPy's rules.
 
     Args:
         knots: the :class:`~evdown_torch.transforms.functional._knots.Knots`.
+        front_at_rest: the slope at each pixel's first knot is 0 instead of SciPy's end
+            slope (a bounded delay, docs/semantics.md "Bounded delay": SciPy's end slope
+            depends on the width of the pixel's second segment, which input arbitrarily
+            later decides). In a streaming window a pixel's first knot is either its first
+            in the stream or one kept before the window's cut, whose slope shapes only a
+            piece that the window does not solve.
 
     Returns:
         ``(slope, width, rise)``, all ``(K,)`` float64: the derivative at each knot (level per
@@ -94,13 +100,15 @@ def pchip_slopes(knots: Knots) -> tuple[Tensor, Tensor, Tensor]:
     after = torch.clamp(first_at + 1, max=first.shape[0] - 1)
     before = torch.clamp(last_at - 1, min=0)
     two = take(last, after)  # the pixel has exactly two knots
-    front = torch.where(
-        two,
-        take(m_next, first_at),
-        _edge_slope(
-            take(width, first_at), take(width, after), take(m_next, first_at), take(m_next, after)
-        ),
-    )
+    if front_at_rest:
+        front = torch.zeros(first_at.shape, dtype=torch.float64, device=first_at.device)
+    else:
+        front = torch.where(
+            two,
+            take(m_next, first_at),
+            _edge_slope(take(width, first_at), take(width, after), take(m_next, first_at),
+                        take(m_next, after)),
+        )
     back = torch.where(
         two,
         take(m_prev, last_at),
@@ -343,7 +351,8 @@ def cubic_estimation(
             ``None`` for one stream.
         max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
             "Bounded delay"; a whole number for int64 ``t``), or ``None`` for the paper's
-            method. With ``D`` a pixel holds its level until ``D`` before its next knot.
+            method. With ``D`` a pixel holds its level until ``D`` before its next knot, and
+            its slope at its first knot is 0.
 
     Returns:
         Output events sorted by ``t``, ``t`` of the input's dtype.
@@ -368,16 +377,18 @@ def cubic_regions(
     fraction: Fraction,
     emitted: int = 0,
     resume: Resume | None = None,
+    front_at_rest: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Crossings of the regions of one chunk: ``(region, t, on, breakpoint)`` in region order.
 
     ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``;
     ``emitted`` counts the events of the chunks before (for the output limit); ``resume``
-    starts a streaming window (:func:`~evdown_torch.transforms.functional._knots.resume_steps`).
-    ``breakpoint`` is the one that ends each crossing's piece.
+    starts a streaming window (:func:`~evdown_torch.transforms.functional._knots.resume_steps`);
+    ``front_at_rest``: a bounded delay's slope 0 at each pixel's first knot
+    (:func:`pchip_slopes`). ``breakpoint`` is the one that ends each crossing's piece.
     """
     device = knots.t.device
-    slope, width, rise = pchip_slopes(knots)
+    slope, width, rise = pchip_slopes(knots, front_at_rest=front_at_rest)
 
     # n_r * M_r and its derivative at every breakpoint: exact integer part + the rest.
     nb = knots.bp_t.shape[0]

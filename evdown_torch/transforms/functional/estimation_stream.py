@@ -42,6 +42,8 @@ from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
     Knots,
     RegionSolver,
+    check_span,
+    effective_delay,
     estimate_window,
     hold_knots,
 )
@@ -221,13 +223,15 @@ def window_step(
             torch.full((width * height,), t_start.item(), dtype=t_dtype, device=device),
             torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
         )
+    tau = events.t[-1]
+    check_span(state.t_start, tau)  # before any time arithmetic
     pixel = events.y * width + events.x
     new, new_step = hold_knots(events, max_delay=max_delay, t_start=take(state.pixel_t, pixel))
     pixel_t = state.pixel_t.clone()
     pixel_t.scatter_reduce_(0, pixel, events.t, "amax")
-    tau = events.t[-1]
-    delay = max_delay if events.t.is_floating_point() else int(max_delay)
-    horizon = tau.item() - lag * delay
+    # Nothing is earlier than t_start: a horizon before it (a delay longer than the stream so
+    # far, up to 1e300) decides nothing, and held as t_start it stays an int64 / float time.
+    horizon = max(tau.item() - lag * effective_delay(max_delay, events.t), state.t_start.item())
     if state.horizon is not None:
         horizon = max(horizon, state.horizon)
     cut = None if state.horizon is None else torch.tensor(state.horizon, dtype=t_dtype,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from fractions import Fraction
 
 import torch
@@ -20,7 +19,47 @@ from evdown_torch.transforms.functional._knots import (
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
 from evdown_torch.transforms.functional.estimation_stream import Resume, resume_steps
 
-__all__ = ["linear_estimation", "linear_regions"]
+__all__ = ["linear_estimation", "linear_regions", "local_cumsum"]
+
+
+def local_cumsum(values: Tensor, first_at: Tensor) -> Tensor:
+    """Float cumulative sums restarting at each segment, each bit for bit as if alone.
+
+    A cumulative sum over many segments minus its value before each segment (as
+    :func:`~evdown_torch._tensors.segmented_cumsum` does) carries the rounding of the segments
+    before into each segment's last bits, so a region's result would depend on the regions
+    processed with it (a batch of recordings, a chunk of regions). Here each segment is one
+    row of a ``(segments, width)`` tensor summed along its rows from 0; segments are grouped
+    by length into powers of two (``width < 2 * length``), so the padding at most doubles the
+    work and the loop runs over at most 64 groups, never over segments.
+
+    Args:
+        values: ``(N,)`` float64.
+        first_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
+
+    Returns:
+        ``(N,)`` float64 sums.
+
+    Example:
+        >>> local_cumsum(torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0]), torch.tensor([0, 2, 3])).tolist()
+        [1.0, 3.0, 4.0, 8.0, 24.0]
+    """
+    n = values.shape[0]
+    out = torch.empty_like(values)
+    if n == 0:
+        return out
+    length = torch.diff(first_at, append=first_at.new_tensor([n]))
+    # Group k holds the segments of length in (2**(k-1), 2**k]: frexp's exponent of length - 1.
+    group = torch.frexp((length - 1).to(torch.float64)).exponent
+    for k in torch.unique(group).tolist():
+        members = where_true(group == k)
+        start, size = take(first_at, members), take(length, members)
+        offset = torch.arange(1 << k, device=values.device)
+        inside = offset < size[:, None]
+        at = (start[:, None] + offset).masked_fill_(~inside, 0)
+        rows = take(values, at.reshape(-1)).reshape(at.shape).masked_fill_(~inside, 0.0)
+        out[at[inside]] = torch.cumsum(rows, 1)[inside]
+    return out
 
 
 def linear_estimation(
@@ -83,13 +122,15 @@ def linear_regions(
     fraction: Fraction,
     emitted: int = 0,
     resume: Resume | None = None,
+    front_at_rest: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Crossings of the regions of one chunk: ``(region, t, on, breakpoint)`` in region order.
 
     ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``;
     ``emitted`` counts the events of the chunks before (for the output limit); ``resume``
     starts a streaming window (:func:`~evdown_torch.transforms.functional._knots.resume_steps`).
-    ``breakpoint`` is the one that ends each crossing's piece.
+    ``front_at_rest`` (a bounded delay) changes nothing for polylines. ``breakpoint`` is the
+    one that ends each crossing's piece.
     """
     device = knots.t.device
 
@@ -105,16 +146,27 @@ def linear_regions(
     slope = rise.to(torch.float64).div_(run)
     del rise, run, last_at
     # Fixed point for the slope sums: high parts add exactly in int64, low parts are tiny.
-    bound = float(slope.abs().max()) * factor[0] * factor[1]
-    scale = 2.0 ** (60 - math.frexp(bound)[1]) if bound > 0 else 1.0
-    high_f = torch.round(slope * scale)
-    low = slope.sub_(high_f / scale)
-    high = high_f.to(torch.int64)
-    del high_f, slope
-
-    # Per breakpoint: level change (exact), slope-sum change (fixed point + rest), knot count.
+    # One scale per region (a power of two from its own steepest slope), so that a region's
+    # sums do not depend on the regions processed with it (a batch, a chunk of regions).
     nb = knots.bp_t.shape[0]
     bp = knots.breakpoint
+    bp_first = knots.bp_first
+    bp_first_at = where_true(bp_first)
+    region = run_index(bp_first)
+    knot_region = take(region, bp)
+    steepest = torch.zeros(bp_first_at.shape[0], dtype=torch.float64, device=device)
+    steepest.scatter_reduce_(0, knot_region, slope.abs(), "amax")
+    exponent = torch.frexp(steepest * (factor[0] * factor[1])).exponent
+    scale = torch.ldexp(torch.ones_like(steepest), 60 - exponent)
+    scale.masked_fill_(steepest == 0, 1.0)
+    knot_scale = take(scale, knot_region)
+    del steepest, exponent, knot_region
+    high_f = torch.round(slope * knot_scale)
+    low = slope.sub_(high_f / knot_scale)
+    high = high_f.to(torch.int64)
+    del high_f, slope, knot_scale
+
+    # Per breakpoint: level change (exact), slope-sum change (fixed point + rest), knot count.
     level_bp = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
         0, bp, level_changes(knots)
     )
@@ -126,12 +178,11 @@ def linear_regions(
     )
     count = torch.bincount(bp, minlength=nb)
     del high, low, first_at, bp
-    bp_first = knots.bp_first
-    bp_first_at = where_true(bp_first)
-    region = run_index(bp_first)
     whole = segmented_cumsum(level_bp, bp_first_at, region)  # exact integer part of n_r * M_r
-    slope_sum = torch.cumsum(high_bp, 0).to(torch.float64).div_(scale)
-    slope_sum += torch.cumsum(low_bp, 0)
+    # Each region's high parts add up to exactly 0 (every pixel's slope returns to 0 at its
+    # last knot), so their plain cumulative sum restarts exactly at each region.
+    slope_sum = torch.cumsum(high_bp, 0).to(torch.float64).div_(take(scale, region))
+    slope_sum += local_cumsum(low_bp, bp_first_at)
     del level_bp, high_bp, low_bp
     # No pixel strictly inside a segment (all active pixels have a knot): remainder exactly 0.
     idle = count == take(take(count, bp_first_at), region)
@@ -147,7 +198,7 @@ def linear_regions(
     step[1:] -= (whole[1:] - whole[:-1]).to(torch.float64)
     step.scatter_(0, bp_first_at, 0.0)
     del gap, slope_sum
-    total = torch.cumsum(step, 0)
+    total = local_cumsum(step, bp_first_at)
     part = total - take(take(total, where_true(idle)), run_index(idle))
     del step, total, idle
 
