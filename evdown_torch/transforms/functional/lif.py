@@ -169,10 +169,8 @@ def _event_cells(
     low = int(steps.min())
     span = top_step - low + 1  # steps per region in the key
     n_keys = plane * span
-    if low:
-        steps = steps - low
     if n_keys <= min(OCCUPANCY_KEYS_PER_EVENT * n, MAX_OCCUPANCY_KEYS):
-        key = region.mul_(span).add_(steps)
+        key = region.mul_(span).add_(steps).sub_(low)
         occupied = torch.zeros(n_keys, dtype=torch.bool, device=device)
         occupied[key] = True
         count_dtype = torch.int32 if n < 1 << 30 else torch.int64  # 2 * cells + 1 fits
@@ -184,7 +182,7 @@ def _event_cells(
         del rank
         polarity = events.p
     elif n_keys < 1 << 62:
-        key, order = torch.sort(region.mul_(span).add_(steps))
+        key, order = torch.sort(region.mul_(span).add_(steps).sub_(low))
         polarity = events.p.index_select(0, order)
         del order
         starts = torch.ones(n, dtype=torch.bool, device=device)
@@ -205,9 +203,7 @@ def _event_cells(
         del region, steps, starts, first
     if n_keys < 1 << 62:  # from the keys
         cell_region = divide(cell_step, span)
-        cell_step = cell_step.sub_(cell_region * span)
-    if low:
-        cell_step += low
+        cell_step = cell_step.sub_(cell_region * span).add_(low)
     n_cells = cell_step.shape[0]
     counts = torch.bincount(cell_of_event.mul_(2).add_(polarity), minlength=2 * n_cells)
     counts = counts.to(f32).view(n_cells, 2)  # exact: fewer than 2**24 events per cell
