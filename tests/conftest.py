@@ -11,10 +11,14 @@ import torch
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NMNIST_FILE = SHARED_DATA / "sample_nmnist.bin"
 
+#: The ``device`` fixture's parameters; the CUDA one is marked ``cuda`` (``pytest -m cuda``
+#: runs the tests on CUDA alone: ``benchmarks/gpu_check.py``) and skips without CUDA.
 DEVICES = [
     "cpu",
     pytest.param(
-        "cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+        "cuda",
+        marks=[pytest.mark.cuda,
+               pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")],
     ),
 ]
 

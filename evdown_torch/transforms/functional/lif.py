@@ -145,7 +145,9 @@ def _event_cells(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Cells: the ``(region, step)`` pairs that hold events, ordered by region, then step.
 
-    A cell's key is ``region * (top_step + 1) + step``. Where there are few keys
+    A cell's key is ``region * span + (step - low)``, ``low`` the events' earliest step and
+    ``span = top_step - low + 1`` (steps relative to the call's first, so that a streaming
+    session's keys do not grow with the stream's age). Where there are few keys
     (:data:`OCCUPANCY_KEYS_PER_EVENT` per event and :data:`MAX_OCCUPANCY_KEYS` in all), the
     cells are the occupied entries of a bool table of every key, found without sorting the
     events (its running count gives every event's cell); otherwise the events are sorted by
@@ -164,10 +166,11 @@ def _event_cells(
         return empty, empty, torch.empty(0, 2, dtype=f32, device=device)
     region = divide(events.x, fx).add_(divide(events.y, fy), alpha=wo)
     n = region.shape[0]
-    span = top_step + 1  # steps per region in the key
+    low = int(steps.min())
+    span = top_step - low + 1  # steps per region in the key
     n_keys = plane * span
     if n_keys <= min(OCCUPANCY_KEYS_PER_EVENT * n, MAX_OCCUPANCY_KEYS):
-        key = region.mul_(span).add_(steps)
+        key = region.mul_(span).add_(steps).sub_(low)
         occupied = torch.zeros(n_keys, dtype=torch.bool, device=device)
         occupied[key] = True
         count_dtype = torch.int32 if n < 1 << 30 else torch.int64  # 2 * cells + 1 fits
@@ -179,7 +182,7 @@ def _event_cells(
         del rank
         polarity = events.p
     elif n_keys < 1 << 62:
-        key, order = torch.sort(region.mul_(span).add_(steps))
+        key, order = torch.sort(region.mul_(span).add_(steps).sub_(low))
         polarity = events.p.index_select(0, order)
         del order
         starts = torch.ones(n, dtype=torch.bool, device=device)
@@ -200,7 +203,7 @@ def _event_cells(
         del region, steps, starts, first
     if n_keys < 1 << 62:  # from the keys
         cell_region = divide(cell_step, span)
-        cell_step = cell_step.sub_(cell_region * span)
+        cell_step = cell_step.sub_(cell_region * span).add_(low)
     n_cells = cell_step.shape[0]
     counts = torch.bincount(cell_of_event.mul_(2).add_(polarity), minlength=2 * n_cells)
     counts = counts.to(f32).view(n_cells, 2)  # exact: fewer than 2**24 events per cell
