@@ -103,8 +103,7 @@ def test_learning_rate_is_chosen_without_the_test_split(tiny, monkeypatch):
     monkeypatch.setattr(classifier, "frames_of", spy)
     control = next(c.cell for c in result.cells if c.role == "control")
     chunks = {"train": [list(range(22))], "test": [list(range(6))]}
-    out = classifier.train_job(dataclasses.replace(source), control, chunks, config, 1, "cpu", 0.003,
-                         True)
+    out = classifier.train_job(source, control, chunks, config, 1, "cpu", 0.003, True)
     assert read == ["train"] and len(out["correct"]) == config.data.validation_samples
     assert out["labels"] == [i % 11 for i in range(config.data.validation_samples)]
 
