@@ -72,6 +72,7 @@ default. Keys left out take the defaults shown.
 
     [measures]
     consistency_bin_us = 10_000  # optical consistency's time bins
+    consistency_recordings = 0   # the first test recordings compared with the camera (0: all)
     throughput_recordings = 4    # test recordings timed per cell, one thread, idle
 
     [output]
@@ -328,10 +329,12 @@ class MeasuresConfig:
     """Settings of the per-cell measures (table ``[measures]``)."""
 
     consistency_bin_us: int = 10_000
+    consistency_recordings: int = 0
     throughput_recordings: int = 4
 
     def __post_init__(self) -> None:
         check_positive_int("measures.consistency_bin_us", self.consistency_bin_us)
+        check_non_negative_int("measures.consistency_recordings", self.consistency_recordings)
         check_non_negative_int("measures.throughput_recordings", self.throughput_recordings)
 
 

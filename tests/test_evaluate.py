@@ -260,3 +260,24 @@ def test_dvsgesture_subset_crop_and_input_budgets(tmp_path, rng):
     assert control["count"] == pytest.approx(control["target"], rel=0.05)
     # uniform noise this sparse leaves EventCount a coarse staircase: the closest step is taken
     assert result.cells[2].calibration["count"] > 0
+
+
+def test_consistency_on_the_first_test_recordings(tiny, tmp_path):
+    config, first, root = tiny
+    config = dataclasses.replace(
+        config, measures=dataclasses.replace(config.measures, consistency_recordings=3),
+        output=dataclasses.replace(config.output, cache=str(root / "cache")))
+    result = run_evaluation(config, log=None)
+    source = Source(config.data, str(root / "cache"))
+    test = [source.recording("test", i)[0] for i in range(3)]
+    camera = [source.ground_truth("test", i, (2, 2)) for i in range(3)]
+    down = next(c for c in result.cells if c.method == "downsample")
+    assert down.rate_vs_camera == pytest.approx(sum(len(r) for r in test)
+                                                / sum(len(c) for c in camera))
+    expected = np.mean([
+        optical_consistency(Downsample((32, 32, 2), 2)(r), c, (16, 16, 2), bin_width=10_000,
+                            t_start=int(r["t"].min()), t_end=int(r["t"].max()))
+        for r, c in zip(test, camera)])
+    assert down.consistency == pytest.approx(expected)
+    # accuracy is still over every test recording
+    assert all(len(row) == 6 for c in result.cells for row in c.correct)

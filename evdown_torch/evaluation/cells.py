@@ -185,6 +185,7 @@ def calibrate_job(source: Source, cell: Cell, target_count: float, samples: int
 def frames_key(source: Source, cell: Cell, split: str, indices: list[int],
                 config: EvaluationConfig, draw: int = 0) -> dict[str, Any]:
     return {"data": source.key(split), "indices": [indices[0], indices[-1] + 1],
+            "consistency_recordings": config.measures.consistency_recordings,
             "cell": cell.key(), "draw": draw if cell.random else None,
             "bins": config.data.time_bins,
             "mean_time": config.data.mean_time,
@@ -236,8 +237,9 @@ def downscale_job(source: Source, units: list[tuple[Cell, int]], split: str,
             camera = None
             if split == "test" and source.has_ground_truth and cell.method != BASELINE:
                 if cell.factor not in cameras:
+                    limit = config.measures.consistency_recordings or len(indices) + indices[0]
                     cameras[cell.factor] = [source.ground_truth(split, i, cell.factor)
-                                            for i in indices]
+                                            for i in indices if i < limit]
                 camera = cameras[cell.factor]
             _downscale_cell(cache, [paths[j] for j in members], cell,
                             [units[j][1] for j in members], inputs, camera, sensor, config)
@@ -299,7 +301,7 @@ def _store_frames(cache: Cache, path: Any, cell: Cell, inputs: list[tuple[Any, i
         metrics = event_metrics(out, out_sensor, duration=max(t1 - t0, 1))
         stats["density"].append(metrics.density)
         stats["entropy"].append(metrics.entropy)
-        if cameras is not None:
+        if cameras is not None and k < len(cameras):
             stats["camera_events"].append(len(cameras[k]))
             stats["consistency"].append(optical_consistency(
                 out, cameras[k], out_sensor, bin_width=config.measures.consistency_bin_us,

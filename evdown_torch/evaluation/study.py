@@ -96,6 +96,12 @@ def _chunks(indices: range, size: int = CHUNK) -> list[list[int]]:
     return [list(indices[i:i + size]) for i in range(0, len(indices), size)]
 
 
+def _consistency_recordings(config: EvaluationConfig, source: Source) -> int:
+    """How many test recordings (the first ones) are compared with the camera."""
+    n = source.size("test")
+    return min(config.measures.consistency_recordings or n, n)
+
+
 def _cpu_seconds() -> float:
     """CPU seconds of this process and of its finished children (the workers)."""
     own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
@@ -199,9 +205,10 @@ def _fill(config: EvaluationConfig, source: Source, pool: Any, device: torch.dev
                  f"({generated} generated)")
     camera: dict[tuple[int, int], int] = {}
     if source.has_ground_truth:
+        measured = _chunks(range(_consistency_recordings(config, source)))
         renders = [(s, c, f) for f in factors
                    for s, c in [("train", list(range(calibration_samples)))]
-                   + [("test", c) for c in chunks["test"]]]
+                   + [("test", c) for c in measured]]
         out = _map(pool, progress, "camera renders", jobs.generate_job,
                    [source] * len(renders), [r[0] for r in renders], [r[1] for r in renders],
                    [r[2] for r in renders])
@@ -333,8 +340,10 @@ def _measure(config: EvaluationConfig, source: Source, filled: _Filled, speeds: 
         fan_out = (model.stem_channels if model.stem is not None else model.channels[0] * 9)
         camera = None
         if source.has_ground_truth:
+            # over the test recordings compared with the camera (the first ones)
+            seen = sum(test["events_out"][:len(test["camera_events"])])
             camera = 1.0 if cell.method == BASELINE else (
-                out_total / sum(test["camera_events"]) if sum(test["camera_events"]) else math.inf)
+                seen / sum(test["camera_events"]) if sum(test["camera_events"]) else math.inf)
         speed = speeds[cell]
         results.append(CellResult(
             cell=cell, role=p.role, output_size=(w, h), seeds=seeds, correct=correct,
