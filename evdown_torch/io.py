@@ -8,18 +8,27 @@ records one, else the one the caller gives, else a guess that it says out loud (
 The decoding is done by maintained readers, never by parsers of our own:
 
 =============  =====================================================  =====================
-extension      reader                                                 sensor size
+extension      reader                                                 sensor size, time unit
 =============  =====================================================  =====================
-``.npy``       NumPy: a structured array (Tonic's format), as stored  not recorded
-``.npz``       NumPy: arrays ``x, y, t, p`` or one structured array   ``sensor_size`` array
-``.h5/.hdf5``  h5py: datasets ``events/x, y, t, p`` (DSEC's layout,   ``sensor_size`` or
-               and what :func:`write_events` writes), a structured    ``width``/``height``
-               dataset ``events``, or datasets ``x, y, t, p``         attributes
-``.aedat4``    ``tonic.io.read_aedat4`` (the ``aedat`` package)       the stream's header
-``.bin``       ``tonic.io.read_mnist_file`` (N-MNIST, N-Caltech101)   not recorded
-``.raw``       faery (Prophesee EVT 2.0, 2.1 and 3.0)                 the header, if there
-``.dat``       faery (Prophesee DAT, CD events)                       the header, if there
+``.npy``       NumPy: a structured array (Tonic's format), as stored, the sidecar
+               or an ``(N, 4)`` array (columns ``x, y, t, p`` unless  ``FILE.npy.json``, if
+               ``columns`` says otherwise)                            there
+``.npz``       NumPy: arrays ``x, y, t, p`` or one structured array   ``sensor_size``,
+                                                                      ``time_unit`` arrays
+``.h5/.hdf5``  h5py: datasets ``events/x, y, t, p`` (DSEC's layout,   ``sensor_size`` (or
+               and what :func:`write_events` writes), a structured    ``width``/``height``),
+               dataset ``events``, or datasets ``x, y, t, p``         ``time_unit`` attrs
+``.aedat4``    ``tonic.io.read_aedat4`` (the ``aedat`` package)       the header; us
+``.bin``       ``tonic.io.read_mnist_file`` (N-MNIST, N-Caltech101)   not recorded; us
+``.raw``       faery (Prophesee EVT 2.0, 2.1 and 3.0)                 the header, if there; us
+``.dat``       faery (Prophesee DAT, CD events)                       the header, if there; us
 =============  =====================================================  =====================
+
+A file's own sensor size wins; the one the caller gives fills in where the file records none
+(so that one setting serves a folder of mixed files); a guess comes last. The time unit is the
+format's (microseconds for camera formats) or the one recorded in the file, else ``None``
+(unknown: the package reads timestamps as microseconds, and
+:func:`~evdown_torch.time_units.check_timing` warns when that looks wrong).
 
 Tonic, aedat, faery and h5py are optional: ``pip install 'evdown_torch[readers]'``.
 Prophesee files go through faery (an 8 MB Rust extension needing only NumPy). expelliarmus,
@@ -38,6 +47,7 @@ Files other than ``.npy``/``.npz`` come back with :data:`~evdown_torch.events.DV
 from __future__ import annotations
 
 import importlib
+import json
 import warnings
 import zipfile
 from collections.abc import Callable
@@ -48,17 +58,20 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from evdown_torch.checks import check_sensor_size
-from evdown_torch.events import DVS_DTYPE, load_npy_events
+from evdown_torch.events import DVS_DTYPE, FIELDS
+from evdown_torch.time_units import check_time_unit
 
 __all__ = [
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
     "Recording",
     "SensorSizeGuessWarning",
+    "check_columns",
     "check_readable",
     "check_writable",
     "event_files",
     "read_events",
+    "sidecar",
     "write_events",
 ]
 
@@ -77,7 +90,13 @@ NMNIST_SENSOR = (34, 34, 2)
 _INT16_MAX = int(np.iinfo(np.int16).max)
 
 
-class Recording(NamedTuple):
+class _RecordingFields(NamedTuple):
+    events: np.ndarray
+    sensor_size: tuple[int, int, int]
+    guessed: bool
+
+
+class Recording(_RecordingFields):
     """What :func:`read_events` returns; unpacks as ``events, sensor_size, guessed``.
 
     Attributes:
@@ -85,11 +104,25 @@ class Recording(NamedTuple):
         sensor_size: ``(W, H, P)`` of the recording.
         guessed: ``True`` when the file did not record the sensor size, none was given, and
             it was guessed (a :class:`SensorSizeGuessWarning` said so).
+        time_unit: the unit of ``t`` (``"s"``, ``"ms"``, ``"us"`` or ``"ns"``: see
+            :mod:`evdown_torch.time_units`) that the format or the file states; ``None`` when
+            neither says (read as microseconds). An attribute, not unpacked.
     """
 
-    events: np.ndarray
-    sensor_size: tuple[int, int, int]
-    guessed: bool
+    time_unit: str | None
+
+    def __new__(cls, events: np.ndarray, sensor_size: tuple[int, int, int], guessed: bool,
+                time_unit: str | None = None) -> Recording:
+        self = super().__new__(cls, events, sensor_size, guessed)
+        self.time_unit = time_unit
+        return self
+
+    def _replace(self, **changes: Any) -> Recording:
+        unit = changes.pop("time_unit", self.time_unit)
+        return Recording(*super()._replace(**changes), time_unit=unit)
+
+    def __repr__(self) -> str:
+        return f"{super().__repr__()[:-1]}, time_unit={self.time_unit!r})"
 
 
 class SensorSizeGuessWarning(UserWarning):
@@ -144,6 +177,19 @@ def _columns(x: Any, y: Any, t: Any, p: Any, source: str) -> np.ndarray:
     return out
 
 
+def _time_unit_attribute(attrs: Any, source: str) -> str | None:
+    """A ``time_unit`` attribute or array, if present."""
+    if "time_unit" not in attrs:
+        return None
+    value = attrs["time_unit"]
+    value = value.item() if isinstance(value, np.ndarray) else value
+    value = value.decode() if isinstance(value, bytes) else value
+    try:
+        return check_time_unit(value)
+    except ValueError as error:
+        raise ValueError(f"{source}: stored {error}") from None
+
+
 def _sensor_attribute(attrs: Any, source: str) -> tuple[int, int, int] | None:
     """``sensor_size`` (W, H, P) or ``width``/``height`` attributes, if present."""
     if "sensor_size" in attrs:
@@ -158,13 +204,71 @@ def _sensor_attribute(attrs: Any, source: str) -> tuple[int, int, int] | None:
 
 
 # ----------------------------------------------------------------------------- readers
-# Each takes the path and returns (events, recorded sensor size or None, guess or None).
-
-_Read = tuple[np.ndarray, "tuple[int, int, int] | None", "tuple[int, int, int] | None"]
+# Each takes the path and returns a _Read.
 
 
-def _read_npy(path: Path) -> _Read:
-    return load_npy_events(path), None, None
+class _Read(NamedTuple):
+    events: np.ndarray
+    recorded: tuple[int, int, int] | None  # the sensor size the file records
+    guess: tuple[int, int, int] | None  # a better guess than the largest coordinates
+    time_unit: str | None = None  # the one the format or the file states
+
+
+def sidecar(path: str | Path) -> Path:
+    """The JSON file next to a ``.npy`` file that holds its sensor size and time unit
+    (``FILE.npy.json``)."""
+    path = Path(path)
+    return path.with_name(path.name + ".json")
+
+
+def check_columns(columns: Any) -> tuple[str, ...]:
+    """Validate the column order of ``(N, 4)`` arrays: ``"t,x,y,p"`` or four names.
+
+    Raises:
+        ValueError: unless it names ``x``, ``y``, ``t`` and ``p`` once each.
+    """
+    names = tuple(c.strip() for c in columns.split(",")) if isinstance(columns, str) else (
+        tuple(columns) if isinstance(columns, (tuple, list)) else ())
+    if sorted(names) != sorted(FIELDS):
+        raise ValueError(
+            f"columns must name x, y, t and p once each, e.g. 't,x,y,p'; got {columns!r}")
+    return names
+
+
+def _read_npy(path: Path, columns: Any = FIELDS) -> _Read:
+    source = str(path)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (ValueError, EOFError) as error:  # EOFError: an empty file
+        raise ValueError(f"cannot read {source!r} as a .npy array: {error}") from None
+    names = data.dtype.names or ()
+    if data.ndim == 1 and {"x", "y", "t", "p"} <= set(names):
+        events = data
+    elif data.ndim == 2 and data.shape[1] == 4 and not names:
+        x, y, t, p = (data[:, check_columns(columns).index(f)] for f in FIELDS)
+        if np.issubdtype(data.dtype, np.floating):  # one dtype for all: whole-number x, y
+            if not all(np.isfinite(c).all() and (c == np.round(c)).all() for c in (x, y)):
+                raise ValueError(f"{source}: coordinates x, y must be whole numbers")
+            x, y = x.astype(np.int64), y.astype(np.int64)
+        events = _columns(x, y, t, p, source)
+    else:
+        raise ValueError(
+            f"{source!r} holds an array of dtype {data.dtype} and shape {data.shape}; "
+            "expected a 1-D structured event array with fields x, y, t, p (Tonic's format) "
+            "or an (N, 4) array of columns (x, y, t, p by default; see columns / --columns)"
+        )
+    meta = sidecar(path)
+    if not meta.is_file():
+        return _Read(events, None, None)
+    try:
+        stored = json.loads(meta.read_text())
+        if not isinstance(stored, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, ValueError) as error:
+        raise ValueError(f"cannot read {str(meta)!r}, the sidecar of {source!r}: {error}"
+                         ) from None
+    return _Read(events, _sensor_attribute(stored, str(meta)),
+                 None, _time_unit_attribute(stored, str(meta)))
 
 
 def _read_npz(path: Path) -> _Read:
@@ -176,12 +280,14 @@ def _read_npz(path: Path) -> _Read:
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
         raise ValueError(f"cannot read {source!r} as a .npz archive: {error}") from None
     recorded = _sensor_attribute(arrays, source) if "sensor_size" in arrays else None
+    unit = _time_unit_attribute(arrays, source)
     if {"x", "y", "t", "p"} <= set(arrays):
-        return _columns(arrays["x"], arrays["y"], arrays["t"], arrays["p"], source), recorded, None
+        events = _columns(arrays["x"], arrays["y"], arrays["t"], arrays["p"], source)
+        return _Read(events, recorded, None, unit)
     structured = [key for key, array in arrays.items()
                   if array.dtype.names and {"x", "y", "t", "p"} <= set(array.dtype.names)]
     if len(structured) == 1 and arrays[structured[0]].ndim == 1:
-        return arrays[structured[0]], recorded, None
+        return _Read(arrays[structured[0]], recorded, None, unit)
     raise ValueError(
         f"{source!r} holds arrays {sorted(arrays)}; expected arrays x, y, t, p or one 1-D "
         "structured array with fields x, y, t, p (and optionally sensor_size)"
@@ -194,16 +300,20 @@ def _read_hdf5(path: Path) -> _Read:
     try:
         with h5py.File(path, "r") as file:
             recorded = _sensor_attribute(file.attrs, source)
+            unit = _time_unit_attribute(file.attrs, source)
             node = file.get("events")
             if isinstance(node, h5py.Group):
                 recorded = recorded or _sensor_attribute(node.attrs, source)
+                unit = unit or _time_unit_attribute(node.attrs, source)
                 group = node
             elif isinstance(node, h5py.Dataset) and {"x", "y", "t", "p"} <= set(
                 node.dtype.names or ()
             ):
                 recorded = recorded or _sensor_attribute(node.attrs, source)
+                unit = unit or _time_unit_attribute(node.attrs, source)
                 data = node[()]
-                return _columns(data["x"], data["y"], data["t"], data["p"], source), recorded, None
+                events = _columns(data["x"], data["y"], data["t"], data["p"], source)
+                return _Read(events, recorded, None, unit)
             else:
                 group = file
             if not all(isinstance(group.get(name), h5py.Dataset) for name in "xytp"):
@@ -215,7 +325,7 @@ def _read_hdf5(path: Path) -> _Read:
             columns = [group[name][()] for name in "xytp"]
     except OSError as error:
         raise ValueError(f"cannot read {source!r} as HDF5: {error}") from None
-    return _columns(*columns, source), recorded, None
+    return _Read(_columns(*columns, source), recorded, None, unit)
 
 
 def _read_aedat4(path: Path) -> _Read:
@@ -238,10 +348,11 @@ def _read_aedat4(path: Path) -> _Read:
     except ValueError as error:
         if "need at least one array" not in str(error):  # no event packet at all
             raise ValueError(f"cannot read {source!r} as AEDAT4: {error}") from None
-        return np.empty(0, dtype=DVS_DTYPE), recorded, None
+        return _Read(np.empty(0, dtype=DVS_DTYPE), recorded, None, "us")
     except Exception as error:  # as above
         raise ValueError(f"cannot read {source!r} as AEDAT4: {error}") from None
-    return _columns(data["x"], data["y"], data["t"], data["on"], source), recorded, None
+    return _Read(_columns(data["x"], data["y"], data["t"], data["on"], source), recorded, None,
+                 "us")
 
 
 def _read_bin(path: Path) -> _Read:
@@ -254,7 +365,7 @@ def _read_bin(path: Path) -> _Read:
     except (OSError, ValueError, IndexError) as error:
         raise ValueError(f"cannot read {str(path)!r} as an N-MNIST .bin file: {error}") from None
     events = _columns(data["x"], data["y"], data["t"], data["p"], str(path))
-    return events, None, NMNIST_SENSOR
+    return _Read(events, None, NMNIST_SENSOR, "us")
 
 
 _SIZE_FALLBACK = (65535, 65535)  # only where the header has no size; never reported as one
@@ -290,7 +401,7 @@ def _read_prophesee(path: Path) -> _Read:
         raise ValueError(f"cannot read {source!r} as a Prophesee file: {error}") from None
     data = np.concatenate(packets) if packets else np.empty(0, DVS_DTYPE)
     p = data["payload"] if dat_file and len(packets) else data["p"]
-    return _columns(data["x"], data["y"], data["t"], p, source), recorded, None
+    return _Read(_columns(data["x"], data["y"], data["t"], p, source), recorded, None, "us")
 
 
 _READERS: dict[str, Callable[[Path], _Read]] = {
@@ -323,10 +434,10 @@ def _resolve_sensor_size(
     if n and (int(events["x"].min()) < 0 or int(events["y"].min()) < 0):
         raise ValueError(f"{source!r} holds negative pixel coordinates")
     if given is not None or recorded is not None:
-        size = check_sensor_size(given) if given is not None else recorded
+        size = recorded if recorded is not None else check_sensor_size(given)
         if n and (events["x"].max() >= size[0] or events["y"].max() >= size[1]):
             w, h = _extent(events)
-            where = "given" if given is not None else "recorded in the file"
+            where = "recorded in the file" if recorded is not None else "given"
             raise ValueError(
                 f"{source!r} holds coordinates up to x={w - 1}, y={h - 1}, outside the sensor "
                 f"size {size} {where}"
@@ -369,8 +480,9 @@ def check_readable(path: str | Path) -> Path:
     return path
 
 
-def check_writable(path: str | Path) -> Path:
-    """Check that :func:`write_events` can write ``path``: a known extension, an existing folder.
+def check_writable(path: str | Path, *, folder_may_be_missing: bool = False) -> Path:
+    """Check that :func:`write_events` can write ``path``: a known extension, an existing folder
+    (unless ``folder_may_be_missing``: the caller creates it).
 
     Raises:
         ValueError: naming the problem.
@@ -381,47 +493,55 @@ def check_writable(path: str | Path) -> Path:
             f"cannot write {str(path)!r}: unknown extension {path.suffix!r}; "
             f"writable: {', '.join(WRITE_EXTENSIONS)}"
         )
-    if not path.parent.is_dir():
+    if not folder_may_be_missing and not path.parent.is_dir():
         raise ValueError(
             f"cannot write {str(path)!r}: folder {str(path.parent)!r} does not exist"
         )
     return path
 
 
-def read_events(path: str | Path, *, sensor_size: Any = None) -> Recording:
+def read_events(
+    path: str | Path, *, sensor_size: Any = None, columns: Any = FIELDS
+) -> Recording:
     """Read an event recording from any supported file (see the module's table).
 
     Args:
         path: the file; its extension chooses the reader (case-insensitive).
-        sensor_size: ``(W, H, P)``, for files that do not record it; it wins over the file's
-            own when both are there.
+        sensor_size: ``(W, H, P)``, for files that do not record it; a size the file records
+            wins (so that one value serves a folder of mixed files).
+        columns: the column order of a ``.npy`` file holding an ``(N, 4)`` array, e.g.
+            ``"t,x,y,p"`` (default ``x, y, t, p``, the order of ``(N, 4)`` tensors).
 
     Returns:
-        A :class:`Recording` ``(events, sensor_size, guessed)``: a structured array with fields
-        ``x``, ``y``, ``t``, ``p`` (``.npy`` and structured ``.npz`` arrays as stored, every
-        other format as ``DVS_DTYPE``), the sensor size, and whether it was guessed (from the
-        largest coordinates, or N-MNIST's 34 x 34 for ``.bin``), which also warns with a
-        :class:`SensorSizeGuessWarning`.
+        A :class:`Recording` ``(events, sensor_size, guessed)`` with the attribute
+        ``time_unit``: a structured array with fields ``x``, ``y``, ``t``, ``p`` (``.npy`` and
+        structured ``.npz`` arrays as stored, every other format as ``DVS_DTYPE``), the sensor
+        size, and whether it was guessed (from the largest coordinates, or N-MNIST's 34 x 34
+        for ``.bin``), which also warns with a :class:`SensorSizeGuessWarning`.
 
     Raises:
         ValueError: for a missing file, an unknown extension, a file the reader cannot read,
-            or coordinates outside the sensor size.
+            bad ``columns``, or coordinates outside the sensor size.
         ImportError: when the format's optional reader is absent (naming the extra).
 
     Example:
         >>> import tempfile, numpy as np
         >>> from evdown_torch.events import DVS_DTYPE
         >>> folder = tempfile.mkdtemp()
-        >>> path = write_events(f"{folder}/rec.h5", np.zeros(3, DVS_DTYPE), sensor_size=(8, 6, 2))
+        >>> path = write_events(f"{folder}/rec.npy", np.zeros(3, DVS_DTYPE),
+        ...                     sensor_size=(8, 6, 2), time_unit="us")
         >>> events, size, guessed = read_events(path)
-        >>> len(events), size, guessed
-        (3, (8, 6, 2), False)
+        >>> len(events), size, guessed, read_events(path).time_unit
+        (3, (8, 6, 2), False, 'us')
     """
     path = check_readable(path)
-    reader = _READERS[path.suffix.lower()]
-    events, recorded, guess = reader(path)
-    size, guessed = _resolve_sensor_size(events, sensor_size, recorded, guess, str(path))
-    return Recording(events, size, guessed)
+    if path.suffix.lower() == ".npy":
+        read = _read_npy(path, columns)
+    else:
+        read = _READERS[path.suffix.lower()](path)
+    size, guessed = _resolve_sensor_size(read.events, sensor_size, read.recorded, read.guess,
+                                         str(path))
+    return Recording(read.events, size, guessed, read.time_unit)
 
 
 def event_files(folder: str | Path) -> list[Path]:
@@ -439,22 +559,24 @@ def event_files(folder: str | Path) -> list[Path]:
 
 
 def write_events(
-    path: str | Path, events: np.ndarray, *, sensor_size: Any = None
+    path: str | Path, events: np.ndarray, *, sensor_size: Any = None, time_unit: str | None = None
 ) -> Path:
     """Write a structured event array to exactly ``path`` (``.npy``, ``.h5`` or ``.hdf5``).
 
-    ``.npy`` stores the array as it is (NumPy's format; the sensor size is not kept). HDF5
-    stores one dataset per field under the group ``events`` (``events/x``, ...: DSEC's
-    layout) and the sensor size as the file attribute ``sensor_size``, so that
-    :func:`read_events` gets it back.
+    ``.npy`` stores the array as it is (NumPy's format), and the sensor size and time unit,
+    when given, in the JSON sidecar ``FILE.npy.json`` (:func:`sidecar`; a stale one is
+    removed). HDF5 stores one dataset per field under the group ``events`` (``events/x``,
+    ...: DSEC's layout) and the sensor size and time unit as the file attributes
+    ``sensor_size`` and ``time_unit``. :func:`read_events` gets both back.
 
     Args:
         path: the output file; its folder must exist. An existing file is replaced.
         events: ``(N,)`` structured array with fields ``x``, ``y``, ``t``, ``p``.
-        sensor_size: ``(W, H, P)`` to store (HDF5 only).
+        sensor_size: ``(W, H, P)`` to store.
+        time_unit: the unit of ``t`` to store (see :mod:`evdown_torch.time_units`).
 
     Returns:
-        The path written.
+        The path written (not the sidecar).
 
     Raises:
         ValueError: for an unknown extension, a missing folder or events without the fields.
@@ -472,10 +594,16 @@ def write_events(
             f"dtype {events.dtype} and shape {events.shape}"
         )
     size = None if sensor_size is None else check_sensor_size(sensor_size)
+    unit = None if time_unit is None else check_time_unit(time_unit)
     extension = path.suffix.lower()
     if extension == ".npy":
         with open(path, "wb") as file:  # np.save(path) would append ".npy" to other names
             np.save(file, events, allow_pickle=False)
+        meta = {k: v for k, v in (("sensor_size", size), ("time_unit", unit)) if v is not None}
+        if meta:
+            sidecar(path).write_text(json.dumps(meta) + "\n")
+        else:
+            sidecar(path).unlink(missing_ok=True)
         return path
     h5py = _require("h5py", extension, "writing")
     with h5py.File(path, "w") as file:
@@ -484,4 +612,6 @@ def write_events(
             group.create_dataset(name, data=np.ascontiguousarray(events[name]))
         if size is not None:
             file.attrs["sensor_size"] = np.asarray(size, dtype=np.int64)
+        if unit is not None:
+            file.attrs["time_unit"] = unit
     return path
