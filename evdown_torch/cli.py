@@ -47,10 +47,10 @@ from evdown_torch.io import (
     check_readable,
     check_writable,
     event_files,
-    read_events,
+    read_microseconds,
     write_events,
 )
-from evdown_torch.time_units import TIME_UNITS, check_timing, time_settings, to_microseconds
+from evdown_torch.time_units import TIME_UNITS, check_timing, time_settings
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
 __all__ = ["SUBCOMMANDS", "CommandError", "build_parser", "main"]
@@ -115,21 +115,15 @@ def add_input_arguments(parser: argparse.ArgumentParser) -> None:
                         "busy machine; see docs/benchmarks.md)")
 
 
-def read_input(path: Path, args: argparse.Namespace) -> tuple[Any, tuple[int, int, int], str | None]:
-    """Read an input file as the options of :func:`add_input_arguments` say.
-
-    Returns:
-        ``(events, sensor_size, time_unit)``: events with ``t`` in microseconds where the unit
-        is known (the file's, else ``--time-unit``), that unit (``None``: unknown, read as
-        microseconds).
-    """
-    recording = read_events(path, sensor_size=args.sensor_size,
-                            **({"columns": args.columns} if args.columns else {}))
-    unit = recording.time_unit or args.time_unit
-    events = recording.events
-    if unit not in (None, "us"):
-        events = to_microseconds(events, unit)
-    return events, recording.sensor_size, unit
+def read_input(
+    path: Path, args: argparse.Namespace
+) -> tuple[Any, tuple[int, int, int], str | None]:
+    """Read an input file as the options of :func:`add_input_arguments` say
+    (:func:`evdown_torch.io.read_microseconds`): ``(events, sensor_size, time_unit)``, ``t``
+    in microseconds where the unit is known (``time_unit`` ``"us"``, else ``None``)."""
+    recording = read_microseconds(path, sensor_size=args.sensor_size, time_unit=args.time_unit,
+                                  **({"columns": args.columns} if args.columns else {}))
+    return recording.events, recording.sensor_size, recording.time_unit
 
 
 def _normal(name: str) -> str:
@@ -259,7 +253,7 @@ def _downscale(args: argparse.Namespace) -> int:
             bar.update()
             bar.set_description_str(f"{file_label}: writing")
             written = write_events(target, out, sensor_size=transform.output_sensor_size,
-                                   time_unit=None if unit is None else "us")
+                                   time_unit=unit)
             bar.update()
         except (ValueError, TypeError) as error:
             bar.close()

@@ -59,7 +59,7 @@ import numpy as np
 
 from evdown_torch.checks import check_sensor_size
 from evdown_torch.events import DVS_DTYPE, FIELDS
-from evdown_torch.time_units import check_time_unit
+from evdown_torch.time_units import check_time_unit, to_microseconds
 
 __all__ = [
     "READ_EXTENSIONS",
@@ -71,6 +71,7 @@ __all__ = [
     "check_writable",
     "event_files",
     "read_events",
+    "read_microseconds",
     "sidecar",
     "write_events",
 ]
@@ -542,6 +543,29 @@ def read_events(
     size, guessed = _resolve_sensor_size(read.events, sensor_size, read.recorded, read.guess,
                                          str(path))
     return Recording(read.events, size, guessed, read.time_unit)
+
+
+def read_microseconds(
+    path: str | Path, *, sensor_size: Any = None, time_unit: str | None = None,
+    columns: Any = FIELDS,
+) -> Recording:
+    """:func:`read_events`, with ``t`` converted to microseconds (the unit of every time setting).
+
+    Args:
+        path, sensor_size, columns: as for :func:`read_events`.
+        time_unit: the unit of ``t`` where the file states none (a file's own unit wins);
+            ``None``: microseconds, unconfirmed.
+
+    Returns:
+        The :class:`Recording`, ``t`` in microseconds (see
+        :func:`~evdown_torch.time_units.to_microseconds`); its ``time_unit`` is ``"us"``, or
+        ``None`` where neither the file nor the caller said.
+    """
+    recording = read_events(path, sensor_size=sensor_size, columns=columns)
+    unit = recording.time_unit or (None if time_unit is None else check_time_unit(time_unit))
+    if unit is None:
+        return recording
+    return recording._replace(events=to_microseconds(recording.events, unit), time_unit="us")
 
 
 def event_files(folder: str | Path) -> list[Path]:
