@@ -33,6 +33,7 @@ import evdown_torch
 from evdown_torch.checks import check_choice, check_factor, check_positive_int
 from evdown_torch.data import shards
 from evdown_torch.data.sources import check_label
+from evdown_torch.threads import torch_threads
 from evdown_torch.transforms.registry import make_method, method_settings
 
 __all__ = ["PreprocessResult", "RecordingError", "preprocess"]
@@ -212,17 +213,13 @@ def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar) -> tu
                       file=sys.stderr)
 
     local = dict(state, tick=lambda: bar.update(1))
-    threads = torch.get_num_threads()
-    torch.set_num_threads(state["threads"])
-    try:
+    with torch_threads(state["threads"]):
         if workers <= 1:
             for shard in todo:
                 done(*_write_one_shard(local, shard))
             return records, timings
         _run_with_pool(state, deque(todo), workers - 1, bar, done)
         return records, timings
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _run_with_pool(state, waiting: deque, spawned: int, bar, done) -> None:
