@@ -262,7 +262,7 @@ def _downscale(args: argparse.Namespace) -> int:
         _say(
             f"{args.method}: {len(events)} events in, {len(out)} events out "
             f"({len(out) / max(len(events), 1):.3f} of the input), sensor {sensor_size} -> "
-            f"{transform.output_sensor_size}, {seconds:.3f} s ({rate / 1e6:.2f} M events/s); "
+            f"{transform.output_sensor_size}, {seconds:.4f} s ({rate / 1e6:.2f} M events/s); "
             f"wrote {written}"
         )
     bar.close()
