@@ -7,10 +7,10 @@ records one, else the one the caller gives, else a guess that it says out loud (
 
 The decoding is done by maintained readers, never by parsers of our own:
 
-=============  =====================================================  =====================
+=============  =====================================================  ========================
 extension      reader                                                 sensor size, time unit
-=============  =====================================================  =====================
-``.npy``       NumPy: a structured array (Tonic's format), as stored, the sidecar
+=============  =====================================================  ========================
+``.npy``       NumPy: a structured array (Tonic's format) as stored,  the sidecar
                or an ``(N, 4)`` array (columns ``x, y, t, p`` unless  ``FILE.npy.json``, if
                ``columns`` says otherwise)                            there
 ``.npz``       NumPy: arrays ``x, y, t, p`` or one structured array   ``sensor_size``,
@@ -22,7 +22,7 @@ extension      reader                                                 sensor siz
 ``.bin``       ``tonic.io.read_mnist_file`` (N-MNIST, N-Caltech101)   not recorded; us
 ``.raw``       faery (Prophesee EVT 2.0, 2.1 and 3.0)                 the header, if there; us
 ``.dat``       faery (Prophesee DAT, CD events)                       the header, if there; us
-=============  =====================================================  =====================
+=============  =====================================================  ========================
 
 A file's own sensor size wins; the one the caller gives fills in where the file records none
 (so that one setting serves a folder of mixed files); a guess comes last. The time unit is the
