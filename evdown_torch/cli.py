@@ -34,19 +34,23 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import MISSING, fields
 from pathlib import Path
+from typing import Any
 
+import torch
 from tqdm import tqdm
 
 from evdown_torch import __version__
 from evdown_torch._text import parse_factor, parse_setting
 from evdown_torch.io import (
     READ_EXTENSIONS,
+    check_columns,
     check_readable,
     check_writable,
     event_files,
-    read_events,
+    read_microseconds,
     write_events,
 )
+from evdown_torch.time_units import TIME_UNITS, check_timing, time_settings
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
 __all__ = ["SUBCOMMANDS", "CommandError", "build_parser", "main"]
@@ -71,6 +75,55 @@ def _setting(text: str) -> tuple[str, object]:
         return parse_setting(text)
     except ValueError as error:
         raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _columns(text: str) -> tuple[str, ...]:
+    try:
+        return check_columns(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _threads(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"threads must be a positive integer, got {text!r}")
+    return value
+
+
+def add_input_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options that say how to read input files and how many threads to use:
+    ``--sensor-size``, ``--time-unit``, ``--columns`` and ``--threads``."""
+    parser.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
+                        help="input sensor size for files that do not record one (.npy "
+                        "without a sidecar, .bin, some .raw/.dat/HDF5); a file's own size "
+                        "wins, so one value serves a mixed folder; else it is guessed with a "
+                        "warning")
+    parser.add_argument("--time-unit", choices=tuple(TIME_UNITS), metavar="UNIT",
+                        help="unit of the input timestamps (s, ms, us, ns) for files that do "
+                        "not state one (camera formats are us; a file's own unit wins); "
+                        "timestamps are converted to microseconds, the unit of every time "
+                        "setting (dt, tau, max_delay). Default: us")
+    parser.add_argument("--columns", type=_columns, metavar="A,B,C,D",
+                        help="column order of .npy files holding an (N, 4) array, e.g. "
+                        "t,x,y,p (default x,y,t,p)")
+    parser.add_argument("--threads", type=_threads, default=1, metavar="N",
+                        help="torch threads (default 1: never much slower, often faster on a "
+                        "busy machine; see docs/benchmarks.md)")
+
+
+def read_input(
+    path: Path, args: argparse.Namespace
+) -> tuple[Any, tuple[int, int, int], str | None]:
+    """Read an input file as the options of :func:`add_input_arguments` say
+    (:func:`evdown_torch.io.read_microseconds`): ``(events, sensor_size, time_unit)``, ``t``
+    in microseconds where the unit is known (``time_unit`` ``"us"``, else ``None``)."""
+    recording = read_microseconds(path, sensor_size=args.sensor_size, time_unit=args.time_unit,
+                                  **({"columns": args.columns} if args.columns else {}))
+    return recording.events, recording.sensor_size, recording.time_unit
 
 
 def _normal(name: str) -> str:
@@ -137,16 +190,16 @@ def _plan(paths: Sequence[str], output_format: str) -> list[tuple[Path, Path]]:
             files.append(check_readable(path))
     into_folder = (len(inputs) > 1 or inputs[0].is_dir() or output.is_dir()
                    or paths[-1].endswith(("/", os.sep)))  # "out/" names a folder to create
+    folder = output if into_folder else output.parent
+    for above in (folder, *folder.parents):  # the folder to create, and its missing parents
+        if above.exists() and not above.is_dir():
+            raise CommandError(f"cannot create {str(folder)!r}: {str(above)!r} is a file"
+                               + ("; several inputs, a folder input or a trailing '/' need "
+                                  "an output folder" if above == output else ""))
     if not into_folder:
-        check_writable(output)
+        check_writable(output, folder_may_be_missing=True)
         pairs = [(files[0], output)]
     else:
-        if output.exists() and not output.is_dir():
-            raise CommandError(f"output {str(output)!r} is a file; several inputs, a folder "
-                               "input or a trailing '/' need an output folder")
-        if not output.parent.is_dir():
-            raise CommandError(f"cannot create {str(output)!r}: folder "
-                               f"{str(output.parent)!r} does not exist")
         pairs = [(f, output / f"{f.stem}.{output_format}") for f in files]
         seen: dict[Path, Path] = {}
         for source, target in pairs:
@@ -157,8 +210,7 @@ def _plan(paths: Sequence[str], output_format: str) -> list[tuple[Path, Path]]:
     for source, target in pairs:
         if target.resolve() == source.resolve():
             raise CommandError(f"writing {str(target)!r} would overwrite its input")
-    if into_folder:
-        output.mkdir(exist_ok=True)
+    folder.mkdir(parents=True, exist_ok=True)  # the same way for one file or many
     return pairs
 
 
@@ -181,6 +233,7 @@ def _downscale(args: argparse.Namespace) -> int:
                            f"takes {list(method_settings(args.method))}")
     pairs = _plan(args.paths, args.output_format)
     several = len(pairs) > 1
+    torch.set_num_threads(args.threads)
     # Three steps per file (read, downscale, write), so that one long file shows progress too.
     bar = tqdm(total=3 * len(pairs), unit="step", disable=not sys.stderr.isatty(),
                file=sys.stderr, dynamic_ncols=True, leave=False,
@@ -189,8 +242,9 @@ def _downscale(args: argparse.Namespace) -> int:
         file_label = f"file {index + 1}/{len(pairs)} {source.name}" if several else source.name
         try:
             bar.set_description_str(f"{file_label}: reading")
-            events, sensor_size, _ = read_events(source, sensor_size=args.sensor_size)
+            events, sensor_size, unit = read_input(source, args)
             transform = make_method(args.method, sensor_size, args.factor, **settings)
+            check_timing(events["t"], time_settings(transform), source=str(source))
             bar.update()
             bar.set_description_str(f"{file_label}: downscaling {len(events)} events")
             start = time.perf_counter()
@@ -198,7 +252,8 @@ def _downscale(args: argparse.Namespace) -> int:
             seconds = time.perf_counter() - start
             bar.update()
             bar.set_description_str(f"{file_label}: writing")
-            written = write_events(target, out, sensor_size=transform.output_sensor_size)
+            written = write_events(target, out, sensor_size=transform.output_sensor_size,
+                                   time_unit=unit)
             bar.update()
         except (ValueError, TypeError) as error:
             bar.close()
@@ -207,7 +262,7 @@ def _downscale(args: argparse.Namespace) -> int:
         _say(
             f"{args.method}: {len(events)} events in, {len(out)} events out "
             f"({len(out) / max(len(events), 1):.3f} of the input), sensor {sensor_size} -> "
-            f"{transform.output_sensor_size}, {seconds:.3f} s ({rate / 1e6:.2f} M events/s); "
+            f"{transform.output_sensor_size}, {seconds:.4f} s ({rate / 1e6:.2f} M events/s); "
             f"wrote {written}"
         )
     bar.close()
@@ -222,7 +277,9 @@ def add_downscale_command(commands: argparse._SubParsersAction) -> None:
         description="Downscale event recordings. Inputs: "
         f"{', '.join(READ_EXTENSIONS)} files, or folders of them. With one input file, OUT is "
         "the output file (.npy, .h5 or .hdf5); with several inputs or a folder, OUT is a "
-        "folder (created if missing) that gets one file per input, named after it.",
+        "folder that gets one file per input, named after it. Missing output folders are "
+        "created. Outputs record their sensor size and time unit (HDF5 attributes, or "
+        "FILE.npy.json next to a .npy), so that they read back as they were written.",
         epilog=_methods_help(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -234,9 +291,7 @@ def add_downscale_command(commands: argparse._SubParsersAction) -> None:
     down.add_argument("--set", type=_setting, action="append", metavar="KEY=VALUE",
                       help="a setting of the method (listed below), e.g. --set threshold=0.5; "
                       "repeatable")
-    down.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
-                      help="input sensor size; needed where a file does not record it "
-                      "(.npy, .bin, some .raw/.dat/HDF5), else it is guessed with a warning")
+    add_input_arguments(down)
     down.add_argument("--output-format", choices=("npy", "h5"), default="npy",
                       help="format of the files written into an output folder (default npy)")
     down.add_argument("--threshold", help=argparse.SUPPRESS)  # gone: explains itself
@@ -255,7 +310,13 @@ def _bench(args: argparse.Namespace) -> int:
 def add_bench_command(commands: argparse._SubParsersAction) -> None:
     """Register ``evdown bench``."""
     bench = commands.add_parser(
-        "bench", help="benchmark every method against its peers; write a report and plots"
+        "bench", help="benchmark every method against its peers; write a report and plots",
+        description="Time every downscaling method, and its peers in Tonic, on a synthetic "
+        "gesture recording, a large 1280x720 stream and any --input files, at factors 2 to "
+        "8, with one torch thread (median of several calls); then sweep events, sensor size "
+        "and duration, and measure peak memory in a fresh process. Writes report.md, "
+        "results.json and PNG plots to --out; a progress bar per stage on a terminal. "
+        "--short takes under 2 minutes; the full run tens of minutes.",
     )
     bench.add_argument("--out", required=True, metavar="DIR",
                        help="folder for report.md, results.json and the PNG plots")
@@ -304,6 +365,12 @@ def add_evaluate_command(commands: argparse._SubParsersAction) -> None:
     evaluate = commands.add_parser(
         "evaluate",
         help="train and test a spiking classifier on every method and factor; write a report",
+        description="Measure each method's speed/accuracy trade: downscale a dataset with "
+        "every method and factor of the configuration, train and test a spiking classifier on "
+        "each (over several seeds), and write results.csv, report.md and tradeoff.png. The "
+        "configuration (TOML, e.g. configs/quick.toml) names the dataset, methods, factors, "
+        "training and output folder; recordings, frames and predictions are cached, so a "
+        "rerun resumes. Long: configs/quick.toml takes 15 to 40 minutes on a laptop CPU.",
     )
     evaluate.add_argument("--config", required=True, metavar="FILE",
                           help="TOML configuration, e.g. configs/quick.toml")

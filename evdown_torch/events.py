@@ -6,7 +6,7 @@ Kernels take and return :class:`Events`: four 1-D tensors of equal length on one
 * ``t``: timestamps, ``torch.int64`` (microseconds in Tonic datasets) or ``torch.float64``;
 * ``p``: ``torch.bool`` polarity, ``True`` for ON.
 
-Users hand transforms one of three kinds, and get the same kind back:
+Users hand transforms one of four kinds, and get the same kind back:
 
 * a Tonic structured array with fields ``x``, ``y``, ``t``, ``p`` in any order (``x``/``y``
   any integer dtype, ``t`` integer or float, ``p`` bool, 0/1 or -1/+1): the result has the
@@ -15,6 +15,9 @@ Users hand transforms one of three kinds, and get the same kind back:
   the same dtype and device (an int64 tensor keeps exact int64 timestamps; a float32 tensor
   cannot hold microsecond timestamps past 2**24 us = 16.8 s, use int64 or float64 for long
   recordings: a :class:`TimestampPrecisionWarning` says when it happened);
+* a plain NumPy array of shape ``(N, 4)``, columns ``(x, y, t, p)`` as for tensors: the result
+  is a NumPy array of the same dtype (integer or float; bool, complex and object arrays are
+  refused);
 * an :class:`Events` tuple.
 
 Tensors that require grad are read as values (detached): downscaling selects and moves
@@ -150,6 +153,8 @@ class Events(NamedTuple):
         )
 
 
+#: What transforms take and return: a structured or ``(N, 4)`` NumPy array, an ``(N, 4)``
+#: tensor, or :class:`Events`.
 EventsLike = np.ndarray | Tensor | Events
 
 
@@ -158,13 +163,14 @@ class EventFormat:
     """How the caller handed events over, so that results go back in the same form.
 
     Attributes:
-        kind: ``"numpy"`` (structured array), ``"tensor"`` (``(N, 4)`` tensor) or ``"events"``.
-        dtype: the structured dtype or the tensor dtype (``None`` for ``"events"``).
+        kind: ``"numpy"`` (structured array), ``"tensor"`` (``(N, 4)`` tensor), ``"array"``
+            (``(N, 4)`` NumPy array) or ``"events"``.
+        dtype: the structured, tensor or array dtype (``None`` for ``"events"``).
         polarity: ``"bool"``, ``"binary"`` (OFF 0, ON 1) or ``"signed"`` (OFF -1, ON +1).
         device: the device of a tensor input.
     """
 
-    kind: Literal["numpy", "tensor", "events"]
+    kind: Literal["numpy", "tensor", "array", "events"]
     dtype: np.dtype | torch.dtype | None
     polarity: Literal["bool", "binary", "signed"]
     device: torch.device
@@ -282,6 +288,24 @@ def _from_tensor(data: Tensor) -> tuple[Events, EventFormat]:
     return events, EventFormat("tensor", data.dtype, encoding, data.device)
 
 
+def _from_plain_array(data: np.ndarray) -> tuple[Events, EventFormat]:
+    """An ``(N, 4)`` NumPy array, read as the same values in a tensor would be."""
+    if data.ndim != 2 or data.shape[1] != 4:
+        raise ValueError(
+            f"a plain NumPy event array must have shape (N, 4) with columns (x, y, t, p), or be "
+            f"structured with fields x, y, t, p (as Tonic's); got shape {data.shape}"
+        )
+    kind = data.dtype.kind
+    if kind not in "iuf":
+        raise TypeError(f"an (N, 4) event array must be integer or float, got dtype {data.dtype}")
+    if kind == "u" and data.size and int(data.max()) > np.iinfo(np.int64).max:
+        raise ValueError("an (N, 4) event array holds values beyond the int64 range")
+    # Integers as int64, floats as they are: the tensor path's checks, exact values.
+    values = np.array(data, dtype=np.int64 if kind in "iu" else data.dtype)  # always a copy
+    events, fmt = _from_tensor(torch.from_numpy(values))
+    return events, EventFormat("array", data.dtype, fmt.polarity, torch.device("cpu"))
+
+
 def _from_events(data: Events) -> tuple[Events, EventFormat]:
     n = data.t.shape[0]
     for name, column in zip(FIELDS, data):
@@ -310,7 +334,8 @@ def to_events(
     for an :class:`Events` input, which is returned as it is (kernels never write to it).
 
     Args:
-        data: a Tonic structured array, an ``(N, 4)`` tensor ``(x, y, t, p)`` or Events.
+        data: a Tonic structured array, an ``(N, 4)`` tensor or NumPy array ``(x, y, t, p)``,
+            or Events.
         sensor_size: ``(W, H, P)``; when given, coordinates must lie inside it.
 
     Returns:
@@ -336,14 +361,11 @@ def to_events(
     elif isinstance(data, Tensor):
         events, fmt = _from_tensor(data)
     elif isinstance(data, np.ndarray):
-        raise TypeError(
-            "a NumPy event array must be structured with fields x, y, t, p "
-            f"(as Tonic's), got a plain array of dtype {data.dtype} and shape {data.shape}"
-        )
+        events, fmt = _from_plain_array(data)
     else:
         raise TypeError(
-            "events must be a Tonic structured array, a torch.Tensor of shape (N, 4) or "
-            f"evdown_torch.Events, got {type(data).__name__}"
+            "events must be a Tonic structured array, a torch.Tensor or NumPy array of shape "
+            f"(N, 4) or evdown_torch.Events, got {type(data).__name__}"
         )
     _validate(events, sensor_size)
     return events, fmt
@@ -357,7 +379,7 @@ def from_events(events: Events, fmt: EventFormat) -> EventsLike:
         fmt: the format :func:`to_events` returned for the input.
 
     Returns:
-        A structured array, an ``(N, 4)`` tensor or Events, matching ``fmt``.
+        A structured array, an ``(N, 4)`` tensor or NumPy array, or Events, matching ``fmt``.
     """
     if fmt.kind == "events":
         return events
@@ -370,6 +392,11 @@ def from_events(events: Events, fmt: EventFormat) -> EventsLike:
     if fmt.kind == "tensor":
         columns = (events.x, events.y, events.t, p)
         return torch.stack([c.to(device=fmt.device, dtype=fmt.dtype) for c in columns], dim=1)
+    if fmt.kind == "array":
+        out = np.empty((events.num_events, 4), dtype=fmt.dtype)
+        for i, column in enumerate((events.x, events.y, events.t, p)):
+            out[:, i] = column.cpu().numpy()
+        return out
     out = np.empty(events.num_events, dtype=fmt.dtype)
     for name, column in zip(FIELDS, (events.x, events.y, events.t, p)):
         out[name] = column.cpu().numpy()

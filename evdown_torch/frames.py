@@ -20,13 +20,16 @@ event-based optical-flow and recognition networks.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
 from evdown_torch.checks import check_positive_int, check_sensor_size
 from evdown_torch.events import EventsLike, to_events
 
-__all__ = ["to_frames"]
+__all__ = ["ToFrames", "to_frames"]
 
 
 def to_frames(
@@ -115,3 +118,58 @@ def to_frames(
     total = torch.bincount(flat, weights=within * 2 - 1, minlength=size)
     mean = (total / counts.clamp(min=1)).to(torch.float32).reshape(bins, 2, h, w)
     return torch.cat([frames, mean], dim=1)
+
+
+@dataclass(frozen=True)
+class ToFrames:
+    """:func:`to_frames` as a Tonic transform: in place of ``tonic.transforms.ToFrame``
+    (with ``n_time_bins``), with one shape for every stream, empty ones included.
+
+    A downscaler with a high threshold can leave a recording with no events, and Tonic then
+    breaks a ``DataLoader`` mid-epoch: ``tonic.transforms.Compose`` stops at the first empty
+    output, skipping ``ToFrame``, and ``tonic.collation.PadTensors`` cannot stack the empty
+    event array with the other samples' frames ("stack expects each tensor to be equal size"
+    or "can't convert np.ndarray of type numpy.void"). So give the downscaler to this
+    transform as ``transform``, instead of composing the two with Tonic's ``Compose``: it
+    always frames, and an empty stream gives zeros of the right shape.
+
+    Args:
+        sensor_size: ``(W, H, P)`` of the events it frames (a downscaler's
+            ``output_sensor_size``).
+        n_time_bins: number of bins ``T`` over each stream's own first to last timestamp.
+        mean_time: add the mean-time channels (see :func:`to_frames`).
+        transform: applied to the events first (a downscaler, a ``Chain``, or any callable
+            returning events, even empty ones); ``None``: frame the events as they come.
+
+    Returns (when called):
+        ``[T, 2, H, W]`` (``[T, 4, H, W]`` with ``mean_time``) float32 frames, zeros for an
+        empty stream.
+
+    Example:
+        >>> import numpy as np
+        >>> from evdown_torch import EventCount
+        >>> from evdown_torch.events import DVS_DTYPE
+        >>> down = EventCount((8, 6, 2), factor=2, threshold=100.0)  # nothing gets through
+        >>> to_frames_ = ToFrames(down.output_sensor_size, n_time_bins=5, transform=down)
+        >>> to_frames_(np.zeros(3, DVS_DTYPE)).shape  # a Tonic dataset's transform=
+        torch.Size([5, 2, 3, 4])
+    """
+
+    sensor_size: tuple[int, int, int]
+    n_time_bins: int
+    mean_time: bool = False
+    transform: Callable[[EventsLike], EventsLike] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "sensor_size", check_sensor_size(self.sensor_size))
+        check_positive_int("n_time_bins", self.n_time_bins)
+        if not isinstance(self.mean_time, bool):
+            raise TypeError(f"mean_time must be a bool, got {self.mean_time!r}")
+        if self.transform is not None and not callable(self.transform):
+            raise TypeError(f"transform must be callable, got {self.transform!r}")
+
+    def __call__(self, events: EventsLike) -> Tensor:
+        """Apply ``transform`` (if any), then frame: ``[T, 2 or 4, H, W]`` float32."""
+        if self.transform is not None:
+            events = self.transform(events)
+        return to_frames(events, self.sensor_size, self.n_time_bins, mean_time=self.mean_time)

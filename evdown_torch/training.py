@@ -29,6 +29,7 @@ Example, on DVS128 Gesture (needs tonic and the dataset on disk)::
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable
 
 import snntorch.functional
@@ -110,6 +111,7 @@ def train_classifier(
         loss_fn = snntorch.functional.mse_count_loss(correct_rate=0.8, incorrect_rate=0.2)
     model.train()
     losses = []
+    start = time.perf_counter()
     for epoch in range(epochs):
         total, count = 0.0, 0
         for frames, labels in loader:
@@ -126,7 +128,8 @@ def train_classifier(
             raise ValueError("the training loader yielded no samples")
         losses.append(total / count)
         if log is not None:
-            log(f"epoch {epoch + 1}/{epochs}: loss {losses[-1]:.4f}")
+            log(f"epoch {epoch + 1}/{epochs}: loss {losses[-1]:.4f}, "
+                f"{time.perf_counter() - start:.1f} s")
     return losses
 
 

@@ -1,6 +1,7 @@
 """Downscale a Tonic dataset on the fly and train on its frames through a DataLoader.
 
-A Tonic ``Compose`` chains a downscaler with framing; a ``DataLoader`` with worker processes
+``ToFrames`` chains a downscaler with framing (as a Tonic ``transform=``, and unlike Tonic's
+``Compose`` it frames empty outputs too); a ``DataLoader`` with worker processes
 batches the frames for a spiking classifier. ``SyntheticGestures`` stands in for
 ``tonic.datasets.DVSGesture`` (same constructor and interface), so this runs offline; swap the
 one word for the real dataset.
@@ -10,14 +11,12 @@ one word for the real dataset.
 """
 
 import argparse
-from functools import partial
 
-import tonic
 import torch
 from torch.utils.data import DataLoader
 
 from evdown_torch import EventCount
-from evdown_torch.frames import to_frames
+from evdown_torch.frames import ToFrames
 from evdown_torch.models import SpikingClassifier
 from evdown_torch.synthetic import SyntheticGestures
 from evdown_torch.training import evaluate_classifier, train_classifier
@@ -33,11 +32,10 @@ def main() -> None:
 
     sensor = (64, 64, 2)                            # DVSGesture is (128, 128, 2)
     down = EventCount(sensor, factor=4, threshold=0.5)
-    # to_frames keeps one shape and dtype for every recording, even one that downscales to
-    # nothing, so the default collate stacks the batch. partial() (not a lambda) pickles into
-    # worker processes on every platform.
-    frames = partial(to_frames, sensor_size=down.output_sensor_size, n_time_bins=8)
-    transform = tonic.transforms.Compose([down, frames])     # events -> [T, 2, H, W] float32
+    # ToFrames downscales, then frames with one shape and dtype for every recording, even one
+    # that downscales to nothing, so the default collate stacks the batch (Tonic's Compose
+    # would stop at an empty output). A frozen dataclass, it pickles into worker processes.
+    transform = ToFrames(down.output_sensor_size, n_time_bins=8, transform=down)
 
     kwargs = dict(transform=transform, samples_per_class=args.samples_per_class,
                   duration_us=args.duration_ms * 1000, sensor_size=sensor)

@@ -431,3 +431,34 @@ def test_sustained_rate_scales_the_replayed_rate_to_the_p99():
     assert r.sustained_rate == pytest.approx(2e6 * 1e-3 / 0.000396)
     assert r.keeps_up is True
     assert ReplayResult("m", 1e6, 1000).sustained_rate is None
+
+
+def test_each_stage_has_a_progress_bar_that_counts_its_measurements(monkeypatch):
+    bars = []
+
+    class Bar:  # records what run_benchmark tells its bars
+        def __init__(self, label: str, total: int) -> None:
+            self.label, self.total, self.done, self.closed = label, total, 0, False
+            bars.append(self)
+
+        def update(self, n: int = 1) -> None:
+            self.done += n
+
+        def close(self) -> None:
+            self.closed = True
+
+    monkeypatch.setattr(run, "stage_bar", Bar)
+    results = run.run_benchmark(short=True, events=300, methods=["downsample", "event_count"],
+                                scaling=True, memory=False)
+    assert [b.label for b in bars] == ["method tables", "scaling sweeps"]
+    sections = [[m for m in results.measurements if (m.section == "methods") == (i == 0)]
+                for i in range(2)]
+    for bar, measured in zip(bars, sections, strict=True):
+        assert bar.total == bar.done == len(measured) > 0 and bar.closed
+
+
+def test_evaluate_and_bench_help_describe_the_command(capsys):
+    for command, words in (("evaluate", "speed/accuracy trade"), ("bench", "peak memory")):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        assert words in " ".join(capsys.readouterr().out.split())

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import evdown_torch
-from evdown_torch import Downsample, EventCount, LinearEstimation
+from evdown_torch import Downsample, EventCount, LIFPooling, LinearEstimation
 from evdown_torch.cli import main
 from evdown_torch.io import read_events
 from evdown_torch.transforms.registry import METHODS, method_settings
@@ -78,7 +78,8 @@ def test_bad_inputs_give_one_line_and_exit_2(tmp_path, npy, capsys):
         ([str(tmp_path / "absent.npy"), str(tmp_path / "o.npy")], "does not exist"),
         ([str(npy), str(tmp_path / "o.npy"), "--set", "tau=3"], "does not take setting"),
         ([str(npy), str(tmp_path / "o.npy"), "--factor", "40"], "larger than the sensor"),
-        ([str(npy), str(tmp_path / "missing-dir" / "o.npy")], "does not exist"),
+        ([str(npy), str(npy / "o.npy")], "is a file"),
+        ([str(npy), str(tmp_path / "missing-dir" / "o.csv")], "unknown extension '.csv'"),
         ([str(npy), str(tmp_path / "out_noext")], "unknown extension ''"),
         ([str(npy), str(tmp_path / "o.csv")], "unknown extension '.csv'"),
         ([str(npy), str(npy)], "would overwrite its input"),
@@ -100,11 +101,11 @@ def test_bad_inputs_give_one_line_and_exit_2(tmp_path, npy, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.npz", "in.npy", "notes.txt"]
 
 
-def test_missing_output_folder_from_the_shell(npy, tmp_path):
-    result = _run("downscale", str(npy), str(tmp_path / "missing-dir" / "o.npy"),
-                  "--method", "downsample", "--factor", "2")
+def test_a_file_in_the_way_from_the_shell(npy, tmp_path):
+    result = _run("downscale", str(npy), str(npy / "sub" / "o.npy"),
+                  "--method", "downsample", "--factor", "2", "--sensor-size", "16", "12", "2")
     assert result.returncode == 2
-    assert result.stderr.startswith("evdown downscale: error: ")
+    assert result.stderr.startswith("evdown downscale: error: ") and "is a file" in result.stderr
     assert "Traceback" not in result.stderr and result.stderr.count("\n") == 1
 
 
@@ -123,6 +124,19 @@ def test_an_empty_file_is_one_error_line(tmp_path, capsys, name):
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]
 
 
+def test_missing_output_folders_are_made_alike_for_one_file_or_many(npy, tmp_path):
+    argv = ["--method", "downsample", "--factor", "2", "--sensor-size", "16", "12", "2"]
+    one = tmp_path / "new" / "deeper" / "o.npy"
+    assert main(["downscale", str(npy), str(one), *argv]) == 0
+    many = tmp_path / "new2" / "deeper"
+    assert main(["downscale", str(npy), str(npy), str(many), *argv]) == 2  # same name twice
+    assert not (tmp_path / "new2").exists()  # nothing made when the plan fails
+    assert main(["downscale", str(npy), f"{many}/", *argv]) == 0
+    expected = Downsample(SENSOR, 2)(np.load(npy))
+    np.testing.assert_array_equal(np.load(one), expected)
+    np.testing.assert_array_equal(np.load(many / "in.npy"), expected)
+
+
 def test_several_files_and_a_folder(tmp_path, rng, capsys):
     inputs = tmp_path / "recordings"
     inputs.mkdir()
@@ -138,10 +152,12 @@ def test_several_files_and_a_folder(tmp_path, rng, capsys):
               "--sensor-size", "16", "12", "2"]
 
     assert main(["downscale", str(inputs), str(tmp_path / "out"), *common]) == 0
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["a.npy", "b.npy", "c.npy"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "a.npy", "a.npy.json", "b.npy", "b.npy.json", "c.npy", "c.npy.json"]
     for name, events in expected.items():
-        got = np.load(tmp_path / "out" / f"{name}.npy")
-        assert [tuple(r) for r in got[["x", "y", "t"]]] == [
+        back = read_events(tmp_path / "out" / f"{name}.npy")  # the sidecar gives the size
+        assert back.sensor_size == (8, 6, 2) and not back.guessed and back.time_unit is None
+        assert [tuple(r) for r in back.events[["x", "y", "t"]]] == [
             tuple(r) for r in events[["x", "y", "t"]]]
     assert capsys.readouterr().out.count("wrote ") == 3
 
@@ -163,7 +179,7 @@ def test_a_trailing_slash_names_an_output_folder(npy, tmp_path):
     assert main(["downscale", str(npy), f"{tmp_path / 'made'}/", *argv]) == 0
     np.testing.assert_array_equal(np.load(tmp_path / "made" / "in.npy"),
                                   Downsample(SENSOR, 2)(np.load(npy)))
-    assert [p.name for p in (tmp_path / "made").iterdir()] == ["in.npy"]
+    assert sorted(p.name for p in (tmp_path / "made").iterdir()) == ["in.npy", "in.npy.json"]
     assert main(["downscale", str(npy), f"{npy}/", *argv]) == 2
 
 
@@ -194,3 +210,63 @@ def test_module_entry_point(npy, tmp_path):
     assert result.returncode == 0, result.stderr
     assert "funnelling: 400 events in" in result.stdout and result.stderr == ""
     assert _run("--version").stdout.strip() == f"evdown {evdown_torch.__version__}"
+
+
+def test_time_unit_converts_to_microseconds_and_round_trips(tmp_path, rng):
+    stream = random_stream(rng, 2000, SENSOR, t_max=200_000)  # microseconds, up to 0.2 s
+    seconds = np.empty(2000, [("x", "<i2"), ("y", "<i2"), ("t", "<f8"), ("p", "?")])
+    for name in ("x", "y", "p"):
+        seconds[name] = stream[name]
+    seconds["t"] = stream["t"] / 1e6
+    np.save(tmp_path / "s.npy", seconds)
+    out = tmp_path / "out.npy"
+    argv = ["downscale", str(tmp_path / "s.npy"), str(out), "--method", "lif", "--factor", "2",
+            "--sensor-size", "16", "12", "2"]
+    assert main([*argv, "--time-unit", "s"]) == 0
+    expected = LIFPooling(SENSOR, 2)(_as_microseconds(seconds))
+    back = read_events(out)
+    assert back.time_unit == "us" and back.sensor_size == (8, 6, 2) and not back.guessed
+    np.testing.assert_array_equal(back.events, expected)
+    assert len(expected) > 1 and np.unique(expected["t"]).size > 1  # steps of 1 ms, not one
+
+
+def _as_microseconds(seconds: np.ndarray) -> np.ndarray:
+    """An independent conversion: seconds times a million, as float64."""
+    out = seconds.copy()
+    out["t"] = seconds["t"] * 1_000_000.0
+    return out
+
+
+def test_seconds_read_as_microseconds_warn(tmp_path, rng, capsys):
+    seconds = np.empty(400, [("x", "<i2"), ("y", "<i2"), ("t", "<f8"), ("p", "?")])
+    seconds["x"], seconds["y"] = rng.integers(0, 16, 400), rng.integers(0, 12, 400)
+    seconds["t"], seconds["p"] = np.sort(rng.random(400)) * 0.3, rng.random(400) < 0.5
+    np.save(tmp_path / "s.npy", seconds)
+    assert main(["downscale", str(tmp_path / "s.npy"), str(tmp_path / "o.npy"), "--method",
+                 "lif", "--factor", "2", "--sensor-size", "16", "12", "2"]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith("evdown downscale: warning: ") and err.count("\n") == 1
+    assert "events/s" in err and "dt=1000 us, tau=10000 us exceed" in err
+    assert "--time-unit s" in err
+    assert read_events(tmp_path / "o.npy").time_unit is None  # unknown: none is claimed
+
+
+def test_header_wins_over_sensor_size_and_columns_name_an_n_by_4_file(tmp_path, rng, capsys):
+    stream = random_stream(rng, 300, (40, 30, 2), t_max=50_000)
+    np.savez(tmp_path / "a.npz", events=stream, sensor_size=np.array([40, 30, 2]))
+    plain = np.stack([stream["t"], stream["x"], stream["y"], stream["p"]], axis=1)
+    np.save(tmp_path / "b.npy", plain)
+    argv = ["--method", "downsample", "--factor", "2", "--sensor-size", "48", "32", "2",
+            "--columns", "t,x,y,p", "--threads", "2"]
+    assert main(["downscale", str(tmp_path / "a.npz"), str(tmp_path / "b.npy"),
+                 str(tmp_path / "out"), *argv]) == 0
+    assert read_events(tmp_path / "out" / "a.npy").sensor_size == (20, 15, 2)  # the header's
+    assert read_events(tmp_path / "out" / "b.npy").sensor_size == (24, 16, 2)  # the flag's
+    back = read_events(tmp_path / "out" / "b.npy").events
+    np.testing.assert_array_equal(back, Downsample((48, 32, 2), 2)(
+        read_events(tmp_path / "b.npy", sensor_size=(48, 32, 2), columns="t,x,y,p").events))
+    assert "warning" not in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["downscale", str(tmp_path / "b.npy"), str(tmp_path / "o.npy"), "--method",
+              "downsample", "--factor", "2", "--threads", "0"])
+    assert "threads must be a positive integer" in capsys.readouterr().err

@@ -84,7 +84,13 @@ def test_events_input_returns_events():
          r"missing.*'p'"),
         (np.zeros(3, dtype=[("x", "<f4"), ("y", "<i2"), ("t", "<i8"), ("p", "?")]), TypeError,
          "field x must have an integer dtype"),
-        (np.zeros((3, 4)), TypeError, "structured"),
+        (np.zeros((3, 3)), ValueError, r"shape \(N, 4\) with columns \(x, y, t, p\), or be "
+         "structured"),
+        (np.zeros((3, 4), dtype=bool), TypeError, "integer or float, got dtype bool"),
+        (np.zeros((3, 4), dtype=object), TypeError, "integer or float, got dtype object"),
+        (np.full((1, 4), 2**63, dtype=np.uint64), ValueError, "beyond the int64 range"),
+        (np.array([[0.5, 0.0, 1.0, 1.0]]), ValueError, "whole numbers"),
+        (np.array([[0, 0, 1, 2]]), ValueError, "two values"),
         (torch.zeros(3, 3), ValueError, r"shape \(N, 4\)"),
         (torch.zeros(4), ValueError, r"shape \(N, 4\)"),
         (torch.zeros(2, 4, dtype=torch.bool), TypeError, "integer or float"),
@@ -193,3 +199,31 @@ def test_tensors_that_require_grad_are_read_as_values(rng, method, device):
     events = Events(*to_events(data)[0][:2], to_events(data)[0].t.requires_grad_(True),
                     to_events(data)[0].p)
     assert not transform(events).t.requires_grad
+
+
+@pytest.mark.parametrize("dtype", [np.int64, np.int32, np.float64, np.float32])
+@pytest.mark.parametrize("method", ["downsample", "event_count", "cubic", "lif"])
+def test_plain_numpy_arrays_act_as_tensors_and_come_back_as_arrays(rng, dtype, method):
+    stream = random_stream(rng, 400, SENSOR, t_max=60_000)
+    plain = np.stack([stream["x"], stream["y"], stream["t"], stream["p"] * 2 - 1],
+                     axis=1).astype(dtype)  # signed polarity, x y t p columns
+    before = plain.copy()
+    transform = make_method(method, SENSOR, 2)
+    out = transform(plain)
+    expected = transform(torch.from_numpy(plain)).numpy()  # the same data as a tensor
+    assert isinstance(out, np.ndarray) and out.dtype == dtype and out.shape[1] == 4
+    np.testing.assert_array_equal(out, expected)
+    assert set(np.unique(out[:, 3]).tolist()) <= {-1, 1}  # the polarity encoding kept
+    np.testing.assert_array_equal(plain, before)  # the input is not modified
+    assert [o.dtype for o in transform.batch([plain, plain[:0]])] == [dtype, dtype]
+    np.testing.assert_array_equal(transform.batch([plain, plain[:0]])[0], out)
+
+
+def test_plain_arrays_stream_through_a_session(rng):
+    stream = random_stream(rng, 300, SENSOR, t_max=30_000)
+    plain = np.stack([stream["x"], stream["y"], stream["t"], stream["p"]], axis=1)
+    transform = EventCount(SENSOR, 2, threshold=0.5)
+    session = transform.session()
+    parts = [session(plain[:100]), session(plain[100:]), session.flush()]
+    assert all(isinstance(part, np.ndarray) and part.dtype == plain.dtype for part in parts)
+    np.testing.assert_array_equal(np.concatenate(parts), transform(plain))

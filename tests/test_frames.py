@@ -149,3 +149,46 @@ def test_mean_time_hand_computed():
     assert frames[0, 2].abs().sum() == 0  # no OFF event in bin 0
     empty = to_frames(ev[:0], (2, 1, 2), 3, mean_time=True)
     assert empty.shape == (3, 4, 1, 2) and not empty.any()
+
+
+def test_to_frames_transform_keeps_the_shape_of_an_empty_output_in_a_dataloader(rng):
+    tonic = pytest.importorskip("tonic")
+    from torch.utils.data import DataLoader
+
+    from evdown_torch import EventCount
+    from evdown_torch.frames import ToFrames
+
+    sensor = (34, 34, 2)
+    down = EventCount(sensor, factor=4, threshold=1.0)
+    busy = random_stream(rng, 3000, sensor, t_max=300_000)
+    quiet = random_stream(rng, 30, sensor, t_max=300_000)
+    quiet["p"] = np.arange(30) % 2 == 0  # alternating polarity: no region reaches a level
+    assert len(down(busy)) > 0 and len(down(quiet)) == 0
+    transform = ToFrames(down.output_sensor_size, n_time_bins=10, transform=down)
+    tonic_way = tonic.transforms.Compose([down, ToFrames(down.output_sensor_size, 10)])
+    assert tonic_way(quiet).shape == (0,)  # why the downscaler goes inside: Compose stops
+
+    class Dataset(torch.utils.data.Dataset):  # as a Tonic dataset applies transform=
+        def __init__(self) -> None:
+            self.items = [(busy, 0), (quiet, 1), (busy[:0], 2)]
+
+        def __len__(self) -> int:
+            return len(self.items)
+
+        def __getitem__(self, i):
+            events, label = self.items[i]
+            return transform(events), label
+
+    loader = DataLoader(Dataset(), batch_size=3,
+                        collate_fn=tonic.collation.PadTensors(batch_first=True))
+    frames, labels = next(iter(loader))
+    assert frames.shape == (3, 10, 2, 9, 9) and labels.tolist() == [0, 1, 2]
+    assert torch.equal(frames[0], to_frames(down(busy), (9, 9, 2), 10))
+    assert not frames[1:].any()
+    with pytest.raises(TypeError, match="transform must be callable"):
+        ToFrames((9, 9, 2), 4, transform=3)
+    with pytest.raises(ValueError, match="n_time_bins must be a positive integer"):
+        ToFrames((9, 9, 2), n_time_bins=0)
+    with pytest.raises(TypeError, match="mean_time must be a bool"):
+        ToFrames((9, 9, 2), 4, mean_time=1)
+    assert ToFrames((9, 9, 2), 4, mean_time=True)(busy[:0]).shape == (4, 4, 9, 9)

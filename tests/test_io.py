@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import contextlib
+import importlib.util
+import json
 import struct
 import sys
 import warnings
@@ -307,3 +309,65 @@ def test_event_files_lists_readable_files(tmp_path, stream):
     assert ".aedat4" in READ_EXTENSIONS
     with pytest.raises(ValueError, match="not a folder"):
         event_files(tmp_path / "b.npy")
+
+
+# ----------------------------------------------------------------------------- time units, metadata
+
+
+def test_each_reader_reports_its_time_unit(tmp_path, stream, rng):
+    columns = tmp_path / "c.npz"
+    np.savez(columns, x=stream["x"], y=stream["y"], t=stream["t"], p=stream["p"],
+             sensor_size=np.array([40, 30, 2]), time_unit=np.array("ms"))
+    assert read_events(columns).time_unit == "ms"
+    np.savez(columns, events=stream, sensor_size=np.array([40, 30, 2]))
+    assert read_events(columns).time_unit is None  # the file does not say
+    np.savez(columns, events=stream, sensor_size=np.array([40, 30, 2]), time_unit=np.array("h"))
+    with pytest.raises(ValueError, match="stored time unit must be one of s, ms, us, ns"):
+        read_events(columns)
+    if NMNIST_FILE.exists() and importlib.util.find_spec("tonic"):
+        with pytest.warns(SensorSizeGuessWarning):
+            assert read_events(NMNIST_FILE).time_unit == "us"  # N-MNIST's format
+    pytest.importorskip("h5py")
+    path = write_events(tmp_path / "o.h5", stream, sensor_size=(40, 30, 2), time_unit="us")
+    assert read_events(path).time_unit == "us"
+
+
+def test_npy_sidecar_round_trips_and_a_stale_one_is_removed(tmp_path, stream):
+    path = write_events(tmp_path / "o.npy", stream, sensor_size=(40, 30, 2), time_unit="ns")
+    meta = tmp_path / "o.npy.json"
+    assert json.loads(meta.read_text()) == {"sensor_size": [40, 30, 2], "time_unit": "ns"}
+    with _no_guess_warning():
+        back = read_events(path, sensor_size=(99, 99, 2))  # the file's own size wins
+    assert back.sensor_size == (40, 30, 2) and back.time_unit == "ns" and not back.guessed
+    assert np.array_equal(back.events, stream)
+    assert back._replace(guessed=True).time_unit == "ns" and "time_unit='ns'" in repr(back)
+    write_events(path, stream)  # no metadata now: the old sidecar would lie
+    assert not meta.exists()
+    meta.write_text("[1, 2")
+    with pytest.raises(ValueError, match="cannot read .*o.npy.json.*sidecar"):
+        read_events(path)
+    meta.write_text('{"sensor_size": [10, 10, 2]}')
+    with pytest.raises(ValueError, match="outside the sensor size .* recorded in the file"):
+        read_events(path)
+
+
+def test_recorded_sensor_size_wins_over_the_given_one(tmp_path, stream):
+    columns = tmp_path / "c.npz"
+    np.savez(columns, events=stream, sensor_size=np.array([40, 30, 2]))
+    assert read_events(columns, sensor_size=(64, 64, 2)).sensor_size == (40, 30, 2)
+
+
+def test_npy_of_n_by_4_columns(tmp_path, stream):
+    plain = np.stack([stream["t"], stream["x"], stream["y"], stream["p"]], axis=1)
+    path = tmp_path / "plain.npy"
+    np.save(path, plain.astype(np.float64))
+    events, size, _ = read_events(path, sensor_size=(40, 30, 2), columns="t,x,y,p")
+    assert _values(events) == _values(stream) and events["t"].dtype == np.float64
+    np.save(path, plain[:, [1, 2, 0, 3]])  # x, y, t, p: the default order
+    assert _values(read_events(path, sensor_size=(40, 30, 2)).events) == _values(stream)
+    for bad in ("x,y,t", "x,y,t,t", ["x", "y", "t", "q"], 4):
+        with pytest.raises(ValueError, match="columns must name x, y, t and p once each"):
+            read_events(path, sensor_size=(40, 30, 2), columns=bad)
+    np.save(path, plain[:, :3])
+    with pytest.raises(ValueError, match=r"or an \(N, 4\) array of columns"):
+        read_events(path, sensor_size=(40, 30, 2))

@@ -43,9 +43,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from evdown_torch.checks import check_positive_int
+from evdown_torch.threads import torch_threads
 from evdown_torch.transforms import Chain, Streaming, TemporalFunnelling
 from evdown_torch.transforms.registry import make_method
 
@@ -311,7 +311,11 @@ def realtime_benchmark(
     Returns:
         One :class:`ReplayResult` per method, rate and chunk size.
     """
-    torch.set_num_threads(1)
+    with torch_threads(1):
+        return _replay_all(events, sensor_size, factor, methods, chunks_us, rates, max_chunks)
+
+
+def _replay_all(events, sensor_size, factor, methods, chunks_us, rates, max_chunks):
     results = []
     for rate in rates:
         stream, actual = retime(events, rate)

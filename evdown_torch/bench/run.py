@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from evdown_torch.bench.inputs import (
     EVENTS_SWEEP_RATE,
@@ -45,11 +46,19 @@ __all__ = [
     "machine_description",
     "make_plan",
     "run_benchmark",
+    "stage_bar",
 ]
 
 def log(message: str) -> None:
-    """A progress line on stderr."""
-    print(f"[evdown bench] {message}", file=sys.stderr, flush=True)
+    """A progress line on stderr (above the progress bar, if one is shown)."""
+    tqdm.write(f"[evdown bench] {message}", file=sys.stderr)
+    sys.stderr.flush()
+
+
+def stage_bar(label: str, total: int) -> tqdm:
+    """The progress bar of one stage of the run: ``total`` measurements (on a terminal only)."""
+    return tqdm(total=total, desc=f"evdown bench: {label}", unit="measurement", leave=False,
+                file=sys.stderr, disable=not sys.stderr.isatty(), dynamic_ncols=True)
 
 @dataclass(frozen=True)
 class Plan:
@@ -188,6 +197,7 @@ class _Runner:
         self.inputs: list[BenchInput] = []
         self.measurements: list[Measurement] = []
         self.jobs: list[tuple[Measurement, MemoryJob]] = []
+        self.bar: tqdm | None = None  # the current stage's progress bar
 
     def add_input(self, name: str, events: np.ndarray, sensor_size, source: str) -> BenchInput:
         path = self.tmp / f"{name}.npy"
@@ -200,6 +210,8 @@ class _Runner:
     def measure(self, section: str, inp: BenchInput, events: np.ndarray, factor, repeats: int,
                 x: float | None = None) -> None:
         for cand in self.cands:
+            if self.bar is not None:
+                self.bar.update()
             m = Measurement(section, inp.name, x, cand.name, cand.label, cand.peer, factor,
                             len(events))
             self.measurements.append(m)
@@ -285,9 +297,12 @@ def run_benchmark(
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     start = time.perf_counter()
+    run = None
     try:
         with tempfile.TemporaryDirectory(prefix="evdown-bench-") as tmp:
             run = _Runner(plan, cands, memory, Path(tmp))
+            tables = (1 + (nmnist is not None) + len(extra)) * len(plan.factors) + 1
+            run.bar = stage_bar("method tables", tables * len(cands))
             events_, source = _headline_stream(plan, seed)
             inp = run.add_input("gesture", events_, (128, 128, 2), source)
             for factor in plan.factors:
@@ -310,11 +325,19 @@ def run_benchmark(
             inp = run.add_input("large", events_, (1280, 720, 2),
                                 f"dvs_like_stream, 12 bars, {duration / 1e6:.2f} s")
             run.measure("methods", inp, events_, 4, plan.repeats)
+            run.bar.close()
             del events_
             if scaling:
+                points = (len(plan.events_sweep) + len(plan.sensor_sweep)
+                          + len(plan.duration_sweep_s))
+                run.bar = stage_bar("scaling sweeps", points * len(cands))
                 _sweeps(run, plan, seed)
+                run.bar.close()
+            run.bar = None
             run.measure_memory()
     finally:
+        if run is not None and run.bar is not None:
+            run.bar.close()
         torch.set_num_threads(threads)
     return BenchResults(plan, machine_description(), run.inputs, run.measurements,
                         [(c.name, c.label, c.peer) for c in cands], notes,

@@ -61,6 +61,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--workers", type=int, metavar="N",
                         help="processes working, this one included (default: one per "
                         "core; 1 per rank under torchrun)")
+    parser.add_argument("--threads", type=int, default=1, metavar="N",
+                        help="torch threads of each working process (default 1: never much "
+                        "slower per process, and the cores go to the workers)")
     parser.add_argument("--on-error", choices=("skip", "stop"), default="skip",
                         help="a recording that cannot be read: report and skip it (default), "
                         "or stop the run, keeping the complete shards")
@@ -91,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             result = preprocess(source, args.out, args.method, args.factor, settings,
                                 shard_size=args.shard_size, workers=args.workers,
-                                on_error=args.on_error,
+                                on_error=args.on_error, threads=args.threads,
                                 progress=False if args.no_progress else None)
         except (RecordingError, OSError) as error:
             raise ValueError(f"{error} (complete shards are kept; a rerun resumes)") from None

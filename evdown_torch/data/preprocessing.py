@@ -33,6 +33,7 @@ import evdown_torch
 from evdown_torch.checks import check_choice, check_factor, check_positive_int
 from evdown_torch.data import shards
 from evdown_torch.data.sources import check_label
+from evdown_torch.threads import torch_threads
 from evdown_torch.transforms.registry import make_method, method_settings
 
 __all__ = ["PreprocessResult", "RecordingError", "preprocess"]
@@ -92,7 +93,7 @@ _STATE: dict[str, Any] = {}
 
 
 def _init_worker(state: dict[str, Any], queue) -> None:
-    torch.set_num_threads(1)
+    torch.set_num_threads(state["threads"])
     _STATE.clear()
     _STATE.update(state, tick=lambda: queue.put(1))
 
@@ -194,7 +195,8 @@ def _claim_folder(out: Path, job: dict[str, Any]) -> None:
 
 def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar) -> tuple[
         list[dict[str, Any]], list[float]]:
-    """Write the shards ``todo`` with ``workers`` processes, one torch thread each.
+    """Write the shards ``todo`` with ``workers`` processes, ``state["threads"]`` torch
+    threads each (this one's setting is restored afterwards).
 
     This process works too (in a thread, from the back of the list) while ``workers - 1``
     spawned processes start; each gets one shard at a time from the front once it has
@@ -211,17 +213,13 @@ def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar) -> tu
                       file=sys.stderr)
 
     local = dict(state, tick=lambda: bar.update(1))
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with torch_threads(state["threads"]):
         if workers <= 1:
             for shard in todo:
                 done(*_write_one_shard(local, shard))
             return records, timings
         _run_with_pool(state, deque(todo), workers - 1, bar, done)
         return records, timings
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _run_with_pool(state, waiting: deque, spawned: int, bar, done) -> None:
@@ -320,6 +318,7 @@ def preprocess(
     workers: int | None = None,
     on_error: str = "skip",
     progress: bool | None = None,
+    threads: int = 1,
 ) -> PreprocessResult:
     """Downscale every recording of ``source`` once and write the cache to ``out``.
 
@@ -341,6 +340,9 @@ def preprocess(
             on stderr and in the manifest; retried by a rerun), or ``"stop"`` the run there,
             keeping the shards already complete.
         progress: show a progress bar (default: when stderr is a terminal; rank 0 only).
+        threads: torch threads of each working process while it works (this process's own
+            setting is restored afterwards). One is never much slower per process and leaves
+            the other cores to the other workers (docs/benchmarks.md, "Threads").
 
     Returns:
         What this process did; ``manifest`` on rank 0.
@@ -355,6 +357,7 @@ def preprocess(
     shard_size = check_positive_int("shard_size", shard_size)
     if workers is not None:
         workers = check_positive_int("workers", workers)
+    threads = check_positive_int("threads", threads)
     fxy = check_factor(factor, source.sensor_size)
     transform = make_method(method, source.sensor_size, factor, **(settings or {}))
     rank, world = _rank_and_world()
@@ -378,7 +381,7 @@ def preprocess(
         workers = 1 if world > 1 else _default_workers()
     workers = min(workers, max(len(todo), 1))
     state = {"source": source, "transform": transform, "shard_size": shard_size, "out": out,
-             "job_id": job_id, "on_error": on_error}
+             "job_id": job_id, "on_error": on_error, "threads": threads}
     total = sum(min((s + 1) * shard_size, len(source)) - s * shard_size for s in todo)
     show = (sys.stderr.isatty() if progress is None else progress) and rank == 0
     label = f"rank 0 of {world}" if world > 1 else "preprocess"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import weakref
+
 import snntorch
 import torch
 from torch import Tensor
@@ -20,6 +22,55 @@ def unregistered(neuron: snntorch.SpikingNeuron) -> snntorch.SpikingNeuron:
             del instances[i]
             break
     return neuron
+
+
+class _ResetHandle(snntorch.Leaky):
+    """Stands for one stateful layer in snntorch's registry, holding it only weakly.
+
+    ``snntorch.utils.reset(net)`` looks at ``net``'s direct children; when one is a
+    ``snntorch.Leaky`` it calls ``snntorch.Leaky.reset_hidden()`` and ``detach_hidden()``,
+    which set ``mem`` to zeros and detach it on every ``Leaky`` in the class-level registry
+    ``SpikingNeuron.instances``. This handle is such a ``Leaky`` (built without Leaky's own
+    ``__init__``: no buffers, no registration of its own): reading ``mem`` gives the layer's
+    membrane (an empty tensor when there is none) and setting it calls the layer's ``reset()``.
+    The registry holds the handle, not the layer, and the handle leaves it when the layer is
+    freed, so that discarded models are not kept alive.
+    """
+
+    def __init__(self, layer: torch.nn.Module) -> None:
+        torch.nn.Module.__init__(self)
+        self._layer = weakref.ref(layer)
+
+    @property
+    def mem(self) -> Tensor:
+        layer = self._layer()
+        mem = None if layer is None else layer.mem
+        return torch.zeros(0) if mem is None else mem
+
+    @mem.setter
+    def mem(self, value: Tensor) -> None:
+        layer = self._layer()
+        if layer is not None:
+            layer.reset()
+
+    def forward(self, *args, **kwargs):  # never part of a network
+        raise TypeError("a reset handle only stands in snntorch's registry")
+
+
+def _drop_handle(handle: _ResetHandle) -> None:
+    instances = snntorch.SpikingNeuron.instances  # snntorch may have replaced the list
+    for i, other in enumerate(instances):
+        if other is handle:
+            del instances[i]
+            break
+
+
+def register_for_snntorch_reset(layer: torch.nn.Module) -> None:
+    """Let ``snntorch.utils.reset`` reset ``layer`` (which has ``mem`` and ``reset()``), as it
+    resets ``snntorch.Leaky`` neurons, without the registry keeping ``layer`` alive."""
+    handle = _ResetHandle(layer)
+    snntorch.SpikingNeuron.instances.append(handle)
+    weakref.finalize(layer, _drop_handle, handle)
 
 
 def leaky_through_time(

@@ -17,7 +17,7 @@ from evdown_torch.checks import (
     check_unit_interval,
     output_size,
 )
-from evdown_torch.models._snn import unregistered
+from evdown_torch.models._snn import register_for_snntorch_reset, unregistered
 from evdown_torch.transforms.functional.lif import (
     DEFAULT_THRESHOLD,
     DEFAULT_WEIGHT,
@@ -333,10 +333,12 @@ class SpikingPoolingLayer(nn.Module):
     snntorch networks are often an ``nn.Sequential`` of layers called once per time step,
     whose neurons keep their membrane between calls (``snn.Leaky(init_hidden=True)``). This
     layer does the same: each call takes one step of spikes, returns this step's spikes only
-    and keeps the membrane in :attr:`mem`. Reset it between samples with :meth:`reset`, or
-    reset a whole network (snntorch's layers too) with :func:`reset_states`. (snntorch's own
-    ``snntorch.utils.reset(net)`` resets only the neurons in its global registry, which our
-    modules leave so that discarded models can be freed.)
+    and keeps the membrane in :attr:`mem`. Reset it between samples as snntorch's neurons are
+    reset: ``snntorch.utils.reset(net)`` resets it with them (it resets every neuron of a kind
+    when ``net`` has one of that kind among its direct children, here a ``snntorch.Leaky``:
+    this layer answers as one; snntorch's registry holds it weakly, so discarded models are
+    freed). :meth:`reset` resets this layer alone, and :func:`reset_states` resets every
+    stateful layer of a network, however deeply nested, with or without a ``Leaky``.
 
     Args:
         factor: a :class:`SpikingPooling` to wrap (its parameters are shared), or the
@@ -357,7 +359,8 @@ class SpikingPoolingLayer(nn.Module):
         >>> out = torch.stack([net(x[k]) for k in range(5)])
         >>> out.shape
         torch.Size([5, 1, 3])
-        >>> reset_states(net)
+        >>> import snntorch.utils
+        >>> _ = snntorch.utils.reset(net)  # snntorch's idiom; reset_states(net) does the same
         >>> net[0].mem is None
         True
     """
@@ -375,10 +378,16 @@ class SpikingPoolingLayer(nn.Module):
             self.pool = SpikingPooling(factor, **settings)
         #: The membrane after the last step, ``(B, 2, Ho, Wo)``; ``None`` after a reset.
         self.mem: Tensor | None = None
+        register_for_snntorch_reset(self)
 
     def reset(self) -> None:
         """Forget the membrane: the next step starts from zero."""
         self.mem = None
+
+    def __setstate__(self, state: dict) -> None:
+        """Copies (``copy.deepcopy``, unpickling) answer ``snntorch.utils.reset`` too."""
+        super().__setstate__(state)
+        register_for_snntorch_reset(self)
 
     def forward(self, x: Tensor) -> Tensor:
         """One step: ``(B, 2, H, W)`` spikes in, ``(B, 2, Ho, Wo)`` spikes out."""

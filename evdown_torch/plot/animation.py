@@ -1,7 +1,9 @@
 """Side-by-side views of a recording and its downscaled versions: a GIF animation and a sheet.
 
 Time is cut into windows of ``window_ms`` milliseconds from the first event of any panel,
-``[t0 + k w, t0 + (k + 1) w)``; a panel's image in window ``k`` colours every pixel that has
+``[t0 + k w, t0 + (k + 1) w)``, labelled from the recording's start ``t0`` (in seconds, or in
+milliseconds for recordings under a second: absolute timestamps, such as AEDAT4's Unix
+microseconds, say nothing to a reader); a panel's image in window ``k`` colours every pixel that has
 events there, ON in orange and OFF in blue (mixed by their counts where both occur), on a dark
 background. Panels are drawn at one size whatever their resolution, with nearest-neighbour
 upscaling, so an 8x8 output shows as 8x8 blocks rather than a blur.
@@ -18,8 +20,10 @@ import numpy as np
 from evdown_torch.checks import check_positive_float, check_positive_int
 from evdown_torch.plot import _mpl
 from evdown_torch.plot.sources import Panel, to_numpy
+from evdown_torch.time_units import display_unit
 
-__all__ = ["FrameGrid", "animate", "contact_sheet", "frame_grid", "save", "window_image"]
+__all__ = ["FrameGrid", "animate", "contact_sheet", "frame_grid", "save", "window_image",
+           "window_label"]
 
 ON_COLOUR = np.array([1.0, 0.55, 0.1])
 OFF_COLOUR = np.array([0.3, 0.65, 1.0])
@@ -116,9 +120,18 @@ def panel_title(panel: Panel, seconds: float) -> str:
     return f"{panel.name} {w}x{h}\n{n:,} ev, {_rate(n, seconds)}"
 
 
+def window_label(grid: FrameGrid, k: int, separator: str = "-") -> str:
+    """Window ``k``'s start and end from the recording's start, in s (recordings of a second
+    or more) or ms (:func:`~evdown_torch.time_units.display_unit`), e.g. ``"0.050-0.100 s"``.
+    """
+    unit, scale = display_unit(grid.seconds * 1e6)
+    start, end = ((v - grid.t0) / scale for v in grid.window(k))
+    digits = 3 if unit == "s" else 1
+    return f"{start:.{digits}f}{separator}{end:.{digits}f} {unit}"
+
+
 def _time_label(grid: FrameGrid, k: int) -> str:
-    start, end = grid.window(k)
-    return f"t = {start / 1e6:.3f}-{end / 1e6:.3f} s"
+    return f"t = {window_label(grid, k)}"
 
 
 def animate(
@@ -271,8 +284,7 @@ def contact_sheet(
             if r == 0:
                 ax.set_title(panel_title(panel, grid.seconds), fontsize=8)
             if i == 0:
-                start_us, end_us = grid.window(k)
-                ax.set_ylabel(f"{start_us / 1e6:.3f}-\n{end_us / 1e6:.3f} s", fontsize=7)
+                ax.set_ylabel(window_label(grid, k, "-\n"), fontsize=7)
     fig.subplots_adjust(left=0.4 / fig.get_figwidth() + 0.01, right=0.99, bottom=0.01,
                         top=1 - 0.45 / fig.get_figheight(), wspace=0.05, hspace=0.05)
     return fig

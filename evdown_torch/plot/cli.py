@@ -20,7 +20,8 @@ from evdown_torch._tensors import region_of
 from evdown_torch.checks import check_factor, output_size
 from evdown_torch.events import Events
 from evdown_torch.plot._mpl import MissingMatplotlib
-from evdown_torch.plot.sources import SYNTHETIC_DURATION_MS, load_source
+from evdown_torch.plot.sources import SYNTHETIC_DURATION_MS, load_source, method_name
+from evdown_torch.time_units import check_timing, time_settings
 from evdown_torch.transforms._base import Downscaler, ThresholdDownscaler
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
@@ -61,7 +62,7 @@ def _positive(text: str) -> float:
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     """Add the ``show`` subcommand to an ``evdown`` subparsers object."""
-    from evdown_torch.cli import _factor, _setting
+    from evdown_torch.cli import _factor, _setting, add_input_arguments
 
     show = subparsers.add_parser(
         "show", help="see what each method does: an animation, a contact sheet or a pixel's curves",
@@ -71,7 +72,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     show.add_argument("input", metavar="IN",
                       help="an event file (.npy, .h5, .aedat4, .bin, .raw, .dat; t in "
-                      "microseconds) or "
+                      "microseconds unless the file or --time-unit says otherwise) or "
                       "synthetic:CLASS[:SEED] (a synthetic gesture, class index or name)")
     show.add_argument("--factor", required=True, type=_factor, help="F or FX,FY")
     show.add_argument("--methods", type=_methods, metavar="A,B,...",
@@ -88,9 +89,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     show.add_argument("--set", type=_setting, action="append", metavar="[NAME.]KEY=VALUE",
                       help="a setting for every chosen method that takes KEY, or for method "
                       "NAME only, e.g. --set lif.weight=0.5")
-    show.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
-                      help="input sensor (default: 128 128 2 for synthetic inputs, else from "
-                      "the largest coordinates)")
+    add_input_arguments(show)  # --sensor-size (synthetic default 128 128 2), --time-unit, ...
     show.add_argument("--duration", type=_positive, metavar="MS",
                       help=f"synthetic recording length (default {SYNTHETIC_DURATION_MS:g}); "
                       "for a file, show only its first MS milliseconds")
@@ -190,10 +189,17 @@ def _run(args: argparse.Namespace) -> int:
     if args.curve and suffix in ("", ".gif"):
         raise ValueError(f"--out for --curve must be an image such as .png, .svg or .pdf, "
                          f"got {str(out)!r}")
+    torch.set_num_threads(args.threads)
     sensor = tuple(args.sensor_size) if args.sensor_size else None
-    recording = load_source(args.input, sensor_size=sensor, duration_ms=args.duration)
+    recording = load_source(args.input, sensor_size=sensor, duration_ms=args.duration,
+                            time_unit=args.time_unit, columns=args.columns)
     transforms = build_transforms(args.methods, recording.sensor_size, args.factor,
                                   args.threshold, args.set or [])
+    settings = {f"{method_name(t)}.{key}": value
+                for t in transforms for key, value in time_settings(t).items()}
+    if not args.curve:
+        settings["--window"] = 1000.0 * args.window
+    check_timing(recording.events.t.cpu().numpy(), settings, source=recording.name)
     truth = None if args.no_ground_truth else recording.ground_truth(args.factor)
     if args.curve:
         figure = curve.curve_figure(recording.events, recording.sensor_size, args.factor,

@@ -33,6 +33,7 @@ from evdown_torch.checks import check_factor, check_positive_int, check_sensor_s
 from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.plot import _mpl
 from evdown_torch.plot.sources import method_name
+from evdown_torch.time_units import display_unit
 from evdown_torch.transforms._base import Downscaler, ThresholdDownscaler
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount
@@ -431,8 +432,12 @@ def draw_curves(curves: RegionCurves, *, width: float = 10.0, dpi: float = 100.0
     bottom.set_ylim(-0.6, rows - 0.4)
     span = max(curves.t_end - curves.t_start, 1.0)
     bottom.set_xlim(curves.t_start - 0.01 * span, curves.t_end + 0.01 * span)
-    bottom.xaxis.set_major_formatter(mpl.ticker.FuncFormatter(lambda v, _: f"{v / 1000:g}"))
-    bottom.set_xlabel("time (ms)")
+    unit, scale = display_unit(curves.t_end - curves.t_start)  # from the recording's start
+    ticks = mpl.ticker.MaxNLocator(8).tick_values(0, span / scale)  # round in that unit
+    bottom.xaxis.set_major_locator(mpl.ticker.FixedLocator(curves.t_start + ticks * scale))
+    bottom.xaxis.set_major_formatter(
+        mpl.ticker.FuncFormatter(lambda v, _: f"{(v - curves.t_start) / scale:.6g}"))
+    bottom.set_xlabel(f"time from the recording's start ({unit})")
     fig.subplots_adjust(left=0.14, right=0.98, top=1 - 0.3 / fig.get_figheight(),
                         bottom=0.5 / fig.get_figheight())
     return fig

@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -17,7 +17,7 @@ import torch
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import check_factor, check_sensor_size, output_size
 from evdown_torch.events import Events, EventsLike, to_events
-from evdown_torch.io import read_events
+from evdown_torch.io import read_microseconds
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.registry import METHODS, make_method
 
@@ -103,6 +103,8 @@ def load_source(
     *,
     sensor_size: tuple[int, int, int] | None = None,
     duration_ms: float | None = None,
+    time_unit: str | None = None,
+    columns: Any = None,
 ) -> Source:
     """Read the recording named ``spec``.
 
@@ -112,7 +114,10 @@ def load_source(
             ``synthetic:CLASS[:SEED]`` (a gesture of :mod:`evdown_torch.synthetic`; ``CLASS``
             an index or a class name, case, spaces and underscores ignored; seed 0 by default).
         sensor_size: ``(W, H, P)``; default: the synthetic sensor (128, 128, 2), or for a file
-            the largest coordinates + 1.
+            its own, else the largest coordinates + 1.
+        time_unit: the unit of a file's timestamps where the file states none (default
+            microseconds); they are converted to microseconds.
+        columns: the column order of a ``.npy`` file holding an ``(N, 4)`` array.
         duration_ms: length of a synthetic recording (default 2000 ms); for a file, only its
             first ``duration_ms`` are kept (default: all of it).
 
@@ -148,7 +153,7 @@ def load_source(
         raw = render_gesture(label, seed, sensor_size=size, duration_us=duration_us)
         return Source(to_events(raw, size)[0], size, f"synthetic:{label}:{seed}",
                          label, seed, duration_us)
-    raw, sensor_size = read_file(spec, sensor_size)
+    raw, sensor_size = read_file(spec, sensor_size, time_unit=time_unit, columns=columns)
     events = sort_by_time(to_events(raw, sensor_size)[0])
     if duration_ms is not None and events.num_events:
         end = events.t[0] + duration_ms * 1000
@@ -157,13 +162,19 @@ def load_source(
 
 
 def read_file(
-    path: str, sensor_size: tuple[int, int, int] | None
+    path: str,
+    sensor_size: tuple[int, int, int] | None,
+    *,
+    time_unit: str | None = None,
+    columns: Any = None,
 ) -> tuple[np.ndarray, tuple[int, int, int]]:
-    """The one file reader of ``evdown show``: a structured event array and its sensor size
-    (``sensor_size`` when given, else the file's own, else guessed from the largest coordinates
-    with a warning; see :func:`evdown_torch.io.read_events`)."""
-    events, size, _ = read_events(path, sensor_size=sensor_size)
-    return events, size
+    """The one file reader of ``evdown show``: a structured event array with ``t`` in
+    microseconds and its sensor size (the file's own, else ``sensor_size``, else guessed from
+    the largest coordinates with a warning; see :func:`evdown_torch.io.read_events`). The
+    time unit is the file's, else ``time_unit``, else microseconds."""
+    recording = read_microseconds(path, sensor_size=sensor_size, time_unit=time_unit,
+                                  **({} if columns is None else {"columns": columns}))
+    return recording.events, recording.sensor_size
 
 
 def method_name(transform: Downscaler) -> str:

@@ -162,7 +162,13 @@ def calibration(
             "its input"
         )
     if not isinstance(target, BudgetTarget):
-        raise TypeError(f"target must be a BudgetTarget, got {type(target).__name__}")
+        example = target if isinstance(target, (int, float)) and not isinstance(
+            target, bool) else 0.1
+        raise TypeError(
+            f"target must be a BudgetTarget, got {target!r}: give BudgetTarget.ratio(r) for a "
+            f"fraction of the input events (e.g. BudgetTarget.ratio({example!r})), "
+            "BudgetTarget.count(n) for events per recording or BudgetTarget.rate(hz) for "
+            "events per second")
     rtol = check_positive_float("rtol", rtol)
     max_evaluations = check_positive_int("max_evaluations", max_evaluations)
     streams = [to_events(r, transform.sensor_size)[0] for r in recordings]

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from evdown_torch.cli import main
 from evdown_torch.data import (
@@ -422,3 +423,25 @@ def test_dvsgesture_through_tonic(tmp_path, monkeypatch, rng):
         expected = recordings[label].copy()
         expected["t"] *= 1000  # Tonic's DVSGesture reads milliseconds as microseconds
         np.testing.assert_array_equal(events, transform(expected))
+
+
+def test_threads_apply_while_working_and_the_callers_count_is_restored(reference, tmp_path,
+                                                                      monkeypatch):
+    from evdown_torch.data import preprocessing
+
+    seen = []
+    real = preprocessing._write_one_shard
+
+    def spy(state, shard):
+        seen.append(torch.get_num_threads())
+        return real(state, shard)
+
+    monkeypatch.setattr(preprocessing, "_write_one_shard", spy)
+    source = open_source("synthetic", **SYNTHETIC)
+    before = torch.get_num_threads()
+    preprocess(source, tmp_path / "two", "event_count", 2, {"threshold": 0.5}, shard_size=3,
+               workers=1, threads=2)
+    assert seen and set(seen) == {2} and torch.get_num_threads() == before
+    assert _digests(tmp_path / "two") == _digests(reference)  # threads change no result
+    with pytest.raises(ValueError, match="threads must be a positive integer"):
+        preprocess(source, tmp_path / "zero", "downsample", 2, workers=1, threads=0)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -74,8 +76,15 @@ def test_learns_a_separable_task():
     batches = [(frames[i : i + 8], labels[i : i + 8]) for i in range(0, 24, 8)]
     torch.manual_seed(0)
     net = SpikingClassifier(num_classes=3, channels=(8,), pool_size=3)
-    losses = train_classifier(net, batches, epochs=6, learning_rate=2e-2)
+    lines = []
+    losses = train_classifier(net, batches, epochs=6, learning_rate=2e-2, log=lines.append)
     assert losses[-1] < losses[0]
+    assert len(lines) == 6  # one line per epoch: its loss and the seconds since the start
+    for epoch, (line, loss) in enumerate(zip(lines, losses, strict=True)):
+        match = re.fullmatch(rf"epoch {epoch + 1}/6: loss {loss:.4f}, (\d+\.\d) s", line)
+        assert match is not None, line
+    seconds = [float(re.search(r"([\d.]+) s$", line).group(1)) for line in lines]
+    assert seconds == sorted(seconds)
     assert evaluate_classifier(net, batches) == 1.0
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+import gc
 import math
 import re
 
@@ -268,17 +270,62 @@ def test_the_layer_refuses_a_step_of_the_wrong_rank_naming_its_shape(shape):
     assert layer.mem.shape == (1, 2, 2, 2)  # the refused steps left the membrane alone
 
 
-def test_modules_stay_out_of_snntorchs_registry():
+def test_discarded_modules_leave_snntorchs_registry():
     import snntorch
 
     from evdown_torch.models import SpikingClassifier
 
+    gc.collect()
     before = len(snntorch.SpikingNeuron.instances)
     SpikingPooling(2, beta=0.5)
     SpikingPooling(2, beta=0.5).layer()
     SpikingPoolingLayer(2, beta=0.5)
     SpikingClassifier(num_classes=3)
+    kept = SpikingPoolingLayer(2, beta=0.5)
+    gc.collect()
+    assert len(snntorch.SpikingNeuron.instances) == before + 1  # kept's weak handle
+    del kept
+    gc.collect()
     assert len(snntorch.SpikingNeuron.instances) == before
+
+
+def test_snntorch_utils_reset_resets_the_layers_beside_leaky(rng):
+    import snntorch as snn
+    import snntorch.utils
+
+    torch.manual_seed(0)
+    net = nn.Sequential(
+        SpikingPoolingLayer(2, beta=0.9, weight=0.6),
+        nn.Flatten(),
+        nn.Linear(2 * 3 * 3, 4),
+        snn.Leaky(beta=0.8, init_hidden=True),
+    )
+    copy_of_net = copy.deepcopy(net)
+    x = torch.from_numpy(rng.integers(0, 2, size=(12, 3, 2, 6, 6))).float()  # (T, B, 2, H, W)
+
+    def run(model) -> torch.Tensor:  # the snntorch idiom: one call per time step
+        return torch.stack([model(x[k]) for k in range(x.shape[0])])
+
+    with torch.no_grad():
+        first = run(net)
+        assert net[0].mem.sum() > 0
+        carried = run(net)  # without a reset the membrane carries over: other spikes
+        assert not torch.equal(first, carried)
+        snntorch.utils.reset(net)
+        assert net[0].mem is None and not net[3].mem.any()
+        assert torch.equal(run(net), first)  # as from a fresh start
+        run(copy_of_net)
+        snntorch.utils.reset(copy_of_net)  # a copy's layer is reset too (not its Leaky:
+        assert copy_of_net[0].mem is None  # snntorch does not register copies of its own)
+        pooled = torch.stack([copy_of_net[0](x[k]) for k in range(x.shape[0])])
+        assert torch.equal(pooled, copy_of_net[0].pool(x)[0])
+
+    # The functional module keeps no hidden state: a reset changes nothing.
+    pool_net = nn.Sequential(SpikingPooling(2, beta=0.9, weight=0.6), snn.Leaky(beta=0.8))
+    spikes, mem = pool_net[0](x)
+    snntorch.utils.reset(pool_net)
+    again, mem_again = pool_net[0](x)
+    assert torch.equal(spikes, again) and torch.equal(mem, mem_again)
 
 
 def test_layer_in_sequential_with_snntorch_trains_and_resets(rng):

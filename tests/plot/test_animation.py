@@ -9,7 +9,13 @@ from PIL import Image
 from evdown_torch import EventCount
 from evdown_torch.events import Events
 from evdown_torch.plot import animate, contact_sheet, panels, save
-from evdown_torch.plot.animation import BACKGROUND, OFF_COLOUR, ON_COLOUR, frame_grid
+from evdown_torch.plot.animation import (
+    BACKGROUND,
+    OFF_COLOUR,
+    ON_COLOUR,
+    frame_grid,
+    window_label,
+)
 from tests.helpers import DVS_DTYPE, random_stream
 from tests.plot.images import big_blobs
 
@@ -127,3 +133,16 @@ def test_animation_refuses_too_many_frames_and_bad_windows(rng):
         animate(shown, window_ms=0)
     with pytest.raises(ValueError, match="nothing to show"):
         animate([])
+
+
+def test_windows_are_labelled_from_the_recording_start(rng):
+    events = random_stream(rng, 300, SENSOR, t_max=2_500_000)
+    events["t"] += 1_605_537_493_718_000  # AEDAT4's absolute Unix microseconds
+    grid = frame_grid(panels(events, SENSOR, 2, []), window_ms=50)
+    assert window_label(grid, 0) == "0.000-0.050 s" and window_label(grid, 3) == "0.150-0.200 s"
+    sheet = contact_sheet(panels(events, SENSOR, 2, []), window_ms=50, windows=2)
+    labels = [ax.get_ylabel() for ax in sheet.axes]
+    assert labels[0] == "0.000-\n0.050 s" and "1605537493" not in "".join(labels)
+    short = frame_grid(panels(events[events["t"] < events["t"][0] + 400_000], SENSOR, 2, []),
+                       window_ms=20)
+    assert window_label(short, 1) == "20.0-40.0 ms"  # a recording under a second: ms

@@ -166,3 +166,24 @@ def test_matplotlib_is_imported_only_to_draw_and_its_absence_names_the_extra(npy
     assert result.returncode == 2
     assert result.stderr.startswith("evdown show: error: plots need matplotlib")
     assert result.stderr.count("\n") == 1 and "pip install evdown_torch[plot]" in result.stderr
+
+
+def test_a_file_in_seconds_warns_until_its_unit_is_given(tmp_path, rng, capsys):
+    stream = random_stream(rng, 400, SENSOR, t_max=200_000)
+    seconds = np.empty(400, [("x", "<i2"), ("y", "<i2"), ("t", "<f8"), ("p", "?")])
+    for name in ("x", "y", "p"):
+        seconds[name] = stream[name]
+    seconds["t"] = stream["t"] / 1e6
+    np.save(tmp_path / "s.npy", seconds)
+    argv = ["show", str(tmp_path / "s.npy"), "--factor", "2", "--methods", "downsample",
+            "--sensor-size", "16", "12", "2", "--out", str(tmp_path / "sheet.png")]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "evdown show: warning: " in err and "--window=50000 us exceed" in err
+    assert "--time-unit s" in err
+    assert main([*argv, "--time-unit", "s", "--windows", "2"]) == 0
+    captured = capsys.readouterr()
+    assert "warning" not in captured.err and "2 windows of 50 ms" in captured.out
+    assert load_source(str(tmp_path / "s.npy"), sensor_size=SENSOR,
+                       time_unit="s").events.t.tolist() == pytest.approx(
+                           np.sort(stream["t"]).astype(float).tolist())

@@ -236,3 +236,17 @@ def test_a_method_given_twice_keeps_both_results(rng):
                            [EventCount(SENSOR, FACTOR, threshold=0.25), "event_count"])
     assert list(curves.events) == ["event_count", "event_count 2"]
     assert [r.threshold for r in curves.events.values()] == [0.25, 1.0]
+
+
+def test_time_axis_counts_from_the_recording_start(rng):
+    events = random_stream(rng, 200, SENSOR, t_max=300_000)
+    events["t"] += 1_605_537_493_718_000  # absolute Unix microseconds, as AEDAT4 stores them
+    figure = curve_figure(events, SENSOR, FACTOR, PIXEL, ["event_count"])
+    figure.canvas.draw()
+    axis = figure.axes[1]
+    labels = [tick.get_text() for tick in axis.get_xticklabels()]
+    start = float(events["t"].min())
+    positions = [(v - start) / 1000 for v in axis.get_xticks()]  # ms from the start, by hand
+    assert axis.get_xlabel() == "time from the recording's start (ms)"
+    assert labels[0] == "0" and [float(text) for text in labels] == pytest.approx(positions)
+    assert all(float(text) == round(float(text)) for text in labels)  # round numbers

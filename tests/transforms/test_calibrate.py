@@ -93,8 +93,11 @@ def test_a_count_reachable_only_at_the_end_of_the_range_is_reached():
 def test_bad_calibrations(recordings):
     with pytest.raises(ValueError, match="no budget setting"):
         calibrate(Downsample(SENSOR, 2), recordings, BudgetTarget.ratio(0.1))
-    with pytest.raises(TypeError, match="BudgetTarget"):
-        calibrate(EventCount(SENSOR, 2), recordings, 0.1)
+    with pytest.raises(TypeError, match=r"got 0\.25: give BudgetTarget\.ratio\(r\) .*"
+                       r"e\.g\. BudgetTarget\.ratio\(0\.25\)"):
+        calibrate(EventCount(SENSOR, 2), recordings, 0.25)
+    with pytest.raises(TypeError, match=r"BudgetTarget\.ratio\(0\.1\)"):
+        calibrate(EventCount(SENSOR, 2), recordings, "10%")
     with pytest.raises(ValueError, match="target"):
         BudgetTarget.ratio(-1.0)
     empty = recordings[0][:0]
