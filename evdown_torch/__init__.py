@@ -1,6 +1,6 @@
 """evdown_torch: exact, vectorised downscaling of event-camera (DVS) streams in PyTorch."""
 
-from evdown_torch.checks import max_output_events, set_max_output_events
+from evdown_torch.checks import max_output_events, output_limit, set_max_output_events
 from evdown_torch.events import Events, from_events, to_events
 from evdown_torch.transforms import (
     Chain,
@@ -30,6 +30,7 @@ __all__ = [
     "__version__",
     "from_events",
     "max_output_events",
+    "output_limit",
     "set_max_output_events",
     "to_events",
 ]

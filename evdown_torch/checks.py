@@ -8,12 +8,18 @@ from __future__ import annotations
 
 import math
 import numbers
+import warnings
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, contextmanager
+from contextvars import ContextVar
+from fractions import Fraction
 from typing import Any
 
 import torch
 
 __all__ = [
     "DEFAULT_MAX_OUTPUT_EVENTS",
+    "DEFAULT_TIME_UNIT",
     "MAX_EXACT_SPAN",
     "check_choice",
     "check_factor",
@@ -27,18 +33,32 @@ __all__ = [
     "check_sensor_size",
     "check_time_constant",
     "check_time_span",
+    "check_time_unit",
     "check_unit_interval",
     "max_output_events",
+    "output_limit",
     "output_size",
     "set_max_output_events",
+    "time_unit_fraction",
 ]
 
-#: Default most events one call of a downscaler may emit (see :func:`set_max_output_events`).
+#: Default most events one call of a downscaler may emit (see :func:`max_output_events`).
 #: 100 million events are about 2.5 GB as tensors, and a kernel needs several times that
 #: while it builds them; thresholds far below a region's level steps can ask for much more.
 DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
 
-_max_output_events = DEFAULT_MAX_OUTPUT_EVENTS
+#: The output limit of the current thread (or asyncio task): a context variable, so a limit
+#: set in one thread never applies to another.
+_OUTPUT_LIMIT: ContextVar[int | None] = ContextVar(
+    "evdown_torch_max_output_events", default=DEFAULT_MAX_OUTPUT_EVENTS
+)
+
+#: Seconds per timestamp unit where nothing else is said: microseconds, as Tonic's datasets.
+DEFAULT_TIME_UNIT = 1e-6
+
+#: Largest denominator of the fraction a ``time_unit`` is read as (so 1e-6 is exactly
+#: 1/10**6 and 1e-9 exactly 1/10**9); a time unit must be at least its inverse (1e-12 s).
+MAX_TIME_UNIT_DENOMINATOR = 10**12
 
 #: Spans ``t_end - t_start`` of integer timestamps the estimators refuse from (2**53, about
 #: 285 years in microseconds): crossing times are float64 offsets from the pieces' starts,
@@ -211,49 +231,154 @@ def check_non_negative_int(name: str, value: Any) -> int:
     return int(value)
 
 
-def max_output_events() -> int:
-    """The most events one call of a downscaler may emit (see :func:`set_max_output_events`)."""
-    return _max_output_events
+def output_limit() -> int | None:
+    """The most events one call of a downscaler may emit here (``None``: no limit).
+
+    The limit in force in the current thread (or asyncio task): :data:`DEFAULT_MAX_OUTPUT_EVENTS`
+    unless a :func:`max_output_events` block around the call says otherwise.
+
+    Example:
+        >>> output_limit() == DEFAULT_MAX_OUTPUT_EVENTS
+        True
+    """
+    return _OUTPUT_LIMIT.get()
 
 
-def set_max_output_events(limit: int | None) -> int:
-    """Set the most events one call of a downscaler may emit; returns the previous limit.
+def max_output_events(limit: int | None) -> AbstractContextManager[int | None]:
+    """A block in which one call of a downscaler may emit at most ``limit`` events.
 
-    The log-luminance methods (EventCount, LinearEstimation, CubicEstimation) can emit many
-    events per input event when the threshold is small; they count their output before
-    building it and raise a ``ValueError`` naming the count when it exceeds this limit, instead
-    of running out of memory. The limit holds for the whole process.
+    Every downscaler counts its output before it builds it and raises a ``ValueError`` naming
+    the count when it exceeds the limit, instead of running out of memory: the log-luminance
+    methods (EventCount, LinearEstimation, CubicEstimation, PhotocurrentPooling), whose small
+    thresholds can emit many events per input event, and LIFPooling, whose neurons can fire at
+    every step of a long silence. The limit counts one call: one ``transform(events)``, one
+    ``transform.batch(...)`` as a whole, one chunk of a session. Outside any block it is
+    :data:`DEFAULT_MAX_OUTPUT_EVENTS` (100 million events, about 2.5 GB as tensors).
+
+    The limit lives in a context variable: it holds for the calls made inside the ``with``
+    block, in this thread (or asyncio task) only, and the previous limit comes back when the
+    block ends, however it ends. Other threads, and DataLoader worker processes, keep their own
+    limit (the default unless they open a block themselves). Blocks nest. The object is also a
+    decorator (``@max_output_events(10**9)``).
+
+    This replaces the process-wide ``set_max_output_events`` (deprecated) and the field
+    ``LIFPooling.max_output_events`` (removed).
 
     Args:
-        limit: a positive number of events, or ``None`` for
-            :data:`DEFAULT_MAX_OUTPUT_EVENTS` (100 million).
+        limit: a positive number of events, or ``None`` for no limit.
+
+    Returns:
+        A context manager; ``with max_output_events(n) as limit:`` binds the limit.
+
+    Raises:
+        TypeError, ValueError: for a limit that is neither a positive integer nor ``None``
+            (at once, before the block).
+
+    Example:
+        >>> with max_output_events(10**9):
+        ...     output_limit()
+        1000000000
+        >>> output_limit() == DEFAULT_MAX_OUTPUT_EVENTS
+        True
+    """
+    if limit is not None:
+        limit = check_positive_int("max_output_events", limit)
+    return _output_limit_block(limit)
+
+
+@contextmanager
+def _output_limit_block(limit: int | None) -> Iterator[int | None]:
+    token = _OUTPUT_LIMIT.set(limit)
+    try:
+        yield limit
+    finally:
+        _OUTPUT_LIMIT.reset(token)
+
+
+def set_max_output_events(limit: int | None) -> int | None:
+    """Deprecated: use ``with evdown_torch.max_output_events(n):`` around the calls.
+
+    Sets the limit of the current thread (or asyncio task) until it is set again, no longer
+    of the whole process; kept for one version.
+
+    Args:
+        limit: a positive number of events, or ``None`` for :data:`DEFAULT_MAX_OUTPUT_EVENTS`.
 
     Returns:
         The limit that was in force before.
-
-    Example:
-        >>> previous = set_max_output_events(10**9)
-        >>> max_output_events()
-        1000000000
-        >>> set_max_output_events(previous) == 10**9
-        True
     """
-    global _max_output_events
-    previous = _max_output_events
-    _max_output_events = (
+    warnings.warn(
+        "evdown_torch.set_max_output_events is deprecated and will be removed; use "
+        "`with evdown_torch.max_output_events(n): ...` around the calls",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    previous = _OUTPUT_LIMIT.get()
+    _OUTPUT_LIMIT.set(
         DEFAULT_MAX_OUTPUT_EVENTS if limit is None else check_positive_int("limit", limit)
     )
     return previous
 
 
-def check_output_count(count: int) -> None:
-    """Refuse an output of ``count`` events above :func:`max_output_events`."""
-    if count > _max_output_events:
+def check_output_count(
+    count: int, *, detail: str = "", fewer: str = "a larger threshold or factor gives fewer events"
+) -> None:
+    """Refuse an output of ``count`` events above the limit in force (:func:`output_limit`).
+
+    Args:
+        count: how many events the call would emit (at least).
+        detail: said after the count, e.g. where the events come from.
+        fewer: how the method's settings give fewer events.
+
+    Raises:
+        ValueError: naming the count and the limit, when ``count`` exceeds the limit.
+    """
+    limit = _OUTPUT_LIMIT.get()
+    if limit is not None and count > limit:
         raise ValueError(
-            f"the output would hold at least {count:,} events, more than the limit of "
-            f"{_max_output_events:,}; a larger threshold or factor gives fewer events, and "
-            "evdown_torch.set_max_output_events(n) raises the limit"
+            f"the output would hold at least {count:,} events{detail}, more than the limit of "
+            f"{limit:,}; {fewer}, and `with evdown_torch.max_output_events(n):` around the "
+            "call raises the limit (None: no limit)"
         )
+
+
+def check_time_unit(time_unit: Any) -> float:
+    """Validate a ``time_unit``: the seconds one timestamp unit lasts, for rates in hertz.
+
+    Every time setting of a method (``dt``, ``tau``, ``max_delay``, ...) is in the stream's
+    own unit; only settings given per second (a frame rate, a cut-off frequency, a budget in
+    events per second) need to know how long that unit is, and they all take it as
+    ``time_unit`` (1e-6, the default, for microseconds; 1.0 for float seconds). It is read as
+    the nearest fraction with a denominator of at most 10**12 (:func:`time_unit_fraction`),
+    so 1e-6 and 1e-9 are exact.
+
+    Returns:
+        ``time_unit`` as a float.
+
+    Raises:
+        TypeError: for a non-number.
+        ValueError: for a value that is not finite, or below 1e-12 (a picosecond).
+
+    Example:
+        >>> check_time_unit(1e-3)
+        0.001
+    """
+    value = check_positive_float("time_unit", time_unit)
+    if value * MAX_TIME_UNIT_DENOMINATOR < 1:
+        raise ValueError(
+            f"time_unit (seconds per timestamp unit) must be at least 1e-12, got {time_unit!r}"
+        )
+    return value
+
+
+def time_unit_fraction(time_unit: float) -> Fraction:
+    """A validated ``time_unit`` as the exact fraction the frame clocks compute with.
+
+    Example:
+        >>> time_unit_fraction(1e-6)
+        Fraction(1, 1000000)
+    """
+    return Fraction(time_unit).limit_denominator(MAX_TIME_UNIT_DENOMINATOR)
 
 
 def check_time_span(t_start: int, t_end: int) -> None:

@@ -9,19 +9,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from evdown_torch.checks import (
-    check_choice,
-    check_factor,
-    check_non_negative_float,
-    check_positive_float,
-    check_unit_interval,
-    output_size,
-)
+from evdown_torch.checks import check_factor, output_size
 from evdown_torch.models._snn import register_for_snntorch_reset, unregistered
-from evdown_torch.transforms.functional.lif import (
+from evdown_torch.transforms.functional.lif_settings import (
     DEFAULT_THRESHOLD,
     DEFAULT_WEIGHT,
-    RESET_MECHANISMS,
+    LIFSettings,
     ResetMechanism,
     decay_factor,
 )
@@ -31,26 +24,7 @@ __all__ = [
     "SpikingPoolingLayer",
     "decay_factor",
     "reset_states",
-    "resolve_beta",
 ]
-
-#: The module's leak when neither ``tau`` nor ``beta`` is given: ``tau`` = 10 steps.
-DEFAULT_TAU_STEPS = 10.0
-
-
-def resolve_beta(*, tau: float | None, beta: float | None, dt: float) -> float:
-    """The decay factor from exactly one of ``tau`` (with ``dt``) and ``beta``.
-
-    Raises:
-        ValueError: if both ``tau`` and ``beta`` are given, or a value is out of range.
-    """
-    if tau is not None and beta is not None:
-        raise ValueError(
-            f"give the leak as tau or as beta, not both; got tau={tau!r} and beta={beta!r}"
-        )
-    if beta is not None:
-        return check_unit_interval("beta", beta)
-    return decay_factor(dt, DEFAULT_TAU_STEPS * dt if tau is None else tau)
 
 
 class SpikingPooling(nn.Module):
@@ -82,7 +56,9 @@ class SpikingPooling(nn.Module):
     The leak is set by exactly one of ``tau`` and ``beta``, with ``beta = exp(-dt / tau)``;
     ``tau`` is in the unit of ``dt`` (``dt = 1`` by default: ``tau`` counted in steps), so
     ``tau -> 0`` gives ``beta = 0`` (no memory) and ``tau = math.inf`` gives ``beta = 1``
-    (integrate-and-fire). With neither, ``tau`` is 10 steps.
+    (integrate-and-fire). With neither, ``tau`` is 10 steps. The settings are checked once,
+    by :class:`~evdown_torch.transforms.functional.lif_settings.LIFSettings`, the settings
+    object :class:`~evdown_torch.LIFPooling` and its kernels share.
 
     Constants live in buffers (``weight``, ``mutual_inhibition`` here and ``neuron.beta``,
     ``neuron.threshold`` in the Leaky), so ``state_dict``, ``.to(device)`` and ``torch.compile``
@@ -147,17 +123,17 @@ class SpikingPooling(nn.Module):
     ) -> None:
         super().__init__()
         self.factor = check_factor(factor)
-        beta = resolve_beta(tau=tau, beta=beta, dt=dt)
-        threshold = check_positive_float("threshold", threshold)
-        weight = check_positive_float("weight", weight)
-        inhibition = check_non_negative_float("mutual_inhibition", mutual_inhibition)
-        check_choice("reset_mechanism", reset_mechanism, RESET_MECHANISMS)
+        settings = LIFSettings(
+            dt=dt, tau=tau, beta=beta, threshold=threshold, weight=weight,
+            mutual_inhibition=mutual_inhibition, reset_mechanism=reset_mechanism,
+        )
         for name, flag in (("learnable", learnable), ("batch_first", batch_first)):
             if not isinstance(flag, bool):
                 raise TypeError(f"{name} must be a bool, got {flag!r}")
         self.learnable = learnable
         self.batch_first = batch_first
-        for name, value in (("weight", weight), ("mutual_inhibition", inhibition)):
+        for name, value in (("weight", settings.weight),
+                            ("mutual_inhibition", settings.mutual_inhibition)):
             tensor = torch.tensor(value, dtype=torch.float32)
             if learnable:
                 self.register_parameter(name, nn.Parameter(tensor))
@@ -165,9 +141,9 @@ class SpikingPooling(nn.Module):
                 self.register_buffer(name, tensor)
         self.neuron = unregistered(
             snntorch.Leaky(
-                beta=torch.tensor(beta, dtype=torch.float32),
-                threshold=torch.tensor(threshold, dtype=torch.float32),
-                reset_mechanism=reset_mechanism,
+                beta=torch.tensor(settings.beta, dtype=torch.float32),
+                threshold=torch.tensor(settings.threshold, dtype=torch.float32),
+                reset_mechanism=settings.reset_mechanism,
                 spike_grad=spike_grad,
             )
         )

@@ -24,7 +24,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Literal, NamedTuple
 
-from evdown_torch.checks import check_choice, check_positive_float, check_positive_int
+from evdown_torch.checks import (
+    DEFAULT_TIME_UNIT,
+    check_choice,
+    check_positive_float,
+    check_positive_int,
+    check_time_unit,
+)
 from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.transforms._base import Downscaler
 
@@ -39,7 +45,9 @@ class BudgetTarget:
         kind: ``"ratio"`` (output events per input event), ``"count"`` (output events, all
             recordings together) or ``"rate"`` (output events per second of recording).
         value: the target, positive.
-        time_unit: seconds per timestamp unit, for ``"rate"`` (1e-6: microseconds).
+        time_unit: seconds per timestamp unit, for ``"rate"`` only (``None``, the default,
+            is 1e-6: microseconds; see :func:`~evdown_torch.checks.check_time_unit`). The
+            other kinds have no time in them and refuse one.
 
     Example:
         >>> BudgetTarget.ratio(0.1).events(input_events=5000, duration=2e6)
@@ -50,12 +58,20 @@ class BudgetTarget:
 
     kind: Literal["ratio", "count", "rate"]
     value: float
-    time_unit: float = 1e-6
+    time_unit: float | None = None
 
     def __post_init__(self) -> None:
         check_choice("target kind", self.kind, ("ratio", "count", "rate"))
         object.__setattr__(self, "value", check_positive_float("target", self.value))
-        check_positive_float("time_unit", self.time_unit)
+        if self.kind != "rate":
+            if self.time_unit is not None:
+                raise ValueError(
+                    f"time_unit={self.time_unit!r} applies only to a rate target (events per "
+                    f"second); a {self.kind} target has no time in it"
+                )
+            return
+        time_unit = DEFAULT_TIME_UNIT if self.time_unit is None else self.time_unit
+        object.__setattr__(self, "time_unit", check_time_unit(time_unit))
 
     @classmethod
     def ratio(cls, value: float) -> BudgetTarget:
@@ -68,7 +84,7 @@ class BudgetTarget:
         return cls("count", value)
 
     @classmethod
-    def rate(cls, events_per_second: float, time_unit: float = 1e-6) -> BudgetTarget:
+    def rate(cls, events_per_second: float, time_unit: float | None = None) -> BudgetTarget:
         """``events_per_second`` output events per second (timestamps count ``time_unit`` s)."""
         return cls("rate", events_per_second, time_unit)
 

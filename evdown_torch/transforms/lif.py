@@ -2,31 +2,24 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any, ClassVar
+from dataclasses import dataclass, fields, replace
+from functools import cached_property
+from typing import TYPE_CHECKING, ClassVar
 
 from evdown_torch._tensors import sort_by_time
-from evdown_torch.checks import (
-    check_choice,
-    check_non_negative_float,
-    check_positive_float,
-    check_positive_int,
-    check_time_constant,
-)
+from evdown_torch.checks import check_positive_float
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms._batch import Stacked, run_stacked
-from evdown_torch.transforms.functional.lif import (
+from evdown_torch.transforms.functional.lif import lif_pooling
+from evdown_torch.transforms.functional.lif_settings import (
     DEFAULT_DT,
-    DEFAULT_MAX_OUTPUT_EVENTS,
     DEFAULT_TAU,
     DEFAULT_THRESHOLD,
     DEFAULT_WEIGHT,
-    RESET_MECHANISMS,
+    LIFSettings,
     ResetMechanism,
-    decay_factor,
-    lif_pooling,
 )
 from evdown_torch.transforms.functional.lif_stream import (
     LIFStreamState,
@@ -91,14 +84,20 @@ class LIFPooling(Downscaler):
         weight: weight of each same-polarity input event, positive.
         mutual_inhibition: weight of each opposite-polarity input event, subtracted (0: none).
         reset_mechanism: ``"subtract"``, ``"zero"`` or ``"none"`` (snntorch's meanings).
-        max_output_events: a call that would emit more events than this raises a
-            ``ValueError`` naming the count instead (a neuron kept above threshold, e.g. with
-            no leak and ``reset_mechanism="none"``, fires at every step of a silence, however
-            long); ``None`` removes the bound. Default 10**8.
+
+    The settings are checked and normalised (to floats) once, by :class:`LIFSettings`
+    (:attr:`settings`), which the kernels and :meth:`to_module` share.
+
+    A call that would emit more events than the output limit raises a ``ValueError`` naming
+    the count instead: a neuron kept above threshold, e.g. with no leak and
+    ``reset_mechanism="none"``, fires at every step of a silence, however long. The limit is
+    the package's one (:func:`evdown_torch.max_output_events`, 10**8 by default; ``with
+    evdown_torch.max_output_events(None):`` removes it); the former field
+    ``max_output_events`` is gone.
 
     Raises:
         ValueError: at call time, when ``dt`` would cut the stream into more than ``2**62``
-            steps (an int64 step index) or the output exceeds ``max_output_events``.
+            steps (an int64 step index) or the output exceeds the output limit.
 
     Example:
         >>> import numpy as np
@@ -118,23 +117,26 @@ class LIFPooling(Downscaler):
     weight: float = DEFAULT_WEIGHT
     mutual_inhibition: float = 0.0
     reset_mechanism: ResetMechanism = "subtract"
-    max_output_events: int | None = DEFAULT_MAX_OUTPUT_EVENTS
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_positive_float("dt", self.dt)
-        check_time_constant("tau", self.tau)
-        check_positive_float("threshold", self.threshold)
-        check_positive_float("weight", self.weight)
-        check_non_negative_float("mutual_inhibition", self.mutual_inhibition)
-        check_choice("reset_mechanism", self.reset_mechanism, RESET_MECHANISMS)
-        if self.max_output_events is not None:
-            check_positive_int("max_output_events", self.max_output_events)
+        settings = self.settings  # checks every setting
+        for field in fields(LIFSettings):
+            if field.name != "beta":
+                object.__setattr__(self, field.name, getattr(settings, field.name))
+
+    @cached_property
+    def settings(self) -> LIFSettings:
+        """The neuron's settings, checked and normalised (shared with the kernels)."""
+        return LIFSettings(
+            dt=self.dt, tau=self.tau, threshold=self.threshold, weight=self.weight,
+            mutual_inhibition=self.mutual_inhibition, reset_mechanism=self.reset_mechanism,
+        )
 
     @property
     def beta(self) -> float:
         """Membrane decay per step, ``exp(-dt / tau)``."""
-        return decay_factor(self.dt, self.tau)
+        return self.settings.beta
 
     def to_module(self) -> SpikingPooling:
         """The :class:`~evdown_torch.models.SpikingPooling` with these settings.
@@ -146,32 +148,12 @@ class LIFPooling(Downscaler):
         """
         from evdown_torch.models.pooling import SpikingPooling  # models build on transforms
 
-        return SpikingPooling(
-            self.factor_xy,
-            beta=self.beta,
-            threshold=self.threshold,
-            weight=self.weight,
-            mutual_inhibition=self.mutual_inhibition,
-            reset_mechanism=self.reset_mechanism,
-        )
-
-    def _settings(self) -> dict[str, Any]:
-        """The kernel's keyword arguments."""
-        return {
-            "sensor_size": self.sensor_size,
-            "factor": self.factor_xy,
-            "dt": float(self.dt),
-            "beta": self.beta,
-            "threshold": float(self.threshold),
-            "weight": float(self.weight),
-            "mutual_inhibition": float(self.mutual_inhibition),
-            "reset_mechanism": self.reset_mechanism,
-            "max_output_events": self.max_output_events,
-        }
+        return SpikingPooling(self.factor_xy, **self.settings.neuron._asdict())
 
     def kernel(self, events: Events) -> Events:
         """Apply :func:`~evdown_torch.transforms.functional.lif.lif_pooling`."""
-        return lif_pooling(events, **self._settings())
+        return lif_pooling(events, self.settings, sensor_size=self.sensor_size,
+                           factor=self.factor_xy)
 
     def stream(
         self, events: Events, state: LIFStreamState | None
@@ -182,32 +164,23 @@ class LIFPooling(Downscaler):
         ``t_start + (k + 1) * dt`` and lies in a later step; the rest come at the flush. The
         state (:class:`~evdown_torch.transforms.functional.lif_stream.LIFStreamState`) holds
         ``t_start``, every region's membranes at its last input and the input of the open
-        step. ``max_output_events`` bounds each chunk's output.
+        step. The output limit bounds each chunk's output.
         """
-        return lif_pooling_stream(events, state, **self._settings())
+        return lif_pooling_stream(events, state, self.settings, sensor_size=self.sensor_size,
+                                  factor=self.factor_xy)
 
     def stream_end(self, state: LIFStreamState | None) -> Events | None:
         """The open step's spikes and the firing chains up to the end, clipped to ``t_end``."""
-        return lif_pooling_stream_end(state, **self._settings())
+        return lif_pooling_stream_end(state, self.settings, sensor_size=self.sensor_size,
+                                      factor=self.factor_xy)
 
     def batch_kernel(self, batch: EventBatch) -> EventBatch:
         """The kernel once on the stacked batch, each recording binned from its own
         ``t_start`` and ending at its own ``t_end``."""
 
         def kernel(stacked: Stacked) -> Events:
-            return lif_pooling(
-                stacked.events,
-                sensor_size=self.sensor_size,
-                factor=self.factor_xy,
-                dt=float(self.dt),
-                beta=self.beta,
-                threshold=float(self.threshold),
-                weight=float(self.weight),
-                mutual_inhibition=float(self.mutual_inhibition),
-                reset_mechanism=self.reset_mechanism,
-                max_output_events=self.max_output_events,
-                bounds=(stacked.starts, stacked.ends),
-            )
+            return lif_pooling(stacked.events, self.settings, sensor_size=self.sensor_size,
+                               factor=self.factor_xy, bounds=(stacked.starts, stacked.ends))
 
         return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
 
@@ -224,7 +197,7 @@ def calibrate_weight(
     *,
     target_ratio: float | None = None,
     target_rate: float | None = None,
-    time_unit: float = 1e-6,
+    time_unit: float | None = None,
     dt: float = DEFAULT_DT,
     tau: float = DEFAULT_TAU,
     threshold: float = DEFAULT_THRESHOLD,
@@ -248,7 +221,8 @@ def calibrate_weight(
         factor: a positive integer or a pair ``(fx, fy)``.
         target_ratio: wanted ``output events / input events``, positive.
         target_rate: wanted output events per second, positive.
-        time_unit: seconds per timestamp unit (1e-6 for microseconds), for ``target_rate``.
+        time_unit: seconds per timestamp unit, for ``target_rate`` only (default 1e-6:
+            microseconds; see :func:`~evdown_torch.checks.check_time_unit`).
         dt, tau, threshold, mutual_inhibition, reset_mechanism: the other LIFPooling settings.
         rtol: stop once the output count is within this fraction of the target.
         max_evaluations: at most this many runs of the transform.
@@ -258,7 +232,8 @@ def calibrate_weight(
         ``rtol`` of it wherever the stepwise count can get there).
 
     Raises:
-        ValueError: for an empty sample, an unreachable target or a bad setting.
+        ValueError: for an empty sample, an unreachable target or a bad setting (also a
+            ``time_unit`` with ``target_ratio``, which has no time in it).
 
     Example:
         >>> import numpy as np
@@ -277,10 +252,11 @@ def calibrate_weight(
     if (target_ratio is None) == (target_rate is None):
         raise ValueError("give exactly one of target_ratio and target_rate")
     if target_ratio is not None:
-        target = BudgetTarget.ratio(check_positive_float("target_ratio", target_ratio))
+        target = BudgetTarget("ratio", check_positive_float("target_ratio", target_ratio),
+                              time_unit)
     else:
-        target = BudgetTarget.rate(check_positive_float("target_rate", target_rate),
-                                   check_positive_float("time_unit", time_unit))
+        target = BudgetTarget("rate", check_positive_float("target_rate", target_rate),
+                              time_unit)
     template = LIFPooling(
         sensor_size,
         factor,

@@ -5,7 +5,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from evdown_torch.checks import check_non_negative_float, check_positive_float
+from evdown_torch.checks import (
+    DEFAULT_TIME_UNIT,
+    check_non_negative_float,
+    check_positive_float,
+    check_time_unit,
+)
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Downscaler, Session
@@ -50,13 +55,18 @@ class PhotocurrentPooling(Downscaler):
         contrast: the input camera's contrast threshold in log units, in [1e-6, 50].
         threshold: the output pixel's contrast threshold in log units, in [1e-6, 1e6]
             (default: ``contrast``, a camera of the same kind). The budget setting.
-        fps: frames per second of the frames mode (``t`` read as microseconds), or ``None``
-            for the events mode.
+        fps: frames per second of the frames mode, or ``None`` for the events mode.
         cutoff_hz: high-pass leak of the frames mode in Hz (each event's log contribution
             decays as ``exp(-2 pi cutoff_hz dt)``, Scheerlinck et al. 2018), >= 0; 0 is no
             leak. With a leak, every frame of every region is computed (cost: frames x sensor
             area, in bounded chunks); a call whose frames times the sensor's pixels exceed
-            :func:`~evdown_torch.max_output_events` is refused, naming the frame count.
+            the output limit (:func:`~evdown_torch.max_output_events`) is refused, naming the
+            frame count.
+        time_unit: seconds per timestamp unit, through which ``fps`` and ``cutoff_hz`` (per
+            second) become per timestamp unit: ``None`` (the default) is 1e-6, microseconds
+            as Tonic's datasets; 1.0 for float seconds (as some tools store N-Caltech101).
+            Only the frames mode has rates: the events mode refuses a ``time_unit``. See
+            :func:`~evdown_torch.checks.check_time_unit`.
 
     Example:
         >>> import torch
@@ -69,6 +79,7 @@ class PhotocurrentPooling(Downscaler):
     threshold: float | None = None
     fps: float | None = None
     cutoff_hz: float = 0.0
+    time_unit: float | None = None
 
     #: The setting :func:`calibrate` searches to meet an event budget.
     budget_setting: ClassVar[str | None] = "threshold"
@@ -81,14 +92,25 @@ class PhotocurrentPooling(Downscaler):
         check_contrast_range(contrast, threshold)
         object.__setattr__(self, "contrast", contrast)
         object.__setattr__(self, "threshold", threshold)
-        if self.fps is not None:
-            fps = check_positive_float("fps", self.fps)
-            FrameClock.make(fps, 0)
-            object.__setattr__(self, "fps", fps)
         cutoff = check_non_negative_float("cutoff_hz", self.cutoff_hz)
-        if cutoff > 0 and self.fps is None:
-            raise ValueError(f"cutoff_hz={cutoff!r} needs the frames mode: set fps")
         object.__setattr__(self, "cutoff_hz", cutoff)
+        if self.fps is None:
+            if cutoff > 0:
+                raise ValueError(f"cutoff_hz={cutoff!r} needs the frames mode: set fps")
+            if self.time_unit is not None:
+                raise ValueError(
+                    f"time_unit={self.time_unit!r} converts the frames mode's fps and cutoff_hz; "
+                    "the events mode (fps=None) has no rate to convert: set fps or leave "
+                    "time_unit out"
+                )
+            return
+        fps = check_positive_float("fps", self.fps)
+        time_unit = check_time_unit(
+            DEFAULT_TIME_UNIT if self.time_unit is None else self.time_unit
+        )
+        FrameClock.make(fps, 0, time_unit)
+        object.__setattr__(self, "fps", fps)
+        object.__setattr__(self, "time_unit", time_unit)
 
     def kernel(self, events: Events) -> Events:
         """Apply the events-mode or frames-mode kernel of
@@ -97,7 +119,7 @@ class PhotocurrentPooling(Downscaler):
             return photocurrent_frames(
                 events, sensor_size=self.sensor_size, factor=self.factor_xy,
                 contrast=self.contrast, threshold=self.threshold, fps=self.fps,
-                cutoff_hz=self.cutoff_hz,
+                cutoff_hz=self.cutoff_hz, time_unit=self.time_unit,
             )
         out, _ = photocurrent_events(
             events, sensor_size=self.sensor_size, factor=self.factor_xy,
@@ -155,7 +177,7 @@ class PhotocurrentPooling(Downscaler):
         return frames_stream(
             events, sensor_size=self.sensor_size, factor=self.factor_xy,
             contrast=self.contrast, threshold=self.threshold, fps=self.fps,
-            cutoff_hz=self.cutoff_hz, state=state, final=final,
+            cutoff_hz=self.cutoff_hz, time_unit=self.time_unit, state=state, final=final,
         )
 
     def session(self) -> Session:

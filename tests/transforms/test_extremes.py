@@ -10,20 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import evdown_torch
-from evdown_torch import CubicEstimation, EventCount, LinearEstimation
-from evdown_torch.checks import DEFAULT_MAX_OUTPUT_EVENTS, MAX_EXACT_SPAN
+from evdown_torch import CubicEstimation, EventCount, LinearEstimation, max_output_events
+from evdown_torch.checks import MAX_EXACT_SPAN
 from tests.helpers import DVS_DTYPE, as_tuples, random_stream
 
 LOG_METHODS = [EventCount, LinearEstimation, CubicEstimation]
-
-
-@pytest.fixture
-def output_limit():
-    """Set the output limit for one test; the default comes back afterwards."""
-    previous = evdown_torch.max_output_events()
-    yield evdown_torch.set_max_output_events
-    evdown_torch.set_max_output_events(previous)
 
 
 @pytest.mark.parametrize("method", LOG_METHODS)
@@ -57,43 +48,41 @@ def test_event_count_session_with_a_huge_threshold_matches_the_batch():
 def test_event_count_refuses_an_exploding_output_and_names_the_count():
     # Factor 1, threshold 1e-6: every event moves its pixel by exactly 10**6 levels.
     ev = random_stream(np.random.default_rng(2), 20_000, (16, 16, 2))
-    with pytest.raises(ValueError, match=r"20,000,000,000 events.*set_max_output_events"):
+    with pytest.raises(ValueError, match=r"20,000,000,000 events.*max_output_events\(n\)"):
         EventCount((16, 16, 2), 1, threshold=1e-6)(ev)
 
 
-def test_the_output_limit_is_settable_and_counts_the_whole_call(output_limit):
+def test_the_output_limit_counts_the_whole_call():
     ev = random_stream(np.random.default_rng(3), 1000, (8, 8, 2))
     transform = EventCount((8, 8, 2), 1, threshold=1.0)  # factor 1, theta 1: a copy
     assert len(transform(ev)) == 1000
-    output_limit(999)
-    with pytest.raises(ValueError, match="1,000 events, more than the limit of 999"):
+    with max_output_events(999), pytest.raises(
+        ValueError, match="1,000 events, more than the limit of 999"
+    ):
         transform(ev)
-    output_limit(1000)
-    assert as_tuples(transform(ev)) == as_tuples(ev)
-    assert output_limit(None) == 1000
-    assert evdown_torch.max_output_events() == DEFAULT_MAX_OUTPUT_EVENTS
-    with pytest.raises(ValueError, match="positive"):
-        output_limit(0)
+    with max_output_events(1000):
+        assert as_tuples(transform(ev)) == as_tuples(ev)
 
 
-def test_the_limit_counts_every_chunk_of_a_long_stream(output_limit, monkeypatch):
+def test_the_limit_counts_every_chunk_of_a_long_stream(monkeypatch):
     import evdown_torch._tensors as tensors
 
     monkeypatch.setattr(tensors, "CHUNK_EVENTS", 100)  # ten chunks of 100 events
     ev = random_stream(np.random.default_rng(4), 1000, (8, 8, 2))
-    output_limit(950)
-    with pytest.raises(ValueError, match="more than the limit of 950"):
+    with max_output_events(950), pytest.raises(ValueError, match="more than the limit of 950"):
         EventCount((8, 8, 2), 1, threshold=1.0)(ev)
 
 
 @pytest.mark.parametrize("method", [LinearEstimation, CubicEstimation])
-def test_estimators_refuse_an_exploding_output_before_building_it(method, output_limit):
+def test_estimators_refuse_an_exploding_output_before_building_it(method):
     # 300 events at threshold 1e-6 ask for tens of millions of crossings: counted, refused.
     ev = random_stream(np.random.default_rng(0), 300, (8, 8, 2), t_max=100_000)
-    output_limit(1_000_000)
-    with pytest.raises(ValueError, match=r"would hold at least [\d,]+ events"):
+    with max_output_events(1_000_000), pytest.raises(
+        ValueError, match=r"would hold at least [\d,]+ events"
+    ):
         method((8, 8, 2), 2, threshold=1e-6)(ev)
-    small = method((8, 8, 2), 2, threshold=1e-3)(ev)  # ~50k events: within the limit
+    with max_output_events(1_000_000):
+        small = method((8, 8, 2), 2, threshold=1e-3)(ev)  # ~50k events: within the limit
     assert 10_000 < len(small) < 1_000_000
 
 

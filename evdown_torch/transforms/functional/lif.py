@@ -49,24 +49,34 @@ a membrane lies within float32 rounding of the threshold.
 
 Limits. Step indices are int64: a ``dt`` that would cut the stream into more than ``2 ** 62``
 steps is refused, and a ``dt`` longer than the stream puts every event in step 0. The output
-is counted before it is built; more than ``max_output_events`` events (a neuron firing through
-a very long gap) is refused with the expected count.
+is counted before it is built; more events than the limit in force
+(:func:`evdown_torch.max_output_events`; a neuron firing through a very long gap) are refused
+with the expected count.
 """
 
 from __future__ import annotations
 
-import math
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from evdown_torch._tensors import divide, region_xy, sort_by_time, stable_sort_small
-from evdown_torch.checks import check_positive_float, check_time_constant, output_size
+from evdown_torch.checks import check_output_count, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.lif_chains import Leak
 from evdown_torch.transforms.functional.lif_closed_form import MIN_ROUNDS, certain_spikes
 from evdown_torch.transforms.functional.lif_rounds import membranes_by_rounds, spikes_and_runs
+from evdown_torch.transforms.functional.lif_settings import (
+    DEFAULT_DT,
+    DEFAULT_TAU,
+    DEFAULT_THRESHOLD,
+    DEFAULT_WEIGHT,
+    RESET_MECHANISMS,
+    LIFSettings,
+    ResetMechanism,
+    decay_factor,
+)
 from evdown_torch.transforms.functional.lif_steps import (
     MAX_STEPS,
     batch_step_indices,
@@ -76,31 +86,18 @@ from evdown_torch.transforms.functional.lif_steps import (
 
 __all__ = [
     "DEFAULT_DT",
-    "DEFAULT_MAX_OUTPUT_EVENTS",
     "DEFAULT_TAU",
     "DEFAULT_THRESHOLD",
     "DEFAULT_WEIGHT",
     "MAX_STEPS",
     "RESET_MECHANISMS",
     "ResetMechanism",
+    "LIFSettings",
     "LIFState",
     "decay_factor",
     "lif_pooling",
     "lif_spikes",
 ]
-
-ResetMechanism = Literal["subtract", "zero", "none"]
-RESET_MECHANISMS: tuple[str, ...] = ("subtract", "zero", "none")
-
-#: Defaults of LIF pooling (transform and module): a neuron needs about four same-polarity input
-#: events within a few time constants to fire (see :class:`~evdown_torch.LIFPooling`).
-DEFAULT_DT = 1000.0
-DEFAULT_TAU = 10_000.0
-DEFAULT_THRESHOLD = 1.0
-DEFAULT_WEIGHT = 0.3
-
-#: Default bound on the number of output events (LIFPooling's ``max_output_events``).
-DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
 
 #: Most ``(region, step)`` keys per event, and in all, for which the cells are found in a
 #: table of every key (a bool and an int32 running count each: at most 160 bytes per event,
@@ -109,26 +106,6 @@ DEFAULT_MAX_OUTPUT_EVENTS = 100_000_000
 #: 1.1 to 1.3x slower.
 OCCUPANCY_KEYS_PER_EVENT = 32
 MAX_OCCUPANCY_KEYS = 1 << 20
-
-
-def decay_factor(dt: float, tau: float) -> float:
-    """Membrane decay per time step, ``beta = exp(-dt / tau)``.
-
-    Args:
-        dt: length of a time step, positive.
-        tau: membrane time constant in the unit of ``dt``, positive; ``math.inf`` gives
-            ``beta = 1`` (no leak, integrate-and-fire).
-
-    Returns:
-        ``beta`` in ``[0, 1]``: 0 as ``tau -> 0`` (no memory), 1 as ``tau -> inf``.
-
-    Example:
-        >>> round(decay_factor(1000.0, 10_000.0), 6)
-        0.904837
-    """
-    dt = check_positive_float("dt", dt)
-    tau = check_time_constant("tau", tau)
-    return math.exp(-dt / tau)
 
 
 def _event_cells(
@@ -250,16 +227,10 @@ def _with_state_cells(
 
 def lif_pooling(
     events: Events,
+    settings: LIFSettings,
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
-    dt: float,
-    beta: float,
-    threshold: float,
-    weight: float,
-    mutual_inhibition: float = 0.0,
-    reset_mechanism: ResetMechanism = "subtract",
-    max_output_events: int | None = DEFAULT_MAX_OUTPUT_EVENTS,
     bounds: tuple[Tensor, Tensor] | None = None,
 ) -> Events:
     """Downscale a stream through one leaky integrate-and-fire neuron per region and polarity.
@@ -274,15 +245,9 @@ def lif_pooling(
 
     Args:
         events: ``N`` events (any order); ``t`` int64 or float64.
+        settings: the neuron's settings (``dt`` in the unit of ``t``).
         sensor_size: input sensor ``(W, H, P)``.
         factor: ``(fx, fy)``, positive integers.
-        dt: step length, in the unit of ``t`` (microseconds for Tonic), positive.
-        beta: membrane decay per step in ``[0, 1]`` (``exp(-dt / tau)``).
-        threshold: firing threshold, positive (fires when the membrane exceeds it).
-        weight: weight of each same-polarity input event, positive.
-        mutual_inhibition: weight of each opposite-polarity input event, subtracted, ``>= 0``.
-        reset_mechanism: ``"subtract"``, ``"zero"`` or ``"none"``.
-        max_output_events: refuse to emit more events than this (``None``: no bound).
         bounds: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
             ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
             :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps of
@@ -296,13 +261,14 @@ def lif_pooling(
 
     Raises:
         ValueError: when the steps cannot be indexed in int64 (``dt`` far too small for the
-            stream's span) or the output would exceed ``max_output_events``.
+            stream's span) or the output would exceed the limit in force
+            (:func:`evdown_torch.max_output_events`).
 
     Example:
         >>> ev = Events.from_columns([0, 1, 0, 1, 3], [0, 0, 1, 1, 0], [0, 1, 2, 3, 9],
         ...                          [1, 1, 1, 1, 0])
-        >>> out = lif_pooling(ev, sensor_size=(4, 2, 2), factor=(2, 2), dt=2, beta=1.0,
-        ...                   threshold=1.0, weight=0.3)
+        >>> settings = LIFSettings(dt=2, beta=1.0, threshold=1.0, weight=0.3)
+        >>> out = lif_pooling(ev, settings, sensor_size=(4, 2, 2), factor=(2, 2))
         >>> out.x.tolist(), out.y.tolist(), out.t.tolist(), out.p.tolist()
         ([0], [0], [4], [True])
     """
@@ -311,18 +277,16 @@ def lif_pooling(
         return Events.empty(events.t.dtype, events.device)
     wo, ho, _ = output_size(sensor_size, factor)
     if bounds is None:
-        steps, last_step, dt = step_indices(events.t, float(dt))
+        steps, last_step, dt = step_indices(events.t, settings.dt)
         batch_size = 1
     else:  # one block of Ho * Wo regions per recording
         recording = divide(events.y, ho * factor[1])
-        steps, last_step, dt = batch_step_indices(events.t, recording, bounds, float(dt))
+        steps, last_step, dt = batch_step_indices(events.t, recording, bounds, settings.dt)
         del recording
         batch_size = bounds[0].shape[0]
     spike_step, neuron, _ = lif_spikes(
-        events, steps, state=None, last_step=last_step, from_step=0, sensor_size=sensor_size,
-        factor=factor, beta=beta, threshold=threshold, weight=weight,
-        mutual_inhibition=mutual_inhibition, reset_mechanism=reset_mechanism,
-        max_output_events=max_output_events, batch_size=batch_size, keep_state=False,
+        events, steps, settings, state=None, last_step=last_step, from_step=0,
+        sensor_size=sensor_size, factor=factor, batch_size=batch_size, keep_state=False,
     )
     if bounds is None:
         t = step_end_time(spike_step, t_start=events.t[0], t_end=events.t[-1], dt=dt)
@@ -381,18 +345,13 @@ def spikes_to_events(
 def lif_spikes(
     events: Events,
     steps: Tensor,
+    settings: LIFSettings,
     *,
     state: LIFState | None,
     last_step: int | Tensor,
     from_step: int,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
-    beta: float,
-    threshold: float,
-    weight: float,
-    mutual_inhibition: float,
-    reset_mechanism: ResetMechanism,
-    max_output_events: int | None,
     batch_size: int = 1,
     keep_state: bool = True,
 ) -> tuple[Tensor, Tensor, LIFState | None]:
@@ -406,14 +365,14 @@ def lif_spikes(
         events: time-sorted events, all in steps after every region's ``state.last_step``
             and at most ``last_step``.
         steps: ``(N,)`` int64 step of every event.
+        settings: the neuron's settings (its ``dt`` is not used: ``steps`` are given).
         state: the neurons before these events (``None``: all at rest).
         last_step: the last step to process: firing chains through the empty steps after a
             region's last input run up to it; for a batch, a ``(B,)`` tensor, each
             recording's own last step.
         from_step: return only the spikes of steps ``>= from_step`` (those of earlier steps
             were returned by an earlier call; they are neither built nor counted).
-        sensor_size, factor, beta, threshold, weight, mutual_inhibition, reset_mechanism,
-            max_output_events: as :func:`lif_pooling`.
+        sensor_size, factor: as :func:`lif_pooling`.
         batch_size: how many recordings are stacked vertically in ``events`` (see
             :func:`lif_pooling`'s ``bounds``); a state is for one recording only.
         keep_state: return the neurons after the events; ``False`` returns ``None`` instead
@@ -425,6 +384,7 @@ def lif_spikes(
         region``) of the spikes, sorted by step, then neuron; the neurons after the events
         (``None`` unless ``keep_state``).
     """
+    beta, threshold, weight, mutual_inhibition, reset_mechanism = settings.neuron
     device = events.device
     fx, fy = factor
     wo, ho, _ = output_size(sensor_size, factor)
@@ -498,12 +458,9 @@ def lif_spikes(
         run_start = run_start.clamp(min=from_step)
         run_length = (run_end - run_start).clamp_(min=0)
     total = spike_cell.shape[0] + (int(run_length.sum()) if run_length.shape[0] else 0)
-    if max_output_events is not None and total > max_output_events:
-        raise ValueError(
-            f"LIF pooling would emit {total} events ({total - spike_cell.shape[0]} of them "
-            "fired by neurons that stay above threshold through silent steps), more than "
-            f"max_output_events={max_output_events}; raise that bound or lower the weight"
-        )
+    check_output_count(
+        total, detail=f" ({total - spike_cell.shape[0]:,} of them fired by LIF neurons that stay "
+        "above threshold through silent steps)", fewer="a lower weight gives fewer events")
     if run_length.shape[0]:  # the spikes of the runs, one by one
         run_of_spike = torch.repeat_interleave(
             torch.arange(run_length.shape[0], device=device), run_length

@@ -34,8 +34,8 @@ from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.lif import (
+    LIFSettings,
     LIFState,
-    ResetMechanism,
     initial_state,
     lif_spikes,
     spikes_to_events,
@@ -101,25 +101,18 @@ def _last_decided_step(
 def lif_pooling_stream(
     events: Events,
     state: LIFStreamState | None,
+    settings: LIFSettings,
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
-    dt: float,
-    beta: float,
-    threshold: float,
-    weight: float,
-    mutual_inhibition: float = 0.0,
-    reset_mechanism: ResetMechanism = "subtract",
-    max_output_events: int | None = None,
 ) -> tuple[Events, LIFStreamState | None]:
     """One chunk of a LIF pooling stream: the spikes it decides, and the new state.
 
     Args:
         events: the chunk, no earlier than the previous chunks' last event.
         state: the state after the previous chunks, ``None`` for the first.
-        sensor_size, factor, dt, beta, threshold, weight, mutual_inhibition, reset_mechanism:
-            as :func:`~evdown_torch.transforms.functional.lif.lif_pooling`.
-        max_output_events: refuse a chunk whose output would exceed this (``None``: no bound).
+        settings, sensor_size, factor: as
+            :func:`~evdown_torch.transforms.functional.lif.lif_pooling`.
 
     Returns:
         ``(output, state)``: the events of the newly decided steps (sorted by ``t``; the
@@ -128,17 +121,18 @@ def lif_pooling_stream(
 
     Raises:
         ValueError: when the stream's steps cannot be indexed in int64, or the output exceeds
-            ``max_output_events``; ``state`` is not modified.
+            limit in force (:func:`evdown_torch.max_output_events`, per chunk); ``state`` is
+            not modified.
 
     Example:
         >>> ev = Events.from_columns([0, 1, 0, 1, 3], [0, 0, 1, 1, 0], [0, 1, 2, 3, 9],
         ...                          [1, 1, 1, 1, 0])
-        >>> settings = dict(sensor_size=(4, 2, 2), factor=(2, 2), dt=2, beta=1.0,
-        ...                 threshold=1.0, weight=0.3)
-        >>> out, state = lif_pooling_stream(ev.select(torch.arange(4)), None, **settings)
+        >>> settings = LIFSettings(dt=2, beta=1.0, threshold=1.0, weight=0.3)
+        >>> grid = dict(sensor_size=(4, 2, 2), factor=(2, 2))
+        >>> out, state = lif_pooling_stream(ev.select(torch.arange(4)), None, settings, **grid)
         >>> out.t.tolist()  # step 1 ([2, 4)) is still open at t = 3
         []
-        >>> out, state = lif_pooling_stream(ev.select(torch.tensor([4])), state, **settings)
+        >>> out, state = lif_pooling_stream(ev.select(torch.tensor([4])), state, settings, **grid)
         >>> out.t.tolist(), state.decided
         ([4], 3)
     """
@@ -152,10 +146,11 @@ def lif_pooling_stream(
             Events.empty(events.t.dtype, events.device),
         )
     pending = Events(*(torch.cat(pair) for pair in zip(state.pending, events, strict=True)))
-    steps, last_step, end_dt = step_indices(pending.t, float(dt), t_start=state.t_start)
+    dt = settings.dt
+    steps, last_step, end_dt = step_indices(pending.t, dt, t_start=state.t_start)
     last_t = pending.t[-1]
     decided = _last_decided_step(
-        last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=float(dt)
+        last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=dt
     )
     if decided == state.decided:
         return Events.empty(events.t.dtype, events.device), state._replace(
@@ -163,11 +158,9 @@ def lif_pooling_stream(
         )
     n = int(torch.searchsorted(steps, decided, right=True))  # the events of decided steps
     spike_step, neuron, neurons = lif_spikes(
-        pending.select(torch.arange(n, device=events.device)), steps[:n],
+        pending.select(torch.arange(n, device=events.device)), steps[:n], settings,
         state=state.neurons, last_step=decided, from_step=state.decided + 1,
-        sensor_size=sensor_size, factor=factor, beta=beta, threshold=threshold, weight=weight,
-        mutual_inhibition=mutual_inhibition, reset_mechanism=reset_mechanism,
-        max_output_events=max_output_events,
+        sensor_size=sensor_size, factor=factor,
     )
     t = step_end_time(spike_step, t_start=state.t_start, t_end=last_t, dt=end_dt)
     out = spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
@@ -177,16 +170,10 @@ def lif_pooling_stream(
 
 def lif_pooling_stream_end(
     state: LIFStreamState | None,
+    settings: LIFSettings,
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
-    dt: float,
-    beta: float,
-    threshold: float,
-    weight: float,
-    mutual_inhibition: float = 0.0,
-    reset_mechanism: ResetMechanism = "subtract",
-    max_output_events: int | None = None,
 ) -> Events | None:
     """The end of a LIF pooling stream: the spikes of the steps no chunk decided.
 
@@ -195,8 +182,7 @@ def lif_pooling_stream_end(
 
     Args:
         state: the state after the last chunk (``None``: no event, returns ``None``).
-        sensor_size, factor, dt, beta, threshold, weight, mutual_inhibition, reset_mechanism,
-            max_output_events: as :func:`lif_pooling_stream`.
+        settings, sensor_size, factor: as :func:`lif_pooling_stream`.
 
     Returns:
         The remaining events, sorted by ``t``, or ``None`` when no event was streamed.
@@ -205,13 +191,10 @@ def lif_pooling_stream_end(
         return None
     pending = state.pending
     times = torch.cat([pending.t, state.last_t.reshape(1)])
-    steps, last_step, end_dt = step_indices(times, float(dt), t_start=state.t_start)
+    steps, last_step, end_dt = step_indices(times, settings.dt, t_start=state.t_start)
     spike_step, neuron, _ = lif_spikes(
-        pending, steps[:-1], state=state.neurons, last_step=last_step,
-        from_step=state.decided + 1, sensor_size=sensor_size, factor=factor, beta=beta,
-        threshold=threshold, weight=weight, mutual_inhibition=mutual_inhibition,
-        reset_mechanism=reset_mechanism, max_output_events=max_output_events,
-        keep_state=False,
+        pending, steps[:-1], settings, state=state.neurons, last_step=last_step,
+        from_step=state.decided + 1, sensor_size=sensor_size, factor=factor, keep_state=False,
     )
     t = step_end_time(spike_step, t_start=state.t_start, t_end=state.last_t, dt=end_dt)
     return spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)

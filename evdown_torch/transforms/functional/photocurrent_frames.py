@@ -34,7 +34,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import max_output_events, output_size
+from evdown_torch.checks import DEFAULT_TIME_UNIT, output_limit, output_size, time_unit_fraction
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import HALF_TOLERANCE, emit
 from evdown_torch.transforms.functional._reference import (
@@ -54,40 +54,50 @@ from evdown_torch.transforms.functional.photocurrent import (
 #: Frame values per chunk (pixels x frames with a leak, region pixels x steps without one).
 CHUNK_VALUES = 1 << 22
 
-#: Timestamps per second: ``fps`` and ``cutoff_hz`` read ``t`` as microseconds.
-TICKS_PER_SECOND = 1_000_000
-
 Steps = Iterator[tuple[Tensor, Tensor, Tensor, Tensor]]
 
 
 
 class FrameClock(NamedTuple):
     """Frame times of a stream: frame ``k`` at offset ``min(k * period, duration)`` from
-    ``t_start`` (ticks), ``period = denominator / numerator`` exactly.
+    ``t_start`` (ticks: timestamp units), ``period = denominator / numerator`` exactly.
 
     Attributes:
-        numerator: ``a`` of ``fps = a / b`` (``fps`` as the nearest fraction, ``b <= 10**6``).
-        denominator: ``b * 10**6`` (ticks per second times ``b``).
+        numerator: ``a * c`` for ``fps = a / b`` (``fps`` as the nearest fraction,
+            ``b <= 10**6``) and ``time_unit = c / d`` seconds per tick
+            (:func:`~evdown_torch.checks.time_unit_fraction`).
+        denominator: ``b * d`` (so ``numerator / denominator`` frames per tick).
         duration: ``t_end - t_start`` as a float (ticks).
+        tick: ``time_unit`` as the fraction ``c / d``, for frequencies in hertz.
     """
 
     numerator: int
     denominator: int
     duration: float
+    tick: Fraction = Fraction(1, 10**6)
 
     @staticmethod
-    def make(fps: float, duration: float | int) -> FrameClock:
-        """The clock of a stream lasting ``duration`` ticks at ``fps`` frames per second."""
+    def make(
+        fps: float, duration: float | int, time_unit: float = DEFAULT_TIME_UNIT
+    ) -> FrameClock:
+        """The clock of a stream lasting ``duration`` ticks of ``time_unit`` seconds at
+        ``fps`` frames per second."""
         fraction = Fraction(fps).limit_denominator(10**6)
         if fraction <= 0:
             raise ValueError(f"fps must be at least 1e-6 frames per second, got {fps!r}")
-        if duration * fraction.numerator >= 2**62:
+        tick = time_unit_fraction(time_unit)
+        numerator = fraction.numerator * tick.numerator
+        if duration * numerator >= 2**62:
             raise ValueError(
-                f"fps={fps!r} over a stream of {duration} ticks gives frame indices beyond "
-                "int64's exact range"
+                f"fps={fps!r} over a stream of {duration} ticks of {time_unit!r} s gives frame "
+                "indices beyond int64's exact range"
             )
-        return FrameClock(fraction.numerator, fraction.denominator * TICKS_PER_SECOND,
-                          float(duration))
+        return FrameClock(numerator, fraction.denominator * tick.denominator, float(duration),
+                          tick)
+
+    def radians_per_tick(self, hz: float) -> float:
+        """The angular frequency ``2 pi hz`` per tick (``hz`` per second)."""
+        return 2 * math.pi * hz * self.tick.numerator / self.tick.denominator
 
     @property
     def period(self) -> float:
@@ -115,11 +125,12 @@ def photocurrent_frames(
     threshold: float,
     fps: float,
     cutoff_hz: float = 0.0,
+    time_unit: float = DEFAULT_TIME_UNIT,
 ) -> Events:
     """Photocurrent pooling, frames mode (SEMANTICS.md method 7): the paper's literal pipeline.
 
-    Intensity frames at ``t_start + k / fps`` (``t`` in microseconds; the last frame is
-    clipped to ``t_end``) hold every event up to their time. Each pixel's log intensity is
+    Intensity frames at ``t_start + k / fps`` (``t`` counting ``time_unit`` seconds; the last
+    frame is clipped to ``t_end``) hold every event up to their time. Each pixel's log intensity is
     ``contrast`` times its level, or, with ``cutoff_hz > 0``, the high-pass filtered sum in
     which each event's ``+-contrast`` decays as ``exp(-2 pi cutoff_hz dt)``. Frames are
     area-averaged over regions in linear intensity; between consecutive frames each region's
@@ -134,6 +145,8 @@ def photocurrent_frames(
         threshold: ``theta`` in log units.
         fps: frames per second, > 0.
         cutoff_hz: high-pass cut-off frequency in Hz, >= 0 (0: no leak).
+        time_unit: seconds per timestamp unit (default 1e-6: microseconds), validated by the
+            caller (:func:`~evdown_torch.checks.check_time_unit`).
 
     Returns:
         Output events sorted by ``t``, ``t`` of the input's dtype.
@@ -149,8 +162,8 @@ def photocurrent_frames(
         ([2000], [True])
     """
     return frames_stream(events, sensor_size=sensor_size, factor=factor, contrast=contrast,
-                         threshold=threshold, fps=fps, cutoff_hz=cutoff_hz, state=None,
-                         final=True)[0]
+                         threshold=threshold, fps=fps, cutoff_hz=cutoff_hz,
+                         time_unit=time_unit, state=None, final=True)[0]
 
 
 class FramesState(NamedTuple):
@@ -183,6 +196,7 @@ def frames_stream(
     cutoff_hz: float,
     state: FramesState | None,
     final: bool,
+    time_unit: float = DEFAULT_TIME_UNIT,
 ) -> tuple[Events, FramesState | None]:
     """Frames mode on one chunk of a stream: the events of every frame complete so far.
 
@@ -195,7 +209,7 @@ def frames_stream(
 
     Args:
         events: the chunk (time-sorted, at or after every earlier chunk's events; may be empty).
-        sensor_size, factor, contrast, threshold, fps, cutoff_hz: as for
+        sensor_size, factor, contrast, threshold, fps, cutoff_hz, time_unit: as for
             :func:`photocurrent_frames`.
         state: the state returned for the previous chunk, or ``None``.
         final: the chunk ends the stream.
@@ -216,7 +230,7 @@ def frames_stream(
     device = events.device
     t_start = events.t[0] if state is None else state.t_start
     offset = events.t - t_start
-    clock = FrameClock.make(fps, offset[-1].item())
+    clock = FrameClock.make(fps, offset[-1].item(), time_unit)
     frame = clock.index(offset)
     if state is None:
         carry = {"levels": torch.zeros(w * h, dtype=torch.int64, device=device),
@@ -329,23 +343,25 @@ def _frame_steps(
 
 def check_leaky_frames(frames: int, sensor_size: tuple[int, int, int], fps: float) -> None:
     """Refuse a leaky call that would build more frame values (``frames`` times the sensor's
-    pixels, each computed) than :func:`~evdown_torch.checks.max_output_events`, the one
-    bound on a call's work, before any is built."""
+    pixels, each computed) than the output limit in force
+    (:func:`~evdown_torch.checks.max_output_events`), the one bound on a call's work, before
+    any is built."""
     values = frames * sensor_size[0] * sensor_size[1]
-    if values > max_output_events():
+    limit = output_limit()
+    if limit is not None and values > limit:
         raise ValueError(
             f"fps={fps:g} with a leak (cutoff_hz > 0) means {frames:,} frames in this call, "
             f"each computed for all {sensor_size[0] * sensor_size[1]:,} pixels: {values:,} "
-            f"values, more than the limit of {max_output_events():,}; a lower fps or no leak "
+            f"values, more than the limit of {limit:,}; a lower fps or no leak "
             "(its cost follows the events) gives fewer, and "
-            "evdown_torch.set_max_output_events(n) raises the limit"
+            "`with evdown_torch.max_output_events(n):` around the call raises the limit"
         )
 
 
 def leak_chunk(sensor_size: tuple[int, int, int], clock: FrameClock, cutoff_hz: float) -> int:
     """Frames per chunk of the leaky frames mode: at most :data:`CHUNK_VALUES` pixel values,
     and short enough that every decay factor stays within ``[1/e, e]`` (no precision lost)."""
-    omega = 2 * math.pi * cutoff_hz / TICKS_PER_SECOND  # per tick
+    omega = clock.radians_per_tick(cutoff_hz)
     return max(1, min(CHUNK_VALUES // (sensor_size[0] * sensor_size[1]),
                       int(1 / (omega * clock.period))))
 
@@ -371,7 +387,7 @@ def _leaky_frame_steps(
     fx, fy = factor
     out_w, out_h, _ = output_size(sensor_size, factor)
     device = events.device
-    omega = 2 * math.pi * cutoff_hz / TICKS_PER_SECOND  # per tick
+    omega = clock.radians_per_tick(cutoff_hz)
     per_chunk = leak_chunk(sensor_size, clock, cutoff_hz)
     pixel = events.y * w + events.x
     sign = events.p.to(torch.float64).mul_(2 * contrast).sub_(contrast)
