@@ -8,6 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+from evdown_torch.transforms.functional import lif as lif_kernel
+from evdown_torch.transforms.functional import lif_closed_form
+
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NMNIST_FILE = SHARED_DATA / "sample_nmnist.bin"
 
@@ -42,6 +45,22 @@ def nmnist():
     if not NMNIST_FILE.exists():
         pytest.skip(f"{NMNIST_FILE} is absent")
     return tonic.io.read_mnist_file(str(NMNIST_FILE), dtype=tonic.datasets.NMNIST.dtype)
+
+
+@pytest.fixture
+def lif_closed_form_answers(monkeypatch) -> list[bool]:
+    """The closed form tried on every call (not only those of ``MIN_ROUNDS`` rounds or more);
+    the list records, per call, whether it answered (``False``: left to the rounds)."""
+    calls: list[bool] = []
+
+    def recording(*args, **kwargs):
+        out = lif_closed_form.certain_spikes(*args, **kwargs)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(lif_kernel, "MIN_ROUNDS", 1)
+    monkeypatch.setattr(lif_kernel, "certain_spikes", recording)
+    return calls
 
 
 @pytest.fixture(autouse=True)

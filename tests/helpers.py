@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import math
+from collections import defaultdict
+from fractions import Fraction
+
 import numpy as np
+import torch
+from hypothesis import strategies as st
 
 from evdown_torch.events import DVS_DTYPE
 
@@ -44,3 +50,164 @@ def as_tuples(events: np.ndarray) -> list[tuple]:
             (events["p"] > 0).tolist(),
         )
     )
+
+
+def rows(events: np.ndarray) -> list[tuple]:
+    """Events as ``(x, y, t, on)`` tuples in their order (see :func:`as_tuples` for a multiset)."""
+    return list(zip(events["x"].tolist(), events["y"].tolist(), events["t"].tolist(),
+                    (events["p"] > 0).tolist(), strict=True))
+
+
+# --- the DVS reference rule, one level at a time --------------------------------------------
+
+
+def reference_index(q: int, u) -> int:
+    """The reference index after a value moves monotonely to ``u`` (levels in threshold
+    units, a float or a Fraction) from index ``q``: ``floor(u)`` once ``u >= q + 1``,
+    ``ceil(u)`` once ``u <= q - 1``, else ``q``."""
+    if u >= q + 1:
+        return math.floor(u)
+    if u <= q - 1:
+        return math.ceil(u)
+    return q
+
+
+def crossed_levels(q: int, new_q: int) -> list[tuple[int, bool]]:
+    """The levels passed going from index ``q`` to ``new_q``, in order, each with ``on``."""
+    up = new_q > q
+    levels = range(q + 1, new_q + 1) if up else range(q - 1, new_q - 1, -1)
+    return [(level, up) for level in levels]
+
+
+def walk(q: int, u) -> tuple[int, list[tuple[int, bool]]]:
+    """The reference rule from index ``q`` to value ``u``: ``(new q, [(level, on), ...])``."""
+    new_q = reference_index(q, u)
+    return new_q, crossed_levels(q, new_q)
+
+
+# --- streaming ----------------------------------------------------------------------------
+
+
+def run_in_chunks(transform, arr: np.ndarray, cuts: list[int]) -> np.ndarray:
+    """Feed ``arr`` split at ``cuts`` (repeated cuts make empty chunks), then flush."""
+    session = transform.session()
+    parts = [session(chunk) for chunk in np.split(arr, sorted(cuts))]
+    parts.append(session.flush())
+    return np.concatenate(parts)
+
+
+#: Hypothesis cases of a stream cut into chunks: ``(seed, events, cut fractions)``.
+chunkings = st.tuples(
+    st.integers(0, 2**32 - 1),  # stream seed
+    st.integers(0, 300),  # number of events
+    st.lists(st.floats(0, 1), max_size=12),  # cut positions as fractions of the stream
+)
+
+
+# --- photocurrent pooling (method 7): slow float64 references -------------------------------
+
+
+def region_members(sensor, factor):
+    w, h, _ = sensor
+    fx, fy = (factor, factor) if isinstance(factor, int) else factor
+    out_w, out_h = -(-w // fx), -(-h // fy)
+    members = defaultdict(list)
+    for y in range(h):
+        for x in range(w):
+            members[x // fx, y // fy].append((x, y))
+    return fx, fy, out_w, out_h, members
+
+
+def log_mean_level(log_values, theta, snap=1e-9):
+    """log(mean(exp(values))) / theta in float64 (log-sum-exp), snapped to a level."""
+    top = max(log_values)
+    u = (top + math.log(math.fsum(math.exp(v - top) for v in log_values))
+         - math.log(len(log_values))) / theta
+    return float(round(u)) if abs(u - round(u)) <= snap else u
+
+
+def photocurrent_events_reference(arr, sensor, factor, contrast, threshold):
+    """Event by event: recompute each region's mean photocurrent from scratch."""
+    fx, fy, _, _, members = region_members(sensor, factor)
+    level, q, out = defaultdict(int), defaultdict(int), []
+    for i in np.argsort(arr["t"], kind="stable"):
+        x, y = int(arr["x"][i]), int(arr["y"][i])
+        level[x, y] += 1 if arr["p"][i] > 0 else -1
+        r = (x // fx, y // fy)
+        u = log_mean_level([contrast * level[p] for p in members[r]], threshold)
+        q[r], crossed = walk(q[r], u)
+        out += [(r[0], r[1], arr["t"][i].item(), on) for _, on in crossed]
+    return out
+
+
+def photocurrent_frames_reference(arr, sensor, factor, contrast, threshold, fps, cutoff_hz=0.0,
+                                  ticks_per_second=10**6):
+    """Dense frames at t_start + k / fps (last clipped to t_end), linear ramps in log I_r;
+    integer timestamps of ``1 / ticks_per_second`` seconds."""
+    fx, fy, _, _, members = region_members(sensor, factor)
+    order = np.argsort(arr["t"], kind="stable")
+    t = [arr["t"][i].item() for i in order]
+    t0, duration = t[0], t[-1] - t[0]
+    period = Fraction(ticks_per_second) / Fraction(fps).limit_denominator(10**6)
+    last = math.ceil(Fraction(duration) / period)
+    times = [float(min(k * period, duration)) for k in range(last + 1)]
+    omega = 2 * math.pi * cutoff_hz / ticks_per_second
+    q, u_prev, out = defaultdict(int), defaultdict(float), []
+    for k, tk in enumerate(times):
+        ell = defaultdict(float)
+        for i, ti in zip(order, t, strict=True):
+            if ti - t0 <= k * period:
+                step = contrast if arr["p"][i] > 0 else -contrast
+                decay = math.exp(-omega * (tk - (ti - t0)))
+                ell[int(arr["x"][i]), int(arr["y"][i])] += step * decay
+        t_before = times[k - 1] if k else 0.0
+        for r, pixels in members.items():
+            u = log_mean_level([ell[p] for p in pixels], threshold)
+            q[r], crossed = walk(q[r], u)
+            for j, on in crossed:
+                ratio = 1.0 if j == u else (j - u_prev[r]) / (u - u_prev[r])
+                at = t_before + ratio * (tk - t_before)
+                out.append((r[0], r[1], t0 + math.floor(at + 0.5 + 1e-9), on))
+            u_prev[r] = u
+    return sorted(out)
+
+
+# --- LIF pooling (method 6): the module stepped through dense frames -----------------------
+
+
+def lif_dense_reference(arr: np.ndarray, pool) -> list[tuple]:
+    """Slow oracle: bin into dense (T, 1, 2, H, W) frames, run the module through every step,
+    turn spikes of step k into events at t_start + (k + 1) * dt clipped to t_end."""
+    w, h, _ = pool.sensor_size
+    t = arr["t"].astype(np.int64)
+    t0, t1 = int(t.min()), int(t.max())
+    dt = int(pool.dt)
+    k = (t - t0) // dt
+    frames = np.zeros((int(k.max()) + 1, 1, 2, h, w), dtype=np.float32)
+    np.add.at(frames, (k, 0, (arr["p"] > 0).astype(int), arr["y"], arr["x"]), 1)
+    spikes, _ = pool.to_module()(torch.from_numpy(frames))
+    step, _, p, y, x = (c.tolist() for c in spikes.nonzero(as_tuple=True))
+    times = [min(t0 + (s + 1) * dt, t1) for s in step]
+    return sorted(zip(x, y, times, [bool(v) for v in p], strict=True))
+
+
+def bursty_stream(rng, n_bursts: int, sensor, *, gap_max: int, burst: int = 30) -> np.ndarray:
+    """Dense bursts of events separated by long random silences (many empty steps)."""
+    parts, start = [], 0
+    for _ in range(n_bursts):
+        part = random_stream(rng, int(rng.integers(1, burst)), sensor, t_max=40)
+        part["t"] += start
+        parts.append(part)
+        start += 40 + int(rng.integers(0, gap_max))
+    return np.concatenate(parts)
+
+
+LIF_SETTINGS = [
+    {"tau": math.inf, "weight": 0.25},
+    {"tau": 30.0, "weight": 0.3, "mutual_inhibition": 0.125},
+    {"tau": 10.0, "weight": 1.5, "threshold": 1.0},  # strong input: firing through empty steps
+    {"tau": 50.0, "weight": 0.9, "reset_mechanism": "zero"},
+    {"tau": 25.0, "weight": 0.6, "reset_mechanism": "none", "mutual_inhibition": 0.5},
+    {"tau": math.inf, "weight": 0.7, "reset_mechanism": "none"},
+    {"tau": 1e-3, "weight": 1.2},  # beta = 0
+]

@@ -13,66 +13,37 @@ from hypothesis import strategies as st
 
 from evdown_torch import Events, LIFPooling, max_output_events
 from evdown_torch.transforms import calibrate_weight
-from tests.helpers import DVS_DTYPE, random_stream
+from tests.helpers import (
+    DVS_DTYPE,
+    LIF_SETTINGS,
+    as_tuples,
+    bursty_stream,
+    lif_dense_reference,
+    random_stream,
+)
 
 
-def dense_reference(arr: np.ndarray, pool: LIFPooling) -> list[tuple]:
-    """Slow oracle: bin into dense (T, 1, 2, H, W) frames, run the module through every step,
-    turn spikes of step k into events at t_start + (k + 1) * dt clipped to t_end."""
-    w, h, _ = pool.sensor_size
-    t = arr["t"].astype(np.int64)
-    t0, t1 = int(t.min()), int(t.max())
-    dt = int(pool.dt)
-    k = (t - t0) // dt
-    frames = np.zeros((int(k.max()) + 1, 1, 2, h, w), dtype=np.float32)
-    np.add.at(frames, (k, 0, (arr["p"] > 0).astype(int), arr["y"], arr["x"]), 1)
-    spikes, _ = pool.to_module()(torch.from_numpy(frames))
-    step, _, p, y, x = (c.tolist() for c in spikes.nonzero(as_tuple=True))
-    times = [min(t0 + (s + 1) * dt, t1) for s in step]
-    return sorted(zip(x, y, times, [bool(v) for v in p], strict=True))
+@pytest.fixture(params=["as chosen", "closed form on every call"])
+def lif_path(request) -> list[bool] | None:
+    """Run a test with the kernel's own choice of path (``None``), then with the closed form
+    tried on every call (the list of its answers, see ``tests/conftest.py``)."""
+    if request.param == "as chosen":
+        return None
+    return request.getfixturevalue("lif_closed_form_answers")
 
 
-def tuples(out: np.ndarray) -> list[tuple]:
-    return sorted(
-        zip(out["x"].tolist(), out["y"].tolist(), out["t"].tolist(), (out["p"] > 0).tolist(),
-            strict=True)
-    )
-
-
-def bursty_stream(rng, n_bursts: int, sensor, *, gap_max: int, burst: int = 30) -> np.ndarray:
-    """Dense bursts of events separated by long random silences (many empty steps)."""
-    parts, start = [], 0
-    for _ in range(n_bursts):
-        part = random_stream(rng, int(rng.integers(1, burst)), sensor, t_max=40)
-        part["t"] += start
-        parts.append(part)
-        start += 40 + int(rng.integers(0, gap_max))
-    return np.concatenate(parts)
-
-
-SETTINGS = [
-    {"tau": math.inf, "weight": 0.25},
-    {"tau": 30.0, "weight": 0.3, "mutual_inhibition": 0.125},
-    {"tau": 10.0, "weight": 1.5, "threshold": 1.0},  # strong input: firing through empty steps
-    {"tau": 50.0, "weight": 0.9, "reset_mechanism": "zero"},
-    {"tau": 25.0, "weight": 0.6, "reset_mechanism": "none", "mutual_inhibition": 0.5},
-    {"tau": math.inf, "weight": 0.7, "reset_mechanism": "none"},
-    {"tau": 1e-3, "weight": 1.2},  # beta = 0
-]
-
-
-@pytest.mark.parametrize("settings", SETTINGS)
+@pytest.mark.parametrize("settings", LIF_SETTINGS)
 @pytest.mark.parametrize(("sensor", "factor"), [((8, 6, 2), 2), ((9, 7, 2), (4, 3))])
 def test_matches_module_on_dense_frames(settings, sensor, factor, rng):
     for _ in range(3):
         arr = bursty_stream(rng, 6, sensor, gap_max=120)
         pool = LIFPooling(sensor, factor, dt=7, **settings)
-        assert tuples(pool(arr)) == dense_reference(arr, pool)
+        assert as_tuples(pool(arr)) == lif_dense_reference(arr, pool)
 
 
 @pytest.mark.parametrize("reset", ["subtract", "zero", "none"])
 @pytest.mark.parametrize("tau", [math.inf, 20.0, 10.0 / math.log(2)])  # beta 1, 0.6065, 0.5
-def test_skipping_empty_steps_equals_stepping_through_them(reset, tau):
+def test_skipping_empty_steps_equals_stepping_through_them(reset, tau, lif_path):
     # A burst leaves the membrane far above threshold, then nothing happens for many steps:
     # with snntorch's delayed reset the neuron keeps firing into the silence (subtract: one
     # threshold per step; none: while it decays; zero: never). The kernel skips the silence.
@@ -82,7 +53,7 @@ def test_skipping_empty_steps_equals_stepping_through_them(reset, tau):
     arr = np.array(burst + late, dtype=DVS_DTYPE)
     pool = LIFPooling(sensor, 2, dt=10, tau=tau, weight=0.7, reset_mechanism=reset)
     out = pool(arr)
-    assert tuples(out) == dense_reference(arr, pool)
+    assert as_tuples(out) == lif_dense_reference(arr, pool)
     fired_in_silence = out["t"][(out["t"] > 10) & (out["t"] < 900)]
     # 12 events * 0.7 = 8.4 after step 0 (t = 10); the silence spans steps 1 to 88 (t < 900).
     # subtract: U_j = beta U_{j-1} - 1 fires while > 1 (beta 1: 7.4, ..., 1.4; beta 0.61: 4.09,
@@ -95,15 +66,17 @@ def test_skipping_empty_steps_equals_stepping_through_them(reset, tau):
     }[reset][beta]
     assert len(fired_in_silence) == expected
     np.testing.assert_array_equal(fired_in_silence, 20 + 10 * np.arange(expected))
+    assert lif_path is None or lif_path  # the closed form was tried
 
 
-def test_integrate_and_fire_limit_on_events():
+def test_integrate_and_fire_limit_on_events(lif_path):
     # factor 2 (n = 4), no leak, weight 1/4, threshold 1, one ON event per step in block (0, 0):
     # snntorch fires when the membrane exceeds 1, so at the 5th event (step 4), then every 4.
     events = [(k % 2, (k // 2) % 2, True, 100 * k + 3) for k in range(19)]
     arr = np.array(events, dtype=DVS_DTYPE)
     out = LIFPooling((4, 4, 2), 2, dt=100, tau=math.inf, weight=0.25)(arr)
     assert out.tolist() == [(0, 0, True, 3 + 100 * (k + 1)) for k in (4, 8, 12, 16)]
+    assert lif_path is None or lif_path  # the closed form was tried
 
 
 def test_mutual_inhibition_cancels_balanced_events(rng):
@@ -179,11 +152,12 @@ def test_empty_input_gives_empty_output_of_same_kind(kind):
         assert out.shape == (0, 4) and out.dtype == torch.float64
 
 
-def test_single_event_gives_at_most_one_spike():
+def test_single_event_gives_at_most_one_spike(lif_path):
     arr = np.array([(5, 5, True, 1_000)], dtype=DVS_DTYPE)
     assert LIFPooling((8, 8, 2), 4, weight=0.5)(arr).tolist() == []
     # it fires in step 0, whose end is clipped to t_end = the event's own time
     assert LIFPooling((8, 8, 2), 4, weight=1.5)(arr).tolist() == [(1, 1, True, 1_000)]
+    assert lif_path is None or lif_path  # the closed form was tried
 
 
 def test_int64_timestamps_at_large_magnitude_and_shift_invariance(rng):
@@ -211,8 +185,8 @@ def test_flipping_polarity_flips_the_output(rng):
     pool = LIFPooling((12, 10, 2), (3, 2), dt=9, tau=60.0, weight=0.5, mutual_inhibition=0.2)
     flipped = arr.copy()
     flipped["p"] = ~flipped["p"]
-    expected = [(x, y, t, not p) for x, y, t, p in tuples(pool(arr))]
-    assert len(expected) > 0 and tuples(pool(flipped)) == sorted(expected)
+    expected = [(x, y, t, not p) for x, y, t, p in as_tuples(pool(arr))]
+    assert len(expected) > 0 and as_tuples(pool(flipped)) == sorted(expected)
 
 
 @settings(max_examples=30, deadline=None)
@@ -234,10 +208,10 @@ def test_property_matches_module(events, dt, beta, weight, inhibition, reset, fa
     tau = math.inf if beta == 1.0 else (1e-9 if beta == 0.0 else -dt / math.log(beta))
     pool = LIFPooling((7, 5, 2), factor, dt=dt, tau=tau, weight=weight,
                       mutual_inhibition=inhibition, reset_mechanism=reset)
-    assert tuples(pool(arr)) == dense_reference(arr, pool)
+    assert as_tuples(pool(arr)) == lif_dense_reference(arr, pool)
 
 
-def test_float_timestamps_and_fractional_dt():
+def test_float_timestamps_and_fractional_dt(lif_path):
     # float64 times: t_start + (k + 1) * dt exactly as floats
     arr = np.array([(0, 0, True, 0.25), (1, 0, True, 0.5), (0, 1, True, 2.0)],
                    dtype=[("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", "<f8")])
@@ -247,9 +221,10 @@ def test_float_timestamps_and_fractional_dt():
     ints = np.array([(0, 0, True, 10), (1, 1, True, 11), (0, 0, True, 20)], dtype=DVS_DTYPE)
     out = LIFPooling((2, 2, 2), 2, dt=2.5, tau=math.inf, weight=0.6)(ints)
     assert out.tolist() == [(0, 0, True, 13)]
+    assert lif_path is None or lif_path  # the closed form was tried
 
 
-def test_long_sparse_recording_does_not_allocate_per_step():
+def test_long_sparse_recording_does_not_allocate_per_step(lif_path):
     # 10^12 steps of 1 us between the bursts: only the 3 active steps are ever computed.
     t = [0, 0, 0, 10**12, 10**12, 2 * 10**12]
     arr = np.array([(0, 0, True, ti) for ti in t], dtype=DVS_DTYPE)
@@ -258,6 +233,7 @@ def test_long_sparse_recording_does_not_allocate_per_step():
     assert out.tolist() == [(0, 0, True, 1)]  # 0 + 2 * 0.5 = 1 does not exceed 1
     out = LIFPooling((4, 4, 2), 2, dt=1, tau=math.inf, weight=0.5)(arr)
     assert out.tolist() == [(0, 0, True, 1), (0, 0, True, 10**12 + 1)]  # 0.5 + 1.0 > 1
+    assert lif_path is None or lif_path  # the closed form was tried
 
 
 def test_nmnist_matches_tonic_toframe_and_composes(nmnist):
@@ -276,7 +252,7 @@ def test_nmnist_matches_tonic_toframe_and_composes(nmnist):
     np.testing.assert_array_equal(np.bincount(step, minlength=len(frames)),
                                   np.bincount((out["t"] - nmnist["t"].min() - 1) // 1000,
                                               minlength=len(frames)))
-    assert tuples(out) == sorted(zip(x.tolist(), y.tolist(), np.minimum(
+    assert as_tuples(out) == sorted(zip(x.tolist(), y.tolist(), np.minimum(
         nmnist["t"].min() + (step + 1) * 1000, nmnist["t"].max()).tolist(),
         (p > 0).tolist(), strict=True))
     # Round trip through Compose with ToFrame on the output sensor.
@@ -374,26 +350,27 @@ def test_event_driven_equals_stepped_reference(reset, inhibition, tau, density):
         arr = random_stream(rng, 4000, sensor, t_max=600)
     pool = LIFPooling(sensor, 2, dt=3, tau=tau, weight=0.45 if density == "dense" else 1.3,
                       mutual_inhibition=inhibition, reset_mechanism=reset)
-    out = tuples(pool(arr))
+    out = as_tuples(pool(arr))
     assert len(out) > 20
-    assert out == dense_reference(arr, pool)
+    assert out == lif_dense_reference(arr, pool)
 
 
 @pytest.mark.parametrize("reset", ["subtract", "none"])
 @pytest.mark.parametrize("tau", [math.inf, 33.0, 1000.0])
-def test_long_firing_chains_equal_stepping(reset, tau):
+def test_long_firing_chains_equal_stepping(reset, tau, lif_path):
     # A burst drives the membrane far above threshold; the neuron then fires through the
     # silence for more steps than are stepped one by one before the closed form takes over.
     burst = [(x, y, True, t) for t in range(2) for x in range(2) for y in range(2)]
     late = [(0, 0, True, 1500), (1, 1, False, 1510), (0, 0, True, 4000)]
     arr = np.array(burst + late, dtype=DVS_DTYPE)
     pool = LIFPooling((4, 4, 2), 2, dt=1, tau=tau, weight=3.1, reset_mechanism=reset)
-    out = tuples(pool(arr))
+    out = as_tuples(pool(arr))
     assert len(out) > 20
-    assert out == dense_reference(arr, pool)
+    assert out == lif_dense_reference(arr, pool)
+    assert lif_path is None or lif_path  # the closed form was tried
 
 
-def test_huge_dt_puts_everything_in_one_step():
+def test_huge_dt_puts_everything_in_one_step(lif_path):
     # dt beyond int64 (1e20 us): no OverflowError; all events in step 0, which ends after
     # t_end, so its spikes are clipped to t_end.
     arr = np.array([(0, 0, True, 0), (1, 1, True, 5), (3, 3, False, 7)], dtype=DVS_DTYPE)
@@ -403,10 +380,11 @@ def test_huge_dt_puts_everything_in_one_step():
     floats = arr.astype([("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", "<f8")])
     out = LIFPooling((4, 4, 2), 2, dt=1e300, tau=math.inf, weight=0.6)(floats)
     assert out.tolist() == [(0, 0, True, 7.0)]
+    assert lif_path is None or lif_path  # the closed form was tried
 
 
 @pytest.mark.parametrize("t_dtype", ["<i8", "<f8"])
-def test_tiny_dt_whose_step_count_overflows_int64_is_refused(t_dtype):
+def test_tiny_dt_whose_step_count_overflows_int64_is_refused(t_dtype, lif_path):
     arr = np.array([(0, 0, True, 0), (0, 0, True, 3), (0, 0, True, 9)],
                    dtype=[("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", t_dtype)])
     with pytest.raises(ValueError, match=r"dt = 1e-30 .* more than the 2\*\*62"):
@@ -421,7 +399,7 @@ def test_stream_span_beyond_int64_step_arithmetic_is_refused():
         LIFPooling((4, 4, 2), 2, dt=1e18, weight=1.5)(arr)
 
 
-def test_firing_through_a_long_gap_is_closed_form():
+def test_firing_through_a_long_gap_is_closed_form(lif_path):
     # No leak, threshold 2**-20, one event of weight 1: the membrane 1 - j * 2**-20 stays above
     # threshold for 2**20 - 2 silent steps (exact float32 values), one spike per step; a
     # stepping kernel loops a million times here.
@@ -431,9 +409,10 @@ def test_firing_through_a_long_gap_is_closed_form():
     assert len(out) == 2**20
     np.testing.assert_array_equal(out["t"][:-1], np.arange(1, 2**20))
     assert out["t"][-1] == 2**21 and np.all(out["p"]) and not np.any(out["x"] | out["y"])
+    assert lif_path is None or lif_path  # the closed form was tried
 
 
-def test_output_beyond_the_bound_is_refused_with_its_count():
+def test_output_beyond_the_bound_is_refused_with_its_count(lif_path):
     # reset "none", no leak: a neuron above threshold fires at every one of 10**12 steps.
     arr = np.array([(0, 0, True, 0), (0, 0, True, 10**12)], dtype=DVS_DTYPE)
     pool = LIFPooling((4, 4, 2), 2, dt=1, tau=math.inf, weight=1.5, reset_mechanism="none")
@@ -448,3 +427,4 @@ def test_output_beyond_the_bound_is_refused_with_its_count():
         pool(short)
     with max_output_events(None):
         assert len(pool(short)) == 100
+    assert lif_path is None or lif_path  # the closed form was tried

@@ -14,25 +14,20 @@ from evdown_torch import Events, LIFPooling
 from evdown_torch.transforms.functional import lif as lif_kernel
 from evdown_torch.transforms.functional import lif_closed_form
 from evdown_torch.transforms.functional.lif_chains import Leak
-from tests.helpers import DVS_DTYPE, random_stream
-from tests.transforms import test_lif
-from tests.transforms.test_lif import SETTINGS, bursty_stream, dense_reference, tuples
+from tests.helpers import (
+    DVS_DTYPE,
+    LIF_SETTINGS,
+    as_tuples,
+    bursty_stream,
+    lif_dense_reference,
+    random_stream,
+)
 
 
 @pytest.fixture
-def answers(monkeypatch) -> list[bool]:
-    """The closed form tried on every call (not only those of ``MIN_ROUNDS`` rounds or more);
-    the list records, per call, whether it answered (``False``: left to the rounds)."""
-    calls: list[bool] = []
-
-    def recording(*args, **kwargs):
-        out = lif_closed_form.certain_spikes(*args, **kwargs)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(lif_kernel, "MIN_ROUNDS", 1)
-    monkeypatch.setattr(lif_kernel, "certain_spikes", recording)
-    return calls
+def answers(lif_closed_form_answers) -> list[bool]:
+    """The closed form tried on every call (see ``tests/conftest.py``)."""
+    return lif_closed_form_answers
 
 
 def by_rounds(pool: LIFPooling, arr: np.ndarray, monkeypatch) -> np.ndarray:
@@ -42,7 +37,7 @@ def by_rounds(pool: LIFPooling, arr: np.ndarray, monkeypatch) -> np.ndarray:
         return pool(arr)
 
 
-@pytest.mark.parametrize("which", range(len(SETTINGS)))
+@pytest.mark.parametrize("which", range(len(LIF_SETTINGS)))
 @pytest.mark.parametrize("kind", ["bursty", "dense", "sparse"])
 def test_closed_form_gives_the_rounds_spikes(which, kind, answers, monkeypatch):
     rng = np.random.default_rng(100 + which)
@@ -54,12 +49,12 @@ def test_closed_form_gives_the_rounds_spikes(which, kind, answers, monkeypatch):
             arr = random_stream(rng, 1500, sensor, t_max=400)
         else:
             arr = random_stream(rng, 200, sensor, t_max=5000)
-        pool = LIFPooling(sensor, (2, 3), dt=4, **SETTINGS[which])
+        pool = LIFPooling(sensor, (2, 3), dt=4, **LIF_SETTINGS[which])
         np.testing.assert_array_equal(pool(arr), by_rounds(pool, arr, monkeypatch))
     assert len(answers) == 4
-    if SETTINGS[which]["tau"] == 1e-3:  # beta = 0 has nothing to integrate: left to the rounds
+    if LIF_SETTINGS[which]["tau"] == 1e-3:  # beta = 0 has nothing to integrate: left to the rounds
         assert not any(answers)
-    elif SETTINGS[which]["tau"] != math.inf:  # (without leak, membranes exactly on the
+    elif LIF_SETTINGS[which]["tau"] != math.inf:  # (without leak, membranes exactly on the
         assert any(answers)  # threshold are common: weight 0.25, say)
 
 
@@ -80,7 +75,7 @@ def test_greedy_block_length_does_not_change_the_spikes(block, nmnist, answers, 
     rng = np.random.default_rng(7)
     dense = random_stream(rng, 1500, (10, 8, 2), t_max=400)
     for pool, arr in ((LIFPooling((34, 34, 2), 4), nmnist),
-                      (LIFPooling((10, 8, 2), (2, 3), dt=4, **SETTINGS[2]), dense)):
+                      (LIFPooling((10, 8, 2), (2, 3), dt=4, **LIF_SETTINGS[2]), dense)):
         answers.clear()
         out = pool(arr)
         assert answers == [True]
@@ -95,7 +90,7 @@ def test_a_decision_within_float32_rounding_is_left_to_the_rounds(answers):
     pool = LIFPooling((2, 2, 2), 2, dt=10, tau=math.inf, weight=0.1)
     out = pool(arr)
     assert answers == [False]
-    assert tuples(out) == dense_reference(arr, pool) == [(0, 0, 100, True)]
+    assert as_tuples(out) == lif_dense_reference(arr, pool) == [(0, 0, 100, True)]
 
 
 def test_close_but_certain_decisions_are_answered(answers):
@@ -103,9 +98,9 @@ def test_close_but_certain_decisions_are_answered(answers):
     # least 0.05 from the threshold for k <= 12; float32 rounding is far smaller.
     arr = np.array([(k % 2, 0, True, 10 * k) for k in range(12)], dtype=DVS_DTYPE)
     pool = LIFPooling((2, 2, 2), 2, dt=10, tau=math.inf, weight=0.45)
-    out = tuples(pool(arr))
+    out = as_tuples(pool(arr))
     assert answers == [True]
-    assert out == dense_reference(arr, pool) and len(out) == 5
+    assert out == lif_dense_reference(arr, pool) and len(out) == 5
 
 
 @settings(max_examples=60, deadline=None, derandomize=True)
@@ -129,7 +124,7 @@ def test_property_closed_form_matches_module(events, dt, beta, weight, inhibitio
                       mutual_inhibition=inhibition, reset_mechanism=reset)
     with pytest.MonkeyPatch.context() as patch:  # the closed form on every call
         patch.setattr(lif_kernel, "MIN_ROUNDS", 1)
-        assert tuples(pool(arr)) == dense_reference(arr, pool)
+        assert as_tuples(pool(arr)) == lif_dense_reference(arr, pool)
 
 
 def test_batch_equals_one_by_one_through_the_closed_form(answers):
@@ -146,42 +141,6 @@ def test_batch_equals_one_by_one_through_the_closed_form(answers):
     assert sum(len(e) for e in expected) > 50
     for out, one in zip(got, expected, strict=True):
         np.testing.assert_array_equal(out, one)
-
-
-@pytest.mark.parametrize(
-    "case",
-    [
-        test_lif.test_huge_dt_puts_everything_in_one_step,
-        test_lif.test_long_sparse_recording_does_not_allocate_per_step,
-        test_lif.test_firing_through_a_long_gap_is_closed_form,
-        test_lif.test_output_beyond_the_bound_is_refused_with_its_count,
-        test_lif.test_integrate_and_fire_limit_on_events,
-        test_lif.test_float_timestamps_and_fractional_dt,
-        test_lif.test_single_event_gives_at_most_one_spike,
-    ],
-)
-def test_edge_cases_through_the_closed_form(case, answers):
-    case()
-    assert answers  # the closed form was tried
-
-
-@pytest.mark.parametrize("t_dtype", ["<i8", "<f8"])
-def test_tiny_dt_refused_through_the_closed_form(t_dtype, answers):
-    test_lif.test_tiny_dt_whose_step_count_overflows_int64_is_refused(t_dtype)
-
-
-@pytest.mark.parametrize("reset", ["subtract", "zero", "none"])
-@pytest.mark.parametrize("tau", [math.inf, 20.0, 10.0 / math.log(2)])
-def test_empty_steps_through_the_closed_form(reset, tau, answers):
-    test_lif.test_skipping_empty_steps_equals_stepping_through_them(reset, tau)
-    assert answers
-
-
-@pytest.mark.parametrize("reset", ["subtract", "none"])
-@pytest.mark.parametrize("tau", [math.inf, 33.0, 1000.0])
-def test_long_chains_through_the_closed_form(reset, tau, answers):
-    test_lif.test_long_firing_chains_equal_stepping(reset, tau)
-    assert answers
 
 
 def _greedy_tables(rng: np.random.Generator, rows: int, width: int, beta: float, theta: float):

@@ -11,8 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evdown_torch import Events, LIFPooling
-from tests.helpers import DVS_DTYPE, random_stream
-from tests.transforms.test_lif import SETTINGS, bursty_stream
+from tests.helpers import DVS_DTYPE, LIF_SETTINGS, bursty_stream, random_stream
 
 SENSOR = (9, 7, 2)
 
@@ -39,7 +38,7 @@ def assert_same_events(got: Events, expected: Events) -> None:
 
 
 cases = st.tuples(
-    st.integers(0, len(SETTINGS) - 1),  # neuron settings
+    st.integers(0, len(LIF_SETTINGS) - 1),  # neuron settings
     st.integers(0, 2**32 - 1),  # stream seed
     st.integers(0, 250),  # number of events
     st.lists(st.floats(0, 1), max_size=12),  # cut positions as fractions of the stream
@@ -57,7 +56,7 @@ def test_any_chunking_of_integer_times_gives_the_batch_result(case, dt, offset):
     else:
         arr = random_stream(rng, n, SENSOR, t_max=80)  # chunk boundaries inside steps
     arr["t"] += offset
-    pool = LIFPooling(SENSOR, factor=(2, 3), dt=dt, **SETTINGS[which])
+    pool = LIFPooling(SENSOR, factor=(2, 3), dt=dt, **LIF_SETTINGS[which])
     cuts = [int(f * len(arr)) for f in fractions]
     got = np.concatenate(run_in_chunks(pool, arr, cuts))
     np.testing.assert_array_equal(got, pool(arr))
@@ -74,7 +73,7 @@ def test_any_chunking_of_float_times_gives_the_batch_result(case, dt, origin):
     events = Events.from_columns(
         rng.integers(0, SENSOR[0], n), rng.integers(0, SENSOR[1], n), t, rng.random(n) < 0.5
     )
-    pool = LIFPooling(SENSOR, factor=2, dt=dt, **SETTINGS[which])
+    pool = LIFPooling(SENSOR, factor=2, dt=dt, **LIF_SETTINGS[which])
     cuts = [int(f * n) for f in fractions]
     assert_same_events(concat_events(run_in_chunks(pool, events, cuts)), pool(events))
 

@@ -14,91 +14,20 @@ from hypothesis import given, settings
 import evdown_torch
 from evdown_torch import EventCount, PhotocurrentPooling
 from evdown_torch.transforms.registry import make_method
-from tests.helpers import DVS_DTYPE, as_tuples, random_stream
-from tests.transforms.test_streaming import chunkings, run_in_chunks
+from tests.helpers import (
+    DVS_DTYPE,
+    as_tuples,
+    chunkings,
+    photocurrent_events_reference,
+    photocurrent_frames_reference,
+    random_stream,
+    region_members,
+    rows,
+    run_in_chunks,
+)
 
 SENSOR = (10, 7, 2)
 SNAP = 1e-9
-
-
-def _region_geometry(sensor, factor):
-    w, h, _ = sensor
-    fx, fy = (factor, factor) if isinstance(factor, int) else factor
-    out_w, out_h = -(-w // fx), -(-h // fy)
-    members = defaultdict(list)
-    for y in range(h):
-        for x in range(w):
-            members[x // fx, y // fy].append((x, y))
-    return fx, fy, out_w, out_h, members
-
-
-def _u(log_values, theta):
-    """log(mean(exp(values))) / theta in float64 (log-sum-exp), snapped to a level."""
-    top = max(log_values)
-    u = (top + math.log(math.fsum(math.exp(v - top) for v in log_values))
-         - math.log(len(log_values))) / theta
-    return float(round(u)) if abs(u - round(u)) <= SNAP else u
-
-
-def _walk(q, u):
-    """Reference rule from index q to value u: (new q, list of (level, on))."""
-    out = []
-    while u >= q + 1:
-        q += 1
-        out.append((q, True))
-    while u <= q - 1:
-        q -= 1
-        out.append((q, False))
-    return q, out
-
-
-def events_reference(arr, sensor, factor, contrast, threshold):
-    """Event by event: recompute each region's mean photocurrent from scratch."""
-    fx, fy, _, _, members = _region_geometry(sensor, factor)
-    level, q, out = defaultdict(int), defaultdict(int), []
-    for i in np.argsort(arr["t"], kind="stable"):
-        x, y = int(arr["x"][i]), int(arr["y"][i])
-        level[x, y] += 1 if arr["p"][i] > 0 else -1
-        r = (x // fx, y // fy)
-        u = _u([contrast * level[p] for p in members[r]], threshold)
-        q[r], crossed = _walk(q[r], u)
-        out += [(r[0], r[1], arr["t"][i].item(), on) for _, on in crossed]
-    return out
-
-
-def frames_reference(arr, sensor, factor, contrast, threshold, fps, cutoff_hz=0.0):
-    """Dense frames at t_start + k / fps (last clipped to t_end), linear ramps in log I_r."""
-    fx, fy, _, _, members = _region_geometry(sensor, factor)
-    order = np.argsort(arr["t"], kind="stable")
-    t = [arr["t"][i].item() for i in order]
-    t0, duration = t[0], t[-1] - t[0]
-    period = Fraction(10**6) / Fraction(fps).limit_denominator(10**6)
-    last = math.ceil(Fraction(duration) / period)
-    times = [float(min(k * period, duration)) for k in range(last + 1)]
-    omega = 2 * math.pi * cutoff_hz / 1e6
-    q, u_prev, out = defaultdict(int), defaultdict(float), []
-    for k, tk in enumerate(times):
-        ell = defaultdict(float)
-        for i, ti in zip(order, t, strict=True):
-            if ti - t0 <= k * period:
-                step = contrast if arr["p"][i] > 0 else -contrast
-                decay = math.exp(-omega * (tk - (ti - t0)))
-                ell[int(arr["x"][i]), int(arr["y"][i])] += step * decay
-        t_before = times[k - 1] if k else 0.0
-        for r, pixels in members.items():
-            u = _u([ell[p] for p in pixels], threshold)
-            q[r], crossed = _walk(q[r], u)
-            for j, on in crossed:
-                ratio = 1.0 if j == u else (j - u_prev[r]) / (u - u_prev[r])
-                at = t_before + ratio * (tk - t_before)
-                out.append((r[0], r[1], t0 + math.floor(at + 0.5 + 1e-9), on))
-            u_prev[r] = u
-    return sorted(out)
-
-
-def rows(out: np.ndarray) -> list[tuple]:
-    return list(zip(out["x"].tolist(), out["y"].tolist(), out["t"].tolist(),
-                    (out["p"] > 0).tolist()))
 
 
 def test_hand_computed_region():
@@ -138,7 +67,7 @@ def test_polarity_flip_with_factor_one(rng):
 def test_events_mode_matches_reference(factor, contrast, threshold, rng):
     arr = random_stream(rng, 500, SENSOR, t_max=300, sort=False)
     pool = PhotocurrentPooling(SENSOR, factor=factor, contrast=contrast, threshold=threshold)
-    expected = events_reference(arr, SENSOR, factor, contrast, pool.threshold)
+    expected = photocurrent_events_reference(arr, SENSOR, factor, contrast, pool.threshold)
     assert rows(pool(arr)) == expected
 
 
@@ -151,7 +80,7 @@ def test_hot_pixel_far_beyond_float_range(rng):
     rest = random_stream(rng, 3000, (4, 4, 2), t_max=16000)
     arr = np.sort(np.concatenate([hot, rest]), order="t", kind="stable")
     pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)
-    expected = events_reference(arr, (4, 4, 2), 2, 0.25, 0.4)
+    expected = photocurrent_events_reference(arr, (4, 4, 2), 2, 0.25, 0.4)
     assert sorted(rows(pool(arr))) == sorted(expected)
 
 
@@ -164,7 +93,7 @@ def test_factor_one_threshold_contrast_returns_input(rng):
 
 def _mean_on_level(arr, sensor, factor, threshold):
     """Regions whose mean level ever lies exactly on a level of EventCount(threshold)."""
-    fx, fy, _, _, members = _region_geometry(sensor, factor)
+    fx, fy, _, _, members = region_members(sensor, factor)
     theta = Fraction(threshold)
     total, hit = defaultdict(int), set()
     for i in np.argsort(arr["t"], kind="stable"):
@@ -195,7 +124,7 @@ def test_frames_mode_matches_reference(fps, factor, contrast, threshold, rng):
     arr = random_stream(rng, 300, SENSOR, t_max=20_000, sort=False)
     pool = PhotocurrentPooling(SENSOR, factor=factor, contrast=contrast, threshold=threshold,
                                fps=fps)
-    expected = frames_reference(arr, SENSOR, factor, contrast, pool.threshold, fps)
+    expected = photocurrent_frames_reference(arr, SENSOR, factor, contrast, pool.threshold, fps)
     assert sorted(rows(pool(arr))) == expected
 
 
@@ -204,7 +133,7 @@ def test_frames_mode_with_leak_matches_reference(cutoff_hz, rng):
     arr = random_stream(rng, 200, SENSOR, t_max=20_000)
     pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=2000.0,
                                cutoff_hz=cutoff_hz)
-    expected = frames_reference(arr, SENSOR, 2, 0.3, 0.1, 2000.0, cutoff_hz)
+    expected = photocurrent_frames_reference(arr, SENSOR, 2, 0.3, 0.1, 2000.0, cutoff_hz)
     assert len(expected) > 20
     assert sorted(rows(pool(arr))) == expected
 
@@ -363,7 +292,7 @@ def test_streaming_equals_batch_across_cuts(rng):
     pieces = [session(arr[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
     batch = pool(arr)
     assert rows(np.concatenate(pieces)) == rows(batch)
-    assert sorted(rows(batch)) == sorted(events_reference(arr, (4, 4, 2), 2, 0.3, 0.2))
+    assert sorted(rows(batch)) == sorted(photocurrent_events_reference(arr, (4, 4, 2), 2, 0.3, 0.2))
 
 
 def test_frames_mode_float_timestamps(rng):
@@ -371,7 +300,7 @@ def test_frames_mode_float_timestamps(rng):
     as_float = torch.as_tensor(np.stack([arr["x"], arr["y"], arr["t"], arr["p"]], axis=1)
                                .astype(np.float64))
     pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=1000.0)
-    expected = frames_reference(arr, SENSOR, 2, 0.3, 0.1, 1000.0)
+    expected = photocurrent_frames_reference(arr, SENSOR, 2, 0.3, 0.1, 1000.0)
     out = pool(as_float)
     assert out.dtype == torch.float64
     # Float times are not rounded: each lies within half a tick of the integer result.
@@ -408,7 +337,7 @@ def test_events_mode_matches_reference_on_wider_sensors(sensor, factor, threshol
     # than 2**15 regions (int32 region ids).
     arr = random_stream(rng, 4000, sensor, t_max=3000)
     pool = PhotocurrentPooling(sensor, factor=factor, contrast=0.3, threshold=threshold)
-    expected = events_reference(arr, sensor, factor, 0.3, threshold)
+    expected = photocurrent_events_reference(arr, sensor, factor, 0.3, threshold)
     assert len(expected) > 100
     assert rows(pool(arr)) == expected
 
@@ -427,7 +356,7 @@ def test_levels_spanning_more_than_the_table(monkeypatch):
     pieces = _pieces(monkeypatch)
     out = rows(pool(arr))
     assert max(pieces) > TABLE_SIZE - 3
-    expected = events_reference(arr, (2, 1, 2), (2, 1), 1e-4, 1e-3)
+    expected = photocurrent_events_reference(arr, (2, 1, 2), (2, 1), 1e-4, 1e-3)
     assert len(expected) > 500
     assert out == expected
 
@@ -445,7 +374,7 @@ def test_region_far_below_its_anchor_is_reanchored(monkeypatch, rng):
     pieces = _pieces(monkeypatch)
     out = rows(pool(arr))
     assert len(pieces) > 1  # cut at least once
-    assert sorted(out) == sorted(events_reference(arr, (4, 4, 2), 2, 0.5, 0.3))
+    assert sorted(out) == sorted(photocurrent_events_reference(arr, (4, 4, 2), 2, 0.5, 0.3))
 
 
 @pytest.mark.parametrize(("contrast", "threshold"), [(45.0, 20.0), (33.0, 50.0)])
@@ -454,7 +383,7 @@ def test_contrasts_above_the_exponent_cap(contrast, threshold, rng):
     # rising twice above its anchor, and a lone event must still be exact.
     arr = random_stream(rng, 300, (4, 2, 2), t_max=1000)
     pool = PhotocurrentPooling((4, 2, 2), factor=2, contrast=contrast, threshold=threshold)
-    expected = events_reference(arr, (4, 2, 2), 2, contrast, threshold)
+    expected = photocurrent_events_reference(arr, (4, 2, 2), 2, contrast, threshold)
     assert len(expected) > 20
     assert rows(pool(arr)) == expected
 
@@ -465,7 +394,7 @@ def test_pixels_too_dark_to_count(rng):
     arr = random_stream(rng, 1000, (4, 2, 2), t_max=3000)
     arr["p"] = (arr["x"] % 2 == 0) | (np.arange(1000) % 7 == 0)  # odd columns mostly fall
     pool = PhotocurrentPooling((4, 2, 2), factor=2, contrast=20.0, threshold=5.0)
-    expected = events_reference(arr, (4, 2, 2), 2, 20.0, 5.0)
+    expected = photocurrent_events_reference(arr, (4, 2, 2), 2, 20.0, 5.0)
     assert len(expected) > 50
     assert rows(pool(arr)) == expected
 
@@ -474,7 +403,7 @@ def test_frames_mode_with_whole_regions_matches_reference(rng):
     sensor = (8, 6, 2)  # the factor divides the sensor: no edge regions
     arr = random_stream(rng, 300, sensor, t_max=20_000)
     pool = PhotocurrentPooling(sensor, factor=2, contrast=0.3, threshold=0.15, fps=1000.0)
-    expected = frames_reference(arr, sensor, 2, 0.3, 0.15, 1000.0)
+    expected = photocurrent_frames_reference(arr, sensor, 2, 0.3, 0.15, 1000.0)
     assert len(expected) > 20
     assert sorted(rows(pool(arr))) == expected
 
@@ -526,7 +455,7 @@ def test_frames_session_emits_complete_frames_and_the_rest_at_flush(cutoff_hz, r
     arr = random_stream(rng, 400, SENSOR, t_max=20_000)
     pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=1000.0,
                                cutoff_hz=cutoff_hz)
-    expected = frames_reference(arr, SENSOR, 2, 0.3, 0.1, 1000.0, cutoff_hz)
+    expected = photocurrent_frames_reference(arr, SENSOR, 2, 0.3, 0.1, 1000.0, cutoff_hz)
     session = pool.session()
     first = session(arr[:200])
     # Everything out so far belongs to frames before the chunk's last event (t_start + k ms).

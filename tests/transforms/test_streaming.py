@@ -23,7 +23,7 @@ from evdown_torch import (
 )
 from evdown_torch.transforms import Session
 from evdown_torch.transforms.thinning import ThinnedDownsample
-from tests.helpers import DVS_DTYPE, random_stream
+from tests.helpers import DVS_DTYPE, chunkings, random_stream, run_in_chunks
 from tests.transforms import test_estimation
 
 SENSOR = (9, 7, 2)
@@ -42,21 +42,6 @@ TRANSFORMS = {
         EventFunnelling(SENSOR, factor=2), TemporalFunnelling(dt=11)
     ),
 }
-
-
-def run_in_chunks(transform, arr: np.ndarray, cuts: list[int]) -> np.ndarray:
-    """Feed ``arr`` split at ``cuts`` (repeated cuts make empty chunks), then flush."""
-    session = transform.session()
-    parts = [session(chunk) for chunk in np.split(arr, sorted(cuts))]
-    parts.append(session.flush())
-    return np.concatenate(parts)
-
-
-chunkings = st.tuples(
-    st.integers(0, 2**32 - 1),  # stream seed
-    st.integers(0, 300),  # number of events
-    st.lists(st.floats(0, 1), max_size=12),  # cut positions as fractions of the stream
-)
 
 
 @pytest.mark.parametrize("name", sorted(TRANSFORMS))
