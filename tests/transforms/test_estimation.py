@@ -29,7 +29,7 @@ import evdown_torch.transforms.functional._knots as knots_module
 import evdown_torch.transforms.functional.cubic as cubic_module
 import evdown_torch.transforms.functional.linear as linear_module
 from evdown_torch import CubicEstimation, EventCount, Events, LinearEstimation
-from tests.helpers import DVS_DTYPE, as_tuples, random_stream
+from tests.helpers import DVS_DTYPE, as_tuples, crossed_levels, random_stream, reference_index
 
 FLOAT_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", bool), ("t", np.float64)])
 SENSOR = (10, 7, 2)
@@ -86,11 +86,7 @@ def reference_rule(q: int, u: float) -> tuple[int, bool]:
     nearest = round(u)
     if abs(u - nearest) <= SNAP:
         return nearest, True
-    if u >= q + 1:
-        return math.floor(u), False
-    if u <= q - 1:
-        return math.ceil(u), False
-    return q, False
+    return reference_index(q, u), False
 
 
 def reference(arr: np.ndarray, sensor, factor, threshold: float, kind: str) -> dict:
@@ -134,8 +130,7 @@ def reference(arr: np.ndarray, sensor, factor, threshold: float, kind: str) -> d
         for ta, tb in steps:
             ua, ub = u(ta), u(tb)
             new_q, on_level = reference_rule(q, ub)
-            up = new_q > q
-            for level in range(q + 1, new_q + 1) if up else range(q - 1, new_q - 1, -1):
+            for level, up in crossed_levels(q, new_q):
                 if on_level and level == new_q:
                     tc = tb
                 elif kind == "linear":
@@ -206,13 +201,7 @@ def exact_linear_reference(arr: np.ndarray, sensor, factor, threshold: float) ->
         return Fraction(pixel[0][1])  # one knot: t_start == t_end
 
     def rule(q: int, u: Fraction) -> int:
-        if u.denominator == 1:
-            return int(u)
-        if u >= q + 1:
-            return math.floor(u)
-        if u <= q - 1:
-            return math.ceil(u)
-        return q
+        return int(u) if u.denominator == 1 else reference_index(q, u)
 
     out = {}
     for (rx, ry), pixels in regions.items():
@@ -223,8 +212,7 @@ def exact_linear_reference(arr: np.ndarray, sensor, factor, threshold: float) ->
         events = [(Fraction(int(t_start)), q > 0)] * abs(q)
         for ta, tb, ua, ub in zip(times[:-1], times[1:], us[:-1], us[1:], strict=True):
             new_q = rule(q, ub)
-            up = new_q > q
-            for level in range(q + 1, new_q + 1) if up else range(q - 1, new_q - 1, -1):
+            for level, up in crossed_levels(q, new_q):
                 events.append((ta + (level - ua) / (ub - ua) * (tb - ta), up))
             q = new_q
         if events:

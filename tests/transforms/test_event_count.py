@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evdown_torch import EventCount, Events
-from tests.helpers import DVS_DTYPE, as_tuples, random_stream
+from tests.helpers import DVS_DTYPE, as_tuples, random_stream, rows, walk
 
 SENSOR = (10, 7, 2)
 
@@ -27,19 +27,9 @@ def event_count_reference(arr: np.ndarray, sensor, factor, threshold) -> list[tu
         rx, ry = int(arr["x"][i]) // fx, int(arr["y"][i]) // fy
         n_r = min(fx, w - rx * fx) * min(fy, h - ry * fy)
         level_sum[rx, ry] += 1 if arr["p"][i] > 0 else -1
-        mean = Fraction(level_sum[rx, ry], n_r)
-        while mean >= theta * (q[rx, ry] + 1):
-            q[rx, ry] += 1
-            out.append((rx, ry, arr["t"][i].item(), True))
-        while mean <= theta * (q[rx, ry] - 1):
-            q[rx, ry] -= 1
-            out.append((rx, ry, arr["t"][i].item(), False))
+        q[rx, ry], crossed = walk(q[rx, ry], Fraction(level_sum[rx, ry], n_r) / theta)
+        out += [(rx, ry, arr["t"][i].item(), on) for _, on in crossed]
     return out
-
-
-def rows(out: np.ndarray) -> list[tuple]:
-    return list(zip(out["x"].tolist(), out["y"].tolist(), out["t"].tolist(),
-                    (out["p"] > 0).tolist()))
 
 
 def test_hand_computed_region():

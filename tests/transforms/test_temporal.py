@@ -10,7 +10,7 @@ import torch
 
 from evdown_torch import Chain, EventCount, Events, TemporalFunnelling
 from evdown_torch.transforms.functional import temporal_funnelling
-from tests.helpers import DVS_DTYPE, random_stream
+from tests.helpers import DVS_DTYPE, random_stream, rows
 
 SENSOR = (8, 6, 2)
 
@@ -30,11 +30,6 @@ def temporal_reference(arr: np.ndarray, dt) -> list[tuple]:
             seen.add(key)
             out.append(key)
     return out
-
-
-def rows(out: np.ndarray) -> list[tuple]:
-    return list(zip(out["x"].tolist(), out["y"].tolist(), out["t"].tolist(),
-                    (out["p"] > 0).tolist()))
 
 
 def test_hand_computed_bins_and_repeats():
