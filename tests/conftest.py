@@ -1,4 +1,9 @@
-"""Shared fixtures: devices (absent ones skip), seeded generators and the real recording."""
+"""Shared fixtures: devices (absent ones skip) x timestamp dtypes, seeded generators, the real
+recording and LIF pooling's closed form forced on.
+
+As in Kornia's test suite, ``device`` and ``dtype`` are separate parametrized fixtures: a test
+that takes both runs on every available device for every dtype.
+"""
 
 from __future__ import annotations
 
@@ -30,6 +35,16 @@ DEVICES = [
 def device(request) -> torch.device:
     """Every available device; CUDA skips when absent."""
     return torch.device(request.param)
+
+
+#: The dtypes of tensor events: integer timestamps (Tonic's microseconds) and float ones.
+DTYPES = [torch.int64, torch.float64]
+
+
+@pytest.fixture(params=DTYPES, ids=lambda dtype: str(dtype).removeprefix("torch."))
+def dtype(request) -> torch.dtype:
+    """Every dtype of ``(N, 4)`` event tensors: int64 and float64 timestamps."""
+    return request.param
 
 
 @pytest.fixture

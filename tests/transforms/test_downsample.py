@@ -91,10 +91,11 @@ def test_empty_stream_gives_same_kind(cls):
 
 
 @pytest.mark.parametrize("cls", [Downsample, EventFunnelling])
-def test_tensor_input_on_device(cls, device):
-    data = torch.tensor([[9, 6, 30, 1], [4, 3, 10, -1], [4, 2, 10, -1]], device=device)
+def test_tensor_input_on_device(cls, device, dtype):
+    data = torch.tensor([[9, 6, 30, 1], [4, 3, 10, -1], [4, 2, 10, -1]], device=device,
+                        dtype=dtype)
     out = cls(SENSOR, factor=5)(data)
-    assert out.device == data.device and out.dtype == torch.int64
+    assert out.device == data.device and out.dtype == dtype
     expected = [[0, 0, 10, -1], [0, 0, 10, -1], [1, 1, 30, 1]]
     if cls is EventFunnelling:
         expected = [[0, 0, 10, -1], [1, 1, 30, 1]]

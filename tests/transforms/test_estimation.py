@@ -468,14 +468,21 @@ def test_empty_stream_gives_same_kind(cls):
 
 
 @pytest.mark.parametrize("cls", ESTIMATORS)
-def test_tensor_input_on_device(cls, device):
-    data = torch.tensor([[0, 0, 0, 1], [1, 0, 10, 1], [0, 0, 30, -1]], device=device)
+def test_tensor_input_on_device(cls, device, dtype):
+    data = torch.tensor([[0, 0, 0, 1], [1, 0, 10, 1], [0, 0, 30, -1]], device=device,
+                        dtype=dtype)
     out = cls((2, 1, 2), factor=(2, 1), threshold=0.25)(data)
-    assert out.device == data.device and out.dtype == torch.int64
-    # As test_linear_hand_computed; for the cubic, pixel 1's slopes are 2 / 15, 0, 0 and the
-    # sum on [0, 10] is 1 + s + s^2 / 3 - 2 s^3 / 3, which is 1.5 at s = 1 / 2 exactly.
-    expected = {LinearEstimation: 8, CubicEstimation: 5}[cls]
-    assert out.tolist() == [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, expected, 1], [0, 0, 30, -1]]
+    assert out.device == data.device and out.dtype == dtype
+    # As test_linear_hand_computed (the crossing at 7.5); for the cubic, pixel 1's slopes are
+    # 2 / 15, 0, 0 and the sum on [0, 10] is 1 + s + s^2 / 3 - 2 s^3 / 3, which is 1.5 at
+    # s = 1 / 2 exactly. Integer times are rounded half up.
+    crossing = {LinearEstimation: 7.5, CubicEstimation: 5.0}[cls]
+    if dtype.is_floating_point:
+        assert out[2, 2].item() == pytest.approx(crossing, rel=1e-12)
+        out[2, 2] = crossing
+    else:
+        crossing = math.floor(crossing + 0.5)
+    assert out.tolist() == [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, crossing, 1], [0, 0, 30, -1]]
 
 
 @pytest.mark.parametrize("cls", ESTIMATORS)

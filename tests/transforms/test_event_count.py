@@ -125,11 +125,11 @@ def test_empty_stream_keeps_kind():
     assert transform(Events.empty()).num_events == 0
 
 
-def test_device_and_tensor_kind(device):
+def test_device_and_tensor_kind(device, dtype):
     data = torch.tensor([[0, 0, 10, 1], [1, 1, 20, 1], [0, 1, 30, -1], [1, 0, 40, -1]],
-                        device=device)
+                        device=device, dtype=dtype)
     out = EventCount((2, 2, 2), factor=2, threshold=0.5)(data)
-    assert out.device == data.device
+    assert out.device == data.device and out.dtype == dtype
     assert out.tolist() == [[0, 0, 20, 1], [0, 0, 40, -1]]
 
 

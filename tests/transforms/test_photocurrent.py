@@ -217,15 +217,18 @@ def test_kinds_in_kinds_out_input_untouched(rng):
     assert (out_tensor[1:, 2] >= out_tensor[:-1, 2]).all()
 
 
-def test_device(device, rng):
+def test_device(device, dtype, rng):
     arr = random_stream(rng, 500, SENSOR, t_max=1000)
     tensor = torch.as_tensor(np.stack([arr["x"], arr["y"], arr["t"], arr["p"]], axis=1)
                              .astype(np.int64))
     for fps in (None, 2000.0):
         pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, fps=fps)
-        out = pool(tensor.to(device))
-        assert out.device.type == device.type
-        assert out.cpu().tolist() == pool(tensor).tolist()
+        out = pool(tensor.to(device, dtype))
+        assert out.device.type == device.type and out.dtype == dtype
+        if fps is None:  # against the reference: events at their triggering input's time
+            got = [(int(x), int(y), t, p > 0) for x, y, t, p in out.cpu().tolist()]
+            assert sorted(got) == sorted(photocurrent_events_reference(arr, SENSOR, 2, 0.3, 0.3))
+        assert out.cpu().tolist() == pool(tensor.to(dtype)).tolist()
 
 
 @pytest.mark.parametrize(("settings", "message"), [
