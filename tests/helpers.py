@@ -211,3 +211,29 @@ LIF_SETTINGS = [
     {"tau": math.inf, "weight": 0.7, "reset_mechanism": "none"},
     {"tau": 1e-3, "weight": 1.2},  # beta = 0
 ]
+
+
+#: Hypothesis strategies of a small LIF case: events ``(x, y, t, on)`` on a 7x5 sensor and
+#: the transform's settings (see :func:`lif_case`); ``beta`` is drawn by each test.
+LIF_CASES = {
+    "events": st.lists(
+        st.tuples(st.integers(0, 6), st.integers(0, 4), st.integers(0, 400), st.booleans()),
+        min_size=1,
+        max_size=80,
+    ),
+    "dt": st.integers(1, 50),
+    "weight": st.sampled_from([0.3, 0.5, 1.0, 2.5]),
+    "inhibition": st.sampled_from([0.0, 0.25, 0.5]),
+    "reset": st.sampled_from(["subtract", "zero", "none"]),
+    "factor": st.sampled_from([1, 2, 3, (2, 5)]),
+}
+
+
+def lif_case(events, dt, beta, weight, inhibition, reset, factor):
+    """A drawn :data:`LIF_CASES` case as ``(stream, LIFPooling)``; ``beta`` 0 is a tiny tau."""
+    from evdown_torch import LIFPooling
+
+    arr = np.array([(x, y, p, t) for x, y, t, p in events], dtype=DVS_DTYPE)
+    tau = math.inf if beta == 1.0 else (1e-9 if beta == 0.0 else -dt / math.log(beta))
+    return arr, LIFPooling((7, 5, 2), factor, dt=dt, tau=tau, weight=weight,
+                           mutual_inhibition=inhibition, reset_mechanism=reset)

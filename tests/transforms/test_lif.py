@@ -15,9 +15,11 @@ from evdown_torch import Events, LIFPooling, max_output_events
 from evdown_torch.transforms import calibrate_weight
 from tests.helpers import (
     DVS_DTYPE,
+    LIF_CASES,
     LIF_SETTINGS,
     as_tuples,
     bursty_stream,
+    lif_case,
     lif_dense_reference,
     random_stream,
 )
@@ -190,24 +192,9 @@ def test_flipping_polarity_flips_the_output(rng):
 
 
 @settings(max_examples=30, deadline=None)
-@given(
-    events=st.lists(
-        st.tuples(st.integers(0, 6), st.integers(0, 4), st.integers(0, 400), st.booleans()),
-        min_size=1,
-        max_size=60,
-    ),
-    dt=st.integers(1, 50),
-    beta=st.sampled_from([0.0, 0.5, 0.8, 1.0]),
-    weight=st.sampled_from([0.3, 0.5, 1.0, 2.5]),
-    inhibition=st.sampled_from([0.0, 0.25, 0.5]),
-    reset=st.sampled_from(["subtract", "zero", "none"]),
-    factor=st.sampled_from([1, 2, 3, (2, 5)]),
-)
-def test_property_matches_module(events, dt, beta, weight, inhibition, reset, factor):
-    arr = np.array([(x, y, p, t) for x, y, t, p in events], dtype=DVS_DTYPE)
-    tau = math.inf if beta == 1.0 else (1e-9 if beta == 0.0 else -dt / math.log(beta))
-    pool = LIFPooling((7, 5, 2), factor, dt=dt, tau=tau, weight=weight,
-                      mutual_inhibition=inhibition, reset_mechanism=reset)
+@given(beta=st.sampled_from([0.0, 0.5, 0.8, 1.0]), **LIF_CASES)
+def test_property_matches_module(**case):
+    arr, pool = lif_case(**case)
     assert as_tuples(pool(arr)) == lif_dense_reference(arr, pool)
 
 

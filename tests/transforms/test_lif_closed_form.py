@@ -14,14 +14,7 @@ from evdown_torch import Events, LIFPooling
 from evdown_torch.transforms.functional import lif as lif_kernel
 from evdown_torch.transforms.functional import lif_closed_form
 from evdown_torch.transforms.functional.lif_chains import Leak
-from tests.helpers import (
-    DVS_DTYPE,
-    LIF_SETTINGS,
-    as_tuples,
-    bursty_stream,
-    lif_dense_reference,
-    random_stream,
-)
+from tests import helpers
 
 
 @pytest.fixture
@@ -37,25 +30,26 @@ def by_rounds(pool: LIFPooling, arr: np.ndarray, monkeypatch) -> np.ndarray:
         return pool(arr)
 
 
-@pytest.mark.parametrize("which", range(len(LIF_SETTINGS)))
+@pytest.mark.parametrize("which", range(len(helpers.LIF_SETTINGS)))
 @pytest.mark.parametrize("kind", ["bursty", "dense", "sparse"])
 def test_closed_form_gives_the_rounds_spikes(which, kind, answers, monkeypatch):
     rng = np.random.default_rng(100 + which)
     sensor = (10, 8, 2)
     for _ in range(4):
         if kind == "bursty":  # long silences: decay over gaps, firing chains into them
-            arr = bursty_stream(rng, 8, sensor, gap_max=150, burst=60)
+            arr = helpers.bursty_stream(rng, 8, sensor, gap_max=150, burst=60)
         elif kind == "dense":  # several events per region in most steps: long rows
-            arr = random_stream(rng, 1500, sensor, t_max=400)
+            arr = helpers.random_stream(rng, 1500, sensor, t_max=400)
         else:
-            arr = random_stream(rng, 200, sensor, t_max=5000)
-        pool = LIFPooling(sensor, (2, 3), dt=4, **LIF_SETTINGS[which])
+            arr = helpers.random_stream(rng, 200, sensor, t_max=5000)
+        pool = LIFPooling(sensor, (2, 3), dt=4, **helpers.LIF_SETTINGS[which])
         np.testing.assert_array_equal(pool(arr), by_rounds(pool, arr, monkeypatch))
     assert len(answers) == 4
-    if LIF_SETTINGS[which]["tau"] == 1e-3:  # beta = 0 has nothing to integrate: left to the rounds
+    tau = helpers.LIF_SETTINGS[which]["tau"]
+    if tau == 1e-3:  # beta = 0 has nothing to integrate: left to the rounds
         assert not any(answers)
-    elif LIF_SETTINGS[which]["tau"] != math.inf:  # (without leak, membranes exactly on the
-        assert any(answers)  # threshold are common: weight 0.25, say)
+    elif tau != math.inf:  # (without leak, membranes exactly on the threshold are common:
+        assert any(answers)  # weight 0.25, say)
 
 
 def test_closed_form_answers_the_default_settings_on_nmnist(nmnist, answers, monkeypatch):
@@ -73,9 +67,9 @@ def test_greedy_block_length_does_not_change_the_spikes(block, nmnist, answers, 
     # passes after a neuron still above threshold and must undo them.
     monkeypatch.setattr(lif_closed_form, "_BLOCK", block)
     rng = np.random.default_rng(7)
-    dense = random_stream(rng, 1500, (10, 8, 2), t_max=400)
+    dense = helpers.random_stream(rng, 1500, (10, 8, 2), t_max=400)
     for pool, arr in ((LIFPooling((34, 34, 2), 4), nmnist),
-                      (LIFPooling((10, 8, 2), (2, 3), dt=4, **LIF_SETTINGS[2]), dense)):
+                      (LIFPooling((10, 8, 2), (2, 3), dt=4, **helpers.LIF_SETTINGS[2]), dense)):
         answers.clear()
         out = pool(arr)
         assert answers == [True]
@@ -86,52 +80,37 @@ def test_a_decision_within_float32_rounding_is_left_to_the_rounds(answers):
     # No leak, weight 0.1: after ten ON events the float32 membrane is 1.0000001 > 1 (the
     # kernel and the module fire) while the exact sum of the ten float32 weights exceeds the
     # threshold by only 1.5e-8, less than the rounding bound: the rounds decide.
-    arr = np.array([(0, 0, True, 10 * k) for k in range(12)], dtype=DVS_DTYPE)
+    arr = np.array([(0, 0, True, 10 * k) for k in range(12)], dtype=helpers.DVS_DTYPE)
     pool = LIFPooling((2, 2, 2), 2, dt=10, tau=math.inf, weight=0.1)
     out = pool(arr)
     assert answers == [False]
-    assert as_tuples(out) == lif_dense_reference(arr, pool) == [(0, 0, 100, True)]
+    assert helpers.as_tuples(out) == helpers.lif_dense_reference(arr, pool) == [(0, 0, 100, True)]
 
 
 def test_close_but_certain_decisions_are_answered(answers):
     # weight 0.45, no leak: after k events the membrane is 0.45 k minus the spikes so far, at
     # least 0.05 from the threshold for k <= 12; float32 rounding is far smaller.
-    arr = np.array([(k % 2, 0, True, 10 * k) for k in range(12)], dtype=DVS_DTYPE)
+    arr = np.array([(k % 2, 0, True, 10 * k) for k in range(12)], dtype=helpers.DVS_DTYPE)
     pool = LIFPooling((2, 2, 2), 2, dt=10, tau=math.inf, weight=0.45)
-    out = as_tuples(pool(arr))
+    out = helpers.as_tuples(pool(arr))
     assert answers == [True]
-    assert out == lif_dense_reference(arr, pool) and len(out) == 5
+    assert out == helpers.lif_dense_reference(arr, pool) and len(out) == 5
 
 
 @settings(max_examples=60, deadline=None, derandomize=True)
-@given(
-    events=st.lists(
-        st.tuples(st.integers(0, 6), st.integers(0, 4), st.integers(0, 400), st.booleans()),
-        min_size=1,
-        max_size=80,
-    ),
-    dt=st.integers(1, 50),
-    beta=st.sampled_from([0.5, 0.8, 0.95, 1.0]),
-    weight=st.sampled_from([0.3, 0.5, 1.0, 2.5]),
-    inhibition=st.sampled_from([0.0, 0.25, 0.5]),
-    reset=st.sampled_from(["subtract", "zero", "none"]),
-    factor=st.sampled_from([1, 2, 3, (2, 5)]),
-)
-def test_property_closed_form_matches_module(events, dt, beta, weight, inhibition, reset, factor):
-    arr = np.array([(x, y, p, t) for x, y, t, p in events], dtype=DVS_DTYPE)
-    tau = math.inf if beta == 1.0 else -dt / math.log(beta)
-    pool = LIFPooling((7, 5, 2), factor, dt=dt, tau=tau, weight=weight,
-                      mutual_inhibition=inhibition, reset_mechanism=reset)
+@given(beta=st.sampled_from([0.5, 0.8, 0.95, 1.0]), **helpers.LIF_CASES)
+def test_property_closed_form_matches_module(**case):
+    arr, pool = helpers.lif_case(**case)
     with pytest.MonkeyPatch.context() as patch:  # the closed form on every call
         patch.setattr(lif_kernel, "MIN_ROUNDS", 1)
-        assert as_tuples(pool(arr)) == lif_dense_reference(arr, pool)
+        assert helpers.as_tuples(pool(arr)) == helpers.lif_dense_reference(arr, pool)
 
 
 def test_batch_equals_one_by_one_through_the_closed_form(answers):
     rng = np.random.default_rng(5)
     sensor = (12, 10, 2)
-    recordings = [random_stream(rng, n, sensor, t_max=3000) for n in (900, 1, 0, 400, 1200)]
-    recordings.append(bursty_stream(rng, 6, sensor, gap_max=300, burst=80))
+    recordings = [helpers.random_stream(rng, n, sensor, t_max=3000) for n in (900, 1, 0, 400, 1200)]
+    recordings.append(helpers.bursty_stream(rng, 6, sensor, gap_max=300, burst=80))
     recordings[3]["t"] += 10**9  # another clock
     pool = LIFPooling(sensor, 3, dt=20, tau=150.0, weight=0.45)
     expected = [pool(r) for r in recordings]
