@@ -230,8 +230,8 @@ class Downscaler(Streaming):
         The frames mode of :class:`~evdown_torch.transforms.PhotocurrentPooling` and
         :class:`~evdown_torch.transforms.thinning.ThinnedDownsample` (random draws seeded by
         each recording) have no batched kernel and process the recordings one by one. The
-        output limit (:func:`evdown_torch.set_max_output_events`, or
-        ``LIFPooling.max_output_events``) applies to the batch as a whole.
+        output limit (:func:`evdown_torch.max_output_events`) applies to the batch as a
+        whole.
 
         Args:
             recordings: a sequence of recordings of any accepted kind (on one device, all
@@ -277,10 +277,10 @@ class ThresholdDownscaler(Downscaler):
             decimal thresholds such as 0.01 are exact.
 
     A call counts its output before building it and raises a ``ValueError`` naming the count
-    when it would exceed :func:`evdown_torch.set_max_output_events` (100 million events by
-    default): a threshold far below the level steps of a region asks for that many. The
-    linear and cubic estimators also refuse integer timestamps spanning 2**53 or more, whose
-    crossing times float64 cannot hold.
+    when it would exceed the output limit (:func:`evdown_torch.max_output_events`, 100
+    million events by default): a threshold far below the level steps of a region asks for
+    that many. The linear and cubic estimators also refuse integer timestamps spanning 2**53
+    or more, whose crossing times float64 cannot hold.
     """
 
     budget_setting: ClassVar[str | None] = "threshold"
