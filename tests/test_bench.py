@@ -72,6 +72,7 @@ def report(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_report_files_are_written(report):
     assert (report / "report.md").is_file()
     data = json.loads((report / "results.json").read_text())
@@ -85,6 +86,7 @@ def test_report_files_are_written(report):
         assert f"]({png.name})" in (report / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_report_speaks_the_users_language(report):
     # No issue numbers or project goals in what a user reads: those live in benchmarks/.
     text = (report / "report.md").read_text()
@@ -93,6 +95,7 @@ def test_report_speaks_the_users_language(report):
     assert "issue" not in (report / "results.json").read_text()
 
 
+@pytest.mark.slow
 def test_method_tables_have_every_method_and_peer_at_every_factor(report):
     tables = _tables((report / "report.md").read_text())
     labels = [cls.__name__ for cls in METHODS.values()] + PEER_LABELS
@@ -120,6 +123,7 @@ def test_method_tables_have_every_method_and_peer_at_every_factor(report):
                 assert _number(row[f"x {row['method']}"]) == pytest.approx(1.0)
 
 
+@pytest.mark.slow
 def test_sweep_tables_cover_every_candidate_and_point(report):
     tables = _tables((report / "report.md").read_text())
     labels = [cls.__name__ for cls in METHODS.values()] + PEER_LABELS
@@ -136,6 +140,7 @@ def test_sweep_tables_cover_every_candidate_and_point(report):
                     assert all(v is not None and v >= 0 for v in values), row
 
 
+@pytest.mark.slow
 def test_goals_table_names_every_measured_method_with_a_goal(report):
     results = report_module.load_results(report / "results.json")
     tables = _tables("## Goals\n\n" + goals_table(results))
@@ -167,6 +172,7 @@ def test_an_nmnist_recording_joins_the_method_table(tmp_path):
         run.run_benchmark(short=True, nmnist=tmp_path / "none.bin")
 
 
+@pytest.mark.slow
 def test_inputs_table_lists_the_streams(report):
     tables = _tables((report / "report.md").read_text())
     [rows] = tables["Inputs"]
@@ -299,6 +305,7 @@ def _allocate(megabytes: int):
     return lambda: float(np.ones(megabytes * 125_000).sum())
 
 
+@pytest.mark.slow
 def test_memory_measurement_sees_the_call(tmp_path):
     n = 1_000_000
     path = tmp_path / "big.npy"

@@ -204,6 +204,7 @@ def test_version_and_help_list_every_setting_with_defaults(capsys):
                 assert f"{field.name}={field.default!r}" in entry, (name, field.name)
 
 
+@pytest.mark.slow
 def test_module_entry_point(npy, tmp_path):
     result = _run("downscale", str(npy), str(tmp_path / "o.npy"), "--method", "funnelling",
                   "--factor", "2", "--sensor-size", "16", "12", "2")

@@ -145,6 +145,7 @@ def test_second_run_generates_nothing_and_gives_the_same_table(tiny, tmp_path):
     assert _rows(again, tmp_path / "a")[0] == _rows(first, tmp_path / "b")[0]
 
 
+@pytest.mark.slow
 def test_worker_processes_without_cache_give_the_same_table(tiny, tmp_path):
     _, first, _ = tiny
     config = _tiny(tmp_path, workers=2)
@@ -202,6 +203,7 @@ def test_cli_evaluate_reports_a_bad_config(tmp_path, capsys):
     assert "DVS128 Gesture was not found" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_evaluate_tiny_config(tmp_path, capsys):
     path = tmp_path / "tiny.toml"
     text = (CONFIGS / "tiny.toml").read_text()

@@ -65,6 +65,7 @@ def reference(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_cache_equals_the_transform_recording_by_recording(reference):
     data = PreprocessedDataset(reference)
     truth = SyntheticGestures(samples_per_class=1, duration_us=200_000,
@@ -137,6 +138,7 @@ class WaitingSynthetic:
         return self.inner.load(index)
 
 
+@pytest.mark.slow
 def test_two_worker_processes_write_the_same_bytes(reference, tmp_path):
     log = tmp_path / "log"
     log.mkdir()
@@ -157,6 +159,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_torchrun_two_ranks_write_the_same_cache(reference, tmp_path):
     command = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "1",
                "--nproc-per-node", "2", "--master-addr", "127.0.0.1", "--master-port",
@@ -180,6 +183,7 @@ def _folder_dataset(root: Path, rng: np.random.Generator, big: int = 0) -> Path:
     return root
 
 
+@pytest.mark.slow
 def test_interrupted_run_resumes_to_the_same_cache(tmp_path, rng):
     data = _folder_dataset(tmp_path / "data", rng, big=3_000_000)
     args = ["--dataset", f"folder:{data}", "--sensor-size", "64", "48", "2", "--method",
@@ -315,6 +319,7 @@ def test_an_empty_first_file_is_skipped_like_any_other(tmp_path, rng, capsys):
     assert "empty.npy" in err and err.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_recording_error_in_the_api(tmp_path, rng):
     data = _folder_dataset(tmp_path / "data", rng)
     bad = random_stream(rng, 10, (64, 48, 2))

@@ -66,6 +66,7 @@ def test_class_scores_break_ties_by_membrane():
     assert class_scores(counts, big_membrane).argmax(1).tolist() == [1]
 
 
+@pytest.mark.slow
 def test_learns_a_separable_task():
     """Class k: events in column block k; a few epochs reach perfect accuracy."""
     g = torch.Generator().manual_seed(4)

@@ -197,6 +197,7 @@ def test_integer_and_bool_input():
     assert torch.equal(pool(x.bool())[0], expected)
 
 
+@pytest.mark.slow
 def test_compiles_without_graph_breaks(rng):
     if not hasattr(torch, "compile"):
         pytest.skip("torch.compile is unavailable")

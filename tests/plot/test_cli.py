@@ -27,6 +27,7 @@ def npy(tmp_path, rng):
     return path
 
 
+@pytest.mark.slow
 def test_gif_of_a_synthetic_gesture_has_its_ground_truth_panel(tmp_path, capsys):
     out = tmp_path / "g.gif"
     code = main(["show", "synthetic:right_arm_cw:2", "--factor", "4", "--sensor-size", "32",
@@ -150,6 +151,7 @@ def test_threshold_and_settings_reach_the_right_methods():
     assert c.threshold == 0.5
 
 
+@pytest.mark.slow
 def test_matplotlib_is_imported_only_to_draw_and_its_absence_names_the_extra(npy, tmp_path):
     # a fresh interpreter: this one has imported matplotlib already
     code = (

@@ -183,6 +183,7 @@ def count_features(data, bins=4, grid=12):
     return torch.tensor(np.array(rows), dtype=torch.float32), torch.tensor(labels)
 
 
+@pytest.mark.slow
 def test_classes_are_distinguishable_by_a_simple_baseline():
     """Nearest centroid and logistic regression on event-count frames, held-out samples."""
     settings = {"duration_us": 800_000, "sensor_size": (48, 48, 2), "seed": 7}

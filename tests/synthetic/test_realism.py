@@ -37,18 +37,21 @@ def recordings():
             for label in range(len(GESTURE_CLASSES))]
 
 
+@pytest.mark.slow
 def test_event_counts_within_dvs128_gesture_range(recordings):
     counts = [events.num_events for _, events in recordings]
     assert 190_000 <= statistics.mean(counts) <= 400_000, counts
     assert min(counts) > 50_000 and max(counts) < 800_000, counts
 
 
+@pytest.mark.slow
 def test_on_share_varies_by_recording(recordings):
     shares = [float(events.p.float().mean()) for _, events in recordings]
     assert all(0.4 <= s <= 0.6 for s in shares), shares
     assert max(shares) - min(shares) >= 0.08, shares  # not 0.50 everywhere
 
 
+@pytest.mark.slow
 def test_rate_is_bursty_in_10_ms_bins(recordings):
     ratios = []
     for scene, events in recordings:
@@ -61,6 +64,7 @@ def test_rate_is_bursty_in_10_ms_bins(recordings):
     assert min(ratios) >= 3, ratios
 
 
+@pytest.mark.slow
 def test_funnelling_at_factor_4_removes_a_few_percent(recordings):
     shares = [funnel_share(events) for _, events in recordings]
     assert 0.02 <= statistics.mean(shares) <= 0.06, shares
