@@ -17,6 +17,9 @@ from typing import Any
 
 import torch
 
+from evdown_torch.time_units import TIME_UNITS
+from evdown_torch.time_units import check_time_unit as check_time_unit_name
+
 __all__ = [
     "DEFAULT_MAX_OUTPUT_EVENTS",
     "DEFAULT_TIME_UNIT",
@@ -345,6 +348,9 @@ def check_output_count(
 def check_time_unit(time_unit: Any) -> float:
     """Validate a ``time_unit``: the seconds one timestamp unit lasts, for rates in hertz.
 
+    A unit's name as the file readers take it (``"s"``, ``"ms"``, ``"us"``, ``"ns"``, see
+    :data:`evdown_torch.time_units.TIME_UNITS`) is accepted too and turned into seconds.
+
     Every time setting of a method (``dt``, ``tau``, ``max_delay``, ...) is in the stream's
     own unit; only settings given per second (a frame rate, a cut-off frequency, a budget in
     events per second) need to know how long that unit is, and they all take it as
@@ -353,16 +359,19 @@ def check_time_unit(time_unit: Any) -> float:
     so 1e-6 and 1e-9 are exact.
 
     Returns:
-        ``time_unit`` as a float.
+        ``time_unit`` in seconds, as a float.
 
     Raises:
-        TypeError: for a non-number.
-        ValueError: for a value that is not finite, or below 1e-12 (a picosecond).
+        TypeError: for a non-number that is not a unit's name.
+        ValueError: for a value that is not finite, below 1e-12 (a picosecond), or an
+            unknown name.
 
     Example:
-        >>> check_time_unit(1e-3)
-        0.001
+        >>> check_time_unit(1e-3), check_time_unit("ms")
+        (0.001, 0.001)
     """
+    if isinstance(time_unit, str):
+        return TIME_UNITS[check_time_unit_name(time_unit)] * 1e-6  # microseconds -> seconds
     value = check_positive_float("time_unit", time_unit)
     if value * MAX_TIME_UNIT_DENOMINATOR < 1:
         raise ValueError(

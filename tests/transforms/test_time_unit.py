@@ -63,7 +63,7 @@ def test_time_unit_is_normalised_and_kept_with_the_frames_mode():
     (math.nan, ValueError, "time_unit must be a positive"),
     (math.inf, ValueError, "time_unit must be a positive"),
     (1e-13, ValueError, "at least 1e-12"),
-    ("1e-6", TypeError, "time_unit must be a positive number"),
+    ("micro", ValueError, "time unit must be one of s, ms, us, ns"),
     (True, TypeError, "time_unit must be a positive number"),
 ])
 def test_bad_time_units_are_refused_everywhere_with_one_message(time_unit, error, message):
@@ -106,3 +106,9 @@ def test_calibrate_weight_reads_a_rate_in_the_given_unit(rng):
     assert as_ms == as_us
     got = len(LIFPooling(sensor, 4, weight=as_ms, **kwargs)(arr))
     assert abs(got - 10.0 * span * 1e-3) <= 0.05 * 10.0 * span * 1e-3
+
+
+def test_the_readers_unit_names_are_accepted_as_seconds():
+    assert [check_time_unit(name) for name in ("s", "ms", "us", "ns")] == [1.0, 1e-3, 1e-6, 1e-9]
+    assert PhotocurrentPooling(SENSOR, fps=25, time_unit="s").time_unit == 1.0
+    assert BudgetTarget.rate(10.0, "ms").time_unit == 1e-3
