@@ -315,7 +315,7 @@ def _plot(result: EvaluationResult, path: Path) -> bool:
     figure = Figure(figsize=(4.2 * len(factors) + 2.5, 7.5), layout="constrained")
     FigureCanvasAgg(figure)
     axes = figure.subplots(2, len(factors), squeeze=False, sharey="row")
-    methods = list(dict.fromkeys(c.method for c in result.cells
+    methods = list(dict.fromkeys(_name(c) for c in result.cells
                                  if c.method not in (BASELINE, CONTROL)))
     colours = {name: f"C{i % 10}" for i, name in enumerate(methods)}
     colours[CONTROL] = "black"
@@ -324,7 +324,7 @@ def _plot(result: EvaluationResult, path: Path) -> bool:
         here = [c for c in result.cells if c.factor == factor]
         top, bottom = axes[0][column], axes[1][column]
         for name in [*methods, CONTROL]:
-            line = sorted((c for c in here if c.method == name), key=lambda c: c.events_per_second)
+            line = sorted((c for c in here if _name(c) == name), key=lambda c: c.events_per_second)
             if not line:
                 continue
             style = dict(color=colours[name], marker="o" if name != CONTROL else "s",
