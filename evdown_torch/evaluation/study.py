@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import math
 import multiprocessing
-import resource
 import statistics
 import sys
 import time
@@ -103,7 +102,12 @@ def _consistency_recordings(config: EvaluationConfig, source: Source) -> int:
 
 
 def _cpu_seconds() -> float:
-    """CPU seconds of this process and of its finished children (the workers)."""
+    """CPU seconds of this process and of its finished children (the workers); this process
+    alone where the platform cannot say (Windows)."""
+    try:
+        import resource
+    except ModuleNotFoundError:  # pragma: no cover - Windows
+        return time.process_time()
     own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
         resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
