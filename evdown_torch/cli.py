@@ -345,7 +345,7 @@ def add_bench_command(commands: argparse._SubParsersAction) -> None:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from evdown_torch.config import load_config
+    from evdown_torch.evaluation.config import load_config
     from evdown_torch.evaluation import markdown_table, run_evaluation, write_report
     from evdown_torch.evaluation.report import primary_table
 

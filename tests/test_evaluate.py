@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from evdown_torch.cli import main
-from evdown_torch.config import load_config, parse_config
+from evdown_torch.evaluation.config import load_config, parse_config
 from evdown_torch.evaluation import (
     BASELINE,
     CONTROL,
@@ -21,7 +21,7 @@ from evdown_torch.evaluation import (
 )
 from evdown_torch.evaluation.data import Source, check_available
 from evdown_torch.evaluation.report import primary_table, question
-from evdown_torch.metrics import optical_consistency
+from evdown_torch.evaluation.metrics import optical_consistency
 from evdown_torch.transforms import Downsample
 from evdown_torch.transforms.registry import METHODS
 

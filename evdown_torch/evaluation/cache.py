@@ -33,7 +33,7 @@ def code_fingerprint(*parts: str) -> str:
     """A digest of the package's source files under ``parts`` (paths relative to the package).
 
     Example:
-        >>> len(code_fingerprint("synthetic")), code_fingerprint("metrics.py") != ""
+        >>> len(code_fingerprint("synthetic")), code_fingerprint("frames.py") != ""
         (16, True)
     """
     digest = hashlib.blake2b(digest_size=8)

@@ -16,12 +16,12 @@ import numpy as np
 import torch
 
 from evdown_torch.checks import output_size
-from evdown_torch.config import EvaluationConfig
+from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.cache import Cache, code_fingerprint
 from evdown_torch.evaluation.data import Source, window
 from evdown_torch.events import DVS_DTYPE, Events, to_events
 from evdown_torch.frames import to_frames
-from evdown_torch.metrics import event_metrics, optical_consistency
+from evdown_torch.evaluation.metrics import event_metrics, optical_consistency
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.calibrate import BudgetTarget, calibration
 from evdown_torch.transforms.registry import make_method
@@ -190,7 +190,7 @@ def frames_key(source: Source, cell: Cell, split: str, indices: list[int],
             "bins": config.data.time_bins,
             "mean_time": config.data.mean_time,
             "consistency_bin_us": config.measures.consistency_bin_us,
-            "code": code_fingerprint(*_TRANSFORM_CODE, "frames.py", "metrics.py",
+            "code": code_fingerprint(*_TRANSFORM_CODE, "frames.py", "evaluation/metrics.py",
                                      "evaluation/cells.py")}
 
 

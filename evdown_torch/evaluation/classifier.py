@@ -14,12 +14,12 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, TensorDataset
 
-from evdown_torch.config import EvaluationConfig
+from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.cache import Cache, code_fingerprint
 from evdown_torch.evaluation.cells import TIME_SCALE, Cell, frames_key
 from evdown_torch.evaluation.data import Source
 from evdown_torch.models.classifier import SpikingClassifier, stem_stride_for
-from evdown_torch.training import predict_classifier, train_classifier
+from evdown_torch.models.training import predict_classifier, train_classifier
 
 __all__ = ["count_scale", "draw_training_set", "frames_of", "model_for", "train_job"]
 
@@ -155,7 +155,7 @@ def train_job(source: Source, cell: Cell, chunks: dict[str, list[list[int]]],
            "batch_size": training.batch_size, "learning_rate": learning_rate,
            "encoding": training.encoding, "normalise": training.normalise,
            "per_seed": config.data.train_per_seed, "validation": held_out, "seed": seed,
-           "device": torch.device(device).type, "code": code_fingerprint("models", "training.py",
+           "device": torch.device(device).type, "code": code_fingerprint("models",
                                                                           "evaluation/cells.py")}
     cache = source.cache
     path = cache.path("predictions", key, ".json")

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from evdown_torch.checks import check_factor
-from evdown_torch.config import DataConfig
+from evdown_torch.evaluation.config import DataConfig
 from evdown_torch.evaluation.cache import Cache, code_fingerprint
 
 __all__ = ["Source", "check_available", "window"]

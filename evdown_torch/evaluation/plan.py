@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Any
 
-from evdown_torch.config import EvaluationConfig
+from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.cells import BASELINE, CONTROL, TONIC, TONIC_DT_MS, Cell
 from evdown_torch.evaluation.statistics import dunnett_seeds
 from evdown_torch.transforms.registry import METHODS
@@ -55,7 +55,7 @@ def plan(config: EvaluationConfig) -> list[Planned]:
         planned in two roles keeps the first role and the larger set of seeds.
 
     Example:
-        >>> from evdown_torch.config import parse_config
+        >>> from evdown_torch.evaluation.config import parse_config
         >>> config = parse_config({"methods": {
         ...     "include": ["event_count"], "factors": [4], "budgets": [0.25, 1.0],
         ...     "primary": ["event_count", "linear"], "primary_factors": [4],

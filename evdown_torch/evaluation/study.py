@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from evdown_torch.config import EvaluationConfig
+from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation import cells as jobs
 from evdown_torch.evaluation import classifier
 from evdown_torch.evaluation.analysis import Comparison, compare, sanity_check
@@ -119,7 +119,7 @@ def run_evaluation(
     """Run the study of ``config`` and measure every cell.
 
     Args:
-        config: the configuration (see :mod:`evdown_torch.config`).
+        config: the configuration (see :mod:`evdown_torch.evaluation.config`).
         log: receives progress lines (default: stderr, with a progress bar per long stage);
             ``None`` for silence.
         cache: reuse and keep what is cached under ``config.output.cache``; ``False`` works

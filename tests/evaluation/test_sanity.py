@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from evdown_torch.config import load_config
+from evdown_torch.evaluation.config import load_config
 from evdown_torch.evaluation.classifier import count_scale, draw_training_set, model_for
 from evdown_torch.evaluation.plan import pair
 
@@ -59,7 +59,7 @@ def test_d_seed_draws_leave_the_validation_recordings_out():
 
 
 def test_plan_adds_native_outputs_and_the_tonic_peer():
-    from evdown_torch.config import parse_config
+    from evdown_torch.evaluation.config import parse_config
     from evdown_torch.evaluation.plan import delay_of, plan
 
     config = parse_config({"methods": {"include": ["event_count"], "factors": [4],

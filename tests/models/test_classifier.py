@@ -9,7 +9,7 @@ import torch
 
 from evdown_torch.models import SpikingClassifier
 from evdown_torch.models.classifier import class_scores
-from evdown_torch.training import evaluate_classifier, train_classifier
+from evdown_torch.models.training import evaluate_classifier, train_classifier
 
 
 @pytest.mark.parametrize("size", [(1, 1), (2, 3), (7, 5), (32, 32), (64, 48)])
@@ -150,7 +150,7 @@ def test_the_study_classifiers_see_the_whole_input(name, side):
     stem; full at full resolution through its stem)."""
     from pathlib import Path
 
-    from evdown_torch.config import load_config
+    from evdown_torch.evaluation.config import load_config
     from evdown_torch.evaluation.classifier import model_for
 
     config = load_config(Path(__file__).resolve().parents[2] / "configs" / f"{name}.toml")

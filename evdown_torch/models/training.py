@@ -14,7 +14,7 @@ Example, on DVS128 Gesture (needs tonic and the dataset on disk)::
     from torch.utils.data import DataLoader
     from evdown_torch import EventCount
     from evdown_torch.models import SpikingClassifier
-    from evdown_torch.training import evaluate_classifier, train_classifier
+    from evdown_torch.models.training import evaluate_classifier, train_classifier
 
     down = EventCount(tonic.datasets.DVSGesture.sensor_size, factor=4)
     frames = tonic.transforms.ToFrame(down.output_sensor_size, n_time_bins=16)

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import pytest
 
-import evdown_torch.config as config_module
-from evdown_torch.config import EvaluationConfig, load_config, parse_config
+import evdown_torch.evaluation.config as config_module
+from evdown_torch.evaluation.config import EvaluationConfig, load_config, parse_config
 from evdown_torch.transforms.registry import METHODS
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 def test_defaults_and_conversion():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch.metrics import entropy, event_metrics, num_events, temporal_density
+from evdown_torch.evaluation.metrics import entropy, event_metrics, num_events, temporal_density
 from tests.helpers import DVS_DTYPE, random_stream
 
 
@@ -71,7 +71,7 @@ def _dense_consistency(a, b, sensor, bin_width, t0, t1):
 
 
 def test_optical_consistency_against_a_dense_reference():
-    from evdown_torch.metrics import optical_consistency
+    from evdown_torch.evaluation.metrics import optical_consistency
 
     rng = np.random.default_rng(7)
     sensor = (5, 4, 2)
