@@ -20,7 +20,7 @@ import numpy as np
 
 from evdown_torch.checks import check_sensor_size
 from evdown_torch.events import DVS_DTYPE, FIELDS
-from evdown_torch.time_units import check_time_unit
+from evdown_torch.time_units import check_unit_name
 
 #: The optional dependency group that installs every reader.
 READERS_EXTRA = "readers"
@@ -87,7 +87,7 @@ def _time_unit_attribute(attrs: Any, source: str) -> str | None:
     value = value.item() if isinstance(value, np.ndarray) else value
     value = value.decode() if isinstance(value, bytes) else value
     try:
-        return check_time_unit(value)
+        return check_unit_name(value)
     except ValueError as error:
         raise ValueError(f"{source}: stored {error}") from None
 

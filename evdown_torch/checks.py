@@ -18,7 +18,7 @@ from typing import Any
 import torch
 
 from evdown_torch.time_units import TIME_UNITS
-from evdown_torch.time_units import check_time_unit as check_time_unit_name
+from evdown_torch.time_units import check_unit_name
 
 __all__ = [
     "DEFAULT_MAX_OUTPUT_EVENTS",
@@ -371,7 +371,7 @@ def check_time_unit(time_unit: Any) -> float:
         (0.001, 0.001)
     """
     if isinstance(time_unit, str):
-        return TIME_UNITS[check_time_unit_name(time_unit)] * 1e-6  # microseconds -> seconds
+        return TIME_UNITS[check_unit_name(time_unit)] * 1e-6  # microseconds -> seconds
     value = check_positive_float("time_unit", time_unit)
     if value * MAX_TIME_UNIT_DENOMINATOR < 1:
         raise ValueError(

@@ -64,7 +64,7 @@ from evdown_torch._readers import (
 )
 from evdown_torch.checks import check_sensor_size
 from evdown_torch.events import FIELDS
-from evdown_torch.time_units import check_time_unit, to_microseconds
+from evdown_torch.time_units import check_unit_name, to_microseconds
 
 __all__ = [
     "READ_EXTENSIONS",
@@ -271,7 +271,7 @@ def read_microseconds(
         ``None`` where neither the file nor the caller said.
     """
     recording = read_events(path, sensor_size=sensor_size, columns=columns)
-    unit = recording.time_unit or (None if time_unit is None else check_time_unit(time_unit))
+    unit = recording.time_unit or (None if time_unit is None else check_unit_name(time_unit))
     if unit is None:
         return recording
     return recording._replace(events=to_microseconds(recording.events, unit), time_unit="us")
@@ -327,7 +327,7 @@ def write_events(
             f"dtype {events.dtype} and shape {events.shape}"
         )
     size = None if sensor_size is None else check_sensor_size(sensor_size)
-    unit = None if time_unit is None else check_time_unit(time_unit)
+    unit = None if time_unit is None else check_unit_name(time_unit)
     extension = path.suffix.lower()
     if extension == ".npy":
         with open(path, "wb") as file:  # np.save(path) would append ".npy" to other names

@@ -27,7 +27,7 @@ __all__ = [
     "MAX_PLAUSIBLE_RATE",
     "TIME_UNITS",
     "TimeUnitWarning",
-    "check_time_unit",
+    "check_unit_name",
     "check_timing",
     "display_unit",
     "time_settings",
@@ -52,7 +52,7 @@ class TimeUnitWarning(UserWarning):
     """Timestamps or time settings that look like the wrong time unit."""
 
 
-def check_time_unit(unit: Any) -> str:
+def check_unit_name(unit: Any) -> str:
     """Validate a time unit name: one of :data:`TIME_UNITS` (``"s"``, ``"ms"``, ``"us"``, ``"ns"``).
 
     Raises:
@@ -87,7 +87,7 @@ def to_microseconds(events: np.ndarray, unit: str) -> np.ndarray:
         >>> to_microseconds(ev, "s")["t"].tolist()
         [500000.0, 1250000.0]
     """
-    scale = TIME_UNITS[check_time_unit(unit)]
+    scale = TIME_UNITS[check_unit_name(unit)]
     t = events["t"]
     integer = np.issubdtype(t.dtype, np.integer)
     t_dtype = np.int64 if integer and scale >= 1 else np.float64

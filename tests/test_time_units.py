@@ -10,7 +10,7 @@ import pytest
 from evdown_torch import CubicEstimation, LIFPooling, PhotocurrentPooling
 from evdown_torch.time_units import (
     TimeUnitWarning,
-    check_time_unit,
+    check_unit_name,
     check_timing,
     display_unit,
     time_settings,
@@ -51,7 +51,7 @@ def test_float_times_become_float64_microseconds_in_the_same_field_order():
 
 def test_bad_units_and_overflow_are_refused():
     with pytest.raises(ValueError, match="time unit must be one of s, ms, us, ns, got 'sec'"):
-        check_time_unit("sec")
+        check_unit_name("sec")
     with pytest.raises(ValueError, match="overflow int64"):
         to_microseconds(_stream([2**62]), "s")
 
