@@ -271,3 +271,25 @@ def test_header_wins_over_sensor_size_and_columns_name_an_n_by_4_file(tmp_path, 
         main(["downscale", str(tmp_path / "b.npy"), str(tmp_path / "o.npy"), "--method",
               "downsample", "--factor", "2", "--threads", "0"])
     assert "threads must be a positive integer" in capsys.readouterr().err
+
+
+def test_each_subcommand_registers_itself_from_its_package_without_importing_the_cli():
+    import ast
+    import inspect
+
+    from evdown_torch.cli import SUBCOMMANDS, build_parser
+
+    names = []
+    for module in SUBCOMMANDS:
+        tree = ast.parse(inspect.getsource(module))
+        imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+        imported |= {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import)
+                     for alias in node.names}
+        assert "evdown_torch.cli" not in imported, module.__name__  # no cycle
+        assert callable(module.add_command), module.__name__
+        names.append(module.__name__)
+    assert names == ["evdown_torch.downscale", "evdown_torch.data.command",
+                     "evdown_torch.bench.command", "evdown_torch.evaluation.command",
+                     "evdown_torch.plot.command"]
+    choices = build_parser()._subparsers._group_actions[0].choices
+    assert list(choices) == ["downscale", "preprocess", "bench", "evaluate", "show"]

@@ -1,4 +1,4 @@
-"""``evdown bench``: run the benchmark from the command line's arguments, write the report."""
+"""``evdown bench``: its arguments (:func:`add_command`); run the benchmark, write the report."""
 
 from __future__ import annotations
 
@@ -9,14 +9,52 @@ from pathlib import Path
 
 import numpy as np
 
+from evdown_torch.arguments import Subparsers
 from evdown_torch.bench.report import method_table, write_report
 from evdown_torch.bench.run import run_benchmark
 from evdown_torch.checks import check_positive_int
 
-__all__ = ["run_from_args"]
+__all__ = ["add_command", "run_from_args"]
+
+def add_command(commands: Subparsers) -> None:
+    """Register ``evdown bench`` on the ``evdown`` subparsers."""
+    bench = commands.add_parser(
+        "bench", help="benchmark every method against its peers; write a report and plots",
+        description="Time every downscaling method, and its peers in Tonic, on a synthetic "
+        "gesture recording, a large 1280x720 stream and any --input files, at factors 2 to "
+        "8, with one torch thread (median of several calls); then sweep events, sensor size "
+        "and duration, and measure peak memory in a fresh process. Writes report.md, "
+        "results.json and PNG plots to --out; a progress bar per stage on a terminal. "
+        "--short takes under 2 minutes; the full run tens of minutes.",
+    )
+    bench.add_argument("--out", required=True, metavar="DIR",
+                       help="folder for report.md, results.json and the PNG plots")
+    bench.add_argument("--short", action="store_true",
+                       help="small inputs and two points per sweep (under 2 minutes)")
+    bench.add_argument("--input", action="append", metavar="FILE.npy",
+                       help="a structured event array to add to the method table (repeatable)")
+    bench.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
+                       help="sensor of the --input files (default: from the largest coordinates)")
+    bench.add_argument("--events", type=int, metavar="N",
+                       help="cap every stream at N events (quick checks)")
+    bench.add_argument("--repeats", type=int, metavar="R",
+                       help="timed calls per measurement of the method table (default 5)")
+    bench.add_argument("--methods", nargs="+", metavar="SPEC",
+                       help="only these methods and peers (default: all): NAME or "
+                       "NAME:KEY=VALUE,... for a method with other settings, e.g. "
+                       "lif:weight=1.5; peers: tonic_downsample, tonic_integrator, "
+                       "tonic_differentiator")
+    bench.add_argument("--no-scaling", action="store_true", help="skip the scaling sweeps")
+    bench.add_argument("--no-memory", action="store_true", help="skip peak-memory measurements")
+    bench.add_argument("--realtime", action="store_true",
+                       help="replay a recording (the first --input, else a synthetic gesture "
+                       "one) through every streaming session in 1 ms and 10 ms chunks, at its "
+                       "own rate and at 25 M events/s; writes realtime.md/.json/.png")
+    bench.set_defaults(run=run_from_args)
+
 
 def run_from_args(args: argparse.Namespace, *, nmnist: str | Path | None = None) -> int:
-    """The ``evdown bench`` command (see :func:`evdown_torch.cli.build_parser`).
+    """Run ``evdown bench`` from its parsed arguments (:func:`add_command`); the exit status.
 
     Runs :func:`~evdown_torch.bench.run.run_benchmark` with the parsed options (and the
     N-MNIST recording ``nmnist``, when given), writes the report to ``args.out`` and prints

@@ -1,6 +1,6 @@
 """``evdown preprocess``: the command line of :func:`evdown_torch.data.preprocess`.
 
-:func:`add_parser` adds the subcommand to the ``evdown`` parser, :func:`run` runs it (also as
+:func:`add_command` adds the subcommand to the ``evdown`` parser, :func:`run` runs it (also as
 one rank of a ``torchrun`` launch: it joins the gloo process group torchrun describes).
 """
 
@@ -10,12 +10,18 @@ import argparse
 from datetime import timedelta
 from pathlib import Path
 
+from evdown_torch.arguments import (
+    Subparsers,
+    factor_argument,
+    refuse_threshold_flag,
+    setting_argument,
+)
 from evdown_torch.data import shards
 from evdown_torch.data.preprocessing import RecordingError, preprocess
 from evdown_torch.data.sources import open_source
 from evdown_torch.transforms.registry import METHODS
 
-__all__ = ["add_parser", "run"]
+__all__ = ["add_command", "run"]
 
 
 def _dataset_name(text: str) -> str:
@@ -26,10 +32,8 @@ def _dataset_name(text: str) -> str:
         f"expected synthetic, dvsgesture, nmnist or folder:PATH, got {text!r}")
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """Add the ``preprocess`` subcommand to the ``evdown`` command line's subparsers."""
-    from evdown_torch.cli import _factor, _setting
-
+def add_command(subparsers: Subparsers) -> None:
+    """Register ``evdown preprocess`` on the ``evdown`` subparsers."""
     parser = subparsers.add_parser(
         "preprocess",
         help="downscale every recording of a dataset once into a sharded cache (torchrun-ready)",
@@ -40,8 +44,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         help="synthetic, dvsgesture, nmnist or folder:PATH (PATH/CLASS/*.npy)")
     parser.add_argument("--method", required=True, choices=sorted(METHODS), metavar="NAME",
                         help=f"one of {', '.join(sorted(METHODS))}")
-    parser.add_argument("--factor", required=True, type=_factor, help="F or FX,FY")
-    parser.add_argument("--set", type=_setting, action="append", metavar="KEY=VALUE",
+    parser.add_argument("--factor", required=True, type=factor_argument, help="F or FX,FY")
+    parser.add_argument("--set", type=setting_argument, action="append", metavar="KEY=VALUE",
                         help="a setting of the method, e.g. --set threshold=0.5 (a contrast "
                         "threshold for most methods, the firing threshold for lif)")
     parser.add_argument("--out", required=True, metavar="DIR", help="the cache folder")
@@ -70,14 +74,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--threshold", help=argparse.SUPPRESS)  # gone: explains itself
     parser.set_defaults(run=run)
-    return parser
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``evdown preprocess`` (also one rank of a ``torchrun`` launch)."""
     import torch.distributed as dist
-
-    from evdown_torch.cli import refuse_threshold_flag
 
     refuse_threshold_flag(args)
     launched = dist.is_available() and dist.is_torchelastic_launched()

@@ -11,7 +11,7 @@ from PIL import Image
 
 from evdown_torch import EventCount, LIFPooling
 from evdown_torch.cli import main
-from evdown_torch.plot.cli import build_transforms
+from evdown_torch.plot.command import build_transforms
 from evdown_torch.plot.sources import load_source
 from evdown_torch.synthetic import render_gesture
 from tests.helpers import random_stream

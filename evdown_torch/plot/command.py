@@ -1,4 +1,4 @@
-"""``evdown show``: see what each method does (arguments and command logic).
+"""``evdown show``: see what each method does (:func:`add_command` registers it).
 
 ``evdown show IN --factor F [--methods a,b,...] [--window MS] [--out FILE.gif|FILE.png]``
 writes a side-by-side animation (GIF) or a contact sheet (PNG); with ``--curve X,Y`` it writes
@@ -17,12 +17,20 @@ from typing import Any
 import torch
 
 from evdown_torch._tensors import region_of
+from evdown_torch.arguments import (
+    CommandError,
+    Subparsers,
+    add_input_arguments,
+    factor_argument,
+    setting_argument,
+)
 from evdown_torch.checks import check_factor, output_size
 from evdown_torch.events import Events
 from evdown_torch.plot._mpl import MissingMatplotlib
 from evdown_torch.plot.sources import SYNTHETIC_DURATION_MS, load_source, method_name
 from evdown_torch.time_units import check_timing, time_settings
-from evdown_torch.transforms._base import Downscaler, ThresholdDownscaler
+from evdown_torch.transforms import Downscaler
+from evdown_torch.transforms._base import ThresholdDownscaler
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
 DEFAULT_ANIMATION = "evdown_show.gif"
@@ -60,10 +68,8 @@ def _positive(text: str) -> float:
     return value
 
 
-def add_parser(subparsers: Any) -> argparse.ArgumentParser:
-    """Add the ``show`` subcommand to an ``evdown`` subparsers object."""
-    from evdown_torch.cli import _factor, _setting, add_input_arguments
-
+def add_command(subparsers: Subparsers) -> None:
+    """Register ``evdown show`` on the ``evdown`` subparsers."""
     show = subparsers.add_parser(
         "show", help="see what each method does: an animation, a contact sheet or a pixel's curves",
         description="Draw a recording next to its downscaled versions (GIF animation, or PNG "
@@ -74,7 +80,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                       help="an event file (.npy, .h5, .aedat4, .bin, .raw, .dat; t in "
                       "microseconds unless the file or --time-unit says otherwise) or "
                       "synthetic:CLASS[:SEED] (a synthetic gesture, class index or name)")
-    show.add_argument("--factor", required=True, type=_factor, help="F or FX,FY")
+    show.add_argument("--factor", required=True, type=factor_argument, help="F or FX,FY")
     show.add_argument("--methods", type=_methods, metavar="A,B,...",
                       help=f"methods to show (default: all of {', '.join(METHODS)})")
     show.add_argument("--window", type=_positive, default=50.0, metavar="MS",
@@ -86,7 +92,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                       help="draw output pixel X,Y's levels, reconstructions and events instead")
     show.add_argument("--threshold", type=_positive, metavar="T",
                       help="contrast threshold of event_count, linear and cubic (default 1)")
-    show.add_argument("--set", type=_setting, action="append", metavar="[NAME.]KEY=VALUE",
+    show.add_argument("--set", type=setting_argument, action="append", metavar="[NAME.]KEY=VALUE",
                       help="a setting for every chosen method that takes KEY, or for method "
                       "NAME only, e.g. --set lif.weight=0.5")
     add_input_arguments(show)  # --sensor-size (synthetic default 128 128 2), --time-unit, ...
@@ -98,7 +104,6 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     show.add_argument("--no-ground-truth", action="store_true",
                       help="leave out the low-resolution ground truth of a synthetic input")
     show.set_defaults(run=run)
-    return show
 
 
 def build_transforms(
@@ -162,8 +167,6 @@ def _log(line: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``evdown show`` from parsed arguments; returns the exit status."""
-    from evdown_torch.cli import CommandError
-
     if args.windows < 1:
         raise CommandError(f"--windows must be a positive integer, got {args.windows}")
     try:

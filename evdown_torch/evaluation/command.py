@@ -1,0 +1,55 @@
+"""``evdown evaluate``: the study's command line (see docs/evaluation.md).
+
+``evdown evaluate --config FILE [--output DIR] [--no-cache]`` runs
+:func:`~evdown_torch.evaluation.study.run_evaluation` on a TOML configuration
+(:mod:`evdown_torch.evaluation.config`) and writes ``results.csv``, ``report.md`` and
+``tradeoff.png``. :func:`add_command` registers it on the ``evdown`` parser; the study's
+modules are imported only when it runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from evdown_torch.arguments import CommandError, Subparsers
+
+__all__ = ["add_command"]
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from evdown_torch.evaluation.config import load_config
+    from evdown_torch.evaluation.report import markdown_table, primary_table, write_report
+    from evdown_torch.evaluation.study import run_evaluation
+
+    try:
+        config = load_config(args.config)
+        result = run_evaluation(config, cache=not args.no_cache)
+    except (OSError, RuntimeError) as error:
+        raise CommandError(str(error)) from None
+    write_report(result, args.output or config.output.directory,
+                 log=lambda line: print(line, file=sys.stderr))
+    print(primary_table(result) + "\n" + markdown_table(result), end="")
+    return 0
+
+
+def add_command(commands: Subparsers) -> None:
+    """Register ``evdown evaluate`` on the ``evdown`` subparsers."""
+    evaluate = commands.add_parser(
+        "evaluate",
+        help="train and test a spiking classifier on every method and factor; write a report",
+        description="Measure each method's speed/accuracy trade: downscale a dataset with "
+        "every method and factor of the configuration, train and test a spiking classifier on "
+        "each (over several seeds), and write results.csv, report.md and tradeoff.png. The "
+        "configuration (TOML, e.g. configs/quick.toml) names the dataset, methods, factors, "
+        "training and output folder; recordings, frames and predictions are cached, so a "
+        "rerun resumes. Long: configs/quick.toml takes 15 to 40 minutes on a laptop CPU.",
+    )
+    evaluate.add_argument("--config", required=True, metavar="FILE",
+                          help="TOML configuration, e.g. configs/quick.toml")
+    evaluate.add_argument("--output", metavar="DIR",
+                          help="output directory (default: the config's [output] directory)")
+    evaluate.add_argument("--no-cache", action="store_true",
+                          help="neither read nor keep the cache of recordings, frames and "
+                          "predictions (work in a temporary directory)")
+    evaluate.set_defaults(run=_evaluate)
