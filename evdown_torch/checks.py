@@ -17,8 +17,7 @@ from typing import Any
 
 import torch
 
-from evdown_torch.time_units import TIME_UNITS
-from evdown_torch.time_units import check_unit_name
+from evdown_torch.time_units import TIME_UNITS, check_unit_name
 
 __all__ = [
     "DEFAULT_MAX_OUTPUT_EVENTS",

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from evdown_torch.cli import main
-from evdown_torch.evaluation.config import load_config, parse_config
 from evdown_torch.evaluation import (
     BASELINE,
     CONTROL,
@@ -19,9 +18,10 @@ from evdown_torch.evaluation import (
     run_evaluation,
     write_report,
 )
-from evdown_torch.evaluation.data import Source, check_available
-from evdown_torch.evaluation.report import primary_table, question
+from evdown_torch.evaluation.config import load_config, parse_config
+from evdown_torch.evaluation.data import StudyData, check_available
 from evdown_torch.evaluation.metrics import optical_consistency
+from evdown_torch.evaluation.report import primary_table, question
 from evdown_torch.transforms import Downsample
 from evdown_torch.transforms.registry import METHODS
 
@@ -92,7 +92,7 @@ def test_every_cell_is_planned(tiny):
 def test_learning_rate_is_chosen_without_the_test_split(tiny, monkeypatch):
     # check (d): the selection trains and scores on the training pool only
     config, result, root = tiny
-    source = Source(config.data, str(root / "cache"))
+    source = StudyData(config.data, str(root / "cache"))
     read = []
     original = classifier.frames_of
 
@@ -110,7 +110,7 @@ def test_learning_rate_is_chosen_without_the_test_split(tiny, monkeypatch):
 
 def test_measures_match_direct_computation(tiny):
     config, result, root = tiny
-    source = Source(config.data, str(root / "cache"))
+    source = StudyData(config.data, str(root / "cache"))
     test = [source.recording("test", i)[0] for i in range(6)]
     cells = {c.method: c for c in result.cells}
     sizes = [len(r) for r in test]
@@ -250,7 +250,7 @@ def test_dvsgesture_subset_crop_and_input_budgets(tmp_path, rng):
         "statistics": {"resamples": 50},
         "output": {"cache": str(tmp_path / "cache")},
     })
-    source = Source(config.data, str(tmp_path / "cache"))
+    source = StudyData(config.data, str(tmp_path / "cache"))
     events, label = source.recording("train", 0)
     assert 0 <= label < 11 and events["t"].max() - events["t"].min() < 200_000
     result = run_evaluation(config, log=None)
@@ -270,7 +270,7 @@ def test_consistency_on_the_first_test_recordings(tiny, tmp_path):
         config, measures=dataclasses.replace(config.measures, consistency_recordings=3),
         output=dataclasses.replace(config.output, cache=str(root / "cache")))
     result = run_evaluation(config, log=None)
-    source = Source(config.data, str(root / "cache"))
+    source = StudyData(config.data, str(root / "cache"))
     test = [source.recording("test", i)[0] for i in range(3)]
     camera = [source.ground_truth("test", i, (2, 2)) for i in range(3)]
     down = next(c for c in result.cells if c.method == "downsample")

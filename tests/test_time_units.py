@@ -10,8 +10,8 @@ import pytest
 from evdown_torch import CubicEstimation, LIFPooling, PhotocurrentPooling
 from evdown_torch.time_units import (
     TimeUnitWarning,
-    check_unit_name,
     check_timing,
+    check_unit_name,
     display_unit,
     time_settings,
     to_microseconds,

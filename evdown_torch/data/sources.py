@@ -1,16 +1,18 @@
-"""The datasets ``evdown preprocess`` reads: synthetic gestures, Tonic's, or a folder of files.
+"""Datasets of labelled recordings: synthetic gestures, Tonic's, or a folder of files.
 
-A source is a picklable object (worker processes receive it) with ``len()``, ``sensor_size``,
-``dtype``, ``classes``, ``describe()`` (JSON facts naming it) and ``load(i) -> (events, label)``
-plus ``source_name(i)`` for messages. :func:`open_source` builds one from the command line's
-``--dataset`` choice.
+A :class:`Source` (the package's one notion of a source) is a picklable object (worker
+processes receive it) with ``len()``, ``sensor_size``, ``dtype``, ``classes``, ``describe()``
+(JSON facts naming it) and ``load(i) -> (events, label)`` plus ``source_name(i)`` for
+messages. :func:`open_source` builds one from ``evdown preprocess``'s ``--dataset`` choice;
+:class:`TonicSource` is the one place DVS128 Gesture and N-MNIST are opened (``evdown
+evaluate`` reads DVS128 Gesture through it too).
 """
 
 from __future__ import annotations
 
 import operator
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -20,6 +22,7 @@ from evdown_torch.io import READ_EXTENSIONS, read_events
 __all__ = [
     "RECORDING_SUFFIXES",
     "FolderSource",
+    "Source",
     "SyntheticSource",
     "TonicSource",
     "check_label",
@@ -30,6 +33,40 @@ __all__ = [
 #: File suffixes the folder source reads, with :func:`read_recording` (every format of
 #: :mod:`evdown_torch.io`: NumPy, HDF5, AEDAT4, N-MNIST ``.bin``, Prophesee).
 RECORDING_SUFFIXES = READ_EXTENSIONS
+
+
+@runtime_checkable
+class Source(Protocol):
+    """A dataset of labelled recordings, read one by one (what :func:`open_source` returns).
+
+    Attributes:
+        name: the dataset's name (``"synthetic"``, ``"dvsgesture"``, ``"nmnist"``,
+            ``"folder"``).
+        sensor_size: ``(W, H, P)`` of every recording.
+        dtype: the structured dtype of every recording's events.
+        classes: the class names; labels index them.
+    """
+
+    name: str
+    sensor_size: tuple[int, int, int]
+    dtype: np.dtype
+    classes: list[str]
+
+    def __len__(self) -> int:
+        """The number of recordings."""
+        ...
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-ready facts that name the dataset (kept in a cache's manifest)."""
+        ...
+
+    def source_name(self, index: int) -> str:
+        """Where recording ``index`` comes from, for messages (a file, a split and index)."""
+        ...
+
+    def load(self, index: int) -> tuple[np.ndarray, int]:
+        """Recording ``index``: ``(events, label)``, a Tonic structured array and a class."""
+        ...
 
 
 def read_recording(path: Path, sensor_size: tuple[int, int, int]) -> np.ndarray:
@@ -80,17 +117,25 @@ _TONIC_CLASSES = {"dvsgesture": "DVSGesture", "nmnist": "NMNIST"}
 
 
 class TonicSource:
-    """A dataset of ``tonic.datasets`` whose files are already on disk (never downloads).
+    """A dataset of ``tonic.datasets`` (DVS128 Gesture or N-MNIST) whose files are on disk.
+
+    Args:
+        name: ``"dvsgesture"`` or ``"nmnist"``.
+        root: the folder the dataset lives in (Tonic's ``save_to``).
+        split: ``"train"`` or ``"test"``.
+        download: let Tonic download absent files (default: refuse, saying where they go).
 
     Raises:
-        ValueError: if the files are absent, saying where they go.
+        ValueError: if the files are absent (and ``download`` is false), saying where they go.
     """
 
-    def __init__(self, name: str, *, root: str | Path, split: str) -> None:
+    def __init__(self, name: str, *, root: str | Path, split: str,
+                 download: bool = False) -> None:
         self.name = check_choice("dataset", name, tuple(_TONIC_CLASSES))
         self.split = check_choice("split", split, ("train", "test"))
         self.root = str(Path(root).expanduser().resolve())
-        self._data = None
+        self.download = bool(download)
+        self._data: Any = None
         data = self._dataset()
         cls = type(data).__mro__[1]
         self.sensor_size = tuple(cls.sensor_size)
@@ -99,7 +144,8 @@ class TonicSource:
         self._length = len(data)
         self._files = list(data.data)
 
-    def _dataset(self):
+    def _dataset(self) -> Any:
+        """The Tonic dataset, opened on first use (and again in each worker process)."""
         if self._data is None:
             try:
                 import tonic.datasets
@@ -108,7 +154,8 @@ class TonicSource:
                     f"--dataset {self.name} needs tonic: pip install 'evdown_torch[tonic]'"
                 ) from None
             cls = getattr(tonic.datasets, _TONIC_CLASSES[self.name])
-            self._data = _without_download(cls)(self.root, train=self.split == "train")
+            opener = cls if self.download else _without_download(cls)
+            self._data = opener(self.root, train=self.split == "train")
         return self._data
 
     def __getstate__(self) -> dict[str, Any]:

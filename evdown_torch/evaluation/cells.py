@@ -16,12 +16,12 @@ import numpy as np
 import torch
 
 from evdown_torch.checks import output_size
-from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.cache import Cache, code_fingerprint
-from evdown_torch.evaluation.data import Source, window
+from evdown_torch.evaluation.config import EvaluationConfig
+from evdown_torch.evaluation.data import StudyData, window
+from evdown_torch.evaluation.metrics import event_metrics, optical_consistency
 from evdown_torch.events import DVS_DTYPE, Events, to_events
 from evdown_torch.frames import to_frames
-from evdown_torch.evaluation.metrics import event_metrics, optical_consistency
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.calibrate import BudgetTarget, calibration
 from evdown_torch.transforms.registry import make_method
@@ -138,7 +138,7 @@ class TonicPeer:
 # ----------------------------------------------------------------------------- jobs
 
 
-def generate_job(source: Source, split: str, indices: list[int],
+def generate_job(source: StudyData, split: str, indices: list[int],
                  factor: tuple[int, int] = (1, 1)) -> tuple[int, list[int]]:
     """Cache recordings ``indices`` of ``split`` (or their renders at ``factor``).
 
@@ -156,7 +156,7 @@ def generate_job(source: Source, split: str, indices: list[int],
     return generated, counts
 
 
-def calibrate_job(source: Source, cell: Cell, target_count: float, samples: int
+def calibrate_job(source: StudyData, cell: Cell, target_count: float, samples: int
                   ) -> tuple[Cell, dict[str, Any]]:
     """Calibrate ``cell``'s budget setting on the first ``samples`` training recordings.
 
@@ -182,7 +182,7 @@ def calibrate_job(source: Source, cell: Cell, target_count: float, samples: int
     return cell.with_settings(**{setting: result["value"]}), result
 
 
-def frames_key(source: Source, cell: Cell, split: str, indices: list[int],
+def frames_key(source: StudyData, cell: Cell, split: str, indices: list[int],
                 config: EvaluationConfig, draw: int = 0) -> dict[str, Any]:
     return {"data": source.key(split), "indices": [indices[0], indices[-1] + 1],
             "consistency_recordings": config.measures.consistency_recordings,
@@ -203,7 +203,7 @@ BATCHED = frozenset({"lif"})
 BATCH = 8
 
 
-def downscale_job(source: Source, units: list[tuple[Cell, int]], split: str,
+def downscale_job(source: StudyData, units: list[tuple[Cell, int]], split: str,
                   indices: list[int], config: EvaluationConfig) -> list[dict[str, list[float]]]:
     """Downscale recordings ``indices`` of ``split`` into each unit's frames, and measure them.
 
@@ -313,7 +313,7 @@ def _store_frames(cache: Cache, path: Any, cell: Cell, inputs: list[tuple[Any, i
     cache.save_json(path.with_suffix(".json"), stats)
 
 
-def throughput(source: Source, cell: Cell, recordings: int
+def throughput(source: StudyData, cell: Cell, recordings: int
                ) -> tuple[float, float] | None:
     """Speed of ``cell``'s transform on the first test recordings, timed in this process
     (call it on one idle thread).

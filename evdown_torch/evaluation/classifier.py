@@ -14,17 +14,17 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, TensorDataset
 
-from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.cache import Cache, code_fingerprint
 from evdown_torch.evaluation.cells import TIME_SCALE, Cell, frames_key
-from evdown_torch.evaluation.data import Source
+from evdown_torch.evaluation.config import EvaluationConfig
+from evdown_torch.evaluation.data import StudyData
 from evdown_torch.models.classifier import SpikingClassifier, stem_stride_for
 from evdown_torch.models.training import predict_classifier, train_classifier
 
 __all__ = ["count_scale", "draw_training_set", "frames_of", "model_for", "train_job"]
 
 
-def frames_of(source: Source, cell: Cell, split: str, chunks: list[list[int]],
+def frames_of(source: StudyData, cell: Cell, split: str, chunks: list[list[int]],
               config: EvaluationConfig, draw: int = 0) -> tuple[Tensor, Tensor]:
     """A cell's classifier input and labels of ``split`` (after :func:`downscale_job`).
 
@@ -128,7 +128,7 @@ def draw_training_set(labels: Tensor, per_seed: int, seed: int,
     return torch.sort(torch.cat(chosen)).values
 
 
-def train_job(source: Source, cell: Cell, chunks: dict[str, list[list[int]]],
+def train_job(source: StudyData, cell: Cell, chunks: dict[str, list[list[int]]],
               config: EvaluationConfig, seed: int, device: str, learning_rate: float,
               validation: bool = False) -> dict[str, Any]:
     """Train a fresh classifier on ``cell``'s frames under ``seed``; test it.

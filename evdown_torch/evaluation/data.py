@@ -1,9 +1,10 @@
 """The recordings of a study: where they come from and where they are cached.
 
-A :class:`Source` is a small picklable description of the dataset that every worker process
-can read recordings through: synthetic gestures are generated once and cached as ``.npy``
-files (and so are their low-resolution ground-truth renders); DVS128 Gesture is read through
-Tonic from its own files.
+A :class:`StudyData` is a small picklable description of the dataset that every worker
+process can read recordings through: synthetic gestures are generated once and cached as
+``.npy`` files (and so are their low-resolution ground-truth renders); DVS128 Gesture is read
+from its own files through :class:`evdown_torch.data.sources.TonicSource`, the package's one
+way of opening it.
 """
 
 from __future__ import annotations
@@ -17,10 +18,11 @@ import numpy as np
 import torch
 
 from evdown_torch.checks import check_factor
-from evdown_torch.evaluation.config import DataConfig
+from evdown_torch.data.sources import TonicSource
 from evdown_torch.evaluation.cache import Cache, code_fingerprint
+from evdown_torch.evaluation.config import DataConfig
 
-__all__ = ["Source", "check_available", "window"]
+__all__ = ["StudyData", "check_available", "window"]
 
 SPLITS = ("train", "test")
 
@@ -33,7 +35,7 @@ def window(events: np.ndarray) -> tuple[int, int]:
 
 
 @dataclass(frozen=True)
-class Source:
+class StudyData:
     """The recordings of ``config``, cached under ``cache_root``.
 
     Attributes:
@@ -129,7 +131,7 @@ class Source:
             return (Cache.load_array(self._recording_path(split, index, (1, 1))),
                     self.label(split, index))
         dataset = _dvsgesture(self.config.root, split == "train")
-        events, label = dataset[_dvsgesture_indices(self.config, split == "train")[index]]
+        events, label = dataset.load(_dvsgesture_indices(self.config, split == "train")[index])
         if self.config.duration_us and len(events):
             events = events[events["t"] < events["t"].min() + self.config.duration_us]
         return events, int(label)
@@ -144,10 +146,8 @@ class Source:
 
 
 @functools.cache
-def _dvsgesture(root: str, train: bool):
-    import tonic
-
-    return tonic.datasets.DVSGesture(save_to=root, train=train)
+def _dvsgesture(root: str, train: bool) -> TonicSource:
+    return TonicSource("dvsgesture", root=root, split="train" if train else "test")
 
 
 @functools.cache
@@ -192,5 +192,5 @@ def check_available(config: DataConfig) -> None:
             "tonic fetch them"
         )
     if missing:
-        for train in (True, False):
-            cls(save_to=config.root, train=train)
+        for split in SPLITS:
+            TonicSource("dvsgesture", root=config.root, split=split, download=True)

@@ -17,8 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Any
 
-from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.cells import BASELINE, CONTROL, TONIC, TONIC_DT_MS, Cell
+from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.statistics import dunnett_seeds
 from evdown_torch.transforms.registry import METHODS
 

@@ -7,9 +7,9 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
-from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.analysis import replicated
 from evdown_torch.evaluation.cells import BASELINE, CONTROL
+from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.plan import CONTROL_ROLE, PRIMARY, SANITY, pair
 from evdown_torch.evaluation.statistics import dunnett_seeds
 from evdown_torch.evaluation.study import CellResult, EvaluationResult

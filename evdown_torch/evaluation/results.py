@@ -6,9 +6,9 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.analysis import Comparison
 from evdown_torch.evaluation.cells import Cell
+from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.plan import PRIMARY
 
 __all__ = ["CellResult", "EvaluationResult"]
@@ -35,8 +35,9 @@ class CellResult:
         reduction: input events / output events.
         rate_vs_camera: output events / the low-resolution camera's events; ``None`` without
             ground truth (1 for the baseline).
-        consistency: mean optical consistency with the camera (:func:`~evdown_torch.evaluation.metrics.
-            optical_consistency`); ``None`` without ground truth and for the baseline.
+        consistency: mean optical consistency with the camera
+            (:func:`~evdown_torch.evaluation.metrics.optical_consistency`); ``None`` without
+            ground truth and for the baseline.
         density, entropy: the paper's measures, mean per recording.
         throughput: input events per second of the transform on one idle thread.
         cpu_us_per_recording: CPU microseconds of the transform per test recording.

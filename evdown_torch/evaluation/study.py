@@ -34,13 +34,13 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation import cells as jobs
 from evdown_torch.evaluation import classifier
 from evdown_torch.evaluation.analysis import Comparison, compare, sanity_check
 from evdown_torch.evaluation.cache import Cache
 from evdown_torch.evaluation.cells import BASELINE, CONTROL, Cell
-from evdown_torch.evaluation.data import Source, check_available
+from evdown_torch.evaluation.config import EvaluationConfig
+from evdown_torch.evaluation.data import StudyData, check_available
 from evdown_torch.evaluation.plan import EXPLORATORY, PRIMARY, SANITY, Planned, delay_of, pair, plan
 from evdown_torch.evaluation.results import CellResult, EvaluationResult
 from evdown_torch.evaluation.statistics import hierarchical_means, interval_of
@@ -95,7 +95,7 @@ def _chunks(indices: range, size: int = CHUNK) -> list[list[int]]:
     return [list(indices[i:i + size]) for i in range(0, len(indices), size)]
 
 
-def _consistency_recordings(config: EvaluationConfig, source: Source) -> int:
+def _consistency_recordings(config: EvaluationConfig, source: StudyData) -> int:
     """How many test recordings (the first ones) are compared with the camera."""
     n = source.size("test")
     return min(config.measures.consistency_recordings or n, n)
@@ -140,7 +140,7 @@ def run_evaluation(
     check_available(config.data)
     device = _resolve_device(config.training.device)
     store = Cache(config.output.cache if cache else None)
-    source = Source(config.data, str(store.root))
+    source = StudyData(config.data, str(store.root))
     training = config.training
     threads = torch.get_num_threads()
     if training.num_threads:
@@ -191,7 +191,7 @@ def _map(pool: Any, progress: _Progress, what: str, fn: Callable, *columns: list
     return list(out)
 
 
-def _fill(config: EvaluationConfig, source: Source, pool: Any, device: torch.device,
+def _fill(config: EvaluationConfig, source: StudyData, pool: Any, device: torch.device,
           progress: _Progress) -> _Filled:
     chunks = {s: _chunks(range(source.size(s))) for s in ("train", "test")}
     for split, parts in chunks.items():
@@ -262,7 +262,7 @@ def _fill(config: EvaluationConfig, source: Source, pool: Any, device: torch.dev
     return _Filled(planned, stats, predictions, found, rates, generated)
 
 
-def _choose_rates(config: EvaluationConfig, source: Source, trainer: Any,
+def _choose_rates(config: EvaluationConfig, source: StudyData, trainer: Any,
                   planned: list[Planned], chunks: dict, device: torch.device,
                   progress: _Progress) -> dict[tuple[int, int], tuple[float, dict]]:
     """The learning rate of each factor, chosen on the validation split of the training pool.
@@ -304,7 +304,7 @@ def _choose_rates(config: EvaluationConfig, source: Source, trainer: Any,
     return chosen
 
 
-def _calibrate(config: EvaluationConfig, source: Source, pool: Any, planned: list[Planned],
+def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, planned: list[Planned],
                camera: dict[tuple[int, int], int], samples: int, progress: _Progress
                ) -> tuple[list[Planned], dict[Cell, dict[str, Any]]]:
     """Calibrate every budgeted cell on the first ``samples`` training recordings."""
@@ -326,7 +326,7 @@ def _calibrate(config: EvaluationConfig, source: Source, pool: Any, planned: lis
     return cells, found
 
 
-def _measure(config: EvaluationConfig, source: Source, filled: _Filled, speeds: dict
+def _measure(config: EvaluationConfig, source: StudyData, filled: _Filled, speeds: dict
              ) -> list[CellResult]:
     sensor = source.sensor_size
     st = config.statistics

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from evdown_torch.evaluation.config import load_config
 from evdown_torch.evaluation.classifier import count_scale, draw_training_set, model_for
+from evdown_torch.evaluation.config import load_config
 from evdown_torch.evaluation.plan import pair
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"

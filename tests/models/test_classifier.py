@@ -150,8 +150,8 @@ def test_the_study_classifiers_see_the_whole_input(name, side):
     stem; full at full resolution through its stem)."""
     from pathlib import Path
 
-    from evdown_torch.evaluation.config import load_config
     from evdown_torch.evaluation.classifier import model_for
+    from evdown_torch.evaluation.config import load_config
 
     config = load_config(Path(__file__).resolve().parents[2] / "configs" / f"{name}.toml")
     model = model_for(config, (side, side), 11)
