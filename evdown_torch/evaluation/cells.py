@@ -22,7 +22,7 @@ from evdown_torch.evaluation.data import StudyData, window
 from evdown_torch.evaluation.metrics import event_metrics, optical_consistency
 from evdown_torch.events import DVS_DTYPE, Events, to_events
 from evdown_torch.frames import to_frames
-from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms import Downscaler
 from evdown_torch.transforms.calibrate import BudgetTarget, calibration
 from evdown_torch.transforms.registry import make_method
 from evdown_torch.transforms.thinning import ThinnedDownsample

@@ -16,18 +16,18 @@ them and ``fig.savefig(path)`` writes them.
 from evdown_torch.plot._mpl import MissingMatplotlib
 from evdown_torch.plot.animation import animate, contact_sheet, save
 from evdown_torch.plot.curve import MethodEvents, RegionCurves, curve_figure, region_curves
-from evdown_torch.plot.sources import Panel, Source, load_source, panels
+from evdown_torch.plot.recording import Panel, ShownRecording, load_recording, panels
 
 __all__ = [
     "MethodEvents",
     "MissingMatplotlib",
     "Panel",
-    "Source",
+    "ShownRecording",
     "RegionCurves",
     "animate",
     "contact_sheet",
     "curve_figure",
-    "load_source",
+    "load_recording",
     "panels",
     "region_curves",
     "save",

@@ -19,7 +19,7 @@ import numpy as np
 
 from evdown_torch.checks import check_positive_float, check_positive_int
 from evdown_torch.plot import _mpl
-from evdown_torch.plot.sources import Panel, to_numpy
+from evdown_torch.plot.recording import Panel, to_numpy
 from evdown_torch.time_units import display_unit
 
 __all__ = ["FrameGrid", "animate", "contact_sheet", "frame_grid", "save", "window_image",
@@ -145,7 +145,7 @@ def animate(
     """An animation of the panels side by side, one frame per window.
 
     Args:
-        panels: the streams (see :func:`~evdown_torch.plot.sources.panels`).
+        panels: the streams (see :func:`~evdown_torch.plot.recording.panels`).
         window_ms: frame length, milliseconds of recording (the GIF plays in real time).
         panel_inches: size of each panel.
         dpi: resolution.
@@ -255,7 +255,7 @@ def contact_sheet(
     column per panel.
 
     Args:
-        panels: the streams (see :func:`~evdown_torch.plot.sources.panels`).
+        panels: the streams (see :func:`~evdown_torch.plot.recording.panels`).
         window_ms: window length, milliseconds.
         windows: how many windows (fewer when the recording is shorter).
         panel_inches: size of each cell.

@@ -4,7 +4,7 @@
 writes a side-by-side animation (GIF) or a contact sheet (PNG); with ``--curve X,Y`` it writes
 the paper's Figure 5 for output pixel ``(X, Y)`` instead. ``IN`` is an event file (any format
 of :mod:`evdown_torch.io`) or ``synthetic:CLASS[:SEED]`` (see
-:func:`~evdown_torch.plot.sources.load_source`).
+:func:`~evdown_torch.plot.recording.load_recording`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from evdown_torch.arguments import (
 from evdown_torch.checks import check_factor, output_size
 from evdown_torch.events import Events
 from evdown_torch.plot._mpl import MissingMatplotlib
-from evdown_torch.plot.sources import SYNTHETIC_DURATION_MS, load_source, method_name
+from evdown_torch.plot.recording import SYNTHETIC_DURATION_MS, load_recording, method_name
 from evdown_torch.time_units import check_timing, time_settings
 from evdown_torch.transforms import Downscaler
 from evdown_torch.transforms._base import ThresholdDownscaler
@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from evdown_torch.plot import _mpl, animation, curve
-    from evdown_torch.plot.sources import panels
+    from evdown_torch.plot.recording import panels
 
     _mpl.matplotlib()  # before any work: its absence is reported up front
     default = DEFAULT_CURVE if args.curve else DEFAULT_ANIMATION
@@ -194,7 +194,7 @@ def _run(args: argparse.Namespace) -> int:
                          f"got {str(out)!r}")
     torch.set_num_threads(args.threads)
     sensor = tuple(args.sensor_size) if args.sensor_size else None
-    recording = load_source(args.input, sensor_size=sensor, duration_ms=args.duration,
+    recording = load_recording(args.input, sensor_size=sensor, duration_ms=args.duration,
                             time_unit=args.time_unit, columns=args.columns)
     transforms = build_transforms(args.methods, recording.sensor_size, args.factor,
                                   args.threshold, args.set or [])

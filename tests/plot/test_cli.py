@@ -12,7 +12,7 @@ from PIL import Image
 from evdown_torch import EventCount, LIFPooling
 from evdown_torch.cli import main
 from evdown_torch.plot.command import build_transforms
-from evdown_torch.plot.sources import load_source
+from evdown_torch.plot.recording import load_recording
 from evdown_torch.synthetic import render_gesture
 from tests.helpers import random_stream
 from tests.plot.images import big_blobs
@@ -77,17 +77,17 @@ def test_a_file_that_records_its_sensor_size_is_shown_on_that_sensor(npy, tmp_pa
 
     wide = (40, 30, 2)  # larger than the coordinates reach: a guess would be wrong
     path = write_events(tmp_path / "in.h5", np.load(npy), sensor_size=wide)
-    source = load_source(str(path))
-    assert source.sensor_size == wide
-    assert source.events.num_events == len(np.load(npy))
+    recording = load_recording(str(path))
+    assert recording.sensor_size == wide
+    assert recording.events.num_events == len(np.load(npy))
 
 
 def test_duration_keeps_the_first_milliseconds_of_a_file(npy):
     from evdown_torch.io import SensorSizeGuessWarning
 
     with pytest.warns(SensorSizeGuessWarning, match=r"guessed \(16, 12, 2\)"):
-        whole = load_source(str(npy))  # a .npy file does not record its sensor size
-    first = load_source(str(npy), duration_ms=50, sensor_size=SENSOR)
+        whole = load_recording(str(npy))  # a .npy file does not record its sensor size
+    first = load_recording(str(npy), duration_ms=50, sensor_size=SENSOR)
     t = whole.events.t
     assert first.events.num_events == int((t < t[0] + 50_000).sum()) < whole.events.num_events
     assert first.sensor_size == whole.sensor_size == (16, 12, 2)
@@ -186,6 +186,6 @@ def test_a_file_in_seconds_warns_until_its_unit_is_given(tmp_path, rng, capsys):
     assert main([*argv, "--time-unit", "s", "--windows", "2"]) == 0
     captured = capsys.readouterr()
     assert "warning" not in captured.err and "2 windows of 50 ms" in captured.out
-    assert load_source(str(tmp_path / "s.npy"), sensor_size=SENSOR,
+    assert load_recording(str(tmp_path / "s.npy"), sensor_size=SENSOR,
                        time_unit="s").events.t.tolist() == pytest.approx(
                            np.sort(stream["t"]).astype(float).tolist())

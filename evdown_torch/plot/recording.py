@@ -18,10 +18,10 @@ from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import check_factor, check_sensor_size, output_size
 from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.io import read_microseconds
-from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms import Downscaler
 from evdown_torch.transforms.registry import METHODS, make_method
 
-__all__ = ["Panel", "Source", "load_source", "method_name", "panels"]
+__all__ = ["Panel", "ShownRecording", "load_recording", "method_name", "panels"]
 
 #: Sensor of synthetic recordings (DVS128 Gesture's).
 SYNTHETIC_SENSOR = (128, 128, 2)
@@ -45,7 +45,7 @@ class Panel(NamedTuple):
 
 
 @dataclass(frozen=True)
-class Source:
+class ShownRecording:
     """A recording to show, and where it came from.
 
     Attributes:
@@ -98,14 +98,14 @@ def _synthetic_label(text: str) -> int:
     )
 
 
-def load_source(
+def load_recording(
     spec: str,
     *,
     sensor_size: tuple[int, int, int] | None = None,
     duration_ms: float | None = None,
     time_unit: str | None = None,
     columns: Any = None,
-) -> Source:
+) -> ShownRecording:
     """Read the recording named ``spec``.
 
     Args:
@@ -122,13 +122,13 @@ def load_source(
             first ``duration_ms`` are kept (default: all of it).
 
     Returns:
-        The :class:`Source`.
+        The :class:`ShownRecording`.
 
     Raises:
         ValueError: for a missing or unreadable file, an unknown class or bad settings.
 
     Example:
-        >>> rec = load_source("synthetic:right_arm_cw:2", sensor_size=(32, 32, 2),
+        >>> rec = load_recording("synthetic:right_arm_cw:2", sensor_size=(32, 32, 2),
         ...                      duration_ms=200)
         >>> rec.label, rec.sensor_size, rec.name
         (3, (32, 32, 2), 'synthetic:3:2')
@@ -151,14 +151,14 @@ def load_source(
         size = sensor_size or SYNTHETIC_SENSOR
         duration_us = round(1000 * (duration_ms or SYNTHETIC_DURATION_MS))
         raw = render_gesture(label, seed, sensor_size=size, duration_us=duration_us)
-        return Source(to_events(raw, size)[0], size, f"synthetic:{label}:{seed}",
+        return ShownRecording(to_events(raw, size)[0], size, f"synthetic:{label}:{seed}",
                          label, seed, duration_us)
     raw, sensor_size = read_file(spec, sensor_size, time_unit=time_unit, columns=columns)
     events = sort_by_time(to_events(raw, sensor_size)[0])
     if duration_ms is not None and events.num_events:
         end = events.t[0] + duration_ms * 1000
         events = events.select(events.t < end)
-    return Source(events, sensor_size, spec)
+    return ShownRecording(events, sensor_size, spec)
 
 
 def read_file(
@@ -204,7 +204,7 @@ def panels(
         methods: registry names (built with their default settings by
             :func:`~evdown_torch.transforms.registry.make_method`) or transforms (whose own
             ``factor`` is used); default: every method of the registry.
-        ground_truth: a last panel to add (e.g. :meth:`Source.ground_truth`).
+        ground_truth: a last panel to add (e.g. :meth:`ShownRecording.ground_truth`).
         log: receives one line per method with its event count and time, if given.
 
     Returns:
