@@ -63,8 +63,10 @@ def timed(call: Callable[[], object]) -> float:
 def median_times(
     calls: list[Callable[[], object]], repeats: int, min_seconds: float
 ) -> list[float]:
-    """Median seconds of each call, timed alternately (after one warm-up call each) for at
-    least ``repeats`` rounds and ``min_seconds`` in all."""
+    """Median seconds of each call, timed alternately after one warm-up call each.
+
+    The calls run for at least ``repeats`` rounds and ``min_seconds`` in all.
+    """
     for call in calls:
         call()
     times: list[list[float]] = [[] for _ in calls]

@@ -2,9 +2,9 @@
 
 A threshold far below a region's level steps makes every input event cross many levels, so the
 output can be thousands of times the input. The kernels count it before building it (and
-refuse it above the limit of ``evdown_torch.max_output_events``); this script shows that the time per
-output event stays flat as the threshold shrinks (300 random events on an 8x8 sensor over
-0.1 s, factor 2, one thread).
+refuse it above the limit of ``evdown_torch.max_output_events``); this script shows that the
+time per output event stays flat as the threshold shrinks (300 random events on an 8x8 sensor
+over 0.1 s, factor 2, one thread).
 
 Run: ``python benchmarks/bench_thresholds.py [--smallest 1e-5] [--repeats 3]``.
 """

@@ -106,8 +106,10 @@ def _synchronize(device: torch.device) -> None:
 def median_seconds(
     calls: Sequence[tuple[Callable[[], object], torch.device]], repeats: int
 ) -> list[float]:
-    """Median wall-clock seconds of each call over ``repeats`` alternate rounds, after one
-    warm-up call each; each call's device is synchronised before its clock stops."""
+    """Median wall-clock seconds of each call over ``repeats`` alternate rounds.
+
+    Each call is warmed up once; its device is synchronised before its clock stops.
+    """
     for call, device in calls:
         call()
         _synchronize(device)
@@ -158,8 +160,11 @@ def run_benchmark(
     workloads: Sequence[Workload], methods: Sequence[str], device: torch.device, repeats: int,
     deadline: float,
 ) -> list[dict[str, Any]]:
-    """:func:`bench_method` for every workload and method until ``deadline``
-    (``time.perf_counter()``); what would not fit is listed with ``skipped`` set."""
+    """:func:`bench_method` for every workload and method until ``deadline``.
+
+    ``deadline`` is a ``time.perf_counter()`` reading; what would not fit is listed with
+    ``skipped`` set.
+    """
     rows: list[dict[str, Any]] = []
     for workload in workloads:
         batch = workload.batch()
@@ -187,10 +192,10 @@ _SUMMARY_WORDS = ("passed", "failed", "skipped", "deselected", "xfailed", "xpass
 
 
 def parse_pytest_summary(output: str) -> dict[str, int]:
-    """Counts of pytest's last summary line (``3 passed, 1 skipped in 2.0s``).
+    r"""Counts of pytest's last summary line (``3 passed, 1 skipped in 2.0s``).
 
     Example:
-        >>> parse_pytest_summary("..\\n2 failed, 14 passed, 1 error in 3.1s\\n")
+        >>> parse_pytest_summary("..\n2 failed, 14 passed, 1 error in 3.1s\n")
         {'passed': 14, 'failed': 2, 'errors': 1}
     """
     pattern = re.compile(r"(\d+) (passed|failed|skipped|deselected|xfailed|xpassed|error|"

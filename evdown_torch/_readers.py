@@ -117,8 +117,7 @@ class Read(NamedTuple):
 
 
 def sidecar(path: str | Path) -> Path:
-    """The JSON file next to a ``.npy`` file that holds its sensor size and time unit
-    (``FILE.npy.json``)."""
+    """The JSON file next to a ``.npy`` file (``FILE.npy.json``): its sensor size, time unit."""
     path = Path(path)
     return path.with_name(path.name + ".json")
 

@@ -107,8 +107,10 @@ def _check_one_device_and_clock(parts: list[Events]) -> None:
 def _structured_columns(
     recordings: list[np.ndarray], sensor_size: tuple[int, int, int] | None
 ) -> tuple[Events, EventFormat]:
-    """Structured arrays of one dtype, converted field by field straight into one stream
-    (much faster than concatenating the structured arrays first)."""
+    """Structured arrays of one dtype, converted field by field straight into one stream.
+
+    Much faster than concatenating the structured arrays first.
+    """
     _, fmt = to_events(recordings[0][:0])  # checks the fields and their dtypes
     t_kind = recordings[0].dtype["t"]
     t_dtype = np.float64 if np.issubdtype(t_kind, np.floating) else np.int64
@@ -242,6 +244,7 @@ class EventsCollate:
     sensor_size: tuple[int, int, int] | None = None
 
     def __call__(self, samples: Sequence[Any]) -> tuple[EventBatch, Any] | EventBatch:
+        """Collate ``(recording, target)`` samples (or bare recordings) into one batch."""
         recordings, targets = _split_samples(samples)
         batch = EventBatch.from_recordings(recordings, self.sensor_size)
         return batch if targets is None else (batch, default_collate(targets))
@@ -278,6 +281,7 @@ class DownscaleCollate:
     collate: Callable[[list[Any]], Any] | None = None
 
     def __call__(self, samples: Sequence[Any]) -> Any:
+        """Downscale the samples' recordings as one batch, then collate them as configured."""
         recordings, targets = _split_samples(samples)
         outputs = self.transform.batch(recordings)
         if self.per_sample is not None:

@@ -122,8 +122,10 @@ def to_frames(
 
 @dataclass(frozen=True)
 class ToFrames:
-    """:func:`to_frames` as a Tonic transform: in place of ``tonic.transforms.ToFrame``
-    (with ``n_time_bins``), with one shape for every stream, empty ones included.
+    """:func:`to_frames` as a Tonic transform.
+
+    In place of ``tonic.transforms.ToFrame`` (with ``n_time_bins``), with one shape for every
+    stream, empty ones included.
 
     A downscaler with a high threshold can leave a recording with no events, and Tonic then
     breaks a ``DataLoader`` mid-epoch: ``tonic.transforms.Compose`` stops at the first empty

@@ -110,6 +110,7 @@ class Recording(_RecordingFields):
 
     def __new__(cls, events: np.ndarray, sensor_size: tuple[int, int, int], guessed: bool,
                 time_unit: str | None = None) -> Recording:
+        """A recording; ``time_unit`` is ``None`` where the file does not say."""
         self = super().__new__(cls, events, sensor_size, guessed)
         self.time_unit = time_unit
         return self
@@ -191,8 +192,10 @@ def check_readable(path: str | Path) -> Path:
 
 
 def check_writable(path: str | Path, *, folder_may_be_missing: bool = False) -> Path:
-    """Check that :func:`write_events` can write ``path``: a known extension, an existing folder
-    (unless ``folder_may_be_missing``: the caller creates it).
+    """Check that :func:`write_events` can write ``path``.
+
+    A known extension, an existing folder (unless ``folder_may_be_missing``: the caller creates
+    it).
 
     Raises:
         ValueError: naming the problem.
@@ -261,7 +264,9 @@ def read_microseconds(
     """:func:`read_events`, with ``t`` converted to microseconds (the unit of every time setting).
 
     Args:
-        path, sensor_size, columns: as for :func:`read_events`.
+        path: the file, as for :func:`read_events`.
+        sensor_size: as for :func:`read_events`.
+        columns: as for :func:`read_events`.
         time_unit: the unit of ``t`` where the file states none (a file's own unit wins);
             ``None``: microseconds, unconfirmed.
 

@@ -122,8 +122,11 @@ def display_unit(span_us: float) -> tuple[str, float]:
 
 
 def time_settings(transform: Any) -> dict[str, float]:
-    """The time settings of a downscaler (``dt``, ``tau``, ``max_delay``, the frame period of
-    ``fps``), in the stream's unit, leaving out those unset or infinite."""
+    """The time settings of a downscaler, in the stream's unit.
+
+    ``dt``, ``tau``, ``max_delay`` and the frame period of ``fps``, leaving out those unset or
+    infinite.
+    """
     found = {}
     for name in TIME_SETTINGS:
         value = getattr(transform, name, None)

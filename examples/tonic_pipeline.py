@@ -18,8 +18,8 @@ from torch.utils.data import DataLoader
 from evdown_torch import EventCount
 from evdown_torch.frames import ToFrames
 from evdown_torch.models import SpikingClassifier
-from evdown_torch.synthetic import SyntheticGestures
 from evdown_torch.models.training import evaluate_classifier, train_classifier
+from evdown_torch.synthetic import SyntheticGestures
 
 
 def main() -> None:

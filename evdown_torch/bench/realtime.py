@@ -167,8 +167,10 @@ class ReplayResult:
 
     @property
     def sustained_rate(self) -> float | None:
-        """Input rate (events/s) at which the 99th percentile of a chunk's time would reach the
-        chunk's duration, for chunk times in proportion to their events."""
+        """Input rate (events/s) at which a chunk's 99th-percentile time reaches its duration.
+
+        Chunk times are taken in proportion to their events.
+        """
         p99 = self.p99_s
         if p99 is None or p99 <= 0:
             return None
@@ -207,8 +209,11 @@ def retime(events: np.ndarray, rate: float | None) -> tuple[np.ndarray, float]:
 
 
 def chunk_bounds_us(t: np.ndarray, chunk_us: int) -> np.ndarray:
-    """Start indices of consecutive chunks ``[t0 + k * chunk_us, t0 + (k + 1) * chunk_us)``
-    of sorted timestamps ``t``, and ``len(t)`` at the end (chunks may be empty)."""
+    """Start indices of the consecutive chunks of sorted timestamps ``t``.
+
+    Chunk ``k`` is ``[t0 + k * chunk_us, t0 + (k + 1) * chunk_us)`` (it may be empty);
+    ``len(t)`` ends the list.
+    """
     if len(t) == 0:
         return np.zeros(1, dtype=np.int64)
     t0 = int(t[0])

@@ -260,8 +260,10 @@ def _kept(m: Measurement) -> float | None:
 
 
 def _plots(results: BenchResults, out: Path) -> list[Path]:
-    """One figure per method table (at its largest factor) and per scaling sweep: speed, peak
-    memory and the share of events kept, side by side."""
+    """One figure per method table (at its largest factor) and per scaling sweep.
+
+    Speed, peak memory and the share of events kept, side by side.
+    """
     from matplotlib.figure import Figure
 
     panels = (("throughput (M events/s)", lambda m: None if m.rate is None else m.rate / 1e6),

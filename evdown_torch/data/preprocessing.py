@@ -195,8 +195,10 @@ def _claim_folder(out: Path, job: dict[str, Any]) -> None:
 
 def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar) -> tuple[
         list[dict[str, Any]], list[float]]:
-    """Write the shards ``todo`` with ``workers`` processes, ``state["threads"]`` torch
-    threads each (this one's setting is restored afterwards).
+    """Write the shards ``todo`` with ``workers`` processes.
+
+    Each process uses ``state["threads"]`` torch threads (this one's setting is restored
+    afterwards).
 
     This process works too (in a thread, from the back of the list) while ``workers - 1``
     spawned processes start; each gets one shard at a time from the front once it has

@@ -166,7 +166,7 @@ def write_shard(
 
 
 def shard_problem(directory: Path, record: dict[str, Any]) -> str | None:
-    """Why shard ``record`` is not intact in ``directory`` (a missing or altered file), or None.
+    r"""Why shard ``record`` is not intact in ``directory`` (a missing or altered file), or None.
 
     Example:
         >>> import tempfile
@@ -176,7 +176,7 @@ def shard_problem(directory: Path, record: dict[str, Any]) -> str | None:
         >>> shard_problem(folder, rec) is None
         True
         >>> with open(folder / rec["files"]["events"], "r+b") as f:
-        ...     _ = f.seek(-1, 2); _ = f.write(b"\\x01")
+        ...     _ = f.seek(-1, 2); _ = f.write(b"\x01")
         >>> shard_problem(folder, rec).endswith("differs from its record (corrupt)")
         True
     """

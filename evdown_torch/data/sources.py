@@ -104,12 +104,15 @@ class SyntheticSource:
         return len(self._data)
 
     def describe(self) -> dict[str, Any]:
+        """JSON-ready facts that name the dataset (kept in a cache's manifest)."""
         return {"name": self.name, "sensor_size": list(self.sensor_size), **self._options}
 
     def source_name(self, index: int) -> str:
+        """Where recording ``index`` comes from, for messages."""
         return f"synthetic {self.split} recording {index}"
 
     def load(self, index: int) -> tuple[np.ndarray, int]:
+        """Recording ``index``: ``(events, label)``."""
         return self._data[index]
 
 
@@ -165,13 +168,16 @@ class TonicSource:
         return self._length
 
     def describe(self) -> dict[str, Any]:
+        """JSON-ready facts that name the dataset (kept in a cache's manifest)."""
         return {"name": self.name, "root": self.root, "split": self.split,
                 "sensor_size": list(self.sensor_size)}
 
     def source_name(self, index: int) -> str:
+        """Where recording ``index`` comes from, for messages."""
         return str(self._files[index])
 
     def load(self, index: int) -> tuple[np.ndarray, int]:
+        """Recording ``index``: ``(events, label)``."""
         return self._dataset()[index]
 
 
@@ -238,13 +244,16 @@ class FolderSource:
         return len(self._items)
 
     def describe(self) -> dict[str, Any]:
+        """JSON-ready facts that name the dataset (kept in a cache's manifest)."""
         return {"name": self.name, "path": str(self.path), "sensor_size": list(self.sensor_size),
                 "files": len(self._items)}
 
     def source_name(self, index: int) -> str:
+        """Where recording ``index`` comes from, for messages."""
         return str(self.path / self._items[index][0])
 
     def load(self, index: int) -> tuple[np.ndarray, int]:
+        """Recording ``index``: ``(events, label)``."""
         relative, label = self._items[index]
         events = read_recording(self.path / relative, self.sensor_size)
         if events.dtype != self.dtype:
@@ -265,8 +274,9 @@ def open_source(
     duration_us: int | None = None,
     seed: int | None = None,
 ) -> SyntheticSource | TonicSource | FolderSource:
-    """The source named by ``--dataset``: ``synthetic``, ``dvsgesture``, ``nmnist`` or
-    ``folder:PATH``.
+    """The source named by ``--dataset``.
+
+    ``synthetic``, ``dvsgesture``, ``nmnist`` or ``folder:PATH``.
 
     Args:
         dataset: the source's name.

@@ -42,8 +42,10 @@ class Half:
 
 @dataclass(frozen=True)
 class Comparison:
-    """A cell against a reference cell (the thinning control at the same factor and budget,
-    or for the sanity check, Downsample against its thinning).
+    """A cell against a reference cell.
+
+    The reference is the thinning control at the same factor and budget, or for the sanity
+    check, Downsample against its thinning.
 
     Attributes:
         difference: accuracy of the cell minus the reference's (same test recordings).
@@ -139,8 +141,11 @@ def compare(
 
 
 def replicated(comparison: Comparison) -> bool:
-    """A claim the README may make: the pooled verdict is significant (its interval excludes
-    zero) and the difference has the same sign in both halves of the seeds."""
+    """A claim the README may make.
+
+    The pooled verdict is significant (its interval excludes zero) and the difference has the
+    same sign in both halves of the seeds.
+    """
     return bool(comparison.significant) and comparison.interval[0] > 0 and all(
         h.difference > 0 for h in comparison.halves) and len(comparison.halves) == 2
 

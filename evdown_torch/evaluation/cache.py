@@ -92,6 +92,7 @@ class Cache:
 
     @staticmethod
     def load_array(path: Path) -> np.ndarray:
+        """A NumPy array saved by :meth:`save_array` (no pickles)."""
         return np.load(path, allow_pickle=False)
 
     def save_tensors(self, path: Path, tensors: dict[str, torch.Tensor]) -> None:
@@ -100,6 +101,7 @@ class Cache:
 
     @staticmethod
     def load_tensors(path: Path) -> dict[str, torch.Tensor]:
+        """Tensors saved by :meth:`save_tensors` (weights only)."""
         return torch.load(path, weights_only=True)
 
     def save_json(self, path: Path, value: Any) -> None:
@@ -109,4 +111,5 @@ class Cache:
 
     @staticmethod
     def load_json(path: Path) -> Any:
+        """A JSON document saved by :meth:`save_json`."""
         return json.loads(path.read_text(encoding="utf-8"))

@@ -81,14 +81,17 @@ class Cell:
         return self.method == CONTROL
 
     def output_size(self, sensor_size: tuple[int, int, int]) -> tuple[int, int, int]:
+        """The sensor the cell's output lives on, for an input of ``sensor_size``."""
         return output_size(sensor_size, self.factor)
 
     def key(self) -> dict[str, Any]:
+        """The cell's settings as a cache key (JSON-ready)."""
         return {"method": self.method, "factor": list(self.factor), "budget": self.budget,
                 "settings": [[k, v] for k, v in self.settings]}
 
     @property
     def label(self) -> str:
+        """The cell's name in tables and plots."""
         if self.method == BASELINE:
             return BASELINE
         f = self.factor
@@ -99,6 +102,7 @@ class Cell:
         return text if self.budget is None else f"{text} @ {self.budget:g}"
 
     def with_settings(self, **values: Any) -> Cell:
+        """The same cell with ``values`` added to (or replacing) its settings."""
         merged = {**dict(self.settings), **values}
         return Cell(self.method, self.factor, self.budget, tuple(sorted(merged.items())))
 
@@ -184,6 +188,7 @@ def calibrate_job(source: StudyData, cell: Cell, target_count: float, samples: i
 
 def frames_key(source: StudyData, cell: Cell, split: str, indices: list[int],
                 config: EvaluationConfig, draw: int = 0) -> dict[str, Any]:
+    """The cache key of ``cell``'s frames of recordings ``indices`` of ``split`` (draw ``draw``)."""
     return {"data": source.key(split), "indices": [indices[0], indices[-1] + 1],
             "consistency_recordings": config.measures.consistency_recordings,
             "cell": cell.key(), "draw": draw if cell.random else None,
@@ -249,8 +254,11 @@ def downscale_job(source: StudyData, units: list[tuple[Cell, int]], split: str,
 def _downscale_cell(cache: Cache, paths: list[Any], cell: Cell, draws: list[int],
                     inputs: list[tuple[Any, int, Any]], cameras: list[Any] | None,
                     sensor: tuple[int, int, int], config: EvaluationConfig) -> None:
-    """:func:`downscale_job` for the ``draws`` of one cell: ``inputs`` are ``(events, label,
-    window)``. Draw 0 is measured (with ``cameras``, optical consistency too)."""
+    """:func:`downscale_job` for the ``draws`` of one cell.
+
+    ``inputs`` are ``(events, label, window)``. Draw 0 is measured (with ``cameras``, optical
+    consistency too).
+    """
     transform = cell.transform(sensor)
     streams = [events for events, _, _ in inputs]
     outputs: list[list[Any]] = [[] for _ in draws]  # per draw, per recording
@@ -315,8 +323,9 @@ def _store_frames(cache: Cache, path: Any, cell: Cell, inputs: list[tuple[Any, i
 
 def throughput(source: StudyData, cell: Cell, recordings: int
                ) -> tuple[float, float] | None:
-    """Speed of ``cell``'s transform on the first test recordings, timed in this process
-    (call it on one idle thread).
+    """Speed of ``cell``'s transform on the first test recordings, timed in this process.
+
+    Call it on one idle thread.
 
     Returns:
         ``(input events per second, CPU microseconds per recording)``: the transform's kernel

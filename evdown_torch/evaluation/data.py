@@ -48,25 +48,31 @@ class StudyData:
 
     @property
     def cache(self) -> Cache:
+        """The cache the recordings are kept in."""
         return Cache(self.cache_root)
 
     @property
     def synthetic(self) -> bool:
+        """Whether the recordings are synthetic gestures."""
         return self.config.dataset == "synthetic"
 
     @property
     def sensor_size(self) -> tuple[int, int, int]:
+        """``(W, H, P)`` of the recordings."""
         return self.config.full_sensor_size
 
     @property
     def num_classes(self) -> int:
+        """The number of gesture classes (11)."""
         return 11
 
     @property
     def has_ground_truth(self) -> bool:
+        """Whether low-resolution camera recordings exist (synthetic only)."""
         return self.synthetic
 
     def description(self) -> str:
+        """A line naming the dataset, for the report."""
         c = self.config
         if self.synthetic:
             return (f"synthetic gestures (seed {c.seed}), {c.sensor_size[0]}x{c.sensor_size[1]}, "
@@ -75,6 +81,7 @@ class StudyData:
         return f"DVS128 Gesture ({Path(c.root).expanduser() / 'DVSGesture'}), {crop}"
 
     def size(self, split: str) -> int:
+        """The number of recordings of ``split``."""
         wanted = self.config.train_samples if split == "train" else self.config.test_samples
         if self.synthetic:
             return wanted
@@ -92,6 +99,7 @@ class StudyData:
                 "samples": c.train_samples if split == "train" else c.test_samples}
 
     def label(self, split: str, index: int) -> int:
+        """The class of recording ``index`` of ``split``."""
         if self.synthetic:
             return index % self.num_classes
         return int(self.recording(split, index)[1])

@@ -188,7 +188,8 @@ def optical_consistency(
         reference: the stream it should match (e.g. a low-resolution camera's recording).
         sensor_size: ``(W, H, P)`` of the sensor both live on.
         bin_width: bin length, in the streams' time unit (10 ms for microseconds), positive.
-        t_start, t_end: the window.
+        t_start: the window's start, in the streams' time unit.
+        t_end: the window's end (included).
 
     Returns:
         A score in ``[0, 1]``; 1 when both streams are empty in the window.

@@ -149,9 +149,11 @@ def primary_table(result: EvaluationResult) -> str:
 
 
 def markdown_table(result: EvaluationResult) -> str:
-    """Every cell as a Markdown table (no measured times, so equal settings give equal
-    tables). Differences from the control carry their interval; only the primary family
-    has p-values (in :func:`primary_table`)."""
+    """Every cell as a Markdown table (no measured times, so equal settings give equal tables).
+
+    Differences from the control carry their interval; only the primary family has p-values (in
+    :func:`primary_table`).
+    """
     lines = [
         "| method | role | factor | budget | setting | events/rec | x camera | seeds | "
         "accuracy [95% CI] | vs control [95% CI] | equivalent (TOST p) | delay | "
@@ -288,8 +290,9 @@ def _markdown(result: EvaluationResult) -> str:
 
 
 def pareto_front(points: list[tuple[float, float]]) -> list[int]:
-    """Indices of the points ``(events, accuracy)`` that no other point beats with fewer or
-    as many events and higher accuracy, in order of events.
+    """Indices of the Pareto points ``(events, accuracy)``, in order of events.
+
+    A point is kept when no other beats it with fewer or as many events and higher accuracy.
 
     Example:
         >>> pareto_front([(10, 0.5), (20, 0.4), (30, 0.9), (5, 0.2)])

@@ -79,14 +79,17 @@ class CellResult:
 
     @property
     def method(self) -> str:
+        """The cell's method."""
         return self.cell.method
 
     @property
     def factor(self) -> tuple[int, int]:
+        """The cell's factor ``(fx, fy)``."""
         return self.cell.factor
 
     @property
     def budget(self) -> float | None:
+        """The cell's event budget, ``None`` for none."""
         return self.cell.budget
 
     @property

@@ -379,9 +379,12 @@ def _measure(config: EvaluationConfig, source: StudyData, filled: _Filled, speed
 
 def _compare(results: list[CellResult], config: EvaluationConfig
              ) -> tuple[list[CellResult], dict[tuple[int, int], Comparison]]:
-    """The primary family against its control (one-sided, Holm within the family), the
-    sanity check per factor, and every other budgeted cell against the control at its
-    factor and budget (exploratory: interval and TOST only)."""
+    """The study's comparisons.
+
+    The primary family against its control (one-sided, Holm within the family), the sanity
+    check per factor, and every other budgeted cell against the control at its factor and
+    budget (exploratory: interval and TOST only).
+    """
     st, margin = config.statistics, config.methods.equivalence_margin
     options = dict(resamples=st.resamples, seed=st.seed, confidence=st.confidence,
                    alpha=st.alpha, margin=margin)

@@ -66,8 +66,10 @@ def _drop_handle(handle: _ResetHandle) -> None:
 
 
 def register_for_snntorch_reset(layer: torch.nn.Module) -> None:
-    """Let ``snntorch.utils.reset`` reset ``layer`` (which has ``mem`` and ``reset()``), as it
-    resets ``snntorch.Leaky`` neurons, without the registry keeping ``layer`` alive."""
+    """Let ``snntorch.utils.reset`` reset ``layer`` as it resets ``snntorch.Leaky`` neurons.
+
+    ``layer`` has ``mem`` and ``reset()``; the registry does not keep it alive.
+    """
     handle = _ResetHandle(layer)
     snntorch.SpikingNeuron.instances.append(handle)
     weakref.finalize(layer, _drop_handle, handle)

@@ -132,6 +132,7 @@ class SpikingClassifier(nn.Module):
         self.out_neuron = _leaky(beta, threshold)
 
     def extra_repr(self) -> str:
+        """The settings shown by ``repr``."""
         return (
             f"num_classes={self.num_classes}, channels={self.channels}, "
             f"pool_size={self.pool_size}, stem_stride={self.stem_stride}, "

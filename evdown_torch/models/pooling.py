@@ -283,6 +283,7 @@ class SpikingPooling(nn.Module):
         return torch.stack(spikes).to(current.dtype), state  # spikes in the input's dtype
 
     def extra_repr(self) -> str:
+        """The settings shown by ``repr``."""
         fx, fy = self.factor
         return (
             f"factor=({fx}, {fy}), beta={self.beta:.6g}, threshold={self.threshold:.6g}, "

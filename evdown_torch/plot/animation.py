@@ -121,8 +121,10 @@ def panel_title(panel: Panel, seconds: float) -> str:
 
 
 def window_label(grid: FrameGrid, k: int, separator: str = "-") -> str:
-    """Window ``k``'s start and end from the recording's start, in s (recordings of a second
-    or more) or ms (:func:`~evdown_torch.time_units.display_unit`), e.g. ``"0.050-0.100 s"``.
+    """Window ``k``'s start and end from the recording's start, e.g. ``"0.050-0.100 s"``.
+
+    In s for recordings of a second or more, else in ms
+    (:func:`~evdown_torch.time_units.display_unit`).
     """
     unit, scale = display_unit(grid.seconds * 1e6)
     start, end = ((v - grid.t0) / scale for v in grid.window(k))
@@ -219,9 +221,11 @@ def save(animation, path: str, *, progress: Callable[[int, int], None] | None = 
 
 
 def _gif_writer(mpl):
-    """A GIF writer (matplotlib's movie-writer interface, Pillow underneath) that keeps each
-    frame as a 1-byte-per-pixel palette image, a third of what matplotlib's PillowWriter holds
-    until the file is written."""
+    """A GIF writer (matplotlib's movie-writer interface, Pillow underneath).
+
+    It keeps each frame as a 1-byte-per-pixel palette image, a third of what matplotlib's
+    PillowWriter holds until the file is written.
+    """
     from PIL import Image
 
     class GifWriter(mpl.animation.AbstractMovieWriter):
@@ -251,8 +255,9 @@ def contact_sheet(
     panel_inches: float = 1.8,
     dpi: float = 100.0,
 ):
-    """A sheet of a few windows: one row per window (evenly spread over the recording), one
-    column per panel.
+    """A sheet of a few windows.
+
+    One row per window (evenly spread over the recording), one column per panel.
 
     Args:
         panels: the streams (see :func:`~evdown_torch.plot.recording.panels`).

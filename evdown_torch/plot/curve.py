@@ -127,8 +127,11 @@ def build_methods(
     factor: int | tuple[int, int],
     threshold: float | None = None,
 ) -> list[Downscaler]:
-    """Transforms for registry names (``threshold`` given to the contrast-threshold methods,
-    EventCount, LinearEstimation and CubicEstimation); transforms are kept as they are."""
+    """Transforms for registry names; transforms are kept as they are.
+
+    ``threshold`` goes to the contrast-threshold methods, EventCount, LinearEstimation and
+    CubicEstimation.
+    """
     out = []
     for method in list(METHODS) if names is None else names:
         if isinstance(method, Downscaler):
@@ -148,8 +151,10 @@ def _numpy_t(t: torch.Tensor) -> np.ndarray:
 
 
 def _reconstructions(events: Events, t_start, t_end, factor, out_width, n_r, grid):
-    """The cubic reconstruction's ``M_r`` at ``grid`` (float64 offsets from ``t_start``), and
-    the linear one's at the region's breakpoints (offsets), from the kernels' knots and slopes.
+    """The reconstructions, from the kernels' knots and slopes.
+
+    The cubic one's ``M_r`` at ``grid`` (float64 offsets from ``t_start``), and the linear
+    one's at the region's breakpoints (offsets).
     """
     chunk = next(region_chunks(events, factor=factor, out_width=out_width))
     knots = pixel_knots(chunk, factor=factor, t_start=t_start, t_end=t_end)
@@ -351,8 +356,13 @@ def curve_figure(
     ``NAME`` a method or ``input``).
 
     Args:
-        events, sensor_size, factor, pixel, methods, threshold, ground_truth: as
-            :func:`region_curves`.
+        events: as for :func:`region_curves`.
+        sensor_size: as for :func:`region_curves`.
+        factor: as for :func:`region_curves`.
+        pixel: as for :func:`region_curves`.
+        methods: as for :func:`region_curves`.
+        threshold: as for :func:`region_curves`.
+        ground_truth: as for :func:`region_curves`.
         width: figure width, inches.
         dpi: resolution.
 

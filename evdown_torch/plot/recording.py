@@ -65,8 +65,10 @@ class ShownRecording:
     duration_us: int | None = None
 
     def ground_truth(self, factor: int | tuple[int, int]) -> Panel | None:
-        """The low-resolution ground truth of a synthetic recording (``None`` for a file):
-        the same scene rendered on a sensor ``factor`` times smaller."""
+        """The low-resolution ground truth of a synthetic recording (``None`` for a file).
+
+        The same scene rendered on a sensor ``factor`` times smaller.
+        """
         if self.label is None:
             return None
         from evdown_torch.synthetic import render_gesture
@@ -168,10 +170,13 @@ def read_file(
     time_unit: str | None = None,
     columns: Any = None,
 ) -> tuple[np.ndarray, tuple[int, int, int]]:
-    """The one file reader of ``evdown show``: a structured event array with ``t`` in
-    microseconds and its sensor size (the file's own, else ``sensor_size``, else guessed from
-    the largest coordinates with a warning; see :func:`evdown_torch.io.read_events`). The
-    time unit is the file's, else ``time_unit``, else microseconds."""
+    """The one file reader of ``evdown show``.
+
+    A structured event array with ``t`` in microseconds and its sensor size (the file's own,
+    else ``sensor_size``, else guessed from the largest coordinates with a warning; see
+    :func:`evdown_torch.io.read_events`). The time unit is the file's, else ``time_unit``, else
+    microseconds.
+    """
     recording = read_microseconds(path, sensor_size=sensor_size, time_unit=time_unit,
                                   **({} if columns is None else {"columns": columns}))
     return recording.events, recording.sensor_size

@@ -205,9 +205,9 @@ def level_crossings(
         theta_on: ``(M,)`` float64 ON threshold of the sample's pixel.
         theta_off: ``(M,)`` float64 OFF threshold, or None for one threshold (``theta_on``)
             for both polarities (the closed form, no scan).
-        a_start, b_start: ``(M,)`` int64 ON and OFF counts of the pixel before its first
-            sample (read where ``first``); the reference is
-            ``base + a * theta_on - b * theta_off``.
+        a_start: ``(M,)`` int64 ON count of the pixel before its first sample (read where
+            ``first``); the reference is ``base + a * theta_on - b * theta_off``.
+        b_start: ``(M,)`` int64 OFF count of the pixel before its first sample, likewise.
 
     Returns:
         ``(segment, time, on, a, b)``: per event the index of the sample ending its segment

@@ -89,8 +89,11 @@ def moving_parts(scene: GestureScene, times: Tensor) -> list[_Part]:
 
 
 def body_parts(scene: GestureScene, times: Tensor) -> list[_Part]:
-    """The body's capsules at ``times``, in compositing order: torso, shoulders, neck, head,
-    then the arm parts that do not take part in the gesture (they sway with the body)."""
+    """The body's capsules at ``times``, in compositing order.
+
+    Torso, shoulders, neck, head, then the arm parts that do not take part in the gesture (they
+    sway with the body).
+    """
     out = []
     for a, b, radius, look in scene.body_capsules(times):
         length = float((b[0] - a[0]).norm())
@@ -136,8 +139,10 @@ def _shade(px: Tensor, py: Tensor, a: Tensor, b: Tensor, radius: float, look: Lo
     """Coverage and intensity of a capsule at pixel centres.
 
     Args:
-        px, py: ``(N,)`` float32 pixel-centre coordinates.
-        a, b: ``(N, 2)`` or ``(2,)`` float32 capsule endpoints.
+        px: ``(N,)`` float32 pixel-centre x coordinates.
+        py: ``(N,)`` float32 pixel-centre y coordinates.
+        a: ``(N, 2)`` or ``(2,)`` float32 first capsule endpoint.
+        b: ``(N, 2)`` or ``(2,)`` float32 second capsule endpoint.
         radius: capsule radius, pixels.
         look: appearance.
         scale: pixels per body unit (for the stripe period).
@@ -236,8 +241,7 @@ def _rows(part: _Part, s0: int, s1: int, width: int, height: int):
 
 
 def block_of(pixel: Tensor, width: int, factor: tuple[int, int], out_width: int) -> Tensor:
-    """Flat output pixel ``(y // fy) * out_width + x // fx`` of flat sensor pixels ``y * W + x``.
-    """
+    """Flat output pixel ``(y // fy) * out_width + x // fx`` of flat sensor pixels ``y * W + x``."""
     x, y = region_xy(pixel, width)
     return torch.div(y, factor[1], rounding_mode="floor") * out_width + torch.div(
         x, factor[0], rounding_mode="floor")

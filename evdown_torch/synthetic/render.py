@@ -113,11 +113,16 @@ def _with_static(pixel: Tensor, step: Tensor, x: Tensor, covered: Tensor,
     """Insert the uncovered level just before and after each covered stretch of each pixel.
 
     Args:
-        pixel, step, x: samples sorted by pixel then step (steps within ``[s0, s1]``).
+        pixel: the samples' pixels; samples sorted by pixel then step.
+        step: the samples' steps, within ``[s0, s1]``.
+        x: the samples' levels.
         covered: a moving part covers the sample (else it lies on the pixel's own line).
         level_at: ``(pixel, step) -> level`` of the pixel where no moving part covers it.
+        s0: the first step.
+        s1: the last step.
 
-    Returns ``(pixel, step, x, first)`` where ``first`` marks each pixel's first sample.
+    Returns:
+        ``(pixel, step, x, first)`` where ``first`` marks each pixel's first sample.
     """
     n = pixel.numel()
     first = torch.ones(n, dtype=torch.bool)
@@ -331,8 +336,7 @@ def swept_mask(
     *,
     factor: int | tuple[int, int] = 1,
 ) -> Tensor:
-    """Output pixels that a moving part covers at some simulation step, or that the body's
-    sway changes.
+    """Output pixels that a moving part covers at some step, or that the body's sway changes.
 
     Only these pixels can emit events other than noise and lamp flicker. Covering means a
     coverage above 0 at a pixel of the block (``factor`` as in :func:`render_events`); the

@@ -377,8 +377,11 @@ class GestureScene:
                 for k, (_, _, _, radius, look) in enumerate(BODY)]
 
     def _moving_time(self, t: Tensor) -> Tensor:
-        """Seconds of motion up to ``t`` (seconds): the integral of a gate that is 1 while the
-        person moves, 0 before the gesture, after it and in pauses, with linear ramps."""
+        """Seconds of motion up to ``t`` (seconds).
+
+        The integral of a gate that is 1 while the person moves, 0 before the gesture, after
+        it and in pauses, with linear ramps.
+        """
         ramp = RAMP_FRACTION * self.duration_us * 1e-6
 
         def ramped(x: Tensor) -> Tensor:  # integral of clamp(x / ramp, 0, 1)
