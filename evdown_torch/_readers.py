@@ -60,6 +60,7 @@ def _columns(x: Any, y: Any, t: Any, p: Any, source: str) -> np.ndarray:
                 f"{source}: coordinate {name} must lie in [0, {_INT16_MAX}], got values from "
                 f"{int(column.min())} to {int(column.max())}"
             )
+    t_dtype: type[np.number]
     if np.issubdtype(t.dtype, np.floating):
         t_dtype = np.float64
     elif np.issubdtype(t.dtype, np.integer):
@@ -226,7 +227,8 @@ def _read_hdf5(path: Path) -> Read:
             columns = [group[name][()] for name in "xytp"]
     except OSError as error:
         raise ValueError(f"cannot read {source!r} as HDF5: {error}") from None
-    return Read(_columns(*columns, source), recorded, None, unit)
+    x, y, t, p = columns
+    return Read(_columns(x, y, t, p, source), recorded, None, unit)
 
 
 def _read_aedat4(path: Path) -> Read:

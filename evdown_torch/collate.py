@@ -130,15 +130,18 @@ def _concatenated(
 ) -> tuple[Events, EventFormat] | None:
     """The recordings as one stream, when they share kind and dtype (else ``None``)."""
     first = recordings[0]
-    structured = isinstance(first, np.ndarray) and first.dtype.names is not None
-    if structured and all(isinstance(r, np.ndarray) and r.dtype == first.dtype and r.ndim == 1
-                          for r in recordings):
-        return _structured_columns(recordings, sensor_size)
-    if isinstance(first, Tensor) and all(
-        isinstance(r, Tensor) and r.dtype == first.dtype and r.device == first.device
-        and r.ndim == 2 and r.shape[1:] == first.shape[1:] for r in recordings
-    ):
-        return to_events(torch.cat(recordings), sensor_size)
+    if isinstance(first, np.ndarray) and first.dtype.names is not None:
+        arrays = [r for r in recordings
+                  if isinstance(r, np.ndarray) and r.dtype == first.dtype and r.ndim == 1]
+        if len(arrays) == len(recordings):
+            return _structured_columns(arrays, sensor_size)
+    if isinstance(first, Tensor):
+        tensors = [r for r in recordings
+                   if isinstance(r, Tensor) and r.dtype == first.dtype
+                   and r.device == first.device and r.ndim == 2
+                   and r.shape[1:] == first.shape[1:]]
+        if len(tensors) == len(recordings):
+            return to_events(torch.cat(tensors), sensor_size)
     return None
 
 
@@ -207,7 +210,7 @@ def from_batch(batch: EventBatch, formats: Sequence[EventFormat]) -> list[Events
     if len(set(formats)) == 1:  # one conversion, then split
         whole = from_events(batch.events, formats[0])
         if isinstance(whole, np.ndarray):
-            return np.split(whole, np.cumsum(batch.lengths)[:-1])
+            return list(np.split(whole, np.cumsum(batch.lengths)[:-1]))
         if isinstance(whole, Tensor):
             return list(whole.split(batch.lengths))
     return [from_events(part, fmt) for part, fmt in zip(batch.unbind(), formats, strict=True)]

@@ -16,7 +16,9 @@ import time
 from collections.abc import Sequence
 from dataclasses import MISSING, fields
 from pathlib import Path
+from typing import cast
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -48,15 +50,15 @@ def _normal(name: str) -> str:
 
 def _method(text: str) -> str:
     """A registry name from a registry name or a class name (``event_count``, ``EventCount``)."""
-    aliases = {}
+    aliases: dict[str, str] = {}
     for name, cls in METHODS.items():
         aliases[_normal(name)] = name
         aliases[_normal(cls.__name__)] = name
-    name = aliases.get(_normal(text))
-    if name is None:
+    found = aliases.get(_normal(text))
+    if found is None:
         choices = ", ".join(f"{n} ({c.__name__})" for n, c in METHODS.items())
         raise argparse.ArgumentTypeError(f"unknown method {text!r}; choose one of {choices}")
-    return name
+    return found
 
 
 def _methods_help() -> str:
@@ -151,7 +153,7 @@ def _downscale(args: argparse.Namespace) -> int:
             bar.update()
             bar.set_description_str(f"{file_label}: downscaling {len(events)} events")
             start = time.perf_counter()
-            out = transform(events)
+            out = cast(np.ndarray, transform(events))  # a structured array in, one out
             seconds = time.perf_counter() - start
             bar.update()
             bar.set_description_str(f"{file_label}: writing")

@@ -34,9 +34,10 @@ import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, cast
 
 import numpy as np
+import numpy.typing as npt
 import torch
 from torch import Tensor
 
@@ -130,7 +131,9 @@ class Events(NamedTuple):
                       torch.empty(0, dtype=torch.bool, device=device))
 
     @staticmethod
-    def from_columns(x, y, t, p, device: torch.device | str | None = None) -> Events:
+    def from_columns(x: npt.ArrayLike | Tensor, y: npt.ArrayLike | Tensor,
+                     t: npt.ArrayLike | Tensor, p: npt.ArrayLike | Tensor,
+                     device: torch.device | str | None = None) -> Events:
         """Build events from tensors or array-likes.
 
         ``x`` and ``y`` become int64, ``t`` int64 when it holds integers and float64
@@ -138,7 +141,7 @@ class Events(NamedTuple):
         device unless ``device`` is given. The result never shares memory with the inputs.
         """
 
-        def column(values) -> Tensor:
+        def column(values: npt.ArrayLike | Tensor) -> Tensor:
             if isinstance(values, Tensor):
                 return values.to(device=device, copy=True).reshape(-1)
             # A copy, contiguous: field views of a structured array have odd strides.
@@ -182,6 +185,7 @@ def _polarity_encoding(p: Tensor) -> Literal["bool", "binary", "signed"]:
         return "bool"
     if p.numel() == 0:
         return "binary"
+    encoding: Literal["binary", "signed"]
     if bool((p < 0).any()):
         ok = bool(((p == 1) | (p == -1)).all())
         encoding = "signed"
@@ -225,7 +229,7 @@ def _validate(events: Events, sensor_size: tuple[int, int, int] | None) -> None:
 
 
 def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat]:
-    names = data.dtype.names
+    names = data.dtype.names or ()
     missing = [f for f in FIELDS if f not in names]
     if missing:
         raise ValueError(
@@ -391,13 +395,14 @@ def from_events(events: Events, fmt: EventFormat) -> EventsLike:
         p = events.p.to(torch.int8) * 2 - 1
     if fmt.kind == "tensor":
         columns = (events.x, events.y, events.t, p)
-        return torch.stack([c.to(device=fmt.device, dtype=fmt.dtype) for c in columns], dim=1)
+        dtype = cast(torch.dtype, fmt.dtype)
+        return torch.stack([c.to(device=fmt.device, dtype=dtype) for c in columns], dim=1)
     if fmt.kind == "array":
-        out = np.empty((events.num_events, 4), dtype=fmt.dtype)
+        table = np.empty((events.num_events, 4), dtype=cast(np.dtype, fmt.dtype))
         for i, column in enumerate((events.x, events.y, events.t, p)):
-            out[:, i] = column.cpu().numpy()
-        return out
-    out = np.empty(events.num_events, dtype=fmt.dtype)
+            table[:, i] = column.cpu().numpy()
+        return table
+    out: np.ndarray = np.empty(events.num_events, dtype=cast(np.dtype, fmt.dtype))
     for name, column in zip(FIELDS, (events.x, events.y, events.t, p)):
         out[name] = column.cpu().numpy()
     return out

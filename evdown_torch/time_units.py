@@ -91,10 +91,10 @@ def to_microseconds(events: np.ndarray, unit: str) -> np.ndarray:
     t = events["t"]
     integer = np.issubdtype(t.dtype, np.integer)
     t_dtype = np.int64 if integer and scale >= 1 else np.float64
-    dtype = np.dtype([(name, t_dtype if name == "t" else events.dtype[name])
-                      for name in events.dtype.names])
+    names = events.dtype.names or ()
+    dtype = np.dtype([(name, t_dtype if name == "t" else events.dtype[name]) for name in names])
     out = np.empty(events.shape, dtype=dtype)
-    for name in events.dtype.names:
+    for name in names:
         out[name] = events[name]
     if t_dtype == np.int64:
         factor = int(scale)

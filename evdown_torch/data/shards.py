@@ -20,12 +20,14 @@ machines, and shards open memory-mapped in any number of ``DataLoader`` workers.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
 import socket
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -92,7 +94,11 @@ def _temporary(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp-{socket.gethostname()}-{os.getpid()}")
 
 
-def _replace_atomically(path: Path, write) -> None:
+def _save_array(handle: BinaryIO, array: np.ndarray) -> None:
+    np.save(handle, array, allow_pickle=False)
+
+
+def _replace_atomically(path: Path, write: Callable[[BinaryIO], object]) -> None:
     temporary = _temporary(path)
     try:
         with open(temporary, "wb") as handle:
@@ -156,8 +162,7 @@ def write_shard(
     events_name, index_name, record_name = shard_files(shard)
     checksums = {}
     for name, array in ((events_name, events), (index_name, index)):
-        _replace_atomically(directory / name,
-                            lambda handle, a=array: np.save(handle, a, allow_pickle=False))
+        _replace_atomically(directory / name, functools.partial(_save_array, array=array))
         checksums[name] = file_sha256(directory / name)
     full = dict(record, shard=shard, files={"events": events_name, "index": index_name},
                 sha256=checksums)

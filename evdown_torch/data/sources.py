@@ -140,7 +140,7 @@ class TonicSource:
         self.download = bool(download)
         self._data: Any = None
         data = self._dataset()
-        cls = type(data).__mro__[1]
+        cls = _tonic_class(self.name)
         self.sensor_size = tuple(cls.sensor_size)
         self.dtype = np.dtype(cls.dtype)
         self.classes = list(cls.classes)
@@ -150,13 +150,7 @@ class TonicSource:
     def _dataset(self) -> Any:
         """The Tonic dataset, opened on first use (and again in each worker process)."""
         if self._data is None:
-            try:
-                import tonic.datasets
-            except ImportError:
-                raise ValueError(
-                    f"--dataset {self.name} needs tonic: pip install 'evdown_torch[tonic]'"
-                ) from None
-            cls = getattr(tonic.datasets, _TONIC_CLASSES[self.name])
+            cls = _tonic_class(self.name)
             opener = cls if self.download else _without_download(cls)
             self._data = opener(self.root, train=self.split == "train")
         return self._data
@@ -181,10 +175,21 @@ class TonicSource:
         return self._dataset()[index]
 
 
+def _tonic_class(name: str) -> Any:
+    """The ``tonic.datasets`` class of dataset ``name``."""
+    try:
+        import tonic.datasets
+    except ImportError:
+        raise ValueError(
+            f"--dataset {name} needs tonic: pip install 'evdown_torch[tonic]'"
+        ) from None
+    return getattr(tonic.datasets, _TONIC_CLASSES[name])
+
+
 def _without_download(cls: type) -> type:
     """A subclass of a Tonic dataset class that raises where Tonic would download."""
 
-    def refuse(self) -> None:
+    def refuse(self: Any) -> None:
         folder = Path(self.location_on_system)
         raise ValueError(
             f"the {cls.__name__} files are absent: put {self.filename} and its extracted "

@@ -12,6 +12,7 @@ interval, an equivalence test (TOST), never a star.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 from torch import Tensor
 
@@ -134,7 +135,7 @@ def compare(
             halves=parts,
         ))
     if primary and out:
-        adjusted = holm([k.p_value for k in out])
+        adjusted = holm([cast(float, k.p_value) for k in out])  # primary: all have one
         out = [Comparison(**{**k.__dict__, "p_holm": q, "significant": q < alpha})
                for k, q in zip(out, adjusted)]
     return out

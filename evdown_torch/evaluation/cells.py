@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -61,7 +61,8 @@ class Cell:
     budget: float | None = None
     settings: tuple[tuple[str, Any], ...] = ()
 
-    def transform(self, sensor_size: tuple[int, int, int], draw: int = 0) -> Downscaler | None:
+    def transform(self, sensor_size: tuple[int, int, int], draw: int = 0
+                  ) -> Downscaler | TonicPeer | None:
         """The downscaler of this cell (``None`` for the baseline).
 
         ``draw`` seeds the control's random thinning (each training seed has its own draw);
@@ -171,8 +172,8 @@ def calibrate_job(source: StudyData, cell: Cell, target_count: float, samples: i
         The cell with its calibrated settings, and what the search found.
     """
     sensor = source.sensor_size
-    transform = cell.transform(sensor)
-    setting = type(transform).budget_setting
+    transform = cast(Downscaler, cell.transform(sensor))  # a budgeted cell's is a Downscaler
+    setting = cast(str, type(transform).budget_setting)
     key = {"data": source.key("train"), "samples": samples, "cell": cell.key(),
            "target": target_count, "code": code_fingerprint(*_TRANSFORM_CODE)}
     cache = source.cache
@@ -270,10 +271,11 @@ def _downscale_cell(cache: Cache, paths: list[Any], cell: Cell, draws: list[int]
         if transform is None:
             made = [part]
         elif cell.random:
-            per_stream = [transform.draws(events, draws) for events in part]
+            thinning = cast(ThinnedDownsample, transform)  # the random cell is the control
+            per_stream = [thinning.draws(events, draws) for events in part]
             made = [[out[d] for out in per_stream] for d in range(len(draws))]
         elif group > 1:
-            made = [transform.batch(part)]
+            made = [cast(Downscaler, transform).batch(part)]  # BATCHED names methods only
         else:
             made = [[transform.kernel(part[0])]]
         seconds += [(time.perf_counter() - start) / len(part) / len(draws)] * len(part)

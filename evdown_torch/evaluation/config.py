@@ -83,6 +83,7 @@ default. Keys left out take the defaults shown.
 from __future__ import annotations
 
 import math
+import sys
 import types
 import typing
 from dataclasses import dataclass, field, fields
@@ -513,14 +514,14 @@ def parse_config(document: dict[str, Any], *, name: str = "evaluation") -> Evalu
 
 def _toml_loads(text: str) -> dict[str, Any]:
     try:
-        import tomllib
-    except ModuleNotFoundError:  # Python < 3.11
-        try:
+        if sys.version_info >= (3, 11):
+            import tomllib
+        else:
             import tomli as tomllib
-        except ModuleNotFoundError:
-            raise RuntimeError(
-                "reading TOML configs needs Python >= 3.11 (tomllib) or the tomli package"
-            ) from None
+    except ModuleNotFoundError:
+        raise RuntimeError(
+            "reading TOML configs needs Python >= 3.11 (tomllib) or the tomli package"
+        ) from None
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -21,6 +21,9 @@ from evdown_torch.checks import check_factor
 from evdown_torch.data.sources import TonicSource
 from evdown_torch.evaluation.cache import Cache, code_fingerprint
 from evdown_torch.evaluation.config import DataConfig
+
+if TYPE_CHECKING:
+    from evdown_torch.synthetic import SyntheticGestures
 
 __all__ = ["StudyData", "check_available", "window"]
 
@@ -104,7 +107,7 @@ class StudyData:
             return index % self.num_classes
         return int(self.recording(split, index)[1])
 
-    def _synthetic_dataset(self, split: str):
+    def _synthetic_dataset(self, split: str) -> SyntheticGestures:
         from evdown_torch.synthetic import SyntheticGestures
 
         c = self.config

@@ -28,7 +28,7 @@ import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor
@@ -313,7 +313,7 @@ def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, planned: 
         return planned, {}
     if config.methods.budget_reference == "input":
         inputs = sum(len(source.recording("train", i)[0]) for i in range(samples))
-    targets = [planned[i].cell.budget * (camera[planned[i].cell.factor]
+    targets = [cast(float, planned[i].cell.budget) * (camera[planned[i].cell.factor]
                                          if config.methods.budget_reference == "camera"
                                          else inputs)
                for i in todo]
@@ -386,7 +386,7 @@ def _compare(results: list[CellResult], config: EvaluationConfig
     budget (exploratory: interval and TOST only).
     """
     st, margin = config.statistics, config.methods.equivalence_margin
-    options = dict(resamples=st.resamples, seed=st.seed, confidence=st.confidence,
+    options: dict[str, Any] = dict(resamples=st.resamples, seed=st.seed, confidence=st.confidence,
                    alpha=st.alpha, margin=margin)
     controls: dict[tuple, CellResult] = {}
     for r in results:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import weakref
+from typing import Any, NoReturn
 
 import snntorch
 import torch
@@ -45,15 +46,15 @@ class _ResetHandle(snntorch.Leaky):
     def mem(self) -> Tensor:
         layer = self._layer()
         mem = None if layer is None else layer.mem
-        return torch.zeros(0) if mem is None else mem
+        return mem if isinstance(mem, Tensor) else torch.zeros(0)
 
     @mem.setter
     def mem(self, value: Tensor) -> None:
         layer = self._layer()
         if layer is not None:
-            layer.reset()
+            layer.reset()  # type: ignore[operator]  # the layer's own reset()
 
-    def forward(self, *args, **kwargs):  # never part of a network
+    def forward(self, *args: object, **kwargs: object) -> NoReturn:  # never in a network
         raise TypeError("a reset handle only stands in snntorch's registry")
 
 
@@ -110,7 +111,7 @@ def leaky_through_time(
 
 class _LeakyThroughTime(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, current: Tensor, mem: Tensor, beta: Tensor, threshold: Tensor,
+    def forward(ctx: Any, current: Tensor, mem: Tensor, beta: Tensor, threshold: Tensor,
                 slope: float) -> tuple[Tensor, Tensor]:
         membranes = torch.empty_like(current)
         spikes = torch.empty_like(current)
@@ -129,7 +130,7 @@ class _LeakyThroughTime(torch.autograd.Function):
         return spikes, membranes
 
     @staticmethod
-    def backward(ctx, grad_spikes: Tensor, grad_membranes: Tensor | None
+    def backward(ctx: Any, grad_spikes: Tensor, grad_membranes: Tensor | None
                  ) -> tuple[Tensor, Tensor, None, None, None]:
         membranes, beta, threshold = ctx.saved_tensors
         grad = grad_spikes / (ctx.slope * torch.abs(membranes - threshold) + 1.0) ** 2

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import snntorch
 import torch
@@ -196,7 +196,7 @@ class SpikingClassifier(nn.Module):
         current = self.fc(current.flatten(1)).unflatten(0, (steps, batch))
         spikes, membranes, out_mem = _run_neuron(self.out_neuron, current, state.out,
                                                  keep_membrane=True)
-        return spikes, membranes, ClassifierState(tuple(conv_mem), out_mem)
+        return spikes, cast(Tensor, membranes), ClassifierState(tuple(conv_mem), out_mem)
 
     def _stem(self, step: Tensor) -> Tensor:
         if self.stem is None:

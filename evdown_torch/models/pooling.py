@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import snntorch
 import torch
@@ -122,6 +123,8 @@ class SpikingPooling(nn.Module):
         batch_first: bool = False,
     ) -> None:
         super().__init__()
+        self.weight: Tensor  # a buffer, or a parameter when learnable
+        self.mutual_inhibition: Tensor
         self.factor = check_factor(factor)
         settings = LIFSettings(
             dt=dt, tau=tau, beta=beta, threshold=threshold, weight=weight,
@@ -342,7 +345,7 @@ class SpikingPoolingLayer(nn.Module):
         True
     """
 
-    def __init__(self, factor: SpikingPooling | int | tuple[int, int], **settings) -> None:
+    def __init__(self, factor: SpikingPooling | int | tuple[int, int], **settings: Any) -> None:
         super().__init__()
         if isinstance(factor, SpikingPooling):
             if settings:

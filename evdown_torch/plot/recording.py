@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 import torch
@@ -69,7 +69,7 @@ class ShownRecording:
 
         The same scene rendered on a sensor ``factor`` times smaller.
         """
-        if self.label is None:
+        if self.label is None or self.seed is None or self.duration_us is None:
             return None
         from evdown_torch.synthetic import render_gesture
 
@@ -234,7 +234,7 @@ def panels(
                 f"methods must be registry names or downscaling transforms, got {method!r}"
             )
         start = time.perf_counter()
-        result = transform(ev)
+        result = cast(Events, transform(ev))  # Events in, Events out
         name = method_name(transform)
         if log is not None:
             log(f"{name}: {result.num_events} events ({time.perf_counter() - start:.2f} s)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -30,7 +30,7 @@ _FORMAT = EventFormat("numpy", DVS_GESTURE_DTYPE, "bool", torch.device("cpu"))
 
 
 def _structured(events: Events) -> np.ndarray:
-    return from_events(events, _FORMAT)
+    return cast(np.ndarray, from_events(events, _FORMAT))  # the numpy format gives an array
 
 
 def render_gesture(

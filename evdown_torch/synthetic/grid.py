@@ -166,7 +166,8 @@ class Grid:
                                   k, weight)
         self.static_out = self.out.static
 
-    def samples(self, parts: list[_Part], s0: int, s1: int):
+    def samples(self, parts: list[_Part], s0: int, s1: int
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Samples of the output pixels that change at steps ``s0..s1``.
 
         The pixels the moving ``parts`` cover, at the steps they cover them, and every swaying

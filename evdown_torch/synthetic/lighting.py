@@ -23,6 +23,7 @@ brightest surfaces. Model:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -74,7 +75,8 @@ def lamp_share(static: Tensor) -> Tensor:
 
 
 def flicker_depth(scene: GestureScene, static: Tensor, factor: tuple[int, int],
-                  block_sums) -> Tensor:
+                  block_sums: Callable[[Tensor, tuple[int, int]], tuple[Tensor, Tensor]]
+                  ) -> Tensor:
     """Per output pixel depth ``m`` of the lamp's modulation, ``(H' * W',)`` float64.
 
     Args:

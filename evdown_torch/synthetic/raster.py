@@ -181,7 +181,8 @@ def _nonzero(mask: Tensor) -> Tensor:
     return torch.from_numpy(np.flatnonzero(mask.numpy()))
 
 
-def _rows(part: _Part, s0: int, s1: int, width: int, height: int):
+def _rows(part: _Part, s0: int, s1: int, width: int, height: int
+          ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Scanline spans of a moving capsule at steps ``s0..s1``.
 
     A pixel can be covered when its centre lies within ``radius + 0.5`` of the segment. On
@@ -252,7 +253,8 @@ def step_bits(s0: int, s1: int) -> int:
     return max(1, (s1 - s0).bit_length())
 
 
-def rasterise(part: _Part, s0: int, s1: int, width: int, height: int, scale: float):
+def rasterise(part: _Part, s0: int, s1: int, width: int, height: int, scale: float
+              ) -> tuple[Tensor, Tensor, Tensor]:
     """Fragments of a moving capsule at steps ``s0..s1``.
 
     Returns ``(key, alpha, colour)``: ``key = (pixel << bits) | step`` (``pixel = j * W + i``,
@@ -282,7 +284,8 @@ def rasterise(part: _Part, s0: int, s1: int, width: int, height: int, scale: flo
 
 
 def composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, scale: float,
-              base: Callable[[Tensor, Tensor], Tensor], mean: float):
+              base: Callable[[Tensor, Tensor], Tensor], mean: float
+              ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Intensity of every covered (pixel, step) at steps ``s0..s1``, sorted by pixel, step.
 
     Fragments of one (pixel, step) are composited over ``base(pixel, step)`` (float32 linear
@@ -319,7 +322,8 @@ def composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, sca
         a = alpha.index_select(0, d)
         value.index_copy_(0, g, value.index_select(0, g) * (1 - a) + a * colour.index_select(0, d))
     starts = _nonzero(~repeat)
-    return tuple(c.index_select(0, starts) for c in (pixel, step, value, beneath))
+    return (pixel.index_select(0, starts), step.index_select(0, starts),
+            value.index_select(0, starts), beneath.index_select(0, starts))
 
 
 def block_sums(image: Tensor, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:

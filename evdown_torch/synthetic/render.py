@@ -158,7 +158,8 @@ def _with_static(pixel: Tensor, step: Tensor, x: Tensor, covered: Tensor,
     return out_pixel, out_step, out_x, out_first
 
 
-def _chunks(parts: list[_Part], n_steps: int, n_pixels: int, max_fragments: int):
+def _chunks(parts: list[_Part], n_steps: int, n_pixels: int, max_fragments: int
+            ) -> list[tuple[int, int]]:
     """Consecutive step ranges ``[s0, s1]`` sharing endpoints, each within the budget."""
     per_step = 1
     for p in parts:

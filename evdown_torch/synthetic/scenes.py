@@ -424,7 +424,7 @@ class GestureScene:
         phase = self._phase(t)
         zero = torch.zeros_like(t)
 
-        def at(x, y) -> Tensor:
+        def at(x: Tensor | float, y: Tensor | float) -> Tensor:
             return torch.stack([x + zero, y + zero], dim=1)
 
         rest = self._wrists_at_rest(t)
@@ -496,11 +496,11 @@ class GestureScene:
         wrists = self._wrists(t)
         rest = self._wrists_at_rest(t)
         out = self.presence(t)[:, None]
-        wrists = tuple(r + out * (w - r) if moving else w for w, r, moving
-                       in zip(wrists, rest, self.moving_arms, strict=True))
+        blended = tuple(r + out * (w - r) if moving else w for w, r, moving
+                        in zip(wrists, rest, self.moving_arms, strict=True))
         bends = MOTIONS[self.label][2]
         arms = []
-        for side, wrist, bend in zip((-1.0, 1.0), wrists, bends, strict=True):
+        for side, wrist, bend in zip((-1.0, 1.0), blended, bends, strict=True):
             shoulder = torch.tensor([side * SHOULDER_X, 0.0], dtype=torch.float64)
             elbow, wrist = _two_link(shoulder, wrist, side * bend)
             along = wrist - elbow
