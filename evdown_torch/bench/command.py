@@ -6,10 +6,12 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
 from evdown_torch.arguments import Subparsers
+from evdown_torch.bench.inputs import BenchInput
 from evdown_torch.bench.report import method_table, write_report
 from evdown_torch.bench.run import run_benchmark
 from evdown_torch.checks import check_positive_int
@@ -71,7 +73,7 @@ def run_from_args(args: argparse.Namespace, *, nmnist: str | Path | None = None)
     )
     command = "evdown bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 1 else ""
     written = write_report(results, args.out, command=command)
-    headline = results.input("gesture")
+    headline = cast(BenchInput, results.input("gesture"))  # always measured
     print(f"gesture: {headline.sensor_size[0]}x{headline.sensor_size[1]}, "
           f"{headline.num_events:,} events\n{method_table(results, 'gesture')}")
     print(f"evdown bench: {len(results.measurements)} measurements in "

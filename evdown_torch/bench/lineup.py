@@ -68,8 +68,8 @@ class Candidate:
     name: str
     label: str
     peer: bool
-    build: Callable[[tuple[int, int, int], Any], Callable[[np.ndarray], np.ndarray]]
-    dense_cost: Callable[[tuple[int, int, int], Any, float], tuple[float, float]] | None = None
+    build: Builder
+    dense_cost: DenseCost | None = None
 
 
 def parse_spec(spec: str) -> tuple[str, dict[str, Any]]:
@@ -90,22 +90,29 @@ def parse_spec(spec: str) -> tuple[str, dict[str, Any]]:
         raise ValueError(f"{error} (in {spec!r})") from None
 
 
-def _method_builder(name: str, settings: dict[str, Any]):
-    def build(sensor_size, factor):
+Sensor = tuple[int, int, int]
+#: ``build(sensor_size, factor)``: the callable to time (a structured array in and out).
+Builder = Callable[[Sensor, Any], Callable[[np.ndarray], Any]]
+#: ``estimate(sensor_size, factor, duration_us)``: ``(bytes, seconds)`` of a dense peer.
+DenseCost = Callable[[Sensor, Any, float], tuple[float, float]]
+
+
+def _method_builder(name: str, settings: dict[str, Any]) -> Builder:
+    def build(sensor_size: Sensor, factor: Any) -> Callable[[np.ndarray], Any]:
         return make_method(name, sensor_size, factor, **settings)
 
     return build
 
 
-def _tonic_downsample(sensor_size, factor):
+def _tonic_downsample(sensor_size: Sensor, factor: Any) -> Callable[[np.ndarray], Any]:
     import tonic
 
     fx, fy = check_factor(factor)
     return tonic.transforms.Downsample(spatial_factor=(1 / fx, 1 / fy))
 
 
-def _tonic_event_downsampling(method: str):
-    def build(sensor_size, factor):
+def _tonic_event_downsampling(method: str) -> Builder:
+    def build(sensor_size: Sensor, factor: Any) -> Callable[[np.ndarray], Any]:
         import tonic
 
         target = output_size(check_sensor_size(sensor_size), check_factor(factor))[:2]
@@ -120,7 +127,7 @@ def _tonic_event_downsampling(method: str):
     return build
 
 
-def _tonic_dense_cost(method: str):
+def _tonic_dense_cost(method: str) -> DenseCost:
     """Estimated (bytes, seconds per call) of Tonic's EventDownsampling on a stream.
 
     It builds dense frames of ``duration / dt`` steps over the output sensor and loops over
@@ -130,7 +137,7 @@ def _tonic_dense_cost(method: str):
     times the integrator's time.
     """
 
-    def estimate(sensor_size, factor, duration_us):
+    def estimate(sensor_size: Sensor, factor: Any, duration_us: float) -> tuple[float, float]:
         w, h, _ = output_size(check_sensor_size(sensor_size), check_factor(factor))
         frames = duration_us / (PEER_DT_MS * 1000) + 1
         seconds = frames * (100e-6 + 90e-9 * w * h)
@@ -232,7 +239,8 @@ def prepare_candidate_call(spec: str, path: str, sensor_size: Sequence[int],
     initialisation) are not counted as the call's.
     """
     events = np.load(path)
-    fn = candidate(spec).build(tuple(sensor_size),
+    w, h, p = sensor_size
+    fn = candidate(spec).build((w, h, p),
                                factor if isinstance(factor, int) else tuple(factor))
     with contextlib.suppress(Exception):  # a peer may reject a short slice; the call reports
         fn(events[:1000])

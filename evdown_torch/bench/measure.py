@@ -140,14 +140,15 @@ def _measure_here(job: MemoryJob, prepare: Callable[..., Callable[[], Any]]) -> 
     start, start_cpu = time.perf_counter(), time.process_time()
     value = call()
     seconds, cpu = time.perf_counter() - start, time.process_time() - start_cpu
-    out = {"added": _peak_bytes() - before, "peak": _peak_bytes(), "seconds": seconds,
-           "cpu_seconds": cpu}
+    out: dict[str, Any] = {"added": _peak_bytes() - before, "peak": _peak_bytes(),
+                           "seconds": seconds, "cpu_seconds": cpu}
     if isinstance(value, (bool, int, float, str)):
         out["result"] = value
     return out
 
 
-def _forked_measurement(job: MemoryJob, prepare, base_rss: int) -> dict[str, Any]:
+def _forked_measurement(job: MemoryJob, prepare: Callable[..., Callable[[], Any]],
+                        base_rss: int) -> dict[str, Any]:
     read_end, write_end = os.pipe()
     pid = os.fork()
     if pid == 0:  # the child: prepare, measure one call, report, exit
@@ -190,9 +191,9 @@ def memory_worker(spec_path: str) -> None:
     fork = spec["fork"]
     base_rss = _proc_status_kib()["VmRSS"] * 1024 if fork else 0
     for job in jobs:
-        if isinstance(prepares[job.target], Exception):
-            error = prepares[job.target]
-            result = {"error": f"{type(error).__name__}: {error}"}
+        prepared = prepares[job.target]
+        if isinstance(prepared, Exception):
+            result = {"error": f"{type(prepared).__name__}: {prepared}"}
         elif fork:
             result = _forked_measurement(job, prepares[job.target], base_rss)
         else:

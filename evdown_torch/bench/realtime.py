@@ -37,10 +37,10 @@ import json
 import os
 import statistics
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -88,7 +88,7 @@ ALLOCATOR_VARIABLES = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MALL
                        "MALLOC_MMAP_MAX_", "GLIBC_TUNABLES", "LD_PRELOAD")
 
 
-def allocator_settings(environ: dict[str, str] | None = None) -> str:
+def allocator_settings(environ: Mapping[str, str] | None = None) -> str:
     """The memory allocator settings this process runs under, in words (for the report).
 
     Example:
@@ -284,7 +284,8 @@ def replay(
         result.events_out += len(out)
         if lagging and len(out):
             emitted_at = t0 + (k + 1) * chunk_us
-            result.delays_us.extend((emitted_at - out["t"]).astype(float).tolist())
+            emitted = cast(np.ndarray, out)  # a structured array in, one out
+            result.delays_us.extend((emitted_at - emitted["t"]).astype(float).tolist())
     # What the flush returns is decided by the end of the (replayed part of the) stream, not
     # by the delay: its events are counted but have no delay.
     result.events_out += len(session.flush())
@@ -320,7 +321,9 @@ def realtime_benchmark(
         return _replay_all(events, sensor_size, factor, methods, chunks_us, rates, max_chunks)
 
 
-def _replay_all(events, sensor_size, factor, methods, chunks_us, rates, max_chunks):
+def _replay_all(events: np.ndarray, sensor_size: tuple[int, int, int], factor: int,
+                methods: Sequence[str] | None, chunks_us: Sequence[int],
+                rates: Sequence[float | None], max_chunks: int) -> list[ReplayResult]:
     results = []
     for rate in rates:
         stream, actual = retime(events, rate)

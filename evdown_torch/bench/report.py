@@ -6,6 +6,7 @@ import json
 import math
 from dataclasses import asdict, fields
 from pathlib import Path
+from typing import Any, cast
 
 from evdown_torch._text import format_factor
 from evdown_torch.bench.inputs import EVENTS_SWEEP_RATE, BenchInput
@@ -50,8 +51,10 @@ def method_table(results: BenchResults, input_name: str) -> str:
         ratios = []
         for peer, _ in peers:
             ref = results.find("methods", input_name, peer, m.factor)
-            ok = ref is not None and ref.rate and m.rate
-            ratios.append(_num(m.rate / ref.rate) if ok else "n/a")
+            if ref is not None and ref.rate and m.rate:
+                ratios.append(_num(m.rate / ref.rate))
+            else:
+                ratios.append("n/a")
         share = m.events_out / m.events_in if m.events_out is not None and m.events_in else None
         cells = [m.label, format_factor(m.factor), str(m.events_in),
                  "n/a" if m.events_out is None else str(m.events_out), _num(share),
@@ -80,8 +83,9 @@ def sweep_table(results: BenchResults, section: str, value: str) -> str:
 
     ``value`` is ``"rate"`` (M events/s) or ``"memory"`` (peak added MB).
     """
-    points = sorted({m.x for m in results.measurements if m.section == section})
-    names = {m.input: m.x for m in results.measurements if m.section == section}
+    swept = [m for m in results.measurements if m.section == section and m.x is not None]
+    points = sorted({cast(float, m.x) for m in swept})
+    names = {m.input: cast(float, m.x) for m in swept}
     by_x = {x: name for name, x in names.items()}
     labels = [_point_label(section, by_x[x], x) for x in points]
     lines = ["| method | " + " | ".join(labels) + " |", "|" + "---|" * (len(points) + 1)]
@@ -161,7 +165,7 @@ def load_results(path: str | Path) -> BenchResults:
     """
     data = json.loads(Path(path).read_text())
 
-    def tuples(value):
+    def tuples(value: Any) -> Any:
         return tuple(tuples(v) for v in value) if isinstance(value, list) else value
 
     plan = Plan(**{k: tuples(v) for k, v in data["plan"].items()})
@@ -307,7 +311,7 @@ def _plots(results: BenchResults, out: Path) -> list[Path]:
         axes = fig.subplots(1, 3)
         plotted = [0, 0, 0]
         for name, label, peer in results.candidates:
-            mine = sorted((m for m in rows if m.candidate == name), key=lambda m: m.x)
+            mine = sorted((m for m in rows if m.candidate == name), key=lambda m: cast(float, m.x))
             style = dict(marker="o", linestyle="--" if peer else "-", label=label)
             for k, (ax, (_, value)) in enumerate(zip(axes, panels, strict=True)):
                 points = [(m.x, v) for m in mine if (v := value(m)) is not None and v > 0]

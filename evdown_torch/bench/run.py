@@ -11,7 +11,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -199,16 +199,18 @@ class _Runner:
         self.jobs: list[tuple[Measurement, MemoryJob]] = []
         self.bar: tqdm | None = None  # the current stage's progress bar
 
-    def add_input(self, name: str, events: np.ndarray, sensor_size, source: str) -> BenchInput:
+    def add_input(self, name: str, events: np.ndarray, sensor_size: tuple[int, int, int],
+                  source: str) -> BenchInput:
         path = self.tmp / f"{name}.npy"
         np.save(path, events)
-        inp = BenchInput(name, tuple(sensor_size), len(events), stream_duration_s(events),
+        inp = BenchInput(name, check_sensor_size(sensor_size), len(events),
+                         stream_duration_s(events),
                          source, str(path))
         self.inputs.append(inp)
         return inp
 
-    def measure(self, section: str, inp: BenchInput, events: np.ndarray, factor, repeats: int,
-                x: float | None = None) -> None:
+    def measure(self, section: str, inp: BenchInput, events: np.ndarray,
+                factor: int | tuple[int, int], repeats: int, x: float | None = None) -> None:
         for cand in self.cands:
             if self.bar is not None:
                 self.bar.update()
@@ -232,7 +234,8 @@ class _Runner:
             except Exception as error:  # noqa: BLE001 - a failing peer is a result too
                 m.note = f"failed: {type(error).__name__}: {error}"[:200]
                 continue
-            log(f"{section} {inp.name} f={factor} {cand.name}: {m.rate / 1e6:.2f} M events/s")
+            rate = cast(float, m.rate)  # timed: it has a rate
+            log(f"{section} {inp.name} f={factor} {cand.name}: {rate / 1e6:.2f} M events/s")
             if self.memory:
                 self.jobs.append((m, candidate_job(cand.name, inp.path, inp.sensor_size, factor)))
 

@@ -20,11 +20,12 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from queue import Empty
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -34,7 +35,17 @@ from evdown_torch.checks import check_choice, check_factor, check_positive_int
 from evdown_torch.data import shards
 from evdown_torch.data.sources import check_label
 from evdown_torch.threads import torch_threads
+from evdown_torch.transforms import Downscaler
 from evdown_torch.transforms.registry import make_method, method_settings
+
+if TYPE_CHECKING:
+    from multiprocessing.queues import Queue
+
+    from tqdm.auto import tqdm
+
+    from evdown_torch.data.sources import Source
+
+    _Done = Callable[[dict[str, Any], Sequence[float]], None]
 
 __all__ = ["PreprocessResult", "RecordingError", "preprocess"]
 
@@ -92,7 +103,7 @@ def _rank_and_world() -> tuple[int, int]:
 _STATE: dict[str, Any] = {}
 
 
-def _init_worker(state: dict[str, Any], queue) -> None:
+def _init_worker(state: dict[str, Any], queue: Queue[int]) -> None:
     torch.set_num_threads(state["threads"])
     _STATE.clear()
     _STATE.update(state, tick=lambda: queue.put(1))
@@ -166,7 +177,7 @@ def _write_one_shard(
 # Driver side ---------------------------------------------------------------------------------
 
 
-def _job(source, method: str, factor: tuple[int, int], transform,
+def _job(source: Source, method: str, factor: tuple[int, int], transform: Downscaler,
          shard_size: int) -> dict[str, Any]:
     settings = {name: getattr(transform, name) for name in method_settings(method)}
     job = {"format": shards.FORMAT, "format_version": shards.FORMAT_VERSION,
@@ -193,7 +204,7 @@ def _claim_folder(out: Path, job: dict[str, Any]) -> None:
         shards.write_json(path, job)
 
 
-def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar) -> tuple[
+def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar: tqdm) -> tuple[
         list[dict[str, Any]], list[float]]:
     """Write the shards ``todo`` with ``workers`` processes.
 
@@ -204,9 +215,10 @@ def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar) -> tu
     spawned processes start; each gets one shard at a time from the front once it has
     started, so nobody waits for work and the end waits for at most one shard.
     """
-    records, timings = [], [0.0, 0.0, 0.0]
+    records: list[dict[str, Any]] = []
+    timings = [0.0, 0.0, 0.0]
 
-    def done(record, timing) -> None:
+    def done(record: dict[str, Any], timing: Sequence[float]) -> None:
         records.append(record)
         for i, value in enumerate(timing):
             timings[i] += value
@@ -224,7 +236,8 @@ def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar) -> tu
         return records, timings
 
 
-def _run_with_pool(state, waiting: deque, spawned: int, bar, done) -> None:
+def _run_with_pool(state: dict[str, Any], waiting: deque[int], spawned: int, bar: tqdm,
+                   done: _Done) -> None:
     context = multiprocessing.get_context("spawn")
     queue = context.Queue()  # progress ticks from every process, shown by this thread
     local = dict(state, tick=lambda: queue.put(1))
@@ -285,7 +298,7 @@ def _run_with_pool(state, waiting: deque, spawned: int, bar, done) -> None:
         _drain(queue, bar)
 
 
-def _drain(queue, bar) -> None:
+def _drain(queue: Queue[int], bar: tqdm) -> None:
     while True:
         try:
             bar.update(queue.get_nowait())
@@ -293,7 +306,7 @@ def _drain(queue, bar) -> None:
             return
 
 
-def _manifest(job: dict[str, Any], job_id: str, source, transform,
+def _manifest(job: dict[str, Any], job_id: str, source: Source, transform: Downscaler,
               records: list[dict[str, Any]]) -> dict[str, Any]:
     records = sorted(records, key=lambda r: r["shard"])
     return dict(
@@ -310,7 +323,7 @@ def _manifest(job: dict[str, Any], job_id: str, source, transform,
 
 
 def preprocess(
-    source,
+    source: Source,
     out: str | Path,
     method: str,
     factor: int | tuple[int, int],
@@ -394,9 +407,9 @@ def preprocess(
             records += written
         except Exception as caught:  # every rank must reach the collective below
             error = caught
-    mine = {"records": records, "kept": kept, "recordings": total,
-            "error": None if error is None else str(error)}
-    gathered = [mine]
+    mine: dict[str, Any] = {"records": records, "kept": kept, "recordings": total,
+                            "error": None if error is None else str(error)}
+    gathered: list[Any] = [mine]
     if world > 1:
         import torch.distributed as dist
 

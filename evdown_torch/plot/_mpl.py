@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from importlib import import_module
 from types import ModuleType
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 INSTALL_HINT = "pip install evdown_torch[plot]"
 
@@ -29,7 +33,7 @@ def matplotlib() -> ModuleType:
     return mpl
 
 
-def new_figure(width: float, height: float, dpi: float = 100.0, *, agg: bool = True):
+def new_figure(width: float, height: float, dpi: float = 100.0, *, agg: bool = True) -> Figure:
     """A matplotlib ``Figure`` of ``width x height`` inches (no pyplot).
 
     With ``agg`` it gets an Agg canvas, so ``figure.canvas.draw()`` renders it; without, the

@@ -14,6 +14,8 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -21,6 +23,11 @@ from evdown_torch.checks import check_positive_float, check_positive_int
 from evdown_torch.plot import _mpl
 from evdown_torch.plot.recording import Panel, to_numpy
 from evdown_torch.time_units import display_unit
+
+if TYPE_CHECKING:
+    from matplotlib.animation import AbstractMovieWriter, FuncAnimation
+    from matplotlib.artist import Artist
+    from matplotlib.figure import Figure
 
 __all__ = ["FrameGrid", "animate", "contact_sheet", "frame_grid", "save", "window_image",
            "window_label"]
@@ -143,7 +150,7 @@ def animate(
     panel_inches: float = 2.4,
     dpi: float = 80.0,
     max_frames: int = MAX_FRAMES,
-):
+) -> FuncAnimation:
     """An animation of the panels side by side, one frame per window.
 
     Args:
@@ -190,7 +197,7 @@ def animate(
                         top=1 - (title + clock_strip) / height, wspace=0.05,
                         hspace=title / panel_inches)
 
-    def update(k: int):
+    def update(k: int) -> list[Artist]:
         for i in range(len(panels)):
             start, stop = grid.counts(i, k)
             images[i].set_data(grid.image(i, k))
@@ -205,7 +212,8 @@ def animate(
     )
 
 
-def save(animation, path: str, *, progress: Callable[[int, int], None] | None = None) -> None:
+def save(animation: FuncAnimation, path: str, *,
+         progress: Callable[[int, int], None] | None = None) -> None:
     """Write an animation from :func:`animate` to a GIF with Pillow.
 
     Args:
@@ -213,34 +221,38 @@ def save(animation, path: str, *, progress: Callable[[int, int], None] | None = 
         path: output file, ``.gif``; it plays at one frame per window of the animation.
         progress: called as ``progress(frame, total)`` before each frame is drawn.
     """
-    mpl = _mpl.matplotlib()
+    _mpl.matplotlib()  # a clear error without matplotlib
     if animation.event_source is None:
         raise ValueError("the animation has been stopped; make a new one with animate()")
-    fps = 1000.0 / animation.event_source.interval  # one frame per window, in real time
-    animation.save(path, writer=_gif_writer(mpl)(fps=fps), progress_callback=progress)
+    interval = cast(Any, animation.event_source).interval  # a timer: it has an interval
+    fps = 1000.0 / interval  # one frame per window, in real time
+    animation.save(path, writer=_gif_writer()(fps=fps), progress_callback=progress)
 
 
-def _gif_writer(mpl):
+def _gif_writer() -> type[AbstractMovieWriter]:
     """A GIF writer (matplotlib's movie-writer interface, Pillow underneath).
 
     It keeps each frame as a 1-byte-per-pixel palette image, a third of what matplotlib's
     PillowWriter holds until the file is written.
     """
+    from matplotlib.animation import AbstractMovieWriter
     from PIL import Image
 
-    class GifWriter(mpl.animation.AbstractMovieWriter):
-        def setup(self, fig, outfile, dpi=None):
+    class GifWriter(AbstractMovieWriter):
+        frames: list[Image.Image]
+
+        def setup(self, fig: Figure, outfile: str | Path, dpi: float | None = None) -> None:
             super().setup(fig, outfile, dpi=dpi)
             self.frames = []
 
-        def grab_frame(self, **savefig_kwargs):
+        def grab_frame(self, **savefig_kwargs: Any) -> None:
             buffer = io.BytesIO()
             self.fig.savefig(buffer, **{**savefig_kwargs, "format": "rgba", "dpi": self.dpi})
-            rgba = Image.frombuffer("RGBA", self.frame_size, buffer.getbuffer(), "raw", "RGBA",
+            rgba = Image.frombuffer("RGBA", self.frame_size, buffer.getvalue(), "raw", "RGBA",
                                     0, 1)
             self.frames.append(rgba.convert("RGB").quantize(method=Image.Quantize.FASTOCTREE))
 
-        def finish(self):
+        def finish(self) -> None:
             self.frames[0].save(self.outfile, save_all=True, append_images=self.frames[1:],
                                 duration=round(1000 / self.fps), loop=0)
 
@@ -254,7 +266,7 @@ def contact_sheet(
     windows: int = 4,
     panel_inches: float = 1.8,
     dpi: float = 100.0,
-):
+) -> Figure:
     """A sheet of a few windows.
 
     One row per window (evenly spread over the recording), one column per panel.

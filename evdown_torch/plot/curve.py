@@ -23,10 +23,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from evdown_torch._tensors import region_of, region_pixel_count, sort_by_time
 from evdown_torch.checks import check_factor, check_positive_int, check_sensor_size, output_size
@@ -41,6 +42,9 @@ from evdown_torch.transforms.event_count import EventCount
 from evdown_torch.transforms.functional._knots import pixel_knots, region_chunks
 from evdown_torch.transforms.functional.cubic import pchip_slopes
 from evdown_torch.transforms.registry import METHODS, make_method
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 __all__ = ["MethodEvents", "RegionCurves", "curve_figure", "region_curves"]
 
@@ -115,7 +119,7 @@ def _level_threshold(transform: Downscaler) -> float | None:
     if isinstance(transform, (EventCount, LinearEstimation, CubicEstimation)):
         return float(transform.threshold)
     if _is_photocurrent(transform):
-        contrast = float(transform.contrast)
+        contrast = float(cast(Any, transform).contrast)
         theta = getattr(transform, "threshold", None)
         return (contrast if theta is None else float(theta)) / contrast
     return None
@@ -150,7 +154,9 @@ def _numpy_t(t: torch.Tensor) -> np.ndarray:
     return t.to(torch.float64).cpu().numpy()
 
 
-def _reconstructions(events: Events, t_start, t_end, factor, out_width, n_r, grid):
+def _reconstructions(events: Events, t_start: Tensor, t_end: Tensor, factor: tuple[int, int],
+                     out_width: int, n_r: int, grid: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The reconstructions, from the kernels' knots and slopes.
 
     The cubic one's ``M_r`` at ``grid`` (float64 offsets from ``t_start``), and the linear
@@ -262,9 +268,9 @@ def region_curves(
     results: dict[str, MethodEvents] = {}
     photocurrent = None
     for transform in transforms:
-        out = transform(ev)
-        at = (out.x == px) & (out.y == py)
-        out_t, out_on = _numpy_t(out.t[at]), out.p[at].cpu().numpy()
+        out = cast(Events, transform(ev))  # Events in, Events out
+        hit = (out.x == px) & (out.y == py)
+        out_t, out_on = _numpy_t(out.t[hit]), out.p[hit].cpu().numpy()
         theta = _level_threshold(transform)
         crossed = None if theta is None else theta * np.cumsum(np.where(out_on, 1.0, -1.0))
         name, copy = method_name(transform), 1
@@ -273,15 +279,15 @@ def region_curves(
             name = f"{method_name(transform)} {copy}"
         results[name] = MethodEvents(out_t, out_on, crossed, theta)
         if _is_photocurrent(transform) and getattr(transform, "fps", None) is None:
-            c = float(transform.contrast)
+            c = float(cast(Any, transform).contrast)
             change = np.exp(c * level_after) - np.exp(c * (level_after - step))
             log_mean = np.log1p(np.cumsum(change) / n_r) / c
             last = log_mean[-1:] if log_mean.size else [0]  # a region without events stays at 0
             photocurrent = (count_mean[0], np.concatenate([[0], log_mean, last]))
     if ground_truth is not None:
         truth = sort_by_time(to_events(ground_truth, (out_w, out_h, 2))[0])
-        at = (truth.x == px) & (truth.y == py)
-        results["ground truth"] = MethodEvents(_numpy_t(truth.t[at]), truth.p[at].cpu().numpy(),
+        hit = (truth.x == px) & (truth.y == py)
+        results["ground truth"] = MethodEvents(_numpy_t(truth.t[hit]), truth.p[hit].cpu().numpy(),
                                                None, None)
 
     # The linear and cubic reconstructions, from the kernels' knots and PCHIP slopes.
@@ -300,7 +306,7 @@ def region_curves(
     )
 
 
-def _check_pixel(pixel, out_w: int, out_h: int) -> tuple[int, int]:
+def _check_pixel(pixel: Any, out_w: int, out_h: int) -> tuple[int, int]:
     try:
         px, py = (int(v) for v in pixel)
         ok = (px, py) == tuple(pixel)
@@ -340,7 +346,7 @@ def curve_figure(
     ground_truth: EventsLike | None = None,
     width: float = 10.0,
     dpi: float = 100.0,
-):
+) -> Figure:
     """The paper's Figure 5 for one output pixel.
 
     Top: the region's pixels' levels (thin grey steps), the region's mean level as EventCount
@@ -374,7 +380,7 @@ def curve_figure(
     return draw_curves(curves, width=width, dpi=dpi)
 
 
-def draw_curves(curves: RegionCurves, *, width: float = 10.0, dpi: float = 100.0):
+def draw_curves(curves: RegionCurves, *, width: float = 10.0, dpi: float = 100.0) -> Figure:
     """Draw :class:`RegionCurves` (see :func:`curve_figure`)."""
     mpl = _mpl.matplotlib()
     rows = 1 + len(curves.events)
@@ -403,7 +409,7 @@ def draw_curves(curves: RegionCurves, *, width: float = 10.0, dpi: float = 100.0
     low, high = float(values.min()), float(values.max())
     drawn: set[float] = set()
     for name, result in curves.events.items():
-        if result.threshold is None:
+        if result.threshold is None or result.level is None:
             continue
         colour = COLOURS.get(name, "black")
         theta = result.threshold
