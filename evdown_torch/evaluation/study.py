@@ -102,8 +102,10 @@ def _consistency_recordings(config: EvaluationConfig, source: StudyData) -> int:
 
 
 def _cpu_seconds() -> float:
-    """CPU seconds of this process and of its finished children (the workers); this process
-    alone where the platform cannot say (Windows)."""
+    """CPU seconds of this process and of its finished children (the workers).
+
+    This process alone where the platform cannot say (Windows).
+    """
     try:
         import resource
     except ModuleNotFoundError:  # pragma: no cover - Windows
