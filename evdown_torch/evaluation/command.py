@@ -3,8 +3,7 @@
 ``evdown evaluate --config FILE [--output DIR] [--no-cache]`` runs
 :func:`~evdown_torch.evaluation.study.run_evaluation` on a TOML configuration
 (:mod:`evdown_torch.evaluation.config`) and writes ``results.csv``, ``report.md`` and
-``tradeoff.png``. :func:`add_command` registers it on the ``evdown`` parser; the study's
-modules are imported only when it runs.
+``tradeoff.png``. :func:`add_command` registers it on the ``evdown`` parser.
 """
 
 from __future__ import annotations
