@@ -194,8 +194,8 @@ def check_readable(path: str | Path) -> Path:
 def check_writable(path: str | Path, *, folder_may_be_missing: bool = False) -> Path:
     """Check that :func:`write_events` can write ``path``.
 
-    A known extension, an existing folder (unless ``folder_may_be_missing``: the caller creates
-    it).
+    It needs a known extension and an existing folder (unless ``folder_may_be_missing``: the
+    caller creates it).
 
     Raises:
         ValueError: naming the problem.
