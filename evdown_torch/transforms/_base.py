@@ -2,56 +2,152 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, ClassVar, overload
 
 import torch
 
 from evdown_torch._tensors import sort_by_time
-from evdown_torch.checks import check_factor, check_positive_float, check_sensor_size, output_size
 from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.events import EventFormat, Events, EventsLike, from_events, to_events
-from evdown_torch.transforms.functional._reference import threshold_fraction
+from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
+
+
+def finish_nothing(state: Any, settings: Any) -> Events | None:
+    """The ``finish`` kernel of a causal method: the end of a stream decides nothing."""
+    return None
+
+
+@dataclass(frozen=True)
+class Method:
+    """A method's three pure kernels over its settings, and optional fast paths.
+
+    Every method is a frozen settings dataclass ``S`` (checked and normalised once) plus:
+
+    - ``init_state(settings, first_chunk) -> state``: the state of a fresh stream whose first
+      non-empty, time-sorted chunk is ``first_chunk`` (its device, dtype and first timestamp
+      are what a state may need from it; it is not consumed).
+    - ``step(chunk, state, settings) -> (output, state)``: one non-empty, time-sorted chunk;
+      the output is what the chunk *decides* (no later input can change it), sorted by
+      ``t`` and not earlier than any earlier output.
+    - ``finish(state, settings) -> output``: what only the end of the stream decides
+      (``None``: nothing; the default, for causal methods).
+
+    :class:`Streaming` builds a transform's ``__call__``, ``batch`` and ``session`` from
+    these, so a stream cut in chunks equals the whole and a batch equals one call per
+    recording by construction. Two optional fast paths give the same results faster and are
+    tested equal to the protocol (``tests/transforms/test_streaming.py``):
+
+    - ``whole(events, settings) -> output``: the whole stream in one call (events in any order).
+    - ``stacked(batch, settings) -> EventBatch | None``: a batch of recordings in one call
+      (``None``: this batch goes one recording at a time).
+    """
+
+    init_state: Callable[[Any, Events], Any]
+    step: Callable[[Events, Any, Any], tuple[Events, Any]]
+    finish: Callable[[Any, Any], Events | None] = finish_nothing
+    whole: Callable[[Events, Any], Events] | None = None
+    stacked: Callable[[EventBatch, Any], EventBatch | None] | None = None
+
+
+def run_protocol(method: Method, settings: Any, events: Events) -> Events:
+    """The whole stream as one chunk through ``init_state``, ``step`` and ``finish``."""
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device)
+    events = sort_by_time(events)
+    state = method.init_state(settings, events)
+    out, state = method.step(events, state, settings)
+    tail = method.finish(state, settings)
+    if tail is None or tail.num_events == 0:
+        return out
+    return Events(*(torch.cat(columns) for columns in zip(out, tail, strict=True)))
 
 
 class Streaming:
-    """What a transform implements to get a streaming :class:`Session`.
+    """A transform built from a :class:`Method`: its settings and three kernels.
 
-    A transform is a pure function of the whole stream; its streaming form is a pair of pure
-    step functions on validated, time-sorted :class:`~evdown_torch.events.Events`, the state
-    passed in and returned, never hidden:
-
-    - :meth:`stream` ``(chunk, state) -> (output, state)``: one chunk, ``state`` ``None`` for
-      the first chunk of a stream. It returns the output events the chunk *decides* (those no
-      later input can change), sorted by ``t`` and later than or equal to every earlier one.
-    - :meth:`stream_end` ``(state) -> output``: what only the end of the stream decides
-      (default: nothing).
-
+    Subclasses set the class attribute :attr:`method` and expose their checked settings as
+    :attr:`settings`; everything else is generic: :meth:`kernel` (the whole stream, through
+    the method's ``whole`` fast path when it has one), :meth:`stream` / :meth:`stream_end`
+    (the steps of a :class:`Session`), :meth:`__call__`, :meth:`batch` and :meth:`session`.
     The concatenation of every chunk's output and the end's equals the transform applied to
     the whole stream (docs/semantics.md, "Processing a stream in consecutive chunks").
-    :class:`Session` adds the edges: validation, conversion to the chunk's kind, the time
-    order check. A method that cannot stream overrides :meth:`session` to say why.
+    A method that cannot stream (:attr:`method` ``None``, or a ``session`` override saying
+    why) has no session.
     """
 
     sensor_size: tuple[int, int, int] | None
+    #: The method's kernels (``None``: a composition such as :class:`Chain`).
+    method: ClassVar[Method | None] = None
+
+    @property
+    def settings(self) -> Any:
+        """The method's checked, normalised settings (what its kernels take)."""
+        raise NotImplementedError(f"{type(self).__name__} has no settings")
+
+    @property
+    def method_settings(self) -> Any:
+        """The settings the method's kernels take: :attr:`settings`, except where the public
+        settings are a part of them (LIF: the neuron's ``LIFSettings``, shared with the
+        ``nn.Module``, inside the region's ``LIFPoolingSettings``)."""
+        return self.settings
+
+    def kernel(self, events: Events) -> Events:
+        """The whole stream of validated events (any order), sorted by ``t``."""
+        method = self._method()
+        if method.whole is not None:
+            return method.whole(events, self.method_settings)
+        return run_protocol(method, self.method_settings, events)
 
     def stream(self, events: Events, state: Any | None) -> tuple[Events, Any]:
-        """Process one non-empty, time-sorted chunk; returns ``(output, new state)``."""
-        raise NotImplementedError(f"{type(self).__name__} has no streaming session")
+        """One non-empty, time-sorted chunk; ``state`` ``None`` for the first chunk of a
+        stream. Returns ``(output, new state)`` (the method's ``step``)."""
+        method = self._method()
+        if state is None:
+            state = method.init_state(self.method_settings, events)
+        return method.step(events, state, self.method_settings)
 
     def stream_end(self, state: Any | None) -> Events | None:
         """The output only the end of the stream decides (``None``: nothing)."""
-        return None
+        if state is None:
+            return None
+        return self._method().finish(state, self.method_settings)
+
+    def batch_kernel(self, batch: EventBatch) -> EventBatch | None:
+        """A batch of validated recordings through the method's ``stacked`` fast path;
+        ``None`` when it has none (:meth:`batch` then goes one recording at a time)."""
+        if self.method is None or self.method.stacked is None:
+            return None
+        return self.method.stacked(batch, self.method_settings)
+
+    def _method(self) -> Method:
+        if self.method is None:
+            raise NotImplementedError(f"{type(self).__name__} has no method kernels")
+        return self.method
+
+    def __call__(self, events: EventsLike) -> EventsLike:
+        """Downscale events of any accepted kind and return the same kind.
+
+        Args:
+            events: a Tonic structured array (fields x, y, t, p in any order), a tensor of
+                shape ``(N, 4)`` with columns ``(x, y, t, p)``, or Events.
+
+        Returns:
+            The output events, sorted by ``t``, in the input's kind, dtype and polarity
+            encoding.
+        """
+        ev, fmt = to_events(events, self.sensor_size)
+        return from_events(self.kernel(ev), fmt)
 
     def session(self) -> Session:
         """Start a streaming session over consecutive chunks of one stream (see :class:`Session`).
 
         Raises:
-            NotImplementedError: for a transform that does not implement :meth:`stream`.
+            NotImplementedError: for a transform without method kernels.
         """
-        if type(self).stream is Streaming.stream:
-            raise NotImplementedError(f"{type(self).__name__} has no streaming session")
+        self._method()
         return Session(self)
 
 
@@ -153,12 +249,13 @@ class Session:
 
 @dataclass(frozen=True)
 class Downscaler(Streaming):
-    """Base of the downscaling transforms: settings, validation and the edge conversions.
+    """Base of the downscaling transforms: region settings, batches and the edge conversions.
 
-    Subclasses are frozen dataclasses that implement :meth:`kernel`; ``__call__`` validates
-    the events, converts them to :class:`~evdown_torch.events.Events`, calls the kernel and
-    converts the result back to the caller's kind. Neither the input nor the transform is
-    ever modified.
+    Subclasses are frozen dataclasses whose fields are the method's settings, built once
+    into :attr:`settings` (checked and normalised there) and handed to the kernels of their
+    :attr:`~Streaming.method`. ``__call__`` validates the events, converts them to
+    :class:`~evdown_torch.events.Events`, runs the method and converts the result back to the
+    caller's kind. Neither the input nor the transform is ever modified.
 
     Attributes:
         sensor_size: input sensor size ``(W, H, P)``.
@@ -174,46 +271,22 @@ class Downscaler(Streaming):
     factor: int | tuple[int, int] = 2
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "sensor_size", check_sensor_size(self.sensor_size))
-        check_factor(self.factor, self.sensor_size)
+        object.__setattr__(self, "sensor_size", self.method_settings.sensor_size)
+
+    @cached_property
+    def settings(self) -> RegionSettings:
+        """The checked settings the kernels take (built once, in ``__post_init__``)."""
+        return RegionSettings(self.sensor_size, self.factor)  # type: ignore[arg-type]
 
     @property
     def factor_xy(self) -> tuple[int, int]:
         """The factor as a pair ``(fx, fy)``."""
-        return check_factor(self.factor)
+        return self.method_settings.factor
 
     @property
     def output_sensor_size(self) -> tuple[int, int, int]:
         """Output sensor size ``(ceil(W / fx), ceil(H / fy), P)``, for the next transform."""
-        return output_size(self.sensor_size, self.factor_xy)
-
-    def kernel(self, events: Events) -> Events:  # pragma: no cover - abstract
-        """Downscale validated events; implemented by each method."""
-        raise NotImplementedError
-
-    def __call__(self, events: EventsLike) -> EventsLike:
-        """Downscale events of any accepted kind and return the same kind.
-
-        Args:
-            events: a Tonic structured array (fields x, y, t, p in any order), a tensor of
-                shape ``(N, 4)`` with columns ``(x, y, t, p)``, or Events.
-
-        Returns:
-            The downscaled events, sorted by ``t``, in the input's kind, dtype and polarity
-            encoding, with coordinates inside :attr:`output_sensor_size`.
-        """
-        ev, fmt = to_events(events, self.sensor_size)
-        return from_events(self.kernel(ev), fmt)
-
-    def batch_kernel(self, batch: EventBatch) -> EventBatch | None:
-        """Downscale a batch of validated recordings in one pass.
-
-        Methods run their kernel once on the recordings stacked on one virtual sensor
-        (:func:`~evdown_torch.transforms._batch.run_stacked`), passing it each recording's
-        stream bounds where the method needs them. The default, ``None``, means the method
-        has no batched kernel: :meth:`batch` then processes the recordings one by one.
-        """
-        return None
+        return self.method_settings.output_sensor_size
 
     @overload
     def batch(self, recordings: EventBatch) -> EventBatch: ...
@@ -289,8 +362,13 @@ class ThresholdDownscaler(Downscaler):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        object.__setattr__(self, "threshold", check_positive_float("threshold", self.threshold))
-        threshold_fraction(self.threshold)
+        object.__setattr__(self, "threshold", self.settings.threshold)
+
+    @cached_property
+    def settings(self) -> ThresholdSettings:
+        """The checked settings the kernels take (built once, in ``__post_init__``)."""
+        return ThresholdSettings(self.sensor_size, self.factor,  # type: ignore[arg-type]
+                                 self.threshold)
 
 
 @dataclass(frozen=True, init=False)

@@ -2,22 +2,48 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import ClassVar
 
-from evdown_torch.checks import check_positive_float
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
-from evdown_torch.transforms._base import Session, ThresholdDownscaler
+from evdown_torch.transforms._base import Method, Session, ThresholdDownscaler
 from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional._knots import RegionSolver
 from evdown_torch.transforms.functional.cubic import cubic_estimation, cubic_regions
 from evdown_torch.transforms.functional.estimation_stream import (
-    WindowState,
-    window_end,
-    window_step,
+    EstimationSettings,
+    window_finish,
+    window_init,
+    window_kernel_step,
 )
 from evdown_torch.transforms.functional.linear import linear_estimation, linear_regions
+
+
+def _method(whole_kernel: Callable[..., Events]) -> Method:
+    """An estimator's kernels: the bounded-delay window steps (the same for both curves, the
+    settings naming the curve) and the whole-stream kernel ``whole_kernel`` as fast path,
+    once per recording or once on the stacked batch with each recording's own bounds."""
+
+    def whole(events: Events, settings: EstimationSettings) -> Events:
+        return whole_kernel(events, sensor_size=settings.sensor_size, factor=settings.factor,
+                            threshold=settings.threshold, max_delay=settings.max_delay)
+
+    def stacked(batch: EventBatch, settings: EstimationSettings) -> EventBatch:
+        def kernel(stacked: Stacked) -> Events:
+            return whole_kernel(
+                stacked.events, sensor_size=settings.sensor_size, factor=settings.factor,
+                threshold=settings.threshold, max_delay=settings.max_delay,
+                bounds=(stacked.starts, stacked.ends),
+            )
+
+        return run_stacked(batch, kernel, sensor_size=settings.sensor_size,
+                           factor=settings.factor)
+
+    return Method(window_init, window_kernel_step, window_finish, whole=whole,
+                  stacked=stacked)
 
 
 @dataclass(frozen=True)
@@ -33,13 +59,14 @@ class _Estimation(ThresholdDownscaler):
 
     #: Output up to ``tau - lag * D`` is decided by input up to ``tau``.
     lag: ClassVar[int] = 1
-    #: The kernel's solver of one chunk of regions (shared with the batch kernel).
+    #: The curve's solver of one chunk of regions.
     solver: ClassVar[RegionSolver] = staticmethod(linear_regions)
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.max_delay is not None:
-            check_positive_float("max_delay", self.max_delay)
+    @cached_property
+    def settings(self) -> EstimationSettings:  # type: ignore[override]
+        """The checked settings the kernels take (built once, in ``__post_init__``)."""
+        return EstimationSettings(self.sensor_size, self.factor,  # type: ignore[arg-type]
+                                  self.threshold, self.max_delay, self.lag, self.solver)
 
     def session(self) -> Session:
         """Start a streaming session (needs a finite ``max_delay``; see :meth:`stream`).
@@ -55,30 +82,6 @@ class _Estimation(ThresholdDownscaler):
                 f"stream's time unit) and events come out at most {self.lag}*D after they happen"
             )
         return Session(self)
-
-    def stream(self, events: Events, state: WindowState | None) -> tuple[Events, WindowState]:
-        """One chunk of a stream: returns the output events earlier than ``tau - lag * D``.
-
-        ``tau`` is the chunk's last timestamp and ``lag`` 1 (linear) or 2 (cubic): with the
-        bounded delay, output up to there no longer depends on later input
-        (docs/semantics.md, "Bounded delay"), so every output event at ``t`` comes out with
-        the first chunk that reaches past ``t + lag * D``. The state keeps only what later
-        output needs (:class:`~evdown_torch.transforms.functional.estimation_stream.WindowState`:
-        each pixel's last knots, the undecided input, each region's reference index), so a
-        chunk's cost follows its events and the sensor's active pixels, not the stream so far.
-        """
-        return window_step(
-            events, state, sensor_size=self.sensor_size, factor=self.factor_xy,
-            threshold=self.threshold, max_delay=self.max_delay,  # type: ignore[arg-type]
-            lag=self.lag, solve_regions=self.solver,
-        )
-
-    def stream_end(self, state: WindowState | None) -> Events | None:
-        """The output from the last horizon to the end of the stream."""
-        if state is None:
-            return None
-        return window_end(state, sensor_size=self.sensor_size, factor=self.factor_xy,
-                          threshold=self.threshold, solve_regions=self.solver)
 
 
 @dataclass(frozen=True)
@@ -116,24 +119,7 @@ class LinearEstimation(_Estimation):
         [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 5, 1], [0, 0, 10, 1]]
     """
 
-    def kernel(self, events: Events) -> Events:
-        """Apply :func:`~evdown_torch.transforms.functional.linear.linear_estimation`."""
-        return linear_estimation(
-            events, sensor_size=self.sensor_size, factor=self.factor_xy,
-            threshold=self.threshold, max_delay=self.max_delay,
-        )
-
-    def batch_kernel(self, batch: EventBatch) -> EventBatch:
-        """The kernel once on the stacked batch, with each recording's own stream bounds."""
-
-        def kernel(stacked: Stacked) -> Events:
-            return linear_estimation(
-                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
-                threshold=self.threshold, max_delay=self.max_delay,
-                bounds=(stacked.starts, stacked.ends),
-            )
-
-        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
+    method: ClassVar[Method] = _method(linear_estimation)
 
 
 @dataclass(frozen=True)
@@ -171,21 +157,4 @@ class CubicEstimation(_Estimation):
     lag: ClassVar[int] = 2
     solver: ClassVar[RegionSolver] = staticmethod(cubic_regions)
 
-    def kernel(self, events: Events) -> Events:
-        """Apply :func:`~evdown_torch.transforms.functional.cubic.cubic_estimation`."""
-        return cubic_estimation(
-            events, sensor_size=self.sensor_size, factor=self.factor_xy,
-            threshold=self.threshold, max_delay=self.max_delay,
-        )
-
-    def batch_kernel(self, batch: EventBatch) -> EventBatch:
-        """The kernel once on the stacked batch, with each recording's own stream bounds."""
-
-        def kernel(stacked: Stacked) -> Events:
-            return cubic_estimation(
-                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
-                threshold=self.threshold, max_delay=self.max_delay,
-                bounds=(stacked.starts, stacked.ends),
-            )
-
-        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
+    method: ClassVar[Method] = _method(cubic_estimation)

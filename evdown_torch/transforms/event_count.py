@@ -3,17 +3,36 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
-from evdown_torch.transforms._base import Session, ThresholdDownscaler
+from evdown_torch.transforms._base import Method, Session, ThresholdDownscaler
 from evdown_torch.transforms._batch import Stacked, run_stacked, sorted_within
 from evdown_torch.transforms.functional.event_count import (
-    EventCountState,
     event_count,
     event_count_batch,
-    event_count_sorted,
+    event_count_init,
+    event_count_step,
+    event_count_whole,
 )
+from evdown_torch.transforms.functional.settings import ThresholdSettings
+
+
+def _stacked(batch: EventBatch, settings: ThresholdSettings) -> EventBatch:
+    """The kernel once on the batch, with one block of regions per recording (recordings in
+    time order need no stacking: :func:`event_count_batch`)."""
+    grid = {"sensor_size": settings.sensor_size, "factor": settings.factor}
+    if sorted_within(batch.events.t, batch.lengths):
+        return EventBatch(*event_count_batch(batch.events, batch.lengths,
+                                             threshold=settings.threshold, **grid))
+
+    def kernel(stacked: Stacked) -> Events:
+        out, _ = event_count(stacked.events, threshold=settings.threshold,
+                             recordings=stacked.recordings, **grid)
+        return out
+
+    return run_stacked(batch, kernel, **grid)
 
 
 @dataclass(frozen=True)
@@ -38,45 +57,8 @@ class EventCount(ThresholdDownscaler):
         [[0, 0, 20, 1], [0, 0, 40, -1]]
     """
 
-    def kernel(self, events: Events) -> Events:
-        """Apply :func:`~evdown_torch.transforms.functional.event_count.event_count`."""
-        out, _ = event_count(
-            events, sensor_size=self.sensor_size, factor=self.factor_xy, threshold=self.threshold
-        )
-        return out
-
-    def batch_kernel(self, batch: EventBatch) -> EventBatch:
-        """The kernel once on the batch, with one block of regions per recording (recordings
-        in time order need no stacking: :func:`event_count_batch`)."""
-        if sorted_within(batch.events.t, batch.lengths):
-            return EventBatch(*event_count_batch(
-                batch.events, batch.lengths, sensor_size=self.sensor_size,
-                factor=self.factor_xy, threshold=self.threshold))
-
-        def kernel(stacked: Stacked) -> Events:
-            out, _ = event_count(
-                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
-                threshold=self.threshold, recordings=stacked.recordings,
-            )
-            return out
-
-        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
-
-    def stream(
-        self, events: Events, state: EventCountState | None
-    ) -> tuple[Events, EventCountState]:
-        """One chunk of a stream: causal, so every output is decided by its chunk.
-
-        The state (:class:`~evdown_torch.transforms.functional.event_count.EventCountState`)
-        holds each region's level sum and reference index.
-        """
-        return event_count_sorted(
-            events,
-            sensor_size=self.sensor_size,
-            factor=self.factor_xy,
-            threshold=self.threshold,
-            state=state,
-        )
+    method: ClassVar[Method] = Method(event_count_init, event_count_step,
+                                      whole=event_count_whole, stacked=_stacked)
 
 
 #: The EventCount session is the common :class:`~evdown_torch.transforms._base.Session`.

@@ -10,7 +10,7 @@ from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import check_positive_float
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, EventsLike, to_events
-from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms._base import Downscaler, Method
 from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.lif import lif_pooling
 from evdown_torch.transforms.functional.lif_settings import (
@@ -18,19 +18,33 @@ from evdown_torch.transforms.functional.lif_settings import (
     DEFAULT_TAU,
     DEFAULT_THRESHOLD,
     DEFAULT_WEIGHT,
+    LIFPoolingSettings,
     LIFSettings,
     ResetMechanism,
 )
-from evdown_torch.transforms.functional.lif_stream import (
-    LIFStreamState,
-    lif_pooling_stream,
-    lif_pooling_stream_end,
-)
+from evdown_torch.transforms.functional.lif_stream import lif_finish, lif_init, lif_step
 
 if TYPE_CHECKING:
     from evdown_torch.models.pooling import SpikingPooling
 
 __all__ = ["LIFPooling", "calibrate_weight"]
+
+
+def _lif_whole(events: Events, settings: LIFPoolingSettings) -> Events:
+    """The whole stream in one call: :func:`~evdown_torch.transforms.functional.lif.lif_pooling`."""
+    return lif_pooling(events, settings.neuron, sensor_size=settings.sensor_size,
+                       factor=settings.factor)
+
+
+def _lif_stacked(batch: EventBatch, settings: LIFPoolingSettings) -> EventBatch:
+    """The whole-stream kernel once on the stacked batch, each recording binned from its own
+    ``t_start`` and ending at its own ``t_end``."""
+
+    def kernel(stacked: Stacked) -> Events:
+        return lif_pooling(stacked.events, settings.neuron, sensor_size=settings.sensor_size,
+                           factor=settings.factor, bounds=(stacked.starts, stacked.ends))
+
+    return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
 
 
 @dataclass(frozen=True)
@@ -118,20 +132,29 @@ class LIFPooling(Downscaler):
     mutual_inhibition: float = 0.0
     reset_mechanism: ResetMechanism = "subtract"
 
+    method: ClassVar[Method] = Method(lif_init, lif_step, lif_finish, whole=_lif_whole,
+                                      stacked=_lif_stacked)
+
     def __post_init__(self) -> None:
         super().__post_init__()
-        settings = self.settings  # checks every setting
         for field in fields(LIFSettings):
             if field.name != "beta":
-                object.__setattr__(self, field.name, getattr(settings, field.name))
+                object.__setattr__(self, field.name, getattr(self.settings, field.name))
 
     @cached_property
-    def settings(self) -> LIFSettings:
-        """The neuron's settings, checked and normalised (shared with the kernels)."""
-        return LIFSettings(
+    def method_settings(self) -> LIFPoolingSettings:  # type: ignore[override]
+        """What the kernels take: the region geometry and :attr:`settings` (checked once)."""
+        neuron = LIFSettings(
             dt=self.dt, tau=self.tau, threshold=self.threshold, weight=self.weight,
             mutual_inhibition=self.mutual_inhibition, reset_mechanism=self.reset_mechanism,
         )
+        return LIFPoolingSettings(self.sensor_size, self.factor, neuron)  # type: ignore[arg-type]
+
+    @property
+    def settings(self) -> LIFSettings:  # type: ignore[override]
+        """The neuron's settings, checked and normalised (shared with the kernels and
+        :class:`~evdown_torch.models.SpikingPooling`)."""
+        return self.method_settings.neuron
 
     @property
     def beta(self) -> float:
@@ -149,40 +172,6 @@ class LIFPooling(Downscaler):
         from evdown_torch.models.pooling import SpikingPooling  # models build on transforms
 
         return SpikingPooling(self.factor_xy, **self.settings.neuron._asdict())
-
-    def kernel(self, events: Events) -> Events:
-        """Apply :func:`~evdown_torch.transforms.functional.lif.lif_pooling`."""
-        return lif_pooling(events, self.settings, sensor_size=self.sensor_size,
-                           factor=self.factor_xy)
-
-    def stream(
-        self, events: Events, state: LIFStreamState | None
-    ) -> tuple[Events, LIFStreamState | None]:
-        """One chunk of a stream: the spikes of the steps it closes, at their batch times.
-
-        A spike of step ``k`` is returned by the first chunk whose last timestamp is at least
-        ``t_start + (k + 1) * dt`` and lies in a later step; the rest come at the flush. The
-        state (:class:`~evdown_torch.transforms.functional.lif_stream.LIFStreamState`) holds
-        ``t_start``, every region's membranes at its last input and the input of the open
-        step. The output limit bounds each chunk's output.
-        """
-        return lif_pooling_stream(events, state, self.settings, sensor_size=self.sensor_size,
-                                  factor=self.factor_xy)
-
-    def stream_end(self, state: LIFStreamState | None) -> Events | None:
-        """The open step's spikes and the firing chains up to the end, clipped to ``t_end``."""
-        return lif_pooling_stream_end(state, self.settings, sensor_size=self.sensor_size,
-                                      factor=self.factor_xy)
-
-    def batch_kernel(self, batch: EventBatch) -> EventBatch:
-        """The kernel once on the stacked batch, each recording binned from its own
-        ``t_start`` and ending at its own ``t_end``."""
-
-        def kernel(stacked: Stacked) -> Events:
-            return lif_pooling(stacked.events, self.settings, sensor_size=self.sensor_size,
-                               factor=self.factor_xy, bounds=(stacked.starts, stacked.ends))
-
-        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
 
 
 #: How far below its target :func:`calibrate_weight` may end before it calls the target

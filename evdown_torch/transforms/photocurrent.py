@@ -3,29 +3,38 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import ClassVar
 
-from evdown_torch.checks import (
-    DEFAULT_TIME_UNIT,
-    check_non_negative_float,
-    check_positive_float,
-    check_time_unit,
-)
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
-from evdown_torch.transforms._base import Downscaler, Session
+from evdown_torch.transforms._base import Downscaler, Method, Session
 from evdown_torch.transforms._batch import Stacked, run_stacked
-from evdown_torch.transforms.functional.photocurrent import (
-    PhotocurrentState,
-    check_contrast_range,
-    photocurrent_events,
+from evdown_torch.transforms.functional.photocurrent import photocurrent_events
+from evdown_torch.transforms.functional.photocurrent_method import (
+    PhotocurrentSettings,
+    photocurrent_finish,
+    photocurrent_init,
+    photocurrent_step,
+    photocurrent_whole,
 )
-from evdown_torch.transforms.functional.photocurrent_frames import (
-    FrameClock,
-    FramesState,
-    frames_stream,
-    photocurrent_frames,
-)
+
+
+def _stacked(batch: EventBatch, settings: PhotocurrentSettings) -> EventBatch | None:
+    """Events mode: the kernel once on the stacked batch, one block of regions per
+    recording. The frames mode has no batched kernel (``None``: one by one)."""
+    if settings.fps is not None:
+        return None
+
+    def kernel(stacked: Stacked) -> Events:
+        out, _ = photocurrent_events(
+            stacked.events, sensor_size=settings.sensor_size, factor=settings.factor,
+            contrast=settings.contrast, threshold=settings.threshold,  # type: ignore[arg-type]
+            recordings=stacked.recordings,
+        )
+        return out
+
+    return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
 
 
 @dataclass(frozen=True)
@@ -84,100 +93,20 @@ class PhotocurrentPooling(Downscaler):
     #: The setting :func:`calibrate` searches to meet an event budget.
     budget_setting: ClassVar[str | None] = "threshold"
 
+    method: ClassVar[Method] = Method(photocurrent_init, photocurrent_step, photocurrent_finish,
+                                      whole=photocurrent_whole, stacked=_stacked)
+
     def __post_init__(self) -> None:
         super().__post_init__()
-        contrast = check_positive_float("contrast", self.contrast)
-        threshold = contrast if self.threshold is None else self.threshold
-        threshold = check_positive_float("threshold", threshold)
-        check_contrast_range(contrast, threshold)
-        object.__setattr__(self, "contrast", contrast)
-        object.__setattr__(self, "threshold", threshold)
-        cutoff = check_non_negative_float("cutoff_hz", self.cutoff_hz)
-        object.__setattr__(self, "cutoff_hz", cutoff)
-        if self.fps is None:
-            if cutoff > 0:
-                raise ValueError(f"cutoff_hz={cutoff!r} needs the frames mode: set fps")
-            if self.time_unit is not None:
-                raise ValueError(
-                    f"time_unit={self.time_unit!r} converts the frames mode's fps and cutoff_hz; "
-                    "the events mode (fps=None) has no rate to convert: set fps or leave "
-                    "time_unit out"
-                )
-            return
-        fps = check_positive_float("fps", self.fps)
-        time_unit = check_time_unit(
-            DEFAULT_TIME_UNIT if self.time_unit is None else self.time_unit
-        )
-        FrameClock.make(fps, 0, time_unit)
-        object.__setattr__(self, "fps", fps)
-        object.__setattr__(self, "time_unit", time_unit)
+        for name in ("contrast", "threshold", "fps", "cutoff_hz", "time_unit"):
+            object.__setattr__(self, name, getattr(self.settings, name))
 
-    def kernel(self, events: Events) -> Events:
-        """Apply the events-mode or frames-mode kernel of
-        :mod:`~evdown_torch.transforms.functional.photocurrent`."""
-        if self.fps is not None:
-            return photocurrent_frames(
-                events, sensor_size=self.sensor_size, factor=self.factor_xy,
-                contrast=self.contrast, threshold=self.threshold, fps=self.fps,
-                cutoff_hz=self.cutoff_hz, time_unit=self.time_unit,
-            )
-        out, _ = photocurrent_events(
-            events, sensor_size=self.sensor_size, factor=self.factor_xy,
-            contrast=self.contrast, threshold=self.threshold,
-        )
-        return out
-
-    def batch_kernel(self, batch: EventBatch) -> EventBatch | None:
-        """Events mode: the kernel once on the stacked batch, one block of regions per
-        recording. The frames mode has no batched kernel (``None``: one by one)."""
-        if self.fps is not None:
-            return None
-
-        def kernel(stacked: Stacked) -> Events:
-            out, _ = photocurrent_events(
-                stacked.events, sensor_size=self.sensor_size, factor=self.factor_xy,
-                contrast=self.contrast, threshold=self.threshold,
-                recordings=stacked.recordings,
-            )
-            return out
-
-        return run_stacked(batch, kernel, sensor_size=self.sensor_size, factor=self.factor_xy)
-
-    def stream(
-        self, events: Events, state: PhotocurrentState | FramesState | None
-    ) -> tuple[Events, PhotocurrentState | FramesState | None]:
-        """One chunk of a stream.
-
-        Events mode: causal, so every output is decided by its chunk; the state
-        (:class:`~evdown_torch.transforms.functional.photocurrent.PhotocurrentState`) holds
-        every pixel's integer level and every region's reference index. Frames mode: the
-        events of every frame complete so far (a frame is complete once a later event has
-        been seen; with a leak, in whole chunks of frames); the state
-        (:class:`~evdown_torch.transforms.functional.photocurrent_frames.FramesState`) also
-        holds the events of the frames still open.
-        """
-        if self.fps is not None:
-            return self._frames(events, state, final=False)
-        return photocurrent_events(
-            events, sensor_size=self.sensor_size, factor=self.factor_xy,
-            contrast=self.contrast, threshold=self.threshold, state=state,
-        )
-
-    def stream_end(self, state: PhotocurrentState | FramesState | None) -> Events | None:
-        """Frames mode: the frames still open, the last clipped to the stream's end (the
-        events mode leaves nothing: it is causal)."""
-        if self.fps is None or state is None:
-            return None
-        return self._frames(Events(*(column[:0] for column in state.pending)), state,
-                            final=True)[0]
-
-    def _frames(
-        self, events: Events, state: FramesState | None, *, final: bool
-    ) -> tuple[Events, FramesState | None]:
-        return frames_stream(
-            events, sensor_size=self.sensor_size, factor=self.factor_xy,
-            contrast=self.contrast, threshold=self.threshold, fps=self.fps,
-            cutoff_hz=self.cutoff_hz, time_unit=self.time_unit, state=state, final=final,
+    @cached_property
+    def settings(self) -> PhotocurrentSettings:  # type: ignore[override]
+        """The checked settings the kernels take (built once, in ``__post_init__``)."""
+        return PhotocurrentSettings(
+            self.sensor_size, self.factor, self.contrast,  # type: ignore[arg-type]
+            self.threshold, self.fps, self.cutoff_hz, self.time_unit,
         )
 
     def session(self) -> Session:

@@ -3,25 +3,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from functools import cached_property
+from typing import ClassVar
 
-from evdown_torch.checks import check_positive_float, check_sensor_size
-from evdown_torch.events import Events, EventsLike, from_events, to_events
-from evdown_torch.transforms._base import Streaming
-from evdown_torch.transforms.functional.funnelling import last_instant
-from evdown_torch.transforms.functional.temporal import temporal_funnelling
+from evdown_torch.transforms._base import Method, Streaming
+from evdown_torch.transforms.functional.temporal import (
+    TemporalSettings,
+    TemporalState,
+    temporal_init,
+    temporal_step,
+    temporal_whole,
+)
 
-
-class TemporalState(NamedTuple):
-    """State of a temporal funnelling stream between chunks.
-
-    Attributes:
-        t_start: the stream's first timestamp, origin of the bins.
-        last_bin: the distinct events kept in the latest bin so far (binned ``t``).
-    """
-
-    t_start: int | float
-    last_bin: Events
+__all__ = ["TemporalFunnelling", "TemporalState"]
 
 
 @dataclass(frozen=True)
@@ -51,30 +45,17 @@ class TemporalFunnelling(Streaming):
     dt: int | float
     sensor_size: tuple[int, int, int] | None = None
 
+    method: ClassVar[Method] = Method(temporal_init, temporal_step, whole=temporal_whole)
+
     def __post_init__(self) -> None:
-        check_positive_float("dt", self.dt)
-        if self.sensor_size is not None:
-            object.__setattr__(self, "sensor_size", check_sensor_size(self.sensor_size))
+        object.__setattr__(self, "sensor_size", self.settings.sensor_size)
+
+    @cached_property
+    def settings(self) -> TemporalSettings:
+        """The checked settings the kernels take (built once, in ``__post_init__``)."""
+        return TemporalSettings(self.dt, self.sensor_size)
 
     @property
     def output_sensor_size(self) -> tuple[int, int, int] | None:
         """The input sensor size: temporal funnelling does not move events in space."""
         return self.sensor_size
-
-    def __call__(self, events: EventsLike) -> EventsLike:
-        """Funnel events of any accepted kind; returns the same kind, sorted by ``t``."""
-        ev, fmt = to_events(events, self.sensor_size)
-        return from_events(temporal_funnelling(ev, dt=self.dt), fmt)
-
-    def stream(
-        self, events: Events, state: TemporalState | None
-    ) -> tuple[Events, TemporalState]:
-        """One chunk of a stream: bins from the stream's first timestamp; the repeats a later
-        chunk can make lie in the latest bin, whose kept events the state holds."""
-        if state is None:
-            t_start, seen = events.t[0].item(), None
-        else:
-            t_start, seen = state.t_start, state.last_bin
-        out = temporal_funnelling(events, dt=self.dt, t_start=t_start, seen=seen)
-        last_bin = last_instant(out, seen)
-        return out, TemporalState(t_start, last_bin)

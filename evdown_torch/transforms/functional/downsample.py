@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from evdown_torch._tensors import region_of, sort_by_time
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.settings import RegionSettings
 
-__all__ = ["downsample"]
+__all__ = ["downsample", "downsample_init", "downsample_step", "downsample_whole"]
 
 
 def downsample(events: Events, *, factor: tuple[int, int]) -> Events:
@@ -27,3 +28,21 @@ def downsample(events: Events, *, factor: tuple[int, int]) -> Events:
     events = sort_by_time(events)
     x, y = region_of(events, factor)
     return Events(x, y, events.t.clone(), events.p.clone())
+
+
+def downsample_init(settings: RegionSettings, events: Events) -> None:
+    """Downsample's ``init_state``: it keeps no state (every event is decided at once)."""
+    return None
+
+
+def downsample_step(
+    events: Events, state: None, settings: RegionSettings
+) -> tuple[Events, None]:
+    """Downsample's ``step``: one time-sorted chunk, every event decided by it."""
+    x, y = region_of(events, settings.factor)
+    return Events(x, y, events.t.clone(), events.p.clone()), None
+
+
+def downsample_whole(events: Events, settings: RegionSettings) -> Events:
+    """Downsample's whole-stream kernel (events in any order): :func:`downsample`."""
+    return downsample(events, factor=settings.factor)

@@ -22,6 +22,7 @@ their level until their next event, whose held knot comes after the next horizon
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -37,7 +38,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import output_size
+from evdown_torch.checks import check_positive_float, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
     Knots,
@@ -47,8 +48,19 @@ from evdown_torch.transforms.functional._knots import (
     estimate_window,
     hold_knots,
 )
+from evdown_torch.transforms.functional.settings import ThresholdSettings
 
-__all__ = ["Resume", "WindowState", "resume_steps", "window_end", "window_step"]
+__all__ = [
+    "EstimationSettings",
+    "Resume",
+    "WindowState",
+    "resume_steps",
+    "window_end",
+    "window_finish",
+    "window_init",
+    "window_kernel_step",
+    "window_step",
+]
 
 
 class Resume(NamedTuple):
@@ -172,6 +184,23 @@ def _trim(
     return Events(pixel - y * width, y, t, step > 0), step
 
 
+def _fresh_state(
+    events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+) -> WindowState:
+    """A stream's state before its first (time-sorted) chunk ``events``: no knot yet, every
+    pixel's last knot at ``t_start``, every region at reference index 0."""
+    device, t_dtype = events.t.device, events.t.dtype
+    width, height, _ = sensor_size
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    t_start = events.t[0]
+    return WindowState(
+        t_start, t_start, None, Events.empty(t_dtype, device),  # type: ignore[arg-type]
+        torch.zeros(0, dtype=torch.int64, device=device),
+        torch.full((width * height,), t_start.item(), dtype=t_dtype, device=device),
+        torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
+    )
+
+
 def window_step(
     events: Events,
     state: WindowState | None,
@@ -216,13 +245,7 @@ def window_step(
     width, height, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
     if state is None:
-        t_start = events.t[0]
-        state = WindowState(
-            t_start, t_start, None, Events.empty(t_dtype, device),  # type: ignore[arg-type]
-            torch.zeros(0, dtype=torch.int64, device=device),
-            torch.full((width * height,), t_start.item(), dtype=t_dtype, device=device),
-            torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
-        )
+        state = _fresh_state(events, sensor_size, factor)
     tau = events.t[-1]
     check_span(state.t_start, tau)  # before any time arithmetic
     pixel = events.y * width + events.x
@@ -295,3 +318,50 @@ def window_end(
         solve_regions=solve_regions, resume=Resume(cut, state.q),
     )
     return out.select(where_true(out.t >= cut))
+
+
+@dataclass(frozen=True)
+class EstimationSettings(ThresholdSettings):
+    """The estimators' settings: the threshold method's, the bounded delay and the curve.
+
+    Attributes:
+        max_delay: ``D`` in the stream's time unit, or ``None`` (the paper's method, whole
+            stream only).
+        lag: output up to ``tau - lag * D`` is decided by input up to ``tau``: 1 (linear)
+            or 2 (cubic).
+        solver: the curve's solver of one chunk of regions
+            (:func:`~evdown_torch.transforms.functional.linear.linear_regions` or
+            :func:`~evdown_torch.transforms.functional.cubic.cubic_regions`).
+    """
+
+    max_delay: float | None = None
+    lag: int = 1
+    solver: RegionSolver | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.max_delay is not None:
+            check_positive_float("max_delay", self.max_delay)
+
+
+def window_init(settings: EstimationSettings, events: Events) -> WindowState:
+    """The estimators' ``init_state`` (bounded delay): see :func:`_fresh_state`."""
+    return _fresh_state(events, settings.sensor_size, settings.factor)
+
+
+def window_kernel_step(
+    events: Events, state: WindowState, settings: EstimationSettings
+) -> tuple[Events, WindowState]:
+    """The estimators' ``step``: :func:`window_step` with the settings' delay and curve."""
+    return window_step(
+        events, state, sensor_size=settings.sensor_size, factor=settings.factor,
+        threshold=settings.threshold, max_delay=settings.max_delay,  # type: ignore[arg-type]
+        lag=settings.lag, solve_regions=settings.solver,  # type: ignore[arg-type]
+    )
+
+
+def window_finish(state: WindowState, settings: EstimationSettings) -> Events | None:
+    """The estimators' ``finish``: :func:`window_end`, the output from the last horizon on."""
+    return window_end(state, sensor_size=settings.sensor_size, factor=settings.factor,
+                      threshold=settings.threshold,
+                      solve_regions=settings.solver)  # type: ignore[arg-type]

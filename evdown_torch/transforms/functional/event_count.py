@@ -28,12 +28,16 @@ from evdown_torch.transforms.functional._reference import (
     step_crossings,
     threshold_fraction,
 )
+from evdown_torch.transforms.functional.settings import ThresholdSettings
 
 __all__ = [
     "EventCountState",
     "event_count",
     "event_count_batch",
+    "event_count_init",
     "event_count_sorted",
+    "event_count_step",
+    "event_count_whole",
     "initial_state",
 ]
 
@@ -136,6 +140,26 @@ def event_count_sorted(
         outputs.append(out)
         emitted += out.num_events
     return Events(*(torch.cat(columns) for columns in zip(*outputs))), state
+
+
+def event_count_init(settings: ThresholdSettings, events: Events) -> EventCountState:
+    """EventCount's ``init_state``: every region at level 0, reference index 0."""
+    return initial_state(settings.sensor_size, settings.factor, events.device)
+
+
+def event_count_step(
+    events: Events, state: EventCountState, settings: ThresholdSettings
+) -> tuple[Events, EventCountState]:
+    """EventCount's ``step``: causal, so every output is decided by its (time-sorted) chunk."""
+    return event_count_sorted(events, sensor_size=settings.sensor_size,
+                              factor=settings.factor, threshold=settings.threshold, state=state)
+
+
+def event_count_whole(events: Events, settings: ThresholdSettings) -> Events:
+    """The whole stream (any order): :func:`event_count`'s output."""
+    out, _ = event_count(events, sensor_size=settings.sensor_size, factor=settings.factor,
+                         threshold=settings.threshold)
+    return out
 
 
 def event_count_batch(

@@ -16,8 +16,18 @@ from evdown_torch._tensors import (
     where_true,
 )
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.settings import RegionSettings
 
-__all__ = ["drop_repeats", "event_funnelling", "funnel_batch", "funnel_sorted", "last_instant"]
+__all__ = [
+    "drop_repeats",
+    "event_funnelling",
+    "funnel_batch",
+    "funnel_init",
+    "funnel_sorted",
+    "funnel_step",
+    "funnel_whole",
+    "last_instant",
+]
 
 
 def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
@@ -75,6 +85,30 @@ def drop_repeats(events: Events, *, seen: Events | None = None) -> Events:
         for start, stop in zip(bounds[:-1], bounds[1:])
     ]
     return pieces[0] if len(pieces) == 1 else Events(*(torch.cat(c) for c in zip(*pieces)))
+
+
+def funnel_init(settings: RegionSettings, events: Events) -> Events | None:
+    """EventFunnelling's ``init_state``: no output yet (``None``)."""
+    return None
+
+
+def funnel_step(
+    events: Events, state: Events | None, settings: RegionSettings
+) -> tuple[Events, Events | None]:
+    """EventFunnelling's ``step``: one time-sorted chunk.
+
+    The state is the distinct output events at the latest timestamp so far: the only ones a
+    later chunk can repeat (a repeat shares ``t``), so repeats that straddle a chunk boundary
+    are still dropped.
+    """
+    width, height, _ = settings.output_sensor_size
+    out = funnel_sorted(events, settings.factor, seen=state, size=(width, height))
+    return out, last_instant(out, state)
+
+
+def funnel_whole(events: Events, settings: RegionSettings) -> Events:
+    """EventFunnelling's whole-stream kernel (events in any order): :func:`event_funnelling`."""
+    return event_funnelling(events, factor=settings.factor)
 
 
 def last_instant(events: Events, previous: Events | None) -> Events | None:

@@ -22,6 +22,7 @@ from evdown_torch.checks import (
     check_time_constant,
     check_unit_interval,
 )
+from evdown_torch.transforms.functional.settings import RegionSettings
 
 __all__ = [
     "DEFAULT_DT",
@@ -31,6 +32,7 @@ __all__ = [
     "DEFAULT_WEIGHT",
     "RESET_MECHANISMS",
     "LIFNeuron",
+    "LIFPoolingSettings",
     "LIFSettings",
     "ResetMechanism",
     "decay_factor",
@@ -153,3 +155,16 @@ class LIFSettings:
         return LIFNeuron(
             self.beta, self.threshold, self.weight, self.mutual_inhibition, self.reset_mechanism
         )
+
+
+@dataclass(frozen=True)
+class LIFPoolingSettings(RegionSettings):
+    """What the LIF pooling kernels take: the region geometry and the neuron's settings.
+
+    Attributes:
+        sensor_size, factor: as :class:`.settings.RegionSettings`.
+        neuron: the neuron's :class:`LIFSettings` (what ``LIFPooling.settings`` returns and
+            :class:`~evdown_torch.models.SpikingPooling` shares).
+    """
+
+    neuron: LIFSettings

@@ -40,9 +40,17 @@ from evdown_torch.transforms.functional.lif import (
     lif_spikes,
     spikes_to_events,
 )
+from evdown_torch.transforms.functional.lif_settings import LIFPoolingSettings
 from evdown_torch.transforms.functional.lif_steps import step_end_time, step_indices
 
-__all__ = ["LIFStreamState", "lif_pooling_stream", "lif_pooling_stream_end"]
+__all__ = [
+    "LIFStreamState",
+    "lif_finish",
+    "lif_init",
+    "lif_pooling_stream",
+    "lif_pooling_stream_end",
+    "lif_step",
+]
 
 
 class LIFStreamState(NamedTuple):
@@ -98,6 +106,18 @@ def _last_decided_step(
     return low
 
 
+def _fresh_state(
+    events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+) -> LIFStreamState:
+    """A stream's state before its first chunk ``events`` (time-sorted): ``t_start`` is its
+    first timestamp, every membrane at rest, no step decided, nothing pending."""
+    wo, ho, _ = output_size(sensor_size, factor)
+    return LIFStreamState(
+        events.t[0], events.t[0], initial_state(wo * ho, events.device), -1,
+        Events.empty(events.t.dtype, events.device),
+    )
+
+
 def lif_pooling_stream(
     events: Events,
     state: LIFStreamState | None,
@@ -140,11 +160,7 @@ def lif_pooling_stream(
         return Events.empty(events.t.dtype, events.device), state
     events = sort_by_time(events)
     if state is None:
-        wo, ho, _ = output_size(sensor_size, factor)
-        state = LIFStreamState(
-            events.t[0], events.t[-1], initial_state(wo * ho, events.device), -1,
-            Events.empty(events.t.dtype, events.device),
-        )
+        state = _fresh_state(events, sensor_size, factor)
     pending = Events(*(torch.cat(pair) for pair in zip(state.pending, events, strict=True)))
     dt = settings.dt
     steps, last_step, end_dt = step_indices(pending.t, dt, t_start=state.t_start)
@@ -198,3 +214,23 @@ def lif_pooling_stream_end(
     )
     t = step_end_time(spike_step, t_start=state.t_start, t_end=state.last_t, dt=end_dt)
     return spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
+
+
+def lif_init(settings: LIFPoolingSettings, events: Events) -> LIFStreamState:
+    """LIF pooling's ``init_state``: a stream whose first (time-sorted) chunk is ``events``."""
+    return _fresh_state(events, settings.sensor_size, settings.factor)
+
+
+def lif_step(
+    events: Events, state: LIFStreamState, settings: LIFPoolingSettings
+) -> tuple[Events, LIFStreamState]:
+    """LIF pooling's ``step``: :func:`lif_pooling_stream` on one chunk."""
+    out, new = lif_pooling_stream(events, state, settings.neuron,
+                                  sensor_size=settings.sensor_size, factor=settings.factor)
+    return out, new if new is not None else state
+
+
+def lif_finish(state: LIFStreamState, settings: LIFPoolingSettings) -> Events | None:
+    """LIF pooling's ``finish``: :func:`lif_pooling_stream_end`."""
+    return lif_pooling_stream_end(state, settings.neuron, sensor_size=settings.sensor_size,
+                                  factor=settings.factor)

@@ -185,6 +185,23 @@ class FramesState(NamedTuple):
     carry: dict
 
 
+def fresh_frames_state(
+    events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+) -> FramesState:
+    """A frames-mode stream's state before its first (time-sorted, non-empty) chunk
+    ``events``: frame 0 at its first timestamp, every pixel and region at rest."""
+    w, h, _ = sensor_size
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    device = events.device
+    carry = {"levels": torch.zeros(w * h, dtype=torch.int64, device=device),
+             "ell": torch.zeros(w * h, dtype=torch.float64, device=device),
+             "ell_time": 0.0,
+             "u": torch.zeros(out_w * out_h, dtype=torch.float64, device=device),
+             "q": torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
+             "emitted": 0}
+    return FramesState(events.t[0], Events.empty(events.t.dtype, device), 0, 0, carry)
+
+
 def frames_stream(
     events: Events,
     *,
@@ -219,31 +236,25 @@ def frames_stream(
     """
     check_contrast_range(contrast, threshold)
     events = sort_by_time(events)
-    seen = events.num_events + (state.seen if state is not None else 0)
-    if state is not None:
-        events = Events(*(torch.cat(pair) for pair in zip(state.pending, events, strict=True)))
+    if state is None:
+        if events.num_events == 0:
+            return Events.empty(events.t.dtype, events.device), None
+        state = fresh_frames_state(events, sensor_size, factor)
+    seen = events.num_events + state.seen
+    events = Events(*(torch.cat(pair) for pair in zip(state.pending, events, strict=True)))
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device), state
     check_level_range(seen, contrast, threshold)
     w, h, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
     device = events.device
-    t_start = events.t[0] if state is None else state.t_start
+    t_start = state.t_start
     offset = events.t - t_start
     clock = FrameClock.make(fps, offset[-1].item(), time_unit)
     frame = clock.index(offset)
-    if state is None:
-        carry = {"levels": torch.zeros(w * h, dtype=torch.int64, device=device),
-                 "ell": torch.zeros(w * h, dtype=torch.float64, device=device),
-                 "ell_time": 0.0,
-                 "u": torch.zeros(out_w * out_h, dtype=torch.float64, device=device),
-                 "q": torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
-                 "emitted": 0}
-        next_frame = 0
-    else:
-        carry = {key: value.clone() if isinstance(value, Tensor) else value
-                 for key, value in state.carry.items()}
-        next_frame = state.next_frame
+    carry = {key: value.clone() if isinstance(value, Tensor) else value
+             for key, value in state.carry.items()}
+    next_frame = state.next_frame
     # Frames before `stop` are processed: all of them at the end, else the complete ones
     # (before the latest event's frame), in whole leak chunks.
     stop = int(frame[-1]) + (1 if final else 0)  # frame[-1]: the first frame not before t

@@ -3,15 +3,26 @@
 from __future__ import annotations
 
 import numbers
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from evdown_torch._tensors import divide, sort_by_time
+from evdown_torch.checks import check_positive_float, check_sensor_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.funnelling import drop_repeats
+from evdown_torch.transforms.functional.funnelling import drop_repeats, last_instant
 
-__all__ = ["bin_start", "temporal_funnelling"]
+__all__ = [
+    "TemporalSettings",
+    "TemporalState",
+    "bin_start",
+    "temporal_funnelling",
+    "temporal_init",
+    "temporal_step",
+    "temporal_whole",
+]
 
 _INT64_MAX = torch.iinfo(torch.int64).max
 
@@ -98,3 +109,55 @@ def temporal_funnelling(
         t_start = events.t[0].item()
     binned = Events(events.x, events.y, bin_start(events.t, dt=dt, t_start=t_start), events.p)
     return drop_repeats(binned, seen=seen)
+
+
+@dataclass(frozen=True)
+class TemporalSettings:
+    """Temporal funnelling's settings, checked once.
+
+    Attributes:
+        dt: bin length in the stream's time unit, > 0 (a whole number for integer
+            timestamps, checked at call time).
+        sensor_size: ``(W, H, P)`` to check coordinates against, or ``None``.
+    """
+
+    dt: int | float
+    sensor_size: tuple[int, int, int] | None = None
+
+    def __post_init__(self) -> None:
+        check_positive_float("dt", self.dt)
+        if self.sensor_size is not None:
+            object.__setattr__(self, "sensor_size", check_sensor_size(self.sensor_size))
+
+
+class TemporalState(NamedTuple):
+    """State of a temporal funnelling stream between chunks.
+
+    Attributes:
+        t_start: the stream's first timestamp, origin of the bins.
+        last_bin: the distinct events kept in the latest bin so far (binned ``t``), ``None``
+            before any.
+    """
+
+    t_start: int | float
+    last_bin: Events | None
+
+
+def temporal_init(settings: TemporalSettings, events: Events) -> TemporalState:
+    """``init_state``: the bins start at the first chunk's first timestamp."""
+    return TemporalState(events.t[0].item(), None)
+
+
+def temporal_step(
+    events: Events, state: TemporalState, settings: TemporalSettings
+) -> tuple[Events, TemporalState]:
+    """``step``: one time-sorted chunk. The repeats a later chunk can make lie in the latest
+    bin, whose kept events the state holds."""
+    out = temporal_funnelling(events, dt=settings.dt, t_start=state.t_start,
+                              seen=state.last_bin)
+    return out, TemporalState(state.t_start, last_instant(out, state.last_bin))
+
+
+def temporal_whole(events: Events, settings: TemporalSettings) -> Events:
+    """The whole stream (any order): :func:`temporal_funnelling`."""
+    return temporal_funnelling(events, dt=settings.dt)
