@@ -141,6 +141,57 @@ class Streaming:
         ev, fmt = to_events(events, self.sensor_size)
         return from_events(self.kernel(ev), fmt)
 
+    @overload
+    def batch(self, recordings: EventBatch) -> EventBatch: ...
+
+    @overload
+    def batch(self, recordings: Sequence[EventsLike]) -> list[EventsLike]: ...
+
+    def batch(self, recordings):
+        """Downscale many recordings in one pass; each output equals the recording's own call.
+
+        The recordings go through the kernel together (``docs/semantics.md``: processing
+        several recordings in one batched call gives, for each, the same events as processing
+        it alone), which costs much less than one call per recording when they are small.
+        The frames mode of :class:`~evdown_torch.transforms.PhotocurrentPooling` and
+        :class:`~evdown_torch.transforms.thinning.ThinnedDownsample` (random draws seeded by
+        each recording) have no batched kernel and process the recordings one by one. The
+        output limit (:func:`evdown_torch.max_output_events`) applies to the batch as a
+        whole.
+
+        Args:
+            recordings: a sequence of recordings of any accepted kind (on one device, all
+                with integer or all with float timestamps), or an
+                :class:`~evdown_torch.collate.EventBatch`.
+
+        Returns:
+            A list with each recording's output in its own kind, dtype and polarity encoding;
+            an :class:`~evdown_torch.collate.EventBatch` (on the input's device) for an
+            :class:`~evdown_torch.collate.EventBatch`.
+
+        Example:
+            >>> import torch
+            >>> from evdown_torch import Downsample
+            >>> down = Downsample((4, 4, 2), factor=2)
+            >>> a, b = torch.tensor([[3, 1, 0, 1]]), torch.tensor([[2, 2, 5, 0], [0, 0, 6, 1]])
+            >>> [out.tolist() for out in down.batch([a, b])]
+            [[[1, 0, 0, 1]], [[1, 1, 5, 0], [0, 0, 6, 1]]]
+        """
+        if isinstance(recordings, EventBatch):
+            events, _ = to_events(recordings.events, self.sensor_size)
+            return self._batch_events(EventBatch(events, recordings.lengths))
+        batch, formats = to_batch(recordings, self.sensor_size)
+        return from_batch(self._batch_events(batch), formats)
+
+    def _batch_events(self, batch: EventBatch) -> EventBatch:
+        """:meth:`batch` on validated events."""
+        out = self.batch_kernel(batch)
+        if out is None:  # no batched kernel: one recording at a time
+            parts = [self.kernel(part) for part in batch.unbind()]
+            events = Events(*(torch.cat(columns) for columns in zip(*parts, strict=True)))
+            out = EventBatch(events, tuple(part.num_events for part in parts))
+        return out
+
     def session(self) -> Session:
         """Start a streaming session over consecutive chunks of one stream (see :class:`Session`).
 
@@ -288,57 +339,6 @@ class Downscaler(Streaming):
         """Output sensor size ``(ceil(W / fx), ceil(H / fy), P)``, for the next transform."""
         return self.method_settings.output_sensor_size
 
-    @overload
-    def batch(self, recordings: EventBatch) -> EventBatch: ...
-
-    @overload
-    def batch(self, recordings: Sequence[EventsLike]) -> list[EventsLike]: ...
-
-    def batch(self, recordings):
-        """Downscale many recordings in one pass; each output equals the recording's own call.
-
-        The recordings go through the kernel together (``docs/semantics.md``: processing
-        several recordings in one batched call gives, for each, the same events as processing
-        it alone), which costs much less than one call per recording when they are small.
-        The frames mode of :class:`~evdown_torch.transforms.PhotocurrentPooling` and
-        :class:`~evdown_torch.transforms.thinning.ThinnedDownsample` (random draws seeded by
-        each recording) have no batched kernel and process the recordings one by one. The
-        output limit (:func:`evdown_torch.max_output_events`) applies to the batch as a
-        whole.
-
-        Args:
-            recordings: a sequence of recordings of any accepted kind (on one device, all
-                with integer or all with float timestamps), or an
-                :class:`~evdown_torch.collate.EventBatch`.
-
-        Returns:
-            A list with each recording's output in its own kind, dtype and polarity encoding;
-            an :class:`~evdown_torch.collate.EventBatch` (on the input's device) for an
-            :class:`~evdown_torch.collate.EventBatch`.
-
-        Example:
-            >>> import torch
-            >>> from evdown_torch import Downsample
-            >>> down = Downsample((4, 4, 2), factor=2)
-            >>> a, b = torch.tensor([[3, 1, 0, 1]]), torch.tensor([[2, 2, 5, 0], [0, 0, 6, 1]])
-            >>> [out.tolist() for out in down.batch([a, b])]
-            [[[1, 0, 0, 1]], [[1, 1, 5, 0], [0, 0, 6, 1]]]
-        """
-        if isinstance(recordings, EventBatch):
-            events, _ = to_events(recordings.events, self.sensor_size)
-            return self._batch_events(EventBatch(events, recordings.lengths))
-        batch, formats = to_batch(recordings, self.sensor_size)
-        return from_batch(self._batch_events(batch), formats)
-
-    def _batch_events(self, batch: EventBatch) -> EventBatch:
-        """:meth:`batch` on validated events."""
-        out = self.batch_kernel(batch)
-        if out is None:  # no batched kernel: one recording at a time
-            parts = [self.kernel(part) for part in batch.unbind()]
-            events = Events(*(torch.cat(columns) for columns in zip(*parts, strict=True)))
-            out = EventBatch(events, tuple(part.num_events for part in parts))
-        return out
-
 
 @dataclass(frozen=True)
 class ThresholdDownscaler(Downscaler):
@@ -409,6 +409,14 @@ class Chain(Streaming):
     def sensor_size(self) -> tuple[int, int, int] | None:  # type: ignore[override]
         """The first stage's input sensor size."""
         return self.transforms[0].sensor_size
+
+    def kernel(self, events: Events) -> Events:
+        """Every stage's kernel in order; each stage checks its input as its call would."""
+        for i, transform in enumerate(self.transforms):
+            if i:
+                events, _ = to_events(events, transform.sensor_size)
+            events = transform.kernel(events)
+        return events
 
     def __call__(self, events: EventsLike) -> EventsLike:
         """Apply every stage in order; returns the input's kind."""
