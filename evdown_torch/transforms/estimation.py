@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from typing import ClassVar
@@ -10,40 +9,31 @@ from typing import ClassVar
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Method, Session, ThresholdDownscaler
-from evdown_torch.transforms._batch import Stacked, run_stacked
-from evdown_torch.transforms.functional._knots import RegionSolver
-from evdown_torch.transforms.functional.cubic import cubic_estimation, cubic_regions
+from evdown_torch.transforms._batch import run_stacked
+from evdown_torch.transforms.functional._knots import RegionSolver, estimate
+from evdown_torch.transforms.functional.cubic import cubic_regions
 from evdown_torch.transforms.functional.estimation_stream import (
     EstimationSettings,
-    window_finish,
+    window_end,
     window_init,
-    window_kernel_step,
+    window_step,
 )
-from evdown_torch.transforms.functional.linear import linear_estimation, linear_regions
+from evdown_torch.transforms.functional.linear import linear_regions
 
 
-def _method(whole_kernel: Callable[..., Events]) -> Method:
-    """An estimator's kernels: the bounded-delay window steps (the same for both curves, the
-    settings naming the curve) and the whole-stream kernel ``whole_kernel`` as fast path,
-    once per recording or once on the stacked batch with each recording's own bounds."""
+def _whole(events: Events, settings: EstimationSettings) -> Events:
+    """The whole stream (any order) in one call."""
+    return estimate(events, settings)
 
-    def whole(events: Events, settings: EstimationSettings) -> Events:
-        return whole_kernel(events, sensor_size=settings.sensor_size, factor=settings.factor,
-                            threshold=settings.threshold, max_delay=settings.max_delay)
 
-    def stacked(batch: EventBatch, settings: EstimationSettings) -> EventBatch:
-        def kernel(stacked: Stacked) -> Events:
-            return whole_kernel(
-                stacked.events, sensor_size=settings.sensor_size, factor=settings.factor,
-                threshold=settings.threshold, max_delay=settings.max_delay,
-                bounds=(stacked.starts, stacked.ends),
-            )
+def _stacked(batch: EventBatch, settings: EstimationSettings) -> EventBatch:
+    """The whole-stream kernel once on the stacked batch, with each recording's own bounds."""
+    return run_stacked(batch, lambda s: estimate(s.events, settings, bounds=(s.starts, s.ends)),
+                       sensor_size=settings.sensor_size, factor=settings.factor)
 
-        return run_stacked(batch, kernel, sensor_size=settings.sensor_size,
-                           factor=settings.factor)
 
-    return Method(window_init, window_kernel_step, window_finish, whole=whole,
-                  stacked=stacked)
+#: Both estimators' kernels: the settings name the curve (``solver``) and the delay.
+ESTIMATION = Method(window_init, window_step, window_end, whole=_whole, stacked=_stacked)
 
 
 @dataclass(frozen=True)
@@ -119,7 +109,7 @@ class LinearEstimation(_Estimation):
         [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 5, 1], [0, 0, 10, 1]]
     """
 
-    method: ClassVar[Method] = _method(linear_estimation)
+    method: ClassVar[Method] = ESTIMATION
 
 
 @dataclass(frozen=True)
@@ -157,4 +147,4 @@ class CubicEstimation(_Estimation):
     lag: ClassVar[int] = 2
     solver: ClassVar[RegionSolver] = staticmethod(cubic_regions)
 
-    method: ClassVar[Method] = _method(cubic_estimation)
+    method: ClassVar[Method] = ESTIMATION

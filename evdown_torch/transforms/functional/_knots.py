@@ -50,12 +50,12 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import MAX_EXACT_SPAN, check_time_span, output_size
+from evdown_torch.checks import MAX_EXACT_SPAN, check_time_span
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._reference import capped_threshold, threshold_fraction
 
 if TYPE_CHECKING:
-    from evdown_torch.transforms.functional.estimation_stream import Resume
+    from evdown_torch.transforms.functional.estimation_stream import EstimationSettings, Resume
 
 __all__ = [
     "HALF_TOLERANCE",
@@ -482,33 +482,23 @@ RegionSolver = Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]]
 
 
 def estimate(
-    events: Events,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    threshold: float,
-    solve_regions: RegionSolver,
-    bounds: tuple[Tensor, Tensor] | None = None,
-    max_delay: float | None = None,
+    events: Events, settings: EstimationSettings, *, bounds: tuple[Tensor, Tensor] | None = None
 ) -> Events:
     """The batch entry of the estimation kernels: the whole stream, then :func:`estimate_window`.
 
     Args:
         events: ``N`` input events (any order; sorted stably by ``t`` here).
-        sensor_size: input ``(W, H, P)``.
-        factor: ``(fx, fy)``.
-        threshold: contrast threshold, > 0.
-        solve_regions: ``solve_regions(knots, sensor_size=, factor=, fraction=, emitted=,
-            resume=, front_at_rest=)`` returns the crossings ``(region, t, on, breakpoint)``
-            of the regions of one chunk, in region order (``emitted``: events of the chunks
-            before, for the output limit; ``breakpoint``: the one ending each crossing's
-            piece; ``front_at_rest``: a bounded delay, see :func:`estimate_window`).
+        settings: the estimator's settings; its ``solver``, ``solver(knots, sensor_size=,
+            factor=, fraction=, emitted=, resume=, front_at_rest=)``, returns the crossings
+            ``(region, t, on, breakpoint)`` of the regions of one chunk, in region order
+            (``emitted``: events of the chunks before, for the output limit; ``breakpoint``:
+            the one ending each crossing's piece; ``front_at_rest``: a bounded delay, see
+            :func:`estimate_window`). With ``max_delay`` (:func:`hold_knots`) the pixels hold
+            their level until ``D`` before each knot; ``None`` is the paper's method.
         bounds: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
             ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
             :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps
             of each recording, its ``t_start`` and ``t_end``; ``None`` for one stream.
-        max_delay: the bounded delay ``D`` (:func:`hold_knots`), or ``None`` (the paper's
-            method).
 
     Returns:
         Output events sorted by ``t``, ``t`` of the input's dtype.
@@ -526,17 +516,14 @@ def estimate(
         t_start, t_end = bounds
     check_span(t_start, t_end)  # before any time arithmetic
     step = None
-    if max_delay is not None:
+    if settings.max_delay is not None:
         start = t_start
         if bounds is not None:  # each event's own recording's t_start
-            out_h = output_size(sensor_size, factor)[1]
-            start = take(t_start, divide(events.y, out_h * factor[1]))
-        events, step = hold_knots(events, max_delay=max_delay, t_start=start)
-    out, _ = estimate_window(
-        events, step=step, t_start=t_start, t_end=t_end, sensor_size=sensor_size,
-        factor=factor, threshold=threshold, solve_regions=solve_regions,
-        front_at_rest=max_delay is not None,
-    )
+            rows = settings.output_sensor_size[1] * settings.factor[1]
+            start = take(t_start, divide(events.y, rows))
+        events, step = hold_knots(events, max_delay=settings.max_delay, t_start=start)
+    out, _ = estimate_window(events, step=step, t_start=t_start, t_end=t_end, settings=settings,
+                             front_at_rest=settings.max_delay is not None)
     return out
 
 
@@ -546,10 +533,7 @@ def estimate_window(
     step: Tensor | None,
     t_start: Tensor,
     t_end: Tensor,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    threshold: float,
-    solve_regions: RegionSolver,
+    settings: EstimationSettings,
     resume: Resume | None = None,
     next_cut: Tensor | None = None,
     front_at_rest: bool = True,
@@ -566,7 +550,7 @@ def estimate_window(
         t_start: ``()`` first timestamp of the stream (its front knots), or ``(B,)`` those of
             a batch of stacked recordings (see :func:`estimate`).
         t_end: ``()`` last timestamp of the stream so far (the back knots), or ``(B,)``.
-        sensor_size, factor, threshold, solve_regions: as for :func:`estimate`.
+        settings: as for :func:`estimate` (its ``max_delay`` is not read here).
         resume: where a window picks up
             (:class:`~evdown_torch.transforms.functional.estimation_stream.Resume`), or
             ``None`` (from ``t_start``).
@@ -585,8 +569,9 @@ def estimate_window(
     # Every curve stays within its knots' levels, at most sum |step| in size (PCHIP is
     # shape-preserving; a window's first knot of a pixel carries its whole level).
     bound = n if step is None else int(step.abs().sum())
-    fraction = capped_threshold(threshold_fraction(threshold), bound)
-    out_w, out_h, _ = output_size(sensor_size, factor)
+    sensor_size, factor = settings.sensor_size, settings.factor
+    fraction = capped_threshold(threshold_fraction(settings.threshold), bound)
+    out_w, out_h, _ = settings.output_sensor_size
     q = None if resume is None else resume.q.clone()
     outputs = []
     emitted = 0
@@ -596,7 +581,7 @@ def estimate_window(
             recording = divide(chunk.region, out_w * out_h)
             start, end = take(t_start, recording), take(t_end, recording)
         knots = pixel_knots(chunk, factor=factor, t_start=start, t_end=end)
-        region, t, on, bp = solve_regions(knots, sensor_size=sensor_size, factor=factor,
+        region, t, on, bp = settings.solver(knots, sensor_size=sensor_size, factor=factor,
                                           fraction=fraction, emitted=emitted, resume=resume,
                                           front_at_rest=front_at_rest)
         outputs.append((region, t, on))

@@ -17,7 +17,11 @@ from evdown_torch.transforms.functional._knots import (
     region_pixels,
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
-from evdown_torch.transforms.functional.estimation_stream import Resume, resume_steps
+from evdown_torch.transforms.functional.estimation_stream import (
+    EstimationSettings,
+    Resume,
+    resume_steps,
+)
 
 __all__ = ["cubic_estimation", "cubic_regions", "pchip_slopes"]
 
@@ -363,10 +367,9 @@ def cubic_estimation(
         >>> out.t.tolist(), out.p.tolist()
         ([0, 0, 5, 10], [True, True, True, True])
     """
-    return estimate(
-        events, sensor_size=sensor_size, factor=factor, threshold=threshold,
-        solve_regions=cubic_regions, bounds=bounds, max_delay=max_delay,
-    )
+    settings = EstimationSettings(sensor_size, factor, threshold, max_delay,
+                                  solver=cubic_regions)
+    return estimate(events, settings, bounds=bounds)
 
 
 def cubic_regions(

@@ -56,9 +56,7 @@ __all__ = [
     "WindowState",
     "resume_steps",
     "window_end",
-    "window_finish",
     "window_init",
-    "window_kernel_step",
     "window_step",
 ]
 
@@ -184,142 +182,6 @@ def _trim(
     return Events(pixel - y * width, y, t, step > 0), step
 
 
-def _fresh_state(
-    events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int]
-) -> WindowState:
-    """A stream's state before its first (time-sorted) chunk ``events``: no knot yet, every
-    pixel's last knot at ``t_start``, every region at reference index 0."""
-    device, t_dtype = events.t.device, events.t.dtype
-    width, height, _ = sensor_size
-    out_w, out_h, _ = output_size(sensor_size, factor)
-    t_start = events.t[0]
-    return WindowState(
-        t_start, t_start, None, Events.empty(t_dtype, device),  # type: ignore[arg-type]
-        torch.zeros(0, dtype=torch.int64, device=device),
-        torch.full((width * height,), t_start.item(), dtype=t_dtype, device=device),
-        torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
-    )
-
-
-def window_step(
-    events: Events,
-    state: WindowState | None,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    threshold: float,
-    max_delay: float,
-    lag: int,
-    solve_regions: RegionSolver,
-) -> tuple[Events, WindowState]:
-    """One chunk of a bounded-delay stream: the output events earlier than ``tau - lag * D``
-    not returned yet (``tau``: the chunk's last timestamp), and the new state.
-
-    Args:
-        events: ``N >= 1`` events in stable time order, none earlier than the previous
-            chunk's last.
-        state: the state after the previous chunk, ``None`` for the first.
-        sensor_size, factor, threshold: the transform's settings.
-        max_delay: ``D`` (a whole number for int64 ``t``).
-        lag: 1 (linear) or 2 (cubic).
-        solve_regions: the method's region solver (see
-            :func:`~evdown_torch.transforms.functional._knots.estimate`).
-
-    Returns:
-        ``(output, state)``: output sorted by ``t``, ``t`` of the input's dtype.
-
-    Example:
-        Two pixels of one region (threshold 0.25); pixel (1, 0) holds 0 until ``10 - D``:
-
-        >>> from evdown_torch.transforms.functional.linear import linear_regions
-        >>> settings = dict(sensor_size=(2, 1, 2), factor=(2, 1), threshold=0.25,
-        ...                 solve_regions=linear_regions)
-        >>> out, state = window_step(Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1]), None,
-        ...                          max_delay=3, lag=1, **settings)
-        >>> out.t.tolist(), state.horizon  # decided: before 10 - 3
-        ([0, 0], 7)
-        >>> window_end(state, **settings).t.tolist()  # the ramp on [7, 10]
-        [9, 10]
-    """
-    device, t_dtype = events.t.device, events.t.dtype
-    width, height, _ = sensor_size
-    out_w, out_h, _ = output_size(sensor_size, factor)
-    if state is None:
-        state = _fresh_state(events, sensor_size, factor)
-    tau = events.t[-1]
-    check_span(state.t_start, tau)  # before any time arithmetic
-    pixel = events.y * width + events.x
-    new, new_step = hold_knots(events, max_delay=max_delay, t_start=take(state.pixel_t, pixel))
-    pixel_t = state.pixel_t.clone()
-    pixel_t.scatter_reduce_(0, pixel, events.t, "amax")
-    # Nothing is earlier than t_start: a horizon before it (a delay longer than the stream so
-    # far, up to 1e300) decides nothing, and held as t_start it stays an int64 / float time.
-    horizon = max(tau.item() - lag * effective_delay(max_delay, events.t), state.t_start.item())
-    if state.horizon is not None:
-        horizon = max(horizon, state.horizon)
-    cut = None if state.horizon is None else torch.tensor(state.horizon, dtype=t_dtype,
-                                                          device=device)
-
-    # The window: every knot event of the regions with something undecided.
-    touched = torch.zeros(out_w * out_h, dtype=torch.bool, device=device)
-    touched[_regions(new, factor, out_w)] = True
-    old_region = _regions(state.knots, factor, out_w)
-    if cut is not None:
-        touched[take(old_region, where_true(state.knots.t >= cut))] = True
-    in_window = take(touched, old_region)
-    window = _cat(state.knots.select(in_window), new)
-    steps = torch.cat([state.step[in_window], new_step.to(torch.int64)])
-    order = torch.sort(window.t, stable=True).indices
-    window, steps = window.select(order), take(steps, order)
-
-    next_cut = torch.tensor(horizon, dtype=t_dtype, device=device)
-    out, q = estimate_window(
-        window, step=steps, t_start=state.t_start, t_end=tau, sensor_size=sensor_size,
-        factor=factor, threshold=threshold, solve_regions=solve_regions,
-        resume=Resume(cut, state.q), next_cut=next_cut,
-    )
-    decided = out.t < next_cut
-    if cut is not None:
-        decided &= out.t >= cut
-    kept, kept_step = _trim(window, steps, before=next_cut, keep=lag, width=width)
-    outside = ~in_window
-    knots = _cat(state.knots.select(outside), kept)
-    step = torch.cat([state.step[outside], kept_step])
-    new_state = WindowState(state.t_start, tau, horizon, knots, step, pixel_t, q)  # type: ignore[arg-type]
-    return out.select(where_true(decided)), new_state
-
-
-def window_end(
-    state: WindowState,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    threshold: float,
-    solve_regions: RegionSolver,
-) -> Events | None:
-    """The output from the horizon to the end of the stream (its last timestamp).
-
-    Returns:
-        The remaining output events sorted by ``t``, or ``None`` when there are none.
-    """
-    out_w = output_size(sensor_size, factor)[0]
-    cut = torch.tensor(state.horizon, dtype=state.t_last.dtype, device=state.t_last.device)
-    region = _regions(state.knots, factor, out_w)
-    touched = torch.zeros_like(state.q, dtype=torch.bool)
-    touched[take(region, where_true(state.knots.t >= cut))] = True
-    in_window = where_true(take(touched, region))
-    if in_window.shape[0] == 0:
-        return None
-    window, step = state.knots.select(in_window), take(state.step, in_window)
-    order = torch.sort(window.t, stable=True).indices
-    out, _ = estimate_window(
-        window.select(order), step=take(step, order), t_start=state.t_start, t_end=state.t_last,
-        sensor_size=sensor_size, factor=factor, threshold=threshold,
-        solve_regions=solve_regions, resume=Resume(cut, state.q),
-    )
-    return out.select(where_true(out.t >= cut))
-
-
 @dataclass(frozen=True)
 class EstimationSettings(ThresholdSettings):
     """The estimators' settings: the threshold method's, the bounded delay and the curve.
@@ -345,23 +207,119 @@ class EstimationSettings(ThresholdSettings):
 
 
 def window_init(settings: EstimationSettings, events: Events) -> WindowState:
-    """The estimators' ``init_state`` (bounded delay): see :func:`_fresh_state`."""
-    return _fresh_state(events, settings.sensor_size, settings.factor)
-
-
-def window_kernel_step(
-    events: Events, state: WindowState, settings: EstimationSettings
-) -> tuple[Events, WindowState]:
-    """The estimators' ``step``: :func:`window_step` with the settings' delay and curve."""
-    return window_step(
-        events, state, sensor_size=settings.sensor_size, factor=settings.factor,
-        threshold=settings.threshold, max_delay=settings.max_delay,  # type: ignore[arg-type]
-        lag=settings.lag, solve_regions=settings.solver,  # type: ignore[arg-type]
+    """The estimators' ``init_state`` (bounded delay), before the first (time-sorted) chunk
+    ``events``: no knot yet, every pixel's last knot at ``t_start``, every region at
+    reference index 0."""
+    device, t_dtype = events.t.device, events.t.dtype
+    width, height, _ = settings.sensor_size
+    out_w, out_h, _ = settings.output_sensor_size
+    t_start = events.t[0]
+    return WindowState(
+        t_start, t_start, None, Events.empty(t_dtype, device),  # type: ignore[arg-type]
+        torch.zeros(0, dtype=torch.int64, device=device),
+        torch.full((width * height,), t_start.item(), dtype=t_dtype, device=device),
+        torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
     )
 
 
-def window_finish(state: WindowState, settings: EstimationSettings) -> Events | None:
-    """The estimators' ``finish``: :func:`window_end`, the output from the last horizon on."""
-    return window_end(state, sensor_size=settings.sensor_size, factor=settings.factor,
-                      threshold=settings.threshold,
-                      solve_regions=settings.solver)  # type: ignore[arg-type]
+def window_step(
+    events: Events, state: WindowState | None, settings: EstimationSettings
+) -> tuple[Events, WindowState]:
+    """One chunk of a bounded-delay stream: the output events earlier than ``tau - lag * D``
+    not returned yet (``tau``: the chunk's last timestamp), and the new state.
+
+    Args:
+        events: ``N >= 1`` events in stable time order, none earlier than the previous
+            chunk's last.
+        state: the state after the previous chunk, ``None`` for the first.
+        settings: the estimator's settings, ``max_delay`` set (a whole number for int64
+            ``t``).
+
+    Returns:
+        ``(output, state)``: output sorted by ``t``, ``t`` of the input's dtype.
+
+    Example:
+        Two pixels of one region (threshold 0.25); pixel (1, 0) holds 0 until ``10 - D``:
+
+        >>> from evdown_torch.transforms.functional.linear import linear_regions
+        >>> settings = EstimationSettings((2, 1, 2), (2, 1), 0.25, max_delay=3, lag=1,
+        ...                               solver=linear_regions)
+        >>> ev = Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1])
+        >>> out, state = window_step(ev, None, settings)
+        >>> out.t.tolist(), state.horizon  # decided: before 10 - 3
+        ([0, 0], 7)
+        >>> window_end(state, settings).t.tolist()  # the ramp on [7, 10]
+        [9, 10]
+    """
+    sensor_size, factor, max_delay = settings.sensor_size, settings.factor, settings.max_delay
+    device, t_dtype = events.t.device, events.t.dtype
+    width = sensor_size[0]
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    if state is None:
+        state = window_init(settings, events)
+    tau = events.t[-1]
+    check_span(state.t_start, tau)  # before any time arithmetic
+    pixel = events.y * width + events.x
+    new, new_step = hold_knots(events, max_delay=max_delay,  # type: ignore[arg-type]
+                               t_start=take(state.pixel_t, pixel))
+    pixel_t = state.pixel_t.clone()
+    pixel_t.scatter_reduce_(0, pixel, events.t, "amax")
+    # Nothing is earlier than t_start: a horizon before it (a delay longer than the stream so
+    # far, up to 1e300) decides nothing, and held as t_start it stays an int64 / float time.
+    horizon = max(tau.item() - settings.lag * effective_delay(max_delay, events.t),  # type: ignore[arg-type]
+                  state.t_start.item())
+    if state.horizon is not None:
+        horizon = max(horizon, state.horizon)
+    cut = None if state.horizon is None else torch.tensor(state.horizon, dtype=t_dtype,
+                                                          device=device)
+
+    # The window: every knot event of the regions with something undecided.
+    touched = torch.zeros(out_w * out_h, dtype=torch.bool, device=device)
+    touched[_regions(new, factor, out_w)] = True
+    old_region = _regions(state.knots, factor, out_w)
+    if cut is not None:
+        touched[take(old_region, where_true(state.knots.t >= cut))] = True
+    in_window = take(touched, old_region)
+    window = _cat(state.knots.select(in_window), new)
+    steps = torch.cat([state.step[in_window], new_step.to(torch.int64)])
+    order = torch.sort(window.t, stable=True).indices
+    window, steps = window.select(order), take(steps, order)
+
+    next_cut = torch.tensor(horizon, dtype=t_dtype, device=device)
+    out, q = estimate_window(
+        window, step=steps, t_start=state.t_start, t_end=tau, settings=settings,
+        resume=Resume(cut, state.q), next_cut=next_cut,
+    )
+    decided = out.t < next_cut
+    if cut is not None:
+        decided &= out.t >= cut
+    kept, kept_step = _trim(window, steps, before=next_cut, keep=settings.lag, width=width)
+    outside = ~in_window
+    knots = _cat(state.knots.select(outside), kept)
+    step = torch.cat([state.step[outside], kept_step])
+    new_state = WindowState(state.t_start, tau, horizon, knots, step, pixel_t, q)  # type: ignore[arg-type]
+    return out.select(where_true(decided)), new_state
+
+
+def window_end(state: WindowState, settings: EstimationSettings) -> Events | None:
+    """The output from the horizon to the end of the stream (its last timestamp).
+
+    Returns:
+        The remaining output events sorted by ``t``, or ``None`` when there are none.
+    """
+    factor = settings.factor
+    out_w = settings.output_sensor_size[0]
+    cut = torch.tensor(state.horizon, dtype=state.t_last.dtype, device=state.t_last.device)
+    region = _regions(state.knots, factor, out_w)
+    touched = torch.zeros_like(state.q, dtype=torch.bool)
+    touched[take(region, where_true(state.knots.t >= cut))] = True
+    in_window = where_true(take(touched, region))
+    if in_window.shape[0] == 0:
+        return None
+    window, step = state.knots.select(in_window), take(state.step, in_window)
+    order = torch.sort(window.t, stable=True).indices
+    out, _ = estimate_window(
+        window.select(order), step=take(step, order), t_start=state.t_start, t_end=state.t_last,
+        settings=settings, resume=Resume(cut, state.q),
+    )
+    return out.select(where_true(out.t >= cut))
