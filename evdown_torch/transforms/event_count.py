@@ -5,16 +5,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
+from evdown_torch._tensors import sort_by_time
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Method, Session, ThresholdDownscaler
 from evdown_torch.transforms._batch import Stacked, run_stacked, sorted_within
 from evdown_torch.transforms.functional.event_count import (
-    event_count,
     event_count_batch,
     event_count_init,
     event_count_step,
     event_count_whole,
+    initial_state,
 )
 from evdown_torch.transforms.functional.settings import ThresholdSettings
 
@@ -22,17 +23,16 @@ from evdown_torch.transforms.functional.settings import ThresholdSettings
 def _stacked(batch: EventBatch, settings: ThresholdSettings) -> EventBatch:
     """The kernel once on the batch, with one block of regions per recording (recordings in
     time order need no stacking: :func:`event_count_batch`)."""
-    grid = {"sensor_size": settings.sensor_size, "factor": settings.factor}
     if sorted_within(batch.events.t, batch.lengths):
-        return EventBatch(*event_count_batch(batch.events, batch.lengths,
-                                             threshold=settings.threshold, **grid))
+        return EventBatch(*event_count_batch(batch.events, batch.lengths, settings))
 
     def kernel(stacked: Stacked) -> Events:
-        out, _ = event_count(stacked.events, threshold=settings.threshold,
-                             recordings=stacked.recordings, **grid)
+        state = initial_state(settings.sensor_size, settings.factor, stacked.events.device,
+                              stacked.recordings)
+        out, _ = event_count_step(sort_by_time(stacked.events), state, settings)
         return out
 
-    return run_stacked(batch, kernel, **grid)
+    return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,6 @@ __all__ = [
     "event_count",
     "event_count_batch",
     "event_count_init",
-    "event_count_sorted",
     "event_count_step",
     "event_count_whole",
     "initial_state",
@@ -107,39 +106,10 @@ def event_count(
         >>> out.t.tolist(), out.p.tolist()
         ([2, 4], [True, False])
     """
-    return event_count_sorted(
-        sort_by_time(events), sensor_size=sensor_size, factor=factor, threshold=threshold,
-        state=state, recordings=recordings,
-    )
-
-
-def event_count_sorted(
-    events: Events,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    threshold: float,
-    state: EventCountState | None = None,
-    recordings: int = 1,
-) -> tuple[Events, EventCountState]:
-    """:func:`event_count` on events already in time order (a streaming session's chunk).
-
-    Args and returns as :func:`event_count`; ``events`` must be sorted by ``t``.
-    """
+    settings = ThresholdSettings(sensor_size, factor, threshold)
     if state is None:
         state = initial_state(sensor_size, factor, events.device, recordings)
-    bounds = chunk_bounds(events.t)
-    if len(bounds) == 2:
-        return _event_count_sorted(events, sensor_size, factor, threshold, state)
-    # A long stream goes through in chunks, exactly as a streaming session would.
-    outputs = []
-    emitted = 0
-    for start, stop in zip(bounds[:-1], bounds[1:]):
-        piece = Events(*(column[start:stop] for column in events))
-        out, state = _event_count_sorted(piece, sensor_size, factor, threshold, state, emitted)
-        outputs.append(out)
-        emitted += out.num_events
-    return Events(*(torch.cat(columns) for columns in zip(*outputs))), state
+    return event_count_step(sort_by_time(events), state, settings)
 
 
 def event_count_init(settings: ThresholdSettings, events: Events) -> EventCountState:
@@ -150,25 +120,34 @@ def event_count_init(settings: ThresholdSettings, events: Events) -> EventCountS
 def event_count_step(
     events: Events, state: EventCountState, settings: ThresholdSettings
 ) -> tuple[Events, EventCountState]:
-    """EventCount's ``step``: causal, so every output is decided by its (time-sorted) chunk."""
-    return event_count_sorted(events, sensor_size=settings.sensor_size,
-                              factor=settings.factor, threshold=settings.threshold, state=state)
+    """EventCount's ``step``: causal, so every output is decided by its (time-sorted) chunk.
+
+    Args and returns as :func:`event_count`, the settings checked and ``events`` sorted by
+    ``t``.
+    """
+    bounds = chunk_bounds(events.t)
+    if len(bounds) == 2:
+        return _event_count_sorted(events, settings, state)
+    # A long stream goes through in chunks, exactly as a streaming session would.
+    outputs = []
+    emitted = 0
+    for start, stop in zip(bounds[:-1], bounds[1:]):
+        piece = Events(*(column[start:stop] for column in events))
+        out, state = _event_count_sorted(piece, settings, state, emitted)
+        outputs.append(out)
+        emitted += out.num_events
+    return Events(*(torch.cat(columns) for columns in zip(*outputs))), state
 
 
 def event_count_whole(events: Events, settings: ThresholdSettings) -> Events:
-    """The whole stream (any order): :func:`event_count`'s output."""
-    out, _ = event_count(events, sensor_size=settings.sensor_size, factor=settings.factor,
-                         threshold=settings.threshold)
+    """The whole stream (any order)."""
+    state = initial_state(settings.sensor_size, settings.factor, events.device)
+    out, _ = event_count_step(sort_by_time(events), state, settings)
     return out
 
 
 def event_count_batch(
-    events: Events,
-    lengths: tuple[int, ...],
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    threshold: float,
+    events: Events, lengths: tuple[int, ...], settings: ThresholdSettings
 ) -> tuple[Events, tuple[int, ...]]:
     """:func:`event_count` of each of a batch of recordings, each in time order, in one pass.
 
@@ -181,7 +160,7 @@ def event_count_batch(
         events: the recordings' events concatenated, recording 0 first, each recording sorted
             by ``t`` (:func:`~evdown_torch.transforms._batch.sorted_within`).
         lengths: number of events of each recording.
-        sensor_size, factor, threshold: as :func:`event_count`.
+        settings: the method's settings.
 
     Returns:
         ``(outputs, output count of each recording)``: each recording's :func:`event_count`
@@ -189,12 +168,12 @@ def event_count_batch(
 
     Example:
         >>> ev = Events.from_columns([0, 1, 0, 1], [0, 0, 0, 1], [1, 2, 1, 2], [1, 1, 1, 1])
-        >>> out, counts = event_count_batch(ev, (2, 2), sensor_size=(2, 2, 2), factor=(2, 2),
-        ...                                 threshold=0.5)
+        >>> out, counts = event_count_batch(ev, (2, 2), ThresholdSettings((2, 2, 2), 2, 0.5))
         >>> out.t.tolist(), counts
         ([2, 2], (1, 1))
     """
     device = events.device
+    sensor_size, factor = settings.sensor_size, settings.factor
     recordings = len(lengths)
     state = initial_state(sensor_size, factor, device, recordings)
     out_w, out_h, _ = output_size(sensor_size, factor)
@@ -209,7 +188,7 @@ def event_count_batch(
     emitted = 0
     for start, stop in zip(bounds[:-1], bounds[1:]):
         piece = Events(*(column[start:stop] for column in events))
-        out, state = _event_count_sorted(piece, sensor_size, factor, threshold, state, emitted,
+        out, state = _event_count_sorted(piece, settings, state, emitted,
                                          blocks=blocks[start:stop])
         outputs.append(out)
         emitted += out.num_events
@@ -233,9 +212,7 @@ def _region_dtype(sensor_size: tuple[int, int, int], factor: tuple[int, int],
 
 def _event_count_sorted(
     events: Events,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    threshold: float,
+    settings: ThresholdSettings,
     state: EventCountState,
     emitted: int = 0,
     blocks: Tensor | None = None,
@@ -255,9 +232,10 @@ def _event_count_sorted(
         return Events.empty(events.t.dtype, device), state
     # No |M_r| can exceed the level sums it starts from plus one per event.
     bound = int(state.level_sum.abs().max()) + n if state.level_sum.numel() else n
-    fraction = capped_threshold(threshold_fraction(threshold), bound)
+    fraction = capped_threshold(threshold_fraction(settings.threshold), bound)
     a, b = fraction.numerator, fraction.denominator
-    out_w, _, _ = output_size(sensor_size, factor)
+    sensor_size, factor = settings.sensor_size, settings.factor
+    out_w, _, _ = settings.output_sensor_size
     regions = state.level_sum.shape[0]  # Ho * Wo per stacked recording
     pixels = region_pixel_count(torch.arange(regions, device=device), sensor_size, factor)
     most = int(pixels.max())
