@@ -12,12 +12,12 @@ from evdown_torch.transforms._base import Downscaler, Method, Session
 from evdown_torch.transforms._batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.photocurrent import photocurrent_events
 from evdown_torch.transforms.functional.photocurrent_method import (
-    PhotocurrentSettings,
     photocurrent_finish,
     photocurrent_init,
     photocurrent_step,
     photocurrent_whole,
 )
+from evdown_torch.transforms.functional.photocurrent_settings import PhotocurrentSettings
 
 
 def _stacked(batch: EventBatch, settings: PhotocurrentSettings) -> EventBatch | None:

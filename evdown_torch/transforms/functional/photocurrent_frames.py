@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from fractions import Fraction
 from typing import NamedTuple
 
 import torch
@@ -34,7 +33,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import DEFAULT_TIME_UNIT, output_limit, output_size, time_unit_fraction
+from evdown_torch.checks import DEFAULT_TIME_UNIT, output_limit, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import HALF_TOLERANCE, emit
 from evdown_torch.transforms.functional._reference import (
@@ -43,12 +42,15 @@ from evdown_torch.transforms.functional._reference import (
     reference_index,
 )
 from evdown_torch.transforms.functional.photocurrent import (
-    check_contrast_range,
     check_level_range,
     log_mean_exp,
     pixel_levels,
     region_pixels,
     snap,
+)
+from evdown_torch.transforms.functional.photocurrent_settings import (
+    FrameClock,
+    PhotocurrentSettings,
 )
 
 #: Frame values per chunk (pixels x frames with a leak, region pixels x steps without one).
@@ -56,64 +58,6 @@ CHUNK_VALUES = 1 << 22
 
 Steps = Iterator[tuple[Tensor, Tensor, Tensor, Tensor]]
 
-
-
-class FrameClock(NamedTuple):
-    """Frame times of a stream: frame ``k`` at offset ``min(k * period, duration)`` from
-    ``t_start`` (ticks: timestamp units), ``period = denominator / numerator`` exactly.
-
-    Attributes:
-        numerator: ``a * c`` for ``fps = a / b`` (``fps`` as the nearest fraction,
-            ``b <= 10**6``) and ``time_unit = c / d`` seconds per tick
-            (:func:`~evdown_torch.checks.time_unit_fraction`).
-        denominator: ``b * d`` (so ``numerator / denominator`` frames per tick).
-        duration: ``t_end - t_start`` as a float (ticks).
-        tick: ``time_unit`` as the fraction ``c / d``, for frequencies in hertz.
-    """
-
-    numerator: int
-    denominator: int
-    duration: float
-    tick: Fraction = Fraction(1, 10**6)
-
-    @staticmethod
-    def make(
-        fps: float, duration: float | int, time_unit: float = DEFAULT_TIME_UNIT
-    ) -> FrameClock:
-        """The clock of a stream lasting ``duration`` ticks of ``time_unit`` seconds at
-        ``fps`` frames per second."""
-        fraction = Fraction(fps).limit_denominator(10**6)
-        if fraction <= 0:
-            raise ValueError(f"fps must be at least 1e-6 frames per second, got {fps!r}")
-        tick = time_unit_fraction(time_unit)
-        numerator = fraction.numerator * tick.numerator
-        if duration * numerator >= 2**62:
-            raise ValueError(
-                f"fps={fps!r} over a stream of {duration} ticks of {time_unit!r} s gives frame "
-                "indices beyond int64's exact range"
-            )
-        return FrameClock(numerator, fraction.denominator * tick.denominator, float(duration),
-                          tick)
-
-    def radians_per_tick(self, hz: float) -> float:
-        """The angular frequency ``2 pi hz`` per tick (``hz`` per second)."""
-        return 2 * math.pi * hz * self.tick.numerator / self.tick.denominator
-
-    @property
-    def period(self) -> float:
-        """Frame period in ticks."""
-        return self.denominator / self.numerator
-
-    def index(self, offset: Tensor) -> Tensor:
-        """int64 index of the first frame at or after each ``offset`` (the frame holding it)."""
-        if offset.is_floating_point():
-            return torch.ceil(offset * (self.numerator / self.denominator)).to(torch.int64)
-        scaled = offset * -self.numerator
-        return -torch.div(scaled, self.denominator, rounding_mode="floor")
-
-    def time(self, k: Tensor) -> Tensor:
-        """float64 offset of frames ``k`` from ``t_start`` (frame -1 is at 0 too)."""
-        return (k.to(torch.float64) * self.period).clamp_(0.0, self.duration)
 
 
 def photocurrent_frames(
@@ -161,9 +105,9 @@ def photocurrent_frames(
         >>> out.t.tolist(), out.p.tolist()
         ([2000], [True])
     """
-    return frames_stream(events, sensor_size=sensor_size, factor=factor, contrast=contrast,
-                         threshold=threshold, fps=fps, cutoff_hz=cutoff_hz,
-                         time_unit=time_unit, state=None, final=True)[0]
+    settings = PhotocurrentSettings(sensor_size, factor, contrast, threshold, fps, cutoff_hz,
+                                    time_unit)
+    return frames_stream(events, None, settings, final=True)[0]
 
 
 class FramesState(NamedTuple):
@@ -203,17 +147,7 @@ def fresh_frames_state(
 
 
 def frames_stream(
-    events: Events,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    contrast: float,
-    threshold: float,
-    fps: float,
-    cutoff_hz: float,
-    state: FramesState | None,
-    final: bool,
-    time_unit: float = DEFAULT_TIME_UNIT,
+    events: Events, state: FramesState | None, settings: PhotocurrentSettings, *, final: bool
 ) -> tuple[Events, FramesState | None]:
     """Frames mode on one chunk of a stream: the events of every frame complete so far.
 
@@ -226,15 +160,16 @@ def frames_stream(
 
     Args:
         events: the chunk (time-sorted, at or after every earlier chunk's events; may be empty).
-        sensor_size, factor, contrast, threshold, fps, cutoff_hz, time_unit: as for
-            :func:`photocurrent_frames`.
         state: the state returned for the previous chunk, or ``None``.
+        settings: the frames mode's settings (``fps`` set).
         final: the chunk ends the stream.
 
     Returns:
         ``(output events sorted by t, state)``.
     """
-    check_contrast_range(contrast, threshold)
+    sensor_size, factor = settings.sensor_size, settings.factor
+    contrast, threshold = settings.contrast, settings.threshold
+    fps, cutoff_hz = settings.fps, settings.cutoff_hz
     events = sort_by_time(events)
     if state is None:
         if events.num_events == 0:
@@ -250,7 +185,7 @@ def frames_stream(
     device = events.device
     t_start = state.t_start
     offset = events.t - t_start
-    clock = FrameClock.make(fps, offset[-1].item(), time_unit)
+    clock = FrameClock.make(fps, offset[-1].item(), settings.time_unit)
     frame = clock.index(offset)
     carry = {key: value.clone() if isinstance(value, Tensor) else value
              for key, value in state.carry.items()}
