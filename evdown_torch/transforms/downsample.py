@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -24,25 +25,34 @@ from evdown_torch.transforms.functional.funnelling import (
 from evdown_torch.transforms.functional.settings import RegionSettings
 
 
-def _downsample_stacked(batch: EventBatch, settings: RegionSettings) -> EventBatch:
-    """Events do not interact: recordings in time order need only the division."""
+def _divided(batch: EventBatch, settings: RegionSettings) -> EventBatch:
+    """Events do not interact: recordings each in time order need only the division."""
     events = batch.events
-    if sorted_within(events.t, batch.lengths):
-        x, y = region_of(events, settings.factor)
-        return EventBatch(Events(x, y, events.t.clone(), events.p.clone()), batch.lengths)
-    return run_stacked(batch, lambda s: downsample_whole(s.events, settings),
-                       sensor_size=settings.sensor_size, factor=settings.factor)
+    x, y = region_of(events, settings.factor)
+    return EventBatch(Events(x, y, events.t.clone(), events.p.clone()), batch.lengths)
 
 
-def _funnel_stacked(batch: EventBatch, settings: RegionSettings) -> EventBatch:
-    """Recordings in time order go through :func:`funnel_batch` (no stacking); others
-    through the whole-stream kernel once on the stacked batch."""
-    if sorted_within(batch.events.t, batch.lengths):
-        width, height, _ = settings.output_sensor_size
-        return EventBatch(*funnel_batch(batch.events, batch.lengths, settings.factor,
-                                        (width, height)))
-    return run_stacked(batch, lambda s: funnel_whole(s.events, settings),
-                       sensor_size=settings.sensor_size, factor=settings.factor)
+def _funnelled(batch: EventBatch, settings: RegionSettings) -> EventBatch:
+    """Recordings each in time order go through :func:`funnel_batch` (no stacking)."""
+    width, height, _ = settings.output_sensor_size
+    return EventBatch(*funnel_batch(batch.events, batch.lengths, settings.factor,
+                                    (width, height)))
+
+
+def _stacked(
+    sorted_kernel: Callable[[EventBatch, RegionSettings], EventBatch],
+    whole: Callable[[Events, RegionSettings], Events],
+) -> Callable[[EventBatch, RegionSettings], EventBatch]:
+    """A batch kernel: ``sorted_kernel`` when every recording is in time order, else the
+    whole-stream kernel once on the stacked recordings."""
+
+    def stacked(batch: EventBatch, settings: RegionSettings) -> EventBatch:
+        if sorted_within(batch.events.t, batch.lengths):
+            return sorted_kernel(batch, settings)
+        return run_stacked(batch, lambda s: whole(s.events, settings),
+                           sensor_size=settings.sensor_size, factor=settings.factor)
+
+    return stacked
 
 
 @dataclass(frozen=True)
@@ -63,8 +73,8 @@ class Downsample(Downscaler):
         ([(1, 0, True, 0), (1, 0, False, 5)], (2, 2, 2))
     """
 
-    method: ClassVar[Method] = Method(downsample_init, downsample_step,
-                                      whole=downsample_whole, stacked=_downsample_stacked)
+    method: ClassVar[Method] = Method(downsample_init, downsample_step, whole=downsample_whole,
+                                      stacked=_stacked(_divided, downsample_whole))
 
 
 @dataclass(frozen=True)
@@ -84,4 +94,4 @@ class EventFunnelling(Downscaler):
     """
 
     method: ClassVar[Method] = Method(funnel_init, funnel_step, whole=funnel_whole,
-                                      stacked=_funnel_stacked)
+                                      stacked=_stacked(_funnelled, funnel_whole))

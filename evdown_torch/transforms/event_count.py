@@ -27,8 +27,7 @@ def _stacked(batch: EventBatch, settings: ThresholdSettings) -> EventBatch:
         return EventBatch(*event_count_batch(batch.events, batch.lengths, settings))
 
     def kernel(stacked: Stacked) -> Events:
-        state = initial_state(settings.sensor_size, settings.factor, stacked.events.device,
-                              stacked.recordings)
+        state = initial_state(settings, stacked.events.device, stacked.recordings)
         out, _ = event_count_step(sort_by_time(stacked.events), state, settings)
         return out
 

@@ -7,17 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch import (
-    CubicEstimation,
-    Downsample,
-    EventCount,
-    EventFunnelling,
-    Events,
-    LIFPooling,
-    LinearEstimation,
-    PhotocurrentPooling,
-    TemporalFunnelling,
-)
+import evdown_torch as ev
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import to_events
 from evdown_torch.transforms._base import Method, run_protocol
@@ -26,20 +16,20 @@ from tests.helpers import random_stream
 
 SENSOR = (9, 7, 2)
 
-METHODS = {
-    "downsample": Downsample(SENSOR, factor=2),
-    "funnelling": EventFunnelling(SENSOR, factor=(3, 2)),
-    "event_count": EventCount(SENSOR, factor=3, threshold=0.3),
-    "linear": LinearEstimation(SENSOR, factor=2, threshold=0.25, max_delay=6),
-    "cubic": CubicEstimation(SENSOR, factor=(3, 2), threshold=0.25, max_delay=4),
-    "temporal": TemporalFunnelling(dt=7, sensor_size=SENSOR),
-    "photocurrent": PhotocurrentPooling(SENSOR, factor=(2, 3), contrast=0.3, threshold=0.2),
-    "photocurrent_frames": PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, fps=1e5),
-    "lif": LIFPooling(SENSOR, factor=2, dt=7, tau=20.0, weight=0.6),
+METHODS = {  # the methods of test_streaming, and the estimators and frames mode
+    "downsample": ev.Downsample(SENSOR, factor=2),
+    "funnelling": ev.EventFunnelling(SENSOR, factor=(3, 2)),
+    "event_count": ev.EventCount(SENSOR, factor=3, threshold=0.3),
+    "linear": ev.LinearEstimation(SENSOR, factor=2, threshold=0.25, max_delay=6),
+    "cubic": ev.CubicEstimation(SENSOR, factor=(3, 2), threshold=0.25, max_delay=4),
+    "temporal": ev.TemporalFunnelling(dt=7, sensor_size=SENSOR),
+    "photocurrent": ev.PhotocurrentPooling(SENSOR, factor=(2, 3), contrast=0.3, threshold=0.2),
+    "photocurrent_frames": ev.PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, fps=1e5),
+    "lif": ev.LIFPooling(SENSOR, factor=2, dt=7, tau=20.0, weight=0.6),
 }
 
 
-def _same(a: Events, b: Events) -> bool:
+def _same(a: ev.Events, b: ev.Events) -> bool:
     return all(torch.equal(u, v) for u, v in zip(a, b, strict=True))
 
 
@@ -67,7 +57,7 @@ def test_the_whole_stream_fast_path_equals_the_protocol(name, seed):
 def test_the_stacked_fast_path_equals_one_protocol_run_per_recording(name, rng):
     transform = METHODS[name]
     parts = [to_events(random_stream(rng, n, SENSOR, t_max=40), SENSOR)[0] for n in (5, 0, 30)]
-    batch = EventBatch(Events(*(torch.cat(c) for c in zip(*parts, strict=True))),
+    batch = EventBatch(ev.Events(*(torch.cat(c) for c in zip(*parts, strict=True))),
                        tuple(p.num_events for p in parts))
     out = transform._batch_events(batch)
     expected = [run_protocol(type(transform).method, transform.method_settings, p)
@@ -85,17 +75,15 @@ def test_settings_are_checked_and_normalised_once_in_their_dataclass():
     with pytest.raises(ValueError, match="factor"):
         RegionSettings((4, 4, 2), 5)
     # A transform's settings are the dataclass its kernels take.
-    assert EventCount((4, 4, 2), 2, threshold=0.5).settings == ThresholdSettings((4, 4, 2),
+    assert ev.EventCount((4, 4, 2), 2, threshold=0.5).settings == ThresholdSettings((4, 4, 2),
                                                                                   (2, 2), 0.5)
 
 
 def test_a_chain_batch_equals_its_calls_and_checks_every_stage(rng):
-    from evdown_torch import Chain
-
-    chain = Chain(TemporalFunnelling(dt=5), EventCount(SENSOR, factor=2, threshold=0.5))
+    chain = ev.Chain(ev.TemporalFunnelling(dt=5), ev.EventCount(SENSOR, factor=2, threshold=0.5))
     recordings = [random_stream(rng, n, SENSOR, t_max=50) for n in (7, 0, 40)]
     for got, one in zip(chain.batch(recordings), recordings, strict=True):
         np.testing.assert_array_equal(got, chain(one))
-    too_small = Chain(Downsample(SENSOR, factor=1), EventCount((2, 2, 2), factor=1))
+    too_small = ev.Chain(ev.Downsample(SENSOR, factor=1), ev.EventCount((2, 2, 2), factor=1))
     with pytest.raises(ValueError):
         too_small.batch([random_stream(rng, 20, SENSOR)])

@@ -28,7 +28,7 @@ from evdown_torch.transforms.functional._reference import (
     step_crossings,
     threshold_fraction,
 )
-from evdown_torch.transforms.functional.settings import ThresholdSettings
+from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
 
 __all__ = [
     "EventCountState",
@@ -56,14 +56,11 @@ class EventCountState(NamedTuple):
 
 
 def initial_state(
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    device: torch.device | str | None = None,
-    recordings: int = 1,
+    settings: RegionSettings, device: torch.device | str | None = None, recordings: int = 1
 ) -> EventCountState:
     """A fresh state: every region (of each of ``recordings`` stacked recordings) at level 0
     with reference index 0."""
-    out_w, out_h, _ = output_size(sensor_size, factor)
+    out_w, out_h, _ = settings.output_sensor_size
     zeros = torch.zeros(out_w * out_h * recordings, dtype=torch.int64, device=device)
     return EventCountState(zeros, zeros.clone(), None)
 
@@ -108,13 +105,13 @@ def event_count(
     """
     settings = ThresholdSettings(sensor_size, factor, threshold)
     if state is None:
-        state = initial_state(sensor_size, factor, events.device, recordings)
+        state = initial_state(settings, events.device, recordings)
     return event_count_step(sort_by_time(events), state, settings)
 
 
 def event_count_init(settings: ThresholdSettings, events: Events) -> EventCountState:
     """EventCount's ``init_state``: every region at level 0, reference index 0."""
-    return initial_state(settings.sensor_size, settings.factor, events.device)
+    return initial_state(settings, events.device)
 
 
 def event_count_step(
@@ -141,7 +138,7 @@ def event_count_step(
 
 def event_count_whole(events: Events, settings: ThresholdSettings) -> Events:
     """The whole stream (any order)."""
-    state = initial_state(settings.sensor_size, settings.factor, events.device)
+    state = initial_state(settings, events.device)
     out, _ = event_count_step(sort_by_time(events), state, settings)
     return out
 
@@ -175,7 +172,7 @@ def event_count_batch(
     device = events.device
     sensor_size, factor = settings.sensor_size, settings.factor
     recordings = len(lengths)
-    state = initial_state(sensor_size, factor, device, recordings)
+    state = initial_state(settings, device, recordings)
     out_w, out_h, _ = output_size(sensor_size, factor)
     block_size = out_w * out_h
     narrow = _region_dtype(sensor_size, factor, block_size * recordings)
