@@ -81,16 +81,15 @@ class Downsample(Downscaler):
 class EventFunnelling(Downscaler):
     """Downsample, then drop every event equal in ``(x', y', t, p)`` to an earlier one.
 
-    Args:
-        sensor_size: input sensor size ``(W, H, P)``.
-        factor: a positive integer or a pair ``(fx, fy)``.
+    Args: as :class:`Downsample`.
 
     Example:
-        >>> import numpy as np
-        >>> dtype = np.dtype([("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", "<i8")])
-        >>> ev = np.array([(0, 0, True, 7), (1, 1, True, 7), (1, 1, False, 7)], dtype=dtype)
+        Pixels (0, 0) and (1, 1) fire ON at once: one ON event of region (0, 0) is kept.
+
+        >>> import torch
+        >>> ev = torch.tensor([[0, 0, 7, 1], [1, 1, 7, 1], [1, 1, 7, 0]])
         >>> EventFunnelling((4, 4, 2), factor=2)(ev).tolist()
-        [(0, 0, True, 7), (0, 0, False, 7)]
+        [[0, 0, 7, 1], [0, 0, 7, 0]]
     """
 
     method: ClassVar[Method] = Method(funnel_init, funnel_step, whole=funnel_whole,

@@ -203,10 +203,10 @@ def frames_stream(
     pending = Events(*(column[cut:] for column in events))
     new_state = FramesState(t_start, pending, seen, max(stop, next_frame), carry)
     if cutoff_hz > 0:
-        steps = _leaky_frame_steps(done, offset[:cut], frame[:cut], clock, sensor_size, factor,
-                                   contrast, threshold, cutoff_hz, (next_frame, stop), carry)
+        steps = _leaky_frame_steps(done, offset[:cut], frame[:cut], clock, settings,
+                                   (next_frame, stop), carry)
     elif cut:
-        steps = _frame_steps(done, frame[:cut], sensor_size, factor, contrast, threshold, carry)
+        steps = _frame_steps(done, frame[:cut], settings, carry)
     else:
         steps = iter(())
     outputs = []
@@ -237,17 +237,13 @@ def _log_photocurrent(
 
 
 def _frame_steps(
-    events: Events,
-    frame: Tensor,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    contrast: float,
-    threshold: float,
-    carry: dict,
+    events: Events, frame: Tensor, settings: PhotocurrentSettings, carry: dict
 ) -> Steps:
     """Without a leak: ``(region, frame, u, first)`` of every (region, frame) pair whose value
     changed (those following the region's events), region-major, in bounded batches.
     ``carry["levels"]`` holds the pixel levels before the events and gets those after."""
+    sensor_size, factor = settings.sensor_size, settings.factor
+    contrast, threshold = settings.contrast, settings.threshold
     w, h, _ = sensor_size
     out_w = output_size(sensor_size, factor)[0]
     per_region = factor[0] * factor[1]
@@ -317,11 +313,7 @@ def _leaky_frame_steps(
     offset: Tensor,
     frame: Tensor,
     clock: FrameClock,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    contrast: float,
-    threshold: float,
-    cutoff_hz: float,
+    settings: PhotocurrentSettings,
     frames: tuple[int, int],
     carry: dict,
 ) -> Steps:
@@ -329,6 +321,8 @@ def _leaky_frame_steps(
     ``range(*frames)`` (the first a multiple of :func:`leak_chunk`), built from dense frames in
     chunks of :func:`leak_chunk` frames. ``carry["ell"]`` and ``carry["ell_time"]`` hold every
     pixel's log intensity at the frame before and get those at the last frame."""
+    sensor_size, factor = settings.sensor_size, settings.factor
+    contrast, threshold, cutoff_hz = settings.contrast, settings.threshold, settings.cutoff_hz
     w, h, _ = sensor_size
     fx, fy = factor
     out_w, out_h, _ = output_size(sensor_size, factor)
