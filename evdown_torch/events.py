@@ -51,6 +51,7 @@ __all__ = [
     "TimestampPrecisionWarning",
     "from_events",
     "load_npy_events",
+    "polarity_sign",
     "to_events",
 ]
 
@@ -59,6 +60,20 @@ __all__ = [
 DVS_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", np.bool_), ("t", np.int64)])
 
 FIELDS = ("x", "y", "t", "p")
+
+def polarity_sign(p: Tensor, dtype: torch.dtype = torch.int8) -> Tensor:
+    """``+1`` for ON and ``-1`` for OFF, as a new tensor of ``dtype``: a level's change.
+
+    Args:
+        p: ``(N,)`` bool polarity (True: ON), as :class:`Events` holds it.
+        dtype: the result's dtype (any signed integer or float dtype).
+
+    Example:
+        >>> polarity_sign(torch.tensor([True, False])).tolist()
+        [1, -1]
+    """
+    return p.to(dtype).mul_(2).sub_(1)
+
 
 class TimestampPrecisionWarning(UserWarning):
     """Float timestamps too large for their dtype to tell consecutive microseconds apart."""
@@ -392,7 +407,7 @@ def from_events(events: Events, fmt: EventFormat) -> EventsLike:
     elif fmt.polarity == "binary":
         p = events.p.to(torch.int8)
     else:
-        p = events.p.to(torch.int8) * 2 - 1
+        p = polarity_sign(events.p)
     if fmt.kind == "tensor":
         columns = (events.x, events.y, events.t, p)
         dtype = cast(torch.dtype, fmt.dtype)

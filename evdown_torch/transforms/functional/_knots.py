@@ -51,7 +51,7 @@ from evdown_torch._tensors import (
     where_true,
 )
 from evdown_torch.checks import MAX_EXACT_SPAN, check_time_span
-from evdown_torch.events import Events
+from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional._reference import capped_threshold, threshold_fraction
 
 if TYPE_CHECKING:
@@ -166,7 +166,7 @@ def region_chunks(
     """
     fx, fy = factor
     if step is None:
-        step = events.p.to(torch.int8) * 2 - 1
+        step = polarity_sign(events.p)
     rx, ry = region_of(events, factor)
     region = ry * out_width + rx
     local = (events.y - ry * fy) * fx + (events.x - rx * fx)
@@ -448,7 +448,7 @@ def hold_knots(
         ([0, 1, 4, 7, 10], [0, 1, 1, 0, 0], [1, 0, -1, 0, 1])
     """
     delay = effective_delay(max_delay, events.t)
-    step = events.p.to(torch.int8) * 2 - 1
+    step = polarity_sign(events.p)
     n = events.num_events
     if n == 0:
         return events, step
@@ -588,7 +588,7 @@ def estimate_window(
         emitted += region.shape[0]
         if q is not None and next_cut is not None:
             decided = where_true(take(knots.bp_t, bp) < next_cut)
-            sign = take(on, decided).to(torch.int64) * 2 - 1
+            sign = polarity_sign(take(on, decided), torch.int64)
             q.index_add_(0, take(region, decided), sign)
     region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
     return emit(region, t, on, out_w), q

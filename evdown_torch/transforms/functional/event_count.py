@@ -22,7 +22,7 @@ from evdown_torch._tensors import (
     where_true,
 )
 from evdown_torch.checks import output_size
-from evdown_torch.events import Events
+from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional._reference import (
     capped_threshold,
     step_crossings,
@@ -263,7 +263,7 @@ def _event_count_sorted(
     # Level sum S of each region after each of its events: one running sum over the grouped
     # steps (ON +1, OFF -1), each region's first step raised by what brings the running sum
     # from the previous region's last S to this region's state.
-    step = take(events.p, order).to(dtype).mul_(2).sub_(1)
+    step = polarity_sign(take(events.p, order), dtype)
     total = torch.cumsum(step, 0, dtype=dtype)
     before = take(total, firsts) - take(step, firsts)  # running sum before each first step
     offset = take(state.level_sum, touched) - before

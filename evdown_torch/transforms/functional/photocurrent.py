@@ -45,7 +45,7 @@ from evdown_torch._tensors import (
     where_true,
 )
 from evdown_torch.checks import output_size
-from evdown_torch.events import Events
+from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional._reference import (
     SNAP,
     crossings,
@@ -179,7 +179,7 @@ def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> Pix
     """Exact level of its pixel after every event, starting from ``levels``."""
     pixel = events.y * width + events.x
     pixel, order = stable_sort_small(pixel, width * height)
-    step = take(events.p, order).to(torch.int64).mul_(2).sub_(1)
+    step = polarity_sign(take(events.p, order), torch.int64)
     new_pixel = changes(pixel)
     starts = where_true(new_pixel)
     n = pixel.shape[0]
@@ -353,7 +353,7 @@ def _events_piece(
         first, rank = take(first, kept), take(rank, kept)
         new_levels = state.level.clone()
         new_levels.index_add_(0, events.y[:used] * w + events.x[:used],
-                              events.p[:used].to(torch.int64).mul_(2).sub_(1))
+                              polarity_sign(events.p[:used], torch.int64))
         events = Events(*(column[:used] for column in events))
         n = used
         firsts = where_true(first)

@@ -34,7 +34,7 @@ from evdown_torch._tensors import (
     where_true,
 )
 from evdown_torch.checks import DEFAULT_TIME_UNIT, output_limit, output_size
-from evdown_torch.events import Events
+from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional._knots import HALF_TOLERANCE, emit
 from evdown_torch.transforms.functional._reference import (
     crossings,
@@ -330,7 +330,7 @@ def _leaky_frame_steps(
     omega = clock.radians_per_tick(cutoff_hz)
     per_chunk = leak_chunk(sensor_size, clock, cutoff_hz)
     pixel = events.y * w + events.x
-    sign = events.p.to(torch.float64).mul_(2 * contrast).sub_(contrast)
+    sign = polarity_sign(events.p, torch.float64).mul_(contrast)
     offset = offset.to(torch.float64)
     regions = torch.arange(out_w * out_h, device=device)
     log_pixels = region_pixel_count(regions, sensor_size, factor).to(torch.float64).log_()
