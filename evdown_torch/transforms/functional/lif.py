@@ -433,9 +433,7 @@ def lif_spikes(
         certain = certain_spikes(cell_step, current, region_first, region_index,
                                  cells_per_region, gap_after, rounds=rounds, leak=leak)
     if certain is not None:
-        spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = certain
-        spike_step = cell_step.index_select(0, spike_cell)
-        membrane = None
+        spikes, membrane = certain, None
     else:
         gap_before = torch.empty_like(gap_after)
         gap_before[1:] = gap_after[:-1]
@@ -444,10 +442,10 @@ def lif_spikes(
             current, gap_before, region_first, region_index, cells_per_region, rounds=rounds,
             leak=leak,
         )
-        spike_step, spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = (
-            spikes_and_runs(membrane, chain_before, cell_step, gap_before, gap_after,
-                             region_last, leak=leak)
-        )
+        spikes = spikes_and_runs(membrane, chain_before, cell_step, gap_before, gap_after,
+                                 region_last, leak=leak)
+    spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = spikes
+    spike_step = cell_step.index_select(0, spike_cell)
     del current, region_index
 
     if from_step > 0:  # drop the spikes of steps an earlier call returned

@@ -9,17 +9,38 @@ float32 arithmetic and the rest of the chain in closed form, never step by step.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from evdown_torch.transforms.functional.lif_steps import MAX_STEPS
 
-__all__ = ["EXACT_CHAIN_STEPS", "Leak"]
+__all__ = ["EXACT_CHAIN_STEPS", "CellSpikes", "Leak"]
 
 #: Steps of a firing chain computed with snntorch's float32 arithmetic, one at a time, before
 #: the closed form takes over (a chain rarely lasts longer unless ``beta`` is about 1).
 EXACT_CHAIN_STEPS = 8
+
+
+class CellSpikes(NamedTuple):
+    """The spikes of a call's cells, as the rounds and the closed form both return them.
+
+    Attributes:
+        spike_cell: ``(S,)`` int64 cell of every spike at a cell (cell-major).
+        spike_polarity: ``(S,)`` int64 neuron (0 OFF, 1 ON) of every such spike.
+        run_cell: ``(U,)`` int64 cell after which a neuron fires on through empty steps.
+        run_polarity: ``(U,)`` int64 neuron of every run.
+        run_start: ``(U,)`` int64 step of every run's first spike.
+        run_length: ``(U,)`` int64 spikes of every run (one per step from ``run_start``).
+    """
+
+    spike_cell: Tensor
+    spike_polarity: Tensor
+    run_cell: Tensor
+    run_polarity: Tensor
+    run_start: Tensor
+    run_length: Tensor
 
 
 class Leak:

@@ -27,6 +27,35 @@ calls whose cells fit a small padded ``(region, rank)`` table:
   to the rounds (``beta = 0``, a span whose scaling would overflow float64, gaps of ``2 ** 24``
   steps or more), it returns ``None`` and the rounds compute the call: the spikes are always
   the rounds' spikes.
+
+Rounding bounds, derived (``eps32 = 2**-24``, ``eps64 = 2**-53``, ``KAPPA = 16 eps32``):
+
+1. *One update at a cell.* snntorch's update ``v_k = beta**gap * v_{k-1} + I_k - reset`` is at
+   most six float32 roundings (the power, three products and sums, the reset), each within
+   ``eps32`` of the size it rounds, so within ``12 eps32 <= KAPPA`` times the sum of the sizes
+   ``beta**gap |v_{k-1}| + |I_k| + |v_k| + theta``; the error carried from ``v_{k-1}`` is
+   multiplied by the float32 ``beta**gap``, i.e. by ``beta**gap (1 + 8 eps32)`` at most.
+2. *Along a row.* Scaling by ``beta**-(s_k - s_0)`` turns the recursion into a sum: the
+   scaled error ``E_k`` is at most ``(1 + 8 eps32)**width`` times the sum over ``i <= k`` of
+   ``KAPPA (2 |Y_i| + (|I_i| + theta) scale_i)`` (each membrane counted as the size before
+   and after its update). ``growth`` adds 1 % for the float64 cumsum of that sum, and
+   ``float64_error = 16 eps64 (width + lam * widest + 16)`` the float64 error of ``Y`` itself
+   (a cumsum of ``width`` terms, scales ``exp(lam * offset)`` of relative error about
+   ``lam * offset`` units). A decision is certain when its margin exceeds that sum.
+3. *A firing chain before a cell* (reset "subtract", between cells) is at most
+   :data:`~.lif_chains.EXACT_CHAIN_STEPS` = 8 float32 steps, each of two roundings of sizes
+   below ``|v| + theta`` (the membrane falls along a chain), then a float64 closed form: at
+   most ``16 KAPPA (|v| + theta)`` in all, added at the next cell.
+4. *Where a chain stops.* The chain ``j`` steps after a membrane ``u`` with error bound
+   ``error`` is ``chain(u, j)`` (:class:`~.lif_chains.Leak`); the rounds' float32 value lies
+   within ``beta**j error`` (the carried error decays) plus ``2 eps32 (u + theta)`` per
+   float32 step, of which there are at most 8 (then the closed form adds float64 error only):
+   ``2 min(j, 8) eps32 (u + theta)``. The code uses ``KAPPA (2 min(j, 9) + 4) (u + theta)``,
+   which bounds that by a factor of 16 or more (one more step, and ``4 KAPPA`` for rounding
+   ``u`` to float32 at the chain's start), plus ``1e-12 (u + A + j theta)`` for the float64
+   evaluation of ``(u + A) beta**j - A`` (``A = theta / (1 - beta)``: a few ``eps64`` of
+   those sizes, covered a thousandfold). The test of the first empty step for all chains at
+   once is the case ``j = 1`` with ``6 KAPPA >= (2 + 4) KAPPA``.
 """
 
 from __future__ import annotations
@@ -36,7 +65,7 @@ import math
 import torch
 from torch import Tensor
 
-from evdown_torch.transforms.functional.lif_chains import Leak
+from evdown_torch.transforms.functional.lif_chains import CellSpikes, Leak
 
 __all__ = ["MAX_TABLE", "MIN_ROUNDS", "certain_spikes"]
 
@@ -70,7 +99,7 @@ def certain_spikes(
     *,
     rounds: int,
     leak: Leak,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor] | None:
+) -> CellSpikes | None:
     """The spikes of the rounds, in closed form, or ``None`` where they are not certain.
 
     Args:
@@ -86,11 +115,11 @@ def certain_spikes(
         leak: the neurons' ``beta``, threshold and reset.
 
     Returns:
-        ``(spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length)``: the
-        neurons whose membrane exceeds the threshold after the update at a cell, and the runs
-        of spikes a neuron fires through the empty steps after a cell (reset "none":
-        ``run_length`` spikes from step ``run_start``); ``None`` when a decision lies within
-        float32 rounding of the threshold or the call is left to the rounds.
+        The :class:`~.lif_chains.CellSpikes`: the neurons whose membrane exceeds the
+        threshold after the update at a cell, and the runs of spikes a neuron fires through
+        the empty steps after a cell (``run_length`` spikes from step ``run_start``);
+        ``None`` when a decision lies within float32 rounding of the threshold or the call is
+        left to the rounds.
     """
     n_regions, width = region_first.shape[0], rounds
     beta, theta, reset = leak.beta, leak.threshold, leak.reset
@@ -177,16 +206,16 @@ def certain_spikes(
     cell = region_first.index_select(0, row).add_(rank)
     empty = torch.empty(0, dtype=torch.int64, device=device)
     if reset == "zero":
-        return cell, polarity, empty, empty, empty, empty
+        return CellSpikes(cell, polarity, empty, empty, empty, empty)
     chain = gap_after.index_select(0, cell) > 0  # fired, then empty steps
     if not bool(chain.any()):
-        return cell, polarity, empty, empty, empty, empty
+        return CellSpikes(cell, polarity, empty, empty, empty, empty)
     which = chain.nonzero().squeeze(1)
     chain_cell, chain_polarity = cell.index_select(0, which), polarity.index_select(0, which)
     at = (chain_polarity, row.index_select(0, which), rank.index_select(0, which))
     if reset == "none" and beta == 1.0:  # the membrane stays: fires at every empty step
-        return (cell, polarity, chain_cell, chain_polarity, cell_step[chain_cell] + 1,
-                gap_after.index_select(0, chain_cell))
+        return CellSpikes(cell, polarity, chain_cell, chain_polarity, cell_step[chain_cell] + 1,
+                          gap_after.index_select(0, chain_cell))
     # The neuron fires on while the chain (membrane decaying, less theta at every step with
     # reset "subtract") stays above threshold. Most stop at once: certain where the first
     # empty step's membrane, beta * u (- theta), lies below threshold by more than its bound,
@@ -198,7 +227,7 @@ def certain_spikes(
     lead = (below - 6 * _KAPPA - 1e-12) * theta - 1e-12 * offset_a
     ahead = torch.mul(scaled[at], beta + 6 * _KAPPA + 1e-12).add_(bound[at], alpha=beta)
     if chains is None and bool((ahead < scale[at[1:]] * lead).all()):
-        return cell, polarity, empty, empty, empty, empty
+        return CellSpikes(cell, polarity, empty, empty, empty, empty)
     gap = gap_after.index_select(0, chain_cell)
     unscale = 1.0 / scale[at[1:]]
     u = scaled[at] * unscale  # the membranes, and their bounds
@@ -210,7 +239,7 @@ def certain_spikes(
                              + 1e-12 * (u + offset_a + theta))
     if bool(quiet.all()):
         if bool((counted == 0).all()):
-            return cell, polarity, empty, empty, empty, empty
+            return CellSpikes(cell, polarity, empty, empty, empty, empty)
         return None  # the greedy pass counted a chain that is not there
     if bool((counted[quiet] != 0).any()):
         return None
@@ -236,7 +265,8 @@ def certain_spikes(
     length = run.to(torch.int64)
     keep = length > 0
     chain_cell, chain_polarity, length = chain_cell[keep], chain_polarity[keep], length[keep]
-    return cell, polarity, chain_cell, chain_polarity, cell_step[chain_cell] + 1, length
+    return CellSpikes(cell, polarity, chain_cell, chain_polarity, cell_step[chain_cell] + 1,
+                      length)
 
 
 def _geometric(count: Tensor, beta: float) -> Tensor:

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import stable_sort_small
-from evdown_torch.transforms.functional.lif_chains import Leak
+from evdown_torch.transforms.functional.lif_chains import CellSpikes, Leak
 
 __all__ = ["membranes_by_rounds", "spikes_and_runs"]
 
@@ -119,13 +119,11 @@ def spikes_and_runs(
     region_last: Tensor,
     *,
     leak: Leak,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """The rounds' spikes: ``(spike_step, spike_cell, spike_polarity)`` at the cells, and
-    ``(run_cell, run_polarity, run_start, run_length)``, the runs of spikes of neurons that go
-    on firing through the silent steps after a cell."""
+) -> CellSpikes:
+    """The rounds' spikes (:class:`~.lif_chains.CellSpikes`): those at the cells, and the runs
+    of spikes of neurons that go on firing through the silent steps after a cell."""
     fired = membrane > leak.threshold32
     spike_cell, spike_polarity = fired.nonzero(as_tuple=True)  # cell-major
-    spike_step = cell_step.index_select(0, spike_cell)
     # Runs found in the rounds (reset "subtract", gaps between cells) or here (the tail after a
     # region's last cell; every gap with reset "none", whose membrane does not depend on them).
     run_cell, run_polarity = (chain_before > 0).nonzero(as_tuple=True)
@@ -148,5 +146,5 @@ def spikes_and_runs(
         run_polarity = torch.cat([run_polarity, tail_polarity])
         run_length = torch.cat([run_length, tail_length])
         run_start = torch.cat([run_start, cell_step[tail_cell] + 1])
-    return spike_step, spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length
+    return CellSpikes(spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length)
 
