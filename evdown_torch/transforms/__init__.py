@@ -1,6 +1,6 @@
 """Downscaling transforms, usable alone or inside ``tonic.transforms.Compose``."""
 
-from evdown_torch.transforms._base import Chain, Downscaler, Session, Streaming
+from evdown_torch.transforms._base import Chain, Downscaler, Method, Session, Streaming
 from evdown_torch.transforms.calibrate import BudgetTarget, calibrate
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
@@ -21,6 +21,7 @@ __all__ = [
     "EventFunnelling",
     "LIFPooling",
     "LinearEstimation",
+    "Method",
     "PhotocurrentPooling",
     "PhotocurrentSession",
     "Session",

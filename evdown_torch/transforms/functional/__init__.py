@@ -1,22 +1,35 @@
 """Pure, device-agnostic kernels on :class:`~evdown_torch.events.Events`.
 
-Settings are keyword arguments, except LIF pooling's, which travel as one checked
-:class:`~evdown_torch.transforms.functional.lif_settings.LIFSettings`.
+Each method is a frozen settings dataclass, checked once (:class:`RegionSettings`,
+:class:`ThresholdSettings`, :class:`EstimationSettings`, :class:`PhotocurrentSettings`,
+:class:`TemporalSettings`, :class:`LIFSettings` inside :class:`LIFPoolingSettings`), and
+three kernels ``init_state``, ``step`` and ``finish`` on them
+(:class:`~evdown_torch.transforms.Method`). The whole-stream functions below take the
+settings as keywords, for direct use.
 """
 
 from evdown_torch.transforms.functional.cubic import cubic_estimation
 from evdown_torch.transforms.functional.downsample import downsample
+from evdown_torch.transforms.functional.estimation_stream import EstimationSettings
 from evdown_torch.transforms.functional.event_count import event_count
 from evdown_torch.transforms.functional.funnelling import event_funnelling
 from evdown_torch.transforms.functional.lif import lif_pooling
-from evdown_torch.transforms.functional.lif_settings import LIFSettings
+from evdown_torch.transforms.functional.lif_settings import LIFPoolingSettings, LIFSettings
 from evdown_torch.transforms.functional.linear import linear_estimation
 from evdown_torch.transforms.functional.photocurrent import photocurrent_events
 from evdown_torch.transforms.functional.photocurrent_frames import photocurrent_frames
-from evdown_torch.transforms.functional.temporal import temporal_funnelling
+from evdown_torch.transforms.functional.photocurrent_settings import PhotocurrentSettings
+from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
+from evdown_torch.transforms.functional.temporal import TemporalSettings, temporal_funnelling
 
 __all__ = [
+    "EstimationSettings",
+    "LIFPoolingSettings",
     "LIFSettings",
+    "PhotocurrentSettings",
+    "RegionSettings",
+    "TemporalSettings",
+    "ThresholdSettings",
     "cubic_estimation",
     "downsample",
     "event_count",
