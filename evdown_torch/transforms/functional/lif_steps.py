@@ -33,8 +33,18 @@ def step_indices(
     """
     if t_start is None:
         t_start = t[0]
-    t_end = t[-1]
-    if t.is_floating_point():
+    dt = _checked_dt(t_start, t[-1], t.is_floating_point(), dt, "the stream spans")
+    steps = _steps(t - t_start, dt)
+    return steps, int(steps[-1]), dt
+
+
+def _checked_dt(
+    t_start: Tensor | int, t_end: Tensor, floating: bool, dt: float, spans: str
+) -> float:
+    """The ``dt`` to compute steps with from ``t_start`` to ``t_end`` (``()`` tensors, or 0),
+    or a ``ValueError`` when the span or its number of steps cannot be represented
+    (``spans`` names the span in the message: "the stream spans" or "a recording spans")."""
+    if floating:
         span = float(t_end) - float(t_start)
         if not math.isfinite(span):
             raise ValueError(f"LIF pooling needs finite timestamps, got a span of {span}")
@@ -42,19 +52,19 @@ def step_indices(
         span = int(t_end) - int(t_start)  # exact, as a Python int
         if span >= MAX_STEPS:
             raise ValueError(
-                f"the stream spans {span} time units, more than 2**62 that int64 step "
-                "arithmetic can hold; split the stream"
+                f"{spans} {span} time units, more than 2**62 that int64 step arithmetic can "
+                "hold; split the stream"
             )
         if dt > span:  # one step holds everything; ends at t_start + dt > t_end, clipped
             dt = float(span + 1)
     if span / dt >= MAX_STEPS:
+        whose = "the stream's" if spans.startswith("the") else "a recording's"
         raise ValueError(
-            f"dt = {dt!r} cuts the stream's span of {span} time units into about "
+            f"dt = {dt!r} cuts {whose} span of {span} time units into about "
             f"{span / dt:.3g} steps, more than the 2**62 an int64 step index can hold; "
             "use a larger dt"
         )
-    steps = _steps(t - t_start, dt)
-    return steps, int(steps[-1]), dt
+    return dt
 
 
 def _steps(relative: Tensor, dt: float) -> Tensor:
@@ -72,26 +82,7 @@ def batch_step_indices(
     with (see :func:`lif_pooling`)."""
     starts, ends = bounds
     spans = ends - starts
-    widest = spans.max()
-    if t.is_floating_point():
-        span = float(widest)
-        if not math.isfinite(span):
-            raise ValueError(f"LIF pooling needs finite timestamps, got a span of {span}")
-    else:
-        span = int(widest)
-        if span >= MAX_STEPS:
-            raise ValueError(
-                f"a recording spans {span} time units, more than 2**62 that int64 step "
-                "arithmetic can hold; split it"
-            )
-        if dt > span:  # every recording in its step 0, ending at its t_end (as one stream)
-            dt = float(span + 1)
-    if span / dt >= MAX_STEPS:
-        raise ValueError(
-            f"dt = {dt!r} cuts a recording's span of {span} time units into about "
-            f"{span / dt:.3g} steps, more than the 2**62 an int64 step index can hold; "
-            "use a larger dt"
-        )
+    dt = _checked_dt(0, spans.max(), t.is_floating_point(), dt, "a recording spans")
     return _steps(t - starts.index_select(0, recording), dt), _steps(spans, dt), dt
 
 
