@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
+from fractions import Fraction
 from typing import TYPE_CHECKING, NamedTuple
 
 import torch
@@ -60,6 +61,7 @@ if TYPE_CHECKING:
 __all__ = [
     "HALF_TOLERANCE",
     "RELATIVE_ERROR",
+    "Crossings",
     "Knots",
     "RegionChunk",
     "RegionSolver",
@@ -478,7 +480,47 @@ def hold_knots(
     return merged.select(order), take(merged_step, order)
 
 
-RegionSolver = Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]]
+class RegionJob(NamedTuple):
+    """What a curve's solver needs besides the knots of one chunk of regions.
+
+    Attributes:
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        fraction: the threshold as the rational ``a / b`` of ``threshold_fraction``.
+        emitted: events of the chunks before (for the output limit).
+        resume: where a streaming window starts
+            (:func:`~evdown_torch.transforms.functional.estimation_stream.resume_steps`), or
+            ``None``.
+        front_at_rest: a bounded delay: pixels at rest before their first knot (the cubic
+            slope there is 0; nothing changes for polylines).
+    """
+
+    sensor_size: tuple[int, int, int]
+    factor: tuple[int, int]
+    fraction: Fraction
+    emitted: int = 0
+    resume: Resume | None = None
+    front_at_rest: bool = False
+
+
+class Crossings(NamedTuple):
+    """The crossings a solver finds, in region order.
+
+    Attributes:
+        region: ``(C,)`` int64 output region of every crossing.
+        t: ``(C,)`` crossing times (the events' dtype).
+        on: ``(C,)`` bool, an ON crossing.
+        breakpoint: ``(C,)`` int64 breakpoint that ends each crossing's piece.
+    """
+
+    region: Tensor
+    t: Tensor
+    on: Tensor
+    breakpoint: Tensor
+
+
+#: A curve's solver: the crossings of the regions of one chunk of knots.
+RegionSolver = Callable[[Knots, RegionJob], Crossings]
 
 
 def estimate(
@@ -581,9 +623,8 @@ def estimate_window(
             recording = divide(chunk.region, out_w * out_h)
             start, end = take(t_start, recording), take(t_end, recording)
         knots = pixel_knots(chunk, factor=factor, t_start=start, t_end=end)
-        region, t, on, bp = settings.solver(knots, sensor_size=sensor_size, factor=factor,
-                                          fraction=fraction, emitted=emitted, resume=resume,
-                                          front_at_rest=front_at_rest)
+        job = RegionJob(sensor_size, factor, fraction, emitted, resume, front_at_rest)
+        region, t, on, bp = settings.solver(knots, job)
         outputs.append((region, t, on))
         emitted += region.shape[0]
         if q is not None and next_cut is not None:

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from fractions import Fraction
-
 import torch
 from torch import Tensor
 
 from evdown_torch._tensors import CHUNK_EVENTS, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
+    Crossings,
     Knots,
+    RegionJob,
     estimate,
     level_changes,
     piece_time,
@@ -19,7 +19,6 @@ from evdown_torch.transforms.functional._knots import (
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
 from evdown_torch.transforms.functional.estimation_stream import (
     EstimationSettings,
-    Resume,
     resume_steps,
 )
 
@@ -345,51 +344,35 @@ def cubic_estimation(
     about 1e-15 of the piece's length.
 
     Args:
-        events: ``N`` input events (any order; sorted stably by ``t`` here).
-        sensor_size: input ``(W, H, P)``.
-        factor: ``(fx, fy)``.
-        threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
-            nearest fraction with denominator at most 10**6.
-        bounds: ``(B,)`` first and last timestamps of each recording of a batch stacked
-            vertically (see :func:`~evdown_torch.transforms.functional._knots.estimate`), or
-            ``None`` for one stream.
-        max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
-            "Bounded delay"; a whole number for int64 ``t``), or ``None`` for the paper's
-            method. With ``D`` a pixel holds its level until ``D`` before its next knot, and
-            its slope at its first knot is 0.
+        events, sensor_size, factor, threshold, bounds: as
+            :func:`~evdown_torch.transforms.functional.linear.linear_estimation`.
+        max_delay: as there; besides, each pixel's slope at its first knot is 0 (at rest
+            before the stream).
 
     Returns:
         Output events sorted by ``t``, ``t`` of the input's dtype.
 
     Example:
-        >>> ev = Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1])
+        The region's curve rises faster than the polyline: its third level at ``t = 6.18``
+        (rounded to 6), where the linear estimate reaches it at 10.
+
+        >>> ev = Events.from_columns([0, 1, 0], [0, 0, 0], [0, 10, 20], [1, 1, 0])
         >>> out = cubic_estimation(ev, sensor_size=(2, 1, 2), factor=(2, 1), threshold=0.25)
         >>> out.t.tolist(), out.p.tolist()
-        ([0, 0, 5, 10], [True, True, True, True])
+        ([0, 0, 6, 20], [True, True, True, False])
     """
-    settings = EstimationSettings(sensor_size, factor, threshold, max_delay,
-                                  solver=cubic_regions)
-    return estimate(events, settings, bounds=bounds)
+    curve = EstimationSettings(sensor_size, factor, threshold, max_delay, solver=cubic_regions)
+    return estimate(events, curve, bounds=bounds)
 
 
-def cubic_regions(
-    knots: Knots,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    fraction: Fraction,
-    emitted: int = 0,
-    resume: Resume | None = None,
-    front_at_rest: bool = False,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Crossings of the regions of one chunk: ``(region, t, on, breakpoint)`` in region order.
-
-    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``;
-    ``emitted`` counts the events of the chunks before (for the output limit); ``resume``
-    starts a streaming window (:func:`~evdown_torch.transforms.functional._knots.resume_steps`);
-    ``front_at_rest``: a bounded delay's slope 0 at each pixel's first knot
-    (:func:`pchip_slopes`). ``breakpoint`` is the one that ends each crossing's piece.
+def cubic_regions(knots: Knots, job: RegionJob) -> Crossings:
+    """The cubic curve's solver: the crossings of the regions of one chunk, in region order
+    (:class:`~evdown_torch.transforms.functional._knots.RegionJob` says what ``job`` holds).
+    With ``job.front_at_rest`` each pixel's slope at its first knot is 0
+    (:func:`pchip_slopes`).
     """
+    sensor_size, factor, fraction = job.sensor_size, job.factor, job.fraction
+    emitted, resume, front_at_rest = job.emitted, job.resume, job.front_at_rest
     device = knots.t.device
     slope, width, rise = pchip_slopes(knots, front_at_rest=front_at_rest)
 
@@ -460,4 +443,4 @@ def cubic_regions(
         for lo in range(0, max(k, 1), CHUNK_EVENTS)
     ])
     bp = take(step_bp, cross.step)
-    return knots.bp_region(bp), t, cross.on, bp
+    return Crossings(knots.bp_region(bp), t, cross.on, bp)

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from fractions import Fraction
-
 import torch
 from torch import Tensor
 
 from evdown_torch._tensors import differences, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
+    Crossings,
     Knots,
+    RegionJob,
     estimate,
     level_changes,
     piece_time,
@@ -19,7 +19,6 @@ from evdown_torch.transforms.functional._knots import (
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
 from evdown_torch.transforms.functional.estimation_stream import (
     EstimationSettings,
-    Resume,
     resume_steps,
 )
 
@@ -117,24 +116,13 @@ def linear_estimation(
     return estimate(events, settings, bounds=bounds)
 
 
-def linear_regions(
-    knots: Knots,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    fraction: Fraction,
-    emitted: int = 0,
-    resume: Resume | None = None,
-    front_at_rest: bool = False,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Crossings of the regions of one chunk: ``(region, t, on, breakpoint)`` in region order.
-
-    ``fraction`` is the threshold as the rational ``a / b`` of ``threshold_fraction``;
-    ``emitted`` counts the events of the chunks before (for the output limit); ``resume``
-    starts a streaming window (:func:`~evdown_torch.transforms.functional._knots.resume_steps`).
-    ``front_at_rest`` (a bounded delay) changes nothing for polylines. ``breakpoint`` is the
-    one that ends each crossing's piece.
+def linear_regions(knots: Knots, job: RegionJob) -> Crossings:
+    """The linear curve's solver: the crossings of the regions of one chunk, in region order
+    (:class:`~evdown_torch.transforms.functional._knots.RegionJob` says what ``job`` holds).
+    ``front_at_rest`` changes nothing for polylines.
     """
+    sensor_size, factor, fraction = job.sensor_size, job.factor, job.fraction
+    emitted, resume = job.emitted, job.resume
     device = knots.t.device
 
     # Slope of every segment, stored at its first knot (0 after a pixel's last knot).
@@ -227,4 +215,4 @@ def linear_regions(
     at_end = jump | (take(on_level, end) & (cross.level == take(floor_u, end)))
     ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
     t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, end), ratio)
-    return knots.bp_region(end), t, cross.on, end
+    return Crossings(knots.bp_region(end), t, cross.on, end)
