@@ -10,8 +10,8 @@ from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Method, Session, ThresholdDownscaler
 from evdown_torch.transforms._batch import run_stacked
-from evdown_torch.transforms.functional._knots import RegionSolver, estimate
 from evdown_torch.transforms.functional.cubic import cubic_regions
+from evdown_torch.transforms.functional.estimation import RegionSolver, estimate
 from evdown_torch.transforms.functional.estimation_stream import (
     EstimationSettings,
     window_end,

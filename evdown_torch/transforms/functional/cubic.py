@@ -8,15 +8,13 @@ from torch import Tensor
 from evdown_torch._tensors import CHUNK_EVENTS, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
-    Crossings,
     Knots,
-    RegionJob,
-    estimate,
     level_changes,
     piece_time,
     region_pixels,
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
+from evdown_torch.transforms.functional.estimation import Crossings, RegionJob, estimate
 from evdown_torch.transforms.functional.estimation_stream import (
     EstimationSettings,
     resume_steps,
@@ -367,7 +365,7 @@ def cubic_estimation(
 
 def cubic_regions(knots: Knots, job: RegionJob) -> Crossings:
     """The cubic curve's solver: the crossings of the regions of one chunk, in region order
-    (:class:`~evdown_torch.transforms.functional._knots.RegionJob` says what ``job`` holds).
+    (:class:`~evdown_torch.transforms.functional.estimation.RegionJob` says what ``job`` holds).
     With ``job.front_at_rest`` each pixel's slope at its first knot is 0
     (:func:`pchip_slopes`).
     """

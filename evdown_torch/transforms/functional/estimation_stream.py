@@ -4,7 +4,7 @@ docs/semantics.md, "Bounded delay": with a delay ``D``, output earlier than
 ``tau - lag * D`` (``lag`` 1 for the linear method, 2 for the cubic one) is decided by the
 input up to ``tau``. A session step therefore solves a *window* of the stream, with the one
 driver of the batch kernels
-(:func:`~evdown_torch.transforms.functional._knots.estimate_window`), and keeps only what the
+(:func:`~evdown_torch.transforms.functional.estimation.estimate_window`), and keeps only what the
 future needs (:class:`WindowState`):
 
 * the stream's ``t_start`` (the front knots) and last timestamp;
@@ -42,12 +42,11 @@ from evdown_torch.checks import check_positive_float, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
     Knots,
-    RegionSolver,
     check_span,
     effective_delay,
-    estimate_window,
     hold_knots,
 )
+from evdown_torch.transforms.functional.estimation import RegionSolver, estimate_window
 from evdown_torch.transforms.functional.settings import ThresholdSettings
 
 __all__ = [

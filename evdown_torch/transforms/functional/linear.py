@@ -8,15 +8,13 @@ from torch import Tensor
 from evdown_torch._tensors import differences, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional._knots import (
-    Crossings,
     Knots,
-    RegionJob,
-    estimate,
     level_changes,
     piece_time,
     region_pixels,
 )
 from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
+from evdown_torch.transforms.functional.estimation import Crossings, RegionJob, estimate
 from evdown_torch.transforms.functional.estimation_stream import (
     EstimationSettings,
     resume_steps,
@@ -96,7 +94,7 @@ def linear_estimation(
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
         bounds: ``(B,)`` first and last timestamps of each recording of a batch stacked
-            vertically (see :func:`~evdown_torch.transforms.functional._knots.estimate`), or
+            vertically (see :func:`~evdown_torch.transforms.functional.estimation.estimate`), or
             ``None`` for one stream.
         max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
             "Bounded delay"; a whole number for int64 ``t``), or ``None`` for the paper's
@@ -118,7 +116,7 @@ def linear_estimation(
 
 def linear_regions(knots: Knots, job: RegionJob) -> Crossings:
     """The linear curve's solver: the crossings of the regions of one chunk, in region order
-    (:class:`~evdown_torch.transforms.functional._knots.RegionJob` says what ``job`` holds).
+    (:class:`~evdown_torch.transforms.functional.estimation.RegionJob` says what ``job`` holds).
     ``front_at_rest`` changes nothing for polylines.
     """
     sensor_size, factor, fraction = job.sensor_size, job.factor, job.fraction

@@ -1,0 +1,191 @@
+"""The estimators' shared driver: the knots of each chunk of regions, then the curve's solver.
+
+:func:`estimate` runs a whole stream (or a stacked batch of recordings) and
+:func:`estimate_window` a window of one (a bounded-delay session's step,
+:mod:`~evdown_torch.transforms.functional.estimation_stream`); both hand each chunk of
+regions' :class:`~evdown_torch.transforms.functional._knots.Knots` to the curve's solver
+(:func:`~evdown_torch.transforms.functional.linear.linear_regions` or
+:func:`~evdown_torch.transforms.functional.cubic.cubic_regions`), which returns its
+:class:`Crossings`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from fractions import Fraction
+from typing import TYPE_CHECKING, NamedTuple
+
+import torch
+from torch import Tensor
+
+from evdown_torch._tensors import divide, sort_by_time, take, where_true
+from evdown_torch.events import Events, polarity_sign
+from evdown_torch.transforms.functional._knots import (
+    Knots,
+    check_span,
+    emit,
+    hold_knots,
+    pixel_knots,
+    region_chunks,
+)
+from evdown_torch.transforms.functional._reference import capped_threshold, threshold_fraction
+
+if TYPE_CHECKING:
+    from evdown_torch.transforms.functional.estimation_stream import EstimationSettings, Resume
+
+__all__ = ["Crossings", "RegionJob", "RegionSolver", "estimate", "estimate_window"]
+
+
+class RegionJob(NamedTuple):
+    """What a curve's solver needs besides the knots of one chunk of regions.
+
+    Attributes:
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        fraction: the threshold as the rational ``a / b`` of ``threshold_fraction``.
+        emitted: events of the chunks before (for the output limit).
+        resume: where a streaming window starts
+            (:func:`~evdown_torch.transforms.functional.estimation_stream.resume_steps`), or
+            ``None``.
+        front_at_rest: a bounded delay: pixels at rest before their first knot (the cubic
+            slope there is 0; nothing changes for polylines).
+    """
+
+    sensor_size: tuple[int, int, int]
+    factor: tuple[int, int]
+    fraction: Fraction
+    emitted: int = 0
+    resume: Resume | None = None
+    front_at_rest: bool = False
+
+
+class Crossings(NamedTuple):
+    """The crossings a solver finds, in region order.
+
+    Attributes:
+        region: ``(C,)`` int64 output region of every crossing.
+        t: ``(C,)`` crossing times (the events' dtype).
+        on: ``(C,)`` bool, an ON crossing.
+        breakpoint: ``(C,)`` int64 breakpoint that ends each crossing's piece.
+    """
+
+    region: Tensor
+    t: Tensor
+    on: Tensor
+    breakpoint: Tensor
+
+
+#: A curve's solver: the crossings of the regions of one chunk of knots.
+RegionSolver = Callable[[Knots, RegionJob], Crossings]
+
+
+def estimate(
+    events: Events, settings: EstimationSettings, *, bounds: tuple[Tensor, Tensor] | None = None
+) -> Events:
+    """The batch entry of the estimation kernels: the whole stream, then :func:`estimate_window`.
+
+    Args:
+        events: ``N`` input events (any order; sorted stably by ``t`` here).
+        settings: the estimator's settings; its ``solver``, ``solver(knots, sensor_size=,
+            factor=, fraction=, emitted=, resume=, front_at_rest=)``, returns the crossings
+            ``(region, t, on, breakpoint)`` of the regions of one chunk, in region order
+            (``emitted``: events of the chunks before, for the output limit; ``breakpoint``:
+            the one ending each crossing's piece; ``front_at_rest``: a bounded delay, see
+            :func:`estimate_window`). With ``max_delay`` (:func:`hold_knots`) the pixels hold
+            their level until ``D`` before each knot; ``None`` is the paper's method.
+        bounds: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
+            ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
+            :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps
+            of each recording, its ``t_start`` and ``t_end``; ``None`` for one stream.
+
+    Returns:
+        Output events sorted by ``t``, ``t`` of the input's dtype.
+
+    Raises:
+        ValueError: for integer timestamps spanning 2**53 or more
+            (:func:`~evdown_torch.checks.check_time_span`), or an output above
+            :func:`~evdown_torch.checks.max_output_events`.
+    """
+    events = sort_by_time(events)
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device)
+    t_start, t_end = events.t[0], events.t[-1]
+    if bounds is not None:
+        t_start, t_end = bounds
+    check_span(t_start, t_end)  # before any time arithmetic
+    step = None
+    if settings.max_delay is not None:
+        start = t_start
+        if bounds is not None:  # each event's own recording's t_start
+            rows = settings.output_sensor_size[1] * settings.factor[1]
+            start = take(t_start, divide(events.y, rows))
+        events, step = hold_knots(events, max_delay=settings.max_delay, t_start=start)
+    out, _ = estimate_window(events, step=step, t_start=t_start, t_end=t_end, settings=settings,
+                             front_at_rest=settings.max_delay is not None)
+    return out
+
+
+def estimate_window(
+    events: Events,
+    *,
+    step: Tensor | None,
+    t_start: Tensor,
+    t_end: Tensor,
+    settings: EstimationSettings,
+    resume: Resume | None = None,
+    next_cut: Tensor | None = None,
+    front_at_rest: bool = True,
+) -> tuple[Events, Tensor | None]:
+    """The driver the estimation kernels share: knots of each chunk of regions, then output.
+
+    Batch (:func:`estimate`): the whole stream, or a batch of stacked recordings. Streaming
+    (a bounded-delay session): a window of one stream, the knot events its pixels still
+    need, resumed at ``resume``.
+
+    Args:
+        events: ``N >= 1`` knot events in stable time order, within ``[t_start, t_end]``.
+        step: ``(N,)`` int8 or int64 level change of each event (``None``: +1 ON, -1 OFF).
+        t_start: ``()`` first timestamp of the stream (its front knots), or ``(B,)`` those of
+            a batch of stacked recordings (see :func:`estimate`).
+        t_end: ``()`` last timestamp of the stream so far (the back knots), or ``(B,)``.
+        settings: as for :func:`estimate` (its ``max_delay`` is not read here).
+        resume: where a window picks up
+            (:class:`~evdown_torch.transforms.functional.estimation_stream.Resume`), or
+            ``None`` (from ``t_start``).
+        next_cut: with ``resume``, the next window's cut: the returned ``q`` is each region's
+            reference index after its last breakpoint earlier than it.
+        front_at_rest: a bounded delay (always so in a streaming window): the pixels are at
+            rest before their first knot (docs/semantics.md, "Bounded delay"; the cubic
+            slope there is 0).
+
+    Returns:
+        ``(events, q)``: output events sorted by ``t`` (``t`` of the input's dtype; with
+        ``resume``, only crossings after its cut), and with ``resume`` the ``(Wo * Ho,)``
+        int64 ``q`` at ``next_cut`` (``None`` without).
+    """
+    n = events.num_events
+    # Every curve stays within its knots' levels, at most sum |step| in size (PCHIP is
+    # shape-preserving; a window's first knot of a pixel carries its whole level).
+    bound = n if step is None else int(step.abs().sum())
+    sensor_size, factor = settings.sensor_size, settings.factor
+    fraction = capped_threshold(threshold_fraction(settings.threshold), bound)
+    out_w, out_h, _ = settings.output_sensor_size
+    q = None if resume is None else resume.q.clone()
+    outputs = []
+    emitted = 0
+    for chunk in region_chunks(events, factor=factor, out_width=out_w, step=step):
+        start, end = t_start, t_end
+        if t_start.ndim:  # each event's own recording's bounds
+            recording = divide(chunk.region, out_w * out_h)
+            start, end = take(t_start, recording), take(t_end, recording)
+        knots = pixel_knots(chunk, factor=factor, t_start=start, t_end=end)
+        job = RegionJob(sensor_size, factor, fraction, emitted, resume, front_at_rest)
+        region, t, on, bp = settings.solver(knots, job)
+        outputs.append((region, t, on))
+        emitted += region.shape[0]
+        if q is not None and next_cut is not None:
+            decided = where_true(take(knots.bp_t, bp) < next_cut)
+            sign = polarity_sign(take(on, decided), torch.int64)
+            q.index_add_(0, take(region, decided), sign)
+    region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+    return emit(region, t, on, out_w), q
