@@ -13,7 +13,7 @@ offset in ``(-1, 1)`` places the pixel's starting state within its window (the s
 draws it per pixel, as a real sensor starts in an arbitrary state). With one threshold for
 both polarities this is exactly the contract's rule.
 
-The rule itself lives once, in :mod:`evdown_torch.transforms.functional._reference`: its
+The rule itself lives once, in :mod:`evdown_torch.transforms.functional.reference`: its
 closed form (one threshold) and its scan over monotone runs (two thresholds).
 
 The refractory period then drops every event that comes less than ``refractory_us`` after the
@@ -36,7 +36,7 @@ from evdown_torch.checks import (
     check_positive_int,
     check_unit_interval,
 )
-from evdown_torch.transforms.functional._reference import (
+from evdown_torch.transforms.functional.reference import (
     crossings,
     reference_index,
     two_threshold_counts,

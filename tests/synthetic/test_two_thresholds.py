@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch.transforms.functional._reference import (
+from evdown_torch.transforms.functional.reference import (
     two_threshold_counts,
     two_threshold_crossings,
     two_threshold_level,
@@ -93,7 +93,7 @@ def test_two_thresholds_hand_computed_reversal():
 
 
 def test_equal_thresholds_agree_with_the_one_threshold_rule():
-    from evdown_torch.transforms.functional._reference import reference_index
+    from evdown_torch.transforms.functional.reference import reference_index
 
     rng = np.random.default_rng(5)
     value = np.cumsum(rng.normal(0, 0.7, 400))  # in threshold units, theta = 1

@@ -25,8 +25,8 @@ from hypothesis import strategies as st
 from scipy.interpolate import PchipInterpolator
 from scipy.optimize import brentq
 
-import evdown_torch.transforms.functional._knots as knots_module
 import evdown_torch.transforms.functional.cubic as cubic_module
+import evdown_torch.transforms.functional.knots as knots_module
 import evdown_torch.transforms.functional.linear as linear_module
 from evdown_torch import CubicEstimation, EventCount, Events, LinearEstimation
 from tests.helpers import DVS_DTYPE, as_tuples, crossed_levels, random_stream, reference_index

@@ -238,7 +238,7 @@ def test_region_ids_at_the_edge_of_the_narrow_sort(sensor, rng):
 
 
 def test_step_crossings_from_one_start_per_region_equal_one_per_step(rng):
-    from evdown_torch.transforms.functional._reference import step_crossings
+    from evdown_torch.transforms.functional.reference import step_crossings
 
     # Steps grouped by region: a random walk of u = M / theta in quarters, per region.
     sizes = rng.integers(1, 40, 25)
@@ -259,7 +259,7 @@ def test_step_crossings_from_one_start_per_region_equal_one_per_step(rng):
 
 
 def test_step_crossings_of_steps_that_land_on_every_level_skip_nothing(rng):
-    from evdown_torch.transforms.functional._reference import step_crossings
+    from evdown_torch.transforms.functional.reference import step_crossings
 
     # Steps of a quarter level (as b * S moves by one against levels of 4): each level the
     # walk reaches, it lands on; only first steps and steps on a level need solving.

@@ -7,18 +7,18 @@ from torch import Tensor
 
 from evdown_torch._tensors import CHUNK_EVENTS, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._knots import (
+from evdown_torch.transforms.functional.estimation import CurveCrossings, RegionJob, estimate
+from evdown_torch.transforms.functional.estimation_stream import (
+    EstimationSettings,
+    resume_steps,
+)
+from evdown_torch.transforms.functional.knots import (
     Knots,
     level_changes,
     piece_time,
     region_pixels,
 )
-from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
-from evdown_torch.transforms.functional.estimation import Crossings, RegionJob, estimate
-from evdown_torch.transforms.functional.estimation_stream import (
-    EstimationSettings,
-    resume_steps,
-)
+from evdown_torch.transforms.functional.reference import level_index, level_value, step_crossings
 
 __all__ = ["cubic_estimation", "cubic_regions", "pchip_slopes"]
 
@@ -61,7 +61,7 @@ def pchip_slopes(knots: Knots, *, front_at_rest: bool = False) -> tuple[Tensor, 
     """Derivative of every pixel's PCHIP curve at each knot, by SciPy's rules.
 
     Args:
-        knots: the :class:`~evdown_torch.transforms.functional._knots.Knots`.
+        knots: the :class:`~evdown_torch.transforms.functional.knots.Knots`.
         front_at_rest: the slope at each pixel's first knot is 0 instead of SciPy's end
             slope (a bounded delay, docs/semantics.md "Bounded delay": SciPy's end slope
             depends on the width of the pixel's second segment, which input arbitrarily
@@ -328,7 +328,7 @@ def cubic_estimation(
     """Downscale by cubic log-luminance estimation (docs/semantics.md, method 5).
 
     Each pixel's log-luminance is the piecewise cubic Hermite interpolant of its knots (see
-    :mod:`~evdown_torch.transforms.functional._knots`) with SciPy's ``PchipInterpolator``
+    :mod:`~evdown_torch.transforms.functional.knots`) with SciPy's ``PchipInterpolator``
     slopes; each region's mean ``M_r`` is watched by the DVS reference rule at contrast
     ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
     the crossing times, rounded half up to integers when ``t`` is int64.
@@ -363,7 +363,7 @@ def cubic_estimation(
     return estimate(events, curve, bounds=bounds)
 
 
-def cubic_regions(knots: Knots, job: RegionJob) -> Crossings:
+def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     """The cubic curve's solver: the crossings of the regions of one chunk, in region order
     (:class:`~evdown_torch.transforms.functional.estimation.RegionJob` says what ``job`` holds).
     With ``job.front_at_rest`` each pixel's slope at its first knot is 0
@@ -441,4 +441,4 @@ def cubic_regions(knots: Knots, job: RegionJob) -> Crossings:
         for lo in range(0, max(k, 1), CHUNK_EVENTS)
     ])
     bp = take(step_bp, cross.step)
-    return Crossings(knots.bp_region(bp), t, cross.on, bp)
+    return CurveCrossings(knots.bp_region(bp), t, cross.on, bp)

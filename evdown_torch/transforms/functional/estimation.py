@@ -3,10 +3,10 @@
 :func:`estimate` runs a whole stream (or a stacked batch of recordings) and
 :func:`estimate_window` a window of one (a bounded-delay session's step,
 :mod:`~evdown_torch.transforms.functional.estimation_stream`); both hand each chunk of
-regions' :class:`~evdown_torch.transforms.functional._knots.Knots` to the curve's solver
+regions' :class:`~evdown_torch.transforms.functional.knots.Knots` to the curve's solver
 (:func:`~evdown_torch.transforms.functional.linear.linear_regions` or
 :func:`~evdown_torch.transforms.functional.cubic.cubic_regions`), which returns its
-:class:`Crossings`.
+:class:`CurveCrossings`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from torch import Tensor
 
 from evdown_torch._tensors import divide, sort_by_time, take, where_true
 from evdown_torch.events import Events, polarity_sign
-from evdown_torch.transforms.functional._knots import (
+from evdown_torch.transforms.functional.knots import (
     Knots,
     check_span,
     emit,
@@ -28,12 +28,12 @@ from evdown_torch.transforms.functional._knots import (
     pixel_knots,
     region_chunks,
 )
-from evdown_torch.transforms.functional._reference import capped_threshold, threshold_fraction
+from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
 
 if TYPE_CHECKING:
     from evdown_torch.transforms.functional.estimation_stream import EstimationSettings, Resume
 
-__all__ = ["Crossings", "RegionJob", "RegionSolver", "estimate", "estimate_window"]
+__all__ = ["CurveCrossings", "RegionJob", "RegionSolver", "estimate", "estimate_window"]
 
 
 class RegionJob(NamedTuple):
@@ -59,7 +59,7 @@ class RegionJob(NamedTuple):
     front_at_rest: bool = False
 
 
-class Crossings(NamedTuple):
+class CurveCrossings(NamedTuple):
     """The crossings a solver finds, in region order.
 
     Attributes:
@@ -76,7 +76,7 @@ class Crossings(NamedTuple):
 
 
 #: A curve's solver: the crossings of the regions of one chunk of knots.
-RegionSolver = Callable[[Knots, RegionJob], Crossings]
+RegionSolver = Callable[[Knots, RegionJob], CurveCrossings]
 
 
 def estimate(

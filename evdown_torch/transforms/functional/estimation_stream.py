@@ -40,13 +40,13 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import check_positive_float, output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._knots import (
+from evdown_torch.transforms.functional.estimation import RegionSolver, estimate_window
+from evdown_torch.transforms.functional.knots import (
     Knots,
     check_span,
     effective_delay,
     hold_knots,
 )
-from evdown_torch.transforms.functional.estimation import RegionSolver, estimate_window
 from evdown_torch.transforms.functional.settings import ThresholdSettings
 
 __all__ = [
@@ -97,7 +97,7 @@ def resume_steps(
 
     Returns:
         ``(floor_u, on_level, q_start)`` for
-        :func:`~evdown_torch.transforms.functional._reference.step_crossings`.
+        :func:`~evdown_torch.transforms.functional.reference.step_crossings`.
     """
     if resume is None:
         return floor_u, on_level, None

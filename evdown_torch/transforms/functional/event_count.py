@@ -23,7 +23,7 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events, polarity_sign
-from evdown_torch.transforms.functional._reference import (
+from evdown_torch.transforms.functional.reference import (
     capped_threshold,
     step_crossings,
     threshold_fraction,

@@ -7,18 +7,18 @@ from torch import Tensor
 
 from evdown_torch._tensors import differences, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional._knots import (
+from evdown_torch.transforms.functional.estimation import CurveCrossings, RegionJob, estimate
+from evdown_torch.transforms.functional.estimation_stream import (
+    EstimationSettings,
+    resume_steps,
+)
+from evdown_torch.transforms.functional.knots import (
     Knots,
     level_changes,
     piece_time,
     region_pixels,
 )
-from evdown_torch.transforms.functional._reference import level_index, level_value, step_crossings
-from evdown_torch.transforms.functional.estimation import Crossings, RegionJob, estimate
-from evdown_torch.transforms.functional.estimation_stream import (
-    EstimationSettings,
-    resume_steps,
-)
+from evdown_torch.transforms.functional.reference import level_index, level_value, step_crossings
 
 __all__ = ["linear_estimation", "linear_regions", "local_cumsum"]
 
@@ -75,7 +75,7 @@ def linear_estimation(
     """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
 
     Each pixel's log-luminance is the polyline through its knots (see
-    :mod:`~evdown_torch.transforms.functional._knots`); each region's mean ``M_r`` (sum of its
+    :mod:`~evdown_torch.transforms.functional.knots`); each region's mean ``M_r`` (sum of its
     pixels' polylines over ``n_r``) is watched by the DVS reference rule at contrast
     ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
     the exact crossing times, rounded half up to integers when ``t`` is int64.
@@ -114,7 +114,7 @@ def linear_estimation(
     return estimate(events, settings, bounds=bounds)
 
 
-def linear_regions(knots: Knots, job: RegionJob) -> Crossings:
+def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     """The linear curve's solver: the crossings of the regions of one chunk, in region order
     (:class:`~evdown_torch.transforms.functional.estimation.RegionJob` says what ``job`` holds).
     ``front_at_rest`` changes nothing for polylines.
@@ -213,4 +213,4 @@ def linear_regions(knots: Knots, job: RegionJob) -> Crossings:
     at_end = jump | (take(on_level, end) & (cross.level == take(floor_u, end)))
     ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
     t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, end), ratio)
-    return Crossings(knots.bp_region(end), t, cross.on, end)
+    return CurveCrossings(knots.bp_region(end), t, cross.on, end)

@@ -4,8 +4,8 @@ Each input pixel keeps an integer level ``L_p`` (ON +1, OFF -1) and its log inte
 ``c * L_p``. A region's photocurrent is the mean of its pixels' intensities,
 ``I_r = (1 / n_r) * sum exp(c * L_p)``, and the output pixel runs the DVS reference rule on
 ``log I_r`` at contrast ``theta``: with ``u = log(I_r) / theta``, the shared rule of
-:mod:`~evdown_torch.transforms.functional._reference` (floor of ``u`` and whether ``u`` is on a
-level, a ``u`` within :data:`~evdown_torch.transforms.functional._knots.SNAP` of an integer
+:mod:`~evdown_torch.transforms.functional.reference` (floor of ``u`` and whether ``u`` is on a
+level, a ``u`` within :data:`~evdown_torch.transforms.functional.knots.SNAP` of an integer
 counting as on it).
 
 *Events mode* (:func:`photocurrent_events`): ``log I_r`` changes only at input events. The
@@ -46,14 +46,14 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events, polarity_sign
-from evdown_torch.transforms.functional._reference import (
-    SNAP,
-    crossings,
-    reference_index,
-)
 from evdown_torch.transforms.functional.photocurrent_sums import (
     grouped_levels,
     running_sums,
+)
+from evdown_torch.transforms.functional.reference import (
+    SNAP,
+    crossings,
+    reference_index,
 )
 
 

@@ -35,12 +35,7 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import DEFAULT_TIME_UNIT, output_limit, output_size
 from evdown_torch.events import Events, polarity_sign
-from evdown_torch.transforms.functional._knots import HALF_TOLERANCE, emit
-from evdown_torch.transforms.functional._reference import (
-    crossings,
-    group_by_region,
-    reference_index,
-)
+from evdown_torch.transforms.functional.knots import HALF_TOLERANCE, emit
 from evdown_torch.transforms.functional.photocurrent import (
     check_level_range,
     log_mean_exp,
@@ -51,6 +46,11 @@ from evdown_torch.transforms.functional.photocurrent import (
 from evdown_torch.transforms.functional.photocurrent_settings import (
     FrameClock,
     PhotocurrentSettings,
+)
+from evdown_torch.transforms.functional.reference import (
+    crossings,
+    group_by_region,
+    reference_index,
 )
 
 #: Frame values per chunk (pixels x frames with a leak, region pixels x steps without one).

@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from evdown_torch.checks import check_factor, check_positive_float, check_sensor_size, output_size
-from evdown_torch.transforms.functional._reference import threshold_fraction
+from evdown_torch.transforms.functional.reference import threshold_fraction
 
 __all__ = ["RegionSettings", "ThresholdSettings"]
 

@@ -23,7 +23,7 @@ front knot included) are more than ``D`` apart (:func:`hold_knots`): the estimat
 an event that changes no level, so the knot and breakpoint machinery stays one.
 
 It also holds the output assembly both estimators share (:func:`emit`); the level test and
-the reference rule they apply live in :mod:`~evdown_torch.transforms.functional._reference`.
+the reference rule they apply live in :mod:`~evdown_torch.transforms.functional.reference`.
 """
 
 from __future__ import annotations

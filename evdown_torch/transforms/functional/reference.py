@@ -267,8 +267,8 @@ def step_crossings(
 ) -> Crossings:
     """The reference rule over monotone steps grouped by region, from ``q = q_start``.
 
-    Applies :func:`~evdown_torch.transforms.functional._reference.reference_index` and
-    :func:`~evdown_torch.transforms.functional._reference.crossings` to the steps that can
+    Applies :func:`~evdown_torch.transforms.functional.reference.reference_index` and
+    :func:`~evdown_torch.transforms.functional.reference.crossings` to the steps that can
     change ``q`` only: a step that stays strictly inside the cell its predecessor ended in
     keeps ``q`` and crosses nothing, so dropping it changes no other step's result.
 
