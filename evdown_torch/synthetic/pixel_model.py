@@ -36,9 +36,8 @@ from evdown_torch.checks import (
     check_positive_int,
     check_unit_interval,
 )
-from evdown_torch.transforms.functional.reference import (
-    crossings,
-    reference_index,
+from evdown_torch.transforms.functional.reference import crossings, reference_index
+from evdown_torch.transforms.functional.two_thresholds import (
     two_threshold_counts,
     two_threshold_crossings,
 )

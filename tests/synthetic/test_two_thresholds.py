@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch.transforms.functional.reference import (
+from evdown_torch.transforms.functional.two_thresholds import (
     two_threshold_counts,
     two_threshold_crossings,
     two_threshold_level,
