@@ -108,16 +108,22 @@ def test_device(device):
     assert spikes.device.type == device.type and state.out.device.type == device.type
 
 
-def _receptive_mask(model, size):
-    """Which input pixels reach the centre unit of the last block (convolutions and pooling only,
-    all weights 1, so nothing cancels)."""
-    x = torch.zeros(1, 2, size, size, requires_grad=True)
+def _blocks_of_ones(model, size, channels=2):
+    """An input that needs a gradient and the last block's output on it, every weight 1 and
+    every bias 0 (convolutions and pooling only, so nothing cancels)."""
+    x = torch.zeros(1, channels, size, size, requires_grad=True)
     with torch.no_grad():
         for p in model.parameters():
             p.fill_(1.0) if p.ndim > 1 else p.zero_()
     current = model._stem(x)
     for conv in model.convs:
         current = model.pool(conv(current))
+    return x, current
+
+
+def _receptive_mask(model, size):
+    """Which input pixels reach the centre unit of the last block."""
+    x, current = _blocks_of_ones(model, size)
     h, w = current.shape[-2:]
     current[0, 0, h // 2, w // 2].backward()
     return x.grad[0].abs().sum(0) > 0
@@ -156,13 +162,7 @@ def test_the_study_classifiers_see_the_whole_input(name, side):
     config = load_config(Path(__file__).resolve().parents[2] / "configs" / f"{name}.toml")
     model = model_for(config, (side, side), 11)
     assert (model.stem is None) == (side <= config.model.grid)
-    x = torch.zeros(1, config.data.frame_channels, side, side, requires_grad=True)
-    with torch.no_grad():
-        for p in model.parameters():
-            p.fill_(1.0) if p.ndim > 1 else p.zero_()
-    current = model._stem(x)
-    for conv in model.convs:
-        current = model.pool(conv(current))
+    x, current = _blocks_of_ones(model, side, config.data.frame_channels)
     model.fc(model.squeeze(current).flatten(1)).sum().backward()
     assert bool((x.grad.abs().sum(1) > 0).all())
 
