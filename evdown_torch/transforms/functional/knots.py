@@ -46,6 +46,7 @@ from evdown_torch._tensors import (
     run_index,
     stable_sort_small,
     take,
+    time_order,
     where_true,
 )
 from evdown_torch.checks import MAX_EXACT_SPAN, check_time_span
@@ -254,7 +255,12 @@ def pixel_knots(
     # Level after every event; the last event of each (pixel, t) run is an event knot.
     new_pixel = changes(key_p)
     level = torch.cumsum(step_p, 0)
-    level -= take(take(level - step_p, where_true(new_pixel)), run_index(new_pixel))
+    # Restart the sum at each pixel: its first step also takes back the previous pixel's level.
+    pixel_at = where_true(new_pixel)
+    before = take(level, pixel_at[1:] - 1)  # the running sum where each pixel ends
+    step_p.index_add_(0, pixel_at[1:], torch.diff(before, prepend=before.new_zeros(1)).neg_())
+    torch.cumsum(step_p, 0, out=level)
+    del pixel_at, before
     kidx = where_true(ends(new_pixel | changes(t_p)))
     del new_pixel, step_p
     ek_t, ek_level, ek_key = take(t_p, kidx), take(level, kidx), take(key_p, kidx)
@@ -270,10 +276,12 @@ def pixel_knots(
     back = ek_last & (ek_t < ek_end)
 
     # The full knot list in pixel order: front knot before, back knot after a pixel's knots.
-    front_i, back_i = front.to(torch.int64), back.to(torch.int64)
-    pos = torch.arange(ke, device=device) + torch.cumsum(front_i, 0)
-    pos += torch.cumsum(back_i, 0) - back_i
-    del front_i, back_i
+    # A knot moves one place for each front knot up to it and each back knot before it.
+    shift = front.to(torch.int64)
+    shift[1:] += back[:-1]
+    pos = torch.cumsum(shift, 0)
+    del shift
+    pos += torch.arange(ke, device=device)
     front_at, back_at = where_true(front), where_true(back)
     front_pos, back_pos = take(pos, front_at) - 1, take(pos, back_at) + 1
     total = ke + front_at.shape[0] + back_at.shape[0]
@@ -422,7 +430,7 @@ def hold_knots(
     with level step 0 (docs/semantics.md, "Bounded delay").
 
     Args:
-        events: ``N`` events in stable time order.
+        events: ``N`` events (put in stable time order here when they are not).
         max_delay: ``D`` > 0, in the stream's time unit (a whole number for int64 ``t``).
         t_start: ``()`` first timestamp of the whole stream, or ``(N,)`` for each event that
             of its own stream (a batch of recordings, see :func:`estimate`) or the time of its
@@ -439,31 +447,58 @@ def hold_knots(
         ([0, 1, 4, 7, 10], [0, 1, 1, 0, 0], [1, 0, -1, 0, 1])
     """
     delay = effective_delay(max_delay, events.t)
+    by_time = time_order(events.t)  # None when already in time order (the callers')
+    if by_time is not None:
+        events = events.select(by_time)
+        t_start = t_start if t_start.ndim == 0 else take(t_start, by_time)
     step = polarity_sign(events.p)
     n = events.num_events
     if n == 0:
         return events, step
-    # Distinct event times of each pixel, in pixel order then time order.
+    # Events in pixel order then time order: a knot is held where an event is more than D
+    # after its pixel's previous event (the front knot's t_start before the first); events of
+    # one knot time are 0 apart, so only the first event of each knot can be held.
     width = int(events.x.max()) + 1
     pixel = events.y * width + events.x
     pixel, order = stable_sort_small(pixel)
     t = take(events.t, order)
     new_pixel = changes(pixel)
-    new_knot = new_pixel | changes(t)
-    knot_t = t[new_knot]
-    first = new_pixel[new_knot]
-    previous = torch.empty_like(knot_t)
-    previous[1:] = knot_t[:-1]
-    start = t_start if t_start.ndim == 0 else take(t_start, order)[new_knot][first]
-    previous[first] = start  # the front knot (t_start, 0); a gap of 0 when they coincide
-    held = (knot_t - previous) > delay
-    if not bool(held.any()):
+    previous = torch.empty_like(t)
+    previous[1:] = t[:-1]
+    first_at = where_true(new_pixel)
+    start = t_start if t_start.ndim == 0 else take(take(t_start, order), first_at)
+    previous.index_put_((first_at,), start)  # a gap of 0 where the pixel starts at t_start
+    gap = t - previous
+    del previous
+    held_at = where_true(gap > delay)
+    del gap
+    if held_at.shape[0] == 0:
         return events, step
-    held_t = knot_t[held] - delay
-    held_pixel = pixel[new_knot][held]
-    held_events = Events(held_pixel % width, torch.div(held_pixel, width, rounding_mode="floor"),
-                         held_t, torch.zeros_like(held_t, dtype=torch.bool))
-    merged = Events(*(torch.cat(pair) for pair in zip(held_events, events)))
-    merged_step = torch.cat([torch.zeros_like(held_t, dtype=torch.int8), step])
-    order = torch.sort(merged.t, stable=True).indices
-    return merged.select(order), take(merged_step, order)
+    held_pixel = take(pixel, held_at)
+    held_t = take(t, held_at) - delay
+    del pixel, t, order
+    # Merge into time order, a held knot before the real events of its time (as a stable
+    # sort of the held knots, in pixel order, followed by the events): held knots sorted
+    # stably by time, then the events before each held knot counted by a binary search.
+    held_t, by_time = torch.sort(held_t, stable=True)
+    held_pixel = take(held_pixel, by_time)
+    m = held_t.shape[0]
+    before = torch.searchsorted(events.t, held_t)  # real events earlier than each held knot
+    held_pos = before + torch.arange(m, device=before.device)
+    # Real event i follows every held knot with at most i real events before it.
+    real_pos = torch.cumsum(torch.bincount(before, minlength=n), 0)
+    real_pos += torch.arange(n, device=before.device)
+
+    def merge(real: Tensor, held_values: Tensor) -> Tensor:
+        out = torch.empty(n + m, dtype=real.dtype, device=real.device)
+        out.index_copy_(0, real_pos, real)
+        return out.index_copy_(0, held_pos, held_values)
+
+    merged = Events(
+        merge(events.x, held_pixel % width),
+        merge(events.y, torch.div(held_pixel, width, rounding_mode="floor")),
+        merge(events.t, held_t),
+        merge(events.p, torch.zeros(m, dtype=events.p.dtype, device=events.p.device)),
+    )
+    return merged, merge(step, torch.zeros(m, dtype=step.dtype, device=step.device))
+

@@ -46,9 +46,11 @@ def local_cumsum(values: Tensor, first_at: Tensor) -> Tensor:
         [1.0, 3.0, 4.0, 8.0, 24.0]
     """
     n = values.shape[0]
-    out = torch.empty_like(values)
     if n == 0:
-        return out
+        return torch.empty_like(values)
+    # One slot past the end: the padding of every row reads its 0.0 and writes its sums there.
+    padded = torch.cat([values, values.new_zeros(1)])
+    out = torch.empty_like(padded)
     length = torch.diff(first_at, append=first_at.new_tensor([n]))
     # Group k holds the segments of length in (2**(k-1), 2**k]: frexp's exponent of length - 1.
     group = torch.frexp((length - 1).to(torch.float64)).exponent
@@ -56,11 +58,9 @@ def local_cumsum(values: Tensor, first_at: Tensor) -> Tensor:
         members = where_true(group == k)
         start, size = take(first_at, members), take(length, members)
         offset = torch.arange(1 << k, device=values.device)
-        inside = offset < size[:, None]
-        at = (start[:, None] + offset).masked_fill_(~inside, 0)
-        rows = take(values, at.reshape(-1)).reshape(at.shape).masked_fill_(~inside, 0.0)
-        out[at[inside]] = torch.cumsum(rows, 1)[inside]
-    return out
+        at = (start[:, None] + offset).masked_fill_(offset >= size[:, None], n).reshape(-1)
+        out.index_copy_(0, at, torch.cumsum(take(padded, at).reshape(-1, 1 << k), 1).reshape(-1))
+    return out[:n]
 
 
 def linear_estimation(
