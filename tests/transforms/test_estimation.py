@@ -26,6 +26,7 @@ from scipy.interpolate import PchipInterpolator
 from scipy.optimize import brentq
 
 import evdown_torch.transforms.functional.cubic as cubic_module
+import evdown_torch.transforms.functional.estimation as estimation_module
 import evdown_torch.transforms.functional.knots as knots_module
 import evdown_torch.transforms.functional.linear as linear_module
 from evdown_torch import CubicEstimation, EventCount, Events, LinearEstimation
@@ -421,6 +422,24 @@ def test_chunking_does_not_change_the_result(cls, rng, monkeypatch):
     monkeypatch.setattr(knots_module.region_chunks, "__defaults__", (97,))  # events per chunk
     monkeypatch.setattr(cubic_module, "CHUNK", 64)  # pixel-segment evaluations per chunk
     np.testing.assert_array_equal(transform(arr), whole)
+
+
+@pytest.mark.parametrize("cls", ESTIMATORS)
+@pytest.mark.parametrize("max_delay", [None, 150])
+def test_region_chunk_size_does_not_change_the_result(cls, max_delay, rng, monkeypatch):
+    # estimate_window solves the regions in chunks of REGION_CHUNK_EVENTS events; chunks of a
+    # few dozen events (many chunks, some of one region) give the same events, bit for bit,
+    # for one stream and for a batch of recordings.
+    arr = random_stream(rng, 3000, (20, 12, 2), t_max=4000)
+    recordings = [random_stream(rng, 400, (20, 12, 2), t_max=3000) for _ in range(3)]
+    transform = cls((20, 12, 2), factor=(3, 2), threshold=0.2, max_delay=max_delay)
+    whole, batch = transform(arr), transform.batch(recordings)
+    for size in (37, 500):
+        monkeypatch.setattr(estimation_module, "REGION_CHUNK_EVENTS", size)
+        monkeypatch.setattr(cubic_module, "CHUNK", 64)
+        np.testing.assert_array_equal(transform(arr), whole)
+        for got, expected in zip(transform.batch(recordings), batch, strict=True):
+            np.testing.assert_array_equal(got, expected)
 
 
 @pytest.mark.parametrize("cls", ESTIMATORS)

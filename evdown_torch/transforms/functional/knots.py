@@ -501,4 +501,3 @@ def hold_knots(
         merge(events.p, torch.zeros(m, dtype=events.p.dtype, device=events.p.device)),
     )
     return merged, merge(step, torch.zeros(m, dtype=step.dtype, device=step.device))
-
