@@ -160,8 +160,10 @@ def region_chunks(
     if step is None:
         step = polarity_sign(events.p)
     rx, ry = region_of(events, factor)
-    region = ry * out_width + rx
-    local = (events.y - ry * fy) * fx + (events.x - rx * fx)
+    local = torch.sub(events.y, ry, alpha=fy).mul_(fx)  # (y - ry * fy) * fx + x - rx * fx
+    local += events.x
+    local.sub_(rx, alpha=fx)
+    region = ry.mul_(out_width).add_(rx)
     del rx, ry
     region, order = stable_sort_small(region, int(region.max()) + 1)
     n = region.shape[0]
