@@ -470,18 +470,15 @@ def hold_knots(
     first_at = where_true(new_pixel)
     start = t_start if t_start.ndim == 0 else take(take(t_start, order), first_at)
     previous.index_put_((first_at,), start)  # a gap of 0 where the pixel starts at t_start
-    gap = t - previous
+    held_at = where_true((t - previous) > delay)
     del previous
-    held_at = where_true(gap > delay)
-    del gap
     if held_at.shape[0] == 0:
         return events, step
     held_pixel = take(pixel, held_at)
     held_t = take(t, held_at) - delay
     del pixel, t, order
-    # Merge into time order, a held knot before the real events of its time (as a stable
-    # sort of the held knots, in pixel order, followed by the events): held knots sorted
-    # stably by time, then the events before each held knot counted by a binary search.
+    # Merge in time order, a held knot before the real events of its time (as a stable sort
+    # of the held knots in pixel order, then the events), by a binary search per held knot.
     held_t, by_time = torch.sort(held_t, stable=True)
     held_pixel = take(held_pixel, by_time)
     m = held_t.shape[0]
