@@ -152,13 +152,12 @@ def _mid_segment_sums(
     counts = take(inside, segments)
     del inside
     # Per segment: start, first breakpoint inside, and the Hermite coefficients in s.
+    start_t = take(knots.t, segments)
     if knots.t.is_floating_point():
-        bp_time, knot_time = knots.bp_t, knots.t
+        bp_time = knots.bp_t
     else:  # exact: integer offsets from t_start below 2**53
         bp_time = (knots.bp_t - knots.t[0]).to(torch.float64)
-        knot_time = (knots.t - knots.t[0]).to(torch.float64)
-    start_t = take(knot_time, segments)
-    del knot_time
+        start_t = (start_t - knots.t[0]).to(torch.float64)
     c1 = take(c1, segments)
     c2_end = take(c2_end, segments)
     r = take(rise, segments)

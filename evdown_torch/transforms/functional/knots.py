@@ -479,8 +479,8 @@ def hold_knots(
     del pixel, t, order
     # Merge in time order, a held knot before the real events of its time (as a stable sort
     # of the held knots in pixel order, then the events), by a binary search per held knot.
-    held_t, by_time = torch.sort(held_t, stable=True)
-    held_pixel = take(held_pixel, by_time)
+    held_t, held_order = torch.sort(held_t, stable=True)
+    held_pixel = take(held_pixel, held_order)
     m = held_t.shape[0]
     before = torch.searchsorted(events.t, held_t)  # real events earlier than each held knot
     held_pos = before + torch.arange(m, device=before.device)
