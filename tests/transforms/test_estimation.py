@@ -27,7 +27,6 @@ from scipy.optimize import brentq
 
 import evdown_torch.transforms.functional.cubic as cubic_module
 import evdown_torch.transforms.functional.estimation as estimation_module
-import evdown_torch.transforms.functional.knots as knots_module
 import evdown_torch.transforms.functional.linear as linear_module
 from evdown_torch import CubicEstimation, EventCount, Events, LinearEstimation
 from tests.helpers import DVS_DTYPE, as_tuples, crossed_levels, random_stream, reference_index
@@ -419,7 +418,7 @@ def test_chunking_does_not_change_the_result(cls, rng, monkeypatch):
     arr = random_stream(rng, 3000, (20, 12, 2), t_max=4000)
     transform = cls((20, 12, 2), factor=(3, 2), threshold=0.2)
     whole = transform(arr)
-    monkeypatch.setattr(knots_module.region_chunks, "__defaults__", (97,))  # events per chunk
+    monkeypatch.setattr(estimation_module, "REGION_CHUNK_EVENTS", 97)  # events per chunk
     monkeypatch.setattr(cubic_module, "CHUNK", 64)  # pixel-segment evaluations per chunk
     np.testing.assert_array_equal(transform(arr), whole)
 
@@ -461,9 +460,9 @@ def test_float_batch_equals_each_recording_bit_for_bit(cls, seed, monkeypatch):
     stream = np.concatenate([recordings[0], recordings[1]])
     stream["x"][len(recordings[0]):] = stream["x"][len(recordings[0]):] // 2  # other regions
     stream["x"][: len(recordings[0])] = stream["x"][: len(recordings[0])] // 2 + 5
-    monkeypatch.setattr(knots_module.region_chunks, "__defaults__", (150,))
+    monkeypatch.setattr(estimation_module, "REGION_CHUNK_EVENTS", 150)
     chunked = transform(stream)
-    monkeypatch.setattr(knots_module.region_chunks, "__defaults__", (10**9,))
+    monkeypatch.setattr(estimation_module, "REGION_CHUNK_EVENTS", 10**9)
     np.testing.assert_array_equal(transform(stream), chunked)
 
 
