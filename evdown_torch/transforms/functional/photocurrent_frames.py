@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from typing import NamedTuple
+from dataclasses import dataclass
+from typing import NamedTuple, cast
 
 import torch
 from torch import Tensor
@@ -110,6 +111,32 @@ def photocurrent_frames(
     return frames_stream(events, None, settings, final=True)[0]
 
 
+@dataclass
+class FramesCarry:
+    """What a frames-mode stream's processed frames leave to the next ones (updated in place).
+
+    Attributes:
+        levels: ``(H * W,)`` int64 level of every pixel (no leak).
+        ell: ``(H * W,)`` float64 log intensity of every pixel at ``ell_time`` (leak).
+        ell_time: offset of the last frame built from ``t_start`` (leak).
+        u: ``(Ho * Wo,)`` float64 ``log(I_r) / theta`` of every region at its last frame.
+        q: ``(Ho * Wo,)`` int64 reference index of every region.
+        emitted: output events so far.
+    """
+
+    levels: Tensor
+    ell: Tensor
+    ell_time: float
+    u: Tensor
+    q: Tensor
+    emitted: int
+
+    def clone(self) -> FramesCarry:
+        """A copy with tensors of its own."""
+        return FramesCarry(self.levels.clone(), self.ell.clone(), self.ell_time, self.u.clone(),
+                           self.q.clone(), self.emitted)
+
+
 class FramesState(NamedTuple):
     """State of a frames-mode stream between chunks (:func:`frames_stream`).
 
@@ -118,15 +145,14 @@ class FramesState(NamedTuple):
         pending: the events of frames not complete yet (time-sorted).
         seen: events seen so far.
         next_frame: the first frame not processed yet.
-        carry: the processed frames' ``levels`` (no leak) or ``ell`` and ``ell_time`` (leak)
-            per pixel, and per region ``u``, ``q`` and the events ``emitted``.
+        carry: what the processed frames leave to the next ones.
     """
 
     t_start: Tensor
     pending: Events
     seen: int
     next_frame: int
-    carry: dict
+    carry: FramesCarry
 
 
 def fresh_frames_state(
@@ -137,12 +163,12 @@ def fresh_frames_state(
     w, h, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
     device = events.device
-    carry = {"levels": torch.zeros(w * h, dtype=torch.int64, device=device),
-             "ell": torch.zeros(w * h, dtype=torch.float64, device=device),
-             "ell_time": 0.0,
-             "u": torch.zeros(out_w * out_h, dtype=torch.float64, device=device),
-             "q": torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
-             "emitted": 0}
+    carry = FramesCarry(levels=torch.zeros(w * h, dtype=torch.int64, device=device),
+                        ell=torch.zeros(w * h, dtype=torch.float64, device=device),
+                        ell_time=0.0,
+                        u=torch.zeros(out_w * out_h, dtype=torch.float64, device=device),
+                        q=torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
+                        emitted=0)
     return FramesState(events.t[0], Events.empty(events.t.dtype, device), 0, 0, carry)
 
 
@@ -168,8 +194,10 @@ def frames_stream(
         ``(output events sorted by t, state)``.
     """
     sensor_size, factor = settings.sensor_size, settings.factor
-    contrast, threshold = settings.contrast, settings.threshold
-    fps, cutoff_hz = settings.fps, settings.cutoff_hz
+    if settings.fps is None or settings.time_unit is None:
+        raise ValueError("the frames mode needs its settings' fps, got fps=None")
+    contrast, fps, cutoff_hz = settings.contrast, settings.fps, settings.cutoff_hz
+    threshold = cast(float, settings.threshold)  # a float once the settings are built
     events = sort_by_time(events)
     if state is None:
         if events.num_events == 0:
@@ -186,9 +214,8 @@ def frames_stream(
     t_start = state.t_start
     offset = events.t - t_start
     clock = FrameClock.make(fps, offset[-1].item(), settings.time_unit)
-    frame = clock.index(offset)
-    carry = {key: value.clone() if isinstance(value, Tensor) else value
-             for key, value in state.carry.items()}
+    frame = clock.frame_index(offset)
+    carry = state.carry.clone()
     next_frame = state.next_frame
     # Frames before `stop` are processed: all of them at the end, else the complete ones
     # (before the latest event's frame), in whole leak chunks.
@@ -211,8 +238,8 @@ def frames_stream(
         steps = iter(())
     outputs = []
     for step in steps:
-        outputs.append(_frame_crossings(*step, carry["u"], carry["q"], clock, carry["emitted"]))
-        carry["emitted"] += outputs[-1][0].shape[0]
+        outputs.append(_frame_crossings(*step, carry.u, carry.q, clock, carry.emitted))
+        carry.emitted += outputs[-1][0].shape[0]
     if not outputs:
         return Events.empty(events.t.dtype, device), new_state
     region, k, at, on = (torch.cat(column) for column in zip(*outputs, strict=True))
@@ -237,17 +264,18 @@ def _log_photocurrent(
 
 
 def _frame_steps(
-    events: Events, frame: Tensor, settings: PhotocurrentSettings, carry: dict
+    events: Events, frame: Tensor, settings: PhotocurrentSettings, carry: FramesCarry
 ) -> Steps:
     """Without a leak: ``(region, frame, u, first)`` of every (region, frame) pair whose value
     changed (those following the region's events), region-major, in bounded batches.
-    ``carry["levels"]`` holds the pixel levels before the events and gets those after."""
+    ``carry.levels`` holds the pixel levels before the events and gets those after."""
     sensor_size, factor = settings.sensor_size, settings.factor
-    contrast, threshold = settings.contrast, settings.threshold
+    contrast = settings.contrast
+    threshold = cast(float, settings.threshold)  # a float once the settings are built
     w, h, _ = sensor_size
     out_w = output_size(sensor_size, factor)[0]
     per_region = factor[0] * factor[1]
-    level_state = carry["levels"]
+    level_state = carry.levels
     bounds = chunk_bounds(frame, max(1, CHUNK_VALUES // per_region), split_ties=False)
     for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
         piece = Events(*(column[lo:hi] for column in events))
@@ -279,7 +307,7 @@ def _frame_steps(
         del query, found, hit
         m, spread = log_mean_exp(lv, inside, contrast)
         u = _log_photocurrent(m, spread, region, sensor_size, factor, contrast, threshold)
-        level_state = carry["levels"] = levels.new_state
+        level_state = carry.levels = levels.new_state
         yield region, step_frame, u, changes(region)
 
 
@@ -315,14 +343,15 @@ def _leaky_frame_steps(
     clock: FrameClock,
     settings: PhotocurrentSettings,
     frames: tuple[int, int],
-    carry: dict,
+    carry: FramesCarry,
 ) -> Steps:
     """With a leak: ``(region, frame, u, first)`` of every region at every frame of
     ``range(*frames)`` (the first a multiple of :func:`leak_chunk`), built from dense frames in
-    chunks of :func:`leak_chunk` frames. ``carry["ell"]`` and ``carry["ell_time"]`` hold every
+    chunks of :func:`leak_chunk` frames. ``carry.ell`` and ``carry.ell_time`` hold every
     pixel's log intensity at the frame before and get those at the last frame."""
     sensor_size, factor = settings.sensor_size, settings.factor
-    contrast, threshold, cutoff_hz = settings.contrast, settings.threshold, settings.cutoff_hz
+    contrast, cutoff_hz = settings.contrast, settings.cutoff_hz
+    threshold = cast(float, settings.threshold)  # a float once the settings are built
     w, h, _ = sensor_size
     fx, fy = factor
     out_w, out_h, _ = output_size(sensor_size, factor)
@@ -334,7 +363,7 @@ def _leaky_frame_steps(
     offset = offset.to(torch.float64)
     regions = torch.arange(out_w * out_h, device=device)
     log_pixels = region_pixel_count(regions, sensor_size, factor).to(torch.float64).log_()
-    ell, ell_time = carry["ell"], carry["ell_time"]  # log intensity, last frame
+    ell, ell_time = carry.ell, carry.ell_time  # log intensity, last frame
     pad = (0, out_w * fx - w, 0, out_h * fy - h)
     for k0 in range(frames[0], frames[1], per_chunk):
         ks = torch.arange(k0, min(k0 + per_chunk, frames[1]), device=device)
@@ -348,7 +377,7 @@ def _leaky_frame_steps(
         inputs.cumsum_(0).mul_(torch.exp((end - times) * omega)[:, None])
         inputs += ell * torch.exp((ell_time - times) * omega)[:, None]
         ell, ell_time = inputs[-1].clone(), end
-        carry["ell"], carry["ell_time"] = ell, ell_time
+        carry.ell, carry.ell_time = ell, ell_time
         # Area average in linear intensity: log-sum-exp over each region (padding excluded).
         grid = torch.nn.functional.pad(inputs.view(-1, h, w), pad, value=-math.inf)
         grid = grid.view(-1, out_h, fy, out_w, fx).permute(0, 1, 3, 2, 4)
@@ -368,7 +397,7 @@ def _frame_crossings(
     carry_q: Tensor,
     clock: FrameClock,
     emitted: int = 0,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The reference rule on the linear ramps from frame ``k - 1`` to each step's frame ``k``.
 
     Steps are region-major (``first`` marks each region's first), frames ascending; a region's

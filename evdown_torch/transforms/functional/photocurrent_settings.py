@@ -74,7 +74,7 @@ class FrameClock(NamedTuple):
         """Frame period in ticks."""
         return self.denominator / self.numerator
 
-    def index(self, offset: Tensor) -> Tensor:
+    def frame_index(self, offset: Tensor) -> Tensor:
         """int64 index of the first frame at or after each ``offset`` (the frame holding it)."""
         if offset.is_floating_point():
             return torch.ceil(offset * (self.numerator / self.denominator)).to(torch.int64)
