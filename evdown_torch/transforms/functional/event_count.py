@@ -46,12 +46,12 @@ class EventCountState(NamedTuple):
 
     Attributes:
         level_sum: ``(Ho * Wo,)`` int64 sum of the region's pixel levels (ON +1, OFF -1).
-        index: ``(Ho * Wo,)`` int64 reference index ``q`` of each region.
+        reference: ``(Ho * Wo,)`` int64 reference index ``q`` of each region.
         last_t: ``()`` tensor, the latest timestamp seen (``None`` before any event).
     """
 
     level_sum: Tensor
-    index: Tensor
+    reference: Tensor
     last_t: Tensor | None
 
 
@@ -282,7 +282,7 @@ def _event_count_sorted(
         denominator = take((pixels * a).to(dtype), region.to(torch.int32))
     floor_u, on_level = floor_divide_exact(numerator, denominator)
     del numerator, level_sum
-    q_first = None if not bool(state.index.any()) else take(state.index, touched)
+    q_first = None if not bool(state.reference.any()) else take(state.reference, touched)
     # With an integer threshold (b == 1) a step moves b * S by one: it lands on every level.
     cross = step_crossings(floor_u, on_level, first, emitted=emitted, q_first=q_first,
                            lands_on_levels=b == 1)
@@ -295,9 +295,9 @@ def _event_count_sorted(
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
     # New state: each touched region's last sum, and the level of its last crossing.
-    new_index = state.index.clone()
+    new_reference = state.reference.clone()
     if cross.step.shape[0]:
         crossed = take(region, cross.step).to(torch.int64)
         last = ends(changes(crossed))
-        new_index[crossed[last]] = cross.level[last].to(torch.int64)
-    return out, EventCountState(new_sum, new_index, events.t[-1].clone())
+        new_reference[crossed[last]] = cross.level[last].to(torch.int64)
+    return out, EventCountState(new_sum, new_reference, events.t[-1].clone())

@@ -62,12 +62,12 @@ class PhotocurrentState(NamedTuple):
 
     Attributes:
         level: ``(H * W,)`` int64 level of every input pixel (ON +1, OFF -1), index ``y * W + x``.
-        index: ``(Ho * Wo,)`` int64 reference index ``q`` of every output region.
+        reference: ``(Ho * Wo,)`` int64 reference index ``q`` of every output region.
         last_t: ``()`` tensor, the latest timestamp seen (``None`` before any event).
     """
 
     level: Tensor
-    index: Tensor
+    reference: Tensor
     last_t: Tensor | None
 
 
@@ -301,7 +301,7 @@ def _events_piece(
     out_w = output_size(sensor_size, factor)[0]
     per_region = fx * fy
     n = events.num_events
-    regions = state.index.shape[0]
+    regions = state.reference.shape[0]
     # Region coordinates and ids in the narrowest integer type that holds them and the
     # sensor's coordinates (int16 up to 32,768 regions), as EventCount's kernel does.
     narrow = narrow_dtype(max(out_w * fx, regions // out_w * fy, regions))
@@ -378,12 +378,12 @@ def _events_piece(
     floor_u, on_level = take(floor_u, kept), take(on_level, kept)
     firsts = where_true(first)
     # Every region's q before the piece (a 0-d zero while all are 0: no look-up).
-    q_start = take(state.index, region.long()) if bool(state.index.any()) else (
+    q_start = take(state.reference, region.long()) if bool(state.reference.any()) else (
         first.new_zeros((), dtype=torch.int64))
     q = reference_index(floor_u, on_level, first, q_start)
     del q_start, floor_u, on_level
     q_before = q.roll(1)
-    q_before[firsts] = take(state.index, take(region, firsts).long())
+    q_before[firsts] = take(state.reference, take(region, firsts).long())
     cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one step keep their level order.
@@ -393,6 +393,6 @@ def _events_piece(
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
     lasts = where_true(ends(first))
-    new_index = state.index.clone()
-    new_index.scatter_(0, take(region, lasts).long(), take(q, lasts))
-    return out, PhotocurrentState(new_levels, new_index, events.t[-1].clone()), n
+    new_reference = state.reference.clone()
+    new_reference.scatter_(0, take(region, lasts).long(), take(q, lasts))
+    return out, PhotocurrentState(new_levels, new_reference, events.t[-1].clone()), n
