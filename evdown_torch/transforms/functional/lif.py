@@ -276,13 +276,13 @@ def lif_pooling(
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device)
     wo, ho, _ = output_size(sensor_size, factor)
+    last_step: int | Tensor  # the stream's last step, or each recording's
     if bounds is None:
         steps, last_step, dt = step_indices(events.t, settings.dt)
         batch_size = 1
     else:  # one block of Ho * Wo regions per recording
-        recording = divide(events.y, ho * factor[1])
-        steps, last_step, dt = batch_step_indices(events.t, recording, bounds, settings.dt)
-        del recording
+        steps, last_step, dt = batch_step_indices(  # each event's recording: its row block
+            events.t, divide(events.y, ho * factor[1]), bounds, settings.dt)
         batch_size = bounds[0].shape[0]
     spike_step, neuron, _ = lif_spikes(
         events, steps, settings, state=None, last_step=last_step, from_step=0,
@@ -473,7 +473,7 @@ def lif_spikes(
     # Output order: by step, then neuron (OFF before ON, then row-major region); a neuron
     # fires at most once per step.
     spike_step, neuron = _by_step_then_neuron(spike_step, neuron, 2 * plane, top_step)
-    if not keep_state:
+    if not keep_state or membrane is None:  # (no membranes: the closed form, no state kept)
         return spike_step, neuron, None
     # The neurons after the last update of every region here.
     last_region = cell_region.index_select(0, region_last)

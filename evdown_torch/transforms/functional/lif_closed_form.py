@@ -160,8 +160,8 @@ def certain_spikes(
 
     def membranes(fired: Tensor, chains: Tensor | None) -> Tensor:
         """Every membrane given the firings, scaled."""
-        if reset == "subtract":  # a firing at i subtracts theta at steps s_i + 1 .. s_i + 1 + m
-            share = fired * gain
+        if gain is not None:  # reset "subtract" (gain: its reset, scaled): a firing at i
+            share = fired * gain  # subtracts theta at steps s_i + 1 .. s_i + 1 + m
             if chains is not None:  # m spikes in the empty steps after the cell
                 at = chains.nonzero(as_tuple=True)
                 share[at] *= _geometric(chains[at], beta)
@@ -169,8 +169,7 @@ def certain_spikes(
         if reset == "zero":  # the membrane restarts after a firing: the sum from there on
             before = torch.zeros_like(fired)
             before[..., 1:] = fired[..., :-1]
-            restart = torch.where(before, torch.arange(width, device=device), 0).cummax(-1)
-            restart = restart.values
+            restart = torch.where(before, torch.arange(width, device=device), 0).cummax(-1).values
             earlier = summed.gather(-1, (restart - 1).clamp_(min=0))
             return summed - earlier.masked_fill_(restart == 0, 0.0)  # 0: from the row's start
         return summed

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, cast
 
 from evdown_torch.checks import (
     check_choice,
@@ -152,8 +152,9 @@ class LIFSettings:
     def neuron(self) -> LIFNeuron:
         """The neuron's settings: ``beta``, ``threshold``, ``weight``, ``mutual_inhibition``
         and ``reset_mechanism``."""
+        beta = cast(float, self.beta)  # set by __post_init__
         return LIFNeuron(
-            self.beta, self.threshold, self.weight, self.mutual_inhibition, self.reset_mechanism
+            beta, self.threshold, self.weight, self.mutual_inhibition, self.reset_mechanism
         )
 
 

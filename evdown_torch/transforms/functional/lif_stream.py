@@ -25,7 +25,7 @@ firing through empty steps.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import torch
 from torch import Tensor
@@ -181,6 +181,7 @@ def lif_pooling_stream(
     t = step_end_time(spike_step, t_start=state.t_start, t_end=last_t, dt=end_dt)
     out = spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
     rest = pending.select(torch.arange(n, pending.num_events, device=events.device))
+    neurons = cast(LIFState, neurons)  # kept: lif_spikes returns the state (keep_state)
     return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest)
 
 
