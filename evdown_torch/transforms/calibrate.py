@@ -22,7 +22,7 @@ import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Literal, NamedTuple
+from typing import Any, Generic, Literal, TypeVar, cast
 
 from evdown_torch.checks import (
     DEFAULT_TIME_UNIT,
@@ -35,6 +35,9 @@ from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.transforms._base import Downscaler
 
 __all__ = ["BudgetTarget", "Calibration", "calibrate", "calibration"]
+
+#: The transform's class: the calibrated copy has it too.
+D = TypeVar("D", bound=Downscaler)
 
 
 @dataclass(frozen=True)
@@ -97,10 +100,12 @@ class BudgetTarget:
             return self.value
         if duration <= 0:
             raise ValueError("a rate target needs recordings that span a positive duration")
-        return self.value * duration * self.time_unit
+        time_unit = cast(float, self.time_unit)  # set for a rate target
+        return self.value * duration * time_unit
 
 
-class Calibration(NamedTuple):
+@dataclass(frozen=True)
+class Calibration(Generic[D]):
     """What :func:`calibration` found.
 
     Attributes:
@@ -111,7 +116,7 @@ class Calibration(NamedTuple):
         evaluations: how many settings were run.
     """
 
-    transform: Downscaler
+    transform: D
     value: float
     count: int
     target: float
@@ -119,13 +124,13 @@ class Calibration(NamedTuple):
 
 
 def calibrate(
-    transform: Downscaler,
+    transform: D,
     recordings: Sequence[EventsLike],
     target: BudgetTarget,
     *,
     rtol: float = 0.01,
     max_evaluations: int = 40,
-) -> Downscaler:
+) -> D:
     """A copy of ``transform`` whose budget setting makes the output hit ``target``.
 
     Args:
@@ -161,13 +166,13 @@ def calibrate(
 
 
 def calibration(
-    transform: Downscaler,
+    transform: D,
     recordings: Sequence[EventsLike],
     target: BudgetTarget,
     *,
     rtol: float = 0.01,
     max_evaluations: int = 40,
-) -> Calibration:
+) -> Calibration[D]:
     """As :func:`calibrate`, returning what the search found (:class:`Calibration`)."""
     if not isinstance(transform, Downscaler):
         raise TypeError(f"transform must be a Downscaler, got {type(transform).__name__}")
@@ -199,17 +204,20 @@ def calibration(
                        len(search.counts))
 
 
-class _Search:
+class _Search(Generic[D]):
     """The output count as a function of the setting, remembered, and the search over it."""
 
-    def __init__(self, transform: Downscaler, setting: str, streams: list[Events],
+    def __init__(self, transform: D, setting: str, streams: list[Events],
                  wanted: float, max_evaluations: int) -> None:
         self.transform, self.setting, self.streams = transform, setting, streams
         self.wanted, self.max_evaluations = wanted, max_evaluations
         self.counts: dict[float, float] = {}
 
-    def build(self, value: float) -> Downscaler:
-        return replace(self.transform, **{self.setting: value})
+    def build(self, value: float) -> D:
+        # The setting is named at run time: no field's type can be checked here (the
+        # transform's __post_init__ checks the value).
+        changes: dict[str, Any] = {self.setting: value}
+        return replace(self.transform, **changes)
 
     def valid(self, value: float) -> bool:
         try:
@@ -222,7 +230,8 @@ class _Search:
         if value not in self.counts:
             down = self.build(value)
             try:
-                outputs = down.batch(self.streams)  # one pass over every recording
+                # one pass over every recording (Events in, Events out)
+                outputs = cast(list[Events], down.batch(self.streams))
                 self.counts[value] = float(sum(out.num_events for out in outputs))
             except ValueError:  # an output too large to produce: more than any target
                 self.counts[value] = math.inf

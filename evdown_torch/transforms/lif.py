@@ -142,7 +142,7 @@ class LIFPooling(Downscaler):
                 object.__setattr__(self, field.name, getattr(self.settings, field.name))
 
     @cached_property
-    def method_settings(self) -> LIFPoolingSettings:  # type: ignore[override]
+    def method_settings(self) -> LIFPoolingSettings:
         """What the kernels take: the region geometry and :attr:`settings` (checked once)."""
         neuron = LIFSettings(
             dt=self.dt, tau=self.tau, threshold=self.threshold, weight=self.weight,
@@ -159,7 +159,7 @@ class LIFPooling(Downscaler):
     @property
     def beta(self) -> float:
         """Membrane decay per step, ``exp(-dt / tau)``."""
-        return self.settings.beta
+        return self.settings.neuron.beta
 
     def to_module(self) -> SpikingPooling:
         """The :class:`~evdown_torch.models.SpikingPooling` with these settings.
