@@ -147,7 +147,9 @@ class Streaming:
     @overload
     def batch(self, recordings: Sequence[EventsLike]) -> list[EventsLike]: ...
 
-    def batch(self, recordings):
+    def batch(
+        self, recordings: EventBatch | Sequence[EventsLike]
+    ) -> EventBatch | list[EventsLike]:
         """Downscale many recordings in one pass; each output equals the recording's own call.
 
         The recordings go through the kernel together (``docs/semantics.md``: processing
@@ -421,7 +423,7 @@ class Chain(Streaming):
     def __call__(self, events: EventsLike) -> EventsLike:
         """Apply every stage in order; returns the input's kind."""
         for transform in self.transforms:
-            events = transform(events)  # type: ignore[operator]
+            events = transform(events)
         return events
 
     def session(self) -> Session:

@@ -53,10 +53,10 @@ class _Estimation(ThresholdDownscaler):
     solver: ClassVar[RegionSolver] = staticmethod(linear_regions)
 
     @cached_property
-    def settings(self) -> EstimationSettings:  # type: ignore[override]
+    def settings(self) -> EstimationSettings:
         """The checked settings the kernels take (built once, in ``__post_init__``)."""
         return EstimationSettings(self.sensor_size, self.factor,  # type: ignore[arg-type]
-                                  self.threshold, self.max_delay, self.lag, self.solver)
+                                  self.threshold, self.max_delay, self.lag, type(self).solver)
 
     def session(self) -> Session:
         """Start a streaming session (needs a finite ``max_delay``; see :meth:`stream`).

@@ -102,7 +102,7 @@ class PhotocurrentPooling(Downscaler):
             object.__setattr__(self, name, getattr(self.settings, name))
 
     @cached_property
-    def settings(self) -> PhotocurrentSettings:  # type: ignore[override]
+    def settings(self) -> PhotocurrentSettings:
         """The checked settings the kernels take (built once, in ``__post_init__``)."""
         return PhotocurrentSettings(
             self.sensor_size, self.factor, self.contrast,  # type: ignore[arg-type]

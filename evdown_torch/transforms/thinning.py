@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, NoReturn
 
 import torch
 
@@ -84,7 +84,7 @@ class ThinnedDownsample(Downscaler):
         object.__setattr__(self, "keep", check_unit_interval("keep", self.keep))
         check_non_negative_int("seed", self.seed)
 
-    def session(self):
+    def session(self) -> NoReturn:
         """Not available: the draws are seeded by the whole recording, unknown before its end.
 
         Raises:

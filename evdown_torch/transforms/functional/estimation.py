@@ -175,7 +175,9 @@ def estimate_window(
     # Every curve stays within its knots' levels, at most sum |step| in size (PCHIP is
     # shape-preserving; a window's first knot of a pixel carries its whole level).
     bound = n if step is None else int(step.abs().sum())
-    sensor_size, factor = settings.sensor_size, settings.factor
+    sensor_size, factor, solver = settings.sensor_size, settings.factor, settings.solver
+    if solver is None:
+        raise ValueError("the estimation kernels need the settings' solver (the curve), got None")
     fraction = capped_threshold(threshold_fraction(settings.threshold), bound)
     out_w, out_h, _ = settings.output_sensor_size
     q = None if resume is None else resume.q.clone()
@@ -189,7 +191,7 @@ def estimate_window(
             start, end = take(t_start, recording), take(t_end, recording)
         knots = pixel_knots(chunk, factor=factor, t_start=start, t_end=end)
         job = RegionJob(sensor_size, factor, fraction, emitted, resume, front_at_rest)
-        region, t, on, bp = settings.solver(knots, job)
+        region, t, on, bp = solver(knots, job)
         outputs.append((region, t, on))
         emitted += region.shape[0]
         if q is not None and next_cut is not None:

@@ -170,19 +170,23 @@ def fixed_point(
     if hi - lo + 3 <= TABLE_SIZE:  # a table of intensities, then look-ups
         words = _split(torch.arange(lo - 1, hi + 2, device=key.device), contrast, scale, fine)
         index = pixel_j.sub_(lo - 1).view(-1)
-        anchor = tuple(region_sums(take(word, index).view_as(pixel_j)) for word in words)
+        anchor_high, anchor_low = (region_sums(take(word, index).view_as(pixel_j))
+                                   for word in words)
         # Row i (j = lo + i): [change by OFF, change by ON].
         index = key.sub_(2 * lo)
-        change = tuple(take(torch.stack([word[:-2] - word[1:-1], word[2:] - word[1:-1]], 1)
-                            .reshape(-1), index) for word in words)
-        return FixedPoint(anchor, change)
-    anchor = tuple(region_sums(word) for word in _split(pixel_j, contrast, scale, fine))
+        change_high, change_low = (
+            take(torch.stack([word[:-2] - word[1:-1], word[2:] - word[1:-1]], 1).reshape(-1),
+                 index)
+            for word in words)
+        return FixedPoint((anchor_high, anchor_low), (change_high, change_low))
+    anchor_high, anchor_low = (region_sums(word)
+                               for word in _split(pixel_j, contrast, scale, fine))
     before = divide(key, 2)
     after = torch.where(key - 2 * before == 1, before + 1, before - 1)
-    change = tuple(a.sub_(b) for a, b in zip(_split(after, contrast, scale, fine),
-                                              _split(before, contrast, scale, fine),
-                                              strict=True))
-    return FixedPoint(anchor, change)
+    change_high, change_low = (a.sub_(b) for a, b in zip(_split(after, contrast, scale, fine),
+                                                          _split(before, contrast, scale, fine),
+                                                          strict=True))
+    return FixedPoint((anchor_high, anchor_low), (change_high, change_low))
 
 
 def running_sums(
