@@ -61,7 +61,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, region_xy, sort_by_time, stable_sort_small
+from evdown_torch._tensors import divide, sort_by_time, stable_sort_small
 from evdown_torch.checks import check_output_count, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.lif_chains import Leak
@@ -80,6 +80,7 @@ from evdown_torch.transforms.functional.lif_settings import (
 from evdown_torch.transforms.functional.lif_steps import (
     MAX_STEPS,
     batch_step_indices,
+    spikes_to_events,
     step_end_time,
     step_indices,
 )
@@ -324,24 +325,6 @@ def initial_state(plane: int, device: torch.device | str | None = None) -> LIFSt
     )
 
 
-def spikes_to_events(
-    spike_step: Tensor,
-    neuron: Tensor,
-    t: Tensor,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    batch_size: int = 1,
-) -> Events:
-    """Events of spikes of neurons ``polarity * plane + region`` at times ``t``, where
-    ``plane = batch_size * Ho * Wo`` (``batch_size`` recordings stacked vertically)."""
-    wo, ho, _ = output_size(sensor_size, factor)
-    plane = batch_size * wo * ho
-    polarity = neuron >= plane
-    x, y = region_xy(neuron - polarity * plane, wo)
-    return Events(x, y, t, polarity)
-
-
 def lif_spikes(
     events: Events,
     steps: Tensor,
@@ -372,7 +355,8 @@ def lif_spikes(
             recording's own last step.
         from_step: return only the spikes of steps ``>= from_step`` (those of earlier steps
             were returned by an earlier call; they are neither built nor counted).
-        sensor_size, factor: as :func:`lif_pooling`.
+        sensor_size: input sensor ``(W, H, P)``.
+        factor: ``(fx, fy)``, positive integers.
         batch_size: how many recordings are stacked vertically in ``events`` (see
             :func:`lif_pooling`'s ``bounds``); a state is for one recording only.
         keep_state: return the neurons after the events; ``False`` returns ``None`` instead
@@ -489,8 +473,10 @@ def lif_spikes(
 def _by_step_then_neuron(
     spike_step: Tensor, neuron: Tensor, neurons: int, top: int
 ) -> tuple[Tensor, Tensor]:
-    """Spikes (steps up to ``top``) sorted by step, then neuron (``neurons`` of them): one
-    sort of the combined key where it fits in int64, else by neuron, then stably by step."""
+    """Spikes (steps up to ``top``) sorted by step, then neuron (``neurons`` of them).
+
+    One sort of the combined key where it fits in int64, else by neuron, then stably by step.
+    """
     if (top + 1) * neurons < 1 << 62:
         order = torch.sort(spike_step * neurons + neuron).indices
     else:

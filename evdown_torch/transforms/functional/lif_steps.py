@@ -1,4 +1,4 @@
-"""LIF pooling's clock: the step of every event, the last step, and a spike's time.
+"""LIF pooling's clock: the step of every event, the last step, and a spike's time and event.
 
 A stream is cut into steps of ``dt`` from its ``t_start`` (its first timestamp, or each
 recording's own in a batch); a spike in step ``k`` becomes an event at
@@ -14,7 +14,17 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["MAX_STEPS", "batch_step_indices", "step_end_time", "step_indices"]
+from evdown_torch._tensors import region_xy
+from evdown_torch.checks import output_size
+from evdown_torch.events import Events
+
+__all__ = [
+    "MAX_STEPS",
+    "batch_step_indices",
+    "spikes_to_events",
+    "step_end_time",
+    "step_indices",
+]
 
 #: Largest number of steps a stream may be cut into (step indices are int64, with headroom).
 MAX_STEPS = 1 << 62
@@ -41,9 +51,12 @@ def step_indices(
 def _checked_dt(
     t_start: Tensor | int, t_end: Tensor, floating: bool, dt: float, spans: str
 ) -> float:
-    """The ``dt`` to compute steps with from ``t_start`` to ``t_end`` (``()`` tensors, or 0),
-    or a ``ValueError`` when the span or its number of steps cannot be represented
-    (``spans`` names the span in the message: "the stream spans" or "a recording spans")."""
+    """The ``dt`` to compute steps with from ``t_start`` to ``t_end`` (``()`` tensors, or 0).
+
+    Raises:
+        ValueError: when the span or its number of steps cannot be represented (``spans``
+            names the span in the message: "the stream spans" or "a recording spans").
+    """
     if floating:
         span = float(t_end) - float(t_start)
         if not math.isfinite(span):
@@ -77,9 +90,11 @@ def _steps(relative: Tensor, dt: float) -> Tensor:
 def batch_step_indices(
     t: Tensor, recording: Tensor, bounds: tuple[Tensor, Tensor], dt: float
 ) -> tuple[Tensor, Tensor, float]:
-    """:func:`step_indices` for a batch: each event's step from its own recording's
-    ``t_start``, each recording's last step ``(B,)`` and the ``dt`` to compute end times
-    with (see :func:`lif_pooling`)."""
+    """:func:`step_indices` for a batch.
+
+    Each event's step from its own recording's ``t_start``, each recording's last step
+    ``(B,)`` and the ``dt`` to compute end times with (see :func:`lif_pooling`).
+    """
     starts, ends = bounds
     spans = ends - starts
     dt = _checked_dt(0, spans.max(), t.is_floating_point(), dt, "a recording spans")
@@ -101,3 +116,23 @@ def step_end_time(steps: Tensor, *, t_start: Tensor, t_end: Tensor, dt: float) -
     offset = torch.floor((steps + 1).to(torch.float64) * dt + 0.5)
     offset = torch.minimum(torch.minimum(offset, span.to(torch.float64)).to(torch.int64), span)
     return t_start + offset
+
+
+def spikes_to_events(
+    spike_step: Tensor,
+    neuron: Tensor,
+    t: Tensor,
+    *,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    batch_size: int = 1,
+) -> Events:
+    """Events of spikes of neurons ``polarity * plane + region`` at times ``t``.
+
+    ``plane = batch_size * Ho * Wo`` (``batch_size`` recordings stacked vertically).
+    """
+    wo, ho, _ = output_size(sensor_size, factor)
+    plane = batch_size * wo * ho
+    polarity = neuron >= plane
+    x, y = region_xy(neuron - polarity * plane, wo)
+    return Events(x, y, t, polarity)

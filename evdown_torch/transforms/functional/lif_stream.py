@@ -38,10 +38,13 @@ from evdown_torch.transforms.functional.lif import (
     LIFState,
     initial_state,
     lif_spikes,
-    spikes_to_events,
 )
 from evdown_torch.transforms.functional.lif_settings import LIFPoolingSettings
-from evdown_torch.transforms.functional.lif_steps import step_end_time, step_indices
+from evdown_torch.transforms.functional.lif_steps import (
+    spikes_to_events,
+    step_end_time,
+    step_indices,
+)
 
 __all__ = [
     "LIFStreamState",
@@ -109,8 +112,11 @@ def _last_decided_step(
 def _fresh_state(
     events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int]
 ) -> LIFStreamState:
-    """A stream's state before its first chunk ``events`` (time-sorted): ``t_start`` is its
-    first timestamp, every membrane at rest, no step decided, nothing pending."""
+    """A stream's state before its first chunk ``events`` (time-sorted).
+
+    ``t_start`` is its first timestamp, every membrane at rest, no step decided, nothing
+    pending.
+    """
     wo, ho, _ = output_size(sensor_size, factor)
     return LIFStreamState(
         events.t[0], events.t[0], initial_state(wo * ho, events.device), -1,
@@ -131,8 +137,9 @@ def lif_pooling_stream(
     Args:
         events: the chunk, no earlier than the previous chunks' last event.
         state: the state after the previous chunks, ``None`` for the first.
-        settings, sensor_size, factor: as
-            :func:`~evdown_torch.transforms.functional.lif.lif_pooling`.
+        settings: the neuron's settings (``dt`` in the unit of ``t``).
+        sensor_size: input sensor ``(W, H, P)``.
+        factor: ``(fx, fy)``, positive integers.
 
     Returns:
         ``(output, state)``: the events of the newly decided steps (sorted by ``t``; the
@@ -199,7 +206,9 @@ def lif_pooling_stream_end(
 
     Args:
         state: the state after the last chunk (``None``: no event, returns ``None``).
-        settings, sensor_size, factor: as :func:`lif_pooling_stream`.
+        settings: the neuron's settings, as for every chunk.
+        sensor_size: input sensor ``(W, H, P)``.
+        factor: ``(fx, fy)``, positive integers.
 
     Returns:
         The remaining events, sorted by ``t``, or ``None`` when no event was streamed.
