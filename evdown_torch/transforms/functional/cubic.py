@@ -127,8 +127,9 @@ def pchip_slopes(knots: Knots, *, front_at_rest: bool = False) -> tuple[Tensor, 
 def _mid_segment_sums(
     knots: Knots, slope: Tensor, width: Tensor, rise: Tensor
 ) -> tuple[Tensor, Tensor]:
-    """Value above the segment start and derivative of the pixels strictly inside a segment,
-    summed per breakpoint.
+    """Value and derivative of the pixels strictly inside a segment, summed per breakpoint.
+
+    The value is measured from the segment's start (its rise above it).
 
     Every (segment, breakpoint strictly inside it) pair is evaluated in the segment's
     normalised time ``s = (b - t_k) / width`` in chunks of :data:`CHUNK` pairs. Segments on
@@ -235,8 +236,9 @@ def _derivative_roots(c1: Tensor, c2: Tensor, c3: Tensor) -> tuple[Tensor, Tenso
 def _solve(
     c1: Tensor, c2: Tensor, c3: Tensor, goal: Tensor, low: Tensor, high: Tensor, rising: Tensor
 ) -> Tensor:
-    """Root of ``s (c1 + s (c2 + s c3)) = goal`` in ``[low, high]``, where the cubic is monotone
-    (rising or falling), by Newton's method safeguarded by bisection.
+    """Root of ``s (c1 + s (c2 + s c3)) = goal`` in ``[low, high]``, where the cubic is monotone.
+
+    The cubic is rising or falling there; Newton's method, safeguarded by bisection.
 
     Each root leaves the iteration once its last step moved it by at most 1e-15, so the cost
     follows the number of roots (most converge in a few steps), not the slowest one.
@@ -341,8 +343,12 @@ def cubic_estimation(
     about 1e-15 of the piece's length.
 
     Args:
-        events, sensor_size, factor, threshold, bounds: as
-            :func:`~evdown_torch.transforms.functional.linear.linear_estimation`.
+        events: ``N`` input events (any order; sorted stably by ``t`` here).
+        sensor_size: input ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
+            nearest fraction with denominator at most 10**6.
+        bounds: as :func:`~evdown_torch.transforms.functional.linear.linear_estimation`.
         max_delay: as there; besides, each pixel's slope at its first knot is 0 (at rest
             before the stream).
 
@@ -363,9 +369,10 @@ def cubic_estimation(
 
 
 def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
-    """The cubic curve's solver: the crossings of the regions of one chunk, in region order
-    (:class:`~evdown_torch.transforms.functional.estimation.RegionJob` says what ``job`` holds).
-    With ``job.front_at_rest`` each pixel's slope at its first knot is 0
+    """The cubic curve's solver: the crossings of the regions of one chunk, in region order.
+
+    :class:`~evdown_torch.transforms.functional.estimation.RegionJob` says what ``job``
+    holds. With ``job.front_at_rest`` each pixel's slope at its first knot is 0
     (:func:`pchip_slopes`).
     """
     sensor_size, factor, fraction = job.sensor_size, job.factor, job.fraction

@@ -115,9 +115,10 @@ def linear_estimation(
 
 
 def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
-    """The linear curve's solver: the crossings of the regions of one chunk, in region order
-    (:class:`~evdown_torch.transforms.functional.estimation.RegionJob` says what ``job`` holds).
-    ``front_at_rest`` changes nothing for polylines.
+    """The linear curve's solver: the crossings of the regions of one chunk, in region order.
+
+    :class:`~evdown_torch.transforms.functional.estimation.RegionJob` says what ``job``
+    holds; ``front_at_rest`` changes nothing for polylines.
     """
     sensor_size, factor, fraction = job.sensor_size, job.factor, job.fraction
     emitted, resume = job.emitted, job.resume
