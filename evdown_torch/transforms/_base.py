@@ -89,9 +89,12 @@ class Streaming:
 
     @property
     def method_settings(self) -> Any:
-        """The settings the method's kernels take: :attr:`settings`, except where the public
-        settings are a part of them (LIF: the neuron's ``LIFSettings``, shared with the
-        ``nn.Module``, inside the region's ``LIFPoolingSettings``)."""
+        """The settings the method's kernels take.
+
+        That is :attr:`settings`, except where the public settings are a part of them (LIF:
+        the neuron's ``LIFSettings``, shared with the ``nn.Module``, inside the region's
+        ``LIFPoolingSettings``).
+        """
         return self.settings
 
     def kernel(self, events: Events) -> Events:
@@ -102,8 +105,10 @@ class Streaming:
         return run_protocol(method, self.method_settings, events)
 
     def stream(self, events: Events, state: Any | None) -> tuple[Events, Any]:
-        """One non-empty, time-sorted chunk; ``state`` ``None`` for the first chunk of a
-        stream. Returns ``(output, new state)`` (the method's ``step``)."""
+        """One non-empty, time-sorted chunk through the method's ``step``.
+
+        ``state`` is ``None`` for the first chunk of a stream. Returns ``(output, new state)``.
+        """
         method = self._method()
         if state is None:
             state = method.init_state(self.method_settings, events)
@@ -116,8 +121,10 @@ class Streaming:
         return self._method().finish(state, self.method_settings)
 
     def batch_kernel(self, batch: EventBatch) -> EventBatch | None:
-        """A batch of validated recordings through the method's ``stacked`` fast path;
-        ``None`` when it has none (:meth:`batch` then goes one recording at a time)."""
+        """A batch of validated recordings through the method's ``stacked`` fast path.
+
+        ``None`` when it has none (:meth:`batch` then goes one recording at a time).
+        """
         if self.method is None or self.method.stacked is None:
             return None
         return self.method.stacked(batch, self.method_settings)

@@ -92,8 +92,12 @@ class BudgetTarget:
         return cls("rate", events_per_second, time_unit)
 
     def events(self, *, input_events: int, duration: float) -> float:
-        """The target as a total count, given the recordings' input events and summed duration
-        (in timestamp units)."""
+        """The target as a total count.
+
+        Args:
+            input_events: the recordings' input events, all together.
+            duration: the recordings' summed duration, in timestamp units.
+        """
         if self.kind == "ratio":
             return self.value * input_events
         if self.kind == "count":
@@ -238,9 +242,12 @@ class _Search(Generic[D]):
         return self.counts[value]
 
     def edge(self, inside: float, outside: float) -> float:
-        """The valid setting nearest ``outside``, from ``inside`` (valid) toward ``outside``
-        (not): a bisection over the floats between them, exact to the last one (positive
-        floats sort as their bit patterns do), and cheap, as it only builds transforms."""
+        """The valid setting nearest ``outside``, from ``inside`` (valid) toward ``outside``.
+
+        ``outside`` is not valid. A bisection over the floats between them, exact to the last
+        one (positive floats sort as their bit patterns do), and cheap, as it only builds
+        transforms.
+        """
         def bits(value: float) -> int:
             return struct.unpack("<q", struct.pack("<d", value))[0]
 

@@ -43,8 +43,11 @@ def _stacked(
     sorted_kernel: Callable[[EventBatch, RegionSettings], EventBatch],
     whole: Callable[[Events, RegionSettings], Events],
 ) -> Callable[[EventBatch, RegionSettings], EventBatch]:
-    """A batch kernel: ``sorted_kernel`` when every recording is in time order, else the
-    whole-stream kernel once on the stacked recordings."""
+    """A batch kernel from a method's sorted and whole-stream kernels.
+
+    ``sorted_kernel`` when every recording is in time order, else the whole-stream kernel once
+    on the stacked recordings.
+    """
 
     def stacked(batch: EventBatch, settings: RegionSettings) -> EventBatch:
         if sorted_within(batch.events.t, batch.lengths):

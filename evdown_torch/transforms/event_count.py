@@ -21,8 +21,10 @@ from evdown_torch.transforms.functional.settings import ThresholdSettings
 
 
 def _stacked(batch: EventBatch, settings: ThresholdSettings) -> EventBatch:
-    """The kernel once on the batch, with one block of regions per recording (recordings in
-    time order need no stacking: :func:`event_count_batch`)."""
+    """The kernel once on the batch, with one block of regions per recording.
+
+    Recordings in time order need no stacking (:func:`event_count_batch`).
+    """
     if sorted_within(batch.events.t, batch.lengths):
         return EventBatch(*event_count_batch(batch.events, batch.lengths, settings))
 

@@ -37,8 +37,10 @@ def _lif_whole(events: Events, settings: LIFPoolingSettings) -> Events:
 
 
 def _lif_stacked(batch: EventBatch, settings: LIFPoolingSettings) -> EventBatch:
-    """The whole-stream kernel once on the stacked batch, each recording binned from its own
-    ``t_start`` and ending at its own ``t_end``."""
+    """The whole-stream kernel once on the stacked batch.
+
+    Each recording is binned from its own ``t_start`` and ends at its own ``t_end``.
+    """
 
     def kernel(stacked: Stacked) -> Events:
         return lif_pooling(stacked.events, settings.neuron, sensor_size=settings.sensor_size,
@@ -152,8 +154,10 @@ class LIFPooling(Downscaler):
 
     @property
     def settings(self) -> LIFSettings:  # type: ignore[override]
-        """The neuron's settings, checked and normalised (shared with the kernels and
-        :class:`~evdown_torch.models.SpikingPooling`)."""
+        """The neuron's settings, checked and normalised.
+
+        Shared with the kernels and :class:`~evdown_torch.models.SpikingPooling`.
+        """
         return self.method_settings.neuron
 
     @property
@@ -212,7 +216,11 @@ def calibrate_weight(
         target_rate: wanted output events per second, positive.
         time_unit: seconds per timestamp unit, for ``target_rate`` only (default 1e-6:
             microseconds; see :func:`~evdown_torch.checks.check_time_unit`).
-        dt, tau, threshold, mutual_inhibition, reset_mechanism: the other LIFPooling settings.
+        dt: :class:`LIFPooling`'s step length, in the stream's time unit.
+        tau: its membrane time constant, in the unit of ``dt``.
+        threshold: its firing threshold.
+        mutual_inhibition: its weight of each opposite-polarity input event.
+        reset_mechanism: its reset, ``"subtract"``, ``"zero"`` or ``"none"``.
         rtol: stop once the output count is within this fraction of the target.
         max_evaluations: at most this many runs of the transform.
 

@@ -21,8 +21,10 @@ from evdown_torch.transforms.functional.photocurrent_settings import Photocurren
 
 
 def _stacked(batch: EventBatch, settings: PhotocurrentSettings) -> EventBatch | None:
-    """Events mode: the kernel once on the stacked batch, one block of regions per
-    recording. The frames mode has no batched kernel (``None``: one by one)."""
+    """Events mode: the kernel once on the stacked batch, one block of regions per recording.
+
+    The frames mode has no batched kernel (``None``: one by one).
+    """
     if settings.fps is not None:
         return None
 

@@ -206,9 +206,11 @@ class EstimationSettings(ThresholdSettings):
 
 
 def window_init(settings: EstimationSettings, events: Events) -> WindowState:
-    """The estimators' ``init_state`` (bounded delay), before the first (time-sorted) chunk
-    ``events``: no knot yet, every pixel's last knot at ``t_start``, every region at
-    reference index 0."""
+    """The estimators' ``init_state`` (bounded delay).
+
+    Before the first (time-sorted) chunk ``events``: no knot yet, every pixel's last knot at
+    ``t_start``, every region at reference index 0.
+    """
     device, t_dtype = events.t.device, events.t.dtype
     width, height, _ = settings.sensor_size
     out_w, out_h, _ = settings.output_sensor_size
@@ -224,8 +226,10 @@ def window_init(settings: EstimationSettings, events: Events) -> WindowState:
 def window_step(
     events: Events, state: WindowState | None, settings: EstimationSettings
 ) -> tuple[Events, WindowState]:
-    """One chunk of a bounded-delay stream: the output events earlier than ``tau - lag * D``
-    not returned yet (``tau``: the chunk's last timestamp), and the new state.
+    """One chunk of a bounded-delay stream: the outputs decided so far, and the new state.
+
+    The outputs are the events earlier than ``tau - lag * D`` not returned yet (``tau``: the
+    chunk's last timestamp).
 
     Args:
         events: ``N >= 1`` events in stable time order, none earlier than the previous

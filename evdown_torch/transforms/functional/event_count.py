@@ -58,8 +58,10 @@ class EventCountState(NamedTuple):
 def initial_state(
     settings: RegionSettings, device: torch.device | str | None = None, recordings: int = 1
 ) -> EventCountState:
-    """A fresh state: every region (of each of ``recordings`` stacked recordings) at level 0
-    with reference index 0."""
+    """A fresh state: every region at level 0 with reference index 0.
+
+    The regions are those of each of ``recordings`` stacked recordings.
+    """
     out_w, out_h, _ = settings.output_sensor_size
     zeros = torch.zeros(out_w * out_h * recordings, dtype=torch.int64, device=device)
     return EventCountState(zeros, zeros.clone(), None)
@@ -201,8 +203,10 @@ def event_count_batch(
 
 def _region_dtype(sensor_size: tuple[int, int, int], factor: tuple[int, int],
                   regions: int) -> torch.dtype:
-    """The narrowest integer type of a chunk's coordinates and region ids (``regions``: of all
-    the stacked recordings)."""
+    """The narrowest integer type of a chunk's coordinates and region ids.
+
+    ``regions`` counts the regions of all the stacked recordings.
+    """
     out_w = output_size(sensor_size, factor)[0]
     return narrow_dtype(max(out_w * factor[0], regions // out_w * factor[1], regions))
 
@@ -214,9 +218,10 @@ def _event_count_sorted(
     emitted: int = 0,
     blocks: Tensor | None = None,
 ) -> tuple[Events, EventCountState]:
-    """:func:`event_count` on time-sorted events (``emitted``: events of earlier chunks;
-    ``blocks``: each event's first region id, in :func:`_region_dtype`, for a batch's events
-    in their own coordinates).
+    """:func:`event_count` on time-sorted events.
+
+    ``emitted``: events of earlier chunks; ``blocks``: each event's first region id, in
+    :func:`_region_dtype`, for a batch's events in their own coordinates.
 
     Few passes over the events, on narrow dtypes (the cost of a live chunk is its memory
     traffic): the events are grouped by region with a small-key sort, each region's level sum

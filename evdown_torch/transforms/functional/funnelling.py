@@ -226,9 +226,11 @@ def _repeats(
     size: tuple[int, int] | None = None,
     runs: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor | None]:
-    """:func:`funnel_sorted`'s output coordinates (narrow dtype) and repeat flags (``None``:
-    no repeat) of ``N >= 1`` events; ``runs``, when given, replaces ``t`` as what repeats
-    share (:func:`funnel_batch`)."""
+    """:func:`funnel_sorted`'s output coordinates and repeat flags of ``N >= 1`` events.
+
+    The coordinates are of a narrow dtype, the flags ``None`` when nothing repeats. ``runs``,
+    when given, replaces ``t`` as what repeats share (:func:`funnel_batch`).
+    """
     n = events.num_events
     fx, fy = factor
     if size is None:
@@ -275,8 +277,10 @@ def _repeats(
 
 
 def _kept(events: Events, x: Tensor, y: Tensor, repeat: Tensor | None) -> Events:
-    """The events not flagged ``repeat``, with output coordinates ``x``, ``y``, as new int64
-    tensors."""
+    """The events not flagged ``repeat``, with output coordinates ``x``, ``y``.
+
+    Every column is a new tensor; the coordinates are int64.
+    """
     if repeat is None:
         kept = Events(x, y, events.t.clone(), events.p.clone())
     else:

@@ -269,8 +269,11 @@ def certain_spikes(
 
 
 def _geometric(count: Tensor, beta: float) -> Tensor:
-    """``sum_{t = 0}^{m} beta ** -t`` for counts ``m`` (a firing and ``m`` chained spikes,
-    each subtracting theta one step later, scaled to the firing's own reset)."""
+    """``sum_{t = 0}^{m} beta ** -t`` for counts ``m``.
+
+    A firing and ``m`` chained spikes, each subtracting theta one step later, scaled to the
+    firing's own reset.
+    """
     m = count.to(torch.float64)
     if beta == 1.0:
         return m + 1.0
@@ -380,11 +383,14 @@ def _look_back(
     chains: list[tuple[Tensor, Tensor, Tensor, Tensor]],
     leak: Leak,
 ) -> None:
-    """A block's neurons still above threshold after a firing (``behind``: a pass found that
-    firing, or an earlier cell, again): their later passes are undone, their chained spikes
-    counted (reset "subtract") and their search masked up to the firing. Everything is
-    updated in place: ``block``, ``debt`` (their D after that firing), ``last`` (that firing),
-    ``rise`` and ``peak``; the chains with spikes join ``chains``."""
+    """A block's neurons still above threshold after a firing, made to fire on.
+
+    ``behind``: a pass found that firing, or an earlier cell, again. Their later passes are
+    undone, their chained spikes counted (reset "subtract") and their search masked up to
+    the firing. Everything is updated in place: ``block``, ``debt`` (their D after that
+    firing), ``last`` (that firing), ``rise`` and ``peak``; the chains with spikes join
+    ``chains``.
+    """
     n_regions, width = rise.shape[-2:]
     passes = block.shape[-1]
     undone = behind.cumsum(-1) > 0  # the passes from the first gone wrong on
@@ -420,9 +426,12 @@ def _chain(
     between: Tensor,
     leak: Leak,
 ) -> None:
-    """Reset "subtract": the spikes that neurons ``lanes`` (``polarity * R + row``), still
-    above threshold after their firing at ``column``, chain into the empty steps after it;
-    their resets join ``D`` (``debt``, in place), the chains with spikes join ``chains``."""
+    """Reset "subtract": the spikes that neurons chain into the empty steps after a firing.
+
+    The neurons ``lanes`` (``polarity * R + row``) are still above threshold after their
+    firing at ``column``; their resets join ``D`` (``debt``, in place), the chains with
+    spikes join ``chains``.
+    """
     n_regions = scale.shape[0]
     polarity, row = lanes.div(n_regions, rounding_mode="floor"), lanes.remainder(n_regions)
     before = debt.view(-1)[lanes]  # D after this firing's own reset

@@ -120,8 +120,11 @@ def spikes_and_runs(
     *,
     leak: Leak,
 ) -> CellSpikes:
-    """The rounds' spikes (:class:`~.lif_chains.CellSpikes`): those at the cells, and the runs
-    of spikes of neurons that go on firing through the silent steps after a cell."""
+    """The rounds' spikes (:class:`~.lif_chains.CellSpikes`).
+
+    Those at the cells, and the runs of spikes of neurons that go on firing through the
+    silent steps after a cell.
+    """
     fired = membrane > leak.threshold32
     spike_cell, spike_polarity = fired.nonzero(as_tuple=True)  # cell-major
     # Runs found in the rounds (reset "subtract", gaps between cells) or here (the tail after a

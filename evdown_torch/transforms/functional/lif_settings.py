@@ -72,8 +72,11 @@ def decay_factor(dt: float, tau: float) -> float:
 
 
 class LIFNeuron(NamedTuple):
-    """What the neuron update needs, in the order and names of
-    :class:`~evdown_torch.models.SpikingPooling`'s keyword arguments."""
+    """What the neuron update needs.
+
+    In the order and names of :class:`~evdown_torch.models.SpikingPooling`'s keyword
+    arguments.
+    """
 
     beta: float
     threshold: float
@@ -150,8 +153,10 @@ class LIFSettings:
 
     @property
     def neuron(self) -> LIFNeuron:
-        """The neuron's settings: ``beta``, ``threshold``, ``weight``, ``mutual_inhibition``
-        and ``reset_mechanism``."""
+        """The neuron's settings, as :class:`~evdown_torch.models.SpikingPooling` takes them.
+
+        ``beta``, ``threshold``, ``weight``, ``mutual_inhibition`` and ``reset_mechanism``.
+        """
         beta = cast(float, self.beta)  # set by __post_init__
         return LIFNeuron(
             beta, self.threshold, self.weight, self.mutual_inhibition, self.reset_mechanism

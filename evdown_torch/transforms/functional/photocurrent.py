@@ -124,10 +124,13 @@ def snap(u: Tensor) -> tuple[Tensor, Tensor]:
 def region_pixels(
     regions: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
 ) -> tuple[Tensor, Tensor | None]:
-    """Pixel ids ``y * W + x`` of every pixel of ``regions``: ``(R, fx * fy)`` int64 and a
-    same-shaped bool mask of those inside the sensor (ids outside are 0), ``None`` when the
-    factor divides the sensor (every pixel is inside). Regions of stacked recordings (ids past
-    ``Ho * Wo``) are inside where their recording's are."""
+    """Pixel ids ``y * W + x`` of every pixel of ``regions``, and which are inside the sensor.
+
+    ``(R, fx * fy)`` int64 ids and a same-shaped bool mask of those inside the sensor (ids
+    outside are 0), ``None`` when the factor divides the sensor (every pixel is inside).
+    Regions of stacked recordings (ids past ``Ho * Wo``) are inside where their recording's
+    are.
+    """
     w, h, _ = sensor_size
     fx, fy = factor
     rows = -(-h // fy) * fy  # the sensor's rows padded to whole regions

@@ -158,8 +158,10 @@ class FramesState(NamedTuple):
 def fresh_frames_state(
     events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int]
 ) -> FramesState:
-    """A frames-mode stream's state before its first (time-sorted, non-empty) chunk
-    ``events``: frame 0 at its first timestamp, every pixel and region at rest."""
+    """A frames-mode stream's state before its first (time-sorted, non-empty) chunk.
+
+    Frame 0 at the first timestamp of ``events``, every pixel and region at rest.
+    """
     w, h, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
     device = events.device
@@ -266,9 +268,11 @@ def _log_photocurrent(
 def _frame_steps(
     events: Events, frame: Tensor, settings: PhotocurrentSettings, carry: FramesCarry
 ) -> Steps:
-    """Without a leak: ``(region, frame, u, first)`` of every (region, frame) pair whose value
-    changed (those following the region's events), region-major, in bounded batches.
-    ``carry.levels`` holds the pixel levels before the events and gets those after."""
+    """Without a leak: ``(region, frame, u, first)`` of every (region, frame) pair that changed.
+
+    Those pairs follow the region's events; region-major, in bounded batches.
+    ``carry.levels`` holds the pixel levels before the events and gets those after.
+    """
     sensor_size, factor = settings.sensor_size, settings.factor
     contrast = settings.contrast
     threshold = cast(float, settings.threshold)  # a float once the settings are built
@@ -312,10 +316,12 @@ def _frame_steps(
 
 
 def check_leaky_frames(frames: int, sensor_size: tuple[int, int, int], fps: float) -> None:
-    """Refuse a leaky call that would build more frame values (``frames`` times the sensor's
-    pixels, each computed) than the output limit in force
-    (:func:`~evdown_torch.checks.max_output_events`), the one bound on a call's work, before
-    any is built."""
+    """Refuse a leaky call that would build more frame values than the output limit.
+
+    The values are ``frames`` times the sensor's pixels, each computed; the limit in force
+    (:func:`~evdown_torch.checks.max_output_events`) is the one bound on a call's work, and
+    the check comes before any is built.
+    """
     values = frames * sensor_size[0] * sensor_size[1]
     limit = output_limit()
     if limit is not None and values > limit:
@@ -329,8 +335,11 @@ def check_leaky_frames(frames: int, sensor_size: tuple[int, int, int], fps: floa
 
 
 def leak_chunk(sensor_size: tuple[int, int, int], clock: FrameClock, cutoff_hz: float) -> int:
-    """Frames per chunk of the leaky frames mode: at most :data:`CHUNK_VALUES` pixel values,
-    and short enough that every decay factor stays within ``[1/e, e]`` (no precision lost)."""
+    """Frames per chunk of the leaky frames mode.
+
+    At most :data:`CHUNK_VALUES` pixel values, and short enough that every decay factor stays
+    within ``[1/e, e]`` (no precision lost).
+    """
     omega = clock.radians_per_tick(cutoff_hz)
     return max(1, min(CHUNK_VALUES // (sensor_size[0] * sensor_size[1]),
                       int(1 / (omega * clock.period))))
@@ -345,10 +354,12 @@ def _leaky_frame_steps(
     frames: tuple[int, int],
     carry: FramesCarry,
 ) -> Steps:
-    """With a leak: ``(region, frame, u, first)`` of every region at every frame of
-    ``range(*frames)`` (the first a multiple of :func:`leak_chunk`), built from dense frames in
-    chunks of :func:`leak_chunk` frames. ``carry.ell`` and ``carry.ell_time`` hold every
-    pixel's log intensity at the frame before and get those at the last frame."""
+    """With a leak: ``(region, frame, u, first)`` of every region at every frame of a range.
+
+    The frames are ``range(*frames)`` (the first a multiple of :func:`leak_chunk`), built
+    densely in chunks of :func:`leak_chunk` frames. ``carry.ell`` and ``carry.ell_time`` hold
+    every pixel's log intensity at the frame before and get those at the last frame.
+    """
     sensor_size, factor = settings.sensor_size, settings.factor
     contrast, cutoff_hz = settings.contrast, settings.cutoff_hz
     threshold = cast(float, settings.threshold)  # a float once the settings are built

@@ -32,8 +32,10 @@ State = PhotocurrentState | FramesState
 
 
 def photocurrent_init(settings: PhotocurrentSettings, events: Events) -> State:
-    """``init_state``: every pixel at intensity 1 and every region at ``q = 0``; in the
-    frames mode, frame 0 at the first chunk's first timestamp."""
+    """``init_state``: every pixel at intensity 1 and every region at ``q = 0``.
+
+    In the frames mode, frame 0 is at the first chunk's first timestamp.
+    """
     if settings.fps is None:
         return initial_state(settings.sensor_size, settings.factor, events.device)
     return fresh_frames_state(events, settings.sensor_size, settings.factor)
@@ -42,9 +44,12 @@ def photocurrent_init(settings: PhotocurrentSettings, events: Events) -> State:
 def photocurrent_step(
     events: Events, state: State, settings: PhotocurrentSettings
 ) -> tuple[Events, State]:
-    """``step`` on one time-sorted chunk. Events mode: causal, every output is decided by its
-    chunk. Frames mode: the events of every frame complete so far (a frame is complete once a
-    later event has been seen; with a leak, in whole chunks of frames)."""
+    """``step`` on one time-sorted chunk.
+
+    Events mode: causal, every output is decided by its chunk. Frames mode: the events of
+    every frame complete so far (a frame is complete once a later event has been seen; with a
+    leak, in whole chunks of frames).
+    """
     if settings.fps is None:
         return photocurrent_events(
             events, sensor_size=settings.sensor_size, factor=settings.factor,
@@ -55,8 +60,10 @@ def photocurrent_step(
 
 
 def photocurrent_finish(state: State, settings: PhotocurrentSettings) -> Events | None:
-    """``finish``: the frames mode's open frames, the last clipped to the stream's end (the
-    events mode leaves nothing: it is causal)."""
+    """``finish``: the frames mode's open frames, the last clipped to the stream's end.
+
+    The events mode leaves nothing (it is causal).
+    """
     if settings.fps is None:
         return None
     empty = Events(*(column[:0] for column in state.pending))  # type: ignore[union-attr]

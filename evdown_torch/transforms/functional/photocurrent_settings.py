@@ -29,8 +29,10 @@ __all__ = ["FrameClock", "PhotocurrentSettings"]
 
 
 class FrameClock(NamedTuple):
-    """Frame times of a stream: frame ``k`` at offset ``min(k * period, duration)`` from
-    ``t_start`` (ticks: timestamp units), ``period = denominator / numerator`` exactly.
+    """Frame times of a stream: frame ``k`` at offset ``min(k * period, duration)``.
+
+    Offsets are from ``t_start``, in ticks (timestamp units); ``period = denominator /
+    numerator`` exactly.
 
     Attributes:
         numerator: ``a * c`` for ``fps = a / b`` (``fps`` as the nearest fraction,
@@ -50,8 +52,10 @@ class FrameClock(NamedTuple):
     def make(
         fps: float, duration: float | int, time_unit: float = DEFAULT_TIME_UNIT
     ) -> FrameClock:
-        """The clock of a stream lasting ``duration`` ticks of ``time_unit`` seconds at
-        ``fps`` frames per second."""
+        """The clock of a stream at ``fps`` frames per second.
+
+        The stream lasts ``duration`` ticks of ``time_unit`` seconds.
+        """
         fraction = Fraction(fps).limit_denominator(10**6)
         if fraction <= 0:
             raise ValueError(f"fps must be at least 1e-6 frames per second, got {fps!r}")

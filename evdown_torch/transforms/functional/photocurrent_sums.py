@@ -138,9 +138,12 @@ def _split(j: Tensor, contrast: float, scale: float, fine: float) -> tuple[Tenso
 
 
 class FixedPoint(NamedTuple):
-    """Intensities of a piece in two-word fixed point, ``exp(c * j) * scale ~ high + low /
-    fine`` (the error below ``1 / (2 * fine)``): integer sums are exact, and a pixel's
-    changes telescope to its current intensity however many events it has."""
+    """Intensities of a piece in two-word fixed point.
+
+    ``exp(c * j) * scale ~ high + low / fine`` (the error below ``1 / (2 * fine)``): integer
+    sums are exact, and a pixel's changes telescope to its current intensity however many
+    events it has.
+    """
 
     anchor: tuple[Tensor, Tensor]  # (S,) int64 sums of each region's pixels' (high, low)
     change: tuple[Tensor, Tensor]  # (N,) int64 change of (high, low) at each event
@@ -159,9 +162,11 @@ def fixed_point(
         pixel_j: ``(S, n)`` int64 level of every pixel of each region relative to its anchor,
             in ``[lo, hi]``; overwritten.
         inside: ``(S, n)`` bool, the entry is a sensor pixel (``None``: all are).
-        lo, hi: bounds of ``j``.
+        lo: lower bound of ``j``.
+        hi: upper bound of ``j``.
         contrast: ``c``.
-        scale, fine: powers of two.
+        scale: power of two scaling the intensities (``high``).
+        fine: power of two, the ``low`` word's units per unit of ``high``.
     """
 
     def region_sums(values: Tensor) -> Tensor:
@@ -201,10 +206,12 @@ def running_sums(
         ids: ``(S, n)`` int64 pixel ids of the touched regions (:func:`region_pixels`).
         inside: their mask (``None``: all inside).
         levels: ``(H * W,)`` int64 pixel levels before the piece.
-        firsts, lasts: ``(S,)`` int64 first and last position of each region's events.
+        firsts: ``(S,)`` int64 first position of each region's events.
+        lasts: ``(S,)`` int64 last position of each region's events.
         rank: ``(N,)`` int64 region (segment) of each event.
         per_region: ``fx * fy``.
-        contrast, threshold: ``c`` and ``theta``.
+        contrast: ``c``.
+        threshold: ``theta``.
 
     Returns:
         ``(m, total, bad)``: ``(S,)`` int64 brightest level of each region before the piece,

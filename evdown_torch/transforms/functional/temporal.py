@@ -151,8 +151,11 @@ def temporal_init(settings: TemporalSettings, events: Events) -> TemporalState:
 def temporal_step(
     events: Events, state: TemporalState, settings: TemporalSettings
 ) -> tuple[Events, TemporalState]:
-    """``step``: one time-sorted chunk. The repeats a later chunk can make lie in the latest
-    bin, whose kept events the state holds."""
+    """``step``: one time-sorted chunk.
+
+    The repeats a later chunk can make lie in the latest bin, whose kept events the state
+    holds.
+    """
     out = temporal_funnelling(events, dt=settings.dt, t_start=state.t_start,
                               seen=state.last_bin)
     return out, TemporalState(state.t_start, last_instant(out, state.last_bin))

@@ -210,8 +210,13 @@ def two_threshold_crossings(
     """One entry per event of :func:`two_threshold_counts`' result, in sample then time order.
 
     Args:
-        value, first, base, theta_on, theta_off: as for :func:`two_threshold_counts`.
-        a, b: ``(M,)`` int64 counts after each sample (its result).
+        value: ``(M,)`` float64 level at each sample.
+        first: ``(M,)`` bool, the sample is its pixel's first.
+        base: ``(M,)`` float64 reference base of each sample's pixel.
+        theta_on: ``(M,)`` float64 ON threshold (positive) of each sample's pixel.
+        theta_off: ``(M,)`` float64 OFF threshold (positive) of each sample's pixel.
+        a: ``(M,)`` int64 ON count after each sample (:func:`two_threshold_counts`).
+        b: ``(M,)`` int64 OFF count after each sample.
 
     Returns:
         ``(segment, level, on)``: index of the sample that ends the event's segment (int64),
