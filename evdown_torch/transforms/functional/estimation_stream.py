@@ -23,7 +23,7 @@ their level until their next event, whose held knot comes after the next horizon
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import torch
 from torch import Tensor
@@ -124,7 +124,8 @@ class WindowState(NamedTuple):
     Attributes:
         t_start: ``()`` first timestamp of the stream (the events' ``t`` dtype).
         t_last: ``()`` last timestamp so far.
-        horizon: output events earlier than this time have been returned (a Python number).
+        horizon: output events earlier than this time have been returned (a Python number;
+            ``None`` before the first chunk).
         knots: the knot events the future needs, one per (pixel, time), in no particular
             order (see the module docstring).
         step: ``(K,)`` int64 level change of each knot event (a pixel's first carries its
@@ -136,7 +137,7 @@ class WindowState(NamedTuple):
 
     t_start: Tensor
     t_last: Tensor
-    horizon: int | float
+    horizon: int | float | None
     knots: Events
     step: Tensor
     pixel_t: Tensor
@@ -216,7 +217,7 @@ def window_init(settings: EstimationSettings, events: Events) -> WindowState:
     out_w, out_h, _ = settings.output_sensor_size
     t_start = events.t[0]
     return WindowState(
-        t_start, t_start, None, Events.empty(t_dtype, device),  # type: ignore[arg-type]
+        t_start, t_start, None, Events.empty(t_dtype, device),
         torch.zeros(0, dtype=torch.int64, device=device),
         torch.full((width * height,), t_start.item(), dtype=t_dtype, device=device),
         torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
@@ -255,6 +256,8 @@ def window_step(
         [9, 10]
     """
     sensor_size, factor, max_delay = settings.sensor_size, settings.factor, settings.max_delay
+    if max_delay is None:
+        raise ValueError("a bounded-delay stream needs the settings' max_delay, got None")
     device, t_dtype = events.t.device, events.t.dtype
     width = sensor_size[0]
     out_w, out_h, _ = output_size(sensor_size, factor)
@@ -263,13 +266,13 @@ def window_step(
     tau = events.t[-1]
     check_span(state.t_start, tau)  # before any time arithmetic
     pixel = events.y * width + events.x
-    new, new_step = hold_knots(events, max_delay=max_delay,  # type: ignore[arg-type]
+    new, new_step = hold_knots(events, max_delay=max_delay,
                                t_start=take(state.pixel_t, pixel))
     pixel_t = state.pixel_t.clone()
     pixel_t.scatter_reduce_(0, pixel, events.t, "amax")
     # Nothing is earlier than t_start: a horizon before it (a delay longer than the stream so
     # far, up to 1e300) decides nothing, and held as t_start it stays an int64 / float time.
-    horizon = max(tau.item() - settings.lag * effective_delay(max_delay, events.t),  # type: ignore[arg-type]
+    horizon = max(tau.item() - settings.lag * effective_delay(max_delay, events.t),
                   state.t_start.item())
     if state.horizon is not None:
         horizon = max(horizon, state.horizon)
@@ -300,7 +303,8 @@ def window_step(
     outside = ~in_window
     knots = _cat(state.knots.select(outside), kept)
     step = torch.cat([state.step[outside], kept_step])
-    new_state = WindowState(state.t_start, tau, horizon, knots, step, pixel_t, q)  # type: ignore[arg-type]
+    q = cast(Tensor, q)  # estimate_window returns q with a resume
+    new_state = WindowState(state.t_start, tau, horizon, knots, step, pixel_t, q)
     return out.select(where_true(decided)), new_state
 
 
