@@ -319,10 +319,7 @@ def _at(bound: Tensor, index: Tensor) -> Tensor:
 def region_pixels(
     knots: Knots, sensor_size: tuple[int, int, int], factor: tuple[int, int]
 ) -> Tensor | int:
-    """``n_r``, the number of pixels of each breakpoint's region.
-
-    The int ``fx * fy`` when the factor divides the sensor, else a ``(B,)`` int64 tensor.
-    """
+    """``n_r`` per breakpoint: ``fx * fy`` if the factor divides the sensor, else ``(B,)`` int64."""
     w, h, _ = sensor_size
     if w % factor[0] == 0 and h % factor[1] == 0:
         return factor[0] * factor[1]
