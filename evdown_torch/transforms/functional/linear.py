@@ -52,15 +52,33 @@ def local_cumsum(values: Tensor, first_at: Tensor) -> Tensor:
     padded = torch.cat([values, values.new_zeros(1)])
     out = torch.empty_like(padded)
     length = torch.diff(first_at, append=first_at.new_tensor([n]))
+    widest = int(length.max())
+    if first_at.shape[0] * widest <= 2 * n + SMALL_PADDING:
+        # Few or even segments (a small call): one group as wide as the longest, no loop.
+        _rows_cumsum(padded, out, first_at, length, widest)
+        return out[:n]
     # Group k holds the segments of length in (2**(k-1), 2**k]: frexp's exponent of length - 1.
     group = torch.frexp((length - 1).to(torch.float64)).exponent
     for k in torch.unique(group).tolist():
         members = where_true(group == k)
-        start, size = take(first_at, members), take(length, members)
-        offset = torch.arange(1 << k, device=values.device)
-        at = (start[:, None] + offset).masked_fill_(offset >= size[:, None], n).reshape(-1)
-        out.index_copy_(0, at, torch.cumsum(take(padded, at).reshape(-1, 1 << k), 1).reshape(-1))
+        _rows_cumsum(padded, out, take(first_at, members), take(length, members), 1 << k)
     return out[:n]
+
+
+#: Padding (elements) below which :func:`local_cumsum` sums every segment in one group.
+SMALL_PADDING = 1 << 16
+
+
+def _rows_cumsum(padded: Tensor, out: Tensor, start: Tensor, size: Tensor, width: int) -> None:
+    """Write the cumulative sums of segments ``[start, start + size)`` of ``padded`` to ``out``.
+
+    Each segment is a row of ``width`` summed from its first element; the padding reads
+    ``padded``'s last slot (0.0) and writes its sums there.
+    """
+    n = padded.shape[0] - 1
+    offset = torch.arange(width, device=padded.device)
+    at = (start[:, None] + offset).masked_fill_(offset >= size[:, None], n).reshape(-1)
+    out.index_copy_(0, at, torch.cumsum(take(padded, at).reshape(-1, width), 1).reshape(-1))
 
 
 def linear_estimation(
