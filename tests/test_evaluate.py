@@ -283,3 +283,20 @@ def test_consistency_on_the_first_test_recordings(tiny, tmp_path):
     assert down.consistency == pytest.approx(expected)
     # accuracy is still over every test recording
     assert all(len(row) == 6 for c in result.cells for row in c.correct)
+
+
+def test_seeds_without_zero_measure_the_controls_first_draw(tmp_path):
+    # exploratory cells only, on seeds 3 and 4: the control's measures come from its draw 3
+    config = _tiny(tmp_path, seeds=(3, 4), learning_rates=())
+    config = dataclasses.replace(config, methods=dataclasses.replace(
+        config.methods, include=("event_count",), primary=(), primary_factors=(), sanity=False,
+        live_delay=0, full_resolution=False))
+    result = run_evaluation(config, log=None)
+    assert [(c.method, c.seeds) for c in result.cells] == [("event_count", (3, 4)),
+                                                           (CONTROL, (3, 4))]
+    control = result.cells[1]
+    source = StudyData(config.data, str(tmp_path / "cache"))
+    thinned = control.cell.transform((32, 32, 2), draw=3)
+    test = [source.recording("test", i)[0] for i in range(6)]
+    assert control.events_per_recording == pytest.approx(np.mean([len(thinned(r)) for r in test]))
+    assert 0 <= control.consistency <= 1 and result.cells[0].comparison is not None

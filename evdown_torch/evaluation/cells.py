@@ -217,10 +217,11 @@ def downscale_job(source: StudyData, units: list[tuple[Cell, int]], split: str,
     recordings (and, on the test split, the camera's renders) are read once for all the
     units. Per unit, the frames (``[n, T, 2, H, W]`` int16 event counts over each source
     recording's window, and with ``data.mean_time`` the ``[n, T, 2, H, W]`` int8 mean times,
-    scaled by :data:`TIME_SCALE`) and labels are cached; the per-recording measures of draw 0
-    are returned (and cached with them): ``events_in``, ``events_out``, ``seconds`` (of the
-    transform), ``duration`` (us), ``density``, ``entropy`` and, with ground truth on the test
-    split, ``camera_events`` and ``consistency``. Other draws return empty measures.
+    scaled by :data:`TIME_SCALE`) and labels are cached; the per-recording measures of each
+    cell's first draw (its smallest among ``units``) are returned (and cached with them):
+    ``events_in``, ``events_out``, ``seconds`` (of the transform), ``duration`` (us),
+    ``density``, ``entropy`` and, with ground truth on the test split, ``camera_events`` and
+    ``consistency``. Other draws return the counts only.
 
     Returns:
         The measures of each unit, in the order of ``units``.
@@ -247,18 +248,21 @@ def downscale_job(source: StudyData, units: list[tuple[Cell, int]], split: str,
                     cameras[cell.factor] = [source.ground_truth(split, i, cell.factor)
                                             for i in indices if i < limit]
                 camera = cameras[cell.factor]
+            measured = min(d for c, d in units if c == cell)
             _downscale_cell(cache, [paths[j] for j in members], cell,
-                            [units[j][1] for j in members], inputs, camera, sensor, config)
+                            [units[j][1] for j in members], measured, inputs, camera, sensor,
+                            config)
     return [Cache.load_json(path.with_suffix(".json")) for path in paths]
 
 
 def _downscale_cell(cache: Cache, paths: list[Any], cell: Cell, draws: list[int],
-                    inputs: list[tuple[Any, int, Any]], cameras: list[Any] | None,
-                    sensor: tuple[int, int, int], config: EvaluationConfig) -> None:
+                    measured: int, inputs: list[tuple[Any, int, Any]],
+                    cameras: list[Any] | None, sensor: tuple[int, int, int],
+                    config: EvaluationConfig) -> None:
     """:func:`downscale_job` for the ``draws`` of one cell.
 
-    ``inputs`` are ``(events, label, window)``. Draw 0 is measured (with ``cameras``, optical
-    consistency too).
+    ``inputs`` are ``(events, label, window)``. Draw ``measured`` is measured (with
+    ``cameras``, optical consistency too).
     """
     transform = cell.transform(sensor)
     streams = [events for events, _, _ in inputs]
@@ -283,7 +287,7 @@ def _downscale_cell(cache: Cache, paths: list[Any], cell: Cell, draws: list[int]
             outputs[d] += out
     for path, draw, out in zip(paths, draws, outputs):
         _store_frames(cache, path, cell, inputs, out, seconds,
-                      cameras if draw == 0 else None, draw == 0, sensor, config)
+                      cameras if draw == measured else None, draw == measured, sensor, config)
 
 
 def _store_frames(cache: Cache, path: Any, cell: Cell, inputs: list[tuple[Any, int, Any]],
