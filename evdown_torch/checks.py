@@ -144,11 +144,16 @@ def output_size(
     return -(-w // factor[0]), -(-h // factor[1]), p
 
 
+def _real(name: str, value: Any, wanted: str) -> float:
+    """``value`` as a float if it is a real number (not a bool); a TypeError naming ``wanted``."""
+    if not isinstance(value, numbers.Real) or isinstance(value, bool):
+        raise TypeError(f"{name} must be {wanted}, got {value!r}")
+    return float(value)
+
+
 def check_positive_float(name: str, value: Any) -> float:
     """Validate a finite, strictly positive real number and return it as a float."""
-    if not isinstance(value, numbers.Real) or isinstance(value, bool):
-        raise TypeError(f"{name} must be a positive number, got {value!r}")
-    value = float(value)
+    value = _real(name, value, "a positive number")
     if not math.isfinite(value) or value <= 0:
         raise ValueError(f"{name} must be a positive finite number, got {value!r}")
     return value
@@ -165,9 +170,7 @@ def check_positive_int(name: str, value: Any) -> int:
 
 def check_non_negative_float(name: str, value: Any) -> float:
     """Validate a finite real number ``>= 0`` and return it as a float."""
-    if not isinstance(value, numbers.Real) or isinstance(value, bool):
-        raise TypeError(f"{name} must be a non-negative number, got {value!r}")
-    value = float(value)
+    value = _real(name, value, "a non-negative number")
     if not math.isfinite(value) or value < 0:
         raise ValueError(f"{name} must be a non-negative finite number, got {value!r}")
     return value
@@ -175,9 +178,7 @@ def check_non_negative_float(name: str, value: Any) -> float:
 
 def check_unit_interval(name: str, value: Any) -> float:
     """Validate a real number in ``[0, 1]`` (a decay factor) and return it as a float."""
-    if not isinstance(value, numbers.Real) or isinstance(value, bool):
-        raise TypeError(f"{name} must be a number in [0, 1], got {value!r}")
-    value = float(value)
+    value = _real(name, value, "a number in [0, 1]")
     if not 0.0 <= value <= 1.0:  # also rejects NaN
         raise ValueError(f"{name} must lie in [0, 1], got {value!r}")
     return value
@@ -194,9 +195,7 @@ def check_choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
 
 def check_time_constant(name: str, value: Any) -> float:
     """Validate a time constant: a positive number, ``math.inf`` allowed (no leak)."""
-    if not isinstance(value, numbers.Real) or isinstance(value, bool):
-        raise TypeError(f"{name} must be a positive number (math.inf for no leak), got {value!r}")
-    value = float(value)
+    value = _real(name, value, "a positive number (math.inf for no leak)")
     if not value > 0:  # also rejects NaN
         raise ValueError(f"{name} must be a positive number (math.inf for no leak), got {value!r}")
     return value

@@ -216,6 +216,27 @@ def from_batch(batch: EventBatch, formats: Sequence[EventFormat]) -> list[Events
     return [from_events(part, fmt) for part, fmt in zip(batch.unbind(), formats, strict=True)]
 
 
+def apply_item_transforms(dataset: Any, events: Any, target: Any) -> tuple[Any, Any]:
+    """One dataset item after the dataset's Tonic-style transforms.
+
+    Args:
+        dataset: has ``transform`` (applied to the events), ``target_transform`` (to the
+            target) and ``transforms`` (to both, last); each may be None.
+        events: the item's events.
+        target: the item's label.
+
+    Returns:
+        ``(events, target)`` after the transforms that are set.
+    """
+    if dataset.transform is not None:
+        events = dataset.transform(events)
+    if dataset.target_transform is not None:
+        target = dataset.target_transform(target)
+    if dataset.transforms is not None:
+        events, target = dataset.transforms(events, target)
+    return events, target
+
+
 def _split_samples(samples: Sequence[Any]) -> tuple[list[EventsLike], list[Any] | None]:
     if all(isinstance(s, tuple) and not isinstance(s, Events) and len(s) == 2 for s in samples):
         return [s[0] for s in samples], [s[1] for s in samples]

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from evdown_torch.checks import check_item_index
+from evdown_torch.collate import apply_item_transforms
 from evdown_torch.data import shards
 
 __all__ = ["PreprocessedDataset", "verify_cache"]
@@ -175,13 +176,7 @@ class PreprocessedDataset:
         shard_events = self._shard_events(int(self._shard[index]))
         events: Any = np.array(shard_events[self._start[index]:self._stop[index]])
         target: Any = self.targets[index]
-        if self.transform is not None:
-            events = self.transform(events)
-        if self.target_transform is not None:
-            target = self.target_transform(target)
-        if self.transforms is not None:
-            events, target = self.transforms(events, target)
-        return events, target
+        return apply_item_transforms(self, events, target)
 
     def __repr__(self) -> str:
         m = self.manifest

@@ -17,6 +17,7 @@ from evdown_torch.checks import (
     check_sensor_size,
     output_size,
 )
+from evdown_torch.collate import apply_item_transforms
 from evdown_torch.events import DVS_DTYPE as DVS_GESTURE_DTYPE
 from evdown_torch.events import EventFormat, Events, from_events
 from evdown_torch.synthetic.pixel_model import PixelModelConfig
@@ -186,13 +187,7 @@ class SyntheticGestures:
         scene = self.scene(index)
         events: Any = _structured(render_events(scene, self.pixel_model))
         target: Any = scene.label
-        if self.transform is not None:
-            events = self.transform(events)
-        if self.target_transform is not None:
-            target = self.target_transform(target)
-        if self.transforms is not None:
-            events, target = self.transforms(events, target)
-        return events, target
+        return apply_item_transforms(self, events, target)
 
     def ground_truth(self, index: int, factor: int | tuple[int, int]) -> np.ndarray:
         """Sample ``index`` as a sensor ``factor`` times smaller would have recorded it.
