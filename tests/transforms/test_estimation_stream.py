@@ -36,14 +36,20 @@ LINEAR_OUTPUTS = [
 ]
 
 
+def check_event_by_event(events, outputs, transform, shift):
+    """Feeding ``events`` (shifted by ``shift``) one at a time gives ``outputs`` per chunk,
+    then the flush; together they are the batch output."""
+    ev = torch.tensor(events) + torch.tensor([0, 0, shift, 0])
+    got = feed(transform, [ev[i:i + 1] for i in range(len(events))])
+    expected = [[[x, y, t + shift, p] for x, y, t, p in part] for part in outputs]
+    assert got == expected
+    assert sum(got, []) == transform(ev).tolist()
+
+
 @pytest.mark.parametrize("shift", [0, EPOCH])
 def test_linear_session_hand_computed_across_chunks(shift):
-    ev = torch.tensor(LINEAR_EVENTS) + torch.tensor([0, 0, shift, 0])
     transform = LinearEstimation((2, 1, 2), factor=(2, 1), threshold=0.25, max_delay=3)
-    outputs = feed(transform, [ev[i:i + 1] for i in range(4)])
-    expected = [[[x, y, t + shift, p] for x, y, t, p in part] for part in LINEAR_OUTPUTS]
-    assert outputs == expected
-    assert sum(outputs, []) == transform(ev).tolist()
+    check_event_by_event(LINEAR_EVENTS, LINEAR_OUTPUTS, transform, shift)
 
 
 def test_linear_session_hand_computed_float_times():
@@ -89,12 +95,8 @@ def smoothstep_end_root() -> float:
 @pytest.mark.parametrize("shift", [0, EPOCH])
 def test_cubic_session_hand_computed_across_chunks(shift):
     assert math.floor(56 + 4 * smoothstep_end_root() + 0.5) == 58
-    ev = torch.tensor(CUBIC_EVENTS) + torch.tensor([0, 0, shift, 0])
     transform = CubicEstimation((2, 1, 2), factor=(2, 1), threshold=0.25, max_delay=4)
-    outputs = feed(transform, [ev[i:i + 1] for i in range(4)])
-    expected = [[[x, y, t + shift, p] for x, y, t, p in part] for part in CUBIC_OUTPUTS]
-    assert outputs == expected
-    assert sum(outputs, []) == transform(ev).tolist()
+    check_event_by_event(CUBIC_EVENTS, CUBIC_OUTPUTS, transform, shift)
 
 
 def test_cubic_session_hand_computed_float_times():
