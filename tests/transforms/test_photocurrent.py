@@ -70,14 +70,20 @@ def test_events_mode_matches_reference(factor, contrast, threshold, rng):
     assert rows(pool(arr)) == expected
 
 
+def hot_pixel_stream(rng, n_hot, n_on, *, dt, n_rest):
+    """A hot pixel (0, 0): ``n_hot`` events ``dt`` apart, the first ``n_on`` ON, mixed in time
+    with ``n_rest`` random events on a (4, 4, 2) sensor over the same span."""
+    hot = np.zeros(n_hot, dtype=DVS_DTYPE)
+    hot["t"] = np.arange(n_hot) * dt
+    hot["p"][:n_on] = True
+    rest = random_stream(rng, n_rest, (4, 4, 2), t_max=n_hot * dt)
+    return np.sort(np.concatenate([hot, rest]), order="t", kind="stable")
+
+
 def test_hot_pixel_far_beyond_float_range(rng):
     # 4000 ON then 4000 OFF at one pixel: c * L reaches 1000 (exp overflows), so the kernel
     # must cut the stream and re-anchor; its neighbours keep moving meanwhile.
-    hot = np.zeros(8000, dtype=DVS_DTYPE)
-    hot["t"] = np.arange(8000) * 2
-    hot["p"][:4000] = True
-    rest = random_stream(rng, 3000, (4, 4, 2), t_max=16000)
-    arr = np.sort(np.concatenate([hot, rest]), order="t", kind="stable")
+    arr = hot_pixel_stream(rng, 8000, 4000, dt=2, n_rest=3000)
     pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)
     expected = photocurrent_events_reference(arr, (4, 4, 2), 2, 0.25, 0.4)
     assert sorted(rows(pool(arr))) == sorted(expected)
@@ -283,11 +289,7 @@ def test_registry_and_budget_setting():
 
 def test_streaming_equals_batch_across_cuts(rng):
     # A hot pixel forces the kernel to cut pieces and re-anchor; a session must agree.
-    hot = np.zeros(3000, dtype=DVS_DTYPE)
-    hot["t"] = np.arange(3000) * 3
-    hot["p"][:2000] = True
-    rest = random_stream(rng, 2000, (4, 4, 2), t_max=9000)
-    arr = np.sort(np.concatenate([hot, rest]), order="t", kind="stable")
+    arr = hot_pixel_stream(rng, 3000, 2000, dt=3, n_rest=2000)
     pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.3, threshold=0.2)
     session = pool.session()
     cuts = np.concatenate([[0], np.sort(rng.integers(0, len(arr), 9)), [len(arr)]])
