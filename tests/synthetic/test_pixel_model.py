@@ -74,13 +74,25 @@ def test_per_pixel_thresholds_and_event_order():
     assert bool(on.all())
 
 
+def refractory_filtered(crossings, pixel, refractory):
+    """``(t, pixel, on)`` of the time-ordered ``(t, on)`` crossings, times rounded to the
+    nearest us, without those closer than ``refractory`` to the last one kept."""
+    out, last_kept = [], None
+    for time, on in crossings:
+        time = math.floor(time + 0.5)
+        if last_kept is None or time - last_kept >= refractory:
+            out.append((time, pixel, on))
+            last_kept = time
+    return out
+
+
 def slow_reference(pixel, t, level, theta, offset, refractory):
     """Obviously-correct per-pixel loop over segments and levels."""
     out = []
     for p in sorted(set(pixel)):
         idx = [i for i in range(len(pixel)) if pixel[i] == p]
         x = [(level[i] - level[idx[0]]) / theta[p] + offset[p] for i in idx]
-        q, last_kept, mine = 0, None, []
+        q, mine = 0, []
         for k in range(1, len(idx)):
             a, b = x[k - 1], x[k]
             t0, t1 = t[idx[k - 1]], t[idx[k]]
@@ -90,11 +102,7 @@ def slow_reference(pixel, t, level, theta, offset, refractory):
             while b < a and b <= q - 1:
                 q -= 1
                 mine.append((t0 + (q - a) / (b - a) * (t1 - t0), False))
-        for time, on in mine:
-            time = math.floor(time + 0.5)
-            if last_kept is None or time - last_kept >= refractory:
-                out.append((time, p, on))
-                last_kept = time
+        out += refractory_filtered(mine, p, refractory)
     return sorted(out, key=lambda e: (e[0], e[1]))
 
 
@@ -107,7 +115,7 @@ def slow_two_thresholds(pixel, t, level, theta_on, theta_off, offset, refractory
         on, off = theta_on[p], theta_off[p]
         start = level[idx[0]] - offset[p] * (on if offset[p] > 0 else off)
         a = b = 0
-        mine, last_kept = [], None
+        mine = []
         for k in range(1, len(idx)):
             x0, x1 = level[idx[k - 1]], level[idx[k]]
             t0, t1 = t[idx[k - 1]], t[idx[k]]
@@ -118,11 +126,7 @@ def slow_two_thresholds(pixel, t, level, theta_on, theta_off, offset, refractory
                 b += 1
                 mine.append((t0 + (start + a * on - b * off - x0) / (x1 - x0) * (t1 - t0),
                              False))
-        for time, polarity in mine:
-            time = math.floor(time + 0.5)
-            if last_kept is None or time - last_kept >= refractory:
-                out.append((time, p, polarity))
-                last_kept = time
+        out += refractory_filtered(mine, p, refractory)
     return sorted(out, key=lambda e: (e[0], e[1]))
 
 
