@@ -130,12 +130,19 @@ def slow_two_thresholds(pixel, t, level, theta_on, theta_off, offset, refractory
     return sorted(out, key=lambda e: (e[0], e[1]))
 
 
-@pytest.mark.parametrize("refractory", [0, 300])
-def test_two_thresholds_match_slow_reference(refractory, rng):
-    n_pixels, per_pixel = 40, 30
-    pixel = np.repeat(np.arange(n_pixels) * 2, per_pixel)
+def random_signals(rng, n_pixels, *, stride, per_pixel=30):
+    """Random-walk levels at ``per_pixel`` increasing times for pixels ``0, stride, ...``:
+    ``(pixel, t, level)`` arrays, pixel-major."""
+    pixel = np.repeat(np.arange(n_pixels) * stride, per_pixel)
     t = np.concatenate([np.cumsum(rng.integers(1, 200, per_pixel)) for _ in range(n_pixels)])
     level = np.concatenate([np.cumsum(rng.normal(0, 0.3, per_pixel)) for _ in range(n_pixels)])
+    return pixel, t, level
+
+
+@pytest.mark.parametrize("refractory", [0, 300])
+def test_two_thresholds_match_slow_reference(refractory, rng):
+    n_pixels = 40
+    pixel, t, level = random_signals(rng, n_pixels, stride=2)
     theta_on = rng.uniform(0.1, 0.4, 2 * n_pixels)
     theta_off = rng.uniform(0.1, 0.4, 2 * n_pixels)
     offset = rng.uniform(-0.99, 0.99, 2 * n_pixels)
@@ -163,10 +170,8 @@ def test_on_share_follows_the_thresholds():
 
 @pytest.mark.parametrize("refractory", [0, 40, 300])
 def test_matches_slow_reference_on_random_signals(refractory, rng):
-    n_pixels, per_pixel = 40, 30
-    pixel = np.repeat(np.arange(n_pixels) * 3, per_pixel)
-    t = np.concatenate([np.cumsum(rng.integers(1, 200, per_pixel)) for _ in range(n_pixels)])
-    level = np.concatenate([np.cumsum(rng.normal(0, 0.3, per_pixel)) for _ in range(n_pixels)])
+    n_pixels = 40
+    pixel, t, level = random_signals(rng, n_pixels, stride=3)
     theta = rng.uniform(0.1, 0.4, 3 * n_pixels)
     offset = rng.uniform(-0.99, 0.99, 3 * n_pixels)
     pix, times, on = pixel_events(
