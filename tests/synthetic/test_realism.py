@@ -17,8 +17,7 @@ from evdown_torch.synthetic import (
     render_events,
     swept_mask,
 )
-
-QUIET = PixelModelConfig(background_rate_hz=0.0, hot_pixel_fraction=0.0)
+from tests.synthetic import QUIET
 
 
 def funnel_share(events, factor=4):

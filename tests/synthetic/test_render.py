@@ -22,8 +22,7 @@ from evdown_torch.synthetic.grid import Grid
 from evdown_torch.synthetic.raster import moving_parts
 from evdown_torch.synthetic.render import pixel_parameters
 from evdown_torch.synthetic.scenes import FOREARM, HAND, REACH, UPPER_ARM
-
-QUIET = PixelModelConfig(background_rate_hz=0.0, hot_pixel_fraction=0.0)
+from tests.synthetic import QUIET
 
 
 def with_sway(scene, gain):

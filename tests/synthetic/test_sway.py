@@ -10,13 +10,11 @@ import torch
 from evdown_torch.synthetic import (
     GESTURE_CLASSES,
     GestureScene,
-    PixelModelConfig,
     SyntheticGestures,
     render_events,
     swept_mask,
 )
-
-QUIET = PixelModelConfig(background_rate_hz=0.0, hot_pixel_fraction=0.0)
+from tests.synthetic import QUIET
 
 
 def torso_top(scene, t_us):
