@@ -40,6 +40,14 @@ def random_stream(
     return out
 
 
+def saved_stream(path, rng: np.random.Generator, n: int, sensor_size: tuple[int, int, int],
+                 **kwargs):
+    """Save :func:`random_stream` ``(rng, n, sensor_size, **kwargs)`` as ``.npy`` at ``path``
+    and return ``path``."""
+    np.save(path, random_stream(rng, n, sensor_size, **kwargs))
+    return path
+
+
 def as_tuples(events: np.ndarray) -> list[tuple]:
     """Events as sorted ``(x, y, t, on)`` tuples, a multiset for comparisons."""
     return sorted(

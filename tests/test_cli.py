@@ -15,16 +15,14 @@ from evdown_torch import Downsample, EventCount, LIFPooling, LinearEstimation
 from evdown_torch.cli import main
 from evdown_torch.io import read_events
 from evdown_torch.transforms.registry import METHODS, method_settings
-from tests.helpers import DVS_DTYPE, random_stream
+from tests.helpers import DVS_DTYPE, random_stream, saved_stream
 
 SENSOR = (16, 12, 2)
 
 
 @pytest.fixture
 def npy(tmp_path, rng):
-    path = tmp_path / "in.npy"
-    np.save(path, random_stream(rng, 400, SENSOR, t_max=2000))
-    return path
+    return saved_stream(tmp_path / "in.npy", rng, 400, SENSOR, t_max=2000)
 
 
 def _run(*argv: str) -> subprocess.CompletedProcess:

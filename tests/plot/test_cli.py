@@ -14,7 +14,7 @@ from evdown_torch.cli import main
 from evdown_torch.plot.command import build_transforms
 from evdown_torch.plot.recording import load_recording
 from evdown_torch.synthetic import render_gesture
-from tests.helpers import random_stream
+from tests.helpers import random_stream, saved_stream
 from tests.plot.images import big_blobs
 
 SENSOR = (16, 12, 2)
@@ -22,9 +22,7 @@ SENSOR = (16, 12, 2)
 
 @pytest.fixture
 def npy(tmp_path, rng):
-    path = tmp_path / "in.npy"
-    np.save(path, random_stream(rng, 400, SENSOR, t_max=200_000))
-    return path
+    return saved_stream(tmp_path / "in.npy", rng, 400, SENSOR, t_max=200_000)
 
 
 @pytest.mark.slow
