@@ -48,6 +48,17 @@ def saved_stream(path, rng: np.random.Generator, n: int, sensor_size: tuple[int,
     return path
 
 
+def assert_shift_equivariant(transform, events: np.ndarray, out: np.ndarray, shifts) -> None:
+    """``transform`` of ``events`` with every time plus ``shift`` is ``out`` (the output of
+    ``events``) with every time plus ``shift``, for each of ``shifts`` (structured arrays)."""
+    for shift in shifts:
+        shifted = events.copy()
+        shifted["t"] += shift
+        out_shifted = transform(shifted)
+        np.testing.assert_array_equal(out_shifted["t"] - out["t"], shift)
+        np.testing.assert_array_equal(out_shifted[["x", "y", "p"]], out[["x", "y", "p"]])
+
+
 def as_tuples(events: np.ndarray) -> list[tuple]:
     """Events as sorted ``(x, y, t, on)`` tuples, a multiset for comparisons."""
     return sorted(
