@@ -133,12 +133,18 @@ def test_frames_mode_matches_reference(fps, factor, contrast, threshold, rng):
     assert sorted(rows(pool(arr))) == expected
 
 
+def leaky_frames_case(rng, n, fps, cutoff_hz):
+    """``n`` random events over 20 ms, frames-mode pooling (factor 2, contrast 0.3,
+    threshold 0.1) at ``fps`` and ``cutoff_hz``, and the reference's output rows."""
+    arr = random_stream(rng, n, SENSOR, t_max=20_000)
+    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=fps,
+                               cutoff_hz=cutoff_hz)
+    return arr, pool, photocurrent_frames_reference(arr, SENSOR, 2, 0.3, 0.1, fps, cutoff_hz)
+
+
 @pytest.mark.parametrize("cutoff_hz", [5.0, 200.0])
 def test_frames_mode_with_leak_matches_reference(cutoff_hz, rng):
-    arr = random_stream(rng, 200, SENSOR, t_max=20_000)
-    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=2000.0,
-                               cutoff_hz=cutoff_hz)
-    expected = photocurrent_frames_reference(arr, SENSOR, 2, 0.3, 0.1, 2000.0, cutoff_hz)
+    arr, pool, expected = leaky_frames_case(rng, 200, 2000.0, cutoff_hz)
     assert len(expected) > 20
     assert sorted(rows(pool(arr))) == expected
 
@@ -456,10 +462,7 @@ def test_frames_mode_any_chunking_gives_the_batch_result(name, case):
 
 @pytest.mark.parametrize("cutoff_hz", [0.0, 200.0])
 def test_frames_session_emits_complete_frames_and_the_rest_at_flush(cutoff_hz, rng):
-    arr = random_stream(rng, 400, SENSOR, t_max=20_000)
-    pool = PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, threshold=0.1, fps=1000.0,
-                               cutoff_hz=cutoff_hz)
-    expected = photocurrent_frames_reference(arr, SENSOR, 2, 0.3, 0.1, 1000.0, cutoff_hz)
+    arr, pool, expected = leaky_frames_case(rng, 400, 1000.0, cutoff_hz)
     session = pool.session()
     first = session(arr[:200])
     # Everything out so far belongs to frames before the chunk's last event (t_start + k ms).
