@@ -11,7 +11,7 @@ interval, an equivalence test (TOST), never a star.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import cast
 
 from torch import Tensor
@@ -136,8 +136,7 @@ def compare(
         ))
     if primary and out:
         adjusted = holm([cast(float, k.p_value) for k in out])  # primary: all have one
-        out = [Comparison(**{**k.__dict__, "p_holm": q, "significant": q < alpha})
-               for k, q in zip(out, adjusted)]
+        out = [replace(k, p_holm=q, significant=q < alpha) for k, q in zip(out, adjusted)]
     return out
 
 

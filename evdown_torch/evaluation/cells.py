@@ -96,11 +96,14 @@ class Cell:
         if self.method == BASELINE:
             return BASELINE
         f = self.factor
-        text = f"{self.method} x{f[0] if f[0] == f[1] else f'{f[0]}x{f[1]}'}"
-        delay = dict(self.settings).get("max_delay")
-        if delay is not None:
-            text += f" (max_delay {delay:g})"
+        text = f"{self.name} x{f[0] if f[0] == f[1] else f'{f[0]}x{f[1]}'}"
         return text if self.budget is None else f"{text} @ {self.budget:g}"
+
+    @property
+    def name(self) -> str:
+        """The method, with its delay where one is set (``max_delay`` read as microseconds)."""
+        delay = dict(self.settings).get("max_delay")
+        return self.method if delay is None else f"{self.method} (max_delay {delay / 1000:g} ms)"
 
     def with_settings(self, **values: Any) -> Cell:
         """The same cell with ``values`` added to (or replacing) its settings."""
@@ -209,6 +212,20 @@ BATCHED = frozenset({"lif"})
 BATCH = 8
 
 
+def measured_draws(units: list[tuple[Cell, int]]) -> dict[Cell, int]:
+    """The draw whose measures stand for each cell of ``units``: its smallest.
+
+    Example:
+        >>> a, b = Cell("control", (2, 2), 1.0), Cell("downsample", (2, 2))
+        >>> measured_draws([(a, 3), (b, 0), (a, 1)]) == {a: 1, b: 0}
+        True
+    """
+    first: dict[Cell, int] = {}
+    for cell, draw in units:
+        first[cell] = min(draw, first.get(cell, draw))
+    return first
+
+
 def downscale_job(source: StudyData, units: list[tuple[Cell, int]], split: str,
                   indices: list[int], config: EvaluationConfig) -> list[dict[str, list[float]]]:
     """Downscale recordings ``indices`` of ``split`` into each unit's frames, and measure them.
@@ -237,6 +254,7 @@ def downscale_job(source: StudyData, units: list[tuple[Cell, int]], split: str,
             raw, label = source.recording(split, i)
             inputs.append((to_events(raw, sensor)[0], label, window(raw)))
         cameras: dict[tuple[int, int], list[Any]] = {}
+        measured = measured_draws(units)
         groups: dict[Cell, list[int]] = {}
         for j in todo:
             groups.setdefault(units[j][0], []).append(j)
@@ -248,10 +266,9 @@ def downscale_job(source: StudyData, units: list[tuple[Cell, int]], split: str,
                     cameras[cell.factor] = [source.ground_truth(split, i, cell.factor)
                                             for i in indices if i < limit]
                 camera = cameras[cell.factor]
-            measured = min(d for c, d in units if c == cell)
             _downscale_cell(cache, [paths[j] for j in members], cell,
-                            [units[j][1] for j in members], measured, inputs, camera, sensor,
-                            config)
+                            [units[j][1] for j in members], measured[cell], inputs, camera,
+                            sensor, config)
     return [Cache.load_json(path.with_suffix(".json")) for path in paths]
 
 

@@ -155,8 +155,8 @@ def train_job(source: StudyData, cell: Cell, chunks: dict[str, list[list[int]]],
            "batch_size": training.batch_size, "learning_rate": learning_rate,
            "encoding": training.encoding, "normalise": training.normalise,
            "per_seed": config.data.train_per_seed, "validation": held_out, "seed": seed,
-           "device": torch.device(device).type, "code": code_fingerprint("models",
-                                                                          "evaluation/cells.py")}
+           "device": torch.device(device).type,
+           "code": code_fingerprint("models", "evaluation/classifier.py")}
     cache = source.cache
     path = cache.path("predictions", key, ".json")
     if path.is_file():

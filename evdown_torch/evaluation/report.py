@@ -56,11 +56,6 @@ def _number(value: float | None, fmt: str) -> str:
     return "" if value is None else format(value, fmt)
 
 
-def _name(c: CellResult) -> str:
-    delay = dict(c.cell.settings).get("max_delay")
-    return c.method if delay is None else f"{c.method} (max_delay {delay / 1000:g} ms)"
-
-
 def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
     rows = []
     for c in result.cells:
@@ -68,7 +63,7 @@ def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
         k = c.comparison
         halves = k.halves if k is not None else ()
         rows.append({
-            "method": _name(c), "role": c.role, "factor_x": str(c.factor[0]),
+            "method": c.cell.name, "role": c.role, "factor_x": str(c.factor[0]),
             "factor_y": str(c.factor[1]),
             "budget": _number(c.budget, "g"), "setting": _setting(c),
             "width": str(c.output_size[0]), "height": str(c.output_size[1]),
@@ -174,7 +169,7 @@ def markdown_table(result: EvaluationResult) -> str:
         if control is not None and c.method != CONTROL and control.consistency is not None:
             consistency += f" ({control.consistency:.3f})"
         lines.append(
-            f"| {_name(c)} | {c.role} | {_factor(c) if c.method != BASELINE else 1} "
+            f"| {c.cell.name} | {c.role} | {_factor(c) if c.method != BASELINE else 1} "
             f"| {_number(c.budget, 'g') or '–'} | {_setting(c) or '–'} "
             f"| {c.events_per_recording:,.0f} | {_number(c.rate_vs_camera, '.2f') or 'n/a'} "
             f"| {len(c.seeds)} | {c.accuracy:.3f} [{c.interval[0]:.3f}, {c.interval[1]:.3f}] "
@@ -318,7 +313,7 @@ def _plot(result: EvaluationResult, path: Path) -> bool:
     figure = Figure(figsize=(4.2 * len(factors) + 2.5, 7.5), layout="constrained")
     FigureCanvasAgg(figure)
     axes = figure.subplots(2, len(factors), squeeze=False, sharey="row")
-    methods = list(dict.fromkeys(_name(c) for c in result.cells
+    methods = list(dict.fromkeys(c.cell.name for c in result.cells
                                  if c.method not in (BASELINE, CONTROL)))
     colours = {name: f"C{i % 10}" for i, name in enumerate(methods)}
     colours[CONTROL] = "black"
@@ -327,7 +322,8 @@ def _plot(result: EvaluationResult, path: Path) -> bool:
         here = [c for c in result.cells if c.factor == factor]
         top, bottom = axes[0][column], axes[1][column]
         for name in [*methods, CONTROL]:
-            line = sorted((c for c in here if _name(c) == name), key=lambda c: c.events_per_second)
+            line = sorted((c for c in here if c.cell.name == name),
+                          key=lambda c: c.events_per_second)
             if not line:
                 continue
             style = dict(color=colours[name], marker="o" if name != CONTROL else "s",

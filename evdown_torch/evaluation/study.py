@@ -241,8 +241,9 @@ def _fill(config: EvaluationConfig, source: StudyData, pool: Any, device: torch.
     stats: dict[Cell, dict[str, dict[str, list[float]]]] = {
         p.cell: {"train": {}, "test": {}} for p in planned}
     for (units, split, _), parts in zip(work, out):
+        first = jobs.measured_draws(units)
         for (cell, draw), part in zip(units, parts):
-            if draw == min(d for c, d in units if c == cell):
+            if draw == first[cell]:
                 for k, values in part.items():
                     stats[cell][split].setdefault(k, []).extend(values)
     progress(f"downscaled every recording for {len(planned)} cells "
@@ -315,15 +316,15 @@ def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, planned: 
         return planned, {}
     if config.methods.budget_reference == "input":
         inputs = sum(len(source.recording("train", i)[0]) for i in range(samples))
-    targets = [cast(float, planned[i].cell.budget) * (camera[planned[i].cell.factor]
-                                         if config.methods.budget_reference == "camera"
-                                         else inputs)
+    targets = [cast(float, planned[i].cell.budget)
+               * (camera[planned[i].cell.factor] if config.methods.budget_reference == "camera"
+                  else inputs)
                for i in todo]
     out = _map(pool, progress, "calibration", jobs.calibrate_job, [source] * len(todo),
                [planned[i].cell for i in todo], targets, [samples] * len(todo))
     cells, found = list(planned), {}
     for i, (cell, search) in zip(todo, out):
-        cells[i], found[cell] = Planned(cell, planned[i].role, planned[i].seeds), search
+        cells[i], found[cell] = replace(planned[i], cell=cell), search
     progress(f"calibrated {len(todo)} budgeted cells on {samples} training recordings")
     return cells, found
 
