@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch.transforms.functional import lif as lif_kernel
-from evdown_torch.transforms.functional import lif_closed_form
+from evdown_torch.transforms.functional.lif import closed_form as lif_closed_form
+from evdown_torch.transforms.functional.lif import pooling as lif_kernel
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NMNIST_FILE = SHARED_DATA / "sample_nmnist.bin"

@@ -12,7 +12,7 @@ from torch import Tensor, nn
 
 from evdown_torch.checks import check_factor, output_size
 from evdown_torch.models._snn import register_for_snntorch_reset, unregistered
-from evdown_torch.transforms.functional.lif_settings import (
+from evdown_torch.transforms.functional.lif.settings import (
     DEFAULT_THRESHOLD,
     DEFAULT_WEIGHT,
     LIFSettings,
@@ -58,7 +58,7 @@ class SpikingPooling(nn.Module):
     ``tau`` is in the unit of ``dt`` (``dt = 1`` by default: ``tau`` counted in steps), so
     ``tau -> 0`` gives ``beta = 0`` (no memory) and ``tau = math.inf`` gives ``beta = 1``
     (integrate-and-fire). With neither, ``tau`` is 10 steps. The settings are checked once,
-    by :class:`~evdown_torch.transforms.functional.lif_settings.LIFSettings`, the settings
+    by :class:`~evdown_torch.transforms.functional.lif.settings.LIFSettings`, the settings
     object :class:`~evdown_torch.LIFPooling` and its kernels share.
 
     Constants live in buffers (``weight``, ``mutual_inhibition`` here and ``neuron.beta``,

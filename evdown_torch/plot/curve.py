@@ -6,10 +6,11 @@ work with, from the kernels' own machinery (SEMANTICS.md methods 3 to 5 and 7):
 * each pixel's level ``L_p`` (ON +1, OFF -1) after each of its events;
 * the region's mean level ``M_r = sum L_p / n_r`` after each event (what EventCount watches);
 * ``M_r`` under the linear reconstruction, at the region's breakpoints (exact: it is linear in
-  between), from the knots of :func:`~evdown_torch.transforms.functional.knots.pixel_knots`;
+  between), from the knots of
+  :func:`~evdown_torch.transforms.functional.estimation.knots.pixel_knots`;
 * ``M_r`` under the cubic reconstruction, on a fine grid that includes every breakpoint and
   every output event of the estimators, from the same knots and the PCHIP slopes of
-  :func:`~evdown_torch.transforms.functional.cubic.pchip_slopes`;
+  :func:`~evdown_torch.transforms.functional.estimation.cubic.pchip_slopes`;
 * with PhotocurrentPooling (events mode), ``log I_r / c`` (in level units, so it shares the
   axis: ``log I_r`` with ``c -> 0`` tends to ``c M_r``);
 * the events each method emits at the pixel (the transforms' own output), and for the methods
@@ -39,8 +40,8 @@ from evdown_torch.transforms import Downscaler
 from evdown_torch.transforms._base import ThresholdDownscaler
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount
-from evdown_torch.transforms.functional.cubic import pchip_slopes
-from evdown_torch.transforms.functional.knots import pixel_knots, region_chunks
+from evdown_torch.transforms.functional.estimation.cubic import pchip_slopes
+from evdown_torch.transforms.functional.estimation.knots import pixel_knots, region_chunks
 from evdown_torch.transforms.registry import METHODS, make_method
 
 if TYPE_CHECKING:

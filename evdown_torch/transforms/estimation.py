@@ -10,15 +10,15 @@ from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Method, Session, ThresholdDownscaler
 from evdown_torch.transforms._batch import run_stacked
-from evdown_torch.transforms.functional.cubic import cubic_regions
-from evdown_torch.transforms.functional.estimation import RegionSolver, estimate
-from evdown_torch.transforms.functional.estimation_stream import (
+from evdown_torch.transforms.functional.estimation.cubic import cubic_regions
+from evdown_torch.transforms.functional.estimation.driver import RegionSolver, estimate
+from evdown_torch.transforms.functional.estimation.linear import linear_regions
+from evdown_torch.transforms.functional.estimation.stream import (
     EstimationSettings,
     window_end,
     window_init,
     window_step,
 )
-from evdown_torch.transforms.functional.linear import linear_regions
 
 
 def _whole(events: Events, settings: EstimationSettings) -> Events:

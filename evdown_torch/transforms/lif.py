@@ -12,8 +12,8 @@ from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, EventsLike, to_events
 from evdown_torch.transforms._base import Downscaler, Method
 from evdown_torch.transforms._batch import Stacked, run_stacked
-from evdown_torch.transforms.functional.lif import lif_pooling
-from evdown_torch.transforms.functional.lif_settings import (
+from evdown_torch.transforms.functional.lif.pooling import lif_pooling
+from evdown_torch.transforms.functional.lif.settings import (
     DEFAULT_DT,
     DEFAULT_TAU,
     DEFAULT_THRESHOLD,
@@ -22,7 +22,7 @@ from evdown_torch.transforms.functional.lif_settings import (
     LIFSettings,
     ResetMechanism,
 )
-from evdown_torch.transforms.functional.lif_stream import lif_finish, lif_init, lif_step
+from evdown_torch.transforms.functional.lif.stream import lif_finish, lif_init, lif_step
 
 if TYPE_CHECKING:
     from evdown_torch.models.pooling import SpikingPooling
@@ -31,7 +31,7 @@ __all__ = ["LIFPooling", "calibrate_weight"]
 
 
 def _lif_whole(events: Events, settings: LIFPoolingSettings) -> Events:
-    """The whole stream in one call: :func:`~evdown_torch.transforms.functional.lif.lif_pooling`."""
+    """The whole stream in one call: :func:`.pooling.lif_pooling`."""
     return lif_pooling(events, settings.neuron, sensor_size=settings.sensor_size,
                        factor=settings.factor)
 
@@ -63,7 +63,7 @@ class LIFPooling(Downscaler):
     ``t_start + (k + 1) * dt`` clipped to ``t_end``. The kernel is event-driven: a neuron is
     touched only at the steps where its block has events, the silences in between (decay, and
     a neuron firing on above threshold) are solved in closed form, so the cost follows the
-    events, not steps x regions (see :mod:`evdown_torch.transforms.functional.lif`, also for
+    events, not steps x regions (see :mod:`evdown_torch.transforms.functional.lif.pooling`, also for
     the float32 rounding over a silence, the only difference from stepping).
 
     Choosing the settings. ``dt`` and ``tau`` are in the stream's time unit (microseconds for
@@ -171,7 +171,7 @@ class LIFPooling(Downscaler):
         Run on the stream's frames ``ToFrame(sensor_size, time_window=dt,
         include_incomplete=True)`` (windows from the first event on, as a ``(T, 1, 2, H, W)``
         float tensor), it gives the spikes that this transform turns into events (up to float32
-        rounding over silences, see :mod:`evdown_torch.transforms.functional.lif`).
+        rounding over silences, see :mod:`evdown_torch.transforms.functional.lif.pooling`).
         """
         from evdown_torch.models.pooling import SpikingPooling  # models build on transforms
 

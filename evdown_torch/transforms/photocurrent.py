@@ -10,14 +10,14 @@ from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Downscaler, Method, Session
 from evdown_torch.transforms._batch import Stacked, run_stacked
-from evdown_torch.transforms.functional.photocurrent import photocurrent_events
-from evdown_torch.transforms.functional.photocurrent_method import (
+from evdown_torch.transforms.functional.photocurrent.events_mode import photocurrent_events
+from evdown_torch.transforms.functional.photocurrent.method import (
     photocurrent_finish,
     photocurrent_init,
     photocurrent_step,
     photocurrent_whole,
 )
-from evdown_torch.transforms.functional.photocurrent_settings import PhotocurrentSettings
+from evdown_torch.transforms.functional.photocurrent.settings import PhotocurrentSettings
 
 
 def _stacked(batch: EventBatch, settings: PhotocurrentSettings) -> EventBatch | None:

@@ -25,9 +25,9 @@ from hypothesis import strategies as st
 from scipy.interpolate import PchipInterpolator
 from scipy.optimize import brentq
 
-import evdown_torch.transforms.functional.cubic as cubic_module
-import evdown_torch.transforms.functional.estimation as estimation_module
-import evdown_torch.transforms.functional.linear as linear_module
+import evdown_torch.transforms.functional.estimation.cubic as cubic_module
+import evdown_torch.transforms.functional.estimation.driver as estimation_module
+import evdown_torch.transforms.functional.estimation.linear as linear_module
 from evdown_torch import CubicEstimation, EventCount, Events, LinearEstimation
 from tests.helpers import (
     DVS_DTYPE,

@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evdown_torch import Events, LIFPooling
-from evdown_torch.transforms.functional import lif as lif_kernel
-from evdown_torch.transforms.functional import lif_closed_form
-from evdown_torch.transforms.functional.lif_chains import Leak
+from evdown_torch.transforms.functional.lif import closed_form as lif_closed_form
+from evdown_torch.transforms.functional.lif import pooling as lif_kernel
+from evdown_torch.transforms.functional.lif.chains import Leak
 from tests import helpers
 
 

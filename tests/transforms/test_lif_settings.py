@@ -9,7 +9,7 @@ import pytest
 
 from evdown_torch import LIFPooling
 from evdown_torch.models import SpikingPooling
-from evdown_torch.transforms.functional.lif_settings import (
+from evdown_torch.transforms.functional.lif.settings import (
     DEFAULT_TAU,
     LIFNeuron,
     LIFSettings,

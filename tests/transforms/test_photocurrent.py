@@ -325,7 +325,7 @@ def test_frames_mode_float_timestamps(rng):
 
 def _pieces(monkeypatch):
     """Spy on the kernel's pieces: a list that gets the length of every piece it used."""
-    from evdown_torch.transforms.functional import photocurrent as kernel
+    from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
 
     used, piece = [], kernel._events_piece
 
@@ -355,7 +355,7 @@ def test_events_mode_matches_reference_on_wider_sensors(sensor, factor, threshol
 def test_levels_spanning_more_than_the_table(monkeypatch):
     # 70,000 ON at one pixel of a 2x1 region (c * L reaches 7): a piece's levels span more
     # than TABLE_SIZE, so the intensities are computed per event instead of looked up.
-    from evdown_torch.transforms.functional.photocurrent_sums import TABLE_SIZE
+    from evdown_torch.transforms.functional.photocurrent.sums import TABLE_SIZE
 
     n = 70_000
     arr = np.zeros(n + 2, dtype=DVS_DTYPE)
@@ -424,7 +424,7 @@ def test_fixed_point_intensities_are_within_a_few_ulps(contrast):
     # |c * j| / 2 ulps): against exact decimal arithmetic.
     from decimal import Decimal, localcontext
 
-    from evdown_torch.transforms.functional.photocurrent_sums import _split
+    from evdown_torch.transforms.functional.photocurrent.sums import _split
 
     scale, fine = 2.0**10, 2.0**40
     js = sorted(j for j in {0, 1, -1, 7, -7, 150, -3000, -int(700 / contrast),
@@ -493,7 +493,7 @@ def test_levels_beyond_float_resolution_are_refused():
     # contrast / threshold = 1e6 output levels per input level: a pixel 2**40 levels up would
     # put u beyond 2**50, where float64 cannot tell levels apart.
     from evdown_torch.events import Events
-    from evdown_torch.transforms.functional.photocurrent import (
+    from evdown_torch.transforms.functional.photocurrent.events_mode import (
         initial_state,
         photocurrent_events,
     )
@@ -509,7 +509,7 @@ def test_levels_beyond_float_resolution_are_refused():
 def test_int64_levels_give_the_int32_result(rng):
     # Levels beyond 2**28 switch the kernel's level arithmetic from int32 to int64.
     from evdown_torch.events import Events
-    from evdown_torch.transforms.functional import photocurrent as kernel
+    from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
 
     arr = random_stream(rng, 2000, SENSOR, t_max=1000)
     events = Events.from_columns(arr["x"].astype(np.int64), arr["y"].astype(np.int64),

@@ -8,17 +8,17 @@ three kernels ``init_state``, ``step`` and ``finish`` on them
 settings as keywords, for direct use.
 """
 
-from evdown_torch.transforms.functional.cubic import cubic_estimation
 from evdown_torch.transforms.functional.downsample import downsample
-from evdown_torch.transforms.functional.estimation_stream import EstimationSettings
+from evdown_torch.transforms.functional.estimation.cubic import cubic_estimation
+from evdown_torch.transforms.functional.estimation.linear import linear_estimation
+from evdown_torch.transforms.functional.estimation.stream import EstimationSettings
 from evdown_torch.transforms.functional.event_count import event_count
 from evdown_torch.transforms.functional.funnelling import event_funnelling
-from evdown_torch.transforms.functional.lif import lif_pooling
-from evdown_torch.transforms.functional.lif_settings import LIFPoolingSettings, LIFSettings
-from evdown_torch.transforms.functional.linear import linear_estimation
-from evdown_torch.transforms.functional.photocurrent import photocurrent_events
-from evdown_torch.transforms.functional.photocurrent_frames import photocurrent_frames
-from evdown_torch.transforms.functional.photocurrent_settings import PhotocurrentSettings
+from evdown_torch.transforms.functional.lif.pooling import lif_pooling
+from evdown_torch.transforms.functional.lif.settings import LIFPoolingSettings, LIFSettings
+from evdown_torch.transforms.functional.photocurrent.events_mode import photocurrent_events
+from evdown_torch.transforms.functional.photocurrent.frames_mode import photocurrent_frames
+from evdown_torch.transforms.functional.photocurrent.settings import PhotocurrentSettings
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
 from evdown_torch.transforms.functional.temporal import TemporalSettings, temporal_funnelling
 

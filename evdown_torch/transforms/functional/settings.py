@@ -4,7 +4,7 @@ A method is a frozen settings dataclass plus three pure kernels (``init_state``,
 ``finish``; see :class:`~evdown_torch.transforms._base.Method`). The settings here are the
 region geometry (:class:`RegionSettings`) and, for the methods watching a region with the
 DVS reference rule, the contrast threshold (:class:`ThresholdSettings`). Methods with more
-settings extend them beside their kernels (LIF: :mod:`.lif_settings`). A transform builds its
+settings extend them beside their kernels (LIF: :mod:`.lif.settings`). A transform builds its
 settings in ``__post_init__``: that is where every setting is checked, and the only place.
 """
 

@@ -24,10 +24,10 @@ that follows the events:
   number of cells, so the regions of a round are a prefix and every update is a slice). The
   element work is proportional to the cells; the number of rounds (a fixed cost of a few
   tensor operations each) is the largest number of cells of one region, at most the number
-  of steps that hold events (:mod:`~evdown_torch.transforms.functional.lif_rounds`).
+  of steps that hold events (:mod:`~evdown_torch.transforms.functional.lif.rounds`).
 - **Small calls in closed form.** A call that needs no state back (a recording alone or a
   small batch) and whose cells fit a small table takes
-  :mod:`~evdown_torch.transforms.functional.lif_closed_form` instead: the membranes between
+  :mod:`~evdown_torch.transforms.functional.lif.closed_form` instead: the membranes between
   firings as cumulative sums, the firings by binary search (one pass per firing of the
   busiest neuron, not per active step), every decision certified against a bound on the
   rounds' float32 rounding; where one is not certain the rounds compute the call, so the
@@ -36,14 +36,14 @@ that follows the events:
 State. The core, :func:`lif_spikes`, can start from a :class:`LIFState` (each region's
 membranes at its last input, and that step: a state cell in front of the region's cells), run
 up to a given last step and return the spikes from a given step on; the streaming session
-(:mod:`evdown_torch.transforms.functional.lif_stream`) continues the neurons chunk by chunk
+(:mod:`evdown_torch.transforms.functional.lif.stream`) continues the neurons chunk by chunk
 with it, computing every gap exactly as one call does.
 
 Exactness. The update at a cell is snntorch's float32 arithmetic, in its order, so runs of
 consecutive active steps, and gaps of one step, are bit-identical to the module. Over a longer
 gap the decay ``beta ** g`` is one float32 power where stepping rounds ``g`` products
 (identical when ``beta`` is 0, 1 or a power of two), and a chain longer than
-:data:`~evdown_torch.transforms.functional.lif_chains.EXACT_CHAIN_STEPS` is one float64
+:data:`~evdown_torch.transforms.functional.lif.chains.EXACT_CHAIN_STEPS` is one float64
 evaluation rounded once; a spike can differ only where
 a membrane lies within float32 rounding of the threshold.
 
@@ -64,10 +64,10 @@ from torch import Tensor
 from evdown_torch._tensors import divide, sort_by_time, stable_sort_small
 from evdown_torch.checks import check_output_count, output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.lif_chains import Leak
-from evdown_torch.transforms.functional.lif_closed_form import MIN_ROUNDS, certain_spikes
-from evdown_torch.transforms.functional.lif_rounds import membranes_by_rounds, spikes_and_runs
-from evdown_torch.transforms.functional.lif_settings import (
+from evdown_torch.transforms.functional.lif.chains import Leak
+from evdown_torch.transforms.functional.lif.closed_form import MIN_ROUNDS, certain_spikes
+from evdown_torch.transforms.functional.lif.rounds import membranes_by_rounds, spikes_and_runs
+from evdown_torch.transforms.functional.lif.settings import (
     DEFAULT_DT,
     DEFAULT_TAU,
     DEFAULT_THRESHOLD,
@@ -77,7 +77,7 @@ from evdown_torch.transforms.functional.lif_settings import (
     ResetMechanism,
     decay_factor,
 )
-from evdown_torch.transforms.functional.lif_steps import (
+from evdown_torch.transforms.functional.lif.steps import (
     MAX_STEPS,
     batch_step_indices,
     spikes_to_events,
@@ -341,7 +341,7 @@ def lif_spikes(
     """The spikes of the neurons over steps ``0 .. last_step``, from a state, event-driven.
 
     The core of :func:`lif_pooling` (``state=None``, ``from_step=0``) and of its streaming
-    session (:mod:`evdown_torch.transforms.functional.lif_stream`), which continues from the
+    session (:mod:`evdown_torch.transforms.functional.lif.stream`), which continues from the
     neurons of the steps processed so far and processes up to a bound.
 
     Args:
@@ -361,7 +361,7 @@ def lif_spikes(
             :func:`lif_pooling`'s ``bounds``); a state is for one recording only.
         keep_state: return the neurons after the events; ``False`` returns ``None`` instead
             and lets a small call compute its spikes in closed form
-            (:mod:`~evdown_torch.transforms.functional.lif_closed_form`), same spikes.
+            (:mod:`~evdown_torch.transforms.functional.lif.closed_form`), same spikes.
 
     Returns:
         ``(spike_step, neuron, state)``: int64 steps and neurons (``polarity * Ho * Wo +

@@ -1,24 +1,24 @@
 """PhotocurrentPooling as a method: its settings and its three kernels, in both modes.
 
-The events mode's kernels are in :mod:`.photocurrent`, the frames mode's in
-:mod:`.photocurrent_frames`, the settings both share in :mod:`.photocurrent_settings`; here
+The events mode's kernels are in :mod:`.events_mode`, the frames mode's in
+:mod:`.frames_mode`, the settings both share in :mod:`.settings`; here
 are the ``init_state`` / ``step`` / ``finish`` kernels that pick the mode from the settings.
 """
 
 from __future__ import annotations
 
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.photocurrent import (
+from evdown_torch.transforms.functional.photocurrent.events_mode import (
     PhotocurrentState,
     initial_state,
     photocurrent_events,
 )
-from evdown_torch.transforms.functional.photocurrent_frames import (
+from evdown_torch.transforms.functional.photocurrent.frames_mode import (
     FramesState,
     frames_stream,
     fresh_frames_state,
 )
-from evdown_torch.transforms.functional.photocurrent_settings import PhotocurrentSettings
+from evdown_torch.transforms.functional.photocurrent.settings import PhotocurrentSettings
 
 __all__ = [
     "photocurrent_finish",

@@ -5,22 +5,22 @@ Each input pixel keeps an integer level ``L_p`` (ON +1, OFF -1) and its log inte
 ``I_r = (1 / n_r) * sum exp(c * L_p)``, and the output pixel runs the DVS reference rule on
 ``log I_r`` at contrast ``theta``: with ``u = log(I_r) / theta``, the shared rule of
 :mod:`~evdown_torch.transforms.functional.reference` (floor of ``u`` and whether ``u`` is on a
-level, a ``u`` within :data:`~evdown_torch.transforms.functional.knots.SNAP` of an integer
+level, a ``u`` within :data:`.knots.SNAP` of an integer
 counting as on it).
 
 *Events mode* (:func:`photocurrent_events`): ``log I_r`` changes only at input events. The
 stream goes in pieces (about 16 events per pixel, at most :data:`CHUNK_EVENTS`). In a piece,
 one sort groups the events by region (time order inside); each region's photocurrent after
 each of its events comes from exact int64 fixed-point running sums anchored at its brightest
-pixel (:mod:`~evdown_torch.transforms.functional.photocurrent_sums`), to a few ulps however
+pixel (:mod:`~evdown_torch.transforms.functional.photocurrent.sums`), to a few ulps however
 many events the piece has. Where the sums cannot hold an event to ``1e-10 * theta`` (all of a
 region's pixels falling some 50 log units below its anchor), or a pixel rises more than
-:data:`~evdown_torch.transforms.functional.photocurrent_sums.MAX_EXPONENT` above it, the
+:data:`~evdown_torch.transforms.functional.photocurrent.sums.MAX_EXPONENT` above it, the
 piece is cut before that event and the rest re-anchored; a piece cut down to one event takes
 its region's sum straight from the levels after it. The reference rule then runs on the
 events that can change a region's reference index.
 
-*Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent_frames`, which shares
+*Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent.frames_mode`, which shares
 the pixel levels, region geometry and level snap defined here.
 """
 
@@ -46,7 +46,7 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events, polarity_sign
-from evdown_torch.transforms.functional.photocurrent_sums import (
+from evdown_torch.transforms.functional.photocurrent.sums import (
     grouped_levels,
     running_sums,
 )

@@ -4,7 +4,7 @@ docs/semantics.md, "Bounded delay": with a delay ``D``, output earlier than
 ``tau - lag * D`` (``lag`` 1 for the linear method, 2 for the cubic one) is decided by the
 input up to ``tau``. A session step therefore solves a *window* of the stream, with the one
 driver of the batch kernels
-(:func:`~evdown_torch.transforms.functional.estimation.estimate_window`), and keeps only what the
+(:func:`.driver.estimate_window`), and keeps only what the
 future needs (:class:`WindowState`):
 
 * the stream's ``t_start`` (the front knots) and last timestamp;
@@ -40,12 +40,11 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import check_positive_float, output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.estimation import RegionSolver, estimate_window
-from evdown_torch.transforms.functional.knots import (
+from evdown_torch.transforms.functional.estimation.delay import effective_delay, hold_knots
+from evdown_torch.transforms.functional.estimation.driver import RegionSolver, estimate_window
+from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
     check_span,
-    effective_delay,
-    hold_knots,
 )
 from evdown_torch.transforms.functional.settings import ThresholdSettings
 
@@ -192,8 +191,8 @@ class EstimationSettings(ThresholdSettings):
         lag: output up to ``tau - lag * D`` is decided by input up to ``tau``: 1 (linear)
             or 2 (cubic).
         solver: the curve's solver of one chunk of regions
-            (:func:`~evdown_torch.transforms.functional.linear.linear_regions` or
-            :func:`~evdown_torch.transforms.functional.cubic.cubic_regions`).
+            (:func:`~evdown_torch.transforms.functional.estimation.linear.linear_regions` or
+            :func:`~evdown_torch.transforms.functional.estimation.cubic.cubic_regions`).
     """
 
     max_delay: float | None = None
@@ -245,7 +244,7 @@ def window_step(
     Example:
         Two pixels of one region (threshold 0.25); pixel (1, 0) holds 0 until ``10 - D``:
 
-        >>> from evdown_torch.transforms.functional.linear import linear_regions
+        >>> from evdown_torch.transforms.functional.estimation.linear import linear_regions
         >>> settings = EstimationSettings((2, 1, 2), (2, 1), 0.25, max_delay=3, lag=1,
         ...                               solver=linear_regions)
         >>> ev = Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1])

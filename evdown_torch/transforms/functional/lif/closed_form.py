@@ -1,6 +1,6 @@
 """LIF pooling's spikes without rounds: the membranes between firings in closed form, certified.
 
-The rounds of :func:`~evdown_torch.transforms.functional.lif.lif_spikes` update the ``k``-th
+The rounds of :func:`~evdown_torch.transforms.functional.lif.pooling.lif_spikes` update the ``k``-th
 cell of every region at once, so a call costs a fixed few tensor operations per active step of
 its busiest region: about 160 to 300 rounds for a 0.3 s N-MNIST recording at ``dt`` = 1 ms,
 most of a small call's time. This module computes the same spikes in far fewer passes, for
@@ -65,7 +65,7 @@ import math
 import torch
 from torch import Tensor
 
-from evdown_torch.transforms.functional.lif_chains import CellSpikes, Leak
+from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak
 
 __all__ = ["MAX_TABLE", "MIN_ROUNDS", "certain_spikes"]
 

@@ -7,16 +7,16 @@ from torch import Tensor
 
 from evdown_torch._tensors import differences, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.estimation import CurveCrossings, RegionJob, estimate
-from evdown_torch.transforms.functional.estimation_stream import (
-    EstimationSettings,
-    resume_steps,
-)
-from evdown_torch.transforms.functional.knots import (
+from evdown_torch.transforms.functional.estimation.driver import CurveCrossings, RegionJob, estimate
+from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
     level_changes,
     piece_time,
     region_pixels,
+)
+from evdown_torch.transforms.functional.estimation.stream import (
+    EstimationSettings,
+    resume_steps,
 )
 from evdown_torch.transforms.functional.reference import level_index, level_value, step_crossings
 
@@ -93,7 +93,7 @@ def linear_estimation(
     """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
 
     Each pixel's log-luminance is the polyline through its knots (see
-    :mod:`~evdown_torch.transforms.functional.knots`); each region's mean ``M_r`` (sum of its
+    :mod:`.knots`); each region's mean ``M_r`` (sum of its
     pixels' polylines over ``n_r``) is watched by the DVS reference rule at contrast
     ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
     the exact crossing times, rounded half up to integers when ``t`` is int64.
@@ -112,7 +112,7 @@ def linear_estimation(
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
         bounds: ``(B,)`` first and last timestamps of each recording of a batch stacked
-            vertically (see :func:`~evdown_torch.transforms.functional.estimation.estimate`), or
+            vertically (see :func:`.driver.estimate`), or
             ``None`` for one stream.
         max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
             "Bounded delay"; a whole number for int64 ``t``), or ``None`` for the paper's
@@ -135,7 +135,7 @@ def linear_estimation(
 def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     """The linear curve's solver: the crossings of the regions of one chunk, in region order.
 
-    :class:`~evdown_torch.transforms.functional.estimation.RegionJob` says what ``job``
+    :class:`~evdown_torch.transforms.functional.estimation.driver.RegionJob` says what ``job``
     holds; ``front_at_rest`` changes nothing for polylines.
     """
     sensor_size, factor, fraction = job.sensor_size, job.factor, job.fraction

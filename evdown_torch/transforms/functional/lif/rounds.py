@@ -1,6 +1,6 @@
 """LIF pooling's rounds: snntorch's float32 update at every cell, all regions at once.
 
-Used by :func:`~evdown_torch.transforms.functional.lif.lif_spikes` (see its module docstring):
+Used by :func:`.pooling.lif_spikes` (see its module docstring):
 round ``r`` updates the ``r``-th cell of every region that has one. Lanes are regions by
 decreasing number of cells, so the lanes of a round are a prefix of the previous round's and
 every update is a slice; a round costs a fixed few tensor operations, and there are as many
@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import stable_sort_small
-from evdown_torch.transforms.functional.lif_chains import CellSpikes, Leak
+from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak
 
 __all__ = ["membranes_by_rounds", "spikes_and_runs"]
 

@@ -2,10 +2,10 @@
 
 :func:`estimate` runs a whole stream (or a stacked batch of recordings) and
 :func:`estimate_window` a window of one (a bounded-delay session's step,
-:mod:`~evdown_torch.transforms.functional.estimation_stream`); both hand each chunk of
-regions' :class:`~evdown_torch.transforms.functional.knots.Knots` to the curve's solver
-(:func:`~evdown_torch.transforms.functional.linear.linear_regions` or
-:func:`~evdown_torch.transforms.functional.cubic.cubic_regions`), which returns its
+:mod:`~evdown_torch.transforms.functional.estimation.stream`); both hand each chunk of
+regions' :class:`~evdown_torch.transforms.functional.estimation.knots.Knots` to the curve's solver
+(:func:`~evdown_torch.transforms.functional.estimation.linear.linear_regions` or
+:func:`~evdown_torch.transforms.functional.estimation.cubic.cubic_regions`), which returns its
 :class:`CurveCrossings`.
 """
 
@@ -20,18 +20,18 @@ from torch import Tensor
 
 from evdown_torch._tensors import divide, sort_by_time, take, where_true
 from evdown_torch.events import Events, polarity_sign
-from evdown_torch.transforms.functional.knots import (
+from evdown_torch.transforms.functional.estimation.delay import hold_knots
+from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
     check_span,
     emit,
-    hold_knots,
     pixel_knots,
     region_chunks,
 )
 from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
 
 if TYPE_CHECKING:
-    from evdown_torch.transforms.functional.estimation_stream import EstimationSettings, Resume
+    from evdown_torch.transforms.functional.estimation.stream import EstimationSettings, Resume
 
 __all__ = ["CurveCrossings", "RegionJob", "RegionSolver", "estimate", "estimate_window"]
 
@@ -53,7 +53,7 @@ class RegionJob(NamedTuple):
         fraction: the threshold as the rational ``a / b`` of ``threshold_fraction``.
         emitted: events of the chunks before (for the output limit).
         resume: where a streaming window starts
-            (:func:`~evdown_torch.transforms.functional.estimation_stream.resume_steps`), or
+            (:func:`~evdown_torch.transforms.functional.estimation.stream.resume_steps`), or
             ``None``.
         front_at_rest: a bounded delay: pixels at rest before their first knot (the cubic
             slope there is 0; nothing changes for polylines).
@@ -158,7 +158,7 @@ def estimate_window(
         t_end: ``()`` last timestamp of the stream so far (the back knots), or ``(B,)``.
         settings: as for :func:`estimate` (its ``max_delay`` is not read here).
         resume: where a window picks up
-            (:class:`~evdown_torch.transforms.functional.estimation_stream.Resume`), or
+            (:class:`~evdown_torch.transforms.functional.estimation.stream.Resume`), or
             ``None`` (from ``t_start``).
         next_cut: with ``resume``, the next window's cut: the returned ``q`` is each region's
             reference index after its last breakpoint earlier than it.

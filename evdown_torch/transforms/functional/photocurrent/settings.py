@@ -1,8 +1,8 @@
 """PhotocurrentPooling's settings, checked once, and the frames mode's clock.
 
 :class:`PhotocurrentSettings` is what both modes' kernels take
-(:mod:`.photocurrent` for the events mode, :mod:`.photocurrent_frames` for the frames mode,
-:mod:`.photocurrent_method` for the three kernels that pick the mode).
+(:mod:`.events_mode` for the events mode, :mod:`.frames_mode` for the frames mode,
+:mod:`.method` for the three kernels that pick the mode).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from evdown_torch.checks import (
     check_time_unit,
     time_unit_fraction,
 )
-from evdown_torch.transforms.functional.photocurrent import check_contrast_range
+from evdown_torch.transforms.functional.photocurrent.events_mode import check_contrast_range
 from evdown_torch.transforms.functional.settings import RegionSettings
 
 __all__ = ["FrameClock", "PhotocurrentSettings"]

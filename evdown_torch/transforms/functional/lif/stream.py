@@ -1,6 +1,6 @@
 """LIF pooling (method 6) as a stream: consecutive chunks give exactly the batch spikes.
 
-The batch kernel (:func:`~evdown_torch.transforms.functional.lif.lif_pooling`) bins the stream
+The batch kernel (:func:`.pooling.lif_pooling`) bins the stream
 into steps of ``dt`` from ``t_start`` and turns a spike of step ``k`` into an event at
 ``t_start + (k + 1) * dt`` clipped to ``t_end``. A chunk ending at ``t`` (its last timestamp)
 *decides* the spikes of a step ``k`` when
@@ -13,11 +13,11 @@ into steps of ``dt`` from ``t_start`` and turns a spike of step ``k`` into an ev
 
 The decided steps are a prefix of the steps; a chunk returns the spikes of the steps it newly
 decides, in the batch order (by step, then neuron). The state holds the stream's ``t_start``,
-the neurons after the decided steps (:class:`~evdown_torch.transforms.functional.lif.LIFState`:
+the neurons after the decided steps (:class:`.pooling.LIFState`:
 each region's membranes at its last input, and that step, so the kernel continues through a
 gap exactly as it does in one call) and the input of the undecided steps. The end of the stream
 processes that input and the chains up to the last step, with times clipped to ``t_end``. The
-kernel is the batch one (:func:`~evdown_torch.transforms.functional.lif.lif_spikes`), so the
+kernel is the batch one (:func:`~evdown_torch.transforms.functional.lif.pooling.lif_spikes`), so the
 cost still follows the events: a call touches the regions with input and the neurons that are
 firing through empty steps.
 """
@@ -33,14 +33,14 @@ from torch import Tensor
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.lif import (
+from evdown_torch.transforms.functional.lif.pooling import (
     LIFSettings,
     LIFState,
     initial_state,
     lif_spikes,
 )
-from evdown_torch.transforms.functional.lif_settings import LIFPoolingSettings
-from evdown_torch.transforms.functional.lif_steps import (
+from evdown_torch.transforms.functional.lif.settings import LIFPoolingSettings
+from evdown_torch.transforms.functional.lif.steps import (
     spikes_to_events,
     step_end_time,
     step_indices,
@@ -77,7 +77,7 @@ class LIFStreamState(NamedTuple):
 def _spike_time_within(step: int, *, t_start: Tensor, last_t: Tensor, dt: float) -> bool:
     """Whether ``t_start + (step + 1) * dt``, as the kernel computes it, is at most ``last_t``.
 
-    The same arithmetic as :func:`~evdown_torch.transforms.functional.lif.step_end_time`
+    The same arithmetic as :func:`~evdown_torch.transforms.functional.lif.pooling.step_end_time`
     before its clip (Python ints and IEEE doubles, as torch's int64 and float64).
     """
     if t_start.is_floating_point():

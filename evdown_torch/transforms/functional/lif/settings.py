@@ -2,8 +2,8 @@
 
 :class:`LIFSettings` is the one home of the LIF neuron's settings and of their checks: the
 transform :class:`~evdown_torch.LIFPooling` builds one from its fields, its kernels
-(:func:`~evdown_torch.transforms.functional.lif.lif_pooling`, the streaming pair in
-:mod:`~evdown_torch.transforms.functional.lif_stream`) take one, and the module
+(:func:`~evdown_torch.transforms.functional.lif.pooling.lif_pooling`, the streaming pair in
+:mod:`~evdown_torch.transforms.functional.lif.stream`) take one, and the module
 :class:`~evdown_torch.models.SpikingPooling` builds one from its arguments (Norse's
 ``LIFParameters`` play the same part there). Every value is a Python ``float`` (or the reset
 name) once built, so no caller re-normalises.

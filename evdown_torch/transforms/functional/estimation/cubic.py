@@ -7,16 +7,16 @@ from torch import Tensor
 
 from evdown_torch._tensors import CHUNK_EVENTS, run_index, segmented_cumsum, take, where_true
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.estimation import CurveCrossings, RegionJob, estimate
-from evdown_torch.transforms.functional.estimation_stream import (
-    EstimationSettings,
-    resume_steps,
-)
-from evdown_torch.transforms.functional.knots import (
+from evdown_torch.transforms.functional.estimation.driver import CurveCrossings, RegionJob, estimate
+from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
     level_changes,
     piece_time,
     region_pixels,
+)
+from evdown_torch.transforms.functional.estimation.stream import (
+    EstimationSettings,
+    resume_steps,
 )
 from evdown_torch.transforms.functional.reference import level_index, level_value, step_crossings
 
@@ -61,7 +61,7 @@ def pchip_slopes(knots: Knots, *, front_at_rest: bool = False) -> tuple[Tensor, 
     """Derivative of every pixel's PCHIP curve at each knot, by SciPy's rules.
 
     Args:
-        knots: the :class:`~evdown_torch.transforms.functional.knots.Knots`.
+        knots: the :class:`~evdown_torch.transforms.functional.estimation.knots.Knots`.
         front_at_rest: the slope at each pixel's first knot is 0 instead of SciPy's end
             slope (a bounded delay, docs/semantics.md "Bounded delay": SciPy's end slope
             depends on the width of the pixel's second segment, which input arbitrarily
@@ -329,7 +329,7 @@ def cubic_estimation(
     """Downscale by cubic log-luminance estimation (docs/semantics.md, method 5).
 
     Each pixel's log-luminance is the piecewise cubic Hermite interpolant of its knots (see
-    :mod:`~evdown_torch.transforms.functional.knots`) with SciPy's ``PchipInterpolator``
+    :mod:`~evdown_torch.transforms.functional.estimation.knots`) with SciPy's ``PchipInterpolator``
     slopes; each region's mean ``M_r`` is watched by the DVS reference rule at contrast
     ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
     the crossing times, rounded half up to integers when ``t`` is int64.
@@ -348,7 +348,7 @@ def cubic_estimation(
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
-        bounds: as :func:`~evdown_torch.transforms.functional.linear.linear_estimation`.
+        bounds: as :func:`~evdown_torch.transforms.functional.estimation.linear.linear_estimation`.
         max_delay: as there; besides, each pixel's slope at its first knot is 0 (at rest
             before the stream).
 
@@ -371,7 +371,7 @@ def cubic_estimation(
 def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     """The cubic curve's solver: the crossings of the regions of one chunk, in region order.
 
-    :class:`~evdown_torch.transforms.functional.estimation.RegionJob` says what ``job``
+    :class:`~evdown_torch.transforms.functional.estimation.driver.RegionJob` says what ``job``
     holds. With ``job.front_at_rest`` each pixel's slope at its first knot is 0
     (:func:`pchip_slopes`).
     """

@@ -1,6 +1,6 @@
 """A LIF neuron without input: decay over empty steps and firing chains, in closed form.
 
-Used by :mod:`evdown_torch.transforms.functional.lif`: between two steps with input, a
+Used by :mod:`evdown_torch.transforms.functional.lif.pooling`: between two steps with input, a
 neuron decays by ``beta ** gap``; one left above threshold keeps firing through the silence
 (resets "subtract" and "none"), the first :data:`EXACT_CHAIN_STEPS` steps with snntorch's
 float32 arithmetic and the rest of the chain in closed form, never step by step.
@@ -14,7 +14,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch.transforms.functional.lif_steps import MAX_STEPS
+from evdown_torch.transforms.functional.lif.steps import MAX_STEPS
 
 __all__ = ["EXACT_CHAIN_STEPS", "CellSpikes", "Leak"]
 

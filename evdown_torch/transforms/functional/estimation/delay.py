@@ -1,0 +1,128 @@
+"""The held knots of a bounded delay, shared by the linear and cubic estimators.
+
+With a bounded delay ``D`` (``max_delay``, docs/semantics.md "Bounded delay"), a knot
+``(t_next - D, previous level)`` is inserted wherever two consecutive knots of a pixel (the
+front knot included) are more than ``D`` apart (:func:`hold_knots`): the estimators see it as
+an event that changes no level, so the knot and breakpoint machinery of :mod:`.knots` stays one.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from evdown_torch._tensors import changes, stable_sort_small, take, time_order, where_true
+from evdown_torch.checks import MAX_EXACT_SPAN
+from evdown_torch.events import Events, polarity_sign
+
+__all__ = ["check_max_delay", "effective_delay", "hold_knots"]
+
+
+def check_max_delay(max_delay: float | None, t: Tensor) -> None:
+    """Refuse a ``max_delay`` that is not a whole number for integer timestamps."""
+    if max_delay is not None and not t.is_floating_point() and max_delay != math.floor(max_delay):
+        raise ValueError(
+            "max_delay must be a whole number for integer timestamps (held knots must fall "
+            f"on ticks), got {max_delay!r}"
+        )
+
+
+def effective_delay(max_delay: float, t: Tensor) -> int | float:
+    """``D`` as the kernels use it: a float for float ``t``, an int for integer ``t``.
+
+    For integer ``t`` a delay of :data:`~evdown_torch.checks.MAX_EXACT_SPAN` or more is
+    taken as exactly that: every gap between knots of a stream the estimators accept is
+    shorter (:func:`check_span`), so such a delay holds no knot either way ("never hold"),
+    and the int64 arithmetic on it (``t - D``, ``tau - lag * D``) cannot overflow. A float
+    delay is used as it is (float arithmetic saturates to infinities instead of wrapping).
+
+    Example:
+        >>> effective_delay(1e300, torch.tensor([0])), effective_delay(7.0, torch.tensor([0]))
+        (9007199254740992, 7)
+    """
+    check_max_delay(max_delay, t)
+    if t.is_floating_point():
+        return max_delay
+    return MAX_EXACT_SPAN if max_delay >= MAX_EXACT_SPAN else int(max_delay)
+
+
+def hold_knots(
+    events: Events, *, max_delay: float, t_start: Tensor
+) -> tuple[Events, Tensor]:
+    """The stream with the held knots of a bounded delay added, and each event's level step.
+
+    Wherever two consecutive knots of a pixel (its front knot ``(t_start, 0)`` included) are
+    more than ``max_delay`` apart, a held knot at ``t_next - max_delay`` is added as an event
+    with level step 0 (docs/semantics.md, "Bounded delay").
+
+    Args:
+        events: ``N`` events (put in stable time order here when they are not).
+        max_delay: ``D`` > 0, in the stream's time unit (a whole number for int64 ``t``).
+        t_start: ``()`` first timestamp of the whole stream, or ``(N,)`` for each event that
+            of its own stream (a batch of recordings, see :func:`.driver.estimate`) or the time of its
+            pixel's last knot before these events (a streaming session's next chunk).
+
+    Returns:
+        ``(events, step)``: ``N + M`` events in stable time order (a held knot before the
+        real events of its timestamp) and their ``(N + M,)`` int8 steps (+1, -1, 0).
+
+    Example:
+        >>> ev = Events.from_columns([0, 0, 1], [0, 0, 0], [0, 10, 4], [1, 1, 0])
+        >>> held, step = hold_knots(ev, max_delay=3, t_start=ev.t[0])
+        >>> held.t.tolist(), held.x.tolist(), step.tolist()
+        ([0, 1, 4, 7, 10], [0, 1, 1, 0, 0], [1, 0, -1, 0, 1])
+    """
+    delay = effective_delay(max_delay, events.t)
+    by_time = time_order(events.t)  # None when already in time order (the callers')
+    if by_time is not None:
+        events = events.select(by_time)
+        t_start = t_start if t_start.ndim == 0 else take(t_start, by_time)
+    step = polarity_sign(events.p)
+    n = events.num_events
+    if n == 0:
+        return events, step
+    # Events in pixel order then time order: a knot is held where an event is more than D
+    # after its pixel's previous event (the front knot's t_start before the first); events of
+    # one knot time are 0 apart, so only the first event of each knot can be held.
+    width = int(events.x.max()) + 1
+    pixel = events.y * width + events.x
+    pixel, order = stable_sort_small(pixel)
+    t = take(events.t, order)
+    new_pixel = changes(pixel)
+    previous = torch.empty_like(t)
+    previous[1:] = t[:-1]
+    first_at = where_true(new_pixel)
+    start = t_start if t_start.ndim == 0 else take(take(t_start, order), first_at)
+    previous.index_put_((first_at,), start)  # a gap of 0 where the pixel starts at t_start
+    held_at = where_true((t - previous) > delay)
+    del previous
+    if held_at.shape[0] == 0:
+        return events, step
+    held_pixel = take(pixel, held_at)
+    held_t = take(t, held_at) - delay
+    del pixel, t, order
+    # Merge in time order, a held knot before the real events of its time (as a stable sort
+    # of the held knots in pixel order, then the events), by a binary search per held knot.
+    held_t, held_order = torch.sort(held_t, stable=True)
+    held_pixel = take(held_pixel, held_order)
+    m = held_t.shape[0]
+    before = torch.searchsorted(events.t, held_t)  # real events earlier than each held knot
+    held_pos = before + torch.arange(m, device=before.device)
+    # Real event i follows every held knot with at most i real events before it.
+    real_pos = torch.cumsum(torch.bincount(before, minlength=n), 0)
+    real_pos += torch.arange(n, device=before.device)
+
+    def merge(real: Tensor, held_values: Tensor) -> Tensor:
+        out = torch.empty(n + m, dtype=real.dtype, device=real.device)
+        out.index_copy_(0, real_pos, real)
+        return out.index_copy_(0, held_pos, held_values)
+
+    merged = Events(
+        merge(events.x, held_pixel % width),
+        merge(events.y, torch.div(held_pixel, width, rounding_mode="floor")),
+        merge(events.t, held_t),
+        merge(events.p, torch.zeros(m, dtype=events.p.dtype, device=events.p.device)),
+    )
+    return merged, merge(step, torch.zeros(m, dtype=step.dtype, device=step.device))
