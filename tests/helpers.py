@@ -12,6 +12,9 @@ from hypothesis import strategies as st
 
 from evdown_torch.events import DVS_DTYPE
 
+#: DVS_DTYPE with float64 timestamps (seconds or any float unit).
+FLOAT_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", bool), ("t", np.float64)])
+
 
 def random_stream(
     rng: np.random.Generator,
@@ -256,3 +259,9 @@ def lif_case(events, dt, beta, weight, inhibition, reset, factor):
     tau = math.inf if beta == 1.0 else (1e-9 if beta == 0.0 else -dt / math.log(beta))
     return arr, LIFPooling((7, 5, 2), factor, dt=dt, tau=tau, weight=weight,
                            mutual_inhibition=inhibition, reset_mechanism=reset)
+
+
+def unique_pixel_times(arr: np.ndarray) -> np.ndarray:
+    """``arr`` without events repeating an earlier (x, y, t)."""
+    _, keep = np.unique(np.stack([arr["x"], arr["y"], arr["t"]], 1), axis=0, return_index=True)
+    return arr[np.sort(keep)]
