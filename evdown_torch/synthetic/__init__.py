@@ -25,6 +25,7 @@ most, small hand rolls least), not the lighting; the body's sway gives a median 
 events.
 """
 
+from evdown_torch.synthetic.body_plan import GESTURE_CLASSES, LIGHTING, Look
 from evdown_torch.synthetic.dataset import DVS_GESTURE_DTYPE, SyntheticGestures, render_gesture
 from evdown_torch.synthetic.pixel_model import (
     PixelModelConfig,
@@ -35,7 +36,7 @@ from evdown_torch.synthetic.pixel_model import (
 )
 from evdown_torch.synthetic.raster import intensity_frame
 from evdown_torch.synthetic.render import render_events, step_times, swept_mask
-from evdown_torch.synthetic.scenes import GESTURE_CLASSES, LIGHTING, GestureScene, Look
+from evdown_torch.synthetic.scenes import GestureScene
 
 __all__ = [
     "DVS_GESTURE_DTYPE",

@@ -20,9 +20,10 @@ from evdown_torch.checks import (
 from evdown_torch.collate import apply_item_transforms
 from evdown_torch.events import DVS_DTYPE as DVS_GESTURE_DTYPE
 from evdown_torch.events import EventFormat, Events, from_events
+from evdown_torch.synthetic.body_plan import GESTURE_CLASSES
 from evdown_torch.synthetic.pixel_model import PixelModelConfig
 from evdown_torch.synthetic.render import render_events
-from evdown_torch.synthetic.scenes import GESTURE_CLASSES, GestureScene, scene_seed
+from evdown_torch.synthetic.scenes import GestureScene, scene_seed
 
 __all__ = ["DVS_GESTURE_DTYPE", "SyntheticGestures", "render_gesture"]
 

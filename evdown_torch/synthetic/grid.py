@@ -22,6 +22,7 @@ from torch import Tensor
 
 from evdown_torch._tensors import stable_sort_small
 from evdown_torch.checks import output_size
+from evdown_torch.synthetic.body_plan import BODY_REACH
 from evdown_torch.synthetic.raster import (
     _nonzero,
     _Part,
@@ -32,7 +33,7 @@ from evdown_torch.synthetic.raster import (
     composite,
     step_bits,
 )
-from evdown_torch.synthetic.scenes import BODY_REACH, GestureScene
+from evdown_torch.synthetic.scenes import GestureScene
 
 __all__ = ["Grid", "KeyedImage", "key_steps"]
 
@@ -42,7 +43,7 @@ def key_steps(scene: GestureScene, times: Tensor, max_step_px: float) -> Tensor:
 
     A new key step is taken whenever the body's travel since the last one reaches
     ``max_step_px`` (bound: the offset's travel plus the lean's change times
-    :data:`~evdown_torch.synthetic.scenes.BODY_REACH`, in pixels); without sway, the first and
+    :data:`~evdown_torch.synthetic.body_plan.BODY_REACH`, in pixels); without sway, the first and
     the last step only.
 
     Example:

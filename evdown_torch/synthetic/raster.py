@@ -22,16 +22,16 @@ from torch import Tensor
 
 from evdown_torch._tensors import region_xy, stable_sort_small
 from evdown_torch.checks import check_factor, output_size
-from evdown_torch.synthetic.scenes import (
+from evdown_torch.synthetic.body_plan import (
     FOREARM,
     HAND,
     RADIUS_FORE,
     RADIUS_HAND,
     RADIUS_UPPER,
     UPPER_ARM,
-    GestureScene,
     Look,
 )
+from evdown_torch.synthetic.scenes import GestureScene
 
 __all__ = [
     "background_image",

@@ -7,7 +7,7 @@ shoulders, neck and head form the body; each arm is an upper arm, a forearm and 
 by a wrist trajectory per class and two-link inverse kinematics. Arms that do not take part in
 a gesture hang at rest. The whole person sways slowly (:meth:`GestureScene.body_pose`): a rigid
 motion of a few pixels over seconds, far slower than the gesturing arms, which the renderer
-samples at its own few key steps (:mod:`evdown_torch.synthetic.body`), so the arms' motion
+samples at its own few key steps (:mod:`evdown_torch.synthetic.grid`), so the arms' motion
 keeps its shape and sense and only the moving parts cost anything to render.
 
 Coordinates: body units have the origin between the shoulders, ``x`` to the right of the
@@ -26,67 +26,22 @@ import torch
 from torch import Tensor
 
 from evdown_torch.checks import check_non_negative_int, check_positive_int, check_sensor_size
-
-__all__ = ["GESTURE_CLASSES", "LIGHTING", "GestureScene", "Look", "scene_seed"]
-
-LIGHTING = ("natural", "fluorescent", "led")
-"""DVS128 Gesture's three lighting conditions."""
-
-RAMP_FRACTION = 0.04
-"""Share of the recording over which arms swing in, out, and slow into and out of pauses."""
-
-GESTURE_CLASSES: list[str] = [
-    "Hand clapping",
-    "Right hand wave",
-    "Left hand wave",
-    "Right arm cw",
-    "Right arm ccw",
-    "Left arm cw",
-    "Left arm ccw",
-    "Arm roll",
-    "Air drums",
-    "Air guitar",
-    "Other gestures",
-]
-"""Class names in DVS128 Gesture's order (``tonic.datasets.DVSGesture.classes``)."""
-
-# Body geometry, body units.
-SHOULDER_X = 0.18
-UPPER_ARM = 0.22
-FOREARM = 0.21
-HAND = 0.06
-REACH = 0.95 * (UPPER_ARM + FOREARM)  # the arm never locks straight
-RADIUS_UPPER = 0.048
-RADIUS_FORE = 0.040
-RADIUS_HAND = 0.045
-# Static capsules: (name, a, b, radius, look index into GestureScene.looks).
-BODY = (
-    ("torso", (0.0, 0.12), (0.0, 0.70), 0.17, 0),
-    ("shoulders", (-0.15, 0.06), (0.15, 0.06), 0.075, 0),
-    ("neck", (0.0, -0.07), (0.0, 0.02), 0.045, 1),
-    ("head", (0.0, -0.21), (0.0, -0.15), 0.095, 1),
-)
-HIP = (0.0, 0.95)
-"""Pivot of the body's lean, body units (below the torso)."""
-BODY_REACH = 1.35
-"""Largest distance from :data:`HIP` of any point of the body and of arms at rest, body units
-(the head's top is 1.26 away); bounds the travel a lean causes."""
-# Per class: base frequency (Hz), which arms move (right, left), elbow bend of each arm
-# (+1: the elbow turns outward when the wrist is raised; -1: outward when it is lowered).
-MOTIONS = (
-    (1.8, (True, True), (-1, -1)),  # hand clapping
-    (2.0, (True, False), (1, -1)),  # right hand wave
-    (2.0, (False, True), (-1, 1)),  # left hand wave
-    (0.8, (True, False), (-1, -1)),  # right arm cw
-    (0.8, (True, False), (-1, -1)),  # right arm ccw
-    (0.8, (False, True), (-1, -1)),  # left arm cw
-    (0.8, (False, True), (-1, -1)),  # left arm ccw
-    (1.4, (True, True), (-1, -1)),  # arm roll
-    (2.2, (True, True), (-1, -1)),  # air drums
-    (2.6, (True, True), (-1, 1)),  # air guitar
-    (0.6, (True, True), (-1, -1)),  # other gestures
+from evdown_torch.synthetic.body_plan import (
+    BODY,
+    FOREARM,
+    GESTURE_CLASSES,
+    HAND,
+    HIP,
+    LIGHTING,
+    MOTIONS,
+    RAMP_FRACTION,
+    SHOULDER_X,
+    UPPER_ARM,
+    Look,
+    two_link,
 )
 
+__all__ = ["GestureScene", "scene_seed"]
 
 def scene_seed(*keys: int) -> int:
     """A 63-bit seed derived from non-negative integer keys (NumPy ``SeedSequence``).
@@ -97,32 +52,6 @@ def scene_seed(*keys: int) -> int:
     """
     state = np.random.SeedSequence([int(k) for k in keys]).generate_state(2, dtype=np.uint32)
     return (int(state[0]) << 31) ^ int(state[1])
-
-
-@dataclass(frozen=True)
-class Look:
-    """Appearance of one body part.
-
-    The linear intensity at a point of the part is
-    ``gain * mean_background * (1 + side * v) * (1 - rim * v**2)
-    * (1 + stripe * sin(2 pi u / period + phase))``, where ``v`` in ``[-1, 1]`` runs across
-    the part and ``u`` (body units) along it, so the texture moves with the part.
-
-    Attributes:
-        gain: mean intensity relative to the background's (dimensionless, > 0).
-        side: side lighting across the part (dimensionless, ``abs(side) < 1``).
-        rim: darkening toward the outline (dimensionless, in [0, 1)).
-        stripe: contrast of stripes (folds) along the part (dimensionless, in [0, 1)).
-        period: stripe period, body units.
-        phase: stripe phase, radians.
-    """
-
-    gain: float
-    side: float
-    rim: float
-    stripe: float
-    period: float
-    phase: float
 
 
 @dataclass(frozen=True)
@@ -502,7 +431,7 @@ class GestureScene:
         arms = []
         for side, wrist, bend in zip((-1.0, 1.0), blended, bends, strict=True):
             shoulder = torch.tensor([side * SHOULDER_X, 0.0], dtype=torch.float64)
-            elbow, wrist = _two_link(shoulder, wrist, side * bend)
+            elbow, wrist = two_link(shoulder, wrist, side * bend)
             along = wrist - elbow
             tip = wrist + HAND * along / along.norm(dim=1, keepdim=True)
             points = torch.stack([shoulder.expand_as(wrist), elbow, wrist, tip], dim=1)
@@ -511,20 +440,3 @@ class GestureScene:
             origin = torch.tensor(self.origin, dtype=torch.float64)
             arms.append(origin + self.scale * points)
         return arms[0], arms[1]
-
-
-def _two_link(shoulder: Tensor, target: Tensor, bend: float) -> tuple[Tensor, Tensor]:
-    """Elbow and (reachable) wrist for wrist targets, by two-link inverse kinematics.
-
-    ``bend`` (+1 or -1) picks the elbow side: the elbow lies at the shoulder-to-wrist angle
-    plus ``bend`` times the shoulder's inner angle (angles grow clockwise in the image).
-    """
-    delta = target - shoulder
-    dist = delta.norm(dim=1).clamp(abs(UPPER_ARM - FOREARM) + 0.05, REACH)
-    base = torch.atan2(delta[:, 1], delta[:, 0])
-    cos_inner = (UPPER_ARM**2 + dist**2 - FOREARM**2) / (2 * UPPER_ARM * dist)
-    inner = torch.acos(cos_inner.clamp(-1.0, 1.0))
-    angle = base + bend * inner
-    elbow = shoulder + UPPER_ARM * torch.stack([torch.cos(angle), torch.sin(angle)], dim=1)
-    wrist = shoulder + dist[:, None] * torch.stack([torch.cos(base), torch.sin(base)], dim=1)
-    return elbow, wrist

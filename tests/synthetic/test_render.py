@@ -18,10 +18,10 @@ from evdown_torch.synthetic import (
     step_times,
     swept_mask,
 )
+from evdown_torch.synthetic.body_plan import FOREARM, HAND, REACH, UPPER_ARM
 from evdown_torch.synthetic.grid import Grid
 from evdown_torch.synthetic.raster import moving_parts
 from evdown_torch.synthetic.render import pixel_parameters
-from evdown_torch.synthetic.scenes import FOREARM, HAND, REACH, UPPER_ARM
 from tests.synthetic import QUIET
 
 
