@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -90,28 +89,18 @@ def long_recording(seconds: int, rate: float) -> int:
     """Time and peak memory of one call on a long 1280x720 recording, in a fresh process."""
     from evdown_torch import bench
 
-    with tempfile.TemporaryDirectory(prefix="evdown-lif-") as tmp:
-        path = Path(tmp) / "long.npy"
-        events = np.concatenate([
-            bench.dvs_like_stream(int(rate), (1280, 720, 2), duration_us=1_000_000, seed=5,
-                                  num_objects=12, start_us=s * 1_000_000)
-            for s in range(seconds)
-        ])
-        np.save(path, events)
-        n = len(events)
-        del events
-        [result] = bench.measure_memory([bench.candidate_job("lif", str(path), (1280, 720, 2), 4)])
+    events = np.concatenate([
+        bench.dvs_like_stream(int(rate), (1280, 720, 2), duration_us=1_000_000, seed=5,
+                              num_objects=12, start_us=s * 1_000_000)
+        for s in range(seconds)
+    ])
+    result = bench.fresh_call("lif", events, (1280, 720, 2), 4)
     if "error" in result:
         print(f"long recording: {result['error']}", file=sys.stderr)
         return 1
-    mib = 2**20
-    print(f"\nlong recording: 1280x720, {seconds} s, {n:,} events, factor 4, dt = 1 ms, "
-          f"defaults, one call in a fresh process:\n"
-          f"  {result['seconds']:.1f} s ({result['cpu_seconds']:.1f} s CPU, "
-          f"{n / result['seconds'] / 1e6:.2f} M events/s); peak memory "
-          f"+{result['added'] / mib:,.0f} MiB during the call "
-          f"({result['added'] / n:.1f} bytes per input event), process peak "
-          f"{result['total'] / mib:,.0f} MiB")
+    print(f"\nlong recording: 1280x720, {seconds} s, {len(events):,} events, factor 4, "
+          f"dt = 1 ms, defaults, one call in a fresh process:\n"
+          f"  {bench.fresh_call_summary(result, len(events))}")
     return 0
 
 

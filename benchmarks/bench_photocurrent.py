@@ -21,9 +21,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -73,21 +71,15 @@ def speed(num_events: int, repeats: int) -> None:
 
 def memory(num_events: int, seconds: int) -> int:
     sensor = (1280, 720, 2)
-    with tempfile.TemporaryDirectory(prefix="evdown-photo-") as tmp:
-        path = Path(tmp) / "long.npy"
-        np.save(path, bench.dvs_like_stream(num_events, sensor, duration_us=seconds * 1_000_000,
-                                            seed=5, num_objects=12))
-        [result] = bench.measure_memory(
-            [bench.candidate_job("photocurrent:fps=1000.0", str(path), sensor, 4)]
-        )
+    events = bench.dvs_like_stream(num_events, sensor, duration_us=seconds * 1_000_000,
+                                   seed=5, num_objects=12)
+    result = bench.fresh_call("photocurrent:fps=1000.0", events, sensor, 4)
     if "error" in result:
         print(f"frames mode memory: {result['error']}", file=sys.stderr)
         return 1
-    gib = 2**30
     print(f"\nframes mode, 1280x720, {num_events:,} events over {seconds} s, 1000 fps, "
-          f"factor 4, one call in a fresh process:\n  {result['seconds']:.1f} s "
-          f"({result['cpu_seconds']:.1f} s CPU); peak memory +{result['added'] / gib:.2f} GiB "
-          f"during the call, process peak {result['total'] / gib:.2f} GiB (goal: under 4 GB)")
+          f"factor 4, one call in a fresh process (goal: process peak under 4 GB):\n"
+          f"  {bench.fresh_call_summary(result, num_events)}")
     return 0
 
 

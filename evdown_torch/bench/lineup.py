@@ -8,14 +8,16 @@ peer of :data:`PEERS` (Tonic's transforms, when Tonic is installed).
 from __future__ import annotations
 
 import contextlib
+import tempfile
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from evdown_torch._text import parse_settings
-from evdown_torch.bench.measure import MemoryJob
+from evdown_torch.bench.measure import MemoryJob, measure_memory
 from evdown_torch.checks import check_factor, check_sensor_size, output_size
 from evdown_torch.transforms.registry import METHODS, make_method
 
@@ -27,6 +29,8 @@ __all__ = [
     "candidate",
     "candidate_job",
     "candidates",
+    "fresh_call",
+    "fresh_call_summary",
     "parse_spec",
     "prepare_candidate_call",
     "tonic_available",
@@ -229,6 +233,40 @@ def candidate_job(spec: str, path: str, sensor_size: Sequence[int], factor: Any)
     return MemoryJob("evdown_torch.bench.lineup:prepare_candidate_call",
                      {"spec": spec, "path": str(path), "sensor_size": list(sensor_size),
                       "factor": factor})
+
+
+def fresh_call(spec: str, events: np.ndarray, sensor_size: Sequence[int],
+               factor: Any) -> dict[str, Any]:
+    """One call of a candidate on ``events`` in a fresh process: time and peak memory.
+
+    The stream is saved to a temporary ``.npy`` file for the measuring process
+    (:func:`~evdown_torch.bench.measure.measure_memory`, which returns the dict).
+    """
+    with tempfile.TemporaryDirectory(prefix="evdown-fresh-") as tmp:
+        path = Path(tmp) / "events.npy"
+        np.save(path, events)
+        [result] = measure_memory([candidate_job(spec, str(path), sensor_size, factor)])
+    return result
+
+
+def fresh_call_summary(result: dict[str, Any], num_events: int) -> str:
+    """One line of a :func:`fresh_call` result: times, rate and peak memory (MiB).
+
+    Example:
+        >>> line = fresh_call_summary({"seconds": 2.0, "cpu_seconds": 1.9, "added": 2**30,
+        ...                            "total": 2**31}, 10_000_000)
+        >>> line.split("; ")[0]
+        '2.0 s (1.9 s CPU, 5.00 M events/s)'
+        >>> line.split("; ")[1]  # doctest: +NORMALIZE_WHITESPACE
+        'peak memory +1,024 MiB during the call (107.4 bytes per input event),
+         process peak 2,048 MiB'
+    """
+    mib = 2**20
+    return (f"{result['seconds']:.1f} s ({result['cpu_seconds']:.1f} s CPU, "
+            f"{num_events / result['seconds'] / 1e6:.2f} M events/s); peak memory "
+            f"+{result['added'] / mib:,.0f} MiB during the call "
+            f"({result['added'] / num_events:.1f} bytes per input event), process peak "
+            f"{result['total'] / mib:,.0f} MiB")
 
 
 def prepare_candidate_call(spec: str, path: str, sensor_size: Sequence[int],
