@@ -23,8 +23,8 @@ from evdown_torch import (
 )
 from evdown_torch.transforms import Session
 from evdown_torch.transforms.thinning import ThinnedDownsample
+from tests import helpers
 from tests.helpers import DVS_DTYPE, chunkings, random_stream, run_in_chunks
-from tests.transforms import test_estimation
 
 SENSOR = (9, 7, 2)
 
@@ -156,8 +156,8 @@ ESTIMATORS = {
 }
 
 
-REFERENCE_KNOTS = test_estimation.reference_knots
-REFERENCE_CURVE = test_estimation.reference_curve
+REFERENCE_KNOTS = helpers.reference_knots
+REFERENCE_CURVE = helpers.reference_curve
 
 
 def curve_at_rest(kind: str, knots: list) -> tuple:
@@ -194,12 +194,12 @@ def test_bounded_delay_matches_the_slow_reference(kind, factor, threshold, max_d
     cls, _ = ESTIMATORS[kind]
     arr = random_stream(rng, 300, SENSOR, t_max=3000)
     out = cls(SENSOR, factor=factor, threshold=threshold, max_delay=max_delay)(arr)
-    monkeypatch.setattr(test_estimation, "reference_knots",
+    monkeypatch.setattr(helpers, "reference_knots",
                         lambda a: delayed_knots(a, max_delay))
-    monkeypatch.setattr(test_estimation, "reference_curve", curve_at_rest)
+    monkeypatch.setattr(helpers, "reference_curve", curve_at_rest)
     fxy = (factor, factor) if isinstance(factor, int) else factor
-    expected = test_estimation.reference(arr, SENSOR, fxy, threshold, kind)
-    test_estimation.assert_matches_reference(out, expected, True)
+    expected = helpers.reference(arr, SENSOR, fxy, threshold, kind)
+    helpers.assert_matches_reference(out, expected, True)
 
 
 def test_bounded_delay_hand_computed():
