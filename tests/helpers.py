@@ -11,7 +11,12 @@ import pytest
 import torch
 from hypothesis import strategies as st
 
+from evdown_torch import CubicEstimation, EventCount, LinearEstimation
 from evdown_torch.events import DVS_DTYPE
+
+#: The estimators, and the three log-luminance methods (EventCount and the estimators).
+ESTIMATORS = [LinearEstimation, CubicEstimation]
+LOG_LUMINANCE = [EventCount, LinearEstimation, CubicEstimation]
 
 #: DVS_DTYPE with float64 timestamps (seconds or any float unit).
 FLOAT_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", bool), ("t", np.float64)])

@@ -241,11 +241,16 @@ def fresh_call(spec: str, events: np.ndarray, sensor_size: Sequence[int],
 
     The stream is saved to a temporary ``.npy`` file for the measuring process
     (:func:`~evdown_torch.bench.measure.measure_memory`, which returns the dict).
+
+    Raises:
+        RuntimeError: the measuring process failed (its message).
     """
     with tempfile.TemporaryDirectory(prefix="evdown-fresh-") as tmp:
         path = Path(tmp) / "events.npy"
         np.save(path, events)
         [result] = measure_memory([candidate_job(spec, str(path), sensor_size, factor)])
+    if "error" in result:
+        raise RuntimeError(f"{spec}, one call in a fresh process: {result['error']}")
     return result
 
 

@@ -6,16 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch import (
-    CubicEstimation,
-    Downsample,
-    EventCount,
-    EventFunnelling,
-    Events,
-    LIFPooling,
-    LinearEstimation,
-    PhotocurrentPooling,
-)
+import evdown_torch as ev
 from evdown_torch import _tensors as tensors
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import DVS_DTYPE
@@ -26,17 +17,17 @@ from tests.helpers import random_stream
 SENSOR = (7, 5, 2)  # not a multiple of the factors: edge regions have fewer pixels
 
 METHODS = {
-    "downsample": lambda f: Downsample(SENSOR, factor=f),
-    "funnelling": lambda f: EventFunnelling(SENSOR, factor=f),
-    "event_count": lambda f: EventCount(SENSOR, factor=f, threshold=0.25),
-    "linear": lambda f: LinearEstimation(SENSOR, factor=f, threshold=0.2),
-    "cubic": lambda f: CubicEstimation(SENSOR, factor=f, threshold=0.2),
-    "linear_delay": lambda f: LinearEstimation(SENSOR, factor=f, threshold=0.2, max_delay=9),
-    "cubic_delay": lambda f: CubicEstimation(SENSOR, factor=f, threshold=0.2, max_delay=9),
-    "lif": lambda f: LIFPooling(SENSOR, factor=f, dt=50, tau=200),
-    "photocurrent": lambda f: PhotocurrentPooling(SENSOR, factor=f, contrast=0.3, threshold=0.2),
+    "downsample": lambda f: ev.Downsample(SENSOR, factor=f),
+    "funnelling": lambda f: ev.EventFunnelling(SENSOR, factor=f),
+    "event_count": lambda f: ev.EventCount(SENSOR, factor=f, threshold=0.25),
+    "linear": lambda f: ev.LinearEstimation(SENSOR, factor=f, threshold=0.2),
+    "cubic": lambda f: ev.CubicEstimation(SENSOR, factor=f, threshold=0.2),
+    "linear_delay": lambda f: ev.LinearEstimation(SENSOR, factor=f, threshold=0.2, max_delay=9),
+    "cubic_delay": lambda f: ev.CubicEstimation(SENSOR, factor=f, threshold=0.2, max_delay=9),
+    "lif": lambda f: ev.LIFPooling(SENSOR, factor=f, dt=50, tau=200),
+    "photocurrent": lambda f: ev.PhotocurrentPooling(SENSOR, factor=f, contrast=0.3, threshold=0.2),
     "thinned": lambda f: ThinnedDownsample(SENSOR, factor=f, keep=0.5, seed=3),
-    "photocurrent_frames": lambda f: PhotocurrentPooling(SENSOR, factor=f, contrast=0.3,
+    "photocurrent_frames": lambda f: ev.PhotocurrentPooling(SENSOR, factor=f, contrast=0.3,
                                                          threshold=0.2, fps=20_000),
 }
 
@@ -91,7 +82,7 @@ def test_batch_signed_polarity_per_recording(rng):
     dtype = np.dtype([("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "<i1")])
     signed = random_stream(rng, 30, SENSOR, dtype=dtype)
     all_on = signed[signed["p"] > 0]
-    transform = EventCount(SENSOR, factor=2, threshold=0.25)
+    transform = ev.EventCount(SENSOR, factor=2, threshold=0.25)
     for recording, output in zip([signed, all_on], transform.batch([signed, all_on]),
                                  strict=True):
         _assert_same(output, transform(recording))
@@ -102,8 +93,8 @@ def test_batch_mixed_kinds(rng):
     stream = random_stream(rng, 50, SENSOR)
     as_tensor = torch.tensor(np.stack([stream["x"], stream["y"], stream["t"], stream["p"]], 1),
                              dtype=torch.int64)
-    as_events = Events.from_columns(stream["x"], stream["y"], stream["t"], stream["p"])
-    transform = LinearEstimation(SENSOR, factor=2, threshold=0.5)
+    as_events = ev.Events.from_columns(stream["x"], stream["y"], stream["t"], stream["p"])
+    transform = ev.LinearEstimation(SENSOR, factor=2, threshold=0.5)
     got = transform.batch([stream, as_tensor, as_events])
     _assert_same(got[0], transform(stream))
     assert torch.equal(got[1], transform(as_tensor))
@@ -130,12 +121,12 @@ def test_batch_errors_name_the_recording(rng):
     bad = random_stream(rng, 5, (20, 20, 2))
     bad["x"][0] = 15
     with pytest.raises(ValueError, match="recording 1 of the batch: event coordinate x"):
-        Downsample(SENSOR, factor=2).batch([good, bad])
+        ev.Downsample(SENSOR, factor=2).batch([good, bad])
     with pytest.raises(ValueError, match="at least one recording"):
-        Downsample(SENSOR, factor=2).batch([])
+        ev.Downsample(SENSOR, factor=2).batch([])
     floats = good.astype([("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", "<f8")])
     with pytest.raises(ValueError, match="all have integer or all float timestamps"):
-        Downsample(SENSOR, factor=2).batch([good, floats])
+        ev.Downsample(SENSOR, factor=2).batch([good, floats])
 
 
 def test_batch_of_real_recording_copies(nmnist):
@@ -143,14 +134,14 @@ def test_batch_of_real_recording_copies(nmnist):
     sensor = (34, 34, 2)
     recordings = [nmnist, nmnist[:1000].copy(), nmnist[2000:].copy(), nmnist[:0]]
     recordings[1]["t"] += 123
-    for transform in (EventFunnelling(sensor, factor=4), CubicEstimation(sensor, factor=4)):
+    for transform in (ev.EventFunnelling(sensor, factor=4), ev.CubicEstimation(sensor, factor=4)):
         for recording, output in zip(recordings, transform.batch(recordings), strict=True):
             _assert_same(output, transform(recording))
 
 
 def test_dvs_dtype_round_trip(rng):
     recordings = [random_stream(rng, n, SENSOR, dtype=DVS_DTYPE) for n in (3, 9)]
-    outputs = EventFunnelling(SENSOR, factor=2).batch(recordings)
+    outputs = ev.EventFunnelling(SENSOR, factor=2).batch(recordings)
     assert all(o.dtype == DVS_DTYPE for o in outputs)
 
 
@@ -159,7 +150,7 @@ def test_dvs_dtype_round_trip(rng):
 def test_lif_batch_with_firing_chains(reset, dt, rng):
     """Strong weights and slow leaks: neurons keep firing through silent steps up to their own
     recording's end (tails), inhibition, a fractional dt, a dt longer than every recording."""
-    transform = LIFPooling(SENSOR, factor=2, dt=dt, tau=500, threshold=0.5, weight=2.0,
+    transform = ev.LIFPooling(SENSOR, factor=2, dt=dt, tau=500, threshold=0.5, weight=2.0,
                            mutual_inhibition=0.5, reset_mechanism=reset)
     recordings = _recordings(rng, t_max=150)
     outputs = transform.batch(recordings)
@@ -214,7 +205,7 @@ def test_funnelling_batch_of_sorted_recordings(factor, chunk, rng, monkeypatch):
         monkeypatch.setattr(tensors, "CHUNK_EVENTS", chunk)
     recordings = _sorted_recordings(rng)
     assert all(bool(np.all(np.diff(r["t"]) >= 0)) for r in recordings)
-    transform = EventFunnelling(SENSOR, factor=factor)
+    transform = ev.EventFunnelling(SENSOR, factor=factor)
     outputs = transform.batch(recordings)
     for recording, output in zip(recordings, outputs, strict=True):
         want = _funnelled(recording, factor)
@@ -229,7 +220,7 @@ def test_event_count_batch_of_sorted_recordings(chunk, rng, monkeypatch):
         monkeypatch.setattr(tensors, "CHUNK_EVENTS", chunk)
     recordings = _sorted_recordings(rng)
     for factor in (2, (3, 2)):
-        transform = EventCount(SENSOR, factor=factor, threshold=0.25)
+        transform = ev.EventCount(SENSOR, factor=factor, threshold=0.25)
         outputs = transform.batch(recordings)
         assert sum(len(o) for o in outputs) > 20
         for recording, output in zip(recordings, outputs, strict=True):
@@ -242,7 +233,7 @@ def test_event_count_batch_with_int32_region_ids(rng):
     assert _region_dtype(sensor, (1, 1), 9 * 64 * 64) == torch.int32
     recordings = [random_stream(rng, 300, sensor, t_max=500) for _ in range(9)]
     recordings[8]["x"], recordings[8]["y"] = 63, 63  # the batch's last region id
-    transform = EventCount(sensor, factor=1, threshold=0.5)
+    transform = ev.EventCount(sensor, factor=1, threshold=0.5)
     outputs = transform.batch(recordings)
     assert len(outputs[8]) > 0
     for recording, output in zip(recordings, outputs, strict=True):

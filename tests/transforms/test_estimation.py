@@ -1,10 +1,11 @@
 """LinearEstimation and CubicEstimation against hand-computed cases and slow oracles.
 
-The oracles (``tests/helpers.py``) are written for clarity, not speed: each pixel's curve is built with
-``numpy.interp`` (linear) or ``scipy.interpolate.PchipInterpolator`` (cubic) through the knots
-of docs/semantics.md, the region's mean is their sum over ``n_r``, its pieces are split at the
-extrema found on a fine grid (refined with ``brentq``), and the DVS reference rule is applied
-step by step in Python, each crossing solved exactly (linear) or with ``brentq`` (cubic).
+The oracles (``tests/helpers.py``) are written for clarity, not speed: each pixel's curve is
+built with ``numpy.interp`` (linear) or ``scipy.interpolate.PchipInterpolator`` (cubic) through
+the knots of docs/semantics.md, the region's mean is their sum over ``n_r``, its pieces are
+split at the extrema found on a fine grid (refined with ``brentq``), and the DVS reference rule
+is applied step by step in Python, each crossing solved exactly (linear) or with ``brentq``
+(cubic).
 A second oracle for the linear method works in exact rationals (``fractions.Fraction``)
 throughout, so its integer crossing times are exact.
 
@@ -20,9 +21,10 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from evdown_torch import CubicEstimation, EventCount, LinearEstimation
+from evdown_torch import CubicEstimation, LinearEstimation
 from tests.helpers import (
     DVS_DTYPE,
+    ESTIMATORS,
     FLOAT_DTYPE,
     as_tuples,
     assert_matches_reference,
@@ -33,8 +35,6 @@ from tests.helpers import (
 )
 
 SENSOR = (10, 7, 2)
-ESTIMATORS = [LinearEstimation, CubicEstimation]
-LOG_LUMINANCE = [EventCount, LinearEstimation, CubicEstimation]
 KINDS = [(LinearEstimation, "linear"), (CubicEstimation, "cubic")]
 
 

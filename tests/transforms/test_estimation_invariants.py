@@ -16,10 +16,12 @@ from hypothesis import strategies as st
 import evdown_torch.transforms.functional.estimation.cubic as cubic_module
 import evdown_torch.transforms.functional.estimation.driver as estimation_module
 import evdown_torch.transforms.functional.estimation.linear as linear_module
-from evdown_torch import CubicEstimation, EventCount, Events, LinearEstimation
+from evdown_torch import CubicEstimation, Events, LinearEstimation
 from tests.helpers import (
     DVS_DTYPE,
+    ESTIMATORS,
     FLOAT_DTYPE,
+    LOG_LUMINANCE,
     as_tuples,
     assert_shift_equivariant,
     random_stream,
@@ -27,8 +29,6 @@ from tests.helpers import (
 )
 
 SENSOR = (10, 7, 2)
-ESTIMATORS = [LinearEstimation, CubicEstimation]
-LOG_LUMINANCE = [EventCount, LinearEstimation, CubicEstimation]
 
 
 @pytest.mark.parametrize("cls", LOG_LUMINANCE)
