@@ -205,9 +205,10 @@ def _run(args: argparse.Namespace) -> int:
     check_timing(recording.events.t.cpu().numpy(), settings, source=recording.name)
     truth = None if args.no_ground_truth else recording.ground_truth(args.factor)
     if args.curve:
-        figure = curve.curve_figure(recording.events, recording.sensor_size, args.factor,
-                                    args.curve, transforms,
-                                    ground_truth=None if truth is None else truth.events)
+        curves = curve.region_curves(recording.events, recording.sensor_size, args.factor,
+                                     args.curve, transforms,
+                                     ground_truth=None if truth is None else truth.events)
+        figure = curve.curve_figure(curves)
         figure.savefig(out)
         x, y, count = busiest_pixel(recording.events, args.factor, recording.sensor_size)
         print(f"wrote {out}: output pixel {args.curve} of {recording.name}, "

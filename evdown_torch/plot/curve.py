@@ -336,18 +336,7 @@ COLOURS = {
 ON_COLOUR, OFF_COLOUR = "tab:orange", "tab:blue"
 
 
-def curve_figure(
-    events: EventsLike,
-    sensor_size: tuple[int, int, int],
-    factor: int | tuple[int, int],
-    pixel: tuple[int, int],
-    methods: Sequence[str | Downscaler] | None = None,
-    *,
-    threshold: float | None = None,
-    ground_truth: EventsLike | None = None,
-    width: float = 10.0,
-    dpi: float = 100.0,
-) -> Figure:
+def curve_figure(curves: RegionCurves, *, width: float = 10.0, dpi: float = 100.0) -> Figure:
     """The paper's Figure 5 for one output pixel.
 
     Top: the region's pixels' levels (thin grey steps), the region's mean level as EventCount
@@ -363,26 +352,13 @@ def curve_figure(
     ``NAME`` a method or ``input``).
 
     Args:
-        events: as for :func:`region_curves`.
-        sensor_size: as for :func:`region_curves`.
-        factor: as for :func:`region_curves`.
-        pixel: as for :func:`region_curves`.
-        methods: as for :func:`region_curves`.
-        threshold: as for :func:`region_curves`.
-        ground_truth: as for :func:`region_curves`.
+        curves: what to draw, from :func:`region_curves`.
         width: figure width, inches.
         dpi: resolution.
 
     Returns:
         A matplotlib ``Figure`` with two axes sharing the time axis.
     """
-    curves = region_curves(events, sensor_size, factor, pixel, methods, threshold=threshold,
-                           ground_truth=ground_truth)
-    return draw_curves(curves, width=width, dpi=dpi)
-
-
-def draw_curves(curves: RegionCurves, *, width: float = 10.0, dpi: float = 100.0) -> Figure:
-    """Draw :class:`RegionCurves` (see :func:`curve_figure`)."""
     mpl = _mpl.matplotlib()
     rows = 1 + len(curves.events)
     fig = _mpl.new_figure(width, 4.2 + 0.22 * rows, dpi)

@@ -72,7 +72,7 @@ def region_oracle(events: np.ndarray, at: np.ndarray, kind: str) -> np.ndarray:
 @pytest.mark.parametrize("integer_t", [True, False])
 def test_plotted_events_are_the_transforms_output_at_the_pixel(rng, integer_t):
     events = random_stream(rng, 400, SENSOR, t_max=30_000) if integer_t else float_stream(rng)
-    figure = curve_figure(events, SENSOR, FACTOR, PIXEL, threshold=0.5)
+    figure = curve_figure(region_curves(events, SENSOR, FACTOR, PIXEL, threshold=0.5))
     for name in METHODS:
         settings = {"threshold": 0.5} if name in ("event_count", "linear", "cubic") else {}
         out = make_method(name, SENSOR, FACTOR, **settings)(events)
@@ -105,8 +105,9 @@ def test_reconstructions_match_scipy_and_numpy_oracles(rng):
 def test_crossings_sit_on_the_plotted_curves_at_threshold_levels(rng):
     events = float_stream(rng)
     theta = 0.1
-    figure = curve_figure(events, SENSOR, FACTOR, PIXEL, ["event_count", "linear", "cubic"],
-                          threshold=theta)
+    curves = region_curves(events, SENSOR, FACTOR, PIXEL, ["event_count", "linear", "cubic"],
+                           threshold=theta)
+    figure = curve_figure(curves)
     for name, kind in (("linear", "linear"), ("cubic", "cubic")):
         curve = lines(figure, f"mean:{kind}")
         for suffix in ("on", "off"):
@@ -158,12 +159,12 @@ def test_edge_regions_count_only_pixels_inside_the_sensor():
 def test_an_empty_region_and_an_empty_recording_render(rng):
     events = random_stream(rng, 100, SENSOR)
     events = events[events["x"] < 4]  # nothing in PIXEL's region
-    figure = curve_figure(events, SENSOR, FACTOR, PIXEL)
+    figure = curve_figure(region_curves(events, SENSOR, FACTOR, PIXEL))
     assert lines(figure, "mean:cubic").get_ydata().tolist() == [0.0, 0.0]
     assert len(lines(figure, "events:cubic:on").get_xdata()) == 0
     figure.canvas.draw()
     empty = np.empty(0, dtype=DVS_DTYPE)
-    figure = curve_figure(empty, SENSOR, FACTOR, PIXEL)
+    figure = curve_figure(region_curves(empty, SENSOR, FACTOR, PIXEL))
     figure.canvas.draw()
     assert not [a for a in figure.axes[0].lines if (a.get_gid() or "").startswith("pixel:")]
 
@@ -201,7 +202,8 @@ def test_photocurrent_curve_is_the_log_mean_intensity_in_levels():
     np.testing.assert_allclose(value, np.log(np.array(sums) / 12) / c, rtol=1e-12)
     assert t.tolist() == [0, 0, 10, 20, 30, 30]
     assert curves.events["PhotocurrentPooling"].threshold == 1.0  # theta = c by default
-    figure = curve_figure(ev, SENSOR, FACTOR, PIXEL, [PhotocurrentPooling(SENSOR, FACTOR)])
+    figure = curve_figure(region_curves(ev, SENSOR, FACTOR, PIXEL,
+                                        [PhotocurrentPooling(SENSOR, FACTOR)]))
     assert len(lines(figure, "mean:photocurrent").get_xdata()) == 6
 
 
@@ -222,7 +224,8 @@ def test_threshold_goes_to_contrast_methods_only(rng):
 def test_ground_truth_events_at_the_pixel_get_their_own_row(rng):
     events = random_stream(rng, 100, SENSOR)
     truth = random_stream(rng, 50, (2, 2, 2))
-    figure = curve_figure(events, SENSOR, FACTOR, PIXEL, ["cubic"], ground_truth=truth)
+    figure = curve_figure(region_curves(events, SENSOR, FACTOR, PIXEL, ["cubic"],
+                                        ground_truth=truth))
     here = truth[(truth["x"] == PIXEL[0]) & (truth["y"] == PIXEL[1])]
     for polarity, suffix in ((True, "on"), (False, "off")):
         np.testing.assert_array_equal(
@@ -241,7 +244,7 @@ def test_a_method_given_twice_keeps_both_results(rng):
 def test_time_axis_counts_from_the_recording_start(rng):
     events = random_stream(rng, 200, SENSOR, t_max=300_000)
     events["t"] += 1_605_537_493_718_000  # absolute Unix microseconds, as AEDAT4 stores them
-    figure = curve_figure(events, SENSOR, FACTOR, PIXEL, ["event_count"])
+    figure = curve_figure(region_curves(events, SENSOR, FACTOR, PIXEL, ["event_count"]))
     figure.canvas.draw()
     axis = figure.axes[1]
     labels = [tick.get_text() for tick in axis.get_xticklabels()]
