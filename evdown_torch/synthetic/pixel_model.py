@@ -38,6 +38,7 @@ from evdown_torch.checks import (
 )
 from evdown_torch.transforms.functional.reference import crossings, reference_index
 from evdown_torch.transforms.functional.two_thresholds import (
+    PixelSamples,
     two_threshold_counts,
     two_threshold_crossings,
 )
@@ -226,8 +227,9 @@ def level_crossings(
         at += found.level.to(torch.float64) * theta_on.index_select(0, segment)
         a, b = q, torch.zeros_like(q)
     else:
-        a, b = two_threshold_counts(level, first, base, theta_on, theta_off, a_start, b_start)
-        segment, at, on = two_threshold_crossings(level, first, base, theta_on, theta_off, a, b)
+        samples = PixelSamples(level, first, base, theta_on, theta_off)
+        a, b = two_threshold_counts(samples, a_start, b_start)
+        segment, at, on = two_threshold_crossings(samples, a, b)
     x0 = level.index_select(0, segment - 1)
     x1 = level.index_select(0, segment)
     t0 = t.index_select(0, segment - 1)

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from evdown_torch.transforms.functional.two_thresholds import (
+    PixelSamples,
     two_threshold_counts,
     two_threshold_crossings,
     two_threshold_level,
@@ -65,12 +66,12 @@ def test_two_thresholds_match_the_slow_loop(seed):
     rng = np.random.default_rng(seed)
     value, first, base, on, off, a0, b0 = random_pixels(rng, 60, 80)
     t = torch.from_numpy
-    a, b = two_threshold_counts(t(value), t(first), t(base), t(on), t(off), t(a0), t(b0))
+    samples = PixelSamples(t(value), t(first), t(base), t(on), t(off))
+    a, b = two_threshold_counts(samples, t(a0), t(b0))
     ea, eb, events = slow_counts(value.tolist(), first.tolist(), base.tolist(), on.tolist(),
                                  off.tolist(), a0.tolist(), b0.tolist())
     assert a.tolist() == ea and b.tolist() == eb
-    segment, lvl, is_on = two_threshold_crossings(t(value), t(first), t(base), t(on), t(off),
-                                                  a, b)
+    segment, lvl, is_on = two_threshold_crossings(samples, a, b)
     got = list(zip(segment.tolist(), lvl.tolist(), is_on.tolist(), strict=True))
     assert len(events) > 300 and sum(1 for e in events if e[2]) > 100
     assert got == events
@@ -84,9 +85,10 @@ def test_two_thresholds_hand_computed_reversal():
     first = torch.tensor([True, False, False, False])
     full = torch.full_like(value, 1.0)
     zero = torch.zeros(4, dtype=torch.int64)
-    a, b = two_threshold_counts(value, first, 0 * full, 0.3 * full, 0.1 * full, zero, zero)
+    samples = PixelSamples(value, first, 0 * full, 0.3 * full, 0.1 * full)
+    a, b = two_threshold_counts(samples, zero, zero)
     assert a.tolist() == [0, 2, 2, 3] and b.tolist() == [0, 0, 2, 2]
-    seg, lvl, on = two_threshold_crossings(value, first, 0 * full, 0.3 * full, 0.1 * full, a, b)
+    seg, lvl, on = two_threshold_crossings(samples, a, b)
     assert seg.tolist() == [1, 1, 2, 2, 3] and on.tolist() == [True, True, False, False, True]
     torch.testing.assert_close(lvl, torch.tensor([0.3, 0.6, 0.5, 0.4, 0.7],
                                                  dtype=torch.float64))
@@ -103,7 +105,7 @@ def test_equal_thresholds_agree_with_the_one_threshold_rule():
     t = torch.from_numpy
     ones = torch.ones(400, dtype=torch.float64)
     zero = torch.zeros(400, dtype=torch.int64)
-    a, b = two_threshold_counts(t(value), t(first), 0 * ones, ones, ones, zero, zero)
+    a, b = two_threshold_counts(PixelSamples(t(value), t(first), 0 * ones, ones, ones), zero, zero)
     u = t(value)
     q = reference_index(torch.floor(u).long(), u == torch.floor(u), t(first), torch.tensor(0))
     assert (a - b).tolist() == q.tolist()
@@ -112,5 +114,5 @@ def test_equal_thresholds_agree_with_the_one_threshold_rule():
 def test_empty_input():
     e = torch.empty(0, dtype=torch.float64)
     ei = torch.empty(0, dtype=torch.int64)
-    a, b = two_threshold_counts(e, ei.bool(), e, e, e, ei, ei)
+    a, b = two_threshold_counts(PixelSamples(e, ei.bool(), e, e, e), ei, ei)
     assert a.numel() == b.numel() == 0

@@ -6,10 +6,17 @@ single-threshold rule the downscalers use is :mod:`~evdown_torch.transforms.func
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
-__all__ = ["two_threshold_counts", "two_threshold_crossings", "two_threshold_level"]
+__all__ = [
+    "PixelSamples",
+    "two_threshold_counts",
+    "two_threshold_crossings",
+    "two_threshold_level",
+]
 
 # --- The reference rule with separate ON and OFF thresholds ---------------------------------
 #
@@ -28,6 +35,27 @@ __all__ = ["two_threshold_counts", "two_threshold_crossings", "two_threshold_lev
 # The reference is kept as two integer counts ``(a, b)`` (ON and OFF events so far): its level
 # is ``base + a * theta_on - b * theta_off``, always evaluated by :func:`two_threshold_level`,
 # so the comparisons are the same whichever order they are made in.
+
+
+class PixelSamples(NamedTuple):
+    """Samples of many pixels' levels, each pixel's contiguous and in time order (``(M,)`` each).
+
+    The level is linear between consecutive samples of a pixel; a pixel's first sample is its
+    starting point (it emits nothing).
+
+    Attributes:
+        value: float64 level at each sample.
+        first: bool, the sample is its pixel's first.
+        base: float64 reference base of each sample's pixel.
+        theta_on: float64 ON threshold (positive) of each sample's pixel.
+        theta_off: float64 OFF threshold (positive) of each sample's pixel.
+    """
+
+    value: Tensor
+    first: Tensor
+    base: Tensor
+    theta_on: Tensor
+    theta_off: Tensor
 
 
 def two_threshold_level(base: Tensor, a: Tensor, b: Tensor, theta_on: Tensor,
@@ -66,27 +94,15 @@ def _direction_terms(rising: Tensor, theta_on: Tensor, theta_off: Tensor
 
 
 def two_threshold_counts(
-    value: Tensor,
-    first: Tensor,
-    base: Tensor,
-    theta_on: Tensor,
-    theta_off: Tensor,
-    a_start: Tensor,
-    b_start: Tensor,
+    samples: PixelSamples, a_start: Tensor, b_start: Tensor
 ) -> tuple[Tensor, Tensor]:
     """ON and OFF counts ``(a, b)`` after each sample, under the two-threshold reference rule.
 
-    Samples of one pixel are contiguous and in time order; the level is linear between
-    consecutive samples of a pixel. A pixel's first sample is its starting point (it emits
-    nothing; there ``level(a, b) - theta_off < value < level(a, b) + theta_on`` must hold).
-    Reaching a level counts, as in the one-threshold rule.
+    At a pixel's first sample ``level(a, b) - theta_off < value < level(a, b) + theta_on``
+    must hold. Reaching a level counts, as in the one-threshold rule.
 
     Args:
-        value: ``(M,)`` float64 level at each sample.
-        first: ``(M,)`` bool, the sample is its pixel's first.
-        base: ``(M,)`` float64 reference base of each sample's pixel.
-        theta_on: ``(M,)`` float64 ON threshold (positive) of each sample's pixel.
-        theta_off: ``(M,)`` float64 OFF threshold (positive) of each sample's pixel.
+        samples: the pixels' samples (:class:`PixelSamples`).
         a_start: ``(M,)`` int64 ON count at each pixel's first sample (read where ``first``).
         b_start: ``(M,)`` int64 OFF count there.
 
@@ -100,10 +116,11 @@ def two_threshold_counts(
         >>> z = torch.zeros(4, dtype=torch.float64)
         >>> on, off = torch.full_like(v, 0.2), torch.full_like(v, 0.1)
         >>> zi = torch.zeros(4, dtype=torch.int64)
-        >>> a, b = two_threshold_counts(v, first, z, on, off, zi, zi)
+        >>> a, b = two_threshold_counts(PixelSamples(v, first, z, on, off), zi, zi)
         >>> a.tolist(), b.tolist()  # ON at 0.2, 0.4; OFF at 0.3, 0.2, ..., -0.2
         ([0, 2, 2, 2], [0, 0, 2, 6])
     """
+    value, first, base, theta_on, theta_off = samples
     m = value.shape[0]
     device = value.device
     if m == 0:
@@ -199,22 +216,12 @@ def two_threshold_counts(
 
 
 def two_threshold_crossings(
-    value: Tensor,
-    first: Tensor,
-    base: Tensor,
-    theta_on: Tensor,
-    theta_off: Tensor,
-    a: Tensor,
-    b: Tensor,
+    samples: PixelSamples, a: Tensor, b: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
     """One entry per event of :func:`two_threshold_counts`' result, in sample then time order.
 
     Args:
-        value: ``(M,)`` float64 level at each sample.
-        first: ``(M,)`` bool, the sample is its pixel's first.
-        base: ``(M,)`` float64 reference base of each sample's pixel.
-        theta_on: ``(M,)`` float64 ON threshold (positive) of each sample's pixel.
-        theta_off: ``(M,)`` float64 OFF threshold (positive) of each sample's pixel.
+        samples: the pixels' samples (:class:`PixelSamples`).
         a: ``(M,)`` int64 ON count after each sample (:func:`two_threshold_counts`).
         b: ``(M,)`` int64 OFF count after each sample.
 
@@ -223,6 +230,7 @@ def two_threshold_crossings(
         the float64 level reached (the event happens where the linear segment reaches it) and
         the polarity (bool, True for ON).
     """
+    value, first, base, theta_on, theta_off = samples
     da = torch.zeros_like(a)
     db = torch.zeros_like(b)
     torch.sub(a[1:], a[:-1], out=da[1:])
