@@ -22,6 +22,8 @@ __all__ = [
     "CommandError",
     "Subparsers",
     "add_input_arguments",
+    "add_sensor_size_option",
+    "add_threads_option",
     "factor_argument",
     "read_input",
     "refuse_threshold_flag",
@@ -69,16 +71,25 @@ def _threads(text: str) -> int:
     return value
 
 
+def add_sensor_size_option(parser: argparse.ArgumentParser, help: str) -> None:
+    """Add ``--sensor-size W H P`` (three integers) with its own ``help``."""
+    parser.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"), help=help)
+
+
+def add_threads_option(parser: argparse.ArgumentParser, help: str) -> None:
+    """Add ``--threads N`` (a positive integer, default 1) with its own ``help``."""
+    parser.add_argument("--threads", type=_threads, default=1, metavar="N", help=help)
+
+
 def add_input_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the options that say how to read input files and how many threads to use.
 
     They are ``--sensor-size``, ``--time-unit``, ``--columns`` and ``--threads``.
     """
-    parser.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
-                        help="input sensor size for files that do not record one (.npy "
-                        "without a sidecar, .bin, some .raw/.dat/HDF5); a file's own size "
-                        "wins, so one value serves a mixed folder; else it is guessed with a "
-                        "warning")
+    add_sensor_size_option(parser, "input sensor size for files that do not record one (.npy "
+                           "without a sidecar, .bin, some .raw/.dat/HDF5); a file's own size "
+                           "wins, so one value serves a mixed folder; else it is guessed with "
+                           "a warning")
     parser.add_argument("--time-unit", choices=tuple(TIME_UNITS), metavar="UNIT",
                         help="unit of the input timestamps (s, ms, us, ns) for files that do "
                         "not state one (camera formats are us; a file's own unit wins); "
@@ -87,9 +98,8 @@ def add_input_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--columns", type=_columns, metavar="A,B,C,D",
                         help="column order of .npy files holding an (N, 4) array, e.g. "
                         "t,x,y,p (default x,y,t,p)")
-    parser.add_argument("--threads", type=_threads, default=1, metavar="N",
-                        help="torch threads (default 1: never much slower, often faster on a "
-                        "busy machine; see docs/benchmarks.md)")
+    add_threads_option(parser, "torch threads (default 1: never much slower, often faster on a "
+                       "busy machine; see docs/benchmarks.md)")
 
 
 def read_input(

@@ -10,7 +10,7 @@ from typing import cast
 
 import numpy as np
 
-from evdown_torch.arguments import Subparsers
+from evdown_torch.arguments import Subparsers, add_sensor_size_option
 from evdown_torch.bench.inputs import BenchInput
 from evdown_torch.bench.report import method_table, write_report
 from evdown_torch.bench.run import run_benchmark
@@ -35,8 +35,8 @@ def add_command(commands: Subparsers) -> None:
                        help="small inputs and two points per sweep (under 2 minutes)")
     bench.add_argument("--input", action="append", metavar="FILE.npy",
                        help="a structured event array to add to the method table (repeatable)")
-    bench.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
-                       help="sensor of the --input files (default: from the largest coordinates)")
+    add_sensor_size_option(bench, "sensor of the --input files (default: from the largest "
+                           "coordinates)")
     bench.add_argument("--events", type=int, metavar="N",
                        help="cap every stream at N events (quick checks)")
     bench.add_argument("--repeats", type=int, metavar="R",

@@ -12,6 +12,8 @@ from pathlib import Path
 
 from evdown_torch.arguments import (
     Subparsers,
+    add_sensor_size_option,
+    add_threads_option,
     factor_argument,
     refuse_threshold_flag,
     setting_argument,
@@ -53,8 +55,8 @@ def add_command(subparsers: Subparsers) -> None:
                         help="dataset split (synthetic, dvsgesture, nmnist; default train)")
     parser.add_argument("--root", metavar="DIR",
                         help="folder the Tonic dataset lives in (its save_to)")
-    parser.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"),
-                        help="sensor of a folder dataset (required) or of the synthetic one")
+    add_sensor_size_option(parser, "sensor of a folder dataset (required) or of the synthetic "
+                           "one")
     parser.add_argument("--samples-per-class", type=int, metavar="N",
                         help="synthetic recordings per class (default 24)")
     parser.add_argument("--duration-us", type=int, metavar="US",
@@ -65,9 +67,8 @@ def add_command(subparsers: Subparsers) -> None:
     parser.add_argument("--workers", type=int, metavar="N",
                         help="processes working, this one included (default: one per "
                         "core; 1 per rank under torchrun)")
-    parser.add_argument("--threads", type=int, default=1, metavar="N",
-                        help="torch threads of each working process (default 1: never much "
-                        "slower per process, and the cores go to the workers)")
+    add_threads_option(parser, "torch threads of each working process (default 1: never much "
+                       "slower per process, and the cores go to the workers)")
     parser.add_argument("--on-error", choices=("skip", "stop"), default="skip",
                         help="a recording that cannot be read: report and skip it (default), "
                         "or stop the run, keeping the complete shards")
