@@ -132,8 +132,9 @@ def _mid_segment_sums(
     The value is measured from the segment's start (its rise above it).
 
     Every (segment, breakpoint strictly inside it) pair is evaluated in the segment's
-    normalised time ``s = (b - t_k) / width`` in chunks of :data:`CHUNK` pairs. Segments on
-    which the curve is constant are skipped.
+    normalised time ``s = (b - t_k) / width`` in chunks of :data:`CHUNK` pairs, and added into
+    its breakpoint in pair order (segments ascending), so each sum is the same float however
+    the pairs are chunked. Segments on which the curve is constant are skipped.
     """
     device = slope.device
     nb = knots.bp_t.shape[0]
@@ -169,26 +170,41 @@ def _mid_segment_sums(
     cum = torch.cumsum(counts, 0)
     total = int(cum[-1])
     begin = cum - counts  # first pair of each segment
-    first_target = take(bp, segments) + 1 - begin  # + pair index = breakpoint
-    del segments, counts
+    # The breakpoint of each pair steps by 1 inside a segment and by jump[j - 1] from the last
+    # pair of segment j - 1 to the first of segment j.
+    first = take(bp, segments) + 1
+    jump = first[1:] - first[:-1]
+    jump -= counts[:-1]
+    jump += 1
+    del segments
+    # The segments [low, high) of each chunk's pairs, and its first pair's breakpoint.
+    chunk_start = torch.arange(0, total, CHUNK, device=device)
+    low = torch.searchsorted(cum, chunk_start, right=True)
+    first_target = take(first, low) + chunk_start - take(begin, low)
+    last = torch.clamp(chunk_start + (CHUNK - 1), max=total - 1)
+    high = torch.searchsorted(cum, last, right=True) + 1
+    lows, highs, first_targets = low.tolist(), high.tolist(), first_target.tolist()
+    del counts, cum, first, chunk_start, low, high, first_target, last
     # Buffers reused by every chunk: fresh temporaries would be faulted in each time.
     size = min(CHUNK, total)
-    ints = torch.empty(3, size, dtype=torch.int64, device=device)
+    ints = torch.empty(4, size, dtype=torch.int64, device=device)
     floats = torch.empty(7, size, dtype=torch.float64, device=device)
-    for start in range(0, total, CHUNK):
-        stop = min(start + CHUNK, total)
-        m = stop - start
-        lo = int(torch.searchsorted(cum, start, right=True))
-        hi = int(torch.searchsorted(cum, stop - 1, right=True)) + 1
-        marks, seg, target = ints[0, :m], ints[1, :m], ints[2, :m]
+    for i, start in enumerate(range(0, total, CHUNK)):
+        m = min(start + CHUNK, total) - start
+        lo, hi = lows[i], highs[i]
+        starts, steps, seg, target = ints[0, : hi - lo - 1], ints[1, :m], ints[2, :m], ints[3, :m]
         s, a1, a2, a3, w, u, v = (row[:m] for row in floats)
-        # Pairs [start, stop) of segments [lo, hi): the segment of each pair, its breakpoint.
-        marks.zero_()
-        marks.scatter_(0, begin[lo + 1 : hi] - start, 1)
-        torch.cumsum(marks, 0, out=seg)
-        seg += lo
-        torch.arange(start, stop, out=target)
-        target += torch.index_select(first_target, 0, seg, out=marks)
+        # Pairs [start, start + m) of segments [lo, hi): the segment and breakpoint of each
+        # pair, as cumulative sums of their steps from pair to pair.
+        torch.sub(begin[lo + 1 : hi], start, out=starts)
+        steps.zero_()
+        steps.index_fill_(0, starts, 1)
+        steps[0] = lo
+        torch.cumsum(steps, 0, out=seg)
+        steps.fill_(1)
+        steps.index_copy_(0, starts, jump[lo : hi - 1])
+        steps[0] = first_targets[i]
+        torch.cumsum(steps, 0, out=target)
         torch.index_select(bp_time, 0, target, out=s)
         s -= torch.index_select(start_t, 0, seg, out=a1)
         s *= torch.index_select(inv_w, 0, seg, out=w)
@@ -198,12 +214,13 @@ def _mid_segment_sums(
         torch.addcmul(a2, s, a3, out=u)  # c2 + s c3
         torch.addcmul(a1, s, u, out=v)
         v *= s  # s (c1 + s (c2 + s c3))
-        value_sum.index_add_(0, target, v)
+        # scatter_add_ adds in pair order as index_add_ does (on the CPU), at half its cost.
+        value_sum.scatter_add_(0, target, v)
         a3 *= s
         a3.add_(u, alpha=2.0)  # 2 c2 + 3 c3 s
         torch.addcmul(a1, s, a3, out=v)
         v *= w  # derivative per time unit
-        slope_sum.index_add_(0, target, v)
+        slope_sum.scatter_add_(0, target, v)
     return value_sum, slope_sum
 
 
