@@ -142,12 +142,15 @@ def _mid_segment_sums(
     slope_sum = torch.zeros(nb, dtype=torch.float64, device=device)
     bp = knots.breakpoint
     inside = torch.zeros_like(bp)
-    inside[:-1] = bp[1:] - bp[:-1] - 1
+    torch.sub(bp[1:], bp[:-1], out=inside[:-1]).sub_(1)
     inside.scatter_(0, where_true(knots.last), 0)
     c1 = width * slope
-    c2_end = width * _shift(slope, -1, 0.0)
-    moving = (c1 != 0) | (c2_end != 0) | (rise != 0)
-    segments = where_true((inside > 0) & moving)
+    c2_end = _shift(slope, -1, 0.0).mul_(width)
+    moving = c1 != 0
+    moving |= c2_end != 0
+    moving |= rise != 0
+    moving &= inside > 0
+    segments = where_true(moving)
     del moving
     if segments.shape[0] == 0:
         return value_sum, slope_sum
@@ -163,9 +166,10 @@ def _mid_segment_sums(
     c1 = take(c1, segments)
     c2_end = take(c2_end, segments)
     r = take(rise, segments)
-    c2 = 3 * r - 2 * c1 - c2_end
-    c3 = c1 + c2_end - 2 * r
-    inv_w = 1.0 / take(width, segments)
+    # In place, as 3 r - 2 c1 - c2_end and c1 + c2_end - 2 r (the doubling is exact).
+    c2 = torch.mul(r, 3).sub_(c1, alpha=2.0).sub_(c2_end)
+    c3 = torch.add(c1, c2_end).sub_(r, alpha=2.0)
+    inv_w = take(width, segments).reciprocal_()
     del c2_end, r
     cum = torch.cumsum(counts, 0)
     total = int(cum[-1])
@@ -236,17 +240,19 @@ def _derivative_roots(c1: Tensor, c2: Tensor, c3: Tensor) -> tuple[Tensor, Tenso
     """
     square = c2 * c2
     disc = torch.addcmul(square, c1, c3, value=-3.0)
-    q = torch.copysign(torch.sqrt(disc), c2).add_(c2).neg_()  # NaN where disc < 0
+    q = torch.sqrt(disc).copysign_(c2).add_(c2).neg_()  # NaN where disc < 0
     # A double root is no sign change; within float noise of one, the curve cannot move by a
     # visible amount between the two roots (PCHIP pieces such as 1 - (1 - s)^3 have one).
-    noise = torch.addcmul(square, c1, c3, value=3.0).abs_().mul_(DOUBLE_ROOT)
+    noise = square.addcmul_(c1, c3, value=3.0).abs_().mul_(DOUBLE_ROOT)
     q.masked_fill_(disc <= noise, torch.nan)
-    r1 = q / (3 * c3)
-    r2 = c1 / q
-    r1.masked_fill_(~((r1 > EDGE) & (r1 < 1 - EDGE)), torch.nan)
-    r2.masked_fill_(~((r2 > EDGE) & (r2 < 1 - EDGE)), torch.nan)
+    del square, disc, noise
+    r1 = torch.mul(c3, 3)
+    torch.div(q, r1, out=r1)
+    r2 = torch.div(c1, q, out=q)
+    for r in (r1, r2):  # NaN stays NaN
+        r.masked_fill_(r <= EDGE, torch.nan).masked_fill_(r >= 1 - EDGE, torch.nan)
     low, high = torch.fmin(r1, r2), torch.fmax(r1, r2)
-    high.masked_fill_(~(high > low), torch.nan)
+    high.masked_fill_(high <= low, torch.nan)  # fmin and fmax give NaN only where both are
     return low, high
 
 
@@ -406,7 +412,7 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     )
     whole = segmented_cumsum(whole, bp_first_at, run_index(bp_first))
     part, derivative = _mid_segment_sums(knots, slope, width, rise)
-    derivative.index_add_(0, knots.breakpoint, slope)
+    derivative.scatter_add_(0, knots.breakpoint, slope)
     del slope, width, rise
 
     # The piece ending at each breakpoint (none before a region's first), normalised time.
@@ -414,11 +420,11 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     prev[bp_first_at] = bp_first_at  # a region's first step is a jump, not a piece
     gap = (knots.bp_t - take(knots.bp_t, prev)).to(torch.float64)
     change = (whole - take(whole, prev)).to(torch.float64) + (part - take(part, prev))
-    m0, m1 = gap * take(derivative, prev), gap * derivative
+    m0, m1 = take(derivative, prev).mul_(gap), derivative.mul_(gap)
     del gap, derivative
     c1 = m0
-    c2 = 3 * change - 2 * m0 - m1
-    c3 = m0 + m1 - 2 * change
+    c2 = torch.mul(change, 3).sub_(m0, alpha=2.0).sub_(m1)  # 3 change - 2 m0 - m1
+    c3 = torch.add(m0, m1).sub_(change, alpha=2.0)  # m0 + m1 - 2 change
     del m1, change
     for c in (c1, c2, c3):
         c.scatter_(0, bp_first_at, 0.0)
