@@ -249,10 +249,10 @@ def _derivative_roots(c1: Tensor, c2: Tensor, c3: Tensor) -> tuple[Tensor, Tenso
     r1 = torch.mul(c3, 3)
     torch.div(q, r1, out=r1)
     r2 = torch.div(c1, q, out=q)
-    for r in (r1, r2):  # NaN stays NaN
-        r.masked_fill_(r <= EDGE, torch.nan).masked_fill_(r >= 1 - EDGE, torch.nan)
+    r1.masked_fill_(~((r1 > EDGE) & (r1 < 1 - EDGE)), torch.nan)
+    r2.masked_fill_(~((r2 > EDGE) & (r2 < 1 - EDGE)), torch.nan)
     low, high = torch.fmin(r1, r2), torch.fmax(r1, r2)
-    high.masked_fill_(high <= low, torch.nan)  # fmin and fmax give NaN only where both are
+    high.masked_fill_(~(high > low), torch.nan)
     return low, high
 
 
