@@ -132,8 +132,9 @@ def _mid_segment_sums(
     The value is measured from the segment's start (its rise above it).
 
     Every (segment, breakpoint strictly inside it) pair is evaluated in the segment's
-    normalised time ``s = (b - t_k) / width`` in chunks of :data:`CHUNK` pairs. Segments on
-    which the curve is constant are skipped.
+    normalised time ``s = (b - t_k) / width`` in chunks of :data:`CHUNK` pairs, and added into
+    its breakpoint in pair order (segments ascending), so each sum is the same float however
+    the pairs are chunked. Segments on which the curve is constant are skipped.
     """
     device = slope.device
     nb = knots.bp_t.shape[0]
@@ -141,12 +142,15 @@ def _mid_segment_sums(
     slope_sum = torch.zeros(nb, dtype=torch.float64, device=device)
     bp = knots.breakpoint
     inside = torch.zeros_like(bp)
-    inside[:-1] = bp[1:] - bp[:-1] - 1
+    torch.sub(bp[1:], bp[:-1], out=inside[:-1]).sub_(1)
     inside.scatter_(0, where_true(knots.last), 0)
     c1 = width * slope
-    c2_end = width * _shift(slope, -1, 0.0)
-    moving = (c1 != 0) | (c2_end != 0) | (rise != 0)
-    segments = where_true((inside > 0) & moving)
+    c2_end = _shift(slope, -1, 0.0).mul_(width)
+    moving = c1 != 0
+    moving |= c2_end != 0
+    moving |= rise != 0
+    moving &= inside > 0
+    segments = where_true(moving)
     del moving
     if segments.shape[0] == 0:
         return value_sum, slope_sum
@@ -162,33 +166,49 @@ def _mid_segment_sums(
     c1 = take(c1, segments)
     c2_end = take(c2_end, segments)
     r = take(rise, segments)
-    c2 = 3 * r - 2 * c1 - c2_end
-    c3 = c1 + c2_end - 2 * r
-    inv_w = 1.0 / take(width, segments)
+    # In place, as 3 r - 2 c1 - c2_end and c1 + c2_end - 2 r (the doubling is exact).
+    c2 = torch.mul(r, 3).sub_(c1, alpha=2.0).sub_(c2_end)
+    c3 = torch.add(c1, c2_end).sub_(r, alpha=2.0)
+    inv_w = take(width, segments).reciprocal_()
     del c2_end, r
     cum = torch.cumsum(counts, 0)
     total = int(cum[-1])
     begin = cum - counts  # first pair of each segment
-    first_target = take(bp, segments) + 1 - begin  # + pair index = breakpoint
-    del segments, counts
+    # The breakpoint of each pair steps by 1 inside a segment and by jump[j - 1] from the last
+    # pair of segment j - 1 to the first of segment j.
+    first = take(bp, segments) + 1
+    jump = first[1:] - first[:-1]
+    jump -= counts[:-1]
+    jump += 1
+    del segments
+    # The segments [low, high) of each chunk's pairs, and its first pair's breakpoint.
+    chunk_start = torch.arange(0, total, CHUNK, device=device)
+    low = torch.searchsorted(cum, chunk_start, right=True)
+    first_target = take(first, low) + chunk_start - take(begin, low)
+    last = torch.clamp(chunk_start + (CHUNK - 1), max=total - 1)
+    high = torch.searchsorted(cum, last, right=True) + 1
+    lows, highs, first_targets = low.tolist(), high.tolist(), first_target.tolist()
+    del counts, cum, first, chunk_start, low, high, first_target, last
     # Buffers reused by every chunk: fresh temporaries would be faulted in each time.
     size = min(CHUNK, total)
-    ints = torch.empty(3, size, dtype=torch.int64, device=device)
+    ints = torch.empty(4, size, dtype=torch.int64, device=device)
     floats = torch.empty(7, size, dtype=torch.float64, device=device)
-    for start in range(0, total, CHUNK):
-        stop = min(start + CHUNK, total)
-        m = stop - start
-        lo = int(torch.searchsorted(cum, start, right=True))
-        hi = int(torch.searchsorted(cum, stop - 1, right=True)) + 1
-        marks, seg, target = ints[0, :m], ints[1, :m], ints[2, :m]
+    for i, start in enumerate(range(0, total, CHUNK)):
+        m = min(start + CHUNK, total) - start
+        lo, hi = lows[i], highs[i]
+        starts, steps, seg, target = ints[0, : hi - lo - 1], ints[1, :m], ints[2, :m], ints[3, :m]
         s, a1, a2, a3, w, u, v = (row[:m] for row in floats)
-        # Pairs [start, stop) of segments [lo, hi): the segment of each pair, its breakpoint.
-        marks.zero_()
-        marks.scatter_(0, begin[lo + 1 : hi] - start, 1)
-        torch.cumsum(marks, 0, out=seg)
-        seg += lo
-        torch.arange(start, stop, out=target)
-        target += torch.index_select(first_target, 0, seg, out=marks)
+        # Pairs [start, start + m) of segments [lo, hi): the segment and breakpoint of each
+        # pair, as cumulative sums of their steps from pair to pair.
+        torch.sub(begin[lo + 1 : hi], start, out=starts)
+        steps.zero_()
+        steps.index_fill_(0, starts, 1)
+        steps[0] = lo
+        torch.cumsum(steps, 0, out=seg)
+        steps.fill_(1)
+        steps.index_copy_(0, starts, jump[lo : hi - 1])
+        steps[0] = first_targets[i]
+        torch.cumsum(steps, 0, out=target)
         torch.index_select(bp_time, 0, target, out=s)
         s -= torch.index_select(start_t, 0, seg, out=a1)
         s *= torch.index_select(inv_w, 0, seg, out=w)
@@ -198,12 +218,13 @@ def _mid_segment_sums(
         torch.addcmul(a2, s, a3, out=u)  # c2 + s c3
         torch.addcmul(a1, s, u, out=v)
         v *= s  # s (c1 + s (c2 + s c3))
-        value_sum.index_add_(0, target, v)
+        # scatter_add_ adds in pair order as index_add_ does (on the CPU), at half its cost.
+        value_sum.scatter_add_(0, target, v)
         a3 *= s
         a3.add_(u, alpha=2.0)  # 2 c2 + 3 c3 s
         torch.addcmul(a1, s, a3, out=v)
         v *= w  # derivative per time unit
-        slope_sum.index_add_(0, target, v)
+        slope_sum.scatter_add_(0, target, v)
     return value_sum, slope_sum
 
 
@@ -219,13 +240,15 @@ def _derivative_roots(c1: Tensor, c2: Tensor, c3: Tensor) -> tuple[Tensor, Tenso
     """
     square = c2 * c2
     disc = torch.addcmul(square, c1, c3, value=-3.0)
-    q = torch.copysign(torch.sqrt(disc), c2).add_(c2).neg_()  # NaN where disc < 0
+    q = torch.sqrt(disc).copysign_(c2).add_(c2).neg_()  # NaN where disc < 0
     # A double root is no sign change; within float noise of one, the curve cannot move by a
     # visible amount between the two roots (PCHIP pieces such as 1 - (1 - s)^3 have one).
-    noise = torch.addcmul(square, c1, c3, value=3.0).abs_().mul_(DOUBLE_ROOT)
+    noise = square.addcmul_(c1, c3, value=3.0).abs_().mul_(DOUBLE_ROOT)
     q.masked_fill_(disc <= noise, torch.nan)
-    r1 = q / (3 * c3)
-    r2 = c1 / q
+    del square, disc, noise
+    r1 = torch.mul(c3, 3)
+    torch.div(q, r1, out=r1)
+    r2 = torch.div(c1, q, out=q)
     r1.masked_fill_(~((r1 > EDGE) & (r1 < 1 - EDGE)), torch.nan)
     r2.masked_fill_(~((r2 > EDGE) & (r2 < 1 - EDGE)), torch.nan)
     low, high = torch.fmin(r1, r2), torch.fmax(r1, r2)
@@ -389,7 +412,7 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     )
     whole = segmented_cumsum(whole, bp_first_at, run_index(bp_first))
     part, derivative = _mid_segment_sums(knots, slope, width, rise)
-    derivative.index_add_(0, knots.breakpoint, slope)
+    derivative.scatter_add_(0, knots.breakpoint, slope)
     del slope, width, rise
 
     # The piece ending at each breakpoint (none before a region's first), normalised time.
@@ -397,11 +420,11 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     prev[bp_first_at] = bp_first_at  # a region's first step is a jump, not a piece
     gap = (knots.bp_t - take(knots.bp_t, prev)).to(torch.float64)
     change = (whole - take(whole, prev)).to(torch.float64) + (part - take(part, prev))
-    m0, m1 = gap * take(derivative, prev), gap * derivative
+    m0, m1 = take(derivative, prev).mul_(gap), derivative.mul_(gap)
     del gap, derivative
     c1 = m0
-    c2 = 3 * change - 2 * m0 - m1
-    c3 = m0 + m1 - 2 * change
+    c2 = torch.mul(change, 3).sub_(m0, alpha=2.0).sub_(m1)  # 3 change - 2 m0 - m1
+    c3 = torch.add(m0, m1).sub_(change, alpha=2.0)  # m0 + m1 - 2 change
     del m1, change
     for c in (c1, c2, c3):
         c.scatter_(0, bp_first_at, 0.0)
