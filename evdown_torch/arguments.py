@@ -22,6 +22,7 @@ __all__ = [
     "CommandError",
     "Subparsers",
     "add_input_arguments",
+    "add_out_option",
     "add_sensor_size_option",
     "add_threads_option",
     "factor_argument",
@@ -74,6 +75,11 @@ def _threads(text: str) -> int:
 def add_sensor_size_option(parser: argparse.ArgumentParser, help: str) -> None:
     """Add ``--sensor-size W H P`` (three integers) with its own ``help``."""
     parser.add_argument("--sensor-size", type=int, nargs=3, metavar=("W", "H", "P"), help=help)
+
+
+def add_out_option(parser: argparse.ArgumentParser, help: str) -> None:
+    """Add the required ``--out DIR``, the folder a command writes into, with its own ``help``."""
+    parser.add_argument("--out", required=True, metavar="DIR", help=help)
 
 
 def add_threads_option(parser: argparse.ArgumentParser, help: str) -> None:

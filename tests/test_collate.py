@@ -29,13 +29,16 @@ class _Recordings(Dataset):
         return self.samples[i], i % 3
 
 
+def _loader(dataset: Dataset, batch_size: int, collate_fn) -> DataLoader:
+    """``dataset`` in batches of ``batch_size``, collated by ``collate_fn`` in two workers."""
+    return DataLoader(dataset, batch_size=batch_size, num_workers=2, collate_fn=collate_fn)
+
+
 def test_downscale_collate_in_dataloader_with_workers():
     dataset = _Recordings()
     down = EventCount(SENSOR, factor=2, threshold=0.5)
-    loader = DataLoader(dataset, batch_size=3, num_workers=2,
-                        collate_fn=DownscaleCollate(down))
     seen = 0
-    for outputs, targets in loader:
+    for outputs, targets in _loader(dataset, 3, DownscaleCollate(down)):
         assert isinstance(targets, torch.Tensor)
         for out, target in zip(outputs, targets.tolist(), strict=True):
             recording, want_target = dataset[seen]
@@ -55,8 +58,7 @@ def test_downscale_collate_with_per_sample_and_collate():
                                collate=tonic.collation.PadTensors(batch_first=True))
     # Tonic's ToFrame gives empty input another shape, so the empty recording stays out.
     subset = Subset(dataset, range(1, 5))
-    loader = DataLoader(subset, batch_size=4, num_workers=2, collate_fn=collate)
-    frames, targets = next(iter(loader))
+    frames, targets = next(iter(_loader(subset, 4, collate)))
     first = [to_frame(down(subset[i][0])) for i in range(4)]
     assert frames.shape[0] == 4 and targets.tolist() == [1, 2, 0, 1]
     for i, want in enumerate(first):
@@ -67,10 +69,8 @@ def test_events_collate_then_batch_on_device(device):
     """Collate in the workers, move the EventBatch, downscale on its device."""
     dataset = _Recordings()
     down = CubicEstimation(SENSOR, factor=2, threshold=0.5)
-    loader = DataLoader(dataset, batch_size=5, num_workers=2,
-                        collate_fn=EventsCollate(SENSOR))
     seen = 0
-    for batch, targets in loader:
+    for batch, targets in _loader(dataset, 5, EventsCollate(SENSOR)):
         assert isinstance(batch, EventBatch) and len(targets) == batch.num_recordings
         out = down.batch(batch.to(device))
         assert out.device == device

@@ -10,7 +10,7 @@ from typing import cast
 
 import numpy as np
 
-from evdown_torch.arguments import Subparsers, add_sensor_size_option
+from evdown_torch.arguments import Subparsers, add_out_option, add_sensor_size_option
 from evdown_torch.bench.inputs import BenchInput
 from evdown_torch.bench.report import method_table, write_report
 from evdown_torch.bench.run import run_benchmark
@@ -29,8 +29,7 @@ def add_command(commands: Subparsers) -> None:
         "results.json and PNG plots to --out; a progress bar per stage on a terminal. "
         "--short takes under 2 minutes; the full run tens of minutes.",
     )
-    bench.add_argument("--out", required=True, metavar="DIR",
-                       help="folder for report.md, results.json and the PNG plots")
+    add_out_option(bench, "folder for report.md, results.json and the PNG plots")
     bench.add_argument("--short", action="store_true",
                        help="small inputs and two points per sweep (under 2 minutes)")
     bench.add_argument("--input", action="append", metavar="FILE.npy",

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from evdown_torch.arguments import (
     Subparsers,
+    add_out_option,
     add_sensor_size_option,
     add_threads_option,
     factor_argument,
@@ -50,7 +51,7 @@ def add_command(subparsers: Subparsers) -> None:
     parser.add_argument("--set", type=setting_argument, action="append", metavar="KEY=VALUE",
                         help="a setting of the method, e.g. --set threshold=0.5 (a contrast "
                         "threshold for most methods, the firing threshold for lif)")
-    parser.add_argument("--out", required=True, metavar="DIR", help="the cache folder")
+    add_out_option(parser, "the cache folder")
     parser.add_argument("--split", choices=("train", "test"), default="train",
                         help="dataset split (synthetic, dvsgesture, nmnist; default train)")
     parser.add_argument("--root", metavar="DIR",

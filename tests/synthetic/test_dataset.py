@@ -139,21 +139,21 @@ def test_pixel_model_settings_reach_the_events():
     assert 0 < len(coarse) < len(fine)
 
 
-def test_bad_arguments_raise():
-    with pytest.raises(ValueError, match="samples_per_class"):
-        SyntheticGestures(samples_per_class=0)
-    with pytest.raises(TypeError, match="duration_us"):
-        SyntheticGestures(duration_us=1.5)
-    with pytest.raises(ValueError, match="seed"):
-        SyntheticGestures(seed=-3)
-    with pytest.raises(ValueError, match="2 polarities"):
-        SyntheticGestures(sensor_size=(64, 64, 1))
-    with pytest.raises(TypeError, match="train"):
-        SyntheticGestures(train="yes")
-    with pytest.raises(TypeError, match="transform"):
-        SyntheticGestures(transform=3)
-    with pytest.raises(TypeError, match="PixelModelConfig"):
-        SyntheticGestures(pixel_model={"threshold": 0.2})
+@pytest.mark.parametrize(("arguments", "error", "match"), [
+    ({"samples_per_class": 0}, ValueError, "samples_per_class"),
+    ({"duration_us": 1.5}, TypeError, "duration_us"),
+    ({"seed": -3}, ValueError, "seed"),
+    ({"sensor_size": (64, 64, 1)}, ValueError, "2 polarities"),
+    ({"train": "yes"}, TypeError, "train"),
+    ({"transform": 3}, TypeError, "transform"),
+    ({"pixel_model": {"threshold": 0.2}}, TypeError, "PixelModelConfig"),
+])
+def test_bad_arguments_raise(arguments, error, match):
+    with pytest.raises(error, match=match):
+        SyntheticGestures(**arguments)
+
+
+def test_bad_index_or_factor_raises():
     data = SyntheticGestures(**SMALL)
     with pytest.raises(IndexError, match="out of range"):
         data[22]

@@ -44,14 +44,18 @@ TRANSFORMS = {
 }
 
 
+def _chunked_stream(case, t_max: int) -> tuple[np.ndarray, list[int]]:
+    """A :data:`~tests.helpers.chunkings` case as its random stream and its cut positions."""
+    seed, n, fractions = case
+    arr = random_stream(np.random.default_rng(seed), n, SENSOR, t_max=t_max)
+    return arr, [int(f * n) for f in fractions]
+
+
 @pytest.mark.parametrize("name", sorted(TRANSFORMS))
 @settings(max_examples=25, deadline=None, derandomize=True)
 @given(case=chunkings)
 def test_any_chunking_gives_the_batch_result(name, case):
-    seed, n, fractions = case
-    rng = np.random.default_rng(seed)
-    arr = random_stream(rng, n, SENSOR, t_max=60)  # many equal timestamps and repeats
-    cuts = [int(f * n) for f in fractions]
+    arr, cuts = _chunked_stream(case, t_max=60)  # many equal timestamps and repeats
     transform = TRANSFORMS[name]
     np.testing.assert_array_equal(run_in_chunks(transform, arr, cuts), transform(arr))
 
@@ -245,14 +249,12 @@ def test_a_huge_delay_holds_nothing_in_batch_and_session(kind, dtype, max_delay,
 @given(case=chunkings, max_delay=st.sampled_from([1, 5, 30]))
 def test_estimator_sessions_equal_the_batch_and_keep_the_delay_bound(kind, case, max_delay):
     cls, lag = ESTIMATORS[kind]
-    seed, n, fractions = case
-    rng = np.random.default_rng(seed)
-    arr = random_stream(rng, n, SENSOR, t_max=400)
+    arr, cuts = _chunked_stream(case, t_max=400)
     transform = cls(SENSOR, factor=(3, 2), threshold=0.3, max_delay=max_delay)
     batch = transform(arr)
     session = transform.session()
     parts = []
-    for chunk in np.split(arr, sorted(int(f * n) for f in fractions)):
+    for chunk in np.split(arr, sorted(cuts)):
         parts.append(session(chunk))
         if len(chunk):
             # Exactly the batch events earlier than tau - lag * D are out by now: each event
