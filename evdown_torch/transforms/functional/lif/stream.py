@@ -181,13 +181,13 @@ def lif_pooling_stream(
         )
     n = int(torch.searchsorted(steps, decided, right=True))  # the events of decided steps
     spike_step, neuron, neurons = lif_spikes(
-        pending.select(torch.arange(n, device=events.device)), steps[:n], settings,
+        Events(*(column[:n] for column in pending)), steps[:n], settings,
         state=state.neurons, last_step=decided, from_step=state.decided + 1,
         sensor_size=sensor_size, factor=factor,
     )
     t = step_end_time(spike_step, t_start=state.t_start, t_end=last_t, dt=end_dt)
     out = spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
-    rest = pending.select(torch.arange(n, pending.num_events, device=events.device))
+    rest = Events(*(column[n:] for column in pending))  # views: no copy
     neurons = cast(LIFState, neurons)  # kept: lif_spikes returns the state (keep_state)
     return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest)
 
