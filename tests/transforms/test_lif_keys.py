@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from evdown_torch import Events, LIFPooling
+from evdown_torch.transforms.functional.lif import keys
 from evdown_torch.transforms.functional.lif import pooling as lif_kernel
 from evdown_torch.transforms.functional.lif import steps as lif_steps
 from tests.helpers import LIF_SETTINGS, as_tuples, lif_dense_reference, random_stream
@@ -64,3 +65,17 @@ def test_live_chunks_equal_the_dense_oracle(settings):
     got = np.concatenate(parts)
     assert as_tuples(got) == lif_dense_reference(arr, pool)
     np.testing.assert_array_equal(got, pool(arr))
+
+
+def test_spikes_ordered_by_table_as_by_sort(monkeypatch):
+    # Distinct (step, neuron) spikes: the table of keys orders them as the sort does.
+    rng = np.random.default_rng(8)
+    neurons, low, top = 40, 1_000, 1_030
+    key = torch.from_numpy(rng.permutation((top - low + 1) * neurons)[:600])
+    spike_step, neuron = key // neurons + low, key % neurons
+    by_table = keys.by_step_then_neuron(spike_step, neuron, neurons, low, top)
+    monkeypatch.setattr(keys, "TABLE_KEYS_PER_SPIKE", 0)
+    by_sort = keys.by_step_then_neuron(spike_step, neuron, neurons, low, top)
+    for a, b in zip(by_table, by_sort, strict=True):
+        assert torch.equal(a, b)
+    assert bool((torch.diff(by_table[0] * neurons + by_table[1]) > 0).all())

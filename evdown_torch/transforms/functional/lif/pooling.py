@@ -484,7 +484,7 @@ def lif_spikes(
     neuron = torch.add(cell_region.index_select(0, spike_cell), spike_polarity, alpha=plane)
     # Output order: by step, then neuron (OFF before ON, then row-major region); a neuron
     # fires at most once per step.
-    spike_step, neuron = by_step_then_neuron(spike_step, neuron, 2 * plane, top_step)
+    spike_step, neuron = by_step_then_neuron(spike_step, neuron, 2 * plane, from_step, top_step)
     if not keep_state or membrane is None:  # (no membranes: the closed form, no state kept)
         return spike_step, neuron, None
     # The neurons after the last update of every region here.
