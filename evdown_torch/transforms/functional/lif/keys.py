@@ -1,12 +1,15 @@
-"""LIF pooling's keys: events counted by ``(region, step)`` cell, spikes sorted by step.
+"""LIF pooling's keys: events grouped by ``(region, step)`` cell, spikes sorted by step.
 
-Used by :func:`.pooling.lif_spikes`. Where a call's cells are few next to its events (a live
-chunk: a thousand regions, ten steps, hundreds of thousands of events), the cells are found by
-counting every key's events, one pass over the events in int32
-(:func:`counted_cells`), rather than by a table of occupied keys or a sort.
+Used by :func:`.pooling.lif_spikes` (see :func:`.pooling._event_cells` for which path a call
+takes). Where a call's cells are few next to its events (a live chunk: a thousand regions,
+ten steps, hundreds of thousands of events), the cells are found by counting every key's
+events, one pass over the events in int32 (:func:`counted_cells`); otherwise by grouping them
+(:func:`grouped_cells`: a table of occupied keys or a sort).
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -14,7 +17,7 @@ from torch import Tensor
 from evdown_torch._tensors import divide, stable_sort_small
 from evdown_torch.events import Events
 
-__all__ = ["TABLE_KEYS_PER_SPIKE", "by_step_then_neuron", "counted_cells"]
+__all__ = ["TABLE_KEYS_PER_SPIKE", "by_step_then_neuron", "counted_cells", "grouped_cells"]
 
 #: Most ``(step, neuron)`` keys per spike for which the spikes are ordered by a table of every
 #: key rather than by a sort.
@@ -22,18 +25,19 @@ TABLE_KEYS_PER_SPIKE = 16
 
 
 def counted_cells(
-    events: Events, steps: Tensor, *, fx: int, fy: int, wo: int, plane: int, low: int,
-    span: int,
+    pieces: Sequence[tuple[Events, Tensor]], *, fx: int, fy: int, wo: int, plane: int,
+    low: int, span: int,
 ) -> tuple[Tensor, Tensor]:
     """The occupied keys ``region * span + (step - low)`` and their events, by counting.
 
     Every event's key, doubled, plus its polarity, is counted (int32 arithmetic: the caller
-    keeps ``2 * regions * span`` below ``2 ** 31``); the keys with a count are the cells, in
-    key order (by region, then step).
+    keeps ``2 * plane * span`` below ``2 ** 31``), piece by piece into one tensor of keys
+    (the pieces' events are not joined); the keys with a count are the cells, in key order
+    (by region, then step).
 
     Args:
-        events: ``N`` events (any order).
-        steps: ``(N,)`` int64 step of every event, ``low .. low + span - 1``.
+        pieces: the events (any order), each with the ``(N,)`` int64 step of every event,
+            ``low .. low + span - 1``.
         fx: region width.
         fy: region height.
         wo: regions per row.
@@ -46,12 +50,67 @@ def counted_cells(
         int64 counts of OFF and ON events.
     """
     i32 = torch.int32
-    key = divide(events.x.to(i32), fx).mul_(2 * span)
-    key.add_(divide(events.y.to(i32), fy), alpha=2 * span * wo)
-    key.add_(steps.sub(low).to(i32), alpha=2).add_(events.p)
+    keys = []
+    for events, steps in pieces:  # (a session's pending events and its new chunk's)
+        key = divide(events.x.to(i32), fx).mul_(2 * span)
+        key.add_(divide(events.y.to(i32), fy), alpha=2 * span * wo)
+        keys.append(key.add_(steps.sub(low).to(i32), alpha=2).add_(events.p))
+    key = keys[0] if len(keys) == 1 else torch.cat(keys)
     counts = torch.bincount(key, minlength=2 * plane * span).view(-1, 2)
     cell_key = counts.any(1).nonzero().squeeze(1)
     return cell_key, counts.index_select(0, cell_key)
+
+def grouped_cells(
+    events: Events, steps: Tensor, *, fx: int, fy: int, wo: int, plane: int, low: int,
+    span: int, table: bool,
+) -> tuple[Tensor | None, Tensor, Tensor]:
+    """The cells by grouping the events: ``(cell_region, cell_key, counts)``.
+
+    A table of the keys (``table``; the keys ``region * span + step - low`` must then fit in
+    int64), else a sort of them where they fit, else a stable sort of the regions (events in
+    time order); ``cell_region`` is
+    ``None`` except from the stable sort, which gives the cells' steps in place of their keys;
+    ``counts`` are the cells' ``(n_cells, 2)`` int64 OFF and ON events.
+    """
+    device = events.device
+    region = divide(events.x, fx).add_(divide(events.y, fy), alpha=wo)
+    n, n_keys = region.shape[0], plane * span
+    cell_region = None
+    if table:
+        key = region.mul_(span).add_(steps).sub_(low)
+        occupied = torch.zeros(n_keys, dtype=torch.bool, device=device)
+        occupied[key] = True
+        count_dtype = torch.int32 if n < 1 << 30 else torch.int64  # 2 * cells + 1 fits
+        rank = torch.cumsum(occupied, 0, dtype=count_dtype)  # cells up to each key
+        del occupied
+        cell_of_event = rank.index_select(0, key).sub_(1)
+        cell_step = torch.empty(int(rank[-1]), dtype=torch.int64, device=device)
+        cell_step[cell_of_event] = key  # the cells' keys, sorted
+        del rank
+        polarity = events.p
+    elif n_keys < 1 << 62:
+        key, order = torch.sort(region.mul_(span).add_(steps).sub_(low))
+        polarity = events.p.index_select(0, order)
+        del order
+        starts = torch.ones(n, dtype=torch.bool, device=device)
+        torch.ne(key[1:], key[:-1], out=starts[1:])
+        cell_of_event = torch.cumsum(starts, 0).sub_(1)
+        cell_step = key.index_select(0, starts.nonzero().squeeze(1))
+    else:
+        region, order = stable_sort_small(region, plane)  # stable: time order within a region
+        steps = steps.index_select(0, order)
+        polarity = events.p.index_select(0, order)
+        del order
+        starts = torch.ones(n, dtype=torch.bool, device=device)
+        torch.ne(region[1:], region[:-1], out=starts[1:])
+        starts[1:] |= steps[1:] != steps[:-1]
+        cell_of_event = torch.cumsum(starts, 0).sub_(1)
+        first = starts.nonzero().squeeze(1)
+        cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
+        del region, steps, starts, first
+    n_cells = cell_step.shape[0]
+    counts = torch.bincount(cell_of_event.mul_(2).add_(polarity), minlength=2 * n_cells)
+    return cell_region, cell_step, counts.view(n_cells, 2)
 
 
 def by_step_then_neuron(

@@ -56,7 +56,8 @@ with the expected count.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Sequence
+from typing import NamedTuple, cast
 
 import torch
 from torch import Tensor
@@ -66,7 +67,11 @@ from evdown_torch.checks import check_output_count, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.lif.chains import Leak
 from evdown_torch.transforms.functional.lif.closed_form import MIN_ROUNDS, certain_spikes
-from evdown_torch.transforms.functional.lif.keys import by_step_then_neuron, counted_cells
+from evdown_torch.transforms.functional.lif.keys import (
+    by_step_then_neuron,
+    counted_cells,
+    grouped_cells,
+)
 from evdown_torch.transforms.functional.lif.rounds import membranes_by_rounds, spikes_and_runs
 from evdown_torch.transforms.functional.lif.settings import (
     DEFAULT_DT,
@@ -114,8 +119,8 @@ COUNTED_KEYS_PER_EVENT = 1
 
 
 def _event_cells(
-    events: Events,
-    steps: Tensor,
+    events: Events | Sequence[Events],
+    steps: Tensor | Sequence[Tensor],
     *,
     fx: int,
     fy: int,
@@ -127,11 +132,14 @@ def _event_cells(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Cells: the ``(region, step)`` pairs that hold events, ordered by region, then step.
 
-    A cell's key is ``region * span + (step - low)``, ``low`` the events' earliest step and
+    The events come whole or in time-ordered pieces (a streaming session's pending events,
+    then its new chunk's), with the steps of each. A cell's key is
+    ``region * span + (step - low)``, ``low`` the events' earliest step and
     ``span = top_step - low + 1`` (steps relative to the call's first, so that a streaming
     session's keys do not grow with the stream's age). Where there are few keys next to the
     events (:data:`COUNTED_KEYS_PER_EVENT`: a live chunk), every key's events are counted
-    (:func:`~evdown_torch.transforms.functional.lif.keys.counted_cells`). Where there are few
+    (:func:`~evdown_torch.transforms.functional.lif.keys.counted_cells`, piece by piece).
+    Otherwise the pieces are joined; where there are few keys
     (:data:`OCCUPANCY_KEYS_PER_EVENT` per event and :data:`MAX_OCCUPANCY_KEYS` in all), the
     cells are the occupied entries of a bool table of every key, found without sorting the
     events (its running count gives every event's cell); otherwise the events are sorted by
@@ -143,22 +151,28 @@ def _event_cells(
         ``(cell_region, cell_step, current)``: int64, int64 and the ``(n_cells, 2)`` float32
         input current of the region's (OFF, ON) neurons, ``w * S - w_inh * S'``.
     """
-    device = events.device
+    if isinstance(events, Events):
+        events, steps = [events], [cast(Tensor, steps)]
+    device = events[0].device
     f32 = torch.float32
-    if events.num_events == 0:
+    pieces = [(e, s) for e, s in zip(events, steps, strict=True) if e.num_events]
+    if not pieces:
         empty = torch.empty(0, dtype=torch.int64, device=device)
         return empty, empty, torch.empty(0, 2, dtype=f32, device=device)
-    n = events.num_events
-    low = int(steps.min())
+    n = sum(e.num_events for e, _ in pieces)
+    low = min(int(s.min()) for _, s in pieces)
     span = top_step - low + 1  # steps per region in the key
     n_keys = plane * span
     cell_region: Tensor | None = None
     if n_keys <= COUNTED_KEYS_PER_EVENT * n and 2 * n_keys < 1 << 31:  # count every key
-        cell_step, counts = counted_cells(events, steps, fx=fx, fy=fy, wo=wo, plane=plane,
-                                          low=low, span=span)
+        cell_step, counts = counted_cells(pieces, fx=fx, fy=fy, wo=wo, plane=plane, low=low,
+                                          span=span)
     else:
-        cell_region, cell_step, counts = _grouped_cells(
-            events, steps, fx=fx, fy=fy, wo=wo, plane=plane, low=low, span=span)
+        joined = Events(*(torch.cat(c) for c in zip(*(e for e, _ in pieces), strict=True)))
+        cell_region, cell_step, counts = grouped_cells(
+            joined, torch.cat([s for _, s in pieces]), fx=fx, fy=fy, wo=wo, plane=plane,
+            low=low, span=span,
+            table=n_keys <= min(OCCUPANCY_KEYS_PER_EVENT * n, MAX_OCCUPANCY_KEYS))
     if cell_region is None:  # from the keys
         cell_region = divide(cell_step, span)
         cell_step = cell_step.sub_(cell_region * span).add_(low)
@@ -167,57 +181,6 @@ def _event_cells(
     if mutual_inhibition != 0:
         current -= counts.flip(1) * torch.tensor(mutual_inhibition, dtype=f32, device=device)
     return cell_region, cell_step, current
-
-
-def _grouped_cells(
-    events: Events, steps: Tensor, *, fx: int, fy: int, wo: int, plane: int, low: int,
-    span: int,
-) -> tuple[Tensor | None, Tensor, Tensor]:
-    """:func:`_event_cells` by grouping the events: ``(cell_region, cell_key, counts)``.
-
-    A table of the keys, a sort of them, or a stable sort of the regions; ``cell_region`` is
-    ``None`` except from the stable sort, which gives the cells' steps in place of their keys;
-    ``counts`` are the cells' ``(n_cells, 2)`` int64 OFF and ON events.
-    """
-    device = events.device
-    region = divide(events.x, fx).add_(divide(events.y, fy), alpha=wo)
-    n, n_keys = region.shape[0], plane * span
-    cell_region = None
-    if n_keys <= min(OCCUPANCY_KEYS_PER_EVENT * n, MAX_OCCUPANCY_KEYS):
-        key = region.mul_(span).add_(steps).sub_(low)
-        occupied = torch.zeros(n_keys, dtype=torch.bool, device=device)
-        occupied[key] = True
-        count_dtype = torch.int32 if n < 1 << 30 else torch.int64  # 2 * cells + 1 fits
-        rank = torch.cumsum(occupied, 0, dtype=count_dtype)  # cells up to each key
-        del occupied
-        cell_of_event = rank.index_select(0, key).sub_(1)
-        cell_step = torch.empty(int(rank[-1]), dtype=torch.int64, device=device)
-        cell_step[cell_of_event] = key  # the cells' keys, sorted
-        del rank
-        polarity = events.p
-    elif n_keys < 1 << 62:
-        key, order = torch.sort(region.mul_(span).add_(steps).sub_(low))
-        polarity = events.p.index_select(0, order)
-        del order
-        starts = torch.ones(n, dtype=torch.bool, device=device)
-        torch.ne(key[1:], key[:-1], out=starts[1:])
-        cell_of_event = torch.cumsum(starts, 0).sub_(1)
-        cell_step = key.index_select(0, starts.nonzero().squeeze(1))
-    else:
-        region, order = stable_sort_small(region, plane)  # stable: time order within a region
-        steps = steps.index_select(0, order)
-        polarity = events.p.index_select(0, order)
-        del order
-        starts = torch.ones(n, dtype=torch.bool, device=device)
-        torch.ne(region[1:], region[:-1], out=starts[1:])
-        starts[1:] |= steps[1:] != steps[:-1]
-        cell_of_event = torch.cumsum(starts, 0).sub_(1)
-        first = starts.nonzero().squeeze(1)
-        cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
-        del region, steps, starts, first
-    n_cells = cell_step.shape[0]
-    counts = torch.bincount(cell_of_event.mul_(2).add_(polarity), minlength=2 * n_cells)
-    return cell_region, cell_step, counts.view(n_cells, 2)
 
 
 def _with_state_cells(
@@ -354,8 +317,8 @@ def initial_state(plane: int, device: torch.device | str | None = None) -> LIFSt
 
 
 def lif_spikes(
-    events: Events,
-    steps: Tensor,
+    events: Events | Sequence[Events],
+    steps: Tensor | Sequence[Tensor],
     settings: LIFSettings,
     *,
     state: LIFState | None,
@@ -374,8 +337,8 @@ def lif_spikes(
 
     Args:
         events: time-sorted events, all in steps after every region's ``state.last_step``
-            and at most ``last_step``.
-        steps: ``(N,)`` int64 step of every event.
+            and at most ``last_step``; or consecutive pieces of them (not joined here).
+        steps: ``(N,)`` int64 step of every event (of every piece).
         settings: the neuron's settings (its ``dt`` is not used: ``steps`` are given).
         state: the neurons before these events (``None``: all at rest).
         last_step: the last step to process: firing chains through the empty steps after a
@@ -397,19 +360,18 @@ def lif_spikes(
         (``None`` unless ``keep_state``).
     """
     beta, threshold, weight, mutual_inhibition, reset_mechanism = settings.neuron
-    device = events.device
     fx, fy = factor
     wo, ho, _ = output_size(sensor_size, factor)
     plane = batch_size * wo * ho  # batch_size recordings stacked vertically
-    f32 = torch.float32
-    beta32 = torch.tensor(beta, dtype=f32, device=device)  # the neuron's buffers, as snntorch
-    threshold32 = torch.tensor(threshold, dtype=f32, device=device)
-    leak = Leak(beta32, threshold32, reset_mechanism)
     top_step = int(last_step.max()) if isinstance(last_step, Tensor) else last_step
     cell_region, cell_step, current = _event_cells(
         events, steps, fx=fx, fy=fy, wo=wo, plane=plane, top_step=top_step, weight=weight,
         mutual_inhibition=mutual_inhibition,
     )
+    device, f32 = current.device, torch.float32
+    beta32 = torch.tensor(beta, dtype=f32, device=device)  # the neuron's buffers, as snntorch
+    threshold32 = torch.tensor(threshold, dtype=f32, device=device)
+    leak = Leak(beta32, threshold32, reset_mechanism)
     if state is not None:  # each region's last update, as a cell whose current is its membrane
         cell_region, cell_step, current = _with_state_cells(
             cell_region, cell_step, current, state, plane=plane,

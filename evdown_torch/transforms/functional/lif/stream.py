@@ -65,6 +65,7 @@ class LIFStreamState(NamedTuple):
         neurons: the neurons after the decided steps.
         decided: the last step whose spikes were returned (-1: none yet).
         pending: the events of the steps after ``decided``, time-sorted.
+        pending_steps: ``(len(pending),)`` int64 step of every pending event.
     """
 
     t_start: Tensor
@@ -72,6 +73,7 @@ class LIFStreamState(NamedTuple):
     neurons: LIFState
     decided: int
     pending: Events
+    pending_steps: Tensor
 
 
 def _spike_time_within(step: int, *, t_start: Tensor, last_t: Tensor, dt: float) -> bool:
@@ -121,6 +123,7 @@ def _fresh_state(
     return LIFStreamState(
         events.t[0], events.t[0], initial_state(wo * ho, events.device), -1,
         Events.empty(events.t.dtype, events.device),
+        torch.empty(0, dtype=torch.int64, device=events.device),
     )
 
 
@@ -168,28 +171,44 @@ def lif_pooling_stream(
     events = sort_by_time(events)
     if state is None:
         state = _fresh_state(events, sensor_size, factor)
-    pending = Events(*(torch.cat(pair) for pair in zip(state.pending, events, strict=True)))
-    dt = settings.dt
-    steps, last_step, end_dt = step_indices(pending.t, dt, t_start=state.t_start)
-    last_t = pending.t[-1]
+    # The steps of the new events only (the pending ones' are kept: the same, see
+    # step_indices, whose dt changes only while every event is in step 0).
+    steps, last_step, end_dt = step_indices(events.t, settings.dt, t_start=state.t_start)
+    last_t = events.t[-1]
     decided = _last_decided_step(
-        last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=dt
+        last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=settings.dt
     )
     if decided == state.decided:
         return Events.empty(events.t.dtype, events.device), state._replace(
-            last_t=last_t, pending=pending
+            last_t=last_t, pending=_joined(state.pending, events),
+            pending_steps=torch.cat([state.pending_steps, steps]),
         )
-    n = int(torch.searchsorted(steps, decided, right=True))  # the events of decided steps
+    # The events of decided steps: a prefix of the pending ones (usually all), then a prefix
+    # of the new ones (none unless every pending one is decided), passed as two pieces.
+    k = int(torch.searchsorted(state.pending_steps, decided, right=True))
+    n = int(torch.searchsorted(steps, decided, right=True))
     spike_step, neuron, neurons = lif_spikes(
-        Events(*(column[:n] for column in pending)), steps[:n], settings,
+        [_part(state.pending, 0, k), _part(events, 0, n)],
+        [state.pending_steps[:k], steps[:n]], settings,
         state=state.neurons, last_step=decided, from_step=state.decided + 1,
         sensor_size=sensor_size, factor=factor,
     )
     t = step_end_time(spike_step, t_start=state.t_start, t_end=last_t, dt=end_dt)
     out = spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
-    rest = Events(*(column[n:] for column in pending))  # views: no copy
+    rest = _joined(_part(state.pending, k, None), _part(events, n, None))
+    rest_steps = torch.cat([state.pending_steps[k:], steps[n:]])
     neurons = cast(LIFState, neurons)  # kept: lif_spikes returns the state (keep_state)
-    return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest)
+    return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest, rest_steps)
+
+
+def _part(events: Events, start: int, stop: int | None) -> Events:
+    """``events[start:stop]``, views of the columns."""
+    return Events(*(column[start:stop] for column in events))
+
+
+def _joined(first: Events, second: Events) -> Events:
+    """``first`` followed by ``second``."""
+    return Events(*(torch.cat(pair) for pair in zip(first, second, strict=True)))
 
 
 def lif_pooling_stream_end(
