@@ -79,3 +79,22 @@ def test_spikes_ordered_by_table_as_by_sort(monkeypatch):
     for a, b in zip(by_table, by_sort, strict=True):
         assert torch.equal(a, b)
     assert bool((torch.diff(by_table[0] * neurons + by_table[1]) > 0).all())
+
+
+@pytest.mark.parametrize("dt", [997, 1000, 2.5])
+def test_large_chunks_cut_anywhere_equal_the_batch(dt):
+    # Chunks of 20k to 40k events cut at random (within steps, a first chunk shorter than a
+    # step, pending events that stay pending): the pieces a session counts give the batch.
+    rng = np.random.default_rng(9)
+    arr = random_stream(rng, 120_000, (12, 10, 2), t_max=30_000)
+    pool = LIFPooling((12, 10, 2), (3, 2), dt=dt, tau=8_000.0, weight=0.05,
+                      mutual_inhibition=0.02)
+    session = pool.session()
+    cuts = [0, 5, 20, 30_000, 30_001, 70_000, 100_000, 120_000]
+    got = np.concatenate([session(arr[a:b]) for a, b in zip(cuts, cuts[1:])]
+                         + [session.flush()])
+    want = pool(arr)
+    assert len(want) > 100
+    np.testing.assert_array_equal(got, want)
+    if float(dt).is_integer():
+        assert as_tuples(want) == lif_dense_reference(arr, pool)
