@@ -13,16 +13,17 @@ from evdown_torch.transforms.functional.lif import steps as lif_steps
 from tests.helpers import LIF_SETTINGS, as_tuples, lif_dense_reference, random_stream
 
 
-@pytest.mark.parametrize("batch", [1, 3])
-def test_counted_cells_equal_grouped_cells(batch, monkeypatch):
+@pytest.mark.parametrize(("batch", "first_step"), [(1, 40), (3, 40), (1, 2**40)])
+def test_counted_cells_equal_grouped_cells(batch, first_step, monkeypatch):
     # Many events on few keys: counting every key gives the cells and currents of the
-    # grouping paths, also for recordings stacked vertically (a batch's plane).
+    # grouping paths, also for recordings stacked vertically (a batch's plane) and for
+    # steps beyond int32 (an old stream's).
     rng = np.random.default_rng(5)
     n, wo, ho = 20_000, 4, 5  # factor (3, 2) on 12 x 10 pixels per recording
     x, y = rng.integers(0, 12, n), rng.integers(0, 10 * batch, n)
-    steps = torch.from_numpy(np.sort(rng.integers(40, 90, n)))
+    steps = torch.from_numpy(np.sort(rng.integers(0, 50, n)) + first_step)
     events = Events.from_columns(x, y, steps, rng.random(n) < 0.3)
-    kwargs = dict(fx=3, fy=2, wo=wo, plane=batch * wo * ho, top_step=95, weight=0.5,
+    kwargs = dict(fx=3, fy=2, wo=wo, plane=batch * wo * ho, top_step=first_step + 55, weight=0.5,
                   mutual_inhibition=0.25)
     counted = lif_kernel._event_cells(events, steps, **kwargs)
     monkeypatch.setattr(lif_kernel, "COUNTED_KEYS_PER_EVENT", 0)

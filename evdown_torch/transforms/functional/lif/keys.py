@@ -52,9 +52,15 @@ def counted_cells(
     i32 = torch.int32
     keys = []
     for events, steps in pieces:  # (a session's pending events and its new chunk's)
-        key = divide(events.x.to(i32), fx).mul_(2 * span)
-        key.add_(divide(events.y.to(i32), fy), alpha=2 * span * wo)
-        keys.append(key.add_(steps.sub(low).to(i32), alpha=2).add_(events.p))
+        key = events.x.to(i32)  # in place from here: two int32 columns in all
+        divide(key, fx, out=key).mul_(2 * span)
+        other = events.y.to(i32)
+        key.add_(divide(other, fy, out=other), alpha=2 * span * wo)
+        if low + span <= 1 << 31:  # the steps themselves fit in int32
+            other.copy_(steps).sub_(low)
+        else:
+            other.copy_(steps.sub(low))
+        keys.append(key.add_(other, alpha=2).add_(events.p))
     key = keys[0] if len(keys) == 1 else torch.cat(keys)
     counts = torch.bincount(key, minlength=2 * plane * span).view(-1, 2)
     cell_key = counts.any(1).nonzero().squeeze(1)
