@@ -129,6 +129,7 @@ def _event_cells(
     top_step: int,
     weight: float,
     mutual_inhibition: float,
+    ascending: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Cells: the ``(region, step)`` pairs that hold events, ordered by region, then step.
 
@@ -147,6 +148,9 @@ def _event_cells(
     or, where the key would not fit in int64, stably by region (the events are in time order
     within a region).
 
+    ``ascending``: every piece's steps ascend (one stream's time-sorted events), so the
+    earliest step is a piece's first.
+
     Returns:
         ``(cell_region, cell_step, current)``: int64, int64 and the ``(n_cells, 2)`` float32
         input current of the region's (OFF, ON) neurons, ``w * S - w_inh * S'``.
@@ -160,7 +164,7 @@ def _event_cells(
         empty = torch.empty(0, dtype=torch.int64, device=device)
         return empty, empty, torch.empty(0, 2, dtype=f32, device=device)
     n = sum(e.num_events for e, _ in pieces)
-    low = min(int(s.min()) for _, s in pieces)
+    low = min(int(s[0] if ascending else s.min()) for _, s in pieces)
     span = top_step - low + 1  # steps per region in the key
     n_keys = plane * span
     cell_region: Tensor | None = None
@@ -366,7 +370,7 @@ def lif_spikes(
     top_step = int(last_step.max()) if isinstance(last_step, Tensor) else last_step
     cell_region, cell_step, current = _event_cells(
         events, steps, fx=fx, fy=fy, wo=wo, plane=plane, top_step=top_step, weight=weight,
-        mutual_inhibition=mutual_inhibition,
+        mutual_inhibition=mutual_inhibition, ascending=batch_size == 1,
     )
     device, f32 = current.device, torch.float32
     beta32 = torch.tensor(beta, dtype=f32, device=device)  # the neuron's buffers, as snntorch

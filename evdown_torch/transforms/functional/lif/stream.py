@@ -134,6 +134,7 @@ def lif_pooling_stream(
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
+    time_sorted: bool = False,
 ) -> tuple[Events, LIFStreamState | None]:
     """One chunk of a LIF pooling stream: the spikes it decides, and the new state.
 
@@ -143,6 +144,8 @@ def lif_pooling_stream(
         settings: the neuron's settings (``dt`` in the unit of ``t``).
         sensor_size: input sensor ``(W, H, P)``.
         factor: ``(fx, fy)``, positive integers.
+        time_sorted: the chunk is known to be in time order (a session's, which sorts it
+            first), so its order is not checked again.
 
     Returns:
         ``(output, state)``: the events of the newly decided steps (sorted by ``t``; the
@@ -168,7 +171,8 @@ def lif_pooling_stream(
     """
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device), state
-    events = sort_by_time(events)
+    if not time_sorted:
+        events = sort_by_time(events)
     if state is None:
         state = _fresh_state(events, sensor_size, factor)
     # The steps of the new events only (the pending ones' are kept: the same, see
@@ -253,9 +257,10 @@ def lif_init(settings: LIFPoolingSettings, events: Events) -> LIFStreamState:
 def lif_step(
     events: Events, state: LIFStreamState, settings: LIFPoolingSettings
 ) -> tuple[Events, LIFStreamState]:
-    """LIF pooling's ``step``: :func:`lif_pooling_stream` on one chunk."""
+    """LIF pooling's ``step``: :func:`lif_pooling_stream` on one (time-sorted) chunk."""
     out, new = lif_pooling_stream(events, state, settings.neuron,
-                                  sensor_size=settings.sensor_size, factor=settings.factor)
+                                  sensor_size=settings.sensor_size, factor=settings.factor,
+                                  time_sorted=True)
     return out, new if new is not None else state
 
 
