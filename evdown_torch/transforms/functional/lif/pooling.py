@@ -172,10 +172,11 @@ def _event_cells(
         cell_step, counts = counted_cells(pieces, fx=fx, fy=fy, wo=wo, plane=plane, low=low,
                                           span=span)
     else:
-        joined = Events(*(torch.cat(c) for c in zip(*(e for e, _ in pieces), strict=True)))
+        joined, joined_steps = pieces[0] if len(pieces) == 1 else (
+            Events(*(torch.cat(c) for c in zip(*(e for e, _ in pieces), strict=True))),
+            torch.cat([s for _, s in pieces]))
         cell_region, cell_step, counts = grouped_cells(
-            joined, torch.cat([s for _, s in pieces]), fx=fx, fy=fy, wo=wo, plane=plane,
-            low=low, span=span,
+            joined, joined_steps, fx=fx, fy=fy, wo=wo, plane=plane, low=low, span=span,
             table=n_keys <= min(OCCUPANCY_KEYS_PER_EVENT * n, MAX_OCCUPANCY_KEYS))
     if cell_region is None:  # from the keys
         cell_region = divide(cell_step, span)

@@ -29,11 +29,13 @@ __all__ = [
 #: Largest number of steps a stream may be cut into (step indices are int64, with headroom).
 MAX_STEPS = 1 << 62
 
-#: Fewest events, and most events per step spanned, for which a sorted stream's steps are
-#: found by searching the steps' first times rather than by dividing every time: on 10 ms
-#: chunks of 400k events at ``dt`` = 1 ms, 0.3 ms instead of 0.7 (int64 division is slow).
-SEARCH_STEPS_MIN_EVENTS = 1 << 14
-SEARCH_STEPS_PER_EVENT = 8
+#: Fewest events, and fewest events per step spanned, for which a sorted stream's steps are
+#: found by searching the steps' first times rather than by dividing every time (int64
+#: division is slow): on 10 ms chunks of 400k events at ``dt`` = 1 ms, 0.3 ms instead of 0.8;
+#: the search's cost grows with the steps, so 400k events over 10k steps divide (0.8 ms, 1.2
+#: by the search).
+SEARCH_MIN_EVENTS = 1 << 14
+SEARCH_MIN_EVENTS_PER_STEP = 256
 
 
 def step_indices(
@@ -58,7 +60,7 @@ def step_indices(
 
 def _searchable(t: Tensor, dt: float) -> bool:
     """Whether :func:`_sorted_steps` may step ``t``: integer times, a whole ``dt``, many events."""
-    return (t.shape[0] >= SEARCH_STEPS_MIN_EVENTS and not t.is_floating_point()
+    return (t.shape[0] >= SEARCH_MIN_EVENTS and not t.is_floating_point()
             and dt.is_integer())
 
 
@@ -67,12 +69,12 @@ def _sorted_steps(t: Tensor, t_start: int, dt: int) -> Tensor | None:
 
     Step ``k`` begins at ``t_start + k * dt`` exactly, so the events of a step are the run
     between two of those times; the steps are the runs' indices repeated, the same integers
-    as the division at a fraction of its cost. ``None`` where the events span more than
-    :data:`SEARCH_STEPS_PER_EVENT` steps per event (the division is cheaper there).
+    as the division at a fraction of its cost. ``None`` where the events are fewer than
+    :data:`SEARCH_MIN_EVENTS_PER_STEP` per step spanned (the division is cheaper there).
     """
     n = t.shape[0]
     first, last = (int(t[0]) - t_start) // dt, (int(t[-1]) - t_start) // dt
-    if (last - first) * SEARCH_STEPS_PER_EVENT > n:
+    if (last - first + 1) * SEARCH_MIN_EVENTS_PER_STEP > n:
         return None
     index = torch.arange(first, last + 1, device=t.device)
     begins = torch.searchsorted(t, index[1:] * dt + t_start)  # each later step's first event
