@@ -8,7 +8,9 @@ that follows the events:
 - **Cells.** The events are grouped into *cells*, the ``(region, step)`` pairs that hold
   events; a cell's input current for the region's two neurons is the pooled count of its
   events (``w * S - w_inh * S'``, as :class:`~evdown_torch.models.SpikingPooling` computes it).
-  Steps without input are never visited.
+  Steps without input are never visited. Where the cells are few next to the events (a live
+  chunk) every cell's events are counted in one pass
+  (:mod:`~evdown_torch.transforms.functional.lif.keys`); otherwise they are grouped.
 - **Gaps in closed form.** Between two cells of a region the input is zero. A membrane at or
   below threshold only decays, by ``beta ** g`` over ``g`` steps. A membrane above threshold
   keeps firing (snntorch applies the reset one step later): with reset ``"subtract"`` the

@@ -20,6 +20,13 @@ processes that input and the chains up to the last step, with times clipped to `
 kernel is the batch one (:func:`~evdown_torch.transforms.functional.lif.pooling.lif_spikes`), so the
 cost still follows the events: a call touches the regions with input and the neurons that are
 firing through empty steps.
+
+Live chunks. The state keeps the steps of the pending input, so a chunk steps only its own
+events (by searching the steps' first times where there are many events per step), and the
+decided input goes to the kernel in two pieces, the pending events and the decided prefix of
+the chunk, which it counts piece by piece without joining them (a live chunk's cells are few
+next to its events: :func:`~evdown_torch.transforms.functional.lif.keys.counted_cells`); the
+rest of the chunk stays pending as views of its columns.
 """
 
 from __future__ import annotations
