@@ -25,8 +25,9 @@ Live chunks. The state keeps the steps of the pending input, so a chunk steps on
 events (by searching the steps' first times where there are many events per step), and the
 decided input goes to the kernel in two pieces, the pending events and the decided prefix of
 the chunk, which it counts piece by piece without joining them (a live chunk's cells are few
-next to its events: :func:`~evdown_torch.transforms.functional.lif.keys.counted_cells`); the
-rest of the chunk stays pending as views of its columns.
+next to its events: :func:`~evdown_torch.transforms.functional.lif.keys.counted_cells`); only
+the rest of the chunk (the events of its last, open step) is copied, into the new pending
+input.
 """
 
 from __future__ import annotations
