@@ -95,9 +95,10 @@ def membranes_by_rounds(
             chain = beta32 * u - threshold32  # (+ a zero current: exact)
             w = torch.where(moving, chain * decay_after_one[a:b], w)
             fired &= ~silent
-            longer = (moving & (chain > threshold32)).view(-1).nonzero().squeeze(1)
-            if longer.shape[0]:  # still firing after one empty step: the chain goes on
-                lane = divide(longer, 2)  # (the neurons of lanes, flattened)
+            longer = moving & (chain > threshold32)
+            if bool(longer.any()):  # still firing after one empty step: the chain goes on
+                longer = longer.view(-1).nonzero().squeeze(1)  # (neurons of lanes, flattened)
+                lane = divide(longer, 2)
                 count, chained, still = leak.fire_through(
                     u.reshape(-1).index_select(0, longer),
                     gap_in_rounds.index_select(0, lane.add_(a)).squeeze(1),
