@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import stable_sort_small
+from evdown_torch._tensors import divide, stable_sort_small
 from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak
 
 __all__ = ["membranes_by_rounds", "spikes_and_runs"]
@@ -97,10 +97,15 @@ def membranes_by_rounds(
             fired &= ~silent
             longer = moving & (chain > threshold32)
             if bool(longer.any()):  # still firing after one empty step: the chain goes on
-                count, chained, still = leak.fire_through(u, gap_in_rounds[a:b], longer)
-                w = torch.where(longer, chained, w)
-                fired = torch.where(longer, still, fired)
-                chain_in_rounds[a:b] = count
+                longer = longer.view(-1).nonzero().squeeze(1)  # (neurons of lanes, flattened)
+                lane = divide(longer, 2)
+                count, chained, still = leak.fire_through(
+                    u.reshape(-1).index_select(0, longer),
+                    gap_in_rounds.index_select(0, lane.add_(a)).squeeze(1),
+                    torch.ones(longer.shape, dtype=torch.bool, device=device))
+                w.view(-1).index_copy_(0, longer, chained)
+                fired.view(-1).index_copy_(0, longer, still)
+                chain_in_rounds[a:b].view(-1).index_copy_(0, longer, count)
             reset = fired
         out = torch.mul(beta32, w, out=mem_in_rounds[a:b])
         out += current_in_rounds[a:b]

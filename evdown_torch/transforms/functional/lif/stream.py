@@ -20,6 +20,14 @@ processes that input and the chains up to the last step, with times clipped to `
 kernel is the batch one (:func:`~evdown_torch.transforms.functional.lif.pooling.lif_spikes`), so the
 cost still follows the events: a call touches the regions with input and the neurons that are
 firing through empty steps.
+
+Live chunks. The state keeps the steps of the pending input, so a chunk steps only its own
+events (by searching the steps' first times where there are many events per step), and the
+decided input goes to the kernel in two pieces, the pending events and the decided prefix of
+the chunk, which it counts piece by piece without joining them (a live chunk's cells are few
+next to its events: :func:`~evdown_torch.transforms.functional.lif.keys.counted_cells`); only
+the rest of the chunk (the events of its last, open step) is copied, into the new pending
+input.
 """
 
 from __future__ import annotations
@@ -65,6 +73,7 @@ class LIFStreamState(NamedTuple):
         neurons: the neurons after the decided steps.
         decided: the last step whose spikes were returned (-1: none yet).
         pending: the events of the steps after ``decided``, time-sorted.
+        pending_steps: ``(len(pending),)`` int64 step of every pending event.
     """
 
     t_start: Tensor
@@ -72,6 +81,7 @@ class LIFStreamState(NamedTuple):
     neurons: LIFState
     decided: int
     pending: Events
+    pending_steps: Tensor
 
 
 def _spike_time_within(step: int, *, t_start: Tensor, last_t: Tensor, dt: float) -> bool:
@@ -121,6 +131,7 @@ def _fresh_state(
     return LIFStreamState(
         events.t[0], events.t[0], initial_state(wo * ho, events.device), -1,
         Events.empty(events.t.dtype, events.device),
+        torch.empty(0, dtype=torch.int64, device=events.device),
     )
 
 
@@ -131,6 +142,7 @@ def lif_pooling_stream(
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
+    time_sorted: bool = False,
 ) -> tuple[Events, LIFStreamState | None]:
     """One chunk of a LIF pooling stream: the spikes it decides, and the new state.
 
@@ -140,6 +152,8 @@ def lif_pooling_stream(
         settings: the neuron's settings (``dt`` in the unit of ``t``).
         sensor_size: input sensor ``(W, H, P)``.
         factor: ``(fx, fy)``, positive integers.
+        time_sorted: the chunk is known to be in time order (a session's, which sorts it
+            first), so its order is not checked again.
 
     Returns:
         ``(output, state)``: the events of the newly decided steps (sorted by ``t``; the
@@ -165,31 +179,48 @@ def lif_pooling_stream(
     """
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device), state
-    events = sort_by_time(events)
+    if not time_sorted:
+        events = sort_by_time(events)
     if state is None:
         state = _fresh_state(events, sensor_size, factor)
-    pending = Events(*(torch.cat(pair) for pair in zip(state.pending, events, strict=True)))
-    dt = settings.dt
-    steps, last_step, end_dt = step_indices(pending.t, dt, t_start=state.t_start)
-    last_t = pending.t[-1]
+    # The steps of the new events only (the pending ones' are kept: the same, see
+    # step_indices, whose dt changes only while every event is in step 0).
+    steps, last_step, end_dt = step_indices(events.t, settings.dt, t_start=state.t_start)
+    last_t = events.t[-1]
     decided = _last_decided_step(
-        last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=dt
+        last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=settings.dt
     )
     if decided == state.decided:
         return Events.empty(events.t.dtype, events.device), state._replace(
-            last_t=last_t, pending=pending
+            last_t=last_t, pending=_joined(state.pending, events),
+            pending_steps=torch.cat([state.pending_steps, steps]),
         )
-    n = int(torch.searchsorted(steps, decided, right=True))  # the events of decided steps
+    # The events of decided steps: a prefix of the pending ones (usually all), then a prefix
+    # of the new ones (none unless every pending one is decided), passed as two pieces.
+    k = int(torch.searchsorted(state.pending_steps, decided, right=True))
+    n = int(torch.searchsorted(steps, decided, right=True))
     spike_step, neuron, neurons = lif_spikes(
-        pending.select(torch.arange(n, device=events.device)), steps[:n], settings,
+        [_part(state.pending, 0, k), _part(events, 0, n)],
+        [state.pending_steps[:k], steps[:n]], settings,
         state=state.neurons, last_step=decided, from_step=state.decided + 1,
         sensor_size=sensor_size, factor=factor,
     )
     t = step_end_time(spike_step, t_start=state.t_start, t_end=last_t, dt=end_dt)
     out = spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
-    rest = pending.select(torch.arange(n, pending.num_events, device=events.device))
+    rest = _joined(_part(state.pending, k, None), _part(events, n, None))
+    rest_steps = torch.cat([state.pending_steps[k:], steps[n:]])
     neurons = cast(LIFState, neurons)  # kept: lif_spikes returns the state (keep_state)
-    return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest)
+    return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest, rest_steps)
+
+
+def _part(events: Events, start: int, stop: int | None) -> Events:
+    """``events[start:stop]``, views of the columns."""
+    return Events(*(column[start:stop] for column in events))
+
+
+def _joined(first: Events, second: Events) -> Events:
+    """``first`` followed by ``second``."""
+    return Events(*(torch.cat(pair) for pair in zip(first, second, strict=True)))
 
 
 def lif_pooling_stream_end(
@@ -234,9 +265,10 @@ def lif_init(settings: LIFPoolingSettings, events: Events) -> LIFStreamState:
 def lif_step(
     events: Events, state: LIFStreamState, settings: LIFPoolingSettings
 ) -> tuple[Events, LIFStreamState]:
-    """LIF pooling's ``step``: :func:`lif_pooling_stream` on one chunk."""
+    """LIF pooling's ``step``: :func:`lif_pooling_stream` on one (time-sorted) chunk."""
     out, new = lif_pooling_stream(events, state, settings.neuron,
-                                  sensor_size=settings.sensor_size, factor=settings.factor)
+                                  sensor_size=settings.sensor_size, factor=settings.factor,
+                                  time_sorted=True)
     return out, new if new is not None else state
 
 
