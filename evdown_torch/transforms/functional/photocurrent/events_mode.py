@@ -227,8 +227,8 @@ def _moved_steps(floor_u: Tensor, on_level: Tensor, first: Tensor) -> tuple[Tens
 
 def _one_word_steps(
     key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, new_levels: Tensor,
-    firsts: Tensor, first: Tensor, log_pixels: Tensor, per_region: int, contrast: float,
-    threshold: float,
+    firsts: Tensor, first: Tensor, log_pixels: Tensor | float, per_region: int,
+    contrast: float, threshold: float,
 ) -> tuple[Tensor, Tensor, Tensor] | None:
     """:func:`_moved_steps` of a piece from its one-word sums (:func:`.sums.one_word_sums`).
 
@@ -269,7 +269,9 @@ def _one_word_steps(
     kept, floor_w, near = _moved_steps(floor_w, near, first)
     u = floor_w.add_(take(frac, kept)).sub_(shift)
     distance = torch.round(u).sub_(u).abs_().sub_(SNAP).abs_()
-    if bool((distance <= margin(take(sums.total, kept).to(torch.float64))).any()):
+    doubt = where_true(distance <= widest)  # (each event's own bound is at most widest)
+    if doubt.shape[0] and bool((take(distance, doubt) <= margin(
+            take(take(sums.total, kept), doubt).to(torch.float64))).any()):
         return None  # an event within the error bound of a snap bound
     floor_u, on_level = snap(u)
     return kept, floor_u, on_level
@@ -320,8 +322,16 @@ def photocurrent_events(
         >>> out.t.tolist(), out.p.tolist()
         ([9], [True])
     """
+    return photocurrent_sorted(sort_by_time(events), sensor_size, factor, contrast, threshold,
+                               state, recordings)
+
+
+def photocurrent_sorted(
+    events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int], contrast: float,
+    threshold: float, state: PhotocurrentState | None, recordings: int = 1,
+) -> tuple[Events, PhotocurrentState]:
+    """:func:`photocurrent_events` of events already in stable time order (a session's chunk)."""
     check_contrast_range(contrast, threshold)
-    events = sort_by_time(events)
     if state is None:
         state = initial_state(sensor_size, factor, events.device, recordings)
     n = events.num_events
@@ -404,18 +414,29 @@ def _events_piece(
         place.add_(ry.bitwise_right_shift_(shift), alpha=per_region)
         place = take(place.to(torch.uint8) if bound <= 256 else place, order)
     del ry
-    first = changes(region)
-    firsts = where_true(first)
-    touched = take(region, firsts).long()
+    # Each region's first grouped event, by bisection on the sorted region ids.
+    edges = torch.searchsorted(region, torch.arange(regions, dtype=region.dtype,
+                                                    device=region.device))
+    edges = torch.cat([edges, edges.new_tensor([n])])
+    touched = where_true(edges[1:] > edges[:-1])
+    firsts = take(edges, touched)
+    first = torch.zeros(n, dtype=torch.bool, device=region.device).index_fill_(0, firsts, True)
     key, new_levels = grouped_levels(take(pixel_on, order), place, bound, state.level)
     del place, pixel_on
 
     ids, inside = region_pixels(touched, sensor_size, factor)
-    log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
+
+    def log_pixels() -> Tensor:
+        return region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
+
     steps = None
     if n > 1:
+        # log(n_r): one float when every region is whole (a few ulps off torch's log do not
+        # matter there).
+        whole = sensor_size[0] % fx == 0 and sensor_size[1] % fy == 0
         steps = _one_word_steps(key, ids, inside, state.level, new_levels, firsts, first,
-                             log_pixels, per_region, contrast, threshold)
+                                math.log(per_region) if whole else log_pixels(), per_region,
+                                contrast, threshold)
     if steps is None:
         lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
         rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
@@ -441,7 +462,7 @@ def _events_piece(
             events = Events(*(column[:used] for column in events))
             n = used
         # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
-        offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels)
+        offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels())
         u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
         floor_u, on_level = snap(u)
         del u, total
