@@ -253,7 +253,8 @@ def _one_word_steps(
     largest = float(offset.abs().max()) + (64 * math.log(2) + 1) / threshold
 
     def margin(smallest: Tensor | float) -> Tensor | float:
-        return 2 * (1.01 * (per_region / smallest + 16 * EPS) / threshold + 8 * EPS * largest)
+        relative = per_region / smallest + sums.two_word_error + 16 * EPS
+        return 2 * (1.01 * relative / threshold + 8 * EPS * largest)
 
     widest = float(margin(float(sums.smallest)))
     if widest > 1e-2:

@@ -301,8 +301,8 @@ class OneWordSums(NamedTuple):
     """Running photocurrent sums of a piece in one int64 word (:func:`one_word_sums`).
 
     ``total * exp(c * (top - m)) / 2**bits`` (``m``: the region's anchor, as in
-    :func:`running_sums`) is within ``per_region / total + 16 * EPS`` of the sum
-    :func:`running_sums` gives for the same event, relative to it.
+    :func:`running_sums`) is within ``per_region / total + two_word_error + 16 * EPS`` of the
+    sum :func:`running_sums` gives for the same event, relative to it.
     """
 
     region: Tensor  # (N,) int64 the segment (touched region) of each event
@@ -310,6 +310,7 @@ class OneWordSums(NamedTuple):
     total: Tensor  # (N,) int64 sum of round(exp(c * (L_p - top)) * 2**bits) after each event
     bits: int
     smallest: int  # the smallest total
+    two_word_error: float  # bound of the two-word sums' fine steps, relative to their sum
 
 
 def one_word_sums(
@@ -386,10 +387,12 @@ def one_word_sums(
     anchor[1:] -= final[:-1]
     total = change.index_add_(0, firsts, anchor).cumsum_(0)
     smallest = int(total.min())
-    # running_sums cuts before a sum below its lowest (each region's factor
-    # exp(c * (top - m)) / 2**bits is above 2**-bits): then it must decide the piece.
-    hi = int((top - m).max()) - 1
-    lowest = two_word_scale(hi, per_region, contrast, threshold)[2]
-    if not smallest * (1 - per_region / max(smallest, 1) - 16 * EPS) >= math.ldexp(lowest, bits):
+    # The smallest two-word sum, at least (each region's factor exp(c * (top - m)) / 2**bits
+    # is above 2**-bits): running_sums cuts before a sum below its lowest, and then it must
+    # decide the piece; above it, its half a fine step per pixel is its error.
+    scale, fine, lowest = two_word_scale(int((top - m).max()) - 1, per_region, contrast,
+                                         threshold)
+    least = math.ldexp(smallest, -bits) * (1 - per_region / max(smallest, 1) - 16 * EPS)
+    if not least >= lowest:
         return None
-    return OneWordSums(region, top, total, bits, smallest)
+    return OneWordSums(region, top, total, bits, smallest, per_region / (2 * fine * scale) / least)
