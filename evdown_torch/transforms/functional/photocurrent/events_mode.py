@@ -262,9 +262,9 @@ def _one_word_steps(
     # w = u + SNAP + widest: a w less than 2 * (SNAP + widest) above its floor is near a
     # level; any other has floor(w) = floor(u) and is off every level, certainly.
     shift = SNAP + widest
-    w = take(offset.add_(shift), sums.region)
-    w.add_(sums.total.to(torch.float64).log_(), alpha=1 / threshold)
-    floor_w = torch.floor(w)
+    log_total = sums.total.to(torch.float64).log_()
+    w = take(offset.add_(shift), sums.region).add_(log_total, alpha=1 / threshold)
+    floor_w = torch.floor(w, out=log_total)
     frac = w.sub_(floor_w)
     near = frac <= 2 * shift
     kept, floor_w, near = _moved_steps(floor_w, near, first)
