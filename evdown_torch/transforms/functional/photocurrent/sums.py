@@ -25,6 +25,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
+from evdown_torch.transforms.functional.reference import SNAP
 
 #: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: the fixed point's
 #: scale is fitted to the brightest intensity of the piece, so a pixel rising far above its
@@ -364,35 +365,45 @@ def one_word_sums(
     bits = WORD_BITS - per_region.bit_length()
     # exp(c * j) * 2**bits rounds to 0 at j <= darkest + 1: levels below count as darkest.
     darkest = math.floor(-(bits + 2) * math.log(2) / contrast) - 1
-    key = key - take((2 * top).to(key.dtype), region)
     relative = [take(values, ids.view(-1)).view_as(ids).sub_(top[:, None]).clamp_(min=darkest)
                 for values in (levels, new_levels)]
     if inside is not None:  # (ids outside the sensor read pixel 0)
         relative = [j.masked_fill_(~inside, 0) for j in relative]
-    lo = min(int(key.min()) // 2, min(int(j.min()) for j in relative))
-    if lo < darkest:
-        key.clamp_(min=2 * darkest)
-        lo = darkest
-    if 2 - lo > TABLE_SIZE:
-        return None
+    key = key - take((2 * top).to(key.dtype), region)
+    lo = darkest
+    if 2 - darkest > TABLE_SIZE:  # (a contrast below 6e-4) the levels the piece reaches
+        lo = max(min(int(key.min()) // 2, min(int(j.min()) for j in relative)), darkest)
+        if 2 - lo > TABLE_SIZE:
+            return None
     # table[i]: the intensity at j = lo - 1 + i, up to j = 0.
     table = _split(torch.arange(lo - 1, 1, device=key.device), contrast,
                    math.ldexp(1.0, bits), 1.0)[0]
     anchor, final = ((v if inside is None else v.masked_fill_(~inside, 0)).sum(1)
                      for v in (take(table, j.sub_(lo - 1).view(-1)).view_as(j)
                                for j in relative))
+    # A region whose sum lies far below its brightest of the piece (it rose or fell by some
+    # 100 levels) holds too few bits to decide levels there: the two-word sums take it.
+    if int(torch.minimum(anchor, final).min()) * threshold * SNAP < 8 * per_region:
+        return None
     # Row i (j = lo + i): [change by OFF, change by ON], at 2 * (j - lo) + on.
     steps = torch.stack([table[:-2] - table[1:-1], table[2:] - table[1:-1]], 1).reshape(-1)
-    change = take(steps, key.sub_(2 * lo))
+    change = take(steps, key.clamp_(min=2 * lo).sub_(2 * lo))
     anchor[1:] -= final[:-1]
     total = change.index_add_(0, firsts, anchor).cumsum_(0)
     smallest = int(total.min())
     # The smallest two-word sum, at least (each region's factor exp(c * (top - m)) / 2**bits
-    # is above 2**-bits): running_sums cuts before a sum below its lowest, and then it must
-    # decide the piece; above it, its half a fine step per pixel is its error.
+    # is above 2**-bits, and above its own smallest total): running_sums cuts before a sum
+    # below its lowest, and then it must decide the piece; above it, its half a fine step
+    # per pixel is its error.
     scale, fine, lowest = two_word_scale(int((top - m).max()) - 1, per_region, contrast,
                                          threshold)
-    least = math.ldexp(smallest, -bits) * (1 - per_region / max(smallest, 1) - 16 * EPS)
+    factor = (top - m).to(torch.float64).mul_(contrast).exp_()
+    least = math.ldexp(smallest, -bits) * float(factor.min())
+    if not least >= lowest:  # each region's smallest total times its factor
+        smallest_of = torch.full_like(top, torch.iinfo(torch.int64).max).scatter_reduce_(
+            0, region, total, "amin")
+        least = math.ldexp(float((smallest_of.to(torch.float64) * factor).min()), -bits)
+    least *= 1 - per_region / max(smallest, 1) - 16 * EPS
     if not least >= lowest:
         return None
     return OneWordSums(region, top, total, bits, smallest, per_region / (2 * fine * scale) / least)
