@@ -292,7 +292,6 @@ def running_sums(
     return m, total, bad
 
 
-
 #: Bits of :func:`one_word_sums`' fixed point: a region's intensities sum to an integer
 #: below ``2**62``.
 WORD_BITS = 62
@@ -307,7 +306,7 @@ class OneWordSums(NamedTuple):
     """
 
     region: Tensor  # (N,) int64 the segment (touched region) of each event
-    top: Tensor  # (S,) int64 highest level of each region's pixels during the piece, plus 1
+    top: Tensor  # (S,) int64 each region's highest level before an event, plus 1 (>= any)
     total: Tensor  # (N,) int64 sum of round(exp(c * (L_p - top)) * 2**bits) after each event
     bits: int
     smallest: int  # the smallest total
@@ -332,9 +331,10 @@ def one_word_sums(
     does, with one word instead of two.
 
     ``None`` where :func:`running_sums` would cut the piece (a pixel too far above its anchor
-    or a sum too small for its two words) or where a region's levels span more than
-    :data:`TABLE_SIZE` above the darkest that counts: the caller then takes
-    :func:`running_sums`.
+    or a sum too small for its two words), where a region's sum before or after the piece
+    lies so far below its brightest (a rise or fall of some 100 levels at ``c = 0.2``) that
+    one word would leave events near levels in doubt, or where the levels that count span
+    more than :data:`TABLE_SIZE`: the caller then takes :func:`running_sums`.
 
     Args:
         key: ``(N,)`` int32 or int64 ``2 * L + on`` of each event (``L``: its pixel's level
