@@ -56,6 +56,7 @@ from evdown_torch.checks import output_size
 from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.photocurrent.sums import (
     EPS,
+    NEAR_CAP,
     grouped_levels,
     one_word_sums,
     running_sums,
@@ -257,7 +258,7 @@ def _one_word_steps(
         return 2 * (1.01 * relative / threshold + 8 * EPS * largest)
 
     widest = float(margin(float(sums.smallest)))
-    if widest > 1e-2:
+    if widest > NEAR_CAP:
         return None
     # w = u + SNAP + widest: a w less than 2 * (SNAP + widest) above its floor is near a
     # level; any other has floor(w) = floor(u) and is off every level, certainly.

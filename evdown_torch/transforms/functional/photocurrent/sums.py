@@ -25,7 +25,6 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.transforms.functional.reference import SNAP
 
 #: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: the fixed point's
 #: scale is fitted to the brightest intensity of the piece, so a pixel rising far above its
@@ -292,6 +291,10 @@ def running_sums(
     return m, total, bad
 
 
+#: Largest error bound in ``u`` of :func:`one_word_sums` that its caller works with: events
+#: this close to a level are solved on the few it keeps.
+NEAR_CAP = 1e-2
+
 #: Bits of :func:`one_word_sums`' fixed point: a region's intensities sum to an integer
 #: below ``2**62``.
 WORD_BITS = 62
@@ -332,9 +335,9 @@ def one_word_sums(
 
     ``None`` where :func:`running_sums` would cut the piece (a pixel too far above its anchor
     or a sum too small for its two words), where a region's sum before or after the piece
-    lies so far below its brightest (a rise or fall of some 100 levels at ``c = 0.2``) that
-    one word would leave events near levels in doubt, or where the levels that count span
-    more than :data:`TABLE_SIZE`: the caller then takes :func:`running_sums`.
+    lies so far below its brightest (a rise or fall of some 200 levels at ``c = 0.2``) that
+    the error bound exceeds :data:`NEAR_CAP`, or where the levels that count span more than
+    :data:`TABLE_SIZE`: the caller then takes :func:`running_sums`.
 
     Args:
         key: ``(N,)`` int32 or int64 ``2 * L + on`` of each event (``L``: its pixel's level
@@ -382,8 +385,9 @@ def one_word_sums(
                      for v in (take(table, j.sub_(lo - 1).view(-1)).view_as(j)
                                for j in relative))
     # A region whose sum lies far below its brightest of the piece (it rose or fell by some
-    # 100 levels) holds too few bits to decide levels there: the two-word sums take it.
-    if int(torch.minimum(anchor, final).min()) * threshold * SNAP < 8 * per_region:
+    # 200 levels at c = 0.2) holds too few bits to decide levels there: the two-word sums
+    # take it (the caller's error bound would exceed NEAR_CAP anyway).
+    if int(torch.minimum(anchor, final).min()) * threshold * NEAR_CAP < 2.02 * per_region:
         return None
     # Row i (j = lo + i): [change by OFF, change by ON], at 2 * (j - lo) + on.
     steps = torch.stack([table[:-2] - table[1:-1], table[2:] - table[1:-1]], 1).reshape(-1)
