@@ -17,7 +17,13 @@ from evdown_torch import PhotocurrentPooling
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
 from evdown_torch.transforms.functional.photocurrent import sums
-from tests.helpers import DVS_DTYPE, random_stream, rows
+from tests.helpers import DVS_DTYPE, photocurrent_events_reference, random_stream, rows
+
+
+@pytest.fixture(autouse=True)
+def one_word_for_every_piece(monkeypatch):
+    """Short test streams take the one-word sums too (the kernel keeps them to long pieces)."""
+    monkeypatch.setattr(kernel, "ONE_WORD_MIN_EVENTS", 2)
 
 
 def _one_word_calls(monkeypatch) -> list[bool]:
@@ -56,10 +62,21 @@ def test_one_word_sums_give_the_two_word_result(sensor, factor, contrast, thresh
     calls = _one_word_calls(monkeypatch)
     out = pool(arr)
     assert any(calls)  # the one-word path decided at least one piece
-    monkeypatch.undo()
     _two_word_only(monkeypatch)
     assert len(out) > 20
     assert rows(out) == rows(pool(arr))
+
+
+@pytest.mark.parametrize(("factor", "contrast", "threshold"), [
+    (2, 0.2, None), ((2, 3), 0.5, 0.3), ((10, 7), 0.01, 0.004), (3, 1.5, 0.7)])
+def test_one_word_sums_match_the_reference(factor, contrast, threshold, rng, monkeypatch):
+    sensor = (10, 7, 2)
+    arr = random_stream(rng, 500, sensor, t_max=300, sort=False)
+    pool = PhotocurrentPooling(sensor, factor=factor, contrast=contrast, threshold=threshold)
+    calls = _one_word_calls(monkeypatch)
+    out = rows(pool(arr))
+    assert all(calls)
+    assert out == photocurrent_events_reference(arr, sensor, factor, contrast, pool.threshold)
 
 
 def _session_agrees(pool, arr: np.ndarray, chunks: int, monkeypatch) -> tuple[int, int]:
@@ -74,7 +91,6 @@ def _session_agrees(pool, arr: np.ndarray, chunks: int, monkeypatch) -> tuple[in
 
     calls = _one_word_calls(monkeypatch)
     fast = replay()
-    monkeypatch.undo()
     _two_word_only(monkeypatch)
     assert fast == replay()
     return len(fast), sum(calls)
@@ -171,7 +187,6 @@ def test_a_fresh_rise_past_the_exponent_cap_still_cuts(monkeypatch):
     calls = _one_word_calls(monkeypatch)
     out = rows(pool(arr))
     assert calls[0] is False
-    monkeypatch.undo()
     _two_word_only(monkeypatch)
     assert out == rows(pool(arr))
     assert len(out) > 150

@@ -67,6 +67,11 @@ from evdown_torch.transforms.functional.reference import (
     reference_index,
 )
 
+#: Fewest events of a piece that the one-word sums (:func:`_one_word_steps`) decide: below,
+#: their few fixed costs (a table of every level that counts, and their checks) outweigh
+#: their lower cost per event, and the two-word sums decide.
+ONE_WORD_MIN_EVENTS = 1 << 14
+
 
 class PhotocurrentState(NamedTuple):
     """State of a photocurrent pooling stream between chunks (events mode).
@@ -432,7 +437,7 @@ def _events_piece(
         return region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
 
     steps = None
-    if n > 1:
+    if n >= ONE_WORD_MIN_EVENTS:
         # log(n_r): one float when every region is whole (a few ulps off torch's log do not
         # matter there).
         whole = sensor_size[0] % fx == 0 and sensor_size[1] % fy == 0
