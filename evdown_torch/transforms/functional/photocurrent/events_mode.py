@@ -20,12 +20,9 @@ piece is cut before that event and the rest re-anchored; a piece cut down to one
 its region's sum straight from the levels after it. The reference rule then runs on the
 events that can change a region's reference index.
 
-Most pieces need neither the second word nor any cut: one int64 word per sum, each region's
-intensities relative to its brightest level of the piece
-(:func:`~evdown_torch.transforms.functional.photocurrent.sums.one_word_sums`), decides every
-event whose ``u`` lies farther than its error bound (about ``1e-15``) from the snap bounds, as
-the two-word sums would; a piece with an event within it, or that the two-word sums would cut,
-goes to the two-word sums.
+A long piece is first tried with one int64 word per sum (:func:`.sums.one_word_sums`), which
+decides every event clear of the snap bounds by more than its error bound as the two words
+would; a piece with an event within it, or that the two words would cut, goes to them.
 
 *Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent.frames_mode`, which shares
 the pixel levels, region geometry and level snap defined here.
@@ -437,9 +434,7 @@ def _events_piece(
         return region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
 
     steps = None
-    if n >= ONE_WORD_MIN_EVENTS:
-        # log(n_r): one float when every region is whole (a few ulps off torch's log do not
-        # matter there).
+    if n >= ONE_WORD_MIN_EVENTS:  # (log(n_r) as one float where every region is whole)
         whole = sensor_size[0] % fx == 0 and sensor_size[1] % fy == 0
         steps = _one_word_steps(key, ids, inside, state.level, new_levels, firsts, first,
                                 math.log(per_region) if whole else log_pixels(), per_region,
