@@ -20,12 +20,17 @@ piece is cut before that event and the rest re-anchored; a piece cut down to one
 its region's sum straight from the levels after it. The reference rule then runs on the
 events that can change a region's reference index.
 
+A long piece is first tried with one int64 word per sum (:func:`.sums.one_word_sums`), which
+decides every event clear of the snap bounds by more than its error bound as the two words
+would; a piece with an event within it, or that the two words would cut, goes to them.
+
 *Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent.frames_mode`, which shares
 the pixel levels, region geometry and level snap defined here.
 """
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -47,7 +52,10 @@ from evdown_torch._tensors import (
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.photocurrent.sums import (
+    EPS,
+    NEAR_CAP,
     grouped_levels,
+    one_word_sums,
     running_sums,
 )
 from evdown_torch.transforms.functional.reference import (
@@ -55,6 +63,11 @@ from evdown_torch.transforms.functional.reference import (
     crossings,
     reference_index,
 )
+
+#: Fewest events of a piece that the one-word sums (:func:`_one_word_steps`) decide: below,
+#: their few fixed costs (a table of every level that counts, and their checks) outweigh
+#: their lower cost per event, and the two-word sums decide.
+ONE_WORD_MIN_EVENTS = 1 << 14
 
 
 class PhotocurrentState(NamedTuple):
@@ -200,6 +213,74 @@ def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> Pix
     return PixelLevels(pixel, order, level, step, new_state)
 
 
+def _moved_steps(floor_u: Tensor, on_level: Tensor, first: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The steps that can change ``q``, with their ``floor(u)`` and on-level flags.
+
+    A step that stays strictly inside the cell its predecessor ended in keeps ``q`` and
+    crosses nothing (a tenth or less of the events when a level takes several events to
+    cross): ``(kept positions, floor(u), on level)`` of the others.
+    """
+    moved = changes(floor_u)
+    moved |= first
+    moved |= on_level
+    moved[1:] |= on_level[:-1]
+    kept = where_true(moved)
+    return kept, take(floor_u, kept), take(on_level, kept)
+
+
+def _one_word_steps(
+    key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, new_levels: Tensor,
+    firsts: Tensor, first: Tensor, log_pixels: Tensor | float, per_region: int,
+    contrast: float, threshold: float,
+) -> tuple[Tensor, Tensor, Tensor] | None:
+    """:func:`_moved_steps` of a piece from its one-word sums (:func:`.sums.one_word_sums`).
+
+    Every event whose ``u`` lies farther than the one-word sums' error bound from both snap
+    bounds of its level (``k - SNAP`` and ``k + SNAP``) gets the ``floor(u)`` and on-level
+    flag that the two-word sums (:func:`.sums.running_sums`) give; ``None`` where an event
+    lies within it (or the one-word sums cannot be used): the caller then takes the two-word
+    sums. The bound is about ``1e-15`` in ``u`` where a region's sum is near its brightest
+    intensity of the piece, so on ordinary streams that never happens.
+    """
+    n = key.shape[0]
+    counts = torch.diff(firsts, append=firsts.new_tensor([n]))
+    sums = one_word_sums(key, ids, inside, levels, new_levels, firsts, counts, per_region,
+                         contrast, threshold)
+    if sums is None:
+        return None
+    # u = (c * m - log(n_r) + log(sum)) / theta with sum = total * exp(c * (top - m)) / 2**bits,
+    # within `margin` of the two-word path's u: twice the bound of the sums' relative error
+    # over theta and of a few ulps of every term.
+    offset = sums.top.to(torch.float64).mul_(contrast).sub_(log_pixels)
+    offset.sub_(sums.bits * math.log(2)).div_(threshold)
+    largest = float(offset.abs().max()) + (64 * math.log(2) + 1) / threshold
+
+    def margin(smallest: Tensor | float) -> Tensor | float:
+        relative = per_region / smallest + sums.two_word_error + 16 * EPS
+        return 2 * (1.01 * relative / threshold + 8 * EPS * largest)
+
+    widest = float(margin(float(sums.smallest)))
+    if widest > NEAR_CAP:
+        return None
+    # w = u + SNAP + widest: a w less than 2 * (SNAP + widest) above its floor is near a
+    # level; any other has floor(w) = floor(u) and is off every level, certainly.
+    shift = SNAP + widest
+    log_total = sums.total.to(torch.float64).log_()
+    w = take(offset.add_(shift), sums.region).add_(log_total, alpha=1 / threshold)
+    floor_w = torch.floor(w, out=log_total)
+    frac = w.sub_(floor_w)
+    near = frac <= 2 * shift
+    kept, floor_w, near = _moved_steps(floor_w, near, first)
+    u = floor_w.add_(take(frac, kept)).sub_(shift)
+    distance = torch.round(u).sub_(u).abs_().sub_(SNAP).abs_()
+    doubt = where_true(distance <= widest)  # (each event's own bound is at most widest)
+    if doubt.shape[0] and bool((take(distance, doubt) <= margin(
+            take(take(sums.total, kept), doubt).to(torch.float64))).any()):
+        return None  # an event within the error bound of a snap bound
+    floor_u, on_level = snap(u)
+    return kept, floor_u, on_level
+
+
 # --------------------------------------------------------------------------------------------
 # Events mode
 
@@ -245,8 +326,16 @@ def photocurrent_events(
         >>> out.t.tolist(), out.p.tolist()
         ([9], [True])
     """
+    return photocurrent_sorted(sort_by_time(events), sensor_size, factor, contrast, threshold,
+                               state, recordings)
+
+
+def photocurrent_sorted(
+    events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int], contrast: float,
+    threshold: float, state: PhotocurrentState | None, recordings: int = 1,
+) -> tuple[Events, PhotocurrentState]:
+    """:func:`photocurrent_events` of events already in stable time order (a session's chunk)."""
     check_contrast_range(contrast, threshold)
-    events = sort_by_time(events)
     if state is None:
         state = initial_state(sensor_size, factor, events.device, recordings)
     n = events.num_events
@@ -329,56 +418,63 @@ def _events_piece(
         place.add_(ry.bitwise_right_shift_(shift), alpha=per_region)
         place = take(place.to(torch.uint8) if bound <= 256 else place, order)
     del ry
-    first = changes(region)
-    firsts = where_true(first)
-    lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
-    rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
-    touched = take(region, firsts).long()
+    # Each region's first grouped event, by bisection on the sorted region ids.
+    edges = torch.searchsorted(region, torch.arange(regions, dtype=region.dtype,
+                                                    device=region.device))
+    edges = torch.cat([edges, edges.new_tensor([n])])
+    touched = where_true(edges[1:] > edges[:-1])
+    firsts = take(edges, touched)
+    first = torch.zeros(n, dtype=torch.bool, device=region.device).index_fill_(0, firsts, True)
     key, new_levels = grouped_levels(take(pixel_on, order), place, bound, state.level)
     del place, pixel_on
 
     ids, inside = region_pixels(touched, sensor_size, factor)
-    if n == 1:  # a lone event (after a cut): its region's sum straight from the levels after it
-        m, total = log_mean_exp(new_levels[ids], inside, contrast)
-        bad = None
-    else:
-        m, total, bad = running_sums(key, ids, inside, state.level, firsts, lasts, rank,
-                                      per_region, contrast, threshold)
-    del ids, inside, key
-    if bad is not None:  # the running sums cannot hold an event: cut the piece before it
-        used = int(take(order, where_true(bad)).min())
-        if used == 0:
-            return _events_piece(Events(*(column[:1] for column in events)), sensor_size,
-                                 factor, contrast, threshold, state, emitted)
-        # Keep the events before the cut (each region keeps a prefix of its own events).
-        kept = where_true(order < used)
-        order, region, total = take(order, kept), take(region, kept), take(total, kept)
-        first, rank = take(first, kept), take(rank, kept)
-        new_levels = state.level.clone()
-        new_levels.index_add_(0, events.y[:used] * w + events.x[:used],
-                              polarity_sign(events.p[:used], torch.int64))
-        events = Events(*(column[:used] for column in events))
-        n = used
-        firsts = where_true(first)
-        lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
 
-    # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
-    log_pixels = region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
-    offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels)
-    u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
-    floor_u, on_level = snap(u)
-    del u, total
-    # The reference rule on the steps that can change q only (a step that stays strictly
-    # inside the cell its predecessor ended in keeps q and crosses nothing): a tenth or less
-    # of the events when a level takes several events to cross.
-    moved = changes(floor_u)
-    moved |= first
-    moved |= on_level
-    moved[1:] |= on_level[:-1]
-    kept = where_true(moved)
-    del moved
+    def log_pixels() -> Tensor:
+        return region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
+
+    steps = None
+    if n >= ONE_WORD_MIN_EVENTS:  # (log(n_r) as one float where every region is whole)
+        whole = sensor_size[0] % fx == 0 and sensor_size[1] % fy == 0
+        steps = _one_word_steps(key, ids, inside, state.level, new_levels, firsts, first,
+                                math.log(per_region) if whole else log_pixels(), per_region,
+                                contrast, threshold)
+    if steps is None:
+        lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
+        rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
+        if n == 1:  # a lone event (after a cut): its sum straight from the levels after it
+            m, total = log_mean_exp(new_levels[ids], inside, contrast)
+            bad = None
+        else:
+            m, total, bad = running_sums(key, ids, inside, state.level, firsts, lasts, rank,
+                                          per_region, contrast, threshold)
+        del ids, inside, key
+        if bad is not None:  # the running sums cannot hold an event: cut the piece before it
+            used = int(take(order, where_true(bad)).min())
+            if used == 0:
+                return _events_piece(Events(*(column[:1] for column in events)), sensor_size,
+                                     factor, contrast, threshold, state, emitted)
+            # Keep the events before the cut (each region keeps a prefix of its own events).
+            kept = where_true(order < used)
+            order, region, total = take(order, kept), take(region, kept), take(total, kept)
+            first, rank = take(first, kept), take(rank, kept)
+            new_levels = state.level.clone()
+            new_levels.index_add_(0, events.y[:used] * w + events.x[:used],
+                                  polarity_sign(events.p[:used], torch.int64))
+            events = Events(*(column[:used] for column in events))
+            n = used
+        # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
+        offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels())
+        u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
+        floor_u, on_level = snap(u)
+        del u, total
+        # The reference rule on the steps that can change q only (a step that stays strictly
+        # inside the cell its predecessor ended in keeps q and crosses nothing): a tenth or
+        # less of the events when a level takes several events to cross.
+        steps = _moved_steps(floor_u, on_level, first)
+    kept, floor_u, on_level = steps
+    del steps
     region, first = take(region, kept), take(first, kept)
-    floor_u, on_level = take(floor_u, kept), take(on_level, kept)
     firsts = where_true(first)
     # Every region's q before the piece (a 0-d zero while all are 0: no look-up).
     q_start = take(state.reference, region.long()) if bool(state.reference.any()) else (

@@ -12,6 +12,7 @@ from evdown_torch.transforms.functional.photocurrent.events_mode import (
     PhotocurrentState,
     initial_state,
     photocurrent_events,
+    photocurrent_sorted,
 )
 from evdown_torch.transforms.functional.photocurrent.frames_mode import (
     FramesState,
@@ -51,10 +52,9 @@ def photocurrent_step(
     leak, in whole chunks of frames).
     """
     if settings.fps is None:
-        return photocurrent_events(
-            events, sensor_size=settings.sensor_size, factor=settings.factor,
-            contrast=settings.contrast, threshold=settings.threshold,  # type: ignore[arg-type]
-            state=state,  # type: ignore[arg-type]
+        return photocurrent_sorted(
+            events, settings.sensor_size, settings.factor, settings.contrast,
+            settings.threshold, state,  # type: ignore[arg-type]
         )
     return frames_stream(events, state, settings, final=False)  # type: ignore[arg-type,return-value]
 

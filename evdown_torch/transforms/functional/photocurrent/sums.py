@@ -194,6 +194,34 @@ def fixed_point(
     return FixedPoint((anchor_high, anchor_low), (change_high, change_low))
 
 
+def brightest_level(contrast: float) -> int:
+    """Highest level above its anchor a pixel may reach in a piece.
+
+    Its intensity stays within :data:`MAX_EXPONENT` log units of the anchor's (one level at
+    least, for contrasts above :data:`MAX_EXPONENT`).
+    """
+    return max(math.floor(MAX_EXPONENT / contrast) - 1, 0)
+
+
+def two_word_scale(
+    hi: int, per_region: int, contrast: float, threshold: float
+) -> tuple[float, float, float]:
+    """``(scale, fine, lowest)`` of :func:`running_sums` for pixels up to ``hi`` above anchors.
+
+    ``scale`` and ``fine`` keep a region's sum of either word below ``2**61``; ``lowest`` is
+    the smallest sum the two words hold to ``1e-10 * threshold`` (error bound of each sum: a
+    few ulps of every intensity, see :func:`_split`, and of the conversions, and half a step
+    of the fine word per pixel).
+    """
+    top = max(math.exp(contrast * (hi + 1)), 1.0)
+    bits = 61 - (2 * per_region).bit_length()
+    scale = math.ldexp(1.0, bits - math.frexp(top)[1])
+    fine = math.ldexp(1.0, bits)
+    slack = 6
+    tolerance = max(1e-10 * threshold, 4 * slack * EPS)
+    return scale, fine, per_region / (2 * fine * scale) / (tolerance - slack * EPS)
+
+
 def running_sums(
     key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, firsts: Tensor,
     lasts: Tensor, rank: Tensor, per_region: int, contrast: float, threshold: float,
@@ -239,19 +267,13 @@ def running_sums(
         key.clamp_(min=2 * darkest)
         pixel_j.clamp_(min=darkest)
         lo = darkest
-    # A pixel may end a step at most MAX_EXPONENT above its anchor (one level at least, for
-    # contrasts above MAX_EXPONENT).
-    brightest = max(math.floor(MAX_EXPONENT / contrast) - 1, 0)
+    brightest = brightest_level(contrast)
     bad = None
     if hi > brightest:  # a pixel too far above its anchor: cut before its event
         bad = key > 2 * brightest + 1
         key.clamp_(max=2 * brightest + 1)
         hi = brightest
-    # Two-word fixed point: a region's sum of either word stays below 2**61.
-    top = max(math.exp(contrast * (hi + 1)), 1.0)
-    bits = 61 - (2 * per_region).bit_length()
-    scale = math.ldexp(1.0, bits - math.frexp(top)[1])
-    fine = math.ldexp(1.0, bits)
+    scale, fine, lowest = two_word_scale(hi, per_region, contrast, threshold)
     sums = fixed_point(key, pixel_j, inside, lo, hi, contrast, scale, fine)
     del pixel_j
     # The region's sum after each event.
@@ -261,14 +283,131 @@ def running_sums(
     total = low.to(torch.float64).mul_(1 / (fine * scale)).add_(high, alpha=1 / scale)
     del high, low
 
-    # Error bound of each sum: a few ulps of every intensity (exp,
-    # see _split, and the conversions) and half a step of the fine word per pixel.
-    slack = 6
-    tolerance = max(1e-10 * threshold, 4 * slack * EPS)
-    lowest = per_region / (2 * fine * scale) / (tolerance - slack * EPS)  # the smallest sum
     if not float(total.min()) >= lowest:  # NaN fails too
         weak = ~(total >= lowest)
         bad = weak if bad is None else bad | weak
     if bad is not None and not bool(bad.any()):
         bad = None
     return m, total, bad
+
+
+#: Largest error bound in ``u`` of :func:`one_word_sums` that its caller works with: events
+#: this close to a level are solved on the few it keeps.
+NEAR_CAP = 1e-2
+
+#: Bits of :func:`one_word_sums`' fixed point: a region's intensities sum to an integer
+#: below ``2**62``.
+WORD_BITS = 62
+
+
+class OneWordSums(NamedTuple):
+    """Running photocurrent sums of a piece in one int64 word (:func:`one_word_sums`).
+
+    ``total * exp(c * (top - m)) / 2**bits`` (``m``: the region's anchor, as in
+    :func:`running_sums`) is within ``per_region / total + two_word_error + 16 * EPS`` of the
+    sum :func:`running_sums` gives for the same event, relative to it.
+    """
+
+    region: Tensor  # (N,) int64 the segment (touched region) of each event
+    top: Tensor  # (S,) int64 each region's highest level before an event, plus 1 (>= any)
+    total: Tensor  # (N,) int64 sum of round(exp(c * (L_p - top)) * 2**bits) after each event
+    bits: int
+    smallest: int  # the smallest total
+    two_word_error: float  # bound of the two-word sums' fine steps, relative to their sum
+
+
+def one_word_sums(
+    key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, new_levels: Tensor,
+    firsts: Tensor, counts: Tensor, per_region: int, contrast: float, threshold: float,
+) -> OneWordSums | None:
+    """Each region's sum after each of its events in one word, or ``None`` where it cannot.
+
+    Each region's intensities are taken relative to its brightest level during the piece
+    (``top``): one int64 table of ``round(exp(c * j) * 2**bits)`` for ``j <= 0`` serves all
+    regions, each event's change is looked up in it, and one cumulative sum runs over the
+    grouped events, its first step of each region also moving it from the previous region's
+    last sum to this region's sum before the piece (a telescoping correction). Every partial
+    sum is a region's sum, an integer below ``2**62``: the result is exact and independent of
+    the order of the additions. Its error is half a unit per pixel plus a few ulps of each
+    intensity (about ``1e-17`` of the region's brightest intensity), so it decides every
+    event whose ``u`` does not lie within that error of a snap bound as :func:`running_sums`
+    does, with one word instead of two.
+
+    ``None`` where :func:`running_sums` would cut the piece (a pixel too far above its anchor
+    or a sum too small for its two words), where a region's sum before or after the piece
+    lies so far below its brightest (a rise or fall of some 200 levels at ``c = 0.2``) that
+    the error bound exceeds :data:`NEAR_CAP`, or where the levels that count span more than
+    :data:`TABLE_SIZE`: the caller then takes :func:`running_sums`.
+
+    Args:
+        key: ``(N,)`` int32 or int64 ``2 * L + on`` of each event (``L``: its pixel's level
+            before it), grouped by region (not modified).
+        ids: ``(S, n)`` int64 pixel ids of the touched regions (``region_pixels``).
+        inside: their mask (``None``: all inside).
+        levels: ``(H * W,)`` int64 pixel levels before the piece.
+        new_levels: ``(H * W,)`` int64 pixel levels after it.
+        firsts: ``(S,)`` int64 first position of each region's events.
+        counts: ``(S,)`` int64 number of events of each region.
+        per_region: ``fx * fy``.
+        contrast: ``c``.
+        threshold: ``theta``.
+    """
+    n, segments = key.shape[0], firsts.shape[0]
+    region = torch.repeat_interleave(torch.arange(segments, device=key.device), counts,
+                                     output_size=n)
+    lowest_level = torch.iinfo(torch.int64).min
+    pixel = take(levels, ids.view(-1)).view_as(ids)
+    if inside is not None:
+        pixel.masked_fill_(~inside, lowest_level)
+    m = pixel.amax(1)
+    # The level after an ON at the highest level before an event, or the anchor's.
+    top = torch.full_like(m, lowest_level).scatter_reduce_(0, region, key.long(), "amax")
+    top = torch.maximum(divide(top, 2), m).add_(1)
+    if int((top - m).max()) - 1 > brightest_level(contrast):
+        return None
+    bits = WORD_BITS - per_region.bit_length()
+    # exp(c * j) * 2**bits rounds to 0 at j <= darkest + 1: levels below count as darkest.
+    darkest = math.floor(-(bits + 2) * math.log(2) / contrast) - 1
+    relative = [take(values, ids.view(-1)).view_as(ids).sub_(top[:, None]).clamp_(min=darkest)
+                for values in (levels, new_levels)]
+    if inside is not None:  # (ids outside the sensor read pixel 0)
+        relative = [j.masked_fill_(~inside, 0) for j in relative]
+    key = key - take((2 * top).to(key.dtype), region)
+    lo = darkest
+    if 2 - darkest > TABLE_SIZE:  # (a contrast below 6e-4) the levels the piece reaches
+        lo = max(min(int(key.min()) // 2, min(int(j.min()) for j in relative)), darkest)
+        if 2 - lo > TABLE_SIZE:
+            return None
+    # table[i]: the intensity at j = lo - 1 + i, up to j = 0.
+    table = _split(torch.arange(lo - 1, 1, device=key.device), contrast,
+                   math.ldexp(1.0, bits), 1.0)[0]
+    anchor, final = ((v if inside is None else v.masked_fill_(~inside, 0)).sum(1)
+                     for v in (take(table, j.sub_(lo - 1).view(-1)).view_as(j)
+                               for j in relative))
+    # A region whose sum lies far below its brightest of the piece (it rose or fell by some
+    # 200 levels at c = 0.2) holds too few bits to decide levels there: the two-word sums
+    # take it (the caller's error bound would exceed NEAR_CAP anyway).
+    if int(torch.minimum(anchor, final).min()) * threshold * NEAR_CAP < 2.02 * per_region:
+        return None
+    # Row i (j = lo + i): [change by OFF, change by ON], at 2 * (j - lo) + on.
+    steps = torch.stack([table[:-2] - table[1:-1], table[2:] - table[1:-1]], 1).reshape(-1)
+    change = take(steps, key.clamp_(min=2 * lo).sub_(2 * lo))
+    anchor[1:] -= final[:-1]
+    total = change.index_add_(0, firsts, anchor).cumsum_(0)
+    smallest = int(total.min())
+    # The smallest two-word sum, at least (each region's factor exp(c * (top - m)) / 2**bits
+    # is above 2**-bits, and above its own smallest total): running_sums cuts before a sum
+    # below its lowest, and then it must decide the piece; above it, its half a fine step
+    # per pixel is its error.
+    scale, fine, lowest = two_word_scale(int((top - m).max()) - 1, per_region, contrast,
+                                         threshold)
+    factor = (top - m).to(torch.float64).mul_(contrast).exp_()
+    least = math.ldexp(smallest, -bits) * float(factor.min())
+    if not least >= lowest:  # each region's smallest total times its factor
+        smallest_of = torch.full_like(top, torch.iinfo(torch.int64).max).scatter_reduce_(
+            0, region, total, "amin")
+        least = math.ldexp(float((smallest_of.to(torch.float64) * factor).min()), -bits)
+    least *= 1 - per_region / max(smallest, 1) - 16 * EPS
+    if not least >= lowest:
+        return None
+    return OneWordSums(region, top, total, bits, smallest, per_region / (2 * fine * scale) / least)
