@@ -222,7 +222,7 @@ def level_crossings(
         q_before = torch.empty_like(q)
         q_before[1:] = q[:-1]
         found = crossings(torch.where(first, q, q_before), q)
-        segment, on = found.step, found.on
+        segment, on = found.move, found.on
         at = base.index_select(0, segment)
         at += found.level.to(torch.float64) * theta_on.index_select(0, segment)
         a, b = q, torch.zeros_like(q)

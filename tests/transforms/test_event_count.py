@@ -237,8 +237,8 @@ def test_region_ids_at_the_edge_of_the_narrow_sort(sensor, rng):
     np.testing.assert_array_equal(np.concatenate(parts), out)
 
 
-def test_step_crossings_from_one_start_per_region_equal_one_per_step(rng):
-    from evdown_torch.transforms.functional.reference import step_crossings
+def test_move_crossings_from_one_start_per_region_equal_one_per_step(rng):
+    from evdown_torch.transforms.functional.reference import move_crossings
 
     # Steps grouped by region: a random walk of u = M / theta in quarters, per region.
     sizes = rng.integers(1, 40, 25)
@@ -251,15 +251,15 @@ def test_step_crossings_from_one_start_per_region_equal_one_per_step(rng):
     q_step = torch.zeros(sizes.sum(), dtype=torch.int64)
     q_step[torch.as_tensor(first)] = q_region
     first = torch.as_tensor(first)
-    expected = step_crossings(floor_u, on_level, first, q_start=q_step)
-    got = step_crossings(floor_u, on_level, first, q_first=q_region)
-    assert expected.step.numel() > 0
+    expected = move_crossings(floor_u, on_level, first, q_start=q_step)
+    got = move_crossings(floor_u, on_level, first, q_first=q_region)
+    assert expected.move.numel() > 0
     for a, b in zip(got, expected):
         assert torch.equal(a, b)
 
 
-def test_step_crossings_of_steps_that_land_on_every_level_skip_nothing(rng):
-    from evdown_torch.transforms.functional.reference import step_crossings
+def test_move_crossings_of_steps_that_land_on_every_level_skip_nothing(rng):
+    from evdown_torch.transforms.functional.reference import move_crossings
 
     # Steps of a quarter level (as b * S moves by one against levels of 4): each level the
     # walk reaches, it lands on; only first steps and steps on a level need solving.
@@ -274,8 +274,8 @@ def test_step_crossings_of_steps_that_land_on_every_level_skip_nothing(rng):
     q_region = torch.as_tensor(np.floor_divide(start_u4, 4) + (start_u4 % 4 != 0)
                                * rng.integers(0, 2, len(sizes)))
     first = torch.as_tensor(first)
-    expected = step_crossings(floor_u, on_level, first, q_first=q_region)
-    got = step_crossings(floor_u, on_level, first, q_first=q_region, lands_on_levels=True)
-    assert expected.step.numel() > 10
+    expected = move_crossings(floor_u, on_level, first, q_first=q_region)
+    got = move_crossings(floor_u, on_level, first, q_first=q_region, lands_on_levels=True)
+    assert expected.move.numel() > 10
     for a, b in zip(got, expected):
         assert torch.equal(a, b)

@@ -125,15 +125,15 @@ def test_near_a_snap_bound_the_two_word_sums_decide(rng, monkeypatch):
     pool = PhotocurrentPooling(sensor, factor=2, contrast=math.log(2))
     expected = rows(pool(arr))
     declined = []
-    one_word_steps = kernel._one_word_steps
+    one_word_moves = kernel._one_word_moves
 
     def spy(*args, **kwargs):
-        out = one_word_steps(*args, **kwargs)
+        out = one_word_moves(*args, **kwargs)
         declined.append(out is None)
         return out
 
     monkeypatch.setattr(kernel, "EPS", 2.0**-30)
-    monkeypatch.setattr(kernel, "_one_word_steps", spy)
+    monkeypatch.setattr(kernel, "_one_word_moves", spy)
     assert rows(pool(arr)) == expected
     assert any(declined)
 

@@ -25,7 +25,7 @@ from evdown_torch.checks import output_size
 from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.reference import (
     capped_threshold,
-    step_crossings,
+    move_crossings,
     threshold_fraction,
 )
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
@@ -226,7 +226,7 @@ def _event_count_sorted(
     Few passes over the events, on narrow dtypes (the cost of a live chunk is its memory
     traffic): the events are grouped by region with a small-key sort, each region's level sum
     is one running sum (its start corrected once per region), and the reference rule runs on
-    the steps that can move ``q`` only (:func:`step_crossings`).
+    the moves that can change ``q`` only (:func:`move_crossings`).
     """
     device = events.device
     n = events.num_events
@@ -266,16 +266,16 @@ def _event_count_sorted(
     first = torch.zeros(n, dtype=torch.bool, device=device).index_fill_(0, firsts, True)
 
     # Level sum S of each region after each of its events: one running sum over the grouped
-    # steps (ON +1, OFF -1), each region's first step raised by what brings the running sum
-    # from the previous region's last S to this region's state.
-    step = polarity_sign(take(events.p, order), dtype)
-    total = torch.cumsum(step, 0, dtype=dtype)
-    before = take(total, firsts) - take(step, firsts)  # running sum before each first step
+    # level changes (ON +1, OFF -1), each region's first change raised by what brings the
+    # running sum from the previous region's last S to this region's state.
+    change = polarity_sign(take(events.p, order), dtype)
+    total = torch.cumsum(change, 0, dtype=dtype)
+    before = take(total, firsts) - take(change, firsts)  # running sum before each first change
     offset = take(state.level_sum, touched) - before
     offset[1:] -= offset[:-1].clone()
-    step.index_add_(0, firsts, offset.to(dtype))
-    level_sum = torch.cumsum(step, 0, dtype=dtype, out=total)
-    del step
+    change.index_add_(0, firsts, offset.to(dtype))
+    level_sum = torch.cumsum(change, 0, dtype=dtype, out=total)
+    del change
 
     # u = M / theta = b * S / (a * n_r), compared in integers.
     new_sum = state.level_sum.clone()
@@ -288,21 +288,21 @@ def _event_count_sorted(
     floor_u, on_level = floor_divide_exact(numerator, denominator)
     del numerator, level_sum
     q_first = None if not bool(state.reference.any()) else take(state.reference, touched)
-    # With an integer threshold (b == 1) a step moves b * S by one: it lands on every level.
-    cross = step_crossings(floor_u, on_level, first, emitted=emitted, q_first=q_first,
+    # With an integer threshold (b == 1) a move changes b * S by one: it lands on every level.
+    cross = move_crossings(floor_u, on_level, first, emitted=emitted, q_first=q_first,
                            lands_on_levels=b == 1)
 
-    # Back to time order: crossings of one step keep their level order.
-    step_at = cross.step
-    source, by_time = stable_sort_small(take(order, step_at), n)
-    step_at = take(step_at, by_time)
-    out_x, out_y = region_xy(take(region, step_at).to(torch.int64), out_w)
+    # Back to time order: crossings of one move keep their level order.
+    move_at = cross.move
+    source, by_time = stable_sort_small(take(order, move_at), n)
+    move_at = take(move_at, by_time)
+    out_x, out_y = region_xy(take(region, move_at).to(torch.int64), out_w)
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
     # New state: each touched region's last sum, and the level of its last crossing.
     new_reference = state.reference.clone()
-    if cross.step.shape[0]:
-        crossed = take(region, cross.step).to(torch.int64)
+    if cross.move.shape[0]:
+        crossed = take(region, cross.move).to(torch.int64)
         last = ends(changes(crossed))
         new_reference[crossed[last]] = cross.level[last].to(torch.int64)
     return out, EventCountState(new_sum, new_reference, events.t[-1].clone())

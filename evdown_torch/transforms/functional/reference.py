@@ -4,22 +4,22 @@ A downscaled pixel watches a level ``M(t)`` with contrast threshold ``theta`` an
 reference index ``q``: it emits ON and increments ``q`` whenever ``M`` reaches
 ``theta * (q + 1)``, OFF and decrements whenever ``M`` reaches ``theta * (q - 1)``.
 
-The kernels sample ``M`` at the end of monotone *steps* (one input event for EventCount, one
+The kernels sample ``M`` at the end of monotone *moves* (one input event for EventCount, one
 monotone piece of the interpolated curve for the linear and cubic methods). Write
-``u = M / theta`` at the end of a step. After the step, ``q`` always lies in
+``u = M / theta`` at the end of a move. After the move, ``q`` always lies in
 ``[floor(u), ceil(u)]``:
 
 * on a level (``u`` an integer), ``q = u``;
 * strictly inside a cell ``(m, m + 1)``, ``q`` is ``m + 1`` if the walk entered the cell from
   above and ``m`` if it entered from below, and it keeps that value while it stays in the cell.
 
-So ``q`` after every step follows from each step's ``(floor(u), u is an integer)`` and its
-predecessor's, with a forward fill over runs of steps in one cell: no sequential scan. This is
+So ``q`` after every move follows from each move's ``(floor(u), u is an integer)`` and its
+predecessor's, with a forward fill over runs of moves in one cell: no sequential scan. This is
 the clamp recurrence ``q_k = clamp(q_{k-1}, floor(u_k), ceil(u_k))`` solved in closed form.
 
 This module is the rule's one home: the exact level test (:func:`level_index`), the value of a
 level (:func:`level_value`), the reference index (:func:`reference_index`) and its crossings
-(:func:`crossings`, :func:`step_crossings`), used by the kernels and the synthetic pixel
+(:func:`crossings`, :func:`move_crossings`), used by the kernels and the synthetic pixel
 model (whose two-threshold variant is :mod:`.two_thresholds`).
 """
 
@@ -45,7 +45,7 @@ __all__ = [
     "level_index",
     "level_value",
     "reference_index",
-    "step_crossings",
+    "move_crossings",
     "threshold_fraction",
 ]
 
@@ -116,21 +116,21 @@ def group_by_region(rx: Tensor, ry: Tensor, out_width: int) -> RegionGroups:
 
 
 def reference_index(floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: Tensor) -> Tensor:
-    """Reference index ``q`` after each step, for steps grouped by region in time order.
+    """Reference index ``q`` after each move, for moves grouped by region in time order.
 
     Args:
-        floor_u: ``(N,)`` int64 ``floor(M / theta)`` at the end of each step.
-        on_level: ``(N,)`` bool, ``M / theta`` is an integer at the end of the step.
-        first: ``(N,)`` bool, the step is the first of its region.
-        q_start: ``(N,)`` int64, the region's ``q`` before its first step (read where
+        floor_u: ``(N,)`` int64 ``floor(M / theta)`` at the end of each move.
+        on_level: ``(N,)`` bool, ``M / theta`` is an integer at the end of the move.
+        first: ``(N,)`` bool, the move is the first of its region.
+        q_start: ``(N,)`` int64, the region's ``q`` before its first move (read where
             ``first``), or a 0-d int64 tensor for all regions (0 for fresh pixels).
 
     Returns:
-        ``(N,)`` int64 reference index after each step.
+        ``(N,)`` int64 reference index after each move.
 
     Example:
         >>> import torch
-        >>> u = torch.tensor([0.5, 1.0, 0.5, -0.5, 0.5])  # M / theta after each step
+        >>> u = torch.tensor([0.5, 1.0, 0.5, -0.5, 0.5])  # M / theta after each move
         >>> fl = torch.floor(u).long()
         >>> first = torch.tensor([True, False, False, False, False])
         >>> reference_index(fl, u == fl, first, torch.tensor(0)).tolist()
@@ -139,7 +139,7 @@ def reference_index(floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: T
     if floor_u.shape[0] == 0:
         return floor_u.clone()
     prev_floor = floor_u.roll(1)
-    # A run of steps sharing one value starts at a region's first step, on a level, right
+    # A run of moves sharing one value starts at a region's first move, on a level, right
     # after a level, or on entering another cell; element 0 is always a region's first.
     starts = prev_floor != floor_u
     starts |= on_level
@@ -158,28 +158,28 @@ def reference_index(floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: T
 
 
 class Crossings(NamedTuple):
-    """Level crossings of all steps, in step order and, inside a step, in time order.
+    """Level crossings of all moves, in move order and, inside a move, in time order.
 
     Attributes:
-        step: ``(K,)`` int64 index of the step that crossed the level.
+        move: ``(K,)`` int64 index of the move that crossed the level.
         level: ``(K,)`` int64 level index ``j`` crossed (the level is ``theta * j``).
         on: ``(K,)`` bool, ON (upward) crossing.
     """
 
-    step: Tensor
+    move: Tensor
     level: Tensor
     on: Tensor
 
 
 def crossings(q_before: Tensor, q_after: Tensor, *, emitted: int = 0) -> Crossings:
-    """Expand each step's change of reference index into one crossing per level.
+    """Expand each move's change of reference index into one crossing per level.
 
-    A step taking ``q`` from ``a`` to ``b > a`` crosses levels ``a + 1, ..., b`` upward (ON);
+    A move taking ``q`` from ``a`` to ``b > a`` crosses levels ``a + 1, ..., b`` upward (ON);
     from ``a`` to ``b < a`` it crosses ``a - 1, ..., b`` downward (OFF).
 
     Args:
-        q_before: ``(N,)`` int64 index before each step.
-        q_after: ``(N,)`` int64 index after each step.
+        q_before: ``(N,)`` int64 index before each move.
+        q_after: ``(N,)`` int64 index after each move.
         emitted: events the call already emitted (earlier chunks of the stream).
 
     Returns:
@@ -192,7 +192,7 @@ def crossings(q_before: Tensor, q_after: Tensor, *, emitted: int = 0) -> Crossin
     Example:
         >>> import torch
         >>> c = crossings(torch.tensor([0, 2, 2]), torch.tensor([2, 2, 1]))
-        >>> c.step.tolist(), c.level.tolist(), c.on.tolist()
+        >>> c.move.tolist(), c.level.tolist(), c.on.tolist()
         ([0, 0, 2], [1, 2, 1], [True, True, False])
     """
     delta = q_after - q_before
@@ -259,33 +259,33 @@ def level_value(level: Tensor, pixels: Tensor | int, threshold: Fraction) -> Ten
     return (level * pixels * a).to(torch.float64) / b
 
 
-def step_crossings(
+def move_crossings(
     floor_u: Tensor, on_level: Tensor, first: Tensor, *, emitted: int = 0,
     q_start: Tensor | None = None, q_first: Tensor | None = None, lands_on_levels: bool = False,
 ) -> Crossings:
-    """The reference rule over monotone steps grouped by region, from ``q = q_start``.
+    """The reference rule over monotone moves grouped by region, from ``q = q_start``.
 
     Applies :func:`~evdown_torch.transforms.functional.reference.reference_index` and
-    :func:`~evdown_torch.transforms.functional.reference.crossings` to the steps that can
-    change ``q`` only: a step that stays strictly inside the cell its predecessor ended in
-    keeps ``q`` and crosses nothing, so dropping it changes no other step's result.
+    :func:`~evdown_torch.transforms.functional.reference.crossings` to the moves that can
+    change ``q`` only: a move that stays strictly inside the cell its predecessor ended in
+    keeps ``q`` and crosses nothing, so dropping it changes no other move's result.
 
     Args:
-        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
-        on_level: ``(S,)`` bool, the step ends on a level.
-        first: ``(S,)`` bool, the step is its region's first.
+        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each move.
+        on_level: ``(S,)`` bool, the move ends on a level.
+        first: ``(S,)`` bool, the move is its region's first.
         emitted: events the call already emitted (see :func:`crossings`).
-        q_start: ``(S,)`` int64 ``q`` of each step's region before its first step (read
+        q_start: ``(S,)`` int64 ``q`` of each move's region before its first move (read
             where ``first``; a resumed stream), or ``None`` for 0 (a fresh one).
         q_first: the same values given once per region instead: ``(F,)`` int64, one for
             each True of ``first`` in order (``q_start`` must then be ``None``).
-        lands_on_levels: every step ends on each level it reaches (EventCount with an integer
-            threshold: a step moves ``b * S`` by one, the levels are multiples of the integer
-            ``a * n_r``). A step that ends off every level then keeps ``q``, so only first
-            steps and steps on a level are solved.
+        lands_on_levels: every move ends on each level it reaches (EventCount with an integer
+            threshold: a move changes ``b * S`` by one, the levels are multiples of the integer
+            ``a * n_r``). A move that ends off every level then keeps ``q``, so only first
+            moves and moves on a level are solved.
 
     Returns:
-        The crossings, with ``step`` indexing the given steps.
+        The crossings, with ``move`` indexing the given moves.
     """
     if lands_on_levels:
         moved = first | on_level
@@ -298,11 +298,11 @@ def step_crossings(
         q0 = take(q_start, kept)
     else:
         q0 = torch.zeros_like(floor_k)
-        if q_first is not None:  # every first step is kept, in order
+        if q_first is not None:  # every first move is kept, in order
             q0[first_k] = q_first.to(q0.dtype)
     q = reference_index(floor_k, take(on_level, kept), first_k, q0)
     q_before = torch.empty_like(q)
     q_before[1:] = q[:-1]
     q_before = torch.where(first_k, q0, q_before)
     cross = crossings(q_before, q, emitted=emitted)
-    return Crossings(take(kept, cross.step), cross.level, cross.on)
+    return Crossings(take(kept, cross.move), cross.level, cross.on)

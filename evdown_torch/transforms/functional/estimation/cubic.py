@@ -18,7 +18,7 @@ from evdown_torch.transforms.functional.estimation.stream import (
     EstimationSettings,
     resume_steps,
 )
-from evdown_torch.transforms.functional.reference import level_index, level_value, step_crossings
+from evdown_torch.transforms.functional.reference import level_index, level_value, move_crossings
 
 __all__ = ["cubic_estimation", "cubic_regions", "pchip_slopes"]
 
@@ -174,7 +174,7 @@ def _mid_segment_sums(
     cum = torch.cumsum(counts, 0)
     total = int(cum[-1])
     begin = cum - counts  # first pair of each segment
-    # The breakpoint of each pair steps by 1 inside a segment and by jump[j - 1] from the last
+    # The breakpoint of each pair advances by 1 inside a segment and by jump[j - 1] from the last
     # pair of segment j - 1 to the first of segment j.
     first = take(bp, segments) + 1
     jump = first[1:] - first[:-1]
@@ -196,19 +196,19 @@ def _mid_segment_sums(
     for i, start in enumerate(range(0, total, CHUNK)):
         m = min(start + CHUNK, total) - start
         lo, hi = lows[i], highs[i]
-        starts, steps, seg, target = ints[0, : hi - lo - 1], ints[1, :m], ints[2, :m], ints[3, :m]
+        starts, stride, seg, target = ints[0, : hi - lo - 1], ints[1, :m], ints[2, :m], ints[3, :m]
         s, a1, a2, a3, w, u, v = (row[:m] for row in floats)
         # Pairs [start, start + m) of segments [lo, hi): the segment and breakpoint of each
-        # pair, as cumulative sums of their steps from pair to pair.
+        # pair, as cumulative sums of their strides from pair to pair.
         torch.sub(begin[lo + 1 : hi], start, out=starts)
-        steps.zero_()
-        steps.index_fill_(0, starts, 1)
-        steps[0] = lo
-        torch.cumsum(steps, 0, out=seg)
-        steps.fill_(1)
-        steps.index_copy_(0, starts, jump[lo : hi - 1])
-        steps[0] = first_targets[i]
-        torch.cumsum(steps, 0, out=target)
+        stride.zero_()
+        stride.index_fill_(0, starts, 1)
+        stride[0] = lo
+        torch.cumsum(stride, 0, out=seg)
+        stride.fill_(1)
+        stride.index_copy_(0, starts, jump[lo : hi - 1])
+        stride[0] = first_targets[i]
+        torch.cumsum(stride, 0, out=target)
         torch.index_select(bp_time, 0, target, out=s)
         s -= torch.index_select(start_t, 0, seg, out=a1)
         s *= torch.index_select(inv_w, 0, seg, out=w)
@@ -263,8 +263,8 @@ def _solve(
 
     The cubic is rising or falling there; Newton's method, safeguarded by bisection.
 
-    Each root leaves the iteration once its last step moved it by at most 1e-15, so the cost
-    follows the number of roots (most converge in a few steps), not the slowest one.
+    Each root leaves the iteration once its last update moved it by at most 1e-15, so the cost
+    follows the number of roots (most converge in a few iterations), not the slowest one.
     """
     sign = torch.where(rising, 1.0, -1.0)
 
@@ -285,9 +285,9 @@ def _solve(
         high = torch.where(g > 0, x, high)
         newton = x - g / (sign * (c1 + x * (2 * c2 + 3 * c3 * x)))
         inside = (newton > low) & (newton < high)
-        step = torch.where(g == 0, x, torch.where(inside, newton, 0.5 * (low + high)))
-        moving = (step - x).abs() > 1e-15
-        x = step
+        update = torch.where(g == 0, x, torch.where(inside, newton, 0.5 * (low + high)))
+        moving = (update - x).abs() > 1e-15
+        x = update
         root.scatter_(0, active, x)
         if not bool(moving.all()):  # drop the converged roots
             keep = where_true(moving)
@@ -297,14 +297,14 @@ def _solve(
     return root
 
 
-def _monotone_steps(
+def _monotone_moves(
     low: Tensor, high: Tensor, prev: Tensor, whole: Tensor, part: Tensor,
     c1: Tensor, c2: Tensor, c3: Tensor,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The monotone steps: each piece's interior extrema (if any), then its end.
+    """The monotone moves: each piece's interior extrema (if any), then its end.
 
     Returns:
-        ``(step_bp, step_s, step_whole, step_part)``: for each step in order, the breakpoint
+        ``(move_bp, move_s, move_whole, move_part)``: for each move in order, the breakpoint
         its piece ends at, its end in the piece's normalised time (1 at the breakpoint), and
         ``n_r * M_r`` there as an exact integer part plus a float rest.
     """
@@ -316,13 +316,13 @@ def _monotone_steps(
     end_pos = torch.cumsum(roots, 0)
     end_pos += torch.arange(nb, device=low.device)  # a piece's end comes after its roots
     total = int(end_pos[-1]) + 1
-    step_bp = torch.empty(total, dtype=torch.int64, device=low.device)
-    step_bp.scatter_(0, end_pos, torch.arange(nb, device=low.device))
-    step_s = torch.ones(total, dtype=torch.float64, device=low.device)
-    step_whole = torch.empty(total, dtype=torch.int64, device=low.device)
-    step_whole.scatter_(0, end_pos, whole)
-    step_part = torch.empty(total, dtype=torch.float64, device=low.device)
-    step_part.scatter_(0, end_pos, part)
+    move_bp = torch.empty(total, dtype=torch.int64, device=low.device)
+    move_bp.scatter_(0, end_pos, torch.arange(nb, device=low.device))
+    move_s = torch.ones(total, dtype=torch.float64, device=low.device)
+    move_whole = torch.empty(total, dtype=torch.int64, device=low.device)
+    move_whole.scatter_(0, end_pos, whole)
+    move_part = torch.empty(total, dtype=torch.float64, device=low.device)
+    move_part.scatter_(0, end_pos, part)
     low_at, high_at = where_true(has_low), where_true(has_high)
     for at, s, pos in (
         (low_at, take(low, low_at), take(end_pos, low_at) - take(roots, low_at)),
@@ -333,11 +333,11 @@ def _monotone_steps(
         value = torch.addcmul(take(c1, at), s, value, out=value)
         value *= s
         value += take(part, begin)
-        step_bp.scatter_(0, pos, at)
-        step_s.scatter_(0, pos, s)
-        step_whole.scatter_(0, pos, take(whole, begin))
-        step_part.scatter_(0, pos, value)
-    return step_bp, step_s, step_whole, step_part
+        move_bp.scatter_(0, pos, at)
+        move_s.scatter_(0, pos, s)
+        move_whole.scatter_(0, pos, take(whole, begin))
+        move_part.scatter_(0, pos, value)
+    return move_bp, move_s, move_whole, move_part
 
 
 def cubic_estimation(
@@ -361,8 +361,8 @@ def cubic_estimation(
     from its values and derivatives at both ends. Those are sums over the region's pixels: an
     exact integer part (the levels of pixels with a knot there) plus the pixels strictly inside
     a segment, evaluated in each segment's normalised time. Each piece is split at the roots of
-    its derivative into monotone steps for the reference rule, and each crossing is solved on
-    its monotone step, in the piece's normalised time, by safeguarded Newton iterations to
+    its derivative into monotone moves for the reference rule, and each crossing is solved on
+    its monotone move, in the piece's normalised time, by safeguarded Newton iterations to
     about 1e-15 of the piece's length.
 
     Args:
@@ -417,7 +417,7 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
 
     # The piece ending at each breakpoint (none before a region's first), normalised time.
     prev = torch.arange(-1, nb - 1, device=device)
-    prev[bp_first_at] = bp_first_at  # a region's first step is a jump, not a piece
+    prev[bp_first_at] = bp_first_at  # a region's first move is a jump, not a piece
     gap = (knots.bp_t - take(knots.bp_t, prev)).to(torch.float64)
     change = (whole - take(whole, prev)).to(torch.float64) + (part - take(part, prev))
     m0, m1 = take(derivative, prev).mul_(gap), derivative.mul_(gap)
@@ -430,28 +430,28 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
         c.scatter_(0, bp_first_at, 0.0)
     low, high = _derivative_roots(c1, c2, c3)
 
-    # Monotone steps: up to two interior extrema, then the breakpoint (a jump at t_start).
-    step_bp, step_s, step_whole, step_part = _monotone_steps(
+    # Monotone moves: up to two interior extrema, then the breakpoint (a jump at t_start).
+    move_bp, move_s, move_whole, move_part = _monotone_moves(
         low, high, prev, whole, part, c1, c2, c3
     )
     del low, high
-    is_end = step_s == 1.0
+    is_end = move_s == 1.0
     pixels = region_pixels(knots, sensor_size, factor)
-    step_pixels = pixels if isinstance(pixels, int) else take(pixels, step_bp)
-    floor_u, on_level = level_index(step_whole, step_part, step_pixels, fraction)
-    step_first = take(bp_first, step_bp) & is_end
-    floor_u, on_level, q_start = resume_steps(knots, step_bp, floor_u, on_level, resume)
-    cross = step_crossings(floor_u, on_level, step_first, emitted=emitted, q_start=q_start)
-    del step_first, is_end, step_whole, step_part
+    move_pixels = pixels if isinstance(pixels, int) else take(pixels, move_bp)
+    floor_u, on_level = level_index(move_whole, move_part, move_pixels, fraction)
+    move_first = take(bp_first, move_bp) & is_end
+    floor_u, on_level, q_start = resume_steps(knots, move_bp, floor_u, on_level, resume)
+    cross = move_crossings(floor_u, on_level, move_first, emitted=emitted, q_start=q_start)
+    del move_first, is_end, move_whole, move_part
 
-    # Solve each crossing on its monotone step (the step before it ends where it starts), in
+    # Solve each crossing on its monotone move (the move before it ends where it starts), in
     # chunks of crossings so that the solver's temporaries stay small however many there are.
     def crossing_times(e: Tensor, level: Tensor, on: Tensor) -> Tensor:
-        i = take(step_bp, e)
+        i = take(move_bp, e)
         jump = take(bp_first, i)
-        s_high = take(step_s, e)
+        s_high = take(move_s, e)
         before = torch.clamp(e - 1, min=0)
-        s_low = torch.where(take(step_bp, before) == i, take(step_s, before), 0.0)
+        s_low = torch.where(take(move_bp, before) == i, take(move_s, before), 0.0)
         s_low = torch.where(jump, s_high, s_low)
         begin = take(prev, i)
         piece_pixels = pixels if isinstance(pixels, int) else take(pixels, i)
@@ -463,11 +463,11 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
         s = torch.where(at_end, s_high, s)
         return piece_time(take(knots.bp_t, begin), take(knots.bp_t, i), s)
 
-    k = cross.step.shape[0]
+    k = cross.move.shape[0]
     t = torch.cat([
-        crossing_times(cross.step[lo:lo + CHUNK_EVENTS], cross.level[lo:lo + CHUNK_EVENTS],
+        crossing_times(cross.move[lo:lo + CHUNK_EVENTS], cross.level[lo:lo + CHUNK_EVENTS],
                        cross.on[lo:lo + CHUNK_EVENTS])
         for lo in range(0, max(k, 1), CHUNK_EVENTS)
     ])
-    bp = take(step_bp, cross.step)
+    bp = take(move_bp, cross.move)
     return CurveCrossings(knots.bp_region(bp), t, cross.on, bp)

@@ -18,7 +18,7 @@ from evdown_torch.transforms.functional.estimation.stream import (
     EstimationSettings,
     resume_steps,
 )
-from evdown_torch.transforms.functional.reference import level_index, level_value, step_crossings
+from evdown_torch.transforms.functional.reference import level_index, level_value, move_crossings
 
 __all__ = ["linear_estimation", "linear_regions", "local_cumsum"]
 
@@ -216,10 +216,10 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     floor_u, on_level, q_start = resume_steps(
         knots, torch.arange(floor_u.shape[0], device=device), floor_u, on_level, resume
     )
-    cross = step_crossings(floor_u, on_level, bp_first, emitted=emitted, q_start=q_start)
+    cross = move_crossings(floor_u, on_level, bp_first, emitted=emitted, q_start=q_start)
 
     # Crossing times: linear interpolation on the piece that ends at the crossing's step.
-    end = cross.step
+    end = cross.move
     jump = take(bp_first, end)
     begin = end - (~jump).to(torch.int64)
     piece_pixels = pixels if isinstance(pixels, int) else take(pixels, end)

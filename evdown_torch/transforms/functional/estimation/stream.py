@@ -96,7 +96,7 @@ def resume_steps(
 
     Returns:
         ``(floor_u, on_level, q_start)`` for
-        :func:`~evdown_torch.transforms.functional.reference.step_crossings`.
+        :func:`~evdown_torch.transforms.functional.reference.move_crossings`.
     """
     if resume is None:
         return floor_u, on_level, None

@@ -64,7 +64,7 @@ from evdown_torch.transforms.functional.reference import (
     reference_index,
 )
 
-#: Fewest events of a piece that the one-word sums (:func:`_one_word_steps`) decide: below,
+#: Fewest events of a piece that the one-word sums (:func:`_one_word_moves`) decide: below,
 #: their few fixed costs (a table of every level that counts, and their checks) outweigh
 #: their lower cost per event, and the two-word sums decide.
 ONE_WORD_MIN_EVENTS = 1 << 14
@@ -187,7 +187,7 @@ class PixelLevels(NamedTuple):
     pixel: Tensor  # (n,) int64 pixel id, ascending (time order inside a pixel)
     order: Tensor  # (n,) int64 time position of each
     level: Tensor  # (n,) int64 level of the pixel after the event
-    step: Tensor  # (n,) int64 the event's step, +1 (ON) or -1 (OFF)
+    change: Tensor  # (n,) int64 the event's level change, +1 (ON) or -1 (OFF)
     new_state: Tensor  # (H * W,) int64 levels after the piece
 
 
@@ -195,28 +195,30 @@ def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> Pix
     """Exact level of its pixel after every event, starting from ``levels``."""
     pixel = events.y * width + events.x
     pixel, order = stable_sort_small(pixel, width * height)
-    step = polarity_sign(take(events.p, order), torch.int64)
+    change = polarity_sign(take(events.p, order), torch.int64)
     new_pixel = changes(pixel)
     starts = where_true(new_pixel)
     n = pixel.shape[0]
     last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1] if n else [])])  # run ends
-    # One cumulative sum whose first step of each pixel also moves from the previous pixel's
+    # One cumulative sum whose first change of each pixel also moves from the previous pixel's
     # last level to this pixel's starting level (a telescoping correction).
-    plain = torch.cumsum(step, 0)
+    plain = torch.cumsum(change, 0)
     first_level = take(levels, take(pixel, starts))
-    final = take(plain, last) - take(plain, starts) + take(step, starts) + first_level
+    final = take(plain, last) - take(plain, starts) + take(change, starts) + first_level
     jump = first_level
     jump[1:] -= final[:-1]
-    level = step.index_add(0, starts, jump).cumsum_(0)
+    level = change.index_add(0, starts, jump).cumsum_(0)
     new_state = levels.clone()
     new_state.scatter_(0, take(pixel, last), final)
-    return PixelLevels(pixel, order, level, step, new_state)
+    return PixelLevels(pixel, order, level, change, new_state)
 
 
-def _moved_steps(floor_u: Tensor, on_level: Tensor, first: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The steps that can change ``q``, with their ``floor(u)`` and on-level flags.
+def _moves_to_solve(
+    floor_u: Tensor, on_level: Tensor, first: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The moves that can change ``q``, with their ``floor(u)`` and on-level flags.
 
-    A step that stays strictly inside the cell its predecessor ended in keeps ``q`` and
+    A move that stays strictly inside the cell its predecessor ended in keeps ``q`` and
     crosses nothing (a tenth or less of the events when a level takes several events to
     cross): ``(kept positions, floor(u), on level)`` of the others.
     """
@@ -228,12 +230,12 @@ def _moved_steps(floor_u: Tensor, on_level: Tensor, first: Tensor) -> tuple[Tens
     return kept, take(floor_u, kept), take(on_level, kept)
 
 
-def _one_word_steps(
+def _one_word_moves(
     key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, new_levels: Tensor,
     firsts: Tensor, first: Tensor, log_pixels: Tensor | float, per_region: int,
     contrast: float, threshold: float,
 ) -> tuple[Tensor, Tensor, Tensor] | None:
-    """:func:`_moved_steps` of a piece from its one-word sums (:func:`.sums.one_word_sums`).
+    """:func:`_moves_to_solve` of a piece from its one-word sums (:func:`.sums.one_word_sums`).
 
     Every event whose ``u`` lies farther than the one-word sums' error bound from both snap
     bounds of its level (``k - SNAP`` and ``k + SNAP``) gets the ``floor(u)`` and on-level
@@ -270,7 +272,7 @@ def _one_word_steps(
     floor_w = torch.floor(w, out=log_total)
     frac = w.sub_(floor_w)
     near = frac <= 2 * shift
-    kept, floor_w, near = _moved_steps(floor_w, near, first)
+    kept, floor_w, near = _moves_to_solve(floor_w, near, first)
     u = floor_w.add_(take(frac, kept)).sub_(shift)
     distance = torch.round(u).sub_(u).abs_().sub_(SNAP).abs_()
     doubt = where_true(distance <= widest)  # (each event's own bound is at most widest)
@@ -433,13 +435,13 @@ def _events_piece(
     def log_pixels() -> Tensor:
         return region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
 
-    steps = None
+    moves = None
     if n >= ONE_WORD_MIN_EVENTS:  # (log(n_r) as one float where every region is whole)
         whole = sensor_size[0] % fx == 0 and sensor_size[1] % fy == 0
-        steps = _one_word_steps(key, ids, inside, state.level, new_levels, firsts, first,
+        moves = _one_word_moves(key, ids, inside, state.level, new_levels, firsts, first,
                                 math.log(per_region) if whole else log_pixels(), per_region,
                                 contrast, threshold)
-    if steps is None:
+    if moves is None:
         lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
         rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
         if n == 1:  # a lone event (after a cut): its sum straight from the levels after it
@@ -468,12 +470,12 @@ def _events_piece(
         u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
         floor_u, on_level = snap(u)
         del u, total
-        # The reference rule on the steps that can change q only (a step that stays strictly
+        # The reference rule on the moves that can change q only (a move that stays strictly
         # inside the cell its predecessor ended in keeps q and crosses nothing): a tenth or
         # less of the events when a level takes several events to cross.
-        steps = _moved_steps(floor_u, on_level, first)
-    kept, floor_u, on_level = steps
-    del steps
+        moves = _moves_to_solve(floor_u, on_level, first)
+    kept, floor_u, on_level = moves
+    del moves
     region, first = take(region, kept), take(first, kept)
     firsts = where_true(first)
     # Every region's q before the piece (a 0-d zero while all are 0: no look-up).
@@ -485,10 +487,10 @@ def _events_piece(
     q_before[firsts] = take(state.reference, take(region, firsts).long())
     cross = crossings(q_before, q, emitted=emitted)
 
-    # Back to time order: crossings of one step keep their level order.
-    step = take(kept, cross.step)
-    source, by_time = stable_sort_small(take(order, step), n)
-    out_x, out_y = region_xy(take(region, take(cross.step, by_time)).long(), out_w)
+    # Back to time order: crossings of one move keep their level order.
+    move_at = take(kept, cross.move)
+    source, by_time = stable_sort_small(take(order, move_at), n)
+    out_x, out_y = region_xy(take(region, take(cross.move, by_time)).long(), out_w)
     out = Events(out_x, out_y, take(events.t, source), take(cross.on, by_time))
 
     lasts = where_true(ends(first))

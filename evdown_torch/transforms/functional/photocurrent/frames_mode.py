@@ -429,7 +429,7 @@ def _frame_crossings(
     carry_q.scatter_(0, take(region, lasts), take(q, lasts))
     carry_u.scatter_(0, take(region, lasts), take(u, lasts))
     cross = crossings(q_before, q, emitted=emitted)
-    end = cross.step
+    end = cross.move
     u0, u1 = take(u_before, end), take(u, end)
     ratio = (cross.level.to(torch.float64) - u0) / (u1 - u0)
     at_end = take(on_level, end) & (cross.level == take(floor_u, end))

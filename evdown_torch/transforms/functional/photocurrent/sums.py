@@ -6,7 +6,7 @@ intensity ``exp(c * (L - m_r))`` in two-word int64 fixed point (:func:`fixed_poi
 the region's sum after each event is an exact integer running sum in which a pixel's changes
 telescope to its current intensity (:func:`running_sums`, with the zero-sum segmented
 cumulative sum :func:`zero_sum_cumsum`). The error is a few ulps of each current sum plus
-half a fine step per pixel, however many events the piece has.
+half a fine unit per pixel, however many events the piece has.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from evdown_torch._tensors import (
 
 #: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: the fixed point's
 #: scale is fitted to the brightest intensity of the piece, so a pixel rising far above its
-#: region's anchor would coarsen every region's fine step (``2**-65`` of an anchor at 32).
+#: region's anchor would coarsen every region's fine unit (``2**-65`` of an anchor at 32).
 MAX_EXPONENT = 32.0
 
 #: Unit roundoff of float64.
@@ -75,23 +75,23 @@ def grouped_levels(
         pixel_on = take(pixel_on, perm)
     dtype = pixel_on.dtype  # int32 where the caller found every level fits
     on = torch.bitwise_and(pixel_on, 1)
-    step = torch.mul(on, 2).sub_(1)
+    change = torch.mul(on, 2).sub_(1)
     pixel = pixel_on.bitwise_right_shift_(1)
     starts = where_true(changes(pixel))
     last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1])])
     pixel = take(pixel, starts).long()
-    # One cumulative sum whose first step of each pixel also moves from the previous pixel's
+    # One cumulative sum whose first change of each pixel also moves from the previous pixel's
     # last level to this pixel's starting level (a telescoping correction).
-    plain = torch.cumsum(step, 0, dtype=dtype)
+    plain = torch.cumsum(change, 0, dtype=dtype)
     first_level = take(levels, pixel).to(dtype)
-    final = take(plain, last) - take(plain, starts) + take(step, starts) + first_level
+    final = take(plain, last) - take(plain, starts) + take(change, starts) + first_level
     del plain
     jump = first_level
     jump[1:] -= final[:-1]
     # The level after each event, then 2 * (after - s) + on = 2 * after - 3 * on + 2 with the
-    # step s = 2 * on - 1: the level before it, packed with its polarity.
-    key = step.index_add_(0, starts, jump).cumsum_(0).mul_(2).add_(2).sub_(on, alpha=3)
-    del step, on
+    # change s = 2 * on - 1: the level before it, packed with its polarity.
+    key = change.index_add_(0, starts, jump).cumsum_(0).mul_(2).add_(2).sub_(on, alpha=3)
+    del change, on
     new_levels = levels.clone()
     new_levels.scatter_(0, pixel, final.long())
     if perm is None:
@@ -210,7 +210,7 @@ def two_word_scale(
 
     ``scale`` and ``fine`` keep a region's sum of either word below ``2**61``; ``lowest`` is
     the smallest sum the two words hold to ``1e-10 * threshold`` (error bound of each sum: a
-    few ulps of every intensity, see :func:`_split`, and of the conversions, and half a step
+    few ulps of every intensity, see :func:`_split`, and of the conversions, and half a fine unit
     of the fine word per pixel).
     """
     top = max(math.exp(contrast * (hi + 1)), 1.0)
@@ -313,7 +313,7 @@ class OneWordSums(NamedTuple):
     total: Tensor  # (N,) int64 sum of round(exp(c * (L_p - top)) * 2**bits) after each event
     bits: int
     smallest: int  # the smallest total
-    two_word_error: float  # bound of the two-word sums' fine steps, relative to their sum
+    two_word_error: float  # bound of the two-word sums' fine units, relative to their sum
 
 
 def one_word_sums(
@@ -325,7 +325,7 @@ def one_word_sums(
     Each region's intensities are taken relative to its brightest level during the piece
     (``top``): one int64 table of ``round(exp(c * j) * 2**bits)`` for ``j <= 0`` serves all
     regions, each event's change is looked up in it, and one cumulative sum runs over the
-    grouped events, its first step of each region also moving it from the previous region's
+    grouped events, its first change of each region also moving it from the previous region's
     last sum to this region's sum before the piece (a telescoping correction). Every partial
     sum is a region's sum, an integer below ``2**62``: the result is exact and independent of
     the order of the additions. Its error is half a unit per pixel plus a few ulps of each
@@ -390,14 +390,14 @@ def one_word_sums(
     if int(torch.minimum(anchor, final).min()) * threshold * NEAR_CAP < 2.02 * per_region:
         return None
     # Row i (j = lo + i): [change by OFF, change by ON], at 2 * (j - lo) + on.
-    steps = torch.stack([table[:-2] - table[1:-1], table[2:] - table[1:-1]], 1).reshape(-1)
-    change = take(steps, key.clamp_(min=2 * lo).sub_(2 * lo))
+    by_level = torch.stack([table[:-2] - table[1:-1], table[2:] - table[1:-1]], 1).reshape(-1)
+    change = take(by_level, key.clamp_(min=2 * lo).sub_(2 * lo))
     anchor[1:] -= final[:-1]
     total = change.index_add_(0, firsts, anchor).cumsum_(0)
     smallest = int(total.min())
     # The smallest two-word sum, at least (each region's factor exp(c * (top - m)) / 2**bits
     # is above 2**-bits, and above its own smallest total): running_sums cuts before a sum
-    # below its lowest, and then it must decide the piece; above it, its half a fine step
+    # below its lowest, and then it must decide the piece; above it, its half a fine unit
     # per pixel is its error.
     scale, fine, lowest = two_word_scale(int((top - m).max()) - 1, per_region, contrast,
                                          threshold)
