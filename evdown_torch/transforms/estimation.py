@@ -27,8 +27,9 @@ def _whole(events: Events, settings: EstimationSettings) -> Events:
 
 
 def _stacked(batch: EventBatch, settings: EstimationSettings) -> EventBatch:
-    """The whole-stream kernel once on the stacked batch, with each recording's own bounds."""
-    return run_stacked(batch, lambda s: estimate(s.events, settings, bounds=(s.starts, s.ends)),
+    """The whole-stream kernel once on the stacked batch, with each recording's own span."""
+    return run_stacked(batch, lambda s: estimate(s.events, settings,
+                                                 recording_spans=(s.starts, s.ends)),
                        sensor_size=settings.sensor_size, factor=settings.factor)
 
 

@@ -44,7 +44,7 @@ def _lif_stacked(batch: EventBatch, settings: LIFPoolingSettings) -> EventBatch:
 
     def kernel(stacked: Stacked) -> Events:
         return lif_pooling(stacked.events, settings.neuron, sensor_size=settings.sensor_size,
-                           factor=settings.factor, bounds=(stacked.starts, stacked.ends))
+                           factor=settings.factor, recording_spans=(stacked.starts, stacked.ends))
 
     return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
 

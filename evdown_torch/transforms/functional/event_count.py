@@ -179,7 +179,7 @@ def event_count_batch(
     block_size = out_w * out_h
     narrow = _region_dtype(sensor_size, factor, block_size * recordings)
     counts = torch.tensor(lengths, dtype=torch.int64, device=device)
-    blocks = torch.repeat_interleave(
+    recording_offset = torch.repeat_interleave(
         torch.arange(0, block_size * recordings, block_size, dtype=narrow, device=device),
         counts, output_size=events.num_events)
     bounds = chunk_bounds(events.t)
@@ -188,7 +188,7 @@ def event_count_batch(
     for start, stop in zip(bounds[:-1], bounds[1:]):
         piece = Events(*(column[start:stop] for column in events))
         out, state = _event_count_sorted(piece, settings, state, emitted,
-                                         blocks=blocks[start:stop])
+                                         recording_offset=recording_offset[start:stop])
         outputs.append(out)
         emitted += out.num_events
     if len(outputs) == 1:
@@ -216,11 +216,11 @@ def _event_count_sorted(
     settings: ThresholdSettings,
     state: EventCountState,
     emitted: int = 0,
-    blocks: Tensor | None = None,
+    recording_offset: Tensor | None = None,
 ) -> tuple[Events, EventCountState]:
     """:func:`event_count` on time-sorted events.
 
-    ``emitted``: events of earlier chunks; ``blocks``: each event's first region id, in
+    ``emitted``: events of earlier chunks; ``recording_offset``: each event's first region id, in
     :func:`_region_dtype`, for a batch's events in their own coordinates.
 
     Few passes over the events, on narrow dtypes (the cost of a live chunk is its memory
@@ -253,8 +253,8 @@ def _event_count_sorted(
     column = events.x.to(narrow, copy=True)
     region_id += divide(column, factor[0], out=column)
     del column
-    if blocks is not None:
-        region_id += blocks
+    if recording_offset is not None:
+        region_id += recording_offset
     region, order = stable_sort_small(region_id, regions, narrow=True)
     del region_id
     # Each region's first and last grouped event, by bisection on the sorted region ids.

@@ -346,7 +346,7 @@ def cubic_estimation(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     threshold: float,
-    bounds: tuple[Tensor, Tensor] | None = None,
+    recording_spans: tuple[Tensor, Tensor] | None = None,
     max_delay: float | None = None,
 ) -> Events:
     """Downscale by cubic log-luminance estimation (docs/semantics.md, method 5).
@@ -371,7 +371,7 @@ def cubic_estimation(
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
-        bounds: as :func:`~evdown_torch.transforms.functional.estimation.linear.linear_estimation`.
+        recording_spans: as :func:`.linear.linear_estimation`.
         max_delay: as there; besides, each pixel's slope at its first knot is 0 (at rest
             before the stream).
 
@@ -388,7 +388,7 @@ def cubic_estimation(
         ([0, 0, 6, 20], [True, True, True, False])
     """
     curve = EstimationSettings(sensor_size, factor, threshold, max_delay, solver=cubic_regions)
-    return estimate(events, curve, bounds=bounds)
+    return estimate(events, curve, recording_spans=recording_spans)
 
 
 def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:

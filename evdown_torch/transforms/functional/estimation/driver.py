@@ -88,7 +88,10 @@ RegionSolver = Callable[[Knots, RegionJob], CurveCrossings]
 
 
 def estimate(
-    events: Events, settings: EstimationSettings, *, bounds: tuple[Tensor, Tensor] | None = None
+    events: Events,
+    settings: EstimationSettings,
+    *,
+    recording_spans: tuple[Tensor, Tensor] | None = None,
 ) -> Events:
     """The batch entry of the estimation kernels: the whole stream, then :func:`estimate_window`.
 
@@ -101,7 +104,7 @@ def estimate(
             the one ending each crossing's piece; ``front_at_rest``: a bounded delay, see
             :func:`estimate_window`). With ``max_delay`` (:func:`hold_knots`) the pixels hold
             their level until ``D`` before each knot; ``None`` is the paper's method.
-        bounds: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
+        recording_spans: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
             ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
             :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps
             of each recording, its ``t_start`` and ``t_end``; ``None`` for one stream.
@@ -118,13 +121,13 @@ def estimate(
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device)
     t_start, t_end = events.t[0], events.t[-1]
-    if bounds is not None:
-        t_start, t_end = bounds
+    if recording_spans is not None:
+        t_start, t_end = recording_spans
     check_span(t_start, t_end)  # before any time arithmetic
     step = None
     if settings.max_delay is not None:
         start = t_start
-        if bounds is not None:  # each event's own recording's t_start
+        if recording_spans is not None:  # each event's own recording's t_start
             rows = settings.output_sensor_size[1] * settings.factor[1]
             start = take(t_start, divide(events.y, rows))
         events, step = hold_knots(events, max_delay=settings.max_delay, t_start=start)

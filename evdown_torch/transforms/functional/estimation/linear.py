@@ -87,7 +87,7 @@ def linear_estimation(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     threshold: float,
-    bounds: tuple[Tensor, Tensor] | None = None,
+    recording_spans: tuple[Tensor, Tensor] | None = None,
     max_delay: float | None = None,
 ) -> Events:
     """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
@@ -111,7 +111,7 @@ def linear_estimation(
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
-        bounds: ``(B,)`` first and last timestamps of each recording of a batch stacked
+        recording_spans: ``(B,)`` first and last timestamps of each recording of a batch stacked
             vertically (see :func:`.driver.estimate`), or
             ``None`` for one stream.
         max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
@@ -129,7 +129,7 @@ def linear_estimation(
     """
     settings = EstimationSettings(sensor_size, factor, threshold, max_delay,
                                   solver=linear_regions)
-    return estimate(events, settings, bounds=bounds)
+    return estimate(events, settings, recording_spans=recording_spans)
 
 
 def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:

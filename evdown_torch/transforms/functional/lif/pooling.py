@@ -230,7 +230,7 @@ def lif_pooling(
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
-    bounds: tuple[Tensor, Tensor] | None = None,
+    recording_spans: tuple[Tensor, Tensor] | None = None,
 ) -> Events:
     """Downscale a stream through one leaky integrate-and-fire neuron per region and polarity.
 
@@ -247,7 +247,7 @@ def lif_pooling(
         settings: the neuron's settings (``dt`` in the unit of ``t``).
         sensor_size: input sensor ``(W, H, P)``.
         factor: ``(fx, fy)``, positive integers.
-        bounds: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
+        recording_spans: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
             ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
             :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps of
             each recording: each is binned from its own ``t_start`` and its spikes end at
@@ -276,28 +276,28 @@ def lif_pooling(
         return Events.empty(events.t.dtype, events.device)
     wo, ho, _ = output_size(sensor_size, factor)
     last_step: int | Tensor  # the stream's last step, or each recording's
-    if bounds is None:
+    if recording_spans is None:
         steps, last_step, dt = step_indices(events.t, settings.dt)
-        batch_size = 1
+        num_recordings = 1
     else:  # one block of Ho * Wo regions per recording
         steps, last_step, dt = batch_step_indices(  # each event's recording: its row block
-            events.t, divide(events.y, ho * factor[1]), bounds, settings.dt)
-        batch_size = bounds[0].shape[0]
+            events.t, divide(events.y, ho * factor[1]), recording_spans, settings.dt)
+        num_recordings = recording_spans[0].shape[0]
     spike_step, neuron, _ = lif_spikes(
         events, steps, settings, state=None, last_step=last_step, from_step=0,
-        sensor_size=sensor_size, factor=factor, batch_size=batch_size, keep_state=False,
+        sensor_size=sensor_size, factor=factor, num_recordings=num_recordings, keep_state=False,
     )
-    if bounds is None:
+    if recording_spans is None:
         t = step_end_time(spike_step, t_start=events.t[0], t_end=events.t[-1], dt=dt)
     else:  # recording by recording, each at its own clock
-        starts, ends = bounds
-        recording = divide(torch.remainder(neuron, batch_size * wo * ho), wo * ho)
-        recording, by_recording = stable_sort_small(recording, batch_size)
+        starts, ends = recording_spans
+        recording = divide(torch.remainder(neuron, num_recordings * wo * ho), wo * ho)
+        recording, by_recording = stable_sort_small(recording, num_recordings)
         spike_step, neuron = spike_step[by_recording], neuron[by_recording]
         t = step_end_time(spike_step, t_start=starts.index_select(0, recording),
                            t_end=ends.index_select(0, recording), dt=dt)
     return spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor,
-                            batch_size=batch_size)
+                            num_recordings=num_recordings)
 
 
 class LIFState(NamedTuple):
@@ -333,7 +333,7 @@ def lif_spikes(
     from_step: int,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
-    batch_size: int = 1,
+    num_recordings: int = 1,
     keep_state: bool = True,
 ) -> tuple[Tensor, Tensor, LIFState | None]:
     """The spikes of the neurons over steps ``0 .. last_step``, from a state, event-driven.
@@ -355,8 +355,8 @@ def lif_spikes(
             were returned by an earlier call; they are neither built nor counted).
         sensor_size: input sensor ``(W, H, P)``.
         factor: ``(fx, fy)``, positive integers.
-        batch_size: how many recordings are stacked vertically in ``events`` (see
-            :func:`lif_pooling`'s ``bounds``); a state is for one recording only.
+        num_recordings: how many recordings are stacked vertically in ``events`` (see
+            :func:`lif_pooling`'s ``recording_spans``); a state is for one recording only.
         keep_state: return the neurons after the events; ``False`` returns ``None`` instead
             and lets a small call compute its spikes in closed form
             (:mod:`~evdown_torch.transforms.functional.lif.closed_form`), same spikes.
@@ -369,11 +369,11 @@ def lif_spikes(
     beta, threshold, weight, mutual_inhibition, reset_mechanism = settings.neuron
     fx, fy = factor
     wo, ho, _ = output_size(sensor_size, factor)
-    plane = batch_size * wo * ho  # batch_size recordings stacked vertically
+    plane = num_recordings * wo * ho  # num_recordings recordings stacked vertically
     top_step = int(last_step.max()) if isinstance(last_step, Tensor) else last_step
     cell_region, cell_step, current = _event_cells(
         events, steps, fx=fx, fy=fy, wo=wo, plane=plane, top_step=top_step, weight=weight,
-        mutual_inhibition=mutual_inhibition, ascending=batch_size == 1,
+        mutual_inhibition=mutual_inhibition, ascending=num_recordings == 1,
     )
     device, f32 = current.device, torch.float32
     beta32 = torch.tensor(beta, dtype=f32, device=device)  # the neuron's buffers, as snntorch

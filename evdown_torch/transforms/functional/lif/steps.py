@@ -122,14 +122,14 @@ def _steps(relative: Tensor, dt: float) -> Tensor:
 
 
 def batch_step_indices(
-    t: Tensor, recording: Tensor, bounds: tuple[Tensor, Tensor], dt: float
+    t: Tensor, recording: Tensor, recording_spans: tuple[Tensor, Tensor], dt: float
 ) -> tuple[Tensor, Tensor, float]:
     """:func:`step_indices` for a batch.
 
     Each event's step from its own recording's ``t_start``, each recording's last step
     ``(B,)`` and the ``dt`` to compute end times with (see :func:`lif_pooling`).
     """
-    starts, ends = bounds
+    starts, ends = recording_spans
     spans = ends - starts
     dt = _checked_dt(0, spans.max(), t.is_floating_point(), dt, "a recording spans")
     return _steps(t - starts.index_select(0, recording), dt), _steps(spans, dt), dt
@@ -159,14 +159,14 @@ def spikes_to_events(
     *,
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
-    batch_size: int = 1,
+    num_recordings: int = 1,
 ) -> Events:
     """Events of spikes of neurons ``polarity * plane + region`` at times ``t``.
 
-    ``plane = batch_size * Ho * Wo`` (``batch_size`` recordings stacked vertically).
+    ``plane = num_recordings * Ho * Wo`` (``num_recordings`` recordings stacked vertically).
     """
     wo, ho, _ = output_size(sensor_size, factor)
-    plane = batch_size * wo * ho
+    plane = num_recordings * wo * ho
     polarity = neuron >= plane
     x, y = region_xy(neuron - polarity * plane, wo)
     return Events(x, y, t, polarity)
