@@ -10,7 +10,7 @@ import evdown_torch as ev
 from evdown_torch import _tensors as tensors
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import DVS_DTYPE
-from evdown_torch.transforms.functional.event_count import _region_dtype
+from evdown_torch.transforms.functional.reference import region_dtype
 from evdown_torch.transforms.thinning import ThinnedDownsample
 from tests.helpers import random_stream
 
@@ -230,7 +230,7 @@ def test_event_count_batch_of_sorted_recordings(chunk, rng, monkeypatch):
 def test_event_count_batch_with_int32_region_ids(rng):
     """More regions in the batch than int16 holds: the region ids go to int32."""
     sensor = (64, 64, 2)  # 4,096 regions at factor 1: nine recordings need 36,864 ids
-    assert _region_dtype(sensor, (1, 1), 9 * 64 * 64) == torch.int32
+    assert region_dtype(sensor, (1, 1), 9 * 64 * 64) == torch.int32
     recordings = [random_stream(rng, 300, sensor, t_max=500) for _ in range(9)]
     recordings[8]["x"], recordings[8]["y"] = 63, 63  # the batch's last region id
     transform = ev.EventCount(sensor, factor=1, threshold=0.5)

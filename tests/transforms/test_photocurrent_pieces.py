@@ -159,7 +159,7 @@ def test_one_word_totals_are_the_exact_integer_sums(rng):
         current[p] += s
     touched, counts = torch.unique_consecutive(region, return_counts=True)
     firsts = torch.cumsum(counts, 0) - counts
-    ids, inside = kernel.region_pixels(touched, sensor, factor)
+    ids, inside = kernel.region_pixel_ids(touched, sensor, factor)
     got = sums.one_word_sums(key, ids, inside, levels, current, firsts, counts, per_region,
                              contrast, contrast)
     assert got is not None

@@ -13,19 +13,19 @@ from evdown_torch._tensors import (
     divide,
     ends,
     floor_divide_exact,
-    narrow_dtype,
     region_pixel_count,
     region_xy,
     sort_by_time,
     stable_sort_small,
     take,
-    where_true,
 )
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.reference import (
     capped_threshold,
     move_crossings,
+    region_dtype,
+    region_runs,
     threshold_fraction,
 )
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
@@ -177,7 +177,7 @@ def event_count_batch(
     state = initial_state(settings, device, recordings)
     out_w, out_h, _ = output_size(sensor_size, factor)
     block_size = out_w * out_h
-    narrow = _region_dtype(sensor_size, factor, block_size * recordings)
+    narrow = region_dtype(sensor_size, factor, block_size * recordings)
     counts = torch.tensor(lengths, dtype=torch.int64, device=device)
     recording_offset = torch.repeat_interleave(
         torch.arange(0, block_size * recordings, block_size, dtype=narrow, device=device),
@@ -201,16 +201,6 @@ def event_count_batch(
     return Events(out.x, out.y.sub_(recording, alpha=out_h), out.t, out.p), out_counts
 
 
-def _region_dtype(sensor_size: tuple[int, int, int], factor: tuple[int, int],
-                  regions: int) -> torch.dtype:
-    """The narrowest integer type of a chunk's coordinates and region ids.
-
-    ``regions`` counts the regions of all the stacked recordings.
-    """
-    out_w = output_size(sensor_size, factor)[0]
-    return narrow_dtype(max(out_w * factor[0], regions // out_w * factor[1], regions))
-
-
 def _event_count_sorted(
     events: Events,
     settings: ThresholdSettings,
@@ -221,7 +211,7 @@ def _event_count_sorted(
     """:func:`event_count` on time-sorted events.
 
     ``emitted``: events of earlier chunks; ``recording_offset``: each event's first region id, in
-    :func:`_region_dtype`, for a batch's events in their own coordinates.
+    :func:`.reference.region_dtype`, for a batch's events in their own coordinates.
 
     Few passes over the events, on narrow dtypes (the cost of a live chunk is its memory
     traffic): the events are grouped by region with a small-key sort, each region's level sum
@@ -247,7 +237,7 @@ def _event_count_sorted(
 
     # Group by region, time order kept inside each group: region ids computed in the narrowest
     # integer type that holds the coordinates and the ids (int16 for sensors up to 32,768).
-    narrow = _region_dtype(sensor_size, factor, regions)
+    narrow = region_dtype(sensor_size, factor, regions)
     region_id = events.y.to(narrow, copy=True)
     divide(region_id, factor[1], out=region_id).mul_(out_w)
     column = events.x.to(narrow, copy=True)
@@ -257,13 +247,7 @@ def _event_count_sorted(
         region_id += recording_offset
     region, order = stable_sort_small(region_id, regions, narrow=True)
     del region_id
-    # Each region's first and last grouped event, by bisection on the sorted region ids.
-    ids = torch.arange(regions, dtype=region.dtype, device=device)
-    edges = torch.cat([torch.searchsorted(region, ids), ids.new_tensor([n], dtype=torch.int64)])
-    touched = where_true(edges[1:] > edges[:-1])  # regions with events in this chunk
-    firsts = take(edges, touched)
-    lasts = take(edges[1:], touched) - 1
-    first = torch.zeros(n, dtype=torch.bool, device=device).index_fill_(0, firsts, True)
+    touched, firsts, lasts, first = region_runs(region, regions)  # regions with events
 
     # Level sum S of each region after each of its events: one running sum over the grouped
     # level changes (ON +1, OFF -1), each region's first change raised by what brings the

@@ -31,20 +31,23 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import changes, stable_sort_small, take, where_true
-from evdown_torch.checks import check_output_count
+from evdown_torch._tensors import changes, narrow_dtype, stable_sort_small, take, where_true
+from evdown_torch.checks import check_output_count, output_size
 
 __all__ = [
     "MAX_DENOMINATOR",
     "SNAP",
     "Crossings",
     "RegionGroups",
+    "RegionRuns",
     "capped_threshold",
     "crossings",
     "group_by_region",
     "level_index",
     "level_value",
     "reference_index",
+    "region_dtype",
+    "region_runs",
     "move_crossings",
     "threshold_fraction",
 ]
@@ -82,6 +85,55 @@ def capped_threshold(fraction: Fraction, bound: int) -> Fraction:
         (Fraction(8, 1), Fraction(1, 2))
     """
     return fraction if fraction <= bound else Fraction(bound + 1)
+
+
+def region_dtype(sensor_size: tuple[int, int, int], factor: tuple[int, int],
+                 regions: int) -> torch.dtype:
+    """The narrowest integer type of a chunk's coordinates and region ids.
+
+    ``regions`` counts the regions of all the stacked recordings (int16 up to 32,768 for a
+    sensor that fits too).
+
+    Example:
+        >>> region_dtype((128, 128, 2), (4, 4), 32 * 32)
+        torch.int16
+    """
+    out_w = output_size(sensor_size, factor)[0]
+    return narrow_dtype(max(out_w * factor[0], regions // out_w * factor[1], regions))
+
+
+class RegionRuns(NamedTuple):
+    """Where each region's events lie once the events are grouped by region.
+
+    Attributes:
+        touched: ``(R',)`` int64 ids of the regions with events, ascending.
+        firsts: ``(R',)`` int64 position of each touched region's first grouped event.
+        lasts: ``(R',)`` int64 position of its last.
+        first: ``(N,)`` bool, the grouped event is its region's first.
+    """
+
+    touched: Tensor
+    firsts: Tensor
+    lasts: Tensor
+    first: Tensor
+
+
+def region_runs(region: Tensor, regions: int) -> RegionRuns:
+    """The runs of sorted region ids ``region`` (``(N,)``, ids below ``regions``), by bisection.
+
+    Example:
+        >>> runs = region_runs(torch.tensor([0, 0, 2, 3, 3, 3]), 5)
+        >>> runs.touched.tolist(), runs.firsts.tolist(), runs.lasts.tolist()
+        ([0, 2, 3], [0, 2, 3], [1, 2, 5])
+    """
+    n = region.shape[0]
+    ids = torch.arange(regions, dtype=region.dtype, device=region.device)
+    edges = torch.cat([torch.searchsorted(region, ids), ids.new_tensor([n], dtype=torch.int64)])
+    touched = where_true(edges[1:] > edges[:-1])
+    firsts = take(edges, touched)
+    lasts = take(edges[1:], touched) - 1
+    first = torch.zeros(n, dtype=torch.bool, device=region.device).index_fill_(0, firsts, True)
+    return RegionRuns(touched, firsts, lasts, first)
 
 
 class RegionGroups(NamedTuple):

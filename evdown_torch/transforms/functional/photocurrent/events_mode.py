@@ -41,7 +41,6 @@ from evdown_torch._tensors import (
     changes,
     divide,
     ends,
-    narrow_dtype,
     region_pixel_count,
     region_xy,
     sort_by_time,
@@ -62,6 +61,8 @@ from evdown_torch.transforms.functional.reference import (
     SNAP,
     crossings,
     reference_index,
+    region_dtype,
+    region_runs,
 )
 
 #: Fewest events of a piece that the one-word sums (:func:`_one_word_moves`) decide: below,
@@ -134,7 +135,7 @@ def snap(u: Tensor) -> tuple[Tensor, Tensor]:
     return nearest.sub_(offset.lt_(-SNAP)).to(torch.int64), on_level
 
 
-def region_pixels(
+def region_pixel_ids(
     regions: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
 ) -> tuple[Tensor, Tensor | None]:
     """Pixel ids ``y * W + x`` of every pixel of ``regions``, and which are inside the sensor.
@@ -397,8 +398,8 @@ def _events_piece(
     n = events.num_events
     regions = state.reference.shape[0]
     # Region coordinates and ids in the narrowest integer type that holds them and the
-    # sensor's coordinates (int16 up to 32,768 regions), as EventCount's kernel does.
-    narrow = narrow_dtype(max(out_w * fx, regions // out_w * fy, regions))
+    # sensor's coordinates (as EventCount's kernel does).
+    narrow = region_dtype(sensor_size, factor, regions)
     x, y = events.x.to(narrow, copy=True), events.y.to(narrow, copy=True)
     rx, ry = divide(x, fx), divide(y, fy)
     # Pixel and polarity packed as 2 * (y * W + x) + on, in int32 where every level fits too.
@@ -420,17 +421,11 @@ def _events_piece(
         place.add_(ry.bitwise_right_shift_(shift), alpha=per_region)
         place = take(place.to(torch.uint8) if bound <= 256 else place, order)
     del ry
-    # Each region's first grouped event, by bisection on the sorted region ids.
-    edges = torch.searchsorted(region, torch.arange(regions, dtype=region.dtype,
-                                                    device=region.device))
-    edges = torch.cat([edges, edges.new_tensor([n])])
-    touched = where_true(edges[1:] > edges[:-1])
-    firsts = take(edges, touched)
-    first = torch.zeros(n, dtype=torch.bool, device=region.device).index_fill_(0, firsts, True)
+    touched, firsts, _, first = region_runs(region, regions)
     key, new_levels = grouped_levels(take(pixel_on, order), place, bound, state.level)
     del place, pixel_on
 
-    ids, inside = region_pixels(touched, sensor_size, factor)
+    ids, inside = region_pixel_ids(touched, sensor_size, factor)
 
     def log_pixels() -> Tensor:
         return region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()

@@ -41,7 +41,7 @@ from evdown_torch.transforms.functional.photocurrent.events_mode import (
     check_level_range,
     log_mean_exp,
     pixel_levels,
-    region_pixels,
+    region_pixel_ids,
     snap,
 )
 from evdown_torch.transforms.functional.photocurrent.settings import (
@@ -300,7 +300,7 @@ def _frame_steps(
         region, step_frame = take(groups.region, step_at), take(k_g, step_at)
         del groups, k_g, step_at, rx, ry
         # Every pixel of the step's region at the end of the step's frame.
-        ids, inside = region_pixels(region, sensor_size, factor)
+        ids, inside = region_pixel_ids(region, sensor_size, factor)
         query = ids * span + (step_frame - k0)[:, None]
         found = torch.searchsorted(table_key, query.reshape(-1), right=True).view_as(query)
         found -= 1

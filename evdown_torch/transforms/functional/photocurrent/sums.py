@@ -231,7 +231,7 @@ def running_sums(
     Args:
         key: ``(N,)`` int64 ``2 * L + on`` of each event (``L``: its pixel's level before it),
             grouped by region; overwritten.
-        ids: ``(S, n)`` int64 pixel ids of the touched regions (:func:`region_pixels`).
+        ids: ``(S, n)`` int64 pixel ids of the touched regions (:func:`region_pixel_ids`).
         inside: their mask (``None``: all inside).
         levels: ``(H * W,)`` int64 pixel levels before the piece.
         firsts: ``(S,)`` int64 first position of each region's events.
@@ -342,7 +342,7 @@ def one_word_sums(
     Args:
         key: ``(N,)`` int32 or int64 ``2 * L + on`` of each event (``L``: its pixel's level
             before it), grouped by region (not modified).
-        ids: ``(S, n)`` int64 pixel ids of the touched regions (``region_pixels``).
+        ids: ``(S, n)`` int64 pixel ids of the touched regions (``region_pixel_ids``).
         inside: their mask (``None``: all inside).
         levels: ``(H * W,)`` int64 pixel levels before the piece.
         new_levels: ``(H * W,)`` int64 pixel levels after it.
