@@ -53,6 +53,7 @@ from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.photocurrent.sums import (
     EPS,
     NEAR_CAP,
+    continued_cumsum,
     grouped_levels,
     one_word_sums,
     running_sums,
@@ -201,14 +202,8 @@ def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> Pix
     starts = where_true(new_pixel)
     n = pixel.shape[0]
     last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1] if n else [])])  # run ends
-    # One cumulative sum whose first change of each pixel also moves from the previous pixel's
-    # last level to this pixel's starting level (a telescoping correction).
-    plain = torch.cumsum(change, 0)
-    first_level = take(levels, take(pixel, starts))
-    final = take(plain, last) - take(plain, starts) + take(change, starts) + first_level
-    jump = first_level
-    jump[1:] -= final[:-1]
-    level = change.index_add(0, starts, jump).cumsum_(0)
+    level, final = continued_cumsum(change.clone(), starts, last,
+                                    take(levels, take(pixel, starts)))
     new_state = levels.clone()
     new_state.scatter_(0, take(pixel, last), final)
     return PixelLevels(pixel, order, level, change, new_state)

@@ -40,6 +40,36 @@ EPS = 2.0**-53
 TABLE_SIZE = 1 << 16
 
 
+def continued_cumsum(
+    change: Tensor, starts: Tensor, lasts: Tensor, initial: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Each group's running sum of ``change``, from the group's ``initial`` value.
+
+    Groups are contiguous runs of ``change`` (``(N,)``; ``starts`` and ``lasts`` ``(G,)``
+    their first and last positions, ``initial`` ``(G,)`` of ``change``'s dtype, overwritten).
+    One cumulative sum serves all groups: each group's first change also moves the sum from
+    the previous group's last value to this group's ``initial`` (a telescoping correction).
+    ``change`` is overwritten with the running sums.
+
+    Returns:
+        ``(running, final)``: ``(N,)`` the value after each change (``change`` itself) and
+        ``(G,)`` each group's last value.
+
+    Example:
+        >>> change = torch.tensor([1, 1, -1, 1, -1])
+        >>> running, final = continued_cumsum(change, torch.tensor([0, 2]), torch.tensor([1, 4]),
+        ...                                   torch.tensor([5, -3]))
+        >>> running.tolist(), final.tolist()
+        ([6, 7, -4, -3, -4], [7, -4])
+    """
+    plain = torch.cumsum(change, 0, dtype=change.dtype)
+    final = take(plain, lasts) - take(plain, starts) + take(change, starts) + initial
+    del plain
+    jump = initial
+    jump[1:] -= final[:-1]
+    return change.index_add_(0, starts, jump).cumsum_(0), final
+
+
 def grouped_levels(
     pixel_on: Tensor, place: Tensor | None, bound: int, levels: Tensor
 ) -> tuple[Tensor, Tensor]:
@@ -80,18 +110,11 @@ def grouped_levels(
     starts = where_true(changes(pixel))
     last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1])])
     pixel = take(pixel, starts).long()
-    # One cumulative sum whose first change of each pixel also moves from the previous pixel's
-    # last level to this pixel's starting level (a telescoping correction).
-    plain = torch.cumsum(change, 0, dtype=dtype)
-    first_level = take(levels, pixel).to(dtype)
-    final = take(plain, last) - take(plain, starts) + take(change, starts) + first_level
-    del plain
-    jump = first_level
-    jump[1:] -= final[:-1]
+    after, final = continued_cumsum(change, starts, last, take(levels, pixel).to(dtype))
     # The level after each event, then 2 * (after - s) + on = 2 * after - 3 * on + 2 with the
     # change s = 2 * on - 1: the level before it, packed with its polarity.
-    key = change.index_add_(0, starts, jump).cumsum_(0).mul_(2).add_(2).sub_(on, alpha=3)
-    del change, on
+    key = after.mul_(2).add_(2).sub_(on, alpha=3)
+    del change, after, on
     new_levels = levels.clone()
     new_levels.scatter_(0, pixel, final.long())
     if perm is None:
