@@ -18,6 +18,11 @@ future needs (:class:`WindowState`):
 Its size follows the sensor's active pixels and the last ``lag * D`` of input, not the
 stream's length. Only the regions with a knot at or after ``F`` are solved: the others hold
 their level until their next event, whose held knot comes after the next horizon.
+
+The state's knot events are kept in stable time order, so a window is a merge of sorted
+parts (:func:`_merge`: the state's, the chunk's held knots, the chunk's events) rather than a
+sort, and the next state takes from the window only each pixel's last knots before the new
+horizon (:func:`_recent`), without grouping the whole window by pixel.
 """
 
 from __future__ import annotations
@@ -39,8 +44,8 @@ from evdown_torch._tensors import (
     where_true,
 )
 from evdown_torch.checks import check_positive_float, output_size
-from evdown_torch.events import Events
-from evdown_torch.transforms.functional.estimation.delay import effective_delay, hold_knots
+from evdown_torch.events import Events, polarity_sign
+from evdown_torch.transforms.functional.estimation.delay import effective_delay, held_knots
 from evdown_torch.transforms.functional.estimation.driver import RegionSolver, estimate_window
 from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
@@ -125,7 +130,7 @@ class WindowState(NamedTuple):
         t_last: ``()`` last timestamp so far.
         horizon: output events earlier than this time have been returned (a Python number;
             ``None`` before the first chunk).
-        knots: the knot events the future needs, one per (pixel, time), in no particular
+        knots: the knot events the future needs, one per (pixel, time), in stable time
             order (see the module docstring).
         step: ``(K,)`` int64 level change of each knot event (a pixel's first carries its
             whole level).
@@ -143,8 +148,44 @@ class WindowState(NamedTuple):
     q: Tensor
 
 
-def _cat(a: Events, b: Events) -> Events:
-    return Events(*(torch.cat(pair) for pair in zip(a, b, strict=True)))
+def _take(events: Events, index: Tensor) -> Events:
+    return Events(*(take(column, index) for column in events))
+
+
+def _merge(parts: list[tuple[Events, Tensor]]) -> tuple[Events, Tensor]:
+    """Time-sorted knot events and their steps, merged as a stable time sort of them in turn.
+
+    A tie keeps the parts' order, as a stable sort of their concatenation would. Each element
+    moves up by the elements of the other parts that come before it: a binary search of its
+    time in each smaller part; the largest part is searched in instead, and its elements
+    counted up by a cumulative sum.
+    """
+    sizes = [events.num_events for events, _ in parts]
+    big = max(range(len(parts)), key=sizes.__getitem__)
+    big_t = parts[big][0].t
+    device = big_t.device
+    position = [torch.arange(size, device=device) for size in sizes]
+    before_big = torch.zeros(sizes[big] + 1, dtype=torch.int64, device=device)
+    for i, (events, _) in enumerate(parts):
+        if i == big:
+            continue
+        for j, (other, _) in enumerate(parts):
+            if j not in (i, big):
+                position[i] += torch.searchsorted(other.t, events.t, right=j < i)
+        after = torch.searchsorted(big_t, events.t, right=big < i)  # big's elements before
+        position[i] += after
+        before_big += torch.bincount(after, minlength=sizes[big] + 1)
+    position[big] += torch.cumsum(before_big, 0)[:-1]
+    total = sum(sizes)
+
+    def column(values: list[Tensor]) -> Tensor:
+        out = torch.empty(total, dtype=values[0].dtype, device=device)
+        for at, part in zip(position, values, strict=True):
+            out.index_copy_(0, at, part)
+        return out
+
+    merged = Events(*(column([events[c] for events, _ in parts]) for c in range(4)))
+    return merged, column([step for _, step in parts])
 
 
 def _regions(events: Events, factor: tuple[int, int], out_width: int) -> Tensor:
@@ -179,6 +220,43 @@ def _trim(
     step = differences(level, where_true(changes(pixel)))
     y = torch.div(pixel, width, rounding_mode="floor")
     return Events(pixel - y * width, y, t, step > 0), step
+
+
+def _recent(
+    window: Events, step: Tensor, *, before: Tensor, keep: int, pixels: int, width: int
+) -> tuple[Events, Tensor]:
+    """The knot events of a time-sorted window that :func:`_trim` keeps, and fewer others.
+
+    Of the events earlier than ``before``, each pixel's last ``keep`` knots are passed on and
+    the events before them folded into one event at the earliest of those knots, carrying
+    their steps: the same knots at the same levels, so :func:`_trim` gives the same result
+    as on the whole window, without grouping the whole window by pixel.
+    """
+    cut = int(torch.searchsorted(window.t, before))
+    if cut == 0:
+        return window, step
+    t, head_step = window.t[:cut], step[:cut]
+    pixel = window.y[:cut] * width + window.x[:cut]
+    # Each pixel's keep-th last knot time before the cut (its first, with fewer knots).
+    since = torch.empty(pixels, dtype=t.dtype, device=t.device)
+    since.scatter_reduce_(0, pixel, t, "amax", include_self=False)
+    for _ in range(keep - 1):
+        earlier = where_true(t < take(since, pixel))
+        since = since.clone().scatter_reduce_(0, take(pixel, earlier), take(t, earlier), "amax",
+                                              include_self=False)
+    fold = t < take(since, pixel)
+    folded = torch.zeros(pixels, dtype=torch.int64, device=t.device)
+    folded.index_add_(0, pixel, fold.to(torch.int64))
+    carried = torch.zeros(pixels, dtype=torch.int64, device=t.device)
+    carried.index_add_(0, pixel, head_step.masked_fill(~fold, 0))
+    at = where_true(folded > 0)
+    y = torch.div(at, width, rounding_mode="floor")
+    carry = Events(at - y * width, y, take(since, at), torch.zeros_like(at, dtype=torch.bool))
+    passed = where_true(~fold)
+    tail = Events(*(column[cut:] for column in window))
+    events = Events(*(torch.cat(columns) for columns in
+                      zip(carry, _take(window, passed), tail, strict=True)))
+    return events, torch.cat([take(carried, at), take(head_step, passed), step[cut:]])
 
 
 @dataclass(frozen=True)
@@ -265,8 +343,7 @@ def window_step(
     tau = events.t[-1]
     check_span(state.t_start, tau)  # before any time arithmetic
     pixel = events.y * width + events.x
-    new, new_step = hold_knots(events, max_delay=max_delay,
-                               t_start=take(state.pixel_t, pixel))
+    held = held_knots(events, max_delay=max_delay, t_start=take(state.pixel_t, pixel))
     pixel_t = state.pixel_t.clone()
     pixel_t.scatter_reduce_(0, pixel, events.t, "amax")
     # Nothing is earlier than t_start: a horizon before it (a delay longer than the stream so
@@ -278,17 +355,20 @@ def window_step(
     cut = None if state.horizon is None else torch.tensor(state.horizon, dtype=t_dtype,
                                                           device=device)
 
-    # The window: every knot event of the regions with something undecided.
+    # The window: every knot event of the regions with something undecided, in stable time
+    # order (the state's, then the held knots, then the chunk's events; each part is sorted).
     touched = torch.zeros(out_w * out_h, dtype=torch.bool, device=device)
-    touched[_regions(new, factor, out_w)] = True
+    touched[_regions(events, factor, out_w)] = True  # a held knot's pixel has an event here
     old_region = _regions(state.knots, factor, out_w)
     if cut is not None:
         touched[take(old_region, where_true(state.knots.t >= cut))] = True
     in_window = take(touched, old_region)
-    window = _cat(state.knots.select(in_window), new)
-    steps = torch.cat([state.step[in_window], new_step.to(torch.int64)])
-    order = torch.sort(window.t, stable=True).indices
-    window, steps = window.select(order), take(steps, order)
+    old = where_true(in_window)
+    window, steps = _merge([
+        (_take(state.knots, old), take(state.step, old)),
+        (held, torch.zeros(held.num_events, dtype=torch.int64, device=device)),
+        (events, polarity_sign(events.p, torch.int64)),
+    ])
 
     next_cut = torch.tensor(horizon, dtype=t_dtype, device=device)
     out, q = estimate_window(
@@ -298,10 +378,14 @@ def window_step(
     decided = out.t < next_cut
     if cut is not None:
         decided &= out.t >= cut
-    kept, kept_step = _trim(window, steps, before=next_cut, keep=settings.lag, width=width)
-    outside = ~in_window
-    knots = _cat(state.knots.select(outside), kept)
-    step = torch.cat([state.step[outside], kept_step])
+    recent, recent_step = _recent(window, steps, before=next_cut, keep=settings.lag,
+                                  pixels=pixel_t.shape[0], width=width)
+    kept, kept_step = _trim(recent, recent_step, before=next_cut, keep=settings.lag,
+                            width=width)
+    by_time = torch.sort(kept.t, stable=True).indices
+    outside = where_true(~in_window)
+    knots, step = _merge([(_take(state.knots, outside), take(state.step, outside)),
+                          (_take(kept, by_time), take(kept_step, by_time))])
     q = cast(Tensor, q)  # estimate_window returns q with a resume
     new_state = WindowState(state.t_start, tau, horizon, knots, step, pixel_t, q)
     return out.select(where_true(decided)), new_state
@@ -322,10 +406,8 @@ def window_end(state: WindowState, settings: EstimationSettings) -> Events | Non
     in_window = where_true(take(touched, region))
     if in_window.shape[0] == 0:
         return None
-    window, step = state.knots.select(in_window), take(state.step, in_window)
-    order = torch.sort(window.t, stable=True).indices
     out, _ = estimate_window(
-        window.select(order), step=take(step, order), t_start=state.t_start, t_end=state.t_last,
-        settings=settings, resume=Resume(cut, state.q),
+        _take(state.knots, in_window), step=take(state.step, in_window), t_start=state.t_start,
+        t_end=state.t_last, settings=settings, resume=Resume(cut, state.q),
     )
     return out.select(where_true(out.t >= cut))
