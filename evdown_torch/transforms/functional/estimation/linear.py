@@ -20,7 +20,7 @@ from evdown_torch.transforms.functional.estimation.stream import (
 )
 from evdown_torch.transforms.functional.reference import level_index, level_value, step_crossings
 
-__all__ = ["linear_estimation", "linear_regions", "local_cumsum"]
+__all__ = ["linear_estimation", "linear_regions", "local_cumsum", "rows_cumsum", "segment_rows"]
 
 
 def local_cumsum(values: Tensor, first_at: Tensor) -> Tensor:
@@ -30,9 +30,8 @@ def local_cumsum(values: Tensor, first_at: Tensor) -> Tensor:
     :func:`~evdown_torch._tensors.segmented_cumsum` does) carries the rounding of the segments
     before into each segment's last bits, so a region's result would depend on the regions
     processed with it (a batch of recordings, a chunk of regions). Here each segment is one
-    row of a ``(segments, width)`` tensor summed along its rows from 0; segments are grouped
-    by length into powers of two (``width < 2 * length``), so the padding at most doubles the
-    work and the loop runs over at most 64 groups, never over segments.
+    row of a ``(segments, width)`` tensor summed along its rows from 0 (the rows of
+    :func:`segment_rows`, which several sums over the same segments can share).
 
     Args:
         values: ``(N,)`` float64.
@@ -45,40 +44,66 @@ def local_cumsum(values: Tensor, first_at: Tensor) -> Tensor:
         >>> local_cumsum(torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0]), torch.tensor([0, 2, 3])).tolist()
         [1.0, 3.0, 4.0, 8.0, 24.0]
     """
-    n = values.shape[0]
-    if n == 0:
-        return torch.empty_like(values)
-    # One slot past the end: the padding of every row reads its 0.0 and writes its sums there.
-    padded = torch.cat([values, values.new_zeros(1)])
-    out = torch.empty_like(padded)
-    length = torch.diff(first_at, append=first_at.new_tensor([n]))
-    widest = int(length.max())
-    if first_at.shape[0] * widest <= 2 * n + SMALL_PADDING:
-        # Few or even segments (a small call): one group as wide as the longest, no loop.
-        _rows_cumsum(padded, out, first_at, length, widest)
-        return out[:n]
-    # Group k holds the segments of length in (2**(k-1), 2**k]: frexp's exponent of length - 1.
-    group = torch.frexp((length - 1).to(torch.float64)).exponent
-    for k in torch.unique(group).tolist():
-        members = where_true(group == k)
-        _rows_cumsum(padded, out, take(first_at, members), take(length, members), 1 << k)
-    return out[:n]
+    return rows_cumsum(values, segment_rows(first_at, values.shape[0]))
 
 
-#: Padding (elements) below which :func:`local_cumsum` sums every segment in one group.
+#: Padding (elements) below which :func:`segment_rows` puts every segment in one group.
 SMALL_PADDING = 1 << 16
 
 
-def _rows_cumsum(padded: Tensor, out: Tensor, start: Tensor, size: Tensor, width: int) -> None:
-    """Write the cumulative sums of segments ``[start, start + size)`` of ``padded`` to ``out``.
+def segment_rows(first_at: Tensor, n: int) -> list[tuple[Tensor, int]]:
+    """The rows of :func:`rows_cumsum`: each segment of ``N`` values as a row, by groups.
 
-    Each segment is a row of ``width`` summed from its first element; the padding reads
-    ``padded``'s last slot (0.0) and writes its sums there.
+    Segments are grouped by length into powers of two (``width < 2 * length``), so the
+    padding at most doubles the work and there are at most 64 groups, never a loop over
+    segments; when the padding is small (a small call), one group as wide as the longest.
+
+    Args:
+        first_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
+        n: ``N``, the number of values.
+
+    Returns:
+        One ``(at, width)`` per group: ``at`` the ``(rows * width,)`` int64 position of
+        each row's elements, ``N`` (a slot past the end) for the padding.
     """
-    n = padded.shape[0] - 1
-    offset = torch.arange(width, device=padded.device)
-    at = (start[:, None] + offset).masked_fill_(offset >= size[:, None], n).reshape(-1)
-    out.index_copy_(0, at, torch.cumsum(take(padded, at).reshape(-1, width), 1).reshape(-1))
+    if n == 0:
+        return []
+    length = torch.diff(first_at, append=first_at.new_tensor([n]))
+    widest = int(length.max())
+    if first_at.shape[0] * widest <= 2 * n + SMALL_PADDING:
+        return [(_row_positions(first_at, length, widest, n), widest)]
+    # Group k holds the segments of length in (2**(k-1), 2**k]: frexp's exponent of length - 1.
+    group = torch.frexp((length - 1).to(torch.float64)).exponent
+    rows = []
+    for k in torch.unique(group).tolist():
+        members = where_true(group == k)
+        rows.append((_row_positions(take(first_at, members), take(length, members), 1 << k, n),
+                     1 << k))
+    return rows
+
+
+def _row_positions(start: Tensor, size: Tensor, width: int, n: int) -> Tensor:
+    offset = torch.arange(width, device=start.device)
+    return (start[:, None] + offset).masked_fill_(offset >= size[:, None], n).reshape(-1)
+
+
+def rows_cumsum(values: Tensor, rows: list[tuple[Tensor, int]]) -> Tensor:
+    """The cumulative sums of each row of :func:`segment_rows` ``(first_at, N)``, from 0.
+
+    Args:
+        values: ``(N,)`` float64.
+        rows: the segments' rows.
+
+    Returns:
+        ``(N,)`` float64 sums, each segment's bit for bit as if alone.
+    """
+    n = values.shape[0]
+    # One slot past the end: the padding of every row reads its 0.0 and writes its sums there.
+    padded = torch.cat([values, values.new_zeros(1)])
+    out = torch.empty_like(padded)
+    for at, width in rows:
+        out.index_copy_(0, at, torch.cumsum(take(padded, at).reshape(-1, width), 1).reshape(-1))
+    return out[:n]
 
 
 def linear_estimation(
@@ -190,7 +215,8 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     # Each region's high parts add up to exactly 0 (every pixel's slope returns to 0 at its
     # last knot), so their plain cumulative sum restarts exactly at each region.
     slope_sum = torch.cumsum(high_bp, 0).to(torch.float64).div_(take(scale, region))
-    slope_sum += local_cumsum(low_bp, bp_first_at)
+    rows = segment_rows(bp_first_at, nb)  # for both float sums
+    slope_sum += rows_cumsum(low_bp, rows)
     del level_bp, high_bp, low_bp
     # No pixel strictly inside a segment (all active pixels have a knot): remainder exactly 0.
     idle = count == take(take(count, bp_first_at), region)
@@ -206,7 +232,7 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     step[1:] -= (whole[1:] - whole[:-1]).to(torch.float64)
     step.scatter_(0, bp_first_at, 0.0)
     del gap, slope_sum
-    total = local_cumsum(step, bp_first_at)
+    total = rows_cumsum(step, rows)
     part = total - take(take(total, where_true(idle)), run_index(idle))
     del step, total, idle
 
