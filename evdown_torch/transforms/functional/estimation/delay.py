@@ -133,7 +133,7 @@ def held_knots(events: Events, *, max_delay: float, t_start: Tensor) -> Events:
     previous = torch.empty_like(t)
     previous[1:] = t[:-1]
     first_at = where_true(new_pixel)
-    start = t_start if t_start.ndim == 0 else take(take(t_start, order), first_at)
+    start = t_start if t_start.ndim == 0 else take(t_start, take(order, first_at))
     previous.index_put_((first_at,), start)  # a gap of 0 where the pixel starts at t_start
     held_at = where_true((t - previous) > delay)
     del previous

@@ -176,16 +176,20 @@ def _merge(parts: list[tuple[Events, Tensor]]) -> tuple[Events, Tensor]:
         position[i] += after
         before_big += torch.bincount(after, minlength=sizes[big] + 1)
     position[big] += torch.cumsum(before_big, 0)[:-1]
-    total = sum(sizes)
+    # Where each merged element comes from in the parts' concatenation.
+    source = torch.empty(sum(sizes), dtype=torch.int64, device=device)
+    offset = 0
+    for at, size in zip(position, sizes, strict=True):
+        source.index_copy_(0, at, torch.arange(offset, offset + size, device=device))
+        offset += size
 
     def column(values: list[Tensor]) -> Tensor:
-        out = torch.empty(total, dtype=values[0].dtype, device=device)
-        for at, part in zip(position, values, strict=True):
-            out.index_copy_(0, at, part)
-        return out
+        return take(torch.cat(values), source)
 
-    merged = Events(*(column([events[c] for events, _ in parts]) for c in range(4)))
-    return merged, column([step for _, step in parts])
+    step = column([step for _, step in parts])
+    # The polarity is not read where steps are given; it says which steps raise the level.
+    x, y, t = (column([events[c] for events, _ in parts]) for c in range(3))
+    return Events(x, y, t, step > 0), step
 
 
 def _regions(events: Events, factor: tuple[int, int], out_width: int) -> Tensor:
