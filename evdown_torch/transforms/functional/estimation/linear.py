@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
@@ -20,7 +22,8 @@ from evdown_torch.transforms.functional.estimation.stream import (
 )
 from evdown_torch.transforms.functional.reference import level_index, level_value, step_crossings
 
-__all__ = ["linear_estimation", "linear_regions", "local_cumsum", "rows_cumsum", "segment_rows"]
+__all__ = ["linear_estimation", "linear_regions", "local_cumsum", "rows_cumsum",
+           "segment_rows", "SegmentRows"]
 
 
 def local_cumsum(values: Tensor, first_at: Tensor) -> Tensor:
@@ -51,7 +54,21 @@ def local_cumsum(values: Tensor, first_at: Tensor) -> Tensor:
 SMALL_PADDING = 1 << 16
 
 
-def segment_rows(first_at: Tensor, n: int) -> list[tuple[Tensor, int]]:
+class SegmentRows(NamedTuple):
+    """Segments of ``N`` values laid out as rows of zero-padded tensors (:func:`segment_rows`).
+
+    Attributes:
+        groups: one ``(at, width)`` per group of rows: ``at`` the ``(rows * width,)`` int64
+            position of each row's elements among the values, ``N`` (a slot past the end
+            holding 0.0) for the padding.
+        back: ``(N,)`` int64 position of each value in the groups' rows, one after another.
+    """
+
+    groups: list[tuple[Tensor, int]]
+    back: Tensor
+
+
+def segment_rows(first_at: Tensor, n: int, segment: Tensor | None = None) -> SegmentRows:
     """The rows of :func:`rows_cumsum`: each segment of ``N`` values as a row, by groups.
 
     Segments are grouped by length into powers of two (``width < 2 * length``), so the
@@ -61,25 +78,37 @@ def segment_rows(first_at: Tensor, n: int) -> list[tuple[Tensor, int]]:
     Args:
         first_at: ``(S,)`` int64 start of each segment, ascending, the first 0.
         n: ``N``, the number of values.
+        segment: ``(N,)`` int64 segment of each value, when the caller has it.
 
     Returns:
-        One ``(at, width)`` per group: ``at`` the ``(rows * width,)`` int64 position of
-        each row's elements, ``N`` (a slot past the end) for the padding.
+        The :class:`SegmentRows`.
     """
+    device = first_at.device
     if n == 0:
-        return []
+        return SegmentRows([], torch.zeros(0, dtype=torch.int64, device=device))
+    if segment is None:
+        starts = torch.zeros(n, dtype=torch.bool, device=device)
+        segment = run_index(starts.scatter_(0, first_at, True))
     length = torch.diff(first_at, append=first_at.new_tensor([n]))
     widest = int(length.max())
     if first_at.shape[0] * widest <= 2 * n + SMALL_PADDING:
-        return [(_row_positions(first_at, length, widest, n), widest)]
-    # Group k holds the segments of length in (2**(k-1), 2**k]: frexp's exponent of length - 1.
-    group = torch.frexp((length - 1).to(torch.float64)).exponent
-    rows = []
-    for k in torch.unique(group).tolist():
-        members = where_true(group == k)
-        rows.append((_row_positions(take(first_at, members), take(length, members), 1 << k, n),
-                     1 << k))
-    return rows
+        groups = [(_row_positions(first_at, length, widest, n), widest)]
+        base = torch.arange(0, first_at.shape[0] * widest, widest, device=device)
+    else:
+        # Group k holds the segments of length in (2**(k-1), 2**k]: frexp's exponent of
+        # length - 1.
+        group = torch.frexp((length - 1).to(torch.float64)).exponent
+        groups, base, offset = [], torch.empty_like(first_at), 0
+        for k in torch.unique(group).tolist():
+            members = where_true(group == k)
+            size = members.shape[0] << k
+            groups.append((_row_positions(take(first_at, members), take(length, members),
+                                          1 << k, n), 1 << k))
+            base.index_copy_(0, members, torch.arange(offset, offset + size, 1 << k,
+                                                      device=device))
+            offset += size
+    back = take(base.sub_(first_at), segment).add_(torch.arange(n, device=device))
+    return SegmentRows(groups, back)
 
 
 def _row_positions(start: Tensor, size: Tensor, width: int, n: int) -> Tensor:
@@ -87,7 +116,7 @@ def _row_positions(start: Tensor, size: Tensor, width: int, n: int) -> Tensor:
     return (start[:, None] + offset).masked_fill_(offset >= size[:, None], n).reshape(-1)
 
 
-def rows_cumsum(values: Tensor, rows: list[tuple[Tensor, int]]) -> Tensor:
+def rows_cumsum(values: Tensor, rows: SegmentRows) -> Tensor:
     """The cumulative sums of each row of :func:`segment_rows` ``(first_at, N)``, from 0.
 
     Args:
@@ -97,13 +126,13 @@ def rows_cumsum(values: Tensor, rows: list[tuple[Tensor, int]]) -> Tensor:
     Returns:
         ``(N,)`` float64 sums, each segment's bit for bit as if alone.
     """
-    n = values.shape[0]
-    # One slot past the end: the padding of every row reads its 0.0 and writes its sums there.
+    if not rows.groups:
+        return torch.empty_like(values)
+    # One slot past the end: the padding of every row reads its 0.0.
     padded = torch.cat([values, values.new_zeros(1)])
-    out = torch.empty_like(padded)
-    for at, width in rows:
-        out.index_copy_(0, at, torch.cumsum(take(padded, at).reshape(-1, width), 1).reshape(-1))
-    return out[:n]
+    sums = [torch.cumsum(take(padded, at).reshape(-1, width), 1).reshape(-1)
+            for at, width in rows.groups]
+    return take(sums[0] if len(sums) == 1 else torch.cat(sums), rows.back)
 
 
 def linear_estimation(
@@ -215,7 +244,7 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     # Each region's high parts add up to exactly 0 (every pixel's slope returns to 0 at its
     # last knot), so their plain cumulative sum restarts exactly at each region.
     slope_sum = torch.cumsum(high_bp, 0).to(torch.float64).div_(take(scale, region))
-    rows = segment_rows(bp_first_at, nb)  # for both float sums
+    rows = segment_rows(bp_first_at, nb, region)  # for both float sums
     slope_sum += rows_cumsum(low_bp, rows)
     del level_bp, high_bp, low_bp
     # No pixel strictly inside a segment (all active pixels have a knot): remainder exactly 0.
