@@ -21,7 +21,8 @@ def sorted_part(rng, n, t_max, dtype):
 
 @pytest.mark.parametrize("sizes", [(0, 0, 5), (7, 0, 40), (30, 3, 12), (1, 25, 0)])
 @pytest.mark.parametrize("dtype", [torch.int64, torch.float64])
-def test_merge_is_a_stable_time_sort_of_the_parts_in_turn(rng, sizes, dtype):
+def test_merge_is_a_stable_time_sort_of_the_parts_in_turn(rng, sizes, dtype, monkeypatch):
+    monkeypatch.setattr(stream, "SMALL_WINDOW", 0)  # no sort, even of a few events
     parts = [sorted_part(rng, n, 20, dtype) for n in sizes]
     merged, step = stream._merge(parts)
     whole = Events(*(torch.cat([events[c] for events, _ in parts]) for c in range(4)))
@@ -34,7 +35,8 @@ def test_merge_is_a_stable_time_sort_of_the_parts_in_turn(rng, sizes, dtype):
 
 @pytest.mark.parametrize("keep", [1, 2])
 @pytest.mark.parametrize("before", [0, 3, 11, 25])
-def test_recent_knots_trim_as_the_whole_window(rng, keep, before):
+def test_recent_knots_trim_as_the_whole_window(rng, keep, before, monkeypatch):
+    monkeypatch.setattr(stream, "SMALL_WINDOW", 0)
     width, height = 5, 4
     window, step = sorted_part(rng, 200, 25, torch.int64)
     cut = torch.tensor(before)
@@ -59,8 +61,10 @@ def test_held_knots_are_those_hold_knots_adds(rng):
             strict=True))
 
 
+@pytest.mark.parametrize("small_window", [0, stream.SMALL_WINDOW])
 @pytest.mark.parametrize("cls", [LinearEstimation, CubicEstimation])
-def test_the_state_keeps_its_knots_in_time_order(cls, rng):
+def test_the_state_keeps_its_knots_in_time_order(cls, rng, small_window, monkeypatch):
+    monkeypatch.setattr(stream, "SMALL_WINDOW", small_window)
     sensor = (8, 6, 2)
     arr = random_stream(rng, 2000, sensor, t_max=5000)
     transform = cls(sensor, factor=2, threshold=0.5, max_delay=30)
