@@ -198,5 +198,6 @@ def estimate_window(
             decided = where_true(take(knots.bp_t, bp) < next_cut)
             sign = polarity_sign(take(on, decided), torch.int64)
             q.index_add_(0, take(region, decided), sign)
-    region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+    region, t, on = outputs[0] if len(outputs) == 1 else (
+        torch.cat(column) for column in zip(*outputs, strict=True))
     return emit(region, t, on, out_w), q
