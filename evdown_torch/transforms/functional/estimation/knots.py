@@ -378,6 +378,9 @@ def check_span(t_start: Tensor, t_end: Tensor) -> None:
     """
     if t_start.is_floating_point():
         return
+    if t_start.ndim == 0 and t_end.ndim == 0:  # one stream: in Python integers at once
+        check_time_span(int(t_start), int(t_end))
+        return
     span = (t_end - t_start).reshape(-1)
     wrapped = where_true(span < 0)
     if wrapped.shape[0]:
