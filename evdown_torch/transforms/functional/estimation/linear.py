@@ -268,9 +268,7 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     # Reference rule on the breakpoints (each piece between breakpoints is monotone).
     pixels = region_pixels(knots, sensor_size, factor)
     floor_u, on_level = level_index(whole, part, pixels, fraction)
-    floor_u, on_level, q_start = resume_steps(
-        knots, torch.arange(floor_u.shape[0], device=device), floor_u, on_level, resume
-    )
+    floor_u, on_level, q_start = resume_steps(knots, None, floor_u, on_level, resume, region)
     cross = step_crossings(floor_u, on_level, bp_first, emitted=emitted, q_start=q_start)
 
     # Crossing times: linear interpolation on the piece that ends at the crossing's step.

@@ -84,7 +84,12 @@ class Resume(NamedTuple):
 
 
 def resume_steps(
-    knots: Knots, step_bp: Tensor, floor_u: Tensor, on_level: Tensor, resume: Resume | None
+    knots: Knots,
+    step_bp: Tensor | None,
+    floor_u: Tensor,
+    on_level: Tensor,
+    resume: Resume | None,
+    bp_rank: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor | None]:
     """The steps of a window as the reference rule must see them, and each step's ``q_start``.
 
@@ -94,10 +99,13 @@ def resume_steps(
 
     Args:
         knots: the window's :class:`Knots` (one chunk of regions).
-        step_bp: ``(S,)`` int64 breakpoint at the end of each step's piece, ascending.
+        step_bp: ``(S,)`` int64 breakpoint at the end of each step's piece, ascending, or
+            ``None`` for one step per breakpoint (step ``i`` ends at breakpoint ``i``).
         floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
         on_level: ``(S,)`` bool, the step ends on a level.
         resume: where the window picks up, or ``None`` (the whole stream from ``q = 0``).
+        bp_rank: ``(B,)`` int64 rank of each breakpoint's region among ``knots.regions``,
+            when the caller has it.
 
     Returns:
         ``(floor_u, on_level, q_start)`` for
@@ -105,16 +113,20 @@ def resume_steps(
     """
     if resume is None:
         return floor_u, on_level, None
-    bp_rank = run_index(knots.bp_first)
-    step_rank = take(bp_rank, step_bp)
+    if bp_rank is None:
+        bp_rank = run_index(knots.bp_first)
+    step_rank = bp_rank if step_bp is None else take(bp_rank, step_bp)
     q_start = take(take(resume.q, knots.regions), step_rank)
     if resume.cut is None:
         return floor_u, on_level, q_start
     done = knots.bp_t < resume.cut  # a prefix of each region's breakpoints
     n_done = torch.zeros_like(knots.regions).index_add_(0, bp_rank, done.to(torch.int64))
     cut_bp = knots.region_first_bp + n_done - 1
-    cut_step = torch.searchsorted(step_bp, cut_bp, right=True) - 1
-    at = where_true(take(done, step_bp))
+    if step_bp is None:
+        cut_step, at = cut_bp, where_true(done)
+    else:
+        cut_step = torch.searchsorted(step_bp, cut_bp, right=True) - 1
+        at = where_true(take(done, step_bp))
     source = take(cut_step, take(step_rank, at))
     floor_u, on_level = floor_u.clone(), on_level.clone()
     floor_u[at] = take(floor_u, source)
