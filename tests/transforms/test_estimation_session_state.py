@@ -41,7 +41,7 @@ def test_recent_knots_trim_as_the_whole_window(rng, keep, before, monkeypatch):
     window, step = sorted_part(rng, 200, 25, torch.int64)
     cut = torch.tensor(before)
     kwargs = {"before": cut, "keep": keep, "width": width}
-    recent = stream._recent(window, step, pixels=width * height, **kwargs)
+    recent = stream._recent(window, step, pixels=width * height, t_start=window.t[0], **kwargs)
     assert recent[0].num_events <= window.num_events
     got, got_step = stream._trim(*recent, **kwargs)
     want, want_step = stream._trim(window, step, **kwargs)

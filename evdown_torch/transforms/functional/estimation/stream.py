@@ -248,27 +248,29 @@ def _trim(
 
 
 def _recent(
-    window: Events, step: Tensor, *, before: Tensor, keep: int, pixels: int, width: int
+    window: Events, step: Tensor, *, before: Tensor, keep: int, pixels: int, width: int,
+    t_start: Tensor,
 ) -> tuple[Events, Tensor]:
     """The knot events of a time-sorted window that :func:`_trim` keeps, and fewer others.
 
     Of the events earlier than ``before``, each pixel's last ``keep`` knots are passed on and
     the events before them folded into one event at the earliest of those knots, carrying
     their steps: the same knots at the same levels, so :func:`_trim` gives the same result
-    as on the whole window, without grouping the whole window by pixel.
+    as on the whole window, without grouping the whole window by pixel. ``t_start`` is the
+    stream's first timestamp (no event is earlier).
     """
     cut = int(torch.searchsorted(window.t, before))
     if cut == 0 or window.num_events < SMALL_WINDOW:  # nothing to spare
         return window, step
     t, head_step = window.t[:cut], step[:cut]
     pixel = window.y[:cut] * width + window.x[:cut]
-    # Each pixel's keep-th last knot time before the cut (its first, with fewer knots).
-    since = torch.empty(pixels, dtype=t.dtype, device=t.device)
-    since.scatter_reduce_(0, pixel, t, "amax", include_self=False)
+    # Each pixel's keep-th last knot time before the cut; t_start with fewer knots, which
+    # folds nothing (no event is earlier).
+    since = torch.full((pixels,), t_start.item(), dtype=t.dtype, device=t.device)
+    since.scatter_reduce_(0, pixel, t, "amax")
     for _ in range(keep - 1):
-        earlier = where_true(t < take(since, pixel))
-        since = since.clone().scatter_reduce_(0, take(pixel, earlier), take(t, earlier), "amax",
-                                              include_self=False)
+        earlier = torch.where(t < take(since, pixel), t, t_start)
+        since = torch.full_like(since, t_start.item()).scatter_reduce_(0, pixel, earlier, "amax")
     fold = t < take(since, pixel)
     folded = torch.zeros(pixels, dtype=torch.int64, device=t.device)
     folded.index_add_(0, pixel, fold.to(torch.int64))
@@ -404,7 +406,7 @@ def window_step(
     if cut is not None:
         decided &= out.t >= cut
     recent, recent_step = _recent(window, steps, before=next_cut, keep=settings.lag,
-                                  pixels=pixel_t.shape[0], width=width)
+                                  pixels=pixel_t.shape[0], width=width, t_start=state.t_start)
     kept, kept_step = _trim(recent, recent_step, before=next_cut, keep=settings.lag,
                             width=width)
     by_time = torch.sort(kept.t, stable=True).indices
