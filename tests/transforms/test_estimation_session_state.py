@@ -21,9 +21,15 @@ def sorted_part(rng, n, t_max, dtype):
 
 @pytest.mark.parametrize("sizes", [(0, 0, 5), (7, 0, 40), (30, 3, 12), (1, 25, 0)])
 @pytest.mark.parametrize("dtype", [torch.int64, torch.float64])
-def test_merge_is_a_stable_time_sort_of_the_parts_in_turn(rng, sizes, dtype, monkeypatch):
+@pytest.mark.parametrize("offsets", [(0, 0, 0), (0, 19, 38), (38, 19, 0), (0, 40, 20)])
+def test_merge_is_a_stable_time_sort_of_the_parts_in_turn(rng, sizes, dtype, offsets,
+                                                         monkeypatch):
+    # Overlapping parts, and parts one after another (touching at a tie, or not).
     monkeypatch.setattr(stream, "SMALL_WINDOW", 0)  # no sort, even of a few events
-    parts = [sorted_part(rng, n, 20, dtype) for n in sizes]
+    parts = []
+    for n, offset in zip(sizes, offsets, strict=True):
+        events, step = sorted_part(rng, n, 20, dtype)
+        parts.append((events._replace(t=events.t + offset), step))
     merged, step = stream._merge(parts)
     whole = Events(*(torch.cat([events[c] for events, _ in parts]) for c in range(4)))
     order = torch.sort(whole.t, stable=True).indices

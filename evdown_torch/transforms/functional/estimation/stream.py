@@ -192,10 +192,13 @@ def _merge(parts: list[tuple[Events, Tensor]]) -> tuple[Events, Tensor]:
             continue
         for j, (other, _) in enumerate(parts):
             if j not in (i, big):
-                position[i] += torch.searchsorted(other.t, events.t, right=j < i)
-        after = torch.searchsorted(big_t, events.t, right=big < i)  # big's elements before
+                position[i] += _count_before(other.t, events.t, right=j < i)
+        after = _count_before(big_t, events.t, right=big < i)  # big's elements before
         position[i] += after
-        before_big += torch.bincount(after, minlength=sizes[big] + 1)
+        if isinstance(after, int):
+            before_big[after] += sizes[i]
+        else:
+            before_big += torch.bincount(after, minlength=sizes[big] + 1)
     position[big] += torch.cumsum(before_big, 0)[:-1]
     # Where each merged element comes from in the parts' concatenation.
     source = torch.empty(sum(sizes), dtype=torch.int64, device=device)
@@ -211,6 +214,22 @@ def _merge(parts: list[tuple[Events, Tensor]]) -> tuple[Events, Tensor]:
     # The polarity is not read where steps are given; it says which steps raise the level.
     x, y, t = (column([events[c] for events, _ in parts]) for c in range(3))
     return Events(x, y, t, step > 0), step
+
+
+def _count_before(ordered: Tensor, t: Tensor, *, right: bool) -> Tensor | int:
+    """``searchsorted(ordered, t, right=right)`` for sorted ``t``, or the count all share.
+
+    When the two ranges of times do not overlap (a session's earlier knots all come before
+    its chunk's events), every ``t`` has the same count, returned as an int.
+    """
+    n = ordered.shape[0]
+    if n == 0 or t.shape[0] == 0:
+        return 0
+    if t[-1] < ordered[0] or (not right and t[-1] == ordered[0]):
+        return 0
+    if t[0] > ordered[-1] or (right and t[0] == ordered[-1]):
+        return n
+    return torch.searchsorted(ordered, t, right=right)
 
 
 def _regions(events: Events, factor: tuple[int, int], out_width: int) -> Tensor:
