@@ -311,14 +311,19 @@ def _at(bound: Tensor, index: Tensor) -> Tensor:
 
 
 def region_pixels(
-    knots: Knots, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+    knots: Knots, sensor_size: tuple[int, int, int], factor: tuple[int, int],
+    bp_rank: Tensor | None = None,
 ) -> Tensor | int:
-    """``n_r`` per breakpoint: ``fx * fy`` if the factor divides the sensor, else ``(B,)`` int64."""
+    """``n_r`` per breakpoint: ``fx * fy`` if the factor divides the sensor, else ``(B,)`` int64.
+
+    ``bp_rank``: the rank of each breakpoint's region among ``knots.regions``, when the caller
+    has it.
+    """
     w, h, _ = sensor_size
     if w % factor[0] == 0 and h % factor[1] == 0:
         return factor[0] * factor[1]
     per_region = region_pixel_count(knots.regions, sensor_size, factor)
-    return take(per_region, run_index(knots.bp_first))
+    return take(per_region, run_index(knots.bp_first) if bp_rank is None else bp_rank)
 
 
 def level_changes(knots: Knots) -> Tensor:

@@ -266,7 +266,7 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     del step, total, idle
 
     # Reference rule on the breakpoints (each piece between breakpoints is monotone).
-    pixels = region_pixels(knots, sensor_size, factor)
+    pixels = region_pixels(knots, sensor_size, factor, region)
     floor_u, on_level = level_index(whole, part, pixels, fraction)
     floor_u, on_level, q_start = resume_steps(knots, None, floor_u, on_level, resume, region)
     cross = step_crossings(floor_u, on_level, bp_first, emitted=emitted, q_start=q_start)
@@ -285,4 +285,4 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     at_end = jump | (take(on_level, end) & (cross.level == take(floor_u, end)))
     ratio = torch.where(at_end, 1.0, torch.nan_to_num(ratio).clamp(0.0, 1.0))
     t = piece_time(take(knots.bp_t, begin), take(knots.bp_t, end), ratio)
-    return CurveCrossings(knots.bp_region(end), t, cross.on, end)
+    return CurveCrossings(take(knots.regions, take(region, end)), t, cross.on, end)
