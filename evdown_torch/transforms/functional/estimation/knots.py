@@ -55,6 +55,7 @@ __all__ = [
     "RegionChunk",
     "check_span",
     "emit",
+    "last_of_runs",
     "level_changes",
     "piece_time",
     "pixel_knots",
@@ -215,7 +216,7 @@ def pixel_knots(
     region_start = changes(region_r)
     new_run = region_start | changes(t_r)
     first_at = where_true(region_start)
-    last_at = where_true(ends(region_start))
+    last_at = last_of_runs(first_at, n)
     active_regions = take(region_r, first_at)
     start_r, end_r = _at(t_start, first_at), _at(t_end, last_at)  # per active region
     extra_front = take(t_r, first_at) > start_r
@@ -303,6 +304,21 @@ def pixel_knots(
         knot_t, knot_level, first, ends(first), breakpoint, bp_t, bp_first, bp_last,
         active_regions, region_first_bp,
     )
+
+
+def last_of_runs(first_at: Tensor, n: int) -> Tensor:
+    """``(R,)`` int64 last position of each run, from the runs' first positions ``first_at``.
+
+    The ``R >= 1`` runs cover ``n`` elements one after another (no search for the ends).
+
+    Example:
+        >>> last_of_runs(torch.tensor([0, 2, 3]), 6).tolist()
+        [1, 2, 5]
+    """
+    last = torch.empty_like(first_at)
+    torch.sub(first_at[1:], 1, out=last[:-1])
+    last[-1] = n - 1
+    return last
 
 
 def _at(bound: Tensor, index: Tensor) -> Tensor:

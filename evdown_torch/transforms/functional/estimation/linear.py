@@ -12,6 +12,7 @@ from evdown_torch.events import Events
 from evdown_torch.transforms.functional.estimation.driver import CurveCrossings, RegionJob, estimate
 from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
+    last_of_runs,
     level_changes,
     piece_time,
     region_pixels,
@@ -198,7 +199,8 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
 
     # Slope of every segment, stored at its first knot (0 after a pixel's last knot).
     k = knots.t.shape[0]
-    first_at, last_at = where_true(knots.first), where_true(knots.last)
+    first_at = where_true(knots.first)
+    last_at = last_of_runs(first_at, k)
     rise = torch.empty(k, dtype=torch.int64, device=device)
     torch.sub(knots.level[1:], knots.level[:-1], out=rise[:-1])
     rise.scatter_(0, last_at, 0)
@@ -254,7 +256,7 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     # Remainder (pixels' progress inside their segments) by a sweep, reset where it is 0.
     gap = torch.zeros(nb, dtype=torch.float64, device=device)
     gap[:-1] = knots.bp_t[1:] - knots.bp_t[:-1]
-    gap.scatter_(0, where_true(knots.bp_last), 0.0)
+    gap.scatter_(0, last_of_runs(bp_first_at, nb), 0.0)
     step = torch.empty(nb, dtype=torch.float64, device=device)
     step[0] = 0.0
     torch.mul(slope_sum[:-1], gap[:-1], out=step[1:])
