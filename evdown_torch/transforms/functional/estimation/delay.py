@@ -60,9 +60,9 @@ def hold_knots(
     Args:
         events: ``N`` events (put in stable time order here when they are not).
         max_delay: ``D`` > 0, in the stream's time unit (a whole number for int64 ``t``).
-        t_start: ``()`` first timestamp of the whole stream, or ``(N,)`` for each event
-            that of its own stream (a batch of recordings, see :func:`.driver.estimate`) or
-            the time of its pixel's last knot before these events (a streaming session's next
+        t_start: ``()`` first timestamp of the whole stream, or ``(N,)`` for each event that
+            of its own stream (a batch of recordings, see :func:`.driver.estimate`) or the
+            time of its pixel's last knot before these events (a streaming session's next
             chunk).
 
     Returns:
