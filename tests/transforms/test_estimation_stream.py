@@ -133,7 +133,7 @@ def test_session_state_stays_bounded_on_a_long_stream(cls, lag):
         chunk = ev[(ev[:, 2] >= start) & (ev[:, 2] < start + chunk_us)]
         parts.append(session(chunk))
         sizes.append(session.state.knots.num_events)
-        assert session.state.step.shape == (sizes[-1],)
+        assert session.state.change.shape == (sizes[-1],)
         assert session.state.pixel_t.shape == (sensor[0] * sensor[1],)
         assert session.state.q.shape == (3 * 2,)
     # Held: each pixel's last `lag` knots before the horizon tau - lag * D and its knots

@@ -16,7 +16,7 @@ from evdown_torch.transforms.functional.estimation.knots import (
 )
 from evdown_torch.transforms.functional.estimation.stream import (
     EstimationSettings,
-    resume_steps,
+    resume_moves,
 )
 from evdown_torch.transforms.functional.reference import level_index, level_value, move_crossings
 
@@ -440,7 +440,7 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     move_pixels = pixels if isinstance(pixels, int) else take(pixels, move_bp)
     floor_u, on_level = level_index(move_whole, move_part, move_pixels, fraction)
     move_first = take(bp_first, move_bp) & is_end
-    floor_u, on_level, q_start = resume_steps(knots, move_bp, floor_u, on_level, resume)
+    floor_u, on_level, q_start = resume_moves(knots, move_bp, floor_u, on_level, resume)
     cross = move_crossings(floor_u, on_level, move_first, emitted=emitted, q_start=q_start)
     del move_first, is_end, move_whole, move_part
 

@@ -17,7 +17,7 @@ from evdown_torch._tensors import changes, stable_sort_small, take, time_order, 
 from evdown_torch.checks import MAX_EXACT_SPAN
 from evdown_torch.events import Events, polarity_sign
 
-__all__ = ["check_max_delay", "effective_delay", "hold_knots"]
+__all__ = ["check_max_delay", "effective_delay", "held_knots", "hold_knots"]
 
 
 def check_max_delay(max_delay: float | None, t: Tensor) -> None:
@@ -51,11 +51,11 @@ def effective_delay(max_delay: float, t: Tensor) -> int | float:
 def hold_knots(
     events: Events, *, max_delay: float, t_start: Tensor
 ) -> tuple[Events, Tensor]:
-    """The stream with the held knots of a bounded delay added, and each event's level step.
+    """The stream with the held knots of a bounded delay added, and each event's level change.
 
     Wherever two consecutive knots of a pixel (its front knot ``(t_start, 0)`` included) are
     more than ``max_delay`` apart, a held knot at ``t_next - max_delay`` is added as an event
-    with level step 0 (docs/semantics.md, "Bounded delay").
+    with level change 0 (docs/semantics.md, "Bounded delay").
 
     Args:
         events: ``N`` events (put in stable time order here when they are not).
@@ -66,24 +66,62 @@ def hold_knots(
             chunk).
 
     Returns:
-        ``(events, step)``: ``N + M`` events in stable time order (a held knot before the
-        real events of its timestamp) and their ``(N + M,)`` int8 steps (+1, -1, 0).
+        ``(events, change)``: ``N + M`` events in stable time order (a held knot before the
+        real events of its timestamp) and their ``(N + M,)`` int8 level changes (+1, -1, 0).
 
     Example:
         >>> ev = Events.from_columns([0, 0, 1], [0, 0, 0], [0, 10, 4], [1, 1, 0])
-        >>> held, step = hold_knots(ev, max_delay=3, t_start=ev.t[0])
-        >>> held.t.tolist(), held.x.tolist(), step.tolist()
+        >>> held, change = hold_knots(ev, max_delay=3, t_start=ev.t[0])
+        >>> held.t.tolist(), held.x.tolist(), change.tolist()
         ([0, 1, 4, 7, 10], [0, 1, 1, 0, 0], [1, 0, -1, 0, 1])
     """
-    delay = effective_delay(max_delay, events.t)
     by_time = time_order(events.t)  # None when already in time order (the callers')
     if by_time is not None:
         events = events.select(by_time)
         t_start = t_start if t_start.ndim == 0 else take(t_start, by_time)
-    step = polarity_sign(events.p)
+    change = polarity_sign(events.p)
+    held = held_knots(events, max_delay=max_delay, t_start=t_start)
+    n, m = events.num_events, held.num_events
+    if m == 0:
+        return events, change
+    # Merge in time order, a held knot before the real events of its time, by a binary
+    # search per held knot.
+    before = torch.searchsorted(events.t, held.t)  # real events earlier than each held knot
+    held_pos = before + torch.arange(m, device=before.device)
+    # Real event i follows every held knot with at most i real events before it.
+    real_pos = torch.cumsum(torch.bincount(before, minlength=n), 0)
+    real_pos += torch.arange(n, device=before.device)
+
+    def merge(real: Tensor, held_values: Tensor) -> Tensor:
+        out = torch.empty(n + m, dtype=real.dtype, device=real.device)
+        out.index_copy_(0, real_pos, real)
+        return out.index_copy_(0, held_pos, held_values)
+
+    merged = Events(*(merge(*pair) for pair in zip(events, held, strict=True)))
+    return merged, merge(change, torch.zeros(m, dtype=change.dtype, device=change.device))
+
+
+def held_knots(events: Events, *, max_delay: float, t_start: Tensor) -> Events:
+    """The held knots of a bounded delay alone (see :func:`hold_knots`), sorted by time.
+
+    Args:
+        events: ``N`` events in stable time order.
+        max_delay: as for :func:`hold_knots`.
+        t_start: as for :func:`hold_knots`.
+
+    Returns:
+        ``M`` held knots in stable time order (ties in pixel order), polarity ``False``.
+
+    Example:
+        >>> ev = Events.from_columns([0, 1, 0], [0, 0, 0], [0, 4, 10], [1, 0, 1])
+        >>> held = held_knots(ev, max_delay=3, t_start=ev.t[0])
+        >>> held.t.tolist(), held.x.tolist()
+        ([1, 7], [1, 0])
+    """
+    delay = effective_delay(max_delay, events.t)
     n = events.num_events
     if n == 0:
-        return events, step
+        return events
     # Events in pixel order then time order: a knot is held where an event is more than D
     # after its pixel's previous event (the front knot's t_start before the first); events of
     # one knot time are 0 apart, so only the first event of each knot can be held.
@@ -95,35 +133,12 @@ def hold_knots(
     previous = torch.empty_like(t)
     previous[1:] = t[:-1]
     first_at = where_true(new_pixel)
-    start = t_start if t_start.ndim == 0 else take(take(t_start, order), first_at)
+    start = t_start if t_start.ndim == 0 else take(t_start, take(order, first_at))
     previous.index_put_((first_at,), start)  # a gap of 0 where the pixel starts at t_start
     held_at = where_true((t - previous) > delay)
     del previous
-    if held_at.shape[0] == 0:
-        return events, step
     held_pixel = take(pixel, held_at)
-    held_t = take(t, held_at) - delay
-    del pixel, t, order
-    # Merge in time order, a held knot before the real events of its time (as a stable sort
-    # of the held knots in pixel order, then the events), by a binary search per held knot.
-    held_t, held_order = torch.sort(held_t, stable=True)
+    held_t, held_order = torch.sort(take(t, held_at) - delay, stable=True)
     held_pixel = take(held_pixel, held_order)
-    m = held_t.shape[0]
-    before = torch.searchsorted(events.t, held_t)  # real events earlier than each held knot
-    held_pos = before + torch.arange(m, device=before.device)
-    # Real event i follows every held knot with at most i real events before it.
-    real_pos = torch.cumsum(torch.bincount(before, minlength=n), 0)
-    real_pos += torch.arange(n, device=before.device)
-
-    def merge(real: Tensor, held_values: Tensor) -> Tensor:
-        out = torch.empty(n + m, dtype=real.dtype, device=real.device)
-        out.index_copy_(0, real_pos, real)
-        return out.index_copy_(0, held_pos, held_values)
-
-    merged = Events(
-        merge(events.x, held_pixel % width),
-        merge(events.y, torch.div(held_pixel, width, rounding_mode="floor")),
-        merge(events.t, held_t),
-        merge(events.p, torch.zeros(m, dtype=events.p.dtype, device=events.p.device)),
-    )
-    return merged, merge(step, torch.zeros(m, dtype=step.dtype, device=step.device))
+    return Events(held_pixel % width, torch.div(held_pixel, width, rounding_mode="floor"),
+                  held_t, torch.zeros(held_t.shape[0], dtype=torch.bool, device=t.device))

@@ -53,7 +53,7 @@ class RegionJob(NamedTuple):
         fraction: the threshold as the rational ``a / b`` of ``threshold_fraction``.
         emitted: events of the chunks before (for the output limit).
         resume: where a streaming window starts
-            (:func:`~evdown_torch.transforms.functional.estimation.stream.resume_steps`), or
+            (:func:`~evdown_torch.transforms.functional.estimation.stream.resume_moves`), or
             ``None``.
         front_at_rest: a bounded delay: pixels at rest before their first knot (the cubic
             slope there is 0; nothing changes for polylines).
@@ -124,14 +124,14 @@ def estimate(
     if recording_spans is not None:
         t_start, t_end = recording_spans
     check_span(t_start, t_end)  # before any time arithmetic
-    step = None
+    change = None
     if settings.max_delay is not None:
         start = t_start
         if recording_spans is not None:  # each event's own recording's t_start
             rows = settings.output_sensor_size[1] * settings.factor[1]
             start = take(t_start, divide(events.y, rows))
-        events, step = hold_knots(events, max_delay=settings.max_delay, t_start=start)
-    out, _ = estimate_window(events, step=step, t_start=t_start, t_end=t_end, settings=settings,
+        events, change = hold_knots(events, max_delay=settings.max_delay, t_start=start)
+    out, _ = estimate_window(events, change=change, t_start=t_start, t_end=t_end, settings=settings,
                              front_at_rest=settings.max_delay is not None)
     return out
 
@@ -139,7 +139,7 @@ def estimate(
 def estimate_window(
     events: Events,
     *,
-    step: Tensor | None,
+    change: Tensor | None,
     t_start: Tensor,
     t_end: Tensor,
     settings: EstimationSettings,
@@ -155,7 +155,7 @@ def estimate_window(
 
     Args:
         events: ``N >= 1`` knot events in stable time order, within ``[t_start, t_end]``.
-        step: ``(N,)`` int8 or int64 level change of each event (``None``: +1 ON, -1 OFF).
+        change: ``(N,)`` int8 or int64 level change of each event (``None``: +1 ON, -1 OFF).
         t_start: ``()`` first timestamp of the stream (its front knots), or ``(B,)`` those of
             a batch of stacked recordings (see :func:`estimate`).
         t_end: ``()`` last timestamp of the stream so far (the back knots), or ``(B,)``.
@@ -175,9 +175,9 @@ def estimate_window(
         int64 ``q`` at ``next_cut`` (``None`` without).
     """
     n = events.num_events
-    # Every curve stays within its knots' levels, at most sum |step| in size (PCHIP is
+    # Every curve stays within its knots' levels, at most sum |change| in size (PCHIP is
     # shape-preserving; a window's first knot of a pixel carries its whole level).
-    bound = n if step is None else int(step.abs().sum())
+    bound = n if change is None else int(change.abs().sum())
     sensor_size, factor, solver = settings.sensor_size, settings.factor, settings.solver
     if solver is None:
         raise ValueError("the estimation kernels need the settings' solver (the curve), got None")
@@ -186,7 +186,7 @@ def estimate_window(
     q = None if resume is None else resume.q.clone()
     outputs = []
     emitted = 0
-    for chunk in region_chunks(events, factor=factor, out_width=out_w, step=step,
+    for chunk in region_chunks(events, factor=factor, out_width=out_w, change=change,
                                size=REGION_CHUNK_EVENTS):
         start, end = t_start, t_end
         if t_start.ndim:  # each event's own recording's bounds
@@ -201,5 +201,6 @@ def estimate_window(
             decided = where_true(take(knots.bp_t, bp) < next_cut)
             sign = polarity_sign(take(on, decided), torch.int64)
             q.index_add_(0, take(region, decided), sign)
-    region, t, on = (torch.cat(column) for column in zip(*outputs, strict=True))
+    region, t, on = outputs[0] if len(outputs) == 1 else (
+        torch.cat(column) for column in zip(*outputs, strict=True))
     return emit(region, t, on, out_w), q

@@ -55,6 +55,7 @@ __all__ = [
     "RegionChunk",
     "check_span",
     "emit",
+    "last_of_runs",
     "level_changes",
     "piece_time",
     "pixel_knots",
@@ -114,7 +115,7 @@ class RegionChunk(NamedTuple):
         region: ``(n,)`` int64 region id ``ry * Wo + rx``, ascending.
         local: ``(n,)`` int64 pixel index inside the region, ``(y % fy) * fx + x % fx``.
         t: ``(n,)`` timestamps, ascending inside each region.
-        step: ``(n,)`` int8 level change of the event: +1 (ON), -1 (OFF) or 0 (a held knot
+        change: ``(n,)`` int8 level change of the event: +1 (ON), -1 (OFF) or 0 (a held knot
             of :func:`hold_knots`); int64 in a streaming window, whose first knot of a pixel
             carries the pixel's whole level.
     """
@@ -122,7 +123,7 @@ class RegionChunk(NamedTuple):
     region: Tensor
     local: Tensor
     t: Tensor
-    step: Tensor
+    change: Tensor
 
 
 def region_chunks(
@@ -131,7 +132,7 @@ def region_chunks(
     factor: tuple[int, int],
     out_width: int,
     size: int = CHUNK_EVENTS,
-    step: Tensor | None = None,
+    change: Tensor | None = None,
 ) -> Iterator[RegionChunk]:
     """Split a stream into chunks of whole regions with about ``size`` events each.
 
@@ -144,15 +145,15 @@ def region_chunks(
         factor: ``(fx, fy)``.
         out_width: ``Wo``, the output sensor width.
         size: target number of events per chunk (a chunk holds at least one whole region).
-        step: ``(N,)`` int8 or int64 level change of each event (default: +1 for ON, -1 for
+        change: ``(N,)`` int8 or int64 level change of each event (default: +1 for ON, -1 for
             OFF).
 
     Yields:
         :class:`RegionChunk` s covering the stream, regions ascending.
     """
     fx, fy = factor
-    if step is None:
-        step = polarity_sign(events.p)
+    if change is None:
+        change = polarity_sign(events.p)
     rx, ry = region_of(events, factor)
     local = torch.sub(events.y, ry, alpha=fy).mul_(fx)  # (y - ry * fy) * fx + x - rx * fx
     local += events.x
@@ -170,7 +171,7 @@ def region_chunks(
     for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
         index = order[lo:hi]
         yield RegionChunk(region[lo:hi], take(local, index), take(events.t, index),
-                          take(step, index))
+                          take(change, index))
 
 
 def pixel_knots(
@@ -207,7 +208,7 @@ def pixel_knots(
     key_p, to_region_time = stable_sort_small(key_r, bound)
     del key_r
     t_p = take(t_r, to_region_time)
-    step_p = take(chunk.step, to_region_time).to(torch.int64)
+    change_p = take(chunk.change, to_region_time).to(torch.int64)
 
     # Breakpoints. In region-time order every event belongs to the run of its (region, t);
     # each run is a breakpoint, and a region whose first (last) event is later (earlier) than
@@ -215,7 +216,7 @@ def pixel_knots(
     region_start = changes(region_r)
     new_run = region_start | changes(t_r)
     first_at = where_true(region_start)
-    last_at = where_true(ends(region_start))
+    last_at = last_of_runs(first_at, n)
     active_regions = take(region_r, first_at)
     start_r, end_r = _at(t_start, first_at), _at(t_end, last_at)  # per active region
     extra_front = take(t_r, first_at) > start_r
@@ -250,15 +251,15 @@ def pixel_knots(
 
     # Level after every event; the last event of each (pixel, t) run is an event knot.
     new_pixel = changes(key_p)
-    level = torch.cumsum(step_p, 0)
-    # Restart the sum at each pixel: its first step also takes back the previous pixel's level.
+    level = torch.cumsum(change_p, 0)
+    # Restart the sum at each pixel: its first change also takes back the previous pixel's level.
     pixel_at = where_true(new_pixel)
     before = take(level, pixel_at[1:] - 1)  # the running sum where each pixel ends
-    step_p.index_add_(0, pixel_at[1:], torch.diff(before, prepend=before.new_zeros(1)).neg_())
-    torch.cumsum(step_p, 0, out=level)
+    change_p.index_add_(0, pixel_at[1:], torch.diff(before, prepend=before.new_zeros(1)).neg_())
+    torch.cumsum(change_p, 0, out=level)
     del pixel_at, before
     kidx = where_true(ends(new_pixel | changes(t_p)))
-    del new_pixel, step_p
+    del new_pixel, change_p
     ek_t, ek_level, ek_key = take(t_p, kidx), take(level, kidx), take(key_p, kidx)
     ek_rt = take(to_region_time, kidx)
     ek_bp = take(event_bp, ek_rt)
@@ -305,20 +306,40 @@ def pixel_knots(
     )
 
 
+def last_of_runs(first_at: Tensor, n: int) -> Tensor:
+    """``(R,)`` int64 last position of each run, from the runs' first positions ``first_at``.
+
+    The ``R >= 1`` runs cover ``n`` elements one after another (no search for the ends).
+
+    Example:
+        >>> last_of_runs(torch.tensor([0, 2, 3]), 6).tolist()
+        [1, 2, 5]
+    """
+    last = torch.empty_like(first_at)
+    torch.sub(first_at[1:], 1, out=last[:-1])
+    last[-1] = n - 1
+    return last
+
+
 def _at(bound: Tensor, index: Tensor) -> Tensor:
     """``bound`` itself when it is one ``()`` stream bound, else its entries at ``index``."""
     return bound if bound.ndim == 0 else take(bound, index)
 
 
 def region_pixels(
-    knots: Knots, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+    knots: Knots, sensor_size: tuple[int, int, int], factor: tuple[int, int],
+    bp_rank: Tensor | None = None,
 ) -> Tensor | int:
-    """``n_r`` per breakpoint: ``fx * fy`` if the factor divides the sensor, else ``(B,)`` int64."""
+    """``n_r`` per breakpoint: ``fx * fy`` if the factor divides the sensor, else ``(B,)`` int64.
+
+    ``bp_rank``: the rank of each breakpoint's region among ``knots.regions``, when the caller
+    has it.
+    """
     w, h, _ = sensor_size
     if w % factor[0] == 0 and h % factor[1] == 0:
         return factor[0] * factor[1]
     per_region = region_pixel_count(knots.regions, sensor_size, factor)
-    return take(per_region, run_index(knots.bp_first))
+    return take(per_region, run_index(knots.bp_first) if bp_rank is None else bp_rank)
 
 
 def level_changes(knots: Knots) -> Tensor:
@@ -377,6 +398,9 @@ def check_span(t_start: Tensor, t_end: Tensor) -> None:
         ValueError: see :func:`~evdown_torch.checks.check_time_span`.
     """
     if t_start.is_floating_point():
+        return
+    if t_start.ndim == 0 and t_end.ndim == 0:  # one stream: in Python integers at once
+        check_time_span(int(t_start), int(t_end))
         return
     span = (t_end - t_start).reshape(-1)
     wrapped = where_true(span < 0)

@@ -11,13 +11,18 @@ future needs (:class:`WindowState`):
 * the *horizon* ``F``: every output event earlier than it has been returned;
 * the knot events the curves after ``F`` still need: of each pixel that has fired, its last
   knot earlier than ``F`` (the last two for the cubic method: PCHIP slopes look one knot
-  back), with its whole level as its step, and all its knots since (held knots included);
+  back), with its whole level as its change, and all its knots since (held knots included);
 * each output region's reference index after its last breakpoint earlier than ``F``;
 * each pixel's last knot time (where the next chunk's held knots start from).
 
 Its size follows the sensor's active pixels and the last ``lag * D`` of input, not the
 stream's length. Only the regions with a knot at or after ``F`` are solved: the others hold
 their level until their next event, whose held knot comes after the next horizon.
+
+The state's knot events are kept in stable time order, so a window is a merge of sorted
+parts (:func:`_merge`: the state's, the chunk's held knots, the chunk's events) rather than a
+sort, and the next state takes from the window only each pixel's last knots before the new
+horizon (:func:`_recent`), without grouping the whole window by pixel.
 """
 
 from __future__ import annotations
@@ -39,8 +44,8 @@ from evdown_torch._tensors import (
     where_true,
 )
 from evdown_torch.checks import check_positive_float, output_size
-from evdown_torch.events import Events
-from evdown_torch.transforms.functional.estimation.delay import effective_delay, hold_knots
+from evdown_torch.events import Events, polarity_sign
+from evdown_torch.transforms.functional.estimation.delay import effective_delay, held_knots
 from evdown_torch.transforms.functional.estimation.driver import RegionSolver, estimate_window
 from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
@@ -52,7 +57,7 @@ __all__ = [
     "EstimationSettings",
     "Resume",
     "WindowState",
-    "resume_steps",
+    "resume_moves",
     "window_end",
     "window_init",
     "window_step",
@@ -78,21 +83,29 @@ class Resume(NamedTuple):
     q: Tensor
 
 
-def resume_steps(
-    knots: Knots, step_bp: Tensor, floor_u: Tensor, on_level: Tensor, resume: Resume | None
+def resume_moves(
+    knots: Knots,
+    move_bp: Tensor | None,
+    floor_u: Tensor,
+    on_level: Tensor,
+    resume: Resume | None,
+    bp_rank: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor | None]:
-    """The steps of a window as the reference rule must see them, and each step's ``q_start``.
+    """The moves of a window as the reference rule must see them, and each move's ``q_start``.
 
     Steps whose piece ends at a breakpoint earlier than ``resume.cut`` take the value of
-    their region's last such step (the cut), so that they cross nothing: the region starts
+    their region's last such move (the cut), so that they cross nothing: the region starts
     there from ``resume.q``, which is consistent with that value.
 
     Args:
         knots: the window's :class:`Knots` (one chunk of regions).
-        step_bp: ``(S,)`` int64 breakpoint at the end of each step's piece, ascending.
-        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each step.
-        on_level: ``(S,)`` bool, the step ends on a level.
+        move_bp: ``(S,)`` int64 breakpoint at the end of each move's piece, ascending, or
+            ``None`` for one move per breakpoint (move ``i`` ends at breakpoint ``i``).
+        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each move.
+        on_level: ``(S,)`` bool, the move ends on a level.
         resume: where the window picks up, or ``None`` (the whole stream from ``q = 0``).
+        bp_rank: ``(B,)`` int64 rank of each breakpoint's region among ``knots.regions``,
+            when the caller has it.
 
     Returns:
         ``(floor_u, on_level, q_start)`` for
@@ -100,17 +113,21 @@ def resume_steps(
     """
     if resume is None:
         return floor_u, on_level, None
-    bp_rank = run_index(knots.bp_first)
-    step_rank = take(bp_rank, step_bp)
-    q_start = take(take(resume.q, knots.regions), step_rank)
+    if bp_rank is None:
+        bp_rank = run_index(knots.bp_first)
+    move_rank = bp_rank if move_bp is None else take(bp_rank, move_bp)
+    q_start = take(take(resume.q, knots.regions), move_rank)
     if resume.cut is None:
         return floor_u, on_level, q_start
     done = knots.bp_t < resume.cut  # a prefix of each region's breakpoints
     n_done = torch.zeros_like(knots.regions).index_add_(0, bp_rank, done.to(torch.int64))
     cut_bp = knots.region_first_bp + n_done - 1
-    cut_step = torch.searchsorted(step_bp, cut_bp, right=True) - 1
-    at = where_true(take(done, step_bp))
-    source = take(cut_step, take(step_rank, at))
+    if move_bp is None:
+        cut_move, at = cut_bp, where_true(done)
+    else:
+        cut_move = torch.searchsorted(move_bp, cut_bp, right=True) - 1
+        at = where_true(take(done, move_bp))
+    source = take(cut_move, take(move_rank, at))
     floor_u, on_level = floor_u.clone(), on_level.clone()
     floor_u[at] = take(floor_u, source)
     on_level[at] = take(on_level, source)
@@ -125,9 +142,9 @@ class WindowState(NamedTuple):
         t_last: ``()`` last timestamp so far.
         horizon: output events earlier than this time have been returned (a Python number;
             ``None`` before the first chunk).
-        knots: the knot events the future needs, one per (pixel, time), in no particular
+        knots: the knot events the future needs, one per (pixel, time), in stable time
             order (see the module docstring).
-        step: ``(K,)`` int64 level change of each knot event (a pixel's first carries its
+        change: ``(K,)`` int64 level change of each knot event (a pixel's first carries its
             whole level).
         pixel_t: ``(W * H,)`` time of each pixel's last knot (``t_start`` before its first).
         q: ``(Wo * Ho,)`` int64 reference index of each output region after its last
@@ -138,13 +155,81 @@ class WindowState(NamedTuple):
     t_last: Tensor
     horizon: int | float | None
     knots: Events
-    step: Tensor
+    change: Tensor
     pixel_t: Tensor
     q: Tensor
 
 
-def _cat(a: Events, b: Events) -> Events:
-    return Events(*(torch.cat(pair) for pair in zip(a, b, strict=True)))
+#: Windows (knot events) below which a session's step sorts and trims them whole: fewer
+#: operations than :func:`_merge` and :func:`_recent`, which pay on larger ones.
+SMALL_WINDOW = 1 << 12
+
+
+def _take(events: Events, index: Tensor) -> Events:
+    return Events(*(take(column, index) for column in events))
+
+
+def _merge(parts: list[tuple[Events, Tensor]]) -> tuple[Events, Tensor]:
+    """Time-sorted knot events and their level changes, merged as a stable time sort of them.
+
+    A tie keeps the parts' order, as a stable sort of their concatenation would. Each element
+    moves up by the elements of the other parts that come before it: a binary search of its
+    time in each smaller part; the largest part is searched in instead, and its elements
+    counted up by a cumulative sum.
+    """
+    sizes = [events.num_events for events, _ in parts]
+    if sum(sizes) < SMALL_WINDOW:  # fewer operations; the same order
+        events = Events(*(torch.cat([part[c] for part, _ in parts]) for c in range(4)))
+        order = torch.sort(events.t, stable=True).indices
+        return _take(events, order), take(torch.cat([change for _, change in parts]), order)
+    big = max(range(len(parts)), key=sizes.__getitem__)
+    big_t = parts[big][0].t
+    device = big_t.device
+    position = [torch.arange(size, device=device) for size in sizes]
+    before_big = torch.zeros(sizes[big] + 1, dtype=torch.int64, device=device)
+    for i, (events, _) in enumerate(parts):
+        if i == big:
+            continue
+        for j, (other, _) in enumerate(parts):
+            if j not in (i, big):
+                position[i] += _count_before(other.t, events.t, right=j < i)
+        after = _count_before(big_t, events.t, right=big < i)  # big's elements before
+        position[i] += after
+        if isinstance(after, int):
+            before_big[after] += sizes[i]
+        else:
+            before_big += torch.bincount(after, minlength=sizes[big] + 1)
+    position[big] += torch.cumsum(before_big, 0)[:-1]
+    # Where each merged element comes from in the parts' concatenation.
+    source = torch.empty(sum(sizes), dtype=torch.int64, device=device)
+    offset = 0
+    for at, size in zip(position, sizes, strict=True):
+        source.index_copy_(0, at, torch.arange(offset, offset + size, device=device))
+        offset += size
+
+    def column(values: list[Tensor]) -> Tensor:
+        return take(torch.cat(values), source)
+
+    change = column([change for _, change in parts])
+    # The polarity is not read where level changes are given; it says which raise the level.
+    x, y, t = (column([events[c] for events, _ in parts]) for c in range(3))
+    return Events(x, y, t, change > 0), change
+
+
+def _count_before(ordered: Tensor, t: Tensor, *, right: bool) -> Tensor | int:
+    """``searchsorted(ordered, t, right=right)`` for sorted ``t``, or the count all share.
+
+    When the two ranges of times do not overlap (a session's earlier knots all come before
+    its chunk's events), every ``t`` has the same count, returned as an int.
+    """
+    n = ordered.shape[0]
+    if n == 0 or t.shape[0] == 0:
+        return 0
+    if t[-1] < ordered[0] or (not right and t[-1] == ordered[0]):
+        return 0
+    if t[0] > ordered[-1] or (right and t[0] == ordered[-1]):
+        return n
+    return torch.searchsorted(ordered, t, right=right)
 
 
 def _regions(events: Events, factor: tuple[int, int], out_width: int) -> Tensor:
@@ -153,18 +238,18 @@ def _regions(events: Events, factor: tuple[int, int], out_width: int) -> Tensor:
 
 
 def _trim(
-    events: Events, step: Tensor, *, before: Tensor, keep: int, width: int
+    events: Events, change: Tensor, *, before: Tensor, keep: int, width: int
 ) -> tuple[Events, Tensor]:
     """One event per knot, dropping each pixel's knots earlier than ``before`` but ``keep``.
 
-    The first knot kept of a pixel carries the pixel's whole level as its step.
+    The first knot kept of a pixel carries the pixel's whole level as its change.
     """
     pixel = events.y * width + events.x
     pixel, order = stable_sort_small(pixel)  # pixel order, time order inside a pixel
-    t, step = take(events.t, order), take(step, order)
+    t, change = take(events.t, order), take(change, order)
     new_pixel = changes(pixel)
-    level = torch.cumsum(step, 0)
-    level -= take(take(level - step, where_true(new_pixel)), run_index(new_pixel))
+    level = torch.cumsum(change, 0)
+    level -= take(take(level - change, where_true(new_pixel)), run_index(new_pixel))
     at = where_true(ends(new_pixel | changes(t)))  # last event of each (pixel, t): a knot
     pixel, t, level = take(pixel, at), take(t, at), take(level, at)
     first = changes(pixel)
@@ -176,9 +261,48 @@ def _trim(
     n_done.index_add_(0, rank, done.to(torch.int64))
     kept = where_true(~done | (position >= take(n_done, rank) - keep))
     pixel, t, level = take(pixel, kept), take(t, kept), take(level, kept)
-    step = differences(level, where_true(changes(pixel)))
+    change = differences(level, where_true(changes(pixel)))
     y = torch.div(pixel, width, rounding_mode="floor")
-    return Events(pixel - y * width, y, t, step > 0), step
+    return Events(pixel - y * width, y, t, change > 0), change
+
+
+def _recent(
+    window: Events, change: Tensor, *, before: Tensor, keep: int, pixels: int, width: int,
+    t_start: Tensor,
+) -> tuple[Events, Tensor]:
+    """The knot events of a time-sorted window that :func:`_trim` keeps, and fewer others.
+
+    Of the events earlier than ``before``, each pixel's last ``keep`` knots are passed on and
+    the events before them folded into one event at the earliest of those knots, carrying
+    their level changes: the same knots at the same levels, so :func:`_trim` gives the same result
+    as on the whole window, without grouping the whole window by pixel. ``t_start`` is the
+    stream's first timestamp (no event is earlier).
+    """
+    cut = int(torch.searchsorted(window.t, before))
+    if cut == 0 or window.num_events < SMALL_WINDOW:  # nothing to spare
+        return window, change
+    t, head_step = window.t[:cut], change[:cut]
+    pixel = window.y[:cut] * width + window.x[:cut]
+    # Each pixel's keep-th last knot time before the cut; t_start with fewer knots, which
+    # folds nothing (no event is earlier).
+    since = torch.full((pixels,), t_start.item(), dtype=t.dtype, device=t.device)
+    since.scatter_reduce_(0, pixel, t, "amax")
+    for _ in range(keep - 1):
+        earlier = torch.where(t < take(since, pixel), t, t_start)
+        since = torch.full_like(since, t_start.item()).scatter_reduce_(0, pixel, earlier, "amax")
+    fold = t < take(since, pixel)
+    folded = torch.zeros(pixels, dtype=torch.int64, device=t.device)
+    folded.index_add_(0, pixel, fold.to(torch.int64))
+    carried = torch.zeros(pixels, dtype=torch.int64, device=t.device)
+    carried.index_add_(0, pixel, head_step.masked_fill(~fold, 0))
+    at = where_true(folded > 0)
+    y = torch.div(at, width, rounding_mode="floor")
+    carry = Events(at - y * width, y, take(since, at), torch.zeros_like(at, dtype=torch.bool))
+    passed = where_true(~fold)
+    tail = Events(*(column[cut:] for column in window))
+    events = Events(*(torch.cat(columns) for columns in
+                      zip(carry, _take(window, passed), tail, strict=True)))
+    return events, torch.cat([take(carried, at), take(head_step, passed), change[cut:]])
 
 
 @dataclass(frozen=True)
@@ -265,8 +389,7 @@ def window_step(
     tau = events.t[-1]
     check_span(state.t_start, tau)  # before any time arithmetic
     pixel = events.y * width + events.x
-    new, new_step = hold_knots(events, max_delay=max_delay,
-                               t_start=take(state.pixel_t, pixel))
+    held = held_knots(events, max_delay=max_delay, t_start=take(state.pixel_t, pixel))
     pixel_t = state.pixel_t.clone()
     pixel_t.scatter_reduce_(0, pixel, events.t, "amax")
     # Nothing is earlier than t_start: a horizon before it (a delay longer than the stream so
@@ -278,32 +401,39 @@ def window_step(
     cut = None if state.horizon is None else torch.tensor(state.horizon, dtype=t_dtype,
                                                           device=device)
 
-    # The window: every knot event of the regions with something undecided.
+    # The window: every knot event of the regions with something undecided, in stable time
+    # order (the state's, then the held knots, then the chunk's events; each part is sorted).
     touched = torch.zeros(out_w * out_h, dtype=torch.bool, device=device)
-    touched[_regions(new, factor, out_w)] = True
+    touched[_regions(events, factor, out_w)] = True  # a held knot's pixel has an event here
     old_region = _regions(state.knots, factor, out_w)
     if cut is not None:
         touched[take(old_region, where_true(state.knots.t >= cut))] = True
     in_window = take(touched, old_region)
-    window = _cat(state.knots.select(in_window), new)
-    steps = torch.cat([state.step[in_window], new_step.to(torch.int64)])
-    order = torch.sort(window.t, stable=True).indices
-    window, steps = window.select(order), take(steps, order)
+    old = where_true(in_window)
+    window, window_change = _merge([
+        (_take(state.knots, old), take(state.change, old)),
+        (held, torch.zeros(held.num_events, dtype=torch.int64, device=device)),
+        (events, polarity_sign(events.p, torch.int64)),
+    ])
 
     next_cut = torch.tensor(horizon, dtype=t_dtype, device=device)
     out, q = estimate_window(
-        window, step=steps, t_start=state.t_start, t_end=tau, settings=settings,
+        window, change=window_change, t_start=state.t_start, t_end=tau, settings=settings,
         resume=Resume(cut, state.q), next_cut=next_cut,
     )
     decided = out.t < next_cut
     if cut is not None:
         decided &= out.t >= cut
-    kept, kept_step = _trim(window, steps, before=next_cut, keep=settings.lag, width=width)
-    outside = ~in_window
-    knots = _cat(state.knots.select(outside), kept)
-    step = torch.cat([state.step[outside], kept_step])
+    recent, recent_change = _recent(window, window_change, before=next_cut, keep=settings.lag,
+                                  pixels=pixel_t.shape[0], width=width, t_start=state.t_start)
+    kept, kept_step = _trim(recent, recent_change, before=next_cut, keep=settings.lag,
+                            width=width)
+    by_time = torch.sort(kept.t, stable=True).indices
+    outside = where_true(~in_window)
+    knots, change = _merge([(_take(state.knots, outside), take(state.change, outside)),
+                          (_take(kept, by_time), take(kept_step, by_time))])
     q = cast(Tensor, q)  # estimate_window returns q with a resume
-    new_state = WindowState(state.t_start, tau, horizon, knots, step, pixel_t, q)
+    new_state = WindowState(state.t_start, tau, horizon, knots, change, pixel_t, q)
     return out.select(where_true(decided)), new_state
 
 
@@ -322,10 +452,8 @@ def window_end(state: WindowState, settings: EstimationSettings) -> Events | Non
     in_window = where_true(take(touched, region))
     if in_window.shape[0] == 0:
         return None
-    window, step = state.knots.select(in_window), take(state.step, in_window)
-    order = torch.sort(window.t, stable=True).indices
     out, _ = estimate_window(
-        window.select(order), step=take(step, order), t_start=state.t_start, t_end=state.t_last,
-        settings=settings, resume=Resume(cut, state.q),
+        _take(state.knots, in_window), change=take(state.change, in_window), t_start=state.t_start,
+        t_end=state.t_last, settings=settings, resume=Resume(cut, state.q),
     )
     return out.select(where_true(out.t >= cut))
