@@ -8,6 +8,7 @@ region). The output sensor size itself is :func:`evdown_torch.checks.output_size
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -166,6 +167,11 @@ RADIX_SORT = ("fbgemm" in torch.backends.quantized.supported_engines
 #: from 8,192 keys the padded radix sort beats the comparison sort at every key width).
 PAD_SORT_MIN = 1 << 13
 
+#: Largest bound of the keys that NumPy's stable sort orders by radix sort (8- and 16-bit
+#: integers); below :data:`RADIX_SORT_MIN` keys it is 2 to 7 times faster than torch's
+#: comparison sort (docs/benchmarks.md, "Small sorts").
+NUMPY_RADIX_BOUND = 1 << 15
+
 
 def stable_sort_small(
     keys: Tensor, bound: int | None = None, *, narrow: bool = False
@@ -176,7 +182,9 @@ def stable_sort_small(
     ``max(keys) + 1``) allows: two to five times faster than int64 on the CPU. On a CPU whose
     torch build has the radix sort, 8,192 to 32,767 keys are padded to :data:`RADIX_SORT_MIN`
     with ``bound - 1`` (the sort is stable, so the padding lands after every real key and the
-    first ``n`` results are the plain sort's), which is several times faster there.
+    first ``n`` results are the plain sort's), which is several times faster there; fewer
+    than 32,768 CPU keys below :data:`NUMPY_RADIX_BOUND` go through NumPy's stable sort, a
+    radix sort for 8- and 16-bit keys.
     With ``narrow=True`` the sorted keys come back as :func:`narrow_dtype` ``(bound)`` (int16,
     int32 or int64: a quarter or half of the memory of int64 keys).
 
@@ -189,6 +197,12 @@ def stable_sort_small(
     if bound is None:
         bound = int(keys.max()) + 1 if keys.numel() else 0
     n = keys.shape[0]
+    if keys.device.type == "cpu" and n < RADIX_SORT_MIN and bound <= NUMPY_RADIX_BOUND:
+        # The order of a stable sort is unique: NumPy's radix sort gives torch's, faster.
+        small = keys.to(torch.uint8 if bound <= 1 << 8 else torch.int16).numpy()
+        perm = np.argsort(small, kind="stable").astype(np.int64, copy=False)
+        ordered = torch.from_numpy(small[perm])
+        return ordered.to(torch.int16 if narrow else torch.int64), torch.from_numpy(perm)
     if RADIX_SORT and keys.device.type == "cpu" and PAD_SORT_MIN <= n < RADIX_SORT_MIN:
         padded = torch.full((RADIX_SORT_MIN,), bound - 1, dtype=keys.dtype)
         padded[:n] = keys
