@@ -60,7 +60,6 @@ CHUNK_VALUES = 1 << 22
 Steps = Iterator[tuple[Tensor, Tensor, Tensor, Tensor]]
 
 
-
 def photocurrent_frames(
     events: Events,
     *,
