@@ -28,6 +28,7 @@ __all__ = [
     "region_pixel_count",
     "region_xy",
     "run_index",
+    "continued_cumsum",
     "segmented_cumsum",
     "sort_by_time",
     "stable_sort_small",
@@ -109,6 +110,36 @@ def segmented_cumsum(values: Tensor, starts_at: Tensor, segment: Tensor) -> Tens
     """
     total = torch.cumsum(values, 0)
     return total - take(take(total - values, starts_at), segment)
+
+
+def continued_cumsum(
+    change: Tensor, starts: Tensor, lasts: Tensor, initial: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Each group's running sum of ``change``, from the group's ``initial`` value.
+
+    Groups are contiguous runs of ``change`` (``(N,)``; ``starts`` and ``lasts`` ``(G,)``
+    their first and last positions, ``initial`` ``(G,)`` of ``change``'s dtype, overwritten).
+    One cumulative sum serves all groups: each group's first change also moves the sum from
+    the previous group's last value to this group's ``initial`` (a telescoping correction).
+    ``change`` is overwritten with the running sums.
+
+    Returns:
+        ``(running, final)``: ``(N,)`` the value after each change (``change`` itself) and
+        ``(G,)`` each group's last value.
+
+    Example:
+        >>> change = torch.tensor([1, 1, -1, 1, -1])
+        >>> running, final = continued_cumsum(change, torch.tensor([0, 2]), torch.tensor([1, 4]),
+        ...                                   torch.tensor([5, -3]))
+        >>> running.tolist(), final.tolist()
+        ([6, 7, -4, -3, -4], [7, -4])
+    """
+    plain = torch.cumsum(change, 0, dtype=change.dtype)
+    final = take(plain, lasts) - take(plain, starts) + take(change, starts) + initial
+    del plain
+    jump = initial
+    jump[1:] -= final[:-1]
+    return change.index_add_(0, starts, jump).cumsum_(0), final
 
 
 # --- Time order and chunks -----------------------------------------------------------------

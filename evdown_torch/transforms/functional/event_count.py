@@ -10,6 +10,7 @@ from torch import Tensor
 from evdown_torch._tensors import (
     changes,
     chunk_bounds,
+    continued_cumsum,
     divide,
     ends,
     floor_divide_exact,
@@ -250,20 +251,13 @@ def _event_count_sorted(
     touched, firsts, lasts, first = region_runs(region, regions)  # regions with events
 
     # Level sum S of each region after each of its events: one running sum over the grouped
-    # level changes (ON +1, OFF -1), each region's first change raised by what brings the
-    # running sum from the previous region's last S to this region's state.
-    change = polarity_sign(take(events.p, order), dtype)
-    total = torch.cumsum(change, 0, dtype=dtype)
-    before = take(total, firsts) - take(change, firsts)  # running sum before each first change
-    offset = take(state.level_sum, touched) - before
-    offset[1:] -= offset[:-1].clone()
-    change.index_add_(0, firsts, offset.to(dtype))
-    level_sum = torch.cumsum(change, 0, dtype=dtype, out=total)
-    del change
+    # level changes (ON +1, OFF -1), each region's continued from its state.
+    level_sum, final = continued_cumsum(polarity_sign(take(events.p, order), dtype), firsts,
+                                        lasts, take(state.level_sum, touched).to(dtype))
 
     # u = M / theta = b * S / (a * n_r), compared in integers.
     new_sum = state.level_sum.clone()
-    new_sum[touched] = take(level_sum, lasts).to(torch.int64)
+    new_sum[touched] = final.to(torch.int64)
     numerator = level_sum.mul_(b) if b != 1 else level_sum
     if uniform:
         denominator: int | Tensor = most * a

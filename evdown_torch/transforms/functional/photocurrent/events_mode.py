@@ -39,6 +39,7 @@ from torch import Tensor
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
     changes,
+    continued_cumsum,
     divide,
     ends,
     region_pixel_count,
@@ -53,7 +54,6 @@ from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.photocurrent.sums import (
     EPS,
     NEAR_CAP,
-    continued_cumsum,
     grouped_levels,
     one_word_sums,
     running_sums,
@@ -416,7 +416,7 @@ def _events_piece(
         place.add_(ry.bitwise_right_shift_(shift), alpha=per_region)
         place = take(place.to(torch.uint8) if bound <= 256 else place, order)
     del ry
-    touched, firsts, _, first = region_runs(region, regions)
+    touched, firsts, lasts, first = region_runs(region, regions)
     key, new_levels = grouped_levels(take(pixel_on, order), place, bound, state.level)
     del place, pixel_on
 
@@ -432,7 +432,6 @@ def _events_piece(
                                 math.log(per_region) if whole else log_pixels(), per_region,
                                 contrast, threshold)
     if moves is None:
-        lasts = torch.cat([firsts[1:] - 1, firsts.new_tensor([n - 1])])
         rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
         if n == 1:  # a lone event (after a cut): its sum straight from the levels after it
             m, total = log_mean_exp(new_levels[ids], inside, contrast)

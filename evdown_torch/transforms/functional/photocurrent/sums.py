@@ -20,6 +20,7 @@ from torch import Tensor
 from evdown_torch._tensors import (
     RADIX_SORT_MIN,
     changes,
+    continued_cumsum,
     divide,
     stable_sort_small,
     take,
@@ -38,36 +39,6 @@ EPS = 2.0**-53
 #: Largest table of ``exp(c * j)`` values :func:`fixed_point` builds instead of calling exp
 #: per event.
 TABLE_SIZE = 1 << 16
-
-
-def continued_cumsum(
-    change: Tensor, starts: Tensor, lasts: Tensor, initial: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Each group's running sum of ``change``, from the group's ``initial`` value.
-
-    Groups are contiguous runs of ``change`` (``(N,)``; ``starts`` and ``lasts`` ``(G,)``
-    their first and last positions, ``initial`` ``(G,)`` of ``change``'s dtype, overwritten).
-    One cumulative sum serves all groups: each group's first change also moves the sum from
-    the previous group's last value to this group's ``initial`` (a telescoping correction).
-    ``change`` is overwritten with the running sums.
-
-    Returns:
-        ``(running, final)``: ``(N,)`` the value after each change (``change`` itself) and
-        ``(G,)`` each group's last value.
-
-    Example:
-        >>> change = torch.tensor([1, 1, -1, 1, -1])
-        >>> running, final = continued_cumsum(change, torch.tensor([0, 2]), torch.tensor([1, 4]),
-        ...                                   torch.tensor([5, -3]))
-        >>> running.tolist(), final.tolist()
-        ([6, 7, -4, -3, -4], [7, -4])
-    """
-    plain = torch.cumsum(change, 0, dtype=change.dtype)
-    final = take(plain, lasts) - take(plain, starts) + take(change, starts) + initial
-    del plain
-    jump = initial
-    jump[1:] -= final[:-1]
-    return change.index_add_(0, starts, jump).cumsum_(0), final
 
 
 def grouped_levels(
