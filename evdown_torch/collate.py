@@ -193,7 +193,7 @@ def to_batch(
         parts.append(events)
         formats.append(fmt)
     _check_one_device_and_clock(parts)
-    events = Events(*(torch.cat(columns) for columns in zip(*parts)))
+    events = Events.cat(parts)
     return EventBatch(events, lengths), formats
 
 

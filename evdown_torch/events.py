@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, NamedTuple, cast
@@ -135,6 +136,22 @@ class Events(NamedTuple):
     def select(self, index: Tensor) -> Events:
         """Return the events picked (and ordered) by an index or boolean mask tensor."""
         return Events(self.x[index], self.y[index], self.t[index], self.p[index])
+
+    def part(self, start: int, stop: int | None = None) -> Events:
+        """The events ``start:stop`` (views of the columns: nothing is copied)."""
+        return Events(self.x[start:stop], self.y[start:stop], self.t[start:stop],
+                      self.p[start:stop])
+
+    @staticmethod
+    def cat(parts: Sequence[Events]) -> Events:
+        """The streams of ``parts`` (at least one) one after another, in new tensors.
+
+        Example:
+            >>> a = Events.from_columns([0], [0], [5], [True])
+            >>> Events.cat([a, a.part(0, 0), a]).t.tolist()
+            [5, 5]
+        """
+        return Events(*(torch.cat(columns) for columns in zip(*parts, strict=True)))
 
     @staticmethod
     def empty(

@@ -62,7 +62,7 @@ def run_protocol(method: Method, settings: Any, events: Events) -> Events:
     tail = method.finish(state, settings)
     if tail is None or tail.num_events == 0:
         return out
-    return Events(*(torch.cat(columns) for columns in zip(out, tail, strict=True)))
+    return Events.cat([out, tail])
 
 
 class Streaming:
@@ -197,7 +197,7 @@ class Streaming:
         out = self.batch_kernel(batch)
         if out is None:  # no batched kernel: one recording at a time
             parts = [self.kernel(part) for part in batch.unbind()]
-            events = Events(*(torch.cat(columns) for columns in zip(*parts, strict=True)))
+            events = Events.cat(parts)
             out = EventBatch(events, tuple(part.num_events for part in parts))
         return out
 
@@ -468,4 +468,4 @@ class Chain(Streaming):
                 pieces.append(tail)
         if not pieces:
             return None
-        return Events(*(torch.cat(columns) for columns in zip(*pieces)))
+        return Events.cat(pieces)

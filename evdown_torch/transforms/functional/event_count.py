@@ -132,11 +132,11 @@ def event_count_step(
     outputs = []
     emitted = 0
     for start, stop in zip(bounds[:-1], bounds[1:]):
-        piece = Events(*(column[start:stop] for column in events))
+        piece = events.part(start, stop)
         out, state = _event_count_sorted(piece, settings, state, emitted)
         outputs.append(out)
         emitted += out.num_events
-    return Events(*(torch.cat(columns) for columns in zip(*outputs))), state
+    return Events.cat(outputs), state
 
 
 def event_count_whole(events: Events, settings: ThresholdSettings) -> Events:
@@ -187,15 +187,12 @@ def event_count_batch(
     outputs = []
     emitted = 0
     for start, stop in zip(bounds[:-1], bounds[1:]):
-        piece = Events(*(column[start:stop] for column in events))
+        piece = events.part(start, stop)
         out, state = _event_count_sorted(piece, settings, state, emitted,
                                          recording_offset=recording_offset[start:stop])
         outputs.append(out)
         emitted += out.num_events
-    if len(outputs) == 1:
-        out = outputs[0]
-    else:
-        out = Events(*(torch.cat(columns) for columns in zip(*outputs)))
+    out = outputs[0] if len(outputs) == 1 else Events.cat(outputs)
     # The output is in the batch's order: recording after recording, each on its block's rows.
     recording = divide(out.y, out_h)
     out_counts = tuple(torch.bincount(recording, minlength=recordings).tolist())

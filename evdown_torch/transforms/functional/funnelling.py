@@ -50,12 +50,12 @@ def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
     # Repeats share t: pieces that never split a run of equal timestamps are independent.
     bounds = chunk_bounds(events.t, split_ties=False)
     pieces = [
-        funnel_sorted(Events(*(column[start:stop] for column in events)), factor)
+        funnel_sorted(events.part(start, stop), factor)
         for start, stop in zip(bounds[:-1], bounds[1:])
     ]
     if len(pieces) == 1:
         return pieces[0]
-    return Events(*(torch.cat(columns) for columns in zip(*pieces)))
+    return Events.cat(pieces)
 
 
 def drop_repeats(events: Events, *, seen: Events | None = None) -> Events:
@@ -80,11 +80,11 @@ def drop_repeats(events: Events, *, seen: Events | None = None) -> Events:
     """
     bounds = chunk_bounds(events.t, split_ties=False)
     pieces = [
-        funnel_sorted(Events(*(column[start:stop] for column in events)), (1, 1),
+        funnel_sorted(events.part(start, stop), (1, 1),
                       seen=seen if start == 0 else None)
         for start, stop in zip(bounds[:-1], bounds[1:])
     ]
-    return pieces[0] if len(pieces) == 1 else Events(*(torch.cat(c) for c in zip(*pieces)))
+    return pieces[0] if len(pieces) == 1 else Events.cat(pieces)
 
 
 def funnel_init(settings: RegionSettings, events: Events) -> Events | None:
@@ -120,9 +120,9 @@ def last_instant(events: Events, previous: Events | None) -> Events | None:
         return previous
     last = events.t[-1]
     start = int(torch.searchsorted(events.t, last.reshape(1), side="left"))
-    tail = Events(*(column[start:] for column in events))
+    tail = events.part(start)
     if start == 0 and previous is not None and bool(previous.t[-1] == last):
-        tail = Events(*(torch.cat(pair) for pair in zip(previous, tail)))
+        tail = Events.cat([previous, tail])
     return tail
 
 
@@ -170,7 +170,7 @@ def funnel_batch(
     else:
         repeat = None
         for start, stop in zip(bounds[:-1], bounds[1:]):
-            piece = Events(*(column[start:stop] for column in events))
+            piece = events.part(start, stop)
             _, _, flags = _repeats(piece, factor, size=size, runs=runs[start:stop])
             if flags is not None:
                 if repeat is None:

@@ -179,7 +179,7 @@ def _merge(parts: list[tuple[Events, Tensor]]) -> tuple[Events, Tensor]:
     """
     sizes = [events.num_events for events, _ in parts]
     if sum(sizes) < SMALL_WINDOW:  # fewer operations; the same order
-        events = Events(*(torch.cat([part[c] for part, _ in parts]) for c in range(4)))
+        events = Events.cat([part for part, _ in parts])
         order = torch.sort(events.t, stable=True).indices
         return _take(events, order), take(torch.cat([change for _, change in parts]), order)
     big = max(range(len(parts)), key=sizes.__getitem__)
@@ -299,9 +299,8 @@ def _recent(
     y = torch.div(at, width, rounding_mode="floor")
     carry = Events(at - y * width, y, take(since, at), torch.zeros_like(at, dtype=torch.bool))
     passed = where_true(~fold)
-    tail = Events(*(column[cut:] for column in window))
-    events = Events(*(torch.cat(columns) for columns in
-                      zip(carry, _take(window, passed), tail, strict=True)))
+    tail = window.part(cut)
+    events = Events.cat([carry, _take(window, passed), tail])
     return events, torch.cat([take(carried, at), take(head_step, passed), change[cut:]])
 
 

@@ -175,7 +175,7 @@ def _event_cells(
                                           span=span)
     else:
         joined, joined_steps = pieces[0] if len(pieces) == 1 else (
-            Events(*(torch.cat(c) for c in zip(*(e for e, _ in pieces), strict=True))),
+            Events.cat([e for e, _ in pieces]),
             torch.cat([s for _, s in pieces]))
         cell_region, cell_step, counts = grouped_cells(
             joined, joined_steps, fx=fx, fy=fy, wo=wo, plane=plane, low=low, span=span,

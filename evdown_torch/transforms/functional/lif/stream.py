@@ -192,7 +192,7 @@ def lif_pooling_stream(
     )
     if decided == state.decided:
         return Events.empty(events.t.dtype, events.device), state._replace(
-            last_t=last_t, pending=_joined(state.pending, events),
+            last_t=last_t, pending=Events.cat([state.pending, events]),
             pending_steps=torch.cat([state.pending_steps, steps]),
         )
     # The events of decided steps: a prefix of the pending ones (usually all), then a prefix
@@ -200,27 +200,17 @@ def lif_pooling_stream(
     k = int(torch.searchsorted(state.pending_steps, decided, right=True))
     n = int(torch.searchsorted(steps, decided, right=True))
     spike_step, neuron, neurons = lif_spikes(
-        [_part(state.pending, 0, k), _part(events, 0, n)],
+        [state.pending.part(0, k), events.part(0, n)],
         [state.pending_steps[:k], steps[:n]], settings,
         state=state.neurons, last_step=decided, from_step=state.decided + 1,
         sensor_size=sensor_size, factor=factor,
     )
     t = step_end_time(spike_step, t_start=state.t_start, t_end=last_t, dt=end_dt)
     out = spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
-    rest = _joined(_part(state.pending, k, None), _part(events, n, None))
+    rest = Events.cat([state.pending.part(k), events.part(n)])
     rest_steps = torch.cat([state.pending_steps[k:], steps[n:]])
     neurons = cast(LIFState, neurons)  # kept: lif_spikes returns the state (keep_state)
     return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest, rest_steps)
-
-
-def _part(events: Events, start: int, stop: int | None) -> Events:
-    """``events[start:stop]``, views of the columns."""
-    return Events(*(column[start:stop] for column in events))
-
-
-def _joined(first: Events, second: Events) -> Events:
-    """``first`` followed by ``second``."""
-    return Events(*(torch.cat(pair) for pair in zip(first, second, strict=True)))
 
 
 def lif_pooling_stream_end(

@@ -355,7 +355,7 @@ def photocurrent_sorted(
     start, size, emitted = 0, largest, 0
     while start < n:
         stop = min(start + size, n)
-        piece = Events(*(column[start:stop] for column in events))
+        piece = events.part(start, stop)
         out, state, used = _events_piece(piece, sensor_size, factor, contrast, threshold, state,
                                          emitted, level_bound)
         outputs.append(out)
@@ -364,7 +364,7 @@ def photocurrent_sorted(
         # shorter pieces for a while: a stream that needed one cut soon needs another.
         size = min(size + size // 4, largest) if start + used == stop else max(used, 1024)
         start += used
-    return Events(*(torch.cat(columns) for columns in zip(*outputs, strict=True))), state
+    return Events.cat(outputs), state
 
 
 def _events_piece(
@@ -443,7 +443,7 @@ def _events_piece(
         if bad is not None:  # the running sums cannot hold an event: cut the piece before it
             used = int(take(order, where_true(bad)).min())
             if used == 0:
-                return _events_piece(Events(*(column[:1] for column in events)), sensor_size,
+                return _events_piece(events.part(0, 1), sensor_size,
                                      factor, contrast, threshold, state, emitted)
             # Keep the events before the cut (each region keeps a prefix of its own events).
             kept = where_true(order < used)
@@ -452,7 +452,7 @@ def _events_piece(
             new_levels = state.level.clone()
             new_levels.index_add_(0, events.y[:used] * w + events.x[:used],
                                   polarity_sign(events.p[:used], torch.int64))
-            events = Events(*(column[:used] for column in events))
+            events = events.part(0, used)
             n = used
         # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
         offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels())

@@ -205,7 +205,7 @@ def frames_stream(
             return Events.empty(events.t.dtype, events.device), None
         state = fresh_frames_state(events, sensor_size, factor)
     seen = events.num_events + state.seen
-    events = Events(*(torch.cat(pair) for pair in zip(state.pending, events, strict=True)))
+    events = Events.cat([state.pending, events])
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device), state
     check_level_range(seen, contrast, threshold)
@@ -227,8 +227,8 @@ def frames_stream(
     if cutoff_hz > 0:
         check_leaky_frames(stop - next_frame, sensor_size, fps)
     cut = int(torch.searchsorted(frame, torch.tensor([stop], device=device))[0])
-    done = Events(*(column[:cut] for column in events))
-    pending = Events(*(column[cut:] for column in events))
+    done = events.part(0, cut)
+    pending = events.part(cut)
     new_state = FramesState(t_start, pending, seen, max(stop, next_frame), carry)
     if cutoff_hz > 0:
         steps = _leaky_frame_steps(done, offset[:cut], frame[:cut], clock, settings,
@@ -281,7 +281,7 @@ def _frame_steps(
     level_state = carry.levels
     bounds = chunk_bounds(frame, max(1, CHUNK_VALUES // per_region), split_ties=False)
     for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
-        piece = Events(*(column[lo:hi] for column in events))
+        piece = events.part(lo, hi)
         k = frame[lo:hi]
         k0 = int(k[0])
         span = int(k[-1]) - k0 + 1

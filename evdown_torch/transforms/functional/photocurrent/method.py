@@ -66,7 +66,7 @@ def photocurrent_finish(state: State, settings: PhotocurrentSettings) -> Events 
     """
     if settings.fps is None:
         return None
-    empty = Events(*(column[:0] for column in state.pending))  # type: ignore[union-attr]
+    empty = state.pending.part(0, 0)  # type: ignore[union-attr]
     return frames_stream(empty, state, settings, final=True)[0]  # type: ignore[arg-type]
 
 
