@@ -228,6 +228,7 @@ def candidates(names: Iterable[str] | None = None, *, peers: bool = True) -> lis
         names = [*METHODS, *(PEERS if peers and tonic_available() else ())]
     return [candidate(spec) for spec in names]
 
+
 def candidate_job(spec: str, path: str, sensor_size: Sequence[int], factor: Any) -> MemoryJob:
     """The memory job of a candidate (see :func:`candidate`) once on a ``.npy`` stream."""
     return MemoryJob("evdown_torch.bench.lineup:prepare_candidate_call",

@@ -43,6 +43,7 @@ from evdown_torch.synthetic.body_plan import (
 
 __all__ = ["GestureScene", "scene_seed"]
 
+
 def scene_seed(*keys: int) -> int:
     """A 63-bit seed derived from non-negative integer keys (NumPy ``SeedSequence``).
 

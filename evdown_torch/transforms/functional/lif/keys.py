@@ -66,6 +66,7 @@ def counted_cells(
     cell_key = counts.any(1).nonzero().squeeze(1)
     return cell_key, counts.index_select(0, cell_key)
 
+
 def grouped_cells(
     events: Events, steps: Tensor, *, fx: int, fy: int, wo: int, plane: int, low: int,
     span: int, table: bool,
