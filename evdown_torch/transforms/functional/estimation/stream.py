@@ -39,6 +39,7 @@ from evdown_torch._tensors import (
     ends,
     region_of,
     run_index,
+    segmented_cumsum,
     stable_sort_small,
     take,
     where_true,
@@ -248,8 +249,7 @@ def _trim(
     pixel, order = stable_sort_small(pixel)  # pixel order, time order inside a pixel
     t, change = take(events.t, order), take(change, order)
     new_pixel = changes(pixel)
-    level = torch.cumsum(change, 0)
-    level -= take(take(level - change, where_true(new_pixel)), run_index(new_pixel))
+    level = segmented_cumsum(change, where_true(new_pixel), run_index(new_pixel))
     at = where_true(ends(new_pixel | changes(t)))  # last event of each (pixel, t): a knot
     pixel, t, level = take(pixel, at), take(t, at), take(level, at)
     first = changes(pixel)
@@ -281,7 +281,7 @@ def _recent(
     cut = int(torch.searchsorted(window.t, before))
     if cut == 0 or window.num_events < SMALL_WINDOW:  # nothing to spare
         return window, change
-    t, head_step = window.t[:cut], change[:cut]
+    t, head_change = window.t[:cut], change[:cut]
     pixel = window.y[:cut] * width + window.x[:cut]
     # Each pixel's keep-th last knot time before the cut; t_start with fewer knots, which
     # folds nothing (no event is earlier).
@@ -294,14 +294,14 @@ def _recent(
     folded = torch.zeros(pixels, dtype=torch.int64, device=t.device)
     folded.index_add_(0, pixel, fold.to(torch.int64))
     carried = torch.zeros(pixels, dtype=torch.int64, device=t.device)
-    carried.index_add_(0, pixel, head_step.masked_fill(~fold, 0))
+    carried.index_add_(0, pixel, head_change.masked_fill(~fold, 0))
     at = where_true(folded > 0)
     y = torch.div(at, width, rounding_mode="floor")
     carry = Events(at - y * width, y, take(since, at), torch.zeros_like(at, dtype=torch.bool))
     passed = where_true(~fold)
     tail = window.part(cut)
     events = Events.cat([carry, _take(window, passed), tail])
-    return events, torch.cat([take(carried, at), take(head_step, passed), change[cut:]])
+    return events, torch.cat([take(carried, at), take(head_change, passed), change[cut:]])
 
 
 @dataclass(frozen=True)
