@@ -27,6 +27,7 @@ __all__ = [
     "region_of",
     "region_pixel_count",
     "region_xy",
+    "last_of_runs",
     "run_index",
     "continued_cumsum",
     "segmented_cumsum",
@@ -76,6 +77,22 @@ def ends(starts: Tensor) -> Tensor:
     flags = torch.ones_like(starts)
     flags[:-1] = starts[1:]
     return flags
+
+
+def last_of_runs(first_at: Tensor, n: int) -> Tensor:
+    """``(R,)`` int64 last position of each run, from the runs' first positions ``first_at``.
+
+    The runs cover ``n`` elements one after another (no search for the ends).
+
+    Example:
+        >>> last_of_runs(torch.tensor([0, 2, 3]), 6).tolist()
+        [1, 2, 5]
+    """
+    last = torch.empty_like(first_at)
+    torch.sub(first_at[1:], 1, out=last[:-1])
+    if last.shape[0]:
+        last[-1] = n - 1
+    return last
 
 
 def run_index(starts: Tensor) -> Tensor:

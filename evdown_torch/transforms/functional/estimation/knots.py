@@ -37,6 +37,7 @@ from evdown_torch._tensors import (
     changes,
     differences,
     ends,
+    last_of_runs,
     region_of,
     region_pixel_count,
     region_xy,
@@ -55,7 +56,6 @@ __all__ = [
     "RegionChunk",
     "check_span",
     "emit",
-    "last_of_runs",
     "level_changes",
     "piece_time",
     "pixel_knots",
@@ -304,21 +304,6 @@ def pixel_knots(
         knot_t, knot_level, first, ends(first), breakpoint, bp_t, bp_first, bp_last,
         active_regions, region_first_bp,
     )
-
-
-def last_of_runs(first_at: Tensor, n: int) -> Tensor:
-    """``(R,)`` int64 last position of each run, from the runs' first positions ``first_at``.
-
-    The ``R >= 1`` runs cover ``n`` elements one after another (no search for the ends).
-
-    Example:
-        >>> last_of_runs(torch.tensor([0, 2, 3]), 6).tolist()
-        [1, 2, 5]
-    """
-    last = torch.empty_like(first_at)
-    torch.sub(first_at[1:], 1, out=last[:-1])
-    last[-1] = n - 1
-    return last
 
 
 def _at(bound: Tensor, index: Tensor) -> Tensor:

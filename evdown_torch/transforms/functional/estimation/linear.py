@@ -7,12 +7,18 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import differences, run_index, segmented_cumsum, take, where_true
+from evdown_torch._tensors import (
+    differences,
+    last_of_runs,
+    run_index,
+    segmented_cumsum,
+    take,
+    where_true,
+)
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.estimation.driver import CurveCrossings, RegionJob, estimate
 from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
-    last_of_runs,
     level_changes,
     piece_time,
     region_pixels,

@@ -42,6 +42,7 @@ from evdown_torch._tensors import (
     continued_cumsum,
     divide,
     ends,
+    last_of_runs,
     region_pixel_count,
     region_xy,
     sort_by_time,
@@ -201,7 +202,7 @@ def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> Pix
     new_pixel = changes(pixel)
     starts = where_true(new_pixel)
     n = pixel.shape[0]
-    last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1] if n else [])])  # run ends
+    last = last_of_runs(starts, n)  # run ends
     level, final = continued_cumsum(change.clone(), starts, last,
                                     take(levels, take(pixel, starts)))
     new_state = levels.clone()

@@ -22,6 +22,7 @@ from evdown_torch._tensors import (
     changes,
     continued_cumsum,
     divide,
+    last_of_runs,
     stable_sort_small,
     take,
     where_true,
@@ -79,7 +80,7 @@ def grouped_levels(
     change = torch.mul(on, 2).sub_(1)
     pixel = pixel_on.bitwise_right_shift_(1)
     starts = where_true(changes(pixel))
-    last = torch.cat([starts[1:] - 1, starts.new_tensor([n - 1])])
+    last = last_of_runs(starts, n)
     pixel = take(pixel, starts).long()
     after, final = continued_cumsum(change, starts, last, take(levels, pixel).to(dtype))
     # The level after each event, then 2 * (after - s) + on = 2 * after - 3 * on + 2 with the
