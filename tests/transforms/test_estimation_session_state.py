@@ -25,12 +25,12 @@ def sorted_part(rng, n, t_max, dtype):
 def test_merge_is_a_stable_time_sort_of_the_parts_in_turn(rng, sizes, dtype, offsets,
                                                          monkeypatch):
     # Overlapping parts, and parts one after another (touching at a tie, or not).
-    monkeypatch.setattr(stream, "SMALL_WINDOW", 0)  # no sort, even of a few events
+    monkeypatch.setattr(delay, "SMALL_WINDOW", 0)  # no sort, even of a few events
     parts = []
     for n, offset in zip(sizes, offsets, strict=True):
         events, change = sorted_part(rng, n, 20, dtype)
         parts.append((events._replace(t=events.t + offset), change))
-    merged, change = stream._merge(parts)
+    merged, change = delay.merge_by_time(parts)
     whole = Events(*(torch.cat([events[c] for events, _ in parts]) for c in range(4)))
     order = torch.sort(whole.t, stable=True).indices
     expected = whole.select(order)
@@ -42,7 +42,7 @@ def test_merge_is_a_stable_time_sort_of_the_parts_in_turn(rng, sizes, dtype, off
 @pytest.mark.parametrize("keep", [1, 2])
 @pytest.mark.parametrize("before", [0, 3, 11, 25])
 def test_recent_knots_trim_as_the_whole_window(rng, keep, before, monkeypatch):
-    monkeypatch.setattr(stream, "SMALL_WINDOW", 0)
+    monkeypatch.setattr(delay, "SMALL_WINDOW", 0)
     width, height = 5, 4
     window, change = sorted_part(rng, 200, 25, torch.int64)
     cut = torch.tensor(before)
@@ -67,10 +67,10 @@ def test_held_knots_are_those_hold_knots_adds(rng):
             strict=True))
 
 
-@pytest.mark.parametrize("small_window", [0, stream.SMALL_WINDOW])
+@pytest.mark.parametrize("small_window", [0, delay.SMALL_WINDOW])
 @pytest.mark.parametrize("cls", [LinearEstimation, CubicEstimation])
 def test_the_state_keeps_its_knots_in_time_order(cls, rng, small_window, monkeypatch):
-    monkeypatch.setattr(stream, "SMALL_WINDOW", small_window)
+    monkeypatch.setattr(delay, "SMALL_WINDOW", small_window)
     sensor = (8, 6, 2)
     arr = random_stream(rng, 2000, sensor, t_max=5000)
     transform = cls(sensor, factor=2, threshold=0.5, max_delay=30)

@@ -17,7 +17,15 @@ from evdown_torch._tensors import changes, stable_sort_small, take, time_order, 
 from evdown_torch.checks import MAX_EXACT_SPAN
 from evdown_torch.events import Events, polarity_sign
 
-__all__ = ["check_max_delay", "effective_delay", "held_knots", "hold_knots"]
+__all__ = [
+    "SMALL_WINDOW",
+    "check_max_delay",
+    "effective_delay",
+    "held_knots",
+    "hold_knots",
+    "merge_by_time",
+    "take_events",
+]
 
 
 def check_max_delay(max_delay: float | None, t: Tensor) -> None:
@@ -81,24 +89,12 @@ def hold_knots(
         t_start = t_start if t_start.ndim == 0 else take(t_start, by_time)
     change = polarity_sign(events.p)
     held = held_knots(events, max_delay=max_delay, t_start=t_start)
-    n, m = events.num_events, held.num_events
+    m = held.num_events
     if m == 0:
         return events, change
-    # Merge in time order, a held knot before the real events of its time, by a binary
-    # search per held knot.
-    before = torch.searchsorted(events.t, held.t)  # real events earlier than each held knot
-    held_pos = before + torch.arange(m, device=before.device)
-    # Real event i follows every held knot with at most i real events before it.
-    real_pos = torch.cumsum(torch.bincount(before, minlength=n), 0)
-    real_pos += torch.arange(n, device=before.device)
-
-    def merge(real: Tensor, held_values: Tensor) -> Tensor:
-        out = torch.empty(n + m, dtype=real.dtype, device=real.device)
-        out.index_copy_(0, real_pos, real)
-        return out.index_copy_(0, held_pos, held_values)
-
-    merged = Events(*(merge(*pair) for pair in zip(events, held, strict=True)))
-    return merged, merge(change, torch.zeros(m, dtype=change.dtype, device=change.device))
+    # Merged in time order, a held knot before the real events of its time.
+    return merge_by_time([(held, torch.zeros(m, dtype=change.dtype, device=change.device)),
+                          (events, change)])
 
 
 def held_knots(events: Events, *, max_delay: float, t_start: Tensor) -> Events:
@@ -142,3 +138,75 @@ def held_knots(events: Events, *, max_delay: float, t_start: Tensor) -> Events:
     held_pixel = take(held_pixel, held_order)
     return Events(held_pixel % width, torch.div(held_pixel, width, rounding_mode="floor"),
                   held_t, torch.zeros(held_t.shape[0], dtype=torch.bool, device=t.device))
+
+
+#: Windows (knot events) below which a merge sorts them whole and a session's step trims them
+#: whole: fewer operations than :func:`merge_by_time` and the session's ``_recent``, which
+#: pay on larger ones.
+SMALL_WINDOW = 1 << 12
+
+
+def take_events(events: Events, index: Tensor) -> Events:
+    """``events`` at the int64 positions ``index`` (one ``index_select`` per column)."""
+    return Events(*(take(column, index) for column in events))
+
+
+def merge_by_time(parts: list[tuple[Events, Tensor]]) -> tuple[Events, Tensor]:
+    """Time-sorted knot events and their level changes, merged as a stable time sort of them.
+
+    A tie keeps the parts' order, as a stable sort of their concatenation would. Each element
+    moves up by the elements of the other parts that come before it: a binary search of its
+    time in each smaller part; the largest part is searched in instead, and its elements
+    counted up by a cumulative sum.
+    """
+    sizes = [events.num_events for events, _ in parts]
+    if sum(sizes) < SMALL_WINDOW:  # fewer operations; the same order
+        events = Events.cat([part for part, _ in parts])
+        order = torch.sort(events.t, stable=True).indices
+        return take_events(events, order), take(torch.cat([change for _, change in parts]), order)
+    big = max(range(len(parts)), key=sizes.__getitem__)
+    big_t = parts[big][0].t
+    device = big_t.device
+    position = [torch.arange(size, device=device) for size in sizes]
+    before_big = torch.zeros(sizes[big] + 1, dtype=torch.int64, device=device)
+    for i, (events, _) in enumerate(parts):
+        if i == big:
+            continue
+        for j, (other, _) in enumerate(parts):
+            if j not in (i, big):
+                position[i] += _count_before(other.t, events.t, right=j < i)
+        after = _count_before(big_t, events.t, right=big < i)  # big's elements before
+        position[i] += after
+        if isinstance(after, int):
+            before_big[after] += sizes[i]
+        else:
+            before_big += torch.bincount(after, minlength=sizes[big] + 1)
+    position[big] += torch.cumsum(before_big, 0)[:-1]
+    total = sum(sizes)
+
+    def column(values: list[Tensor]) -> Tensor:  # each part's values put at their positions
+        out = torch.empty(total, dtype=values[0].dtype, device=device)
+        for at, part in zip(position, values, strict=True):
+            out.index_copy_(0, at, part)
+        return out
+
+    change = column([change for _, change in parts])
+    # The polarity is not read where level changes are given; it says which raise the level.
+    x, y, t = (column([events[c] for events, _ in parts]) for c in range(3))
+    return Events(x, y, t, change > 0), change
+
+
+def _count_before(ordered: Tensor, t: Tensor, *, right: bool) -> Tensor | int:
+    """``searchsorted(ordered, t, right=right)`` for sorted ``t``, or the count all share.
+
+    When the two ranges of times do not overlap (a session's earlier knots all come before
+    its chunk's events), every ``t`` has the same count, returned as an int.
+    """
+    n = ordered.shape[0]
+    if n == 0 or t.shape[0] == 0:
+        return 0
+    if t[-1] < ordered[0] or (not right and t[-1] == ordered[0]):
+        return 0
+    if t[0] > ordered[-1] or (right and t[0] == ordered[-1]):
+        return n
+    return torch.searchsorted(ordered, t, right=right)

@@ -20,9 +20,9 @@ stream's length. Only the regions with a knot at or after ``F`` are solved: the 
 their level until their next event, whose held knot comes after the next horizon.
 
 The state's knot events are kept in stable time order, so a window is a merge of sorted
-parts (:func:`_merge`: the state's, the chunk's held knots, the chunk's events) rather than a
-sort, and the next state takes from the window only each pixel's last knots before the new
-horizon (:func:`_recent`), without grouping the whole window by pixel.
+parts (:func:`.delay.merge_by_time`: the state's, the chunk's held knots, the chunk's
+events) rather than a sort, and the next state takes from the window only each pixel's last
+knots before the new horizon (:func:`_recent`), without grouping the whole window by pixel.
 """
 
 from __future__ import annotations
@@ -46,7 +46,13 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import check_positive_float, output_size
 from evdown_torch.events import Events, polarity_sign
-from evdown_torch.transforms.functional.estimation.delay import effective_delay, held_knots
+from evdown_torch.transforms.functional.estimation import delay
+from evdown_torch.transforms.functional.estimation.delay import (
+    effective_delay,
+    held_knots,
+    merge_by_time,
+    take_events,
+)
 from evdown_torch.transforms.functional.estimation.driver import RegionSolver, estimate_window
 from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
@@ -161,78 +167,6 @@ class WindowState(NamedTuple):
     q: Tensor
 
 
-#: Windows (knot events) below which a session's step sorts and trims them whole: fewer
-#: operations than :func:`_merge` and :func:`_recent`, which pay on larger ones.
-SMALL_WINDOW = 1 << 12
-
-
-def _take(events: Events, index: Tensor) -> Events:
-    return Events(*(take(column, index) for column in events))
-
-
-def _merge(parts: list[tuple[Events, Tensor]]) -> tuple[Events, Tensor]:
-    """Time-sorted knot events and their level changes, merged as a stable time sort of them.
-
-    A tie keeps the parts' order, as a stable sort of their concatenation would. Each element
-    moves up by the elements of the other parts that come before it: a binary search of its
-    time in each smaller part; the largest part is searched in instead, and its elements
-    counted up by a cumulative sum.
-    """
-    sizes = [events.num_events for events, _ in parts]
-    if sum(sizes) < SMALL_WINDOW:  # fewer operations; the same order
-        events = Events.cat([part for part, _ in parts])
-        order = torch.sort(events.t, stable=True).indices
-        return _take(events, order), take(torch.cat([change for _, change in parts]), order)
-    big = max(range(len(parts)), key=sizes.__getitem__)
-    big_t = parts[big][0].t
-    device = big_t.device
-    position = [torch.arange(size, device=device) for size in sizes]
-    before_big = torch.zeros(sizes[big] + 1, dtype=torch.int64, device=device)
-    for i, (events, _) in enumerate(parts):
-        if i == big:
-            continue
-        for j, (other, _) in enumerate(parts):
-            if j not in (i, big):
-                position[i] += _count_before(other.t, events.t, right=j < i)
-        after = _count_before(big_t, events.t, right=big < i)  # big's elements before
-        position[i] += after
-        if isinstance(after, int):
-            before_big[after] += sizes[i]
-        else:
-            before_big += torch.bincount(after, minlength=sizes[big] + 1)
-    position[big] += torch.cumsum(before_big, 0)[:-1]
-    # Where each merged element comes from in the parts' concatenation.
-    source = torch.empty(sum(sizes), dtype=torch.int64, device=device)
-    offset = 0
-    for at, size in zip(position, sizes, strict=True):
-        source.index_copy_(0, at, torch.arange(offset, offset + size, device=device))
-        offset += size
-
-    def column(values: list[Tensor]) -> Tensor:
-        return take(torch.cat(values), source)
-
-    change = column([change for _, change in parts])
-    # The polarity is not read where level changes are given; it says which raise the level.
-    x, y, t = (column([events[c] for events, _ in parts]) for c in range(3))
-    return Events(x, y, t, change > 0), change
-
-
-def _count_before(ordered: Tensor, t: Tensor, *, right: bool) -> Tensor | int:
-    """``searchsorted(ordered, t, right=right)`` for sorted ``t``, or the count all share.
-
-    When the two ranges of times do not overlap (a session's earlier knots all come before
-    its chunk's events), every ``t`` has the same count, returned as an int.
-    """
-    n = ordered.shape[0]
-    if n == 0 or t.shape[0] == 0:
-        return 0
-    if t[-1] < ordered[0] or (not right and t[-1] == ordered[0]):
-        return 0
-    if t[0] > ordered[-1] or (right and t[0] == ordered[-1]):
-        return n
-    return torch.searchsorted(ordered, t, right=right)
-
-
 def _regions(events: Events, factor: tuple[int, int], out_width: int) -> Tensor:
     rx, ry = region_of(events, factor)
     return ry * out_width + rx
@@ -279,7 +213,7 @@ def _recent(
     stream's first timestamp (no event is earlier).
     """
     cut = int(torch.searchsorted(window.t, before))
-    if cut == 0 or window.num_events < SMALL_WINDOW:  # nothing to spare
+    if cut == 0 or window.num_events < delay.SMALL_WINDOW:  # nothing to spare
         return window, change
     t, head_change = window.t[:cut], change[:cut]
     pixel = window.y[:cut] * width + window.x[:cut]
@@ -300,7 +234,7 @@ def _recent(
     carry = Events(at - y * width, y, take(since, at), torch.zeros_like(at, dtype=torch.bool))
     passed = where_true(~fold)
     tail = window.part(cut)
-    events = Events.cat([carry, _take(window, passed), tail])
+    events = Events.cat([carry, take_events(window, passed), tail])
     return events, torch.cat([take(carried, at), take(head_change, passed), change[cut:]])
 
 
@@ -409,8 +343,8 @@ def window_step(
         touched[take(old_region, where_true(state.knots.t >= cut))] = True
     in_window = take(touched, old_region)
     old = where_true(in_window)
-    window, window_change = _merge([
-        (_take(state.knots, old), take(state.change, old)),
+    window, window_change = merge_by_time([
+        (take_events(state.knots, old), take(state.change, old)),
         (held, torch.zeros(held.num_events, dtype=torch.int64, device=device)),
         (events, polarity_sign(events.p, torch.int64)),
     ])
@@ -425,12 +359,12 @@ def window_step(
         decided &= out.t >= cut
     recent, recent_change = _recent(window, window_change, before=next_cut, keep=settings.lag,
                                   pixels=pixel_t.shape[0], width=width, t_start=state.t_start)
-    kept, kept_step = _trim(recent, recent_change, before=next_cut, keep=settings.lag,
+    kept, kept_change = _trim(recent, recent_change, before=next_cut, keep=settings.lag,
                             width=width)
     by_time = torch.sort(kept.t, stable=True).indices
     outside = where_true(~in_window)
-    knots, change = _merge([(_take(state.knots, outside), take(state.change, outside)),
-                          (_take(kept, by_time), take(kept_step, by_time))])
+    knots, change = merge_by_time([(take_events(state.knots, outside), take(state.change, outside)),
+                          (take_events(kept, by_time), take(kept_change, by_time))])
     q = cast(Tensor, q)  # estimate_window returns q with a resume
     new_state = WindowState(state.t_start, tau, horizon, knots, change, pixel_t, q)
     return out.select(where_true(decided)), new_state
@@ -452,7 +386,7 @@ def window_end(state: WindowState, settings: EstimationSettings) -> Events | Non
     if in_window.shape[0] == 0:
         return None
     out, _ = estimate_window(
-        _take(state.knots, in_window), change=take(state.change, in_window), t_start=state.t_start,
-        t_end=state.t_last, settings=settings, resume=Resume(cut, state.q),
+        take_events(state.knots, in_window), change=take(state.change, in_window),
+        t_start=state.t_start, t_end=state.t_last, settings=settings, resume=Resume(cut, state.q),
     )
     return out.select(where_true(out.t >= cut))
