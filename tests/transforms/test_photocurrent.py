@@ -85,6 +85,31 @@ def test_hot_pixel_far_beyond_float_range(rng):
     assert sorted(rows(pool(arr))) == sorted(expected)
 
 
+def test_a_hot_region_is_held_back_alone(rng, monkeypatch):
+    # 600 ON at pixel (0, 0) (c = 0.25: 150 log units) among random events elsewhere: the
+    # first piece decides every other region and holds back only the hot region's events from
+    # its cut on; the held-back rounds follow, and the outputs come back in time order.
+    from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
+
+    arr = hot_pixel_stream(rng, 600, 600, dt=2, n_rest=1500)
+    held, piece = [], kernel._events_piece
+
+    def spy(events, *args, **kwargs):
+        out = piece(events, *args, **kwargs)
+        held.append(None if out.rest is None else (events.x[out.rest] // 2 == 0)
+                    & (events.y[out.rest] // 2 == 0))
+        return out
+
+    monkeypatch.setattr(kernel, "_events_piece", spy)
+    pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)
+    out = pool(arr)
+    assert held[0] is not None and bool(held[0].all())  # only region (0, 0) waits
+    assert len(held) > 2  # 150 log units take several re-anchored rounds
+    assert np.all(np.diff(out["t"].astype(np.int64)) >= 0)
+    expected = photocurrent_events_reference(arr, (4, 4, 2), 2, 0.25, 0.4)
+    assert sorted(rows(out)) == sorted(expected)
+
+
 def test_factor_one_threshold_contrast_returns_input(rng):
     arr = random_stream(rng, 2000, SENSOR, t_max=1000)  # many same-pixel same-time events too
     for contrast in (0.2, 0.15, 1.0, 3.7):
@@ -236,14 +261,14 @@ def test_streaming_equals_batch_across_cuts(rng):
 
 
 def _pieces(monkeypatch):
-    """Spy on the kernel's pieces: a list that gets the length of every piece it used."""
+    """Spy on the kernel's pieces: a list that gets the number of events it decided in each."""
     from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
 
     used, piece = [], kernel._events_piece
 
-    def spy(*args, **kwargs):
-        out = piece(*args, **kwargs)
-        used.append(out[2])
+    def spy(events, *args, **kwargs):
+        out = piece(events, *args, **kwargs)
+        used.append(events.num_events - (0 if out.rest is None else out.rest.shape[0]))
         return out
 
     monkeypatch.setattr(kernel, "_events_piece", spy)
@@ -368,7 +393,7 @@ def test_int64_levels_give_the_int32_result(rng):
                                  arr["t"], arr["p"])
     state = kernel.initial_state(SENSOR, (2, 2))
     settings_ = {"sensor_size": SENSOR, "factor": (2, 2), "contrast": 0.3, "threshold": 0.1}
-    narrow, _, _ = kernel._events_piece(events, state=state, level_bound=2000, **settings_)
-    wide, _, _ = kernel._events_piece(events, state=state, level_bound=2**40, **settings_)
+    narrow = kernel._events_piece(events, state=state, level_bound=2000, **settings_).out
+    wide = kernel._events_piece(events, state=state, level_bound=2**40, **settings_).out
     assert narrow.num_events > 100
     assert all(torch.equal(a, b) for a, b in zip(narrow, wide, strict=True))

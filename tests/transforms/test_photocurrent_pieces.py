@@ -32,7 +32,7 @@ def _one_word_calls(monkeypatch) -> list[bool]:
 
     def spy(*args, **kwargs):
         out = one_word(*args, **kwargs)
-        calls.append(out is not None)
+        calls.append(isinstance(out, sums.OneWordSums))
         return out
 
     monkeypatch.setattr(kernel, "one_word_sums", spy)
@@ -190,3 +190,29 @@ def test_a_fresh_rise_past_the_exponent_cap_still_cuts(monkeypatch):
     _two_word_only(monkeypatch)
     assert out == rows(pool(arr))
     assert len(out) > 150
+
+
+def test_regions_rising_too_far_wait_while_the_others_take_one_word(rng, monkeypatch):
+    # One region's pixel rises 200 levels (c = 0.2: past MAX_EXPONENT) among random events:
+    # the one-word sums name that region (TooBright), decide the others, and the held-back
+    # region goes to the two-word sums; the result is the two-word path's, bit for bit.
+    hot = np.zeros(200, dtype=DVS_DTYPE)
+    hot["t"] = np.arange(200) * 5
+    hot["p"] = True
+    rest = random_stream(rng, 3000, (8, 8, 2), t_max=1000)
+    rest = rest[(rest["x"] >= 2) | (rest["y"] >= 2)]
+    arr = np.sort(np.concatenate([hot, rest]), order="t", kind="stable")
+    pool = PhotocurrentPooling((8, 8, 2), factor=2, contrast=0.2)
+    answers, one_word = [], kernel.one_word_sums
+
+    def spy(*args, **kwargs):
+        out = one_word(*args, **kwargs)
+        answers.append(type(out).__name__)
+        return out
+
+    monkeypatch.setattr(kernel, "one_word_sums", spy)
+    out = rows(pool(arr))
+    assert answers[:2] == ["TooBright", "OneWordSums"]
+    _two_word_only(monkeypatch)
+    assert out == rows(pool(arr))
+    assert sorted(out) == sorted(photocurrent_events_reference(arr, (8, 8, 2), 2, 0.2, 0.2))

@@ -15,17 +15,20 @@ each of its events comes from exact int64 fixed-point running sums anchored at i
 pixel (:mod:`~evdown_torch.transforms.functional.photocurrent.sums`), to a few ulps however
 many events the piece has. Where the sums cannot hold an event to ``1e-10 * theta`` (all of a
 region's pixels falling some 50 log units below its anchor), or a pixel rises more than
-:data:`~evdown_torch.transforms.functional.photocurrent.sums.MAX_EXPONENT` above it, the
-piece is cut before that event and the rest re-anchored; a piece cut down to one event takes
-its region's sum straight from the levels after it. The reference rule then runs on the
-events that can change a region's reference index.
+:data:`~evdown_torch.transforms.functional.photocurrent.sums.MAX_EXPONENT` above it, that
+region's events from there on are held back, and decided after the others' on a piece that
+re-anchors that region where it was cut (regions are independent); a piece whose first
+event cannot be held decides that event alone, from the levels after it. The reference
+rule then runs on the events that can change a region's reference index.
 
 A long piece is first tried with one int64 word per sum (:func:`.sums.one_word_sums`), which
 decides every event clear of the snap bounds by more than its error bound as the two words
-would; a piece with an event within it, or that the two words would cut, goes to them.
+would; a piece with an event within it goes to them, and the regions that the two words would
+cut are held back first.
 
-*Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent.frames_mode`, which shares
-the pixel levels, region geometry and level snap defined here.
+*Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent.frames_mode`; what both
+modes share (pixel levels, region geometry, level snap) is in
+:mod:`~evdown_torch.transforms.functional.photocurrent.levels`.
 """
 
 from __future__ import annotations
@@ -39,7 +42,6 @@ from torch import Tensor
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
     changes,
-    continued_cumsum,
     divide,
     ends,
     last_of_runs,
@@ -52,9 +54,17 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events, polarity_sign
+from evdown_torch.transforms.functional.photocurrent.levels import (
+    check_contrast_range,
+    check_level_range,
+    log_mean_exp,
+    region_pixel_ids,
+    snap,
+)
 from evdown_torch.transforms.functional.photocurrent.sums import (
     EPS,
     NEAR_CAP,
+    TooBright,
     grouped_levels,
     one_word_sums,
     running_sums,
@@ -109,107 +119,6 @@ def initial_state(
     )
 
 
-def check_contrast_range(contrast: float, threshold: float) -> None:
-    """Refuse contrasts whose results float64 cannot represent (see the transform)."""
-    if not 1e-6 <= contrast <= 50.0:
-        raise ValueError(
-            f"contrast must lie in [1e-6, 50] (log units per input event), got {contrast!r}"
-        )
-    if not 1e-6 <= threshold <= 1e6:
-        raise ValueError(f"threshold must lie in [1e-6, 1e6] (log units), got {threshold!r}")
-
-
-def check_level_range(max_level: int, contrast: float, threshold: float) -> None:
-    """Refuse streams whose level index ``c * L / theta`` would lose integer precision."""
-    if max_level * contrast / threshold >= 2.0**50:
-        raise ValueError(
-            f"contrast / threshold = {contrast / threshold:g} times up to {max_level} levels "
-            "exceeds 2**50 output levels; float64 cannot resolve them"
-        )
-
-
-def snap(u: Tensor) -> tuple[Tensor, Tensor]:
-    """``(floor(u), u is on a level)``, a ``u`` within :data:`SNAP` of an integer on it."""
-    nearest = torch.round(u)
-    offset = u - nearest
-    on_level = offset.abs() <= SNAP
-    # Below the nearest integer by more than SNAP (|offset| <= 1/2): floor(u) = nearest - 1.
-    return nearest.sub_(offset.lt_(-SNAP)).to(torch.int64), on_level
-
-
-def region_pixel_ids(
-    regions: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
-) -> tuple[Tensor, Tensor | None]:
-    """Pixel ids ``y * W + x`` of every pixel of ``regions``, and which are inside the sensor.
-
-    ``(R, fx * fy)`` int64 ids and a same-shaped bool mask of those inside the sensor (ids
-    outside are 0), ``None`` when the factor divides the sensor (every pixel is inside).
-    Regions of stacked recordings (ids past ``Ho * Wo``) are inside where their recording's
-    are.
-    """
-    w, h, _ = sensor_size
-    fx, fy = factor
-    rows = -(-h // fy) * fy  # the sensor's rows padded to whole regions
-    rx, ry = region_xy(regions, -(-w // fx))
-    grid = torch.arange(fx * fy, device=regions.device)
-    gx, gy = grid % fx, torch.div(grid, fx, rounding_mode="floor")
-    if w % fx == 0 and h % fy == 0:
-        corner = ry.mul_(fy * w).add_(rx, alpha=fx)
-        return corner[:, None] + (gy * w + gx), None
-    px = rx[:, None] * fx + gx
-    py = ry[:, None] * fy + gy
-    inside = (px < w) & (torch.remainder(py, rows) < h)
-    return torch.where(inside, py * w + px, 0), inside
-
-
-def log_mean_exp(
-    levels: Tensor, inside: Tensor | None, contrast: float
-) -> tuple[Tensor, Tensor]:
-    """Per row: brightest level ``m`` and ``sum exp(c * (L - m))`` over the ``inside`` entries.
-
-    Args:
-        levels: ``(R, n)`` int64 pixel levels.
-        inside: ``(R, n)`` bool, the entry is a sensor pixel (``None``: all are).
-        contrast: ``c``.
-
-    Returns:
-        ``(m, s)``: ``(R,)`` int64 and ``(R,)`` float64 in ``[1, n]``.
-    """
-    if inside is None:
-        m = levels.amax(1)
-        return m, torch.exp((levels - m[:, None]).to(torch.float64).mul_(contrast)).sum(1)
-    lowest = torch.iinfo(torch.int64).min
-    m = torch.where(inside, levels, lowest).amax(1)
-    below = torch.where(inside, levels - m[:, None], 0).to(torch.float64).mul_(contrast)
-    return m, torch.where(inside, torch.exp(below), 0.0).sum(1)
-
-
-class PixelLevels(NamedTuple):
-    """Levels after each event of a time-ordered piece, in pixel order."""
-
-    pixel: Tensor  # (n,) int64 pixel id, ascending (time order inside a pixel)
-    order: Tensor  # (n,) int64 time position of each
-    level: Tensor  # (n,) int64 level of the pixel after the event
-    change: Tensor  # (n,) int64 the event's level change, +1 (ON) or -1 (OFF)
-    new_state: Tensor  # (H * W,) int64 levels after the piece
-
-
-def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> PixelLevels:
-    """Exact level of its pixel after every event, starting from ``levels``."""
-    pixel = events.y * width + events.x
-    pixel, order = stable_sort_small(pixel, width * height)
-    change = polarity_sign(take(events.p, order), torch.int64)
-    new_pixel = changes(pixel)
-    starts = where_true(new_pixel)
-    n = pixel.shape[0]
-    last = last_of_runs(starts, n)  # run ends
-    level, final = continued_cumsum(change.clone(), starts, last,
-                                    take(levels, take(pixel, starts)))
-    new_state = levels.clone()
-    new_state.scatter_(0, take(pixel, last), final)
-    return PixelLevels(pixel, order, level, change, new_state)
-
-
 def _moves_to_solve(
     floor_u: Tensor, on_level: Tensor, first: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -231,22 +140,23 @@ def _one_word_moves(
     key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, new_levels: Tensor,
     firsts: Tensor, first: Tensor, log_pixels: Tensor | float, per_region: int,
     contrast: float, threshold: float,
-) -> tuple[Tensor, Tensor, Tensor] | None:
+) -> tuple[Tensor, Tensor, Tensor] | TooBright | None:
     """:func:`_moves_to_solve` of a piece from its one-word sums (:func:`.sums.one_word_sums`).
 
     Every event whose ``u`` lies farther than the one-word sums' error bound from both snap
     bounds of its level (``k - SNAP`` and ``k + SNAP``) gets the ``floor(u)`` and on-level
     flag that the two-word sums (:func:`.sums.running_sums`) give; ``None`` where an event
     lies within it (or the one-word sums cannot be used): the caller then takes the two-word
-    sums. The bound is about ``1e-15`` in ``u`` where a region's sum is near its brightest
-    intensity of the piece, so on ordinary streams that never happens.
+    sums; :class:`~.sums.TooBright` where some regions rise too far for either. The bound is
+    about ``1e-15`` in ``u`` where a region's sum is near its brightest intensity of the
+    piece, so on ordinary streams that never happens.
     """
     n = key.shape[0]
     counts = torch.diff(firsts, append=firsts.new_tensor([n]))
     sums = one_word_sums(key, ids, inside, levels, new_levels, firsts, counts, per_region,
                          contrast, threshold)
-    if sums is None:
-        return None
+    if sums is None or isinstance(sums, TooBright):
+        return sums
     # u = (c * m - log(n_r) + log(sum)) / theta with sum = total * exp(c * (top - m)) / 2**bits,
     # within `margin` of the two-word path's u: twice the bound of the sums' relative error
     # over theta and of a few ulps of every term.
@@ -352,20 +262,68 @@ def photocurrent_sorted(
     outputs = []
     # Pieces of about 16 events per pixel: re-anchoring then costs little (at most the
     # sensor's pixels per piece) and a small sensor's pieces stay in the CPU's caches.
-    largest = min(max(16 * sensor_size[0] * sensor_size[1], 1 << 16), CHUNK_EVENTS)
-    start, size, emitted = 0, largest, 0
-    while start < n:
-        stop = min(start + size, n)
-        piece = events.part(start, stop)
-        out, state, used = _events_piece(piece, sensor_size, factor, contrast, threshold, state,
-                                         emitted, level_bound)
+    size = min(max(16 * sensor_size[0] * sensor_size[1], 1 << 16), CHUNK_EVENTS)
+    emitted = 0
+    for start in range(0, n, size):
+        piece = events.part(start, min(start + size, n))
+        out, state = _anchored_piece(piece, sensor_size, factor, contrast, threshold, state,
+                                     emitted, level_bound)
         outputs.append(out)
         emitted += out.num_events
-        # After a cut (the running sums could not hold the rest), re-anchor there and try
-        # shorter pieces for a while: a stream that needed one cut soon needs another.
-        size = min(size + size // 4, largest) if start + used == stop else max(used, 1024)
-        start += used
     return Events.cat(outputs), state
+
+
+class PieceResult(NamedTuple):
+    """What :func:`_events_piece` decided of a time-sorted piece.
+
+    Attributes:
+        out: output events, in time order.
+        source: ``(M,)`` int64 position in the piece of the event behind each output event,
+            ascending.
+        state: the state after the events decided.
+        rest: ``None``, or the ``(R,)`` int64 positions (ascending) of the events not decided:
+            those of the regions whose running sums could not hold them, from the first such
+            event of each region on. They follow the decided ones on a piece re-anchored at
+            ``state``.
+    """
+
+    out: Events
+    source: Tensor
+    state: PhotocurrentState
+    rest: Tensor | None
+
+
+def _anchored_piece(
+    events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int],
+    contrast: float, threshold: float, state: PhotocurrentState, emitted: int,
+    level_bound: int,
+) -> tuple[Events, PhotocurrentState]:
+    """:func:`_events_piece`, then again on the events it held back, until none are left.
+
+    Regions are independent, so the held-back events of a region (a pixel rising too far
+    above its anchor) go on from that region's state at its cut while every other region's
+    events are decided in one go; the outputs are merged back in the order of the events
+    behind them. Each round re-anchors the held-back regions about ``MAX_EXPONENT`` log units
+    higher (or at their fall), so a piece takes a few rounds, each on fewer events.
+    """
+    result = _events_piece(events, sensor_size, factor, contrast, threshold, state, emitted,
+                           level_bound)
+    if result.rest is None:
+        return result.out, result.state
+    outputs, sources = [result.out], [result.source]
+    rest: Tensor | None = result.rest
+    state = result.state
+    while rest is not None:
+        emitted += outputs[-1].num_events
+        again = _events_piece(events.select(rest), sensor_size, factor, contrast, threshold,
+                              state, emitted, level_bound)
+        outputs.append(again.out)
+        sources.append(take(rest, again.source))
+        state = again.state
+        rest = None if again.rest is None else take(rest, again.rest)
+    by_source = torch.sort(torch.cat(sources), stable=True).indices
+    out = Events(*(take(column, by_source) for column in Events.cat(outputs)))
+    return out, state._replace(last_t=events.t[-1].clone())
 
 
 def _events_piece(
@@ -377,15 +335,15 @@ def _events_piece(
     state: PhotocurrentState,
     emitted: int = 0,
     level_bound: int = 2**62,
-) -> tuple[Events, PhotocurrentState, int]:
-    """Events mode on one time-sorted piece anchored at ``state``: ``(output, state, used)``.
+) -> PieceResult:
+    """Events mode on one time-sorted piece anchored at ``state``.
 
     ``emitted`` counts the events of earlier pieces, for the output cap of
     :func:`~evdown_torch.checks.check_output_count`; ``level_bound`` bounds every pixel level
     before and after the piece (int32 arithmetic where it allows). Where the running sums
-    cannot hold the whole piece to the required accuracy, only its events before the first
-    that they cannot hold are used (``used >= 1`` events, the output and state are theirs);
-    the caller re-anchors there.
+    cannot hold an event of a region to the required accuracy, that region's events from
+    there on are held back (:attr:`PieceResult.rest`): the output and state are those of the
+    events before; the caller re-anchors the held-back regions there.
     """
     w = sensor_size[0]
     fx, fy = factor
@@ -426,35 +384,60 @@ def _events_piece(
     def log_pixels() -> Tensor:
         return region_pixel_count(touched, sensor_size, factor).to(torch.float64).log_()
 
-    moves = None
-    if n >= ONE_WORD_MIN_EVENTS:  # (log(n_r) as one float where every region is whole)
-        whole = sensor_size[0] % fx == 0 and sensor_size[1] % fy == 0
-        moves = _one_word_moves(key, ids, inside, state.level, new_levels, firsts, first,
-                                math.log(per_region) if whole else log_pixels(), per_region,
+    moves: tuple[Tensor, Tensor, Tensor] | None = None
+    rest: Tensor | None = None  # positions of the events held back, in any order
+    log_n = math.log(per_region) if sensor_size[0] % fx == 0 and sensor_size[1] % fy == 0 else (
+        None)  # (log(n_r) as one float where every region is whole)
+    while key.shape[0] >= ONE_WORD_MIN_EVENTS:
+        tried = _one_word_moves(key, ids, inside, state.level, new_levels, firsts, first,
+                                log_pixels() if log_n is None else log_n, per_region,
                                 contrast, threshold)
+        if not isinstance(tried, TooBright):
+            moves = tried
+            break
+        hot = tried.regions
+        held = take(hot, torch.cumsum(first, 0, dtype=torch.int64).sub_(1))
+        if key.shape[0] - int(held.sum()) < ONE_WORD_MIN_EVENTS:
+            break  # the two-word sums decide (and cut) them all
+        # Try again without those regions, whose events wait for a piece re-anchored after
+        # them (_anchored_piece): each region is independent of the others.
+        waiting = take(order, where_true(held))
+        rest = waiting if rest is None else torch.cat([rest, waiting])
+        kept = where_true(~held)
+        order, region, first, key = (take(v, kept) for v in (order, region, first, key))
+        hot_ids = ids[hot] if inside is None else ids[hot][inside[hot]]
+        new_levels.index_copy_(0, hot_ids.view(-1), take(state.level, hot_ids.view(-1)))
+        touched, ids = touched[~hot], ids[~hot]
+        inside = None if inside is None else inside[~hot]
+        firsts = where_true(first)
+        lasts = last_of_runs(firsts, kept.shape[0])
     if moves is None:
         rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
-        if n == 1:  # a lone event (after a cut): its sum straight from the levels after it
+        if key.shape[0] == 1:  # a lone event (after a cut): its sum from the levels after it
             m, total = log_mean_exp(new_levels[ids], inside, contrast)
             bad = None
         else:
             m, total, bad = running_sums(key, ids, inside, state.level, firsts, lasts, rank,
                                           per_region, contrast, threshold)
         del ids, inside, key
-        if bad is not None:  # the running sums cannot hold an event: cut the piece before it
-            used = int(take(order, where_true(bad)).min())
-            if used == 0:
-                return _events_piece(events.part(0, 1), sensor_size,
-                                     factor, contrast, threshold, state, emitted)
-            # Keep the events before the cut (each region keeps a prefix of its own events).
-            kept = where_true(order < used)
+        if bad is not None:  # the running sums cannot hold an event: its region waits
+            bad_at = where_true(bad)
+            if bool((take(order, bad_at) == 0).any()):  # the piece's first: it goes alone
+                lone = _events_piece(events.part(0, 1), sensor_size, factor, contrast,
+                                     threshold, state, emitted)
+                return lone._replace(rest=torch.arange(1, n, device=events.device))
+            # Each region keeps its events before the first that its sums cannot hold.
+            cut = torch.full_like(firsts, n).scatter_reduce_(0, take(rank, bad_at), bad_at,
+                                                             "amin")
+            keep = torch.arange(rank.shape[0], device=events.device) < take(cut, rank)
+            waiting = take(order, where_true(~keep))
+            rest = waiting if rest is None else torch.cat([rest, waiting])
+            kept = where_true(keep)
             order, region, total = take(order, kept), take(region, kept), take(total, kept)
             first, rank = take(first, kept), take(rank, kept)
             new_levels = state.level.clone()
-            new_levels.index_add_(0, events.y[:used] * w + events.x[:used],
-                                  polarity_sign(events.p[:used], torch.int64))
-            events = events.part(0, used)
-            n = used
+            new_levels.index_add_(0, take(events.y, order) * w + take(events.x, order),
+                                  polarity_sign(take(events.p, order), torch.int64))
         # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
         offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels())
         u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
@@ -486,4 +469,5 @@ def _events_piece(
     lasts = where_true(ends(first))
     new_reference = state.reference.clone()
     new_reference.scatter_(0, take(region, lasts).long(), take(q, lasts))
-    return out, PhotocurrentState(new_levels, new_reference, events.t[-1].clone()), n
+    state = PhotocurrentState(new_levels, new_reference, events.t[-1].clone())
+    return PieceResult(out, source, state, None if rest is None else torch.sort(rest).values)

@@ -11,7 +11,7 @@ in chunks (:func:`frames_stream`): a frame is processed once an event later than
 seen (with a leak, in the same chunks of frames as one call on the whole stream), so the
 chunks' outputs concatenated equal one call. The shared pieces
 (pixel levels, region geometry, the level snap) live in
-:mod:`~evdown_torch.transforms.functional.photocurrent.events_mode`.
+:mod:`~evdown_torch.transforms.functional.photocurrent.levels`.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from evdown_torch._tensors import (
 from evdown_torch.checks import DEFAULT_TIME_UNIT, output_limit, output_size
 from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, emit
-from evdown_torch.transforms.functional.photocurrent.events_mode import (
+from evdown_torch.transforms.functional.photocurrent.levels import (
     check_level_range,
     log_mean_exp,
     pixel_levels,

@@ -22,7 +22,7 @@ from evdown_torch.checks import (
     check_time_unit,
     time_unit_fraction,
 )
-from evdown_torch.transforms.functional.photocurrent.events_mode import check_contrast_range
+from evdown_torch.transforms.functional.photocurrent.levels import check_contrast_range
 from evdown_torch.transforms.functional.settings import RegionSettings
 
 __all__ = ["FrameClock", "PhotocurrentSettings"]

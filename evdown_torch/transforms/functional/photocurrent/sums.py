@@ -311,10 +311,20 @@ class OneWordSums(NamedTuple):
     two_word_error: float  # bound of the two-word sums' fine units, relative to their sum
 
 
+class TooBright(NamedTuple):
+    """:func:`one_word_sums`' answer where some regions rise too far above their anchors.
+
+    Their pixels go more than :data:`MAX_EXPONENT` above the regions' brightest before the
+    piece (the two-word sums would cut them); the other regions can be decided without them.
+    """
+
+    regions: Tensor  # (S,) bool, the touched regions that rise too far
+
+
 def one_word_sums(
     key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, new_levels: Tensor,
     firsts: Tensor, counts: Tensor, per_region: int, contrast: float, threshold: float,
-) -> OneWordSums | None:
+) -> OneWordSums | TooBright | None:
     """Each region's sum after each of its events in one word, or ``None`` where it cannot.
 
     Each region's intensities are taken relative to its brightest level during the piece
@@ -328,11 +338,12 @@ def one_word_sums(
     event whose ``u`` does not lie within that error of a snap bound as :func:`running_sums`
     does, with one word instead of two.
 
-    ``None`` where :func:`running_sums` would cut the piece (a pixel too far above its anchor
-    or a sum too small for its two words), where a region's sum before or after the piece
-    lies so far below its brightest (a rise or fall of some 200 levels at ``c = 0.2``) that
-    the error bound exceeds :data:`NEAR_CAP`, or where the levels that count span more than
-    :data:`TABLE_SIZE`: the caller then takes :func:`running_sums`.
+    :class:`TooBright` where a pixel rises too far above its anchor (:func:`running_sums`
+    would cut its region there). ``None`` where a sum is too small for the two words, where a
+    region's sum before or after the piece lies so far below its brightest (a rise or fall of
+    some 200 levels at ``c = 0.2``) that the error bound exceeds :data:`NEAR_CAP`, or where
+    the levels that count span more than :data:`TABLE_SIZE`: the caller then takes
+    :func:`running_sums`.
 
     Args:
         key: ``(N,)`` int32 or int64 ``2 * L + on`` of each event (``L``: its pixel's level
@@ -358,8 +369,9 @@ def one_word_sums(
     # The level after an ON at the highest level before an event, or the anchor's.
     top = torch.full_like(m, lowest_level).scatter_reduce_(0, region, key.long(), "amax")
     top = torch.maximum(divide(top, 2), m).add_(1)
-    if int((top - m).max()) - 1 > brightest_level(contrast):
-        return None
+    rise = top - m
+    if int(rise.max()) - 1 > brightest_level(contrast):
+        return TooBright(rise > brightest_level(contrast) + 1)
     bits = WORD_BITS - per_region.bit_length()
     # exp(c * j) * 2**bits rounds to 0 at j <= darkest + 1: levels below count as darkest.
     darkest = math.floor(-(bits + 2) * math.log(2) / contrast) - 1

@@ -1,0 +1,130 @@
+"""What both modes of photocurrent pooling share (SEMANTICS.md method 7).
+
+The range checks of the contrast, threshold and levels, the geometry of a region's pixels,
+the exact pixel levels after each event, a region's log-mean-exp of its levels, and the
+level snap of ``u = log(I_r) / theta`` (a ``u`` within :data:`~.reference.SNAP` of an integer
+is on it). The modes themselves: :mod:`.events_mode` and :mod:`.frames_mode`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from evdown_torch._tensors import (
+    changes,
+    continued_cumsum,
+    last_of_runs,
+    region_xy,
+    stable_sort_small,
+    take,
+    where_true,
+)
+from evdown_torch.events import Events, polarity_sign
+from evdown_torch.transforms.functional.reference import SNAP
+
+__all__ = ["PixelLevels", "check_contrast_range", "check_level_range", "log_mean_exp",
+           "pixel_levels", "region_pixel_ids", "snap"]
+
+
+def check_contrast_range(contrast: float, threshold: float) -> None:
+    """Refuse contrasts whose results float64 cannot represent (see the transform)."""
+    if not 1e-6 <= contrast <= 50.0:
+        raise ValueError(
+            f"contrast must lie in [1e-6, 50] (log units per input event), got {contrast!r}"
+        )
+    if not 1e-6 <= threshold <= 1e6:
+        raise ValueError(f"threshold must lie in [1e-6, 1e6] (log units), got {threshold!r}")
+
+
+def check_level_range(max_level: int, contrast: float, threshold: float) -> None:
+    """Refuse streams whose level index ``c * L / theta`` would lose integer precision."""
+    if max_level * contrast / threshold >= 2.0**50:
+        raise ValueError(
+            f"contrast / threshold = {contrast / threshold:g} times up to {max_level} levels "
+            "exceeds 2**50 output levels; float64 cannot resolve them"
+        )
+
+
+def snap(u: Tensor) -> tuple[Tensor, Tensor]:
+    """``(floor(u), u is on a level)``, a ``u`` within :data:`SNAP` of an integer on it."""
+    nearest = torch.round(u)
+    offset = u - nearest
+    on_level = offset.abs() <= SNAP
+    # Below the nearest integer by more than SNAP (|offset| <= 1/2): floor(u) = nearest - 1.
+    return nearest.sub_(offset.lt_(-SNAP)).to(torch.int64), on_level
+
+
+def region_pixel_ids(
+    regions: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
+) -> tuple[Tensor, Tensor | None]:
+    """Pixel ids ``y * W + x`` of every pixel of ``regions``, and which are inside the sensor.
+
+    ``(R, fx * fy)`` int64 ids and a same-shaped bool mask of those inside the sensor (ids
+    outside are 0), ``None`` when the factor divides the sensor (every pixel is inside).
+    Regions of stacked recordings (ids past ``Ho * Wo``) are inside where their recording's
+    are.
+    """
+    w, h, _ = sensor_size
+    fx, fy = factor
+    rows = -(-h // fy) * fy  # the sensor's rows padded to whole regions
+    rx, ry = region_xy(regions, -(-w // fx))
+    grid = torch.arange(fx * fy, device=regions.device)
+    gx, gy = grid % fx, torch.div(grid, fx, rounding_mode="floor")
+    if w % fx == 0 and h % fy == 0:
+        corner = ry.mul_(fy * w).add_(rx, alpha=fx)
+        return corner[:, None] + (gy * w + gx), None
+    px = rx[:, None] * fx + gx
+    py = ry[:, None] * fy + gy
+    inside = (px < w) & (torch.remainder(py, rows) < h)
+    return torch.where(inside, py * w + px, 0), inside
+
+
+def log_mean_exp(
+    levels: Tensor, inside: Tensor | None, contrast: float
+) -> tuple[Tensor, Tensor]:
+    """Per row: brightest level ``m`` and ``sum exp(c * (L - m))`` over the ``inside`` entries.
+
+    Args:
+        levels: ``(R, n)`` int64 pixel levels.
+        inside: ``(R, n)`` bool, the entry is a sensor pixel (``None``: all are).
+        contrast: ``c``.
+
+    Returns:
+        ``(m, s)``: ``(R,)`` int64 and ``(R,)`` float64 in ``[1, n]``.
+    """
+    if inside is None:
+        m = levels.amax(1)
+        return m, torch.exp((levels - m[:, None]).to(torch.float64).mul_(contrast)).sum(1)
+    lowest = torch.iinfo(torch.int64).min
+    m = torch.where(inside, levels, lowest).amax(1)
+    below = torch.where(inside, levels - m[:, None], 0).to(torch.float64).mul_(contrast)
+    return m, torch.where(inside, torch.exp(below), 0.0).sum(1)
+
+
+class PixelLevels(NamedTuple):
+    """Levels after each event of a time-ordered piece, in pixel order."""
+
+    pixel: Tensor  # (n,) int64 pixel id, ascending (time order inside a pixel)
+    order: Tensor  # (n,) int64 time position of each
+    level: Tensor  # (n,) int64 level of the pixel after the event
+    change: Tensor  # (n,) int64 the event's level change, +1 (ON) or -1 (OFF)
+    new_state: Tensor  # (H * W,) int64 levels after the piece
+
+
+def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> PixelLevels:
+    """Exact level of its pixel after every event, starting from ``levels``."""
+    pixel = events.y * width + events.x
+    pixel, order = stable_sort_small(pixel, width * height)
+    change = polarity_sign(take(events.p, order), torch.int64)
+    new_pixel = changes(pixel)
+    starts = where_true(new_pixel)
+    n = pixel.shape[0]
+    last = last_of_runs(starts, n)  # run ends
+    level, final = continued_cumsum(change.clone(), starts, last,
+                                    take(levels, take(pixel, starts)))
+    new_state = levels.clone()
+    new_state.scatter_(0, take(pixel, last), final)
+    return PixelLevels(pixel, order, level, change, new_state)
