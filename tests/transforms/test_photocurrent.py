@@ -85,12 +85,16 @@ def test_hot_pixel_far_beyond_float_range(rng):
     assert sorted(rows(pool(arr))) == sorted(expected)
 
 
-def test_a_hot_region_is_held_back_alone(rng, monkeypatch):
+@pytest.mark.parametrize("dense_values", [0, None])
+def test_a_hot_region_is_held_back_alone(dense_values, rng, monkeypatch):
     # 600 ON at pixel (0, 0) (c = 0.25: 150 log units) among random events elsewhere: the
     # first piece decides every other region and holds back only the hot region's events from
-    # its cut on; the held-back rounds follow, and the outputs come back in time order.
+    # its cut on. They follow in rounds re-anchored where each cut (DENSE_VALUES = 0), or in
+    # one dense round; either way the outputs come back in time order.
     from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
 
+    if dense_values is not None:
+        monkeypatch.setattr(kernel, "DENSE_VALUES", dense_values)
     arr = hot_pixel_stream(rng, 600, 600, dt=2, n_rest=1500)
     held, piece = [], kernel._events_piece
 
@@ -104,10 +108,67 @@ def test_a_hot_region_is_held_back_alone(rng, monkeypatch):
     pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)
     out = pool(arr)
     assert held[0] is not None and bool(held[0].all())  # only region (0, 0) waits
-    assert len(held) > 2  # 150 log units take several re-anchored rounds
+    if dense_values == 0:
+        assert len(held) > 2  # 150 log units take several re-anchored rounds
+    else:
+        assert len(held) == 2 and held[1] is None
     assert np.all(np.diff(out["t"].astype(np.int64)) >= 0)
     expected = photocurrent_events_reference(arr, (4, 4, 2), 2, 0.25, 0.4)
     assert sorted(rows(out)) == sorted(expected)
+
+
+@pytest.mark.parametrize(("sensor", "factor", "contrast"), [
+    ((8, 8, 2), 2, 0.3), ((10, 7, 2), (3, 2), 0.2), ((6, 4, 2), 1, 0.5), ((8, 6, 2), 4, 37.0)])
+def test_a_dense_piece_gives_the_running_sums_result(sensor, factor, contrast, rng):
+    # Every event's sum from a row of its region's levels after it, against the kernel's
+    # running sums on the same stream from the same state (partial edge regions, factor 1, a
+    # contrast past MAX_EXPONENT, where the running sums hold regions back).
+    from evdown_torch.events import Events
+    from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
+
+    arr = random_stream(rng, 3000, sensor, t_max=2000)
+    events = Events.from_columns(arr["x"].astype(np.int64), arr["y"].astype(np.int64),
+                                 arr["t"], arr["p"])
+    fx, fy = (factor, factor) if isinstance(factor, int) else factor
+    state = kernel.initial_state(sensor, (fx, fy))
+    state.level[::3] = 2
+    settings_ = {"sensor_size": sensor, "factor": (fx, fy), "contrast": contrast,
+                 "threshold": 0.3}
+    dense = kernel._events_piece(events, dense=True, state=state, **settings_)
+    assert dense.rest is None
+    assert dense.out.num_events > 100
+    summed, summed_state = kernel.photocurrent_sorted(events, state=state, **settings_)
+    assert all(torch.equal(a, b) for a, b in zip(dense.out, summed, strict=True))
+    assert torch.equal(dense.state.level, summed_state.level)
+    assert torch.equal(dense.state.reference, summed_state.reference)
+
+
+def test_region_levels_after_each_event(rng):
+    # Against replaying the events one by one on a copy of the levels.
+    from evdown_torch.events import Events
+    from evdown_torch.transforms.functional.photocurrent.levels import (
+        region_levels_after,
+        region_pixel_ids,
+    )
+
+    sensor, factor = (6, 4, 2), (3, 2)
+    arr = random_stream(rng, 500, sensor, t_max=500)
+    events = Events.from_columns(arr["x"].astype(np.int64), arr["y"].astype(np.int64),
+                                 arr["t"], arr["p"])
+    region = (events.y // 2) * 2 + events.x // 3
+    region, order = torch.sort(region, stable=True)
+    grouped = events.select(order)
+    touched, counts = torch.unique_consecutive(region, return_counts=True)
+    firsts = torch.cumsum(counts, 0) - counts
+    segment = torch.repeat_interleave(torch.arange(touched.shape[0]), counts)
+    levels = torch.from_numpy(rng.integers(-5, 5, 24))
+    ids, _ = region_pixel_ids(touched, sensor, factor)
+    got = region_levels_after(grouped, factor, segment, firsts, levels[ids])
+    current = levels.clone()
+    for i in range(events.num_events):
+        x, y, on = int(grouped.x[i]), int(grouped.y[i]), bool(grouped.p[i])
+        current[y * 6 + x] += 1 if on else -1
+        assert got[i].tolist() == current[ids[segment[i]]].tolist()
 
 
 def test_factor_one_threshold_contrast_returns_input(rng):

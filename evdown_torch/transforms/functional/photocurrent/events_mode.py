@@ -58,6 +58,7 @@ from evdown_torch.transforms.functional.photocurrent.levels import (
     check_contrast_range,
     check_level_range,
     log_mean_exp,
+    region_levels_after,
     region_pixel_ids,
     snap,
 )
@@ -81,6 +82,12 @@ from evdown_torch.transforms.functional.reference import (
 #: their few fixed costs (a table of every level that counts, and their checks) outweigh
 #: their lower cost per event, and the two-word sums decide.
 ONE_WORD_MIN_EVENTS = 1 << 14
+
+#: Most level values (events x ``fx * fy``) of held-back events that :func:`_anchored_piece`
+#: decides in one dense round (a row of its region's levels per event, no anchor, nothing
+#: held back again) rather than in rounds re-anchored about ``MAX_EXPONENT`` higher each:
+#: 8 MB of int64 levels.
+DENSE_VALUES = 1 << 18
 
 
 class PhotocurrentState(NamedTuple):
@@ -303,8 +310,9 @@ def _anchored_piece(
     Regions are independent, so the held-back events of a region (a pixel rising too far
     above its anchor) go on from that region's state at its cut while every other region's
     events are decided in one go; the outputs are merged back in the order of the events
-    behind them. Each round re-anchors the held-back regions about ``MAX_EXPONENT`` log units
-    higher (or at their fall), so a piece takes a few rounds, each on fewer events.
+    behind them. A round re-anchors the held-back regions where they were cut (about
+    ``MAX_EXPONENT`` log units higher, or at their fall); once few events are left
+    (:data:`DENSE_VALUES`) one dense round decides them all.
     """
     result = _events_piece(events, sensor_size, factor, contrast, threshold, state, emitted,
                            level_bound)
@@ -315,8 +323,9 @@ def _anchored_piece(
     state = result.state
     while rest is not None:
         emitted += outputs[-1].num_events
+        dense = rest.shape[0] * factor[0] * factor[1] <= DENSE_VALUES
         again = _events_piece(events.select(rest), sensor_size, factor, contrast, threshold,
-                              state, emitted, level_bound)
+                              state, emitted, level_bound, dense)
         outputs.append(again.out)
         sources.append(take(rest, again.source))
         state = again.state
@@ -335,6 +344,7 @@ def _events_piece(
     state: PhotocurrentState,
     emitted: int = 0,
     level_bound: int = 2**62,
+    dense: bool = False,
 ) -> PieceResult:
     """Events mode on one time-sorted piece anchored at ``state``.
 
@@ -343,7 +353,9 @@ def _events_piece(
     before and after the piece (int32 arithmetic where it allows). Where the running sums
     cannot hold an event of a region to the required accuracy, that region's events from
     there on are held back (:attr:`PieceResult.rest`): the output and state are those of the
-    events before; the caller re-anchors the held-back regions there.
+    events before; the caller re-anchors the held-back regions there. ``dense``: every
+    event's sum from a row of its region's levels after it (:func:`.levels.region_levels_after`;
+    ``fx * fy`` values an event, no anchor: nothing is held back), as a lone event's always.
     """
     w = sensor_size[0]
     fx, fy = factor
@@ -388,7 +400,7 @@ def _events_piece(
     rest: Tensor | None = None  # positions of the events held back, in any order
     log_n = math.log(per_region) if sensor_size[0] % fx == 0 and sensor_size[1] % fy == 0 else (
         None)  # (log(n_r) as one float where every region is whole)
-    while key.shape[0] >= ONE_WORD_MIN_EVENTS:
+    while not dense and key.shape[0] >= ONE_WORD_MIN_EVENTS:
         tried = _one_word_moves(key, ids, inside, state.level, new_levels, firsts, first,
                                 log_pixels() if log_n is None else log_n, per_region,
                                 contrast, threshold)
@@ -413,34 +425,39 @@ def _events_piece(
         lasts = last_of_runs(firsts, kept.shape[0])
     if moves is None:
         rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
-        if key.shape[0] == 1:  # a lone event (after a cut): its sum from the levels after it
-            m, total = log_mean_exp(new_levels[ids], inside, contrast)
-            bad = None
+        # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
+        if dense or key.shape[0] == 1:  # each event's sum from its region's levels after it
+            rows = region_levels_after(events.select(order), factor, rank, firsts,
+                                       take(state.level, ids.view(-1)).view_as(ids))
+            m, total = log_mean_exp(rows, None if inside is None else take(inside, rank),
+                                    contrast)
+            del rows, ids, inside, key
+            offset = m.to(torch.float64).mul_(contrast).sub_(take(log_pixels(), rank))
+            u = offset.div_(threshold).add_(total.log_(), alpha=1 / threshold)
         else:
             m, total, bad = running_sums(key, ids, inside, state.level, firsts, lasts, rank,
-                                          per_region, contrast, threshold)
-        del ids, inside, key
-        if bad is not None:  # the running sums cannot hold an event: its region waits
-            bad_at = where_true(bad)
-            if bool((take(order, bad_at) == 0).any()):  # the piece's first: it goes alone
-                lone = _events_piece(events.part(0, 1), sensor_size, factor, contrast,
-                                     threshold, state, emitted)
-                return lone._replace(rest=torch.arange(1, n, device=events.device))
-            # Each region keeps its events before the first that its sums cannot hold.
-            cut = torch.full_like(firsts, n).scatter_reduce_(0, take(rank, bad_at), bad_at,
-                                                             "amin")
-            keep = torch.arange(rank.shape[0], device=events.device) < take(cut, rank)
-            waiting = take(order, where_true(~keep))
-            rest = waiting if rest is None else torch.cat([rest, waiting])
-            kept = where_true(keep)
-            order, region, total = take(order, kept), take(region, kept), take(total, kept)
-            first, rank = take(first, kept), take(rank, kept)
-            new_levels = state.level.clone()
-            new_levels.index_add_(0, take(events.y, order) * w + take(events.x, order),
-                                  polarity_sign(take(events.p, order), torch.int64))
-        # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
-        offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels())
-        u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
+                                         per_region, contrast, threshold)
+            del ids, inside, key
+            if bad is not None:  # the running sums cannot hold an event: its region waits
+                bad_at = where_true(bad)
+                if bool((take(order, bad_at) == 0).any()):  # the piece's first: it goes alone
+                    lone = _events_piece(events.part(0, 1), sensor_size, factor, contrast,
+                                         threshold, state, emitted)
+                    return lone._replace(rest=torch.arange(1, n, device=events.device))
+                # Each region keeps its events before the first that its sums cannot hold.
+                cut = torch.full_like(firsts, n).scatter_reduce_(0, take(rank, bad_at), bad_at,
+                                                                 "amin")
+                keep = torch.arange(rank.shape[0], device=events.device) < take(cut, rank)
+                waiting = take(order, where_true(~keep))
+                rest = waiting if rest is None else torch.cat([rest, waiting])
+                kept = where_true(keep)
+                order, region, total = take(order, kept), take(region, kept), take(total, kept)
+                first, rank = take(first, kept), take(rank, kept)
+                new_levels = state.level.clone()
+                new_levels.index_add_(0, take(events.y, order) * w + take(events.x, order),
+                                      polarity_sign(take(events.p, order), torch.int64))
+            offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels())
+            u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
         floor_u, on_level = snap(u)
         del u, total
         # The reference rule on the moves that can change q only (a move that stays strictly

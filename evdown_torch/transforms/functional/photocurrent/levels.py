@@ -26,7 +26,7 @@ from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.reference import SNAP
 
 __all__ = ["PixelLevels", "check_contrast_range", "check_level_range", "log_mean_exp",
-           "pixel_levels", "region_pixel_ids", "snap"]
+           "pixel_levels", "region_levels_after", "region_pixel_ids", "snap"]
 
 
 def check_contrast_range(contrast: float, threshold: float) -> None:
@@ -128,3 +128,40 @@ def pixel_levels(events: Events, width: int, height: int, levels: Tensor) -> Pix
     new_state = levels.clone()
     new_state.scatter_(0, take(pixel, last), final)
     return PixelLevels(pixel, order, level, change, new_state)
+
+
+def region_levels_after(
+    events: Events, factor: tuple[int, int], segment: Tensor, firsts: Tensor,
+    start: Tensor,
+) -> Tensor:
+    """The levels of its region's pixels after every event, one row per event (exact).
+
+    Args:
+        events: ``N`` events grouped by region (time order inside a region).
+        factor: ``(fx, fy)``.
+        segment: ``(N,)`` int64 rank of each event's region among the ``S`` regions.
+        firsts: ``(S,)`` int64 position of each region's first event.
+        start: ``(S, fx * fy)`` int64 levels of each region's pixels before the events, in
+            the order of :func:`region_pixel_ids`.
+
+    Returns:
+        ``(N, fx * fy)`` int64: row ``i`` holds the levels after event ``i`` of the pixels of
+        its region, the event's own pixel moved by its +1 (ON) or -1 (OFF).
+
+    Example:
+        >>> ev = Events.from_columns([0, 1, 0], [0, 0, 0], [1, 2, 3], [1, 1, 0])
+        >>> start = torch.tensor([[5, 0]])
+        >>> region_levels_after(ev, (2, 1), torch.zeros(3, dtype=torch.int64),
+        ...                     torch.tensor([0]), start).tolist()
+        [[6, 0], [6, 1], [5, 1]]
+    """
+    fx, fy = factor
+    n = events.num_events
+    slot = torch.remainder(events.y, fy).mul_(fx).add_(torch.remainder(events.x, fx))
+    rows = torch.zeros(n, fx * fy, dtype=torch.int64, device=slot.device)
+    rows.scatter_(1, slot[:, None], polarity_sign(events.p, torch.int64)[:, None])
+    rows.cumsum_(0)
+    # Each region's rows start from its own levels: take back the sums of the regions before.
+    before = torch.zeros_like(start)
+    before[1:] = rows[firsts[1:] - 1]
+    return rows.add_(take(start - before, segment))
