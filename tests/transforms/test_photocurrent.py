@@ -117,6 +117,18 @@ def test_a_hot_region_is_held_back_alone(dense_values, rng, monkeypatch):
     assert sorted(rows(out)) == sorted(expected)
 
 
+@pytest.mark.parametrize("factor", [2, (3, 2)])
+def test_a_batch_with_a_hot_recording_equals_one_by_one(factor, rng):
+    # Stacked recordings (regions of several recordings in one piece): only the hot pixel's
+    # region of the first recording is held back; every recording's output is its own.
+    pool = PhotocurrentPooling((4, 4, 2), factor=factor, contrast=0.25, threshold=0.4)
+    recordings = [hot_pixel_stream(rng, 600, 600, dt=2, n_rest=800),
+                  random_stream(rng, 900, (4, 4, 2), t_max=1200),
+                  hot_pixel_stream(rng, 300, 150, dt=3, n_rest=200)]
+    for recording, output in zip(recordings, pool.batch(recordings), strict=True):
+        assert output.tolist() == pool(recording).tolist()
+
+
 @pytest.mark.parametrize(("sensor", "factor", "contrast"), [
     ((8, 8, 2), 2, 0.3), ((10, 7, 2), (3, 2), 0.2), ((6, 4, 2), 1, 0.5), ((8, 6, 2), 4, 37.0)])
 def test_a_dense_piece_gives_the_running_sums_result(sensor, factor, contrast, rng):
