@@ -216,3 +216,29 @@ def test_regions_rising_too_far_wait_while_the_others_take_one_word(rng, monkeyp
     _two_word_only(monkeypatch)
     assert out == rows(pool(arr))
     assert sorted(out) == sorted(photocurrent_events_reference(arr, (8, 8, 2), 2, 0.2, 0.2))
+
+
+def test_a_piece_that_decides_nothing_still_moves_on(monkeypatch):
+    # c = 50 at factor 1: pixel 0 rises two levels (TooBright, held back) and pixel 1's first
+    # event is an OFF, a sum e^-50 of its anchor that the two words cannot hold: the kept
+    # regions keep nothing. The piece's first event then goes alone and the rest follows
+    # (with DENSE_VALUES = 0 the held-back rounds never go dense; a piece that decided
+    # nothing would come back unchanged for ever).
+    monkeypatch.setattr(kernel, "DENSE_VALUES", 0)
+    calls, piece = [], kernel._events_piece
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) > 50:
+            raise RuntimeError("the pieces make no progress")
+        return piece(*args, **kwargs)
+
+    monkeypatch.setattr(kernel, "_events_piece", counted)
+    arr = np.zeros(6, dtype=DVS_DTYPE)
+    arr["x"] = [0, 0, 1, 1, 0, 1]
+    arr["t"] = np.arange(6)
+    arr["p"] = [1, 1, 0, 0, 0, 1]
+    pool = PhotocurrentPooling((2, 1, 2), factor=1, contrast=50.0, threshold=50.0)
+    out = rows(pool(arr))
+    assert out == photocurrent_events_reference(arr, (2, 1, 2), 1, 50.0, 50.0)
+    assert len(out) == 6

@@ -439,15 +439,15 @@ def _events_piece(
                                          per_region, contrast, threshold)
             del ids, inside, key
             if bad is not None:  # the running sums cannot hold an event: its region waits
-                bad_at = where_true(bad)
-                if bool((take(order, bad_at) == 0).any()):  # the piece's first: it goes alone
-                    lone = _events_piece(events.part(0, 1), sensor_size, factor, contrast,
-                                         threshold, state, emitted)
-                    return lone._replace(rest=torch.arange(1, n, device=events.device))
                 # Each region keeps its events before the first that its sums cannot hold.
+                bad_at = where_true(bad)
                 cut = torch.full_like(firsts, n).scatter_reduce_(0, take(rank, bad_at), bad_at,
                                                                  "amin")
                 keep = torch.arange(rank.shape[0], device=events.device) < take(cut, rank)
+                if not bool(keep.any()):  # none: the piece's first event alone, then the rest
+                    lone = _events_piece(events.part(0, 1), sensor_size, factor, contrast,
+                                         threshold, state, emitted)
+                    return lone._replace(rest=torch.arange(1, n, device=events.device))
                 waiting = take(order, where_true(~keep))
                 rest = waiting if rest is None else torch.cat([rest, waiting])
                 kept = where_true(keep)
