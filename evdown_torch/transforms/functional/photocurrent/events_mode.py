@@ -17,9 +17,10 @@ many events the piece has. Where the sums cannot hold an event to ``1e-10 * thet
 region's pixels falling some 50 log units below its anchor), or a pixel rises more than
 :data:`~evdown_torch.transforms.functional.photocurrent.sums.MAX_EXPONENT` above it, that
 region's events from there on are held back, and decided after the others' on a piece that
-re-anchors that region where it was cut (regions are independent); a piece whose first
-event cannot be held decides that event alone, from the levels after it. The reference
-rule then runs on the events that can change a region's reference index.
+re-anchors that region where it was cut (regions are independent), or once few are left
+from a row of its region's levels after each event; a piece that would decide nothing
+decides its first event alone that way. The reference rule then runs on the events that can
+change a region's reference index.
 
 A long piece is first tried with one int64 word per sum (:func:`.sums.one_word_sums`), which
 decides every event clear of the snap bounds by more than its error bound as the two words
