@@ -440,6 +440,21 @@ def test_sustained_rate_scales_the_replayed_rate_to_the_p99():
     assert ReplayResult("m", 1e6, 1000).sustained_rate is None
 
 
+def test_the_table_gives_each_rate_over_event_counts_in_the_same_run():
+    from evdown_torch.bench.realtime import ReplayResult, realtime_markdown
+
+    results = [ReplayResult("event_count", 25e6, 10_000, chunks=1, seconds=[0.008]),
+               ReplayResult("linear", 25e6, 10_000, chunks=1, seconds=[0.08]),
+               ReplayResult("linear", 25e6, 1000, chunks=1, seconds=[0.002]),  # no peer row
+               ReplayResult("lif", 25e6, 10_000, note="no session")]
+    rows = [line.split(" | ") for line in realtime_markdown(results).splitlines()[2:]]
+    ratio = {(r[0].strip("| "), r[2]): r[9] for r in rows}
+    assert ratio[("event_count", "10")] == "1"
+    assert ratio[("linear", "10")] == "0.1"  # 10x EventCount's p99
+    assert ratio[("linear", "1")] == "–"
+    assert ratio[("lif", "10")] == "–"
+
+
 def test_each_stage_has_a_progress_bar_that_counts_its_measurements(monkeypatch):
     bars = []
 

@@ -11,6 +11,8 @@ so the same events arrive faster). Per method, rate and chunk size it reports:
   99th percentile, i.e. the rate at which the 99th percentile would reach the chunk's
   duration if a chunk's time grew in proportion to its events (an extrapolation from the
   replayed rate, exact at it, conservative where a fixed cost per call dominates);
+* the sustained rate over EventCount's in the same run, at the same rate and chunk size
+  (column "x EventCount"; EventCount is the cheapest method that also cuts the rate);
 * the same 99th percentile in process CPU time, which a busy machine does not inflate;
 * for methods whose output lags their input (LinearEstimation and CubicEstimation with
   ``max_delay``), the **output delay** of each output event a chunk returned: the end of that
@@ -352,26 +354,41 @@ def _ms(seconds: float | None) -> str:
     return "–" if seconds is None else f"{seconds * 1e3:.3g}"
 
 
+#: The peer of the "x EventCount" column: the cheapest method that also cuts the rate.
+PEER = "event_count"
+
+
 def realtime_markdown(results: Sequence[ReplayResult]) -> str:
-    """The results as a Markdown table (times in ms, rates in M events/s, delays in µs)."""
+    """The results as a Markdown table (times in ms, rates in M events/s, delays in µs).
+
+    With :data:`PEER` (EventCount) among them, the column "x EventCount" gives each method's
+    sustained rate over EventCount's at the same input rate and chunk size, in the same run:
+    a ratio that the machine's speed and load move far less than the rates themselves.
+    """
+    peer = {(r.rate, r.chunk_us): r.sustained_rate for r in results
+            if r.method == PEER and not r.note}
     lines = ["| method | input rate (M ev/s) | chunk (ms) | chunks | median (ms) | p99 (ms) | "
-             "p99 CPU (ms) | keeps up | sustains (M ev/s) | delay median / p99 / max (µs) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "p99 CPU (ms) | keeps up | sustains (M ev/s) | x EventCount | "
+             "delay median / p99 / max (µs) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         if r.note:
             lines.append(f"| {r.method} | {r.rate / 1e6:.3g} | {r.chunk_us / 1e3:g} | – | – | – "
-                         f"| – | – | – | {r.note.split(';')[0]} |")
+                         f"| – | – | – | – | {r.note.split(';')[0]} |")
             continue
         s = r.summary()
         delay = s.get("delay_us")
         delay_text = ("–" if delay is None else
                       f"{delay['median']:.0f} / {delay['p99']:.0f} / {delay['max']:.0f}")
         sustained = r.sustained_rate
+        of_peer = peer.get((r.rate, r.chunk_us))
+        ratio = "–" if sustained is None or not of_peer else f"{sustained / of_peer:.3g}"
         lines.append(
             f"| {r.method} | {r.rate / 1e6:.3g} | {r.chunk_us / 1e3:g} | {r.chunks} "
             f"| {_ms(r.median_s)} | {_ms(r.p99_s)} | {_ms(r.p99_cpu_s)} "
             f"| {'–' if r.keeps_up is None else 'yes' if r.keeps_up else 'no'} "
-            f"| {'–' if sustained is None else f'{sustained / 1e6:.3g}'} | {delay_text} |")
+            f"| {'–' if sustained is None else f'{sustained / 1e6:.3g}'} | {ratio} "
+            f"| {delay_text} |")
     return "\n".join(lines) + "\n"
 
 
