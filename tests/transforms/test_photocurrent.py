@@ -155,6 +155,27 @@ def test_a_dense_piece_gives_the_running_sums_result(sensor, factor, contrast, r
     assert torch.equal(dense.state.reference, summed_state.reference)
 
 
+@pytest.mark.parametrize("contrast", [0.2, 1e-4, 37.3, 50.0])
+@pytest.mark.parametrize("spread", [3, 5000, 10**6])
+def test_log_mean_exp_is_the_direct_sum_bit_for_bit(contrast, spread):
+    # The table of exp(c * j) against each entry's own exp, with and without an edge mask,
+    # levels spanning more than the table (10**6) and intensities that underflow (c = 50).
+    from evdown_torch.transforms.functional.photocurrent.levels import log_mean_exp
+
+    gen = torch.Generator().manual_seed(spread)
+    levels = torch.randint(-spread, spread + 1, (500, 12), generator=gen)
+    inside = torch.rand(500, 12, generator=gen) > 0.3
+    inside[:, 3] = True
+    for mask in (None, inside):
+        ok = torch.ones_like(levels, dtype=torch.bool) if mask is None else mask
+        m = torch.where(ok, levels, torch.iinfo(torch.int64).min).amax(1)
+        direct = torch.where(ok, torch.exp((levels - m[:, None]).to(torch.float64) * contrast),
+                             0.0).sum(1)
+        got_m, got = log_mean_exp(levels, mask, contrast)
+        assert torch.equal(got_m, m)
+        assert torch.equal(got, direct)
+
+
 def test_region_levels_after_each_event(rng):
     # Against replaying the events one by one on a copy of the levels.
     from evdown_torch.events import Events

@@ -8,6 +8,7 @@ is on it). The modes themselves: :mod:`.events_mode` and :mod:`.frames_mode`.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -25,8 +26,8 @@ from evdown_torch._tensors import (
 from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.reference import SNAP
 
-__all__ = ["PixelLevels", "check_contrast_range", "check_level_range", "log_mean_exp",
-           "pixel_levels", "region_levels_after", "region_pixel_ids", "snap"]
+__all__ = ["EXP_TABLE_LEVELS", "PixelLevels", "check_contrast_range", "check_level_range",
+           "log_mean_exp", "pixel_levels", "region_levels_after", "region_pixel_ids", "snap"]
 
 
 def check_contrast_range(contrast: float, threshold: float) -> None:
@@ -82,10 +83,18 @@ def region_pixel_ids(
     return torch.where(inside, py * w + px, 0), inside
 
 
+#: Most levels below a row's brightest for which :func:`log_mean_exp` looks its intensities
+#: up in a table of ``exp(c * j)`` (one exponential per level that occurs, not per entry).
+EXP_TABLE_LEVELS = 1 << 16
+
+
 def log_mean_exp(
     levels: Tensor, inside: Tensor | None, contrast: float
 ) -> tuple[Tensor, Tensor]:
     """Per row: brightest level ``m`` and ``sum exp(c * (L - m))`` over the ``inside`` entries.
+
+    The intensities are ``exp(float64(L - m) * c)``, looked up in a table of those values for
+    the levels that occur (the same values, bit for bit, as computing each entry's).
 
     Args:
         levels: ``(R, n)`` int64 pixel levels.
@@ -94,14 +103,30 @@ def log_mean_exp(
 
     Returns:
         ``(m, s)``: ``(R,)`` int64 and ``(R,)`` float64 in ``[1, n]``.
+
+    Example:
+        >>> m, s = log_mean_exp(torch.tensor([[3, 3, 1], [0, -2, 5]]), None, math.log(2))
+        >>> m.tolist(), [round(v, 12) for v in s.tolist()]
+        ([3, 5], [2.25, 1.0390625])
     """
     if inside is None:
         m = levels.amax(1)
-        return m, torch.exp((levels - m[:, None]).to(torch.float64).mul_(contrast)).sum(1)
-    lowest = torch.iinfo(torch.int64).min
-    m = torch.where(inside, levels, lowest).amax(1)
-    below = torch.where(inside, levels - m[:, None], 0).to(torch.float64).mul_(contrast)
-    return m, torch.where(inside, torch.exp(below), 0.0).sum(1)
+        below = levels - m[:, None]
+    else:
+        m = torch.where(inside, levels, torch.iinfo(torch.int64).min).amax(1)
+        below = torch.where(inside, levels - m[:, None], 0)
+    if below.numel() == 0:
+        return m, torch.zeros(m.shape, dtype=torch.float64, device=m.device)
+    # exp(c * j) is 0.0 in float64 below j = -800 / c: such levels count as that one.
+    darkest = max(int(below.min()), -math.ceil(800 / contrast))
+    if -darkest < EXP_TABLE_LEVELS:
+        table = torch.arange(darkest, 1, device=m.device).to(torch.float64).mul_(contrast).exp_()
+        intensity = take(table, below.clamp_(min=darkest).sub_(darkest).view(-1)).view_as(below)
+    else:
+        intensity = below.to(torch.float64).mul_(contrast).exp_()
+    if inside is not None:
+        intensity.masked_fill_(~inside, 0.0)
+    return m, intensity.sum(1)
 
 
 class PixelLevels(NamedTuple):
