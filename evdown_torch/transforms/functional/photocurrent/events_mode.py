@@ -332,8 +332,7 @@ def _anchored_piece(
         state = again.state
         rest = None if again.rest is None else take(rest, again.rest)
     by_source = torch.sort(torch.cat(sources), stable=True).indices
-    out = Events(*(take(column, by_source) for column in Events.cat(outputs)))
-    return out, state._replace(last_t=events.t[-1].clone())
+    return Events.cat(outputs).select(by_source), state._replace(last_t=events.t[-1].clone())
 
 
 def _events_piece(
