@@ -134,7 +134,22 @@ class Events(NamedTuple):
         return self.t.device
 
     def select(self, index: Tensor) -> Events:
-        """Return the events picked (and ordered) by an index or boolean mask tensor."""
+        """Return the events picked (and ordered) by an index or boolean mask tensor.
+
+        Args:
+            index: ``(M,)`` integer positions (any order, repeats allowed) or an ``(N,)`` bool
+                mask, on the events' device.
+
+        Example:
+            >>> ev = Events.from_columns([0, 1, 2], [0, 0, 0], [5, 6, 7], [True, False, True])
+            >>> ev.select(torch.tensor([2, 0])).t.tolist(), ev.select(ev.p).x.tolist()
+            ([7, 5], [0, 2])
+        """
+        if index.dtype == torch.bool:  # the positions once, not a mask per column
+            index = torch.nonzero(index).squeeze(1)
+        if index.ndim == 1 and index.dtype in (torch.int64, torch.int32):
+            # index_select: several times faster than advanced indexing on the CPU.
+            return Events(*(column.index_select(0, index) for column in self))
         return Events(self.x[index], self.y[index], self.t[index], self.p[index])
 
     def part(self, start: int, stop: int | None = None) -> Events:

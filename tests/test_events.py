@@ -119,6 +119,32 @@ def test_events_container_checks_its_tensors():
         to_events(Events(good.x, good.y, torch.zeros(2, dtype=torch.int64), good.p))
 
 
+@pytest.mark.parametrize("kind", ["int64", "int32", "mask", "empty", "rows"])
+def test_select_picks_the_same_events_as_a_python_loop(kind, rng, device):
+    columns = [rng.integers(0, 9, 40), rng.integers(0, 9, 40), rng.integers(0, 99, 40),
+               rng.random(40) < 0.5]
+    ev = Events.from_columns(*(torch.from_numpy(c).to(device) for c in columns))
+    if kind == "mask":
+        mask = rng.random(40) < 0.3
+        picked = [i for i in range(40) if mask[i]]
+        index = torch.from_numpy(mask).to(device)
+    elif kind == "rows":  # a 2-D index keeps advanced indexing's shape
+        picked = None
+        index = torch.tensor([[3, 1], [0, 3]], device=device)
+    else:
+        picked = [] if kind == "empty" else rng.integers(0, 40, 60).tolist()  # repeats
+        index = torch.tensor(picked, dtype=getattr(torch, "int32" if kind == "int32" else "int64"),
+                             device=device)
+    out = ev.select(index)
+    if picked is None:
+        assert out.t.tolist() == [[int(columns[2][i]) for i in row] for row in [[3, 1], [0, 3]]]
+        return
+    for column, got in zip(columns, out, strict=True):
+        assert got.tolist() == [column[i].item() for i in picked]
+        assert got.device == ev.device
+    assert out.p.dtype == torch.bool and out.t.dtype == torch.int64
+
+
 def test_from_columns_accepts_structured_field_views_and_tensors(device):
     arr = np.array([(1, 2, True, 7)], dtype=[("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", "<i8")])
     ev = Events.from_columns(arr["x"], arr["y"], arr["t"], arr["p"])

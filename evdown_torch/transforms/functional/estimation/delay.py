@@ -24,7 +24,6 @@ __all__ = [
     "held_knots",
     "hold_knots",
     "merge_by_time",
-    "take_events",
 ]
 
 
@@ -146,11 +145,6 @@ def held_knots(events: Events, *, max_delay: float, t_start: Tensor) -> Events:
 SMALL_WINDOW = 1 << 12
 
 
-def take_events(events: Events, index: Tensor) -> Events:
-    """``events`` at the int64 positions ``index`` (one ``index_select`` per column)."""
-    return Events(*(take(column, index) for column in events))
-
-
 def merge_by_time(parts: list[tuple[Events, Tensor]]) -> tuple[Events, Tensor]:
     """Time-sorted knot events and their level changes, merged as a stable time sort of them.
 
@@ -163,7 +157,7 @@ def merge_by_time(parts: list[tuple[Events, Tensor]]) -> tuple[Events, Tensor]:
     if sum(sizes) < SMALL_WINDOW:  # fewer operations; the same order
         events = Events.cat([part for part, _ in parts])
         order = torch.sort(events.t, stable=True).indices
-        return take_events(events, order), take(torch.cat([change for _, change in parts]), order)
+        return events.select(order), take(torch.cat([change for _, change in parts]), order)
     big = max(range(len(parts)), key=sizes.__getitem__)
     big_t = parts[big][0].t
     device = big_t.device

@@ -51,7 +51,6 @@ from evdown_torch.transforms.functional.estimation.delay import (
     effective_delay,
     held_knots,
     merge_by_time,
-    take_events,
 )
 from evdown_torch.transforms.functional.estimation.driver import RegionSolver, estimate_window
 from evdown_torch.transforms.functional.estimation.knots import (
@@ -234,7 +233,7 @@ def _recent(
     carry = Events(at - y * width, y, take(since, at), torch.zeros_like(at, dtype=torch.bool))
     passed = where_true(~fold)
     tail = window.part(cut)
-    events = Events.cat([carry, take_events(window, passed), tail])
+    events = Events.cat([carry, window.select(passed), tail])
     return events, torch.cat([take(carried, at), take(head_change, passed), change[cut:]])
 
 
@@ -344,7 +343,7 @@ def window_step(
     in_window = take(touched, old_region)
     old = where_true(in_window)
     window, window_change = merge_by_time([
-        (take_events(state.knots, old), take(state.change, old)),
+        (state.knots.select(old), take(state.change, old)),
         (held, torch.zeros(held.num_events, dtype=torch.int64, device=device)),
         (events, polarity_sign(events.p, torch.int64)),
     ])
@@ -363,8 +362,8 @@ def window_step(
                             width=width)
     by_time = torch.sort(kept.t, stable=True).indices
     outside = where_true(~in_window)
-    knots, change = merge_by_time([(take_events(state.knots, outside), take(state.change, outside)),
-                          (take_events(kept, by_time), take(kept_change, by_time))])
+    knots, change = merge_by_time([(state.knots.select(outside), take(state.change, outside)),
+                          (kept.select(by_time), take(kept_change, by_time))])
     q = cast(Tensor, q)  # estimate_window returns q with a resume
     new_state = WindowState(state.t_start, tau, horizon, knots, change, pixel_t, q)
     return out.select(where_true(decided)), new_state
@@ -386,7 +385,7 @@ def window_end(state: WindowState, settings: EstimationSettings) -> Events | Non
     if in_window.shape[0] == 0:
         return None
     out, _ = estimate_window(
-        take_events(state.knots, in_window), change=take(state.change, in_window),
+        state.knots.select(in_window), change=take(state.change, in_window),
         t_start=state.t_start, t_end=state.t_last, settings=settings, resume=Resume(cut, state.q),
     )
     return out.select(where_true(out.t >= cut))
