@@ -20,11 +20,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import stable_sort_small
+from evdown_torch._tensors import stable_sort_small, where_true
 from evdown_torch.checks import output_size
 from evdown_torch.synthetic.body_plan import BODY_REACH
 from evdown_torch.synthetic.raster import (
-    _nonzero,
     _Part,
     background_image,
     block_of,
@@ -60,7 +59,7 @@ def key_steps(scene: GestureScene, times: Tensor, max_step_px: float) -> Tensor:
     crossed[1:] = reached[1:] > reached[:-1]
     crossed &= reached > 0
     last = times.numel() - 1
-    steps = torch.cat([torch.zeros(1, dtype=torch.int64), crossed.nonzero().squeeze(1) + 1,
+    steps = torch.cat([torch.zeros(1, dtype=torch.int64), where_true(crossed) + 1,
                        torch.tensor([last])])
     return torch.unique(steps)
 
@@ -89,7 +88,7 @@ class KeyedImage:
     def _sway(self, pixel: Tensor, step: Tensor) -> tuple[Tensor, Tensor]:
         """Which samples sway, and their log intensity."""
         row = self.row.index_select(0, pixel)
-        where = _nonzero(row >= 0)
+        where = where_true(row >= 0)
         row, step = row.index_select(0, where), step.index_select(0, where)
         k = self._key.index_select(0, step)
         w = self._weight.index_select(0, step)
@@ -220,7 +219,7 @@ class Grid:
         sway_at = at + torch.arange(sway_key.numel())  # places in the merged order
         covered = torch.ones(total, dtype=torch.bool)
         covered[sway_at] = False
-        arm_at = _nonzero(covered)
+        arm_at = where_true(covered)
         merged = []
         for arm, sway in ((pixel, sway_pixel), (step + s0, sway_step),
                           (level, out.level(sway_pixel, sway_step))):

@@ -28,6 +28,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import where_true
 from evdown_torch.synthetic.scenes import GestureScene
 
 __all__ = ["flicker_depth", "flicker_samples", "lamp_share", "waveform"]
@@ -113,7 +114,7 @@ def flicker_samples(scene: GestureScene, depth: Tensor, log_static: Tensor,
     if scene.flicker_hz <= 0 or scene.lighting not in WAVEFORMS:
         return empty
     swing = torch.log1p(depth) - torch.log1p(-depth.clamp(max=1 - 1e-9))
-    lit = (swing >= min_threshold).nonzero().squeeze(1)
+    lit = where_true(swing >= min_threshold)
     if lit.numel() == 0:
         return empty
     period = 1e6 / scene.flicker_hz

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import where_true
 from evdown_torch.checks import (
     check_non_negative_float,
     check_non_negative_int,
@@ -152,7 +153,7 @@ def refractory_mask(pixel: Tensor, t: Tensor, refractory_us: int) -> Tensor:
     key = pixel * span + t_rel
     following = torch.searchsorted(key, key + refractory_us)
     keep = start.clone()
-    frontier = torch.nonzero(start & ~torch.cat([start[1:], start.new_ones(1)])).squeeze(1)
+    frontier = where_true(start & ~torch.cat([start[1:], start.new_ones(1)]))
     while frontier.numel() > 0:
         frontier = following[frontier]
         frontier = frontier[frontier < n]

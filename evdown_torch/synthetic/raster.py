@@ -16,11 +16,10 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import region_xy, stable_sort_small
+from evdown_torch._tensors import region_xy, stable_sort_small, where_true
 from evdown_torch.checks import check_factor, output_size
 from evdown_torch.synthetic.body_plan import (
     FOREARM,
@@ -176,11 +175,6 @@ def background_image(scene: GestureScene) -> tuple[Tensor, float]:
     return image, float(image.mean())
 
 
-def _nonzero(mask: Tensor) -> Tensor:
-    """Indices of the True entries of a 1-D CPU bool tensor (NumPy's is much faster)."""
-    return torch.from_numpy(np.flatnonzero(mask.numpy()))
-
-
 def _rows(part: _Part, s0: int, s1: int, width: int, height: int
           ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Scanline spans of a moving capsule at steps ``s0..s1``.
@@ -310,18 +304,18 @@ def composite(parts: list[_Part], s0: int, s1: int, width: int, height: int, sca
     value = beneath * (1 - alpha) + alpha * colour
     repeat = torch.zeros(key.shape, dtype=torch.bool)
     repeat[1:] = key[1:] == key[:-1]
-    later = _nonzero(repeat)
+    later = where_true(repeat)
     if later.numel() == 0:
         return pixel, step, value, beneath
     index = torch.arange(key.numel())
     owner = torch.cummax(index * ~repeat, 0).values.index_select(0, later)
     rank = later - owner
     for r in range(1, int(rank.max()) + 1):
-        sel = _nonzero(rank == r)
+        sel = where_true(rank == r)
         d, g = later.index_select(0, sel), owner.index_select(0, sel)
         a = alpha.index_select(0, d)
         value.index_copy_(0, g, value.index_select(0, g) * (1 - a) + a * colour.index_select(0, d))
-    starts = _nonzero(~repeat)
+    starts = where_true(~repeat)
     return (pixel.index_select(0, starts), step.index_select(0, starts),
             value.index_select(0, starts), beneath.index_select(0, starts))
 

@@ -29,7 +29,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import region_xy
+from evdown_torch._tensors import region_xy, where_true
 from evdown_torch.checks import check_factor, check_positive_int, output_size
 from evdown_torch.events import Events
 from evdown_torch.synthetic.grid import Grid
@@ -44,7 +44,6 @@ from evdown_torch.synthetic.pixel_model import (
     start_reference,
 )
 from evdown_torch.synthetic.raster import (
-    _nonzero,
     _Part,
     block_of,
     block_sums,
@@ -148,7 +147,7 @@ def _with_static(pixel: Tensor, step: Tensor, x: Tensor, covered: Tensor,
     out_step = torch.empty(total, dtype=torch.int64).index_copy_(0, own, step)
     out_x = torch.empty(total, dtype=x.dtype).index_copy_(0, own, x)
     for flag, shift in ((pre, -1), (post, 1)):
-        where = _nonzero(flag)
+        where = where_true(flag)
         at = own.index_select(0, where) + shift
         steps = step.index_select(0, where) + shift
         out_step.index_copy_(0, at, steps)

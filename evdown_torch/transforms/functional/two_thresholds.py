@@ -11,6 +11,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import where_true
+
 __all__ = [
     "PixelSamples",
     "two_threshold_counts",
@@ -138,7 +140,7 @@ def two_threshold_counts(
     previous[1:] = torch.where(first[1:], 0, previous[1:])
     run_start = moving & (direction != previous)
     # a run ends at the pixel's last sample before the next run start (or the pixel's end)
-    starts = run_start.nonzero().squeeze(1)
+    starts = where_true(run_start)
     boundary = run_start | first
     next_boundary = torch.flip(torch.cummin(torch.flip(torch.where(boundary, index, m), [0]),
                                             0).values, [0])
@@ -148,7 +150,7 @@ def two_threshold_counts(
     pixel_of = torch.cumsum(first, 0) - 1
     run_pixel = pixel_of.index_select(0, starts)
     n_pixels = int(pixel_of[-1]) + 1
-    first_index = first.nonzero().squeeze(1)
+    first_index = where_true(first)
     a_state = a_start.index_select(0, first_index).clone()
     b_state = b_start.index_select(0, first_index).clone()
     n_runs = starts.shape[0]
@@ -238,7 +240,7 @@ def two_threshold_crossings(
     da = torch.where(first, 0, da)
     db = torch.where(first, 0, db)
     count = da + db  # a segment is monotone: one of them is zero
-    changed = count.nonzero().squeeze(1)
+    changed = where_true(count != 0)
     count = count.index_select(0, changed)
     segment = torch.repeat_interleave(changed, count)
     offsets = torch.cumsum(count, 0) - count

@@ -65,6 +65,7 @@ import math
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import where_true
 from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak
 
 __all__ = ["MAX_TABLE", "MIN_ROUNDS", "certain_spikes"]
@@ -209,7 +210,7 @@ def certain_spikes(
     chain = gap_after.index_select(0, cell) > 0  # fired, then empty steps
     if not bool(chain.any()):
         return CellSpikes(cell, polarity, empty, empty, empty, empty)
-    which = chain.nonzero().squeeze(1)
+    which = where_true(chain)
     chain_cell, chain_polarity = cell.index_select(0, which), polarity.index_select(0, which)
     at = (chain_polarity, row.index_select(0, which), rank.index_select(0, which))
     if reset == "none" and beta == 1.0:  # the membrane stays: fires at every empty step
@@ -401,7 +402,7 @@ def _look_back(
     fired_at = before.gather(-1, first)  # the firing it is still above after
     debt.copy_(torch.where(wrong, torch.cat(debts, -1).gather(-1, first), debt))
     last.copy_(torch.where(wrong, fired_at, last))
-    lanes = wrong.view(-1).nonzero().squeeze(1)  # the neurons gone wrong
+    lanes = where_true(wrong.view(-1))  # the neurons gone wrong
     fired_at = fired_at.view(-1).index_select(0, lanes)
     if between is not None:  # reset "subtract": chained spikes, their resets
         onward = between[lanes.remainder(n_regions), fired_at] > 0

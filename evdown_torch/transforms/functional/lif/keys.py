@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, stable_sort_small
+from evdown_torch._tensors import divide, stable_sort_small, where_true
 from evdown_torch.events import Events
 
 __all__ = ["TABLE_KEYS_PER_SPIKE", "by_step_then_neuron", "counted_cells", "grouped_cells"]
@@ -63,7 +63,7 @@ def counted_cells(
         keys.append(key.add_(other, alpha=2).add_(events.p))
     key = keys[0] if len(keys) == 1 else torch.cat(keys)
     counts = torch.bincount(key, minlength=2 * plane * span).view(-1, 2)
-    cell_key = counts.any(1).nonzero().squeeze(1)
+    cell_key = where_true(counts.any(1))
     return cell_key, counts.index_select(0, cell_key)
 
 
@@ -102,7 +102,7 @@ def grouped_cells(
         starts = torch.ones(n, dtype=torch.bool, device=device)
         torch.ne(key[1:], key[:-1], out=starts[1:])
         cell_of_event = torch.cumsum(starts, 0).sub_(1)
-        cell_step = key.index_select(0, starts.nonzero().squeeze(1))
+        cell_step = key.index_select(0, where_true(starts))
     else:
         region, order = stable_sort_small(region, plane)  # stable: time order within a region
         steps = steps.index_select(0, order)
@@ -112,7 +112,7 @@ def grouped_cells(
         torch.ne(region[1:], region[:-1], out=starts[1:])
         starts[1:] |= steps[1:] != steps[:-1]
         cell_of_event = torch.cumsum(starts, 0).sub_(1)
-        first = starts.nonzero().squeeze(1)
+        first = where_true(starts)
         cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
         del region, steps, starts, first
     n_cells = cell_step.shape[0]
@@ -135,7 +135,7 @@ def by_step_then_neuron(
     if n_keys <= TABLE_KEYS_PER_SPIKE * spike_step.shape[0]:
         marked = torch.zeros(n_keys, dtype=torch.bool, device=spike_step.device)
         marked[(spike_step - low).mul_(neurons).add_(neuron)] = True
-        key = marked.nonzero().squeeze(1)
+        key = where_true(marked)
         step = divide(key, neurons)
         return step + low, key.sub_(step * neurons)
     if (top + 1) * neurons < 1 << 62:

@@ -64,7 +64,7 @@ from typing import NamedTuple, cast
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, sort_by_time, stable_sort_small
+from evdown_torch._tensors import divide, sort_by_time, stable_sort_small, where_true
 from evdown_torch.checks import check_output_count, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.lif.chains import Leak
@@ -212,7 +212,7 @@ def _with_state_cells(
     if chains:
         wanted |= (state.membrane > threshold32).any(1)
     wanted &= state.last_step >= 0
-    region = wanted.nonzero().squeeze(1)
+    region = where_true(wanted)
     if region.shape[0] == 0:
         return cell_region, cell_step, current
     cell_region = torch.cat([region, cell_region])
@@ -394,7 +394,7 @@ def lif_spikes(
     # Each region's cells: its first one, and the empty steps before and after each cell.
     new_region = torch.ones(n_cells, dtype=torch.bool, device=device)
     torch.ne(cell_region[1:], cell_region[:-1], out=new_region[1:])
-    region_first = new_region.nonzero().squeeze(1)
+    region_first = where_true(new_region)
     region_last = torch.roll(region_first, -1).sub_(1)
     region_last[-1] = n_cells - 1
     cells_per_region = region_last - region_first + 1

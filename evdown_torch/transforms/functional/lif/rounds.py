@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, stable_sort_small
+from evdown_torch._tensors import divide, stable_sort_small, where_true
 from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak
 
 __all__ = ["membranes_by_rounds", "spikes_and_runs"]
@@ -97,7 +97,7 @@ def membranes_by_rounds(
             fired &= ~silent
             longer = moving & (chain > threshold32)
             if bool(longer.any()):  # still firing after one empty step: the chain goes on
-                longer = longer.view(-1).nonzero().squeeze(1)  # (neurons of lanes, flattened)
+                longer = where_true(longer.view(-1))  # (neurons of lanes, flattened)
                 lane = divide(longer, 2)
                 count, chained, still = leak.fire_through(
                     u.reshape(-1).index_select(0, longer),
