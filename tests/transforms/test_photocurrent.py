@@ -88,13 +88,24 @@ def test_hot_pixel_far_beyond_float_range(rng):
 @pytest.mark.parametrize("dense_values", [0, None])
 def test_a_hot_region_is_held_back_alone(dense_values, rng, monkeypatch):
     # 600 ON at pixel (0, 0) (c = 0.25: 150 log units) among random events elsewhere: the
-    # first piece decides every other region and holds back only the hot region's events from
-    # its cut on. They follow in rounds re-anchored where each cut (DENSE_VALUES = 0), or in
-    # one dense round; either way the outputs come back in time order.
+    # first piece's one-word sums decide every other region and hold back only the hot
+    # region's events from its cut on. They follow in one round: on running sums whose anchor
+    # climbs every 32 log units (DENSE_VALUES = 0), or a dense round; either way the outputs
+    # come back in time order.
     from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
+    from evdown_torch.transforms.functional.photocurrent import sums
 
+    monkeypatch.setattr(kernel, "ONE_WORD_MIN_EVENTS", 256)
     if dense_values is not None:
         monkeypatch.setattr(kernel, "DENSE_VALUES", dense_values)
+    anchors, rising = [], sums.rising_anchors
+
+    def count_anchors(*args):
+        out = rising(*args)
+        anchors.append(out.level.tolist())
+        return out
+
+    monkeypatch.setattr(sums, "rising_anchors", count_anchors)
     arr = hot_pixel_stream(rng, 600, 600, dt=2, n_rest=1500)
     held, piece = [], kernel._events_piece
 
@@ -108,13 +119,71 @@ def test_a_hot_region_is_held_back_alone(dense_values, rng, monkeypatch):
     pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)
     out = pool(arr)
     assert held[0] is not None and bool(held[0].all())  # only region (0, 0) waits
-    if dense_values == 0:
-        assert len(held) > 2  # 150 log units take several re-anchored rounds
+    assert len(held) == 2 and held[1] is None
+    if dense_values == 0:  # 150 log units: anchors 32 / 0.25 = 128 levels apart
+        assert anchors and anchors[-1][:2] == [0, 128] and len(anchors[-1]) >= 2
     else:
-        assert len(held) == 2 and held[1] is None
+        assert anchors == []
     assert np.all(np.diff(out["t"].astype(np.int64)) >= 0)
     expected = photocurrent_events_reference(arr, (4, 4, 2), 2, 0.25, 0.4)
     assert sorted(rows(out)) == sorted(expected)
+
+
+@pytest.mark.parametrize("step", [1, 3, 128])
+def test_rising_anchors_against_a_loop(step, rng):
+    # Regions of 4 pixels, each event's level before it relative to its region's brightest
+    # before the piece (0); the anchors replayed one event at a time.
+    from evdown_torch.transforms.functional.photocurrent.sums import rising_anchors
+
+    start = rng.integers(-6, 1, (5, 4))
+    start[np.arange(5), rng.integers(0, 4, 5)] = 0  # each region's brightest is 0
+    counts = rng.integers(1, 40, 5)
+    keys, ranks, slots, expected = [], [], [], {"level": [], "region": [], "firsts": [],
+                                                "anchor_of": [], "pixel_level": []}
+    for r, count in enumerate(counts):
+        level, reach, run_k = start[r].copy(), 0, None
+        for _ in range(count):
+            slot, on = int(rng.integers(0, 4)), int(rng.random() < 0.75)  # mostly climbing
+            k = reach // step
+            if k != run_k:  # a new anchor: the region's levels as they are now
+                run_k = k
+                expected["level"].append(k * step)
+                expected["region"].append(r)
+                expected["firsts"].append(len(keys))
+                expected["pixel_level"].append(level.tolist())
+            expected["anchor_of"].append(len(expected["level"]) - 1)
+            keys.append(2 * int(level[slot]) + on)
+            ranks.append(r)
+            slots.append(slot)
+            level[slot] += 1 if on else -1
+            reach = max(reach, int(level[slot]))
+    firsts = torch.tensor(np.concatenate([[0], np.cumsum(counts)[:-1]]))
+    got = rising_anchors(torch.tensor(keys), torch.tensor(ranks), firsts, torch.tensor(start),
+                         torch.tensor(slots), step)
+    for name, values in expected.items():
+        assert getattr(got, name).tolist() == values, name
+
+
+@pytest.mark.parametrize(("sensor", "factor", "contrast"), [
+    ((4, 4, 2), 2, 0.25), ((5, 4, 2), 2, 2.0), ((6, 4, 2), (3, 2), 40.0)])
+def test_climbing_regions_match_the_reference_in_one_call_and_in_chunks(sensor, factor,
+                                                                        contrast, rng):
+    # Hot pixels in two regions climb far past MAX_EXPONENT at different times, then fall
+    # back, among random events: the running sums take new anchors as they climb.
+    hot = []
+    for x, y, start in ((0, 0, 0), (sensor[0] - 1, sensor[1] - 1, 300)):
+        part = np.zeros(400, dtype=DVS_DTYPE)
+        part["x"], part["y"], part["t"] = x, y, start + np.arange(400)
+        part["p"][:300] = True
+        hot.append(part)
+    arr = np.sort(np.concatenate([*hot, random_stream(rng, 600, sensor, t_max=700)]),
+                  order="t", kind="stable")
+    pool = PhotocurrentPooling(sensor, factor=factor, contrast=contrast, threshold=0.3)
+    expected = photocurrent_events_reference(arr, sensor, factor, contrast, 0.3)
+    assert sorted(rows(pool(arr))) == sorted(expected)
+    session = pool.session()
+    chunks = [session(arr[a:b]) for a, b in ((0, 250), (250, 900), (900, len(arr)))]
+    assert sorted(rows(np.concatenate([*chunks, session.flush()]))) == sorted(expected)
 
 
 @pytest.mark.parametrize("factor", [2, (3, 2)])

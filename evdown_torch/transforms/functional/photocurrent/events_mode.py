@@ -13,19 +13,20 @@ stream goes in pieces (about 16 events per pixel, at most :data:`CHUNK_EVENTS`).
 one sort groups the events by region (time order inside); each region's photocurrent after
 each of its events comes from exact int64 fixed-point running sums anchored at its brightest
 pixel (:mod:`~evdown_torch.transforms.functional.photocurrent.sums`), to a few ulps however
-many events the piece has. Where the sums cannot hold an event to ``1e-10 * theta`` (all of a
-region's pixels falling some 50 log units below its anchor), or a pixel rises more than
-:data:`~evdown_torch.transforms.functional.photocurrent.sums.MAX_EXPONENT` above it, that
-region's events from there on are held back, and decided after the others' on a piece that
-re-anchors that region where it was cut (regions are independent), or once few are left
-from a row of its region's levels after each event; a piece that would decide nothing
-decides its first event alone that way. The reference rule then runs on the events that can
-change a region's reference index.
+many events the piece has; a region whose pixels climb more than
+:data:`~evdown_torch.transforms.functional.photocurrent.sums.MAX_EXPONENT` above its anchor
+takes a new anchor each time they do (:func:`.sums.rising_anchors`). Where the sums cannot
+hold an event to ``1e-10 * theta`` (all of a region's pixels falling some 50 log units below
+its anchor), that region's events from there on are held back, and decided after the others'
+on a piece that re-anchors that region where it was cut (regions are independent), or once
+few are left from a row of its region's levels after each event; a piece that would decide
+nothing decides its first event alone that way. The reference rule then runs on the events
+that can change a region's reference index.
 
 A long piece is first tried with one int64 word per sum (:func:`.sums.one_word_sums`), which
 decides every event clear of the snap bounds by more than its error bound as the two words
-would; a piece with an event within it goes to them, and the regions that the two words would
-cut are held back first.
+would; a piece with an event within it goes to them. Regions that climb too far for one word
+are held back, and their events follow on the two-word sums.
 
 *Frames mode*: :mod:`~evdown_torch.transforms.functional.photocurrent.frames_mode`; what both
 modes share (pixel levels, region geometry, level snap) is in
@@ -86,8 +87,7 @@ ONE_WORD_MIN_EVENTS = 1 << 14
 
 #: Most level values (events x ``fx * fy``) of held-back events that :func:`_anchored_piece`
 #: decides in one dense round (a row of its region's levels per event, no anchor, nothing
-#: held back again) rather than in rounds re-anchored about ``MAX_EXPONENT`` higher each:
-#: 8 MB of int64 levels.
+#: held back again) rather than on the two-word sums: 8 MB of int64 levels.
 DENSE_VALUES = 1 << 18
 
 
@@ -309,11 +309,11 @@ def _anchored_piece(
     """:func:`_events_piece`, then again on the events it held back, until none are left.
 
     Regions are independent, so the held-back events of a region (a pixel rising too far
-    above its anchor) go on from that region's state at its cut while every other region's
-    events are decided in one go; the outputs are merged back in the order of the events
-    behind them. A round re-anchors the held-back regions where they were cut (about
-    ``MAX_EXPONENT`` log units higher, or at their fall); once few events are left
-    (:data:`DENSE_VALUES`) one dense round decides them all.
+    above its anchor for one word, or a fall too deep for the two words) go on from that
+    region's state at its cut while every other region's events are decided in one go; the
+    outputs are merged back in the order of the events behind them. A round takes the
+    two-word sums, whose anchors climb with the regions, re-anchored where each region was
+    cut; once few events are left (:data:`DENSE_VALUES`) one dense round decides them all.
     """
     result = _events_piece(events, sensor_size, factor, contrast, threshold, state, emitted,
                            level_bound)
@@ -326,7 +326,7 @@ def _anchored_piece(
         emitted += outputs[-1].num_events
         dense = rest.shape[0] * factor[0] * factor[1] <= DENSE_VALUES
         again = _events_piece(events.select(rest), sensor_size, factor, contrast, threshold,
-                              state, emitted, level_bound, dense)
+                              state, emitted, level_bound, dense, one_word=False)
         outputs.append(again.out)
         sources.append(take(rest, again.source))
         state = again.state
@@ -345,6 +345,7 @@ def _events_piece(
     emitted: int = 0,
     level_bound: int = 2**62,
     dense: bool = False,
+    one_word: bool = True,
 ) -> PieceResult:
     """Events mode on one time-sorted piece anchored at ``state``.
 
@@ -356,6 +357,8 @@ def _events_piece(
     events before; the caller re-anchors the held-back regions there. ``dense``: every
     event's sum from a row of its region's levels after it (:func:`.levels.region_levels_after`;
     ``fx * fy`` values an event, no anchor: nothing is held back), as a lone event's always.
+    ``one_word=False``: the two-word sums at once (held-back regions, which rose too far for
+    one word).
     """
     w = sensor_size[0]
     fx, fy = factor
@@ -400,7 +403,7 @@ def _events_piece(
     rest: Tensor | None = None  # positions of the events held back, in any order
     log_n = math.log(per_region) if sensor_size[0] % fx == 0 and sensor_size[1] % fy == 0 else (
         None)  # (log(n_r) as one float where every region is whole)
-    while not dense and key.shape[0] >= ONE_WORD_MIN_EVENTS:
+    while one_word and not dense and key.shape[0] >= ONE_WORD_MIN_EVENTS:
         tried = _one_word_moves(key, ids, inside, state.level, new_levels, firsts, first,
                                 log_pixels() if log_n is None else log_n, per_region,
                                 contrast, threshold)
@@ -435,9 +438,14 @@ def _events_piece(
             offset = m.to(torch.float64).mul_(contrast).sub_(take(log_pixels(), rank))
             u = offset.div_(threshold).add_(total.log_(), alpha=1 / threshold)
         else:
-            m, total, bad = running_sums(key, ids, inside, state.level, firsts, lasts, rank,
-                                         per_region, contrast, threshold)
+            def slot() -> Tensor:  # each event's column in ids, for regions that climb
+                return torch.remainder(take(events.y, order), fy).mul_(fx).add_(
+                    torch.remainder(take(events.x, order), fx))
+
+            sums = running_sums(key, ids, inside, state.level, firsts, lasts, rank, per_region,
+                                contrast, threshold, slot)
             del ids, inside, key
+            m, total, bad, anchor_of = sums.anchor, sums.total, sums.bad, sums.anchor_of
             if bad is not None:  # the running sums cannot hold an event: its region waits
                 # Each region keeps its events before the first that its sums cannot hold.
                 bad_at = where_true(bad)
@@ -452,12 +460,13 @@ def _events_piece(
                 rest = waiting if rest is None else torch.cat([rest, waiting])
                 kept = where_true(keep)
                 order, region, total = take(order, kept), take(region, kept), take(total, kept)
-                first, rank = take(first, kept), take(rank, kept)
+                first, anchor_of = take(first, kept), take(anchor_of, kept)
                 new_levels = state.level.clone()
                 new_levels.index_add_(0, take(events.y, order) * w + take(events.x, order),
                                       polarity_sign(take(events.p, order), torch.int64))
-            offset = m.to(torch.float64).mul_(contrast).sub_(log_pixels())
-            u = take(offset.div_(threshold), rank).add_(total.log_(), alpha=1 / threshold)
+            offset = m.to(torch.float64).mul_(contrast).sub_(
+                take(log_pixels(), sums.anchor_region))
+            u = take(offset.div_(threshold), anchor_of).add_(total.log_(), alpha=1 / threshold)
         floor_u, on_level = snap(u)
         del u, total
         # The reference rule on the moves that can change q only (a move that stays strictly

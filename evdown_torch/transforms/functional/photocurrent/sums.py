@@ -1,10 +1,11 @@
 """Running photocurrent sums of the photocurrent events mode (SEMANTICS.md method 7).
 
 Per piece of a stream: each event's pixel level before it, grouped by region with a one-byte
-sort (:func:`grouped_levels`); each touched region anchored at its brightest pixel, and every
-intensity ``exp(c * (L - m_r))`` in two-word int64 fixed point (:func:`fixed_point`), so that
-the region's sum after each event is an exact integer running sum in which a pixel's changes
-telescope to its current intensity (:func:`running_sums`, with the zero-sum segmented
+sort (:func:`grouped_levels`); each touched region anchored at its brightest pixel (and
+anchored again each time its pixels climb :data:`MAX_EXPONENT` higher, :func:`rising_anchors`),
+and every intensity ``exp(c * (L - m_r))`` in two-word int64 fixed point (:func:`fixed_point`),
+so that the region's sum after each event is an exact integer running sum in which a pixel's
+changes telescope to its current intensity (:func:`running_sums`, with the zero-sum segmented
 cumulative sum :func:`zero_sum_cumsum`). The error is a few ulps of each current sum plus
 half a fine unit per pixel, however many events the piece has.
 """
@@ -12,6 +13,7 @@ half a fine unit per pixel, however many events the piece has.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -23,14 +25,17 @@ from evdown_torch._tensors import (
     continued_cumsum,
     divide,
     last_of_runs,
+    run_index,
     stable_sort_small,
     take,
     where_true,
 )
 
-#: Largest exponent ``c * (L - m_r)`` a piece may reach before it is cut: the fixed point's
+#: Largest exponent ``c * (L - m_r)`` above its anchor a pixel may reach: the fixed point's
 #: scale is fitted to the brightest intensity of the piece, so a pixel rising far above its
 #: region's anchor would coarsen every region's fine unit (``2**-65`` of an anchor at 32).
+#: The two-word sums take a new anchor there (:func:`rising_anchors`); the one-word sums
+#: hand such regions over to them (:class:`TooBright`).
 MAX_EXPONENT = 32.0
 
 #: Unit roundoff of float64.
@@ -217,11 +222,36 @@ def two_word_scale(
     return scale, fine, per_region / (2 * fine * scale) / (tolerance - slack * EPS)
 
 
+class RunningSums(NamedTuple):
+    """What :func:`running_sums` gives for a piece.
+
+    Each region's events are summed against one anchor, or against several where its pixels
+    climb more than :data:`MAX_EXPONENT` during the piece (:func:`rising_anchors`).
+
+    Attributes:
+        anchor: ``(G,)`` int64 level of each anchor.
+        anchor_region: ``(G,)`` int64 rank of each anchor's region among the touched regions.
+        anchor_of: ``(N,)`` int64 anchor of each event.
+        total: ``(N,)`` float64 ``sum exp(c * (L_p - anchor))`` over the region after each
+            event.
+        bad: ``None``, or an ``(N,)`` bool mask of the events the sums cannot hold (a sum
+            below what the fixed point resolves to the tolerance); only the events of a region
+            before its first of those are valid.
+    """
+
+    anchor: Tensor
+    anchor_region: Tensor
+    anchor_of: Tensor
+    total: Tensor
+    bad: Tensor | None
+
+
 def running_sums(
     key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, firsts: Tensor,
     lasts: Tensor, rank: Tensor, per_region: int, contrast: float, threshold: float,
-) -> tuple[Tensor, Tensor, Tensor | None]:
-    """Each region's anchor and its sum after each of its events, for a piece of ``N > 1``.
+    slot: Callable[[], Tensor],
+) -> RunningSums:
+    """Each region's anchors and its sum after each of its events, for a piece of ``N > 1``.
 
     Args:
         key: ``(N,)`` int64 ``2 * L + on`` of each event (``L``: its pixel's level before it),
@@ -235,13 +265,13 @@ def running_sums(
         per_region: ``fx * fy``.
         contrast: ``c``.
         threshold: ``theta``.
+        slot: gives the ``(N,)`` int64 column of each event's pixel in ``ids``, called only
+            where a pixel climbs more than :data:`MAX_EXPONENT` above its region's anchor: the
+            region then takes a new anchor there (:func:`rising_anchors`).
 
     Returns:
-        ``(m, total, bad)``: ``(S,)`` int64 brightest level of each region before the piece,
-        ``(N,)`` float64 ``sum exp(c * (L_p - m))`` over the region after each event, and
-        ``None``, or an ``(N,)`` bool mask of the events the sums cannot hold (a pixel more
-        than :data:`MAX_EXPONENT` above its anchor, or a sum below what the fixed point
-        resolves to the tolerance); only the events before the first of those are valid.
+        The :class:`RunningSums`; each region's first anchor is its brightest level before
+        the piece.
     """
     # Anchor: each touched region's brightest pixel m before the piece, and every pixel's
     # level relative to it (j <= 0); the same j of each event's pixel before it, in
@@ -255,19 +285,28 @@ def running_sums(
     if inside is not None:
         pixel_j.masked_fill_(~inside, 0)
     key -= take((m * 2).to(key.dtype), rank)
+    brightest = brightest_level(contrast)
+    anchor_region = anchor_of = None
+    if int(key.max()) // 2 > brightest:  # climbing regions: new anchors
+        rising = rising_anchors(key, rank, firsts, pixel_j, slot(), brightest + 1)
+        anchor_of, anchor_region, firsts = rising.anchor_of, rising.region, rising.firsts
+        key -= take((2 * rising.level).to(key.dtype), anchor_of)
+        pixel_j = rising.pixel_level.sub_(rising.level[:, None])
+        if inside is not None:
+            inside = take(inside, anchor_region)
+            pixel_j.masked_fill_(~inside, 0)
+        m = take(m, anchor_region).add_(rising.level)
+        rank, lasts = anchor_of, last_of_runs(firsts, key.shape[0])
     lo, hi = (int(v) // 2 for v in torch.aminmax(key))
-    lo, hi = min(lo, int(pixel_j.min())), max(hi, 0)
+    # (Every anchor is a level some pixel of its region is at when the anchor is taken.)
+    lowest_j, highest_j = (int(v) for v in torch.aminmax(pixel_j))
+    lo, hi = min(lo, lowest_j), max(hi, highest_j)
     darkest = -math.ceil(800 / contrast)  # exp(c * j) is 0 for j <= darkest + 1
     if lo < darkest:
         key.clamp_(min=2 * darkest)
         pixel_j.clamp_(min=darkest)
         lo = darkest
-    brightest = brightest_level(contrast)
-    bad = None
-    if hi > brightest:  # a pixel too far above its anchor: cut before its event
-        bad = key > 2 * brightest + 1
-        key.clamp_(max=2 * brightest + 1)
-        hi = brightest
+    bad = None  # (hi <= brightest: the anchors climb with the pixels)
     scale, fine, lowest = two_word_scale(hi, per_region, contrast, threshold)
     sums = fixed_point(key, pixel_j, inside, lo, hi, contrast, scale, fine)
     del pixel_j
@@ -283,7 +322,88 @@ def running_sums(
         bad = weak if bad is None else bad | weak
     if bad is not None and not bool(bad.any()):
         bad = None
-    return m, total, bad
+    if anchor_of is None or anchor_region is None:
+        anchor_of, anchor_region = rank, torch.arange(m.shape[0], device=m.device)
+    return RunningSums(m, anchor_region, anchor_of, total, bad)
+
+
+class RisingAnchors(NamedTuple):
+    """Anchors of climbing regions (:func:`rising_anchors`), relative to the first anchors.
+
+    Attributes:
+        level: ``(G,)`` int64 level of each anchor, ``k * step``.
+        region: ``(G,)`` int64 region (rank) of each anchor.
+        firsts: ``(G,)`` int64 first event of each anchor's run.
+        anchor_of: ``(N,)`` int64 anchor of each event.
+        pixel_level: ``(G, n)`` int64 levels of the region's pixels just before each run.
+    """
+
+    level: Tensor
+    region: Tensor
+    firsts: Tensor
+    anchor_of: Tensor
+    pixel_level: Tensor
+
+
+def rising_anchors(
+    key: Tensor, rank: Tensor, firsts: Tensor, pixel_j: Tensor, slot: Tensor, step: int
+) -> RisingAnchors:
+    """Split each region's events into runs whose pixels stay below ``step`` above an anchor.
+
+    Levels are relative to each region's brightest before the piece (0). Before event ``e``,
+    no pixel of its region is above ``R(e)``: the highest level a pixel of the region has
+    had so far (0 before the piece, then the level after each earlier event, a running
+    maximum). The event's run is ``k = R(e) // step`` of its region, anchored at
+    ``k * step``: every level before an event of the run, and every pixel's level at the
+    run's start, is at most ``step - 1`` above it. Runs and anchors come from one cumulative
+    maximum, and the pixels' levels at each run's start from the changes of the runs before
+    it; no loop over regions or runs.
+
+    Args:
+        key: ``(N,)`` ``2 * j + on`` of each event (``j``: its pixel's level before it,
+            relative to its region's brightest before the piece), grouped by region.
+        rank: ``(N,)`` int64 region of each event, ascending.
+        firsts: ``(S,)`` int64 first event of each region.
+        pixel_j: ``(S, n)`` int64 levels of each region's pixels before the piece, relative
+            as ``key``.
+        slot: ``(N,)`` int64 column of each event's pixel in ``pixel_j``.
+        step: ``>= 1`` levels between anchors.
+
+    Example:
+        >>> key = torch.tensor([1, 3, 5, 7, 8])  # one pixel: 0 -> 1 -> 2 -> 3 -> 4 -> 3
+        >>> r = rising_anchors(key, torch.zeros(5, dtype=torch.int64), torch.tensor([0]),
+        ...                    torch.tensor([[0, -1]]), torch.zeros(5, dtype=torch.int64), 2)
+        >>> r.level.tolist(), r.anchor_of.tolist(), r.pixel_level.tolist()
+        ([0, 2, 4], [0, 0, 1, 1, 2], [[0, -1], [2, -1], [4, -1]])
+    """
+    key = key.long()
+    before = divide(key, 2)
+    change = (key - 2 * before).mul_(2).sub_(1)
+    after = before + change
+    # R(e): a running maximum of the levels after each event, kept inside each region by
+    # lifting every region's values above the previous region's.
+    low = int(after.min())
+    lift = rank * (int(after.max()) - low + 1)
+    climbed = torch.cummax(after.sub_(low).add_(lift), 0).values.sub_(lift).add_(low)
+    reach = torch.zeros_like(climbed)
+    reach[1:] = climbed[:-1]
+    reach.index_fill_(0, firsts, 0).clamp_(min=0)
+    k = divide(reach, step)
+    starts = changes(k).index_fill_(0, firsts, True)
+    run_firsts = where_true(starts)
+    anchor_of = run_index(starts)
+    region = take(rank, run_firsts)
+    runs, width = run_firsts.shape[0], pixel_j.shape[1]
+    # Each pixel's level at a run's start: its level before the piece plus the changes of
+    # its events in the region's runs before (an exclusive sum over runs, restarted per region).
+    moved = torch.zeros(runs * width, dtype=torch.int64, device=key.device)
+    moved.index_add_(0, anchor_of * width + slot, change)
+    moved = moved.view(runs, width)
+    done = moved.cumsum(0).sub_(moved)
+    done -= take(done, take(take(anchor_of, firsts), region))
+    pixel_level = take(pixel_j, region).add_(done)
+    return RisingAnchors(take(k, run_firsts).mul_(step), region, run_firsts, anchor_of,
+                         pixel_level)
 
 
 #: Largest error bound in ``u`` of :func:`one_word_sums` that its caller works with: events
