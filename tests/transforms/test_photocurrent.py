@@ -85,28 +85,9 @@ def test_hot_pixel_far_beyond_float_range(rng):
     assert sorted(rows(pool(arr))) == sorted(expected)
 
 
-@pytest.mark.parametrize("dense_values", [0, None])
-def test_a_hot_region_is_held_back_alone(dense_values, rng, monkeypatch):
-    # 600 ON at pixel (0, 0) (c = 0.25: 150 log units) among random events elsewhere: the
-    # first piece's one-word sums decide every other region and hold back only the hot
-    # region's events from its cut on. They follow in one round: on running sums whose anchor
-    # climbs every 32 log units (DENSE_VALUES = 0), or a dense round; either way the outputs
-    # come back in time order.
-    from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
-    from evdown_torch.transforms.functional.photocurrent import sums
-
-    monkeypatch.setattr(kernel, "ONE_WORD_MIN_EVENTS", 256)
-    if dense_values is not None:
-        monkeypatch.setattr(kernel, "DENSE_VALUES", dense_values)
-    anchors, rising = [], sums.rising_anchors
-
-    def count_anchors(*args):
-        out = rising(*args)
-        anchors.append(out.level.tolist())
-        return out
-
-    monkeypatch.setattr(sums, "rising_anchors", count_anchors)
-    arr = hot_pixel_stream(rng, 600, 600, dt=2, n_rest=1500)
+def _spy_pieces(kernel, monkeypatch) -> list:
+    """Per call of the events mode's ``_events_piece``: ``None`` when it held nothing back,
+    else whether each held-back event lies in region (0, 0) of a factor 2."""
     held, piece = [], kernel._events_piece
 
     def spy(events, *args, **kwargs):
@@ -116,14 +97,62 @@ def test_a_hot_region_is_held_back_alone(dense_values, rng, monkeypatch):
         return out
 
     monkeypatch.setattr(kernel, "_events_piece", spy)
-    pool = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)
-    out = pool(arr)
+    return held
+
+
+def test_a_climbing_region_is_decided_in_its_piece(rng, monkeypatch):
+    # 600 ON at pixel (0, 0) (c = 0.25: 150 log units) among random events elsewhere: the
+    # one-word sums decide every other region, and the two-word sums the hot one in the same
+    # piece, with anchors 32 / 0.25 = 128 levels apart.
+    from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
+    from evdown_torch.transforms.functional.photocurrent import sums
+
+    monkeypatch.setattr(kernel, "ONE_WORD_MIN_EVENTS", 256)
+    anchors, rising = [], sums.rising_anchors
+
+    def count_anchors(*args):
+        out = rising(*args)
+        anchors.append(out.level.tolist())
+        return out
+
+    monkeypatch.setattr(sums, "rising_anchors", count_anchors)
+    one_word, tried = [], kernel.one_word_sums
+
+    def spy_one_word(*args):
+        out = tried(*args)
+        one_word.append(type(out).__name__)
+        return out
+
+    monkeypatch.setattr(kernel, "one_word_sums", spy_one_word)
+    held = _spy_pieces(kernel, monkeypatch)
+    arr = hot_pixel_stream(rng, 600, 600, dt=2, n_rest=1500)
+    out = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)(arr)
+    assert held == [None] and one_word == ["TooBright", "OneWordSums"]
+    assert len(anchors) == 1 and anchors[0][:2] == [0, 128]
+    assert np.all(np.diff(out["t"].astype(np.int64)) >= 0)
+    expected = photocurrent_events_reference(arr, (4, 4, 2), 2, 0.25, 0.4)
+    assert sorted(rows(out)) == sorted(expected)
+
+
+@pytest.mark.parametrize("dense_values", [0, None])
+def test_a_falling_region_is_held_back_alone(dense_values, rng, monkeypatch):
+    # 600 ON then 600 OFF at pixel (0, 0) (c = 0.25): after the climb, the region falls 150
+    # log units below its anchor, where the two-word sums cannot hold it. Only that region
+    # waits; its events follow in rounds re-anchored where it was cut (DENSE_VALUES = 0), or
+    # in one dense round; either way the outputs come back in time order.
+    from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
+
+    monkeypatch.setattr(kernel, "ONE_WORD_MIN_EVENTS", 256)
+    if dense_values is not None:
+        monkeypatch.setattr(kernel, "DENSE_VALUES", dense_values)
+    held = _spy_pieces(kernel, monkeypatch)
+    arr = hot_pixel_stream(rng, 1200, 600, dt=2, n_rest=1500)
+    out = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)(arr)
     assert held[0] is not None and bool(held[0].all())  # only region (0, 0) waits
-    assert len(held) == 2 and held[1] is None
-    if dense_values == 0:  # 150 log units: anchors 32 / 0.25 = 128 levels apart
-        assert anchors and anchors[-1][:2] == [0, 128] and len(anchors[-1]) >= 2
+    if dense_values == 0:
+        assert len(held) > 2 and held[-1] is None
     else:
-        assert anchors == []
+        assert len(held) == 2 and held[1] is None
     assert np.all(np.diff(out["t"].astype(np.int64)) >= 0)
     expected = photocurrent_events_reference(arr, (4, 4, 2), 2, 0.25, 0.4)
     assert sorted(rows(out)) == sorted(expected)

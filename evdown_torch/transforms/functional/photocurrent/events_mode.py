@@ -198,6 +198,57 @@ def _one_word_moves(
     return kept, floor_u, on_level
 
 
+class _Regions(NamedTuple):
+    """The events of some whole regions of a piece, grouped by region (time order inside)."""
+
+    order: Tensor  # (n,) int64 position of each event in the piece
+    region: Tensor  # (n,) region id of each event
+    first: Tensor  # (n,) bool, the region's first event
+    key: Tensor  # (n,) 2 * L + on (L: its pixel's level before it)
+    touched: Tensor  # (S,) their region ids, ascending
+    ids: Tensor  # (S, fx * fy) int64 their pixel ids (region_pixel_ids)
+    inside: Tensor | None  # (S, fx * fy) bool, the pixel is on the sensor (None: all are)
+
+
+def _two_word_u(
+    events: Events, part: _Regions, levels: Tensor, sensor_size: tuple[int, int, int],
+    factor: tuple[int, int], contrast: float, threshold: float,
+) -> tuple[Tensor, Tensor | None]:
+    """``u = log(I_r) / theta`` after each event of ``part`` from the two-word running sums.
+
+    Returns ``(u, bad)``: ``bad`` as :attr:`.sums.RunningSums.bad` (``part.key`` is
+    overwritten).
+    """
+    fx, fy = factor
+    first = part.first
+    firsts = where_true(first)
+    rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
+
+    def slot() -> Tensor:  # each event's column in ids, for regions that climb
+        return torch.remainder(take(events.y, part.order), fy).mul_(fx).add_(
+            torch.remainder(take(events.x, part.order), fx))
+
+    sums = running_sums(part.key, part.ids, part.inside, levels, firsts,
+                        last_of_runs(firsts, first.shape[0]), rank, fx * fy, contrast,
+                        threshold, slot)
+    log_pixels = region_pixel_count(take(part.touched, sums.anchor_region).long(), sensor_size,
+                                    factor).to(torch.float64).log_()
+    offset = sums.anchor.to(torch.float64).mul_(contrast).sub_(log_pixels).div_(threshold)
+    return take(offset, sums.anchor_of).add_(sums.total.log_(), alpha=1 / threshold), sums.bad
+
+
+def _two_word_moves(
+    events: Events, part: _Regions, levels: Tensor, sensor_size: tuple[int, int, int],
+    factor: tuple[int, int], contrast: float, threshold: float,
+) -> tuple[Tensor, Tensor, Tensor] | None:
+    """:func:`_moves_to_solve` of ``part`` from the two-word sums; ``None`` where they cut."""
+    u, bad = _two_word_u(events, part, levels, sensor_size, factor, contrast, threshold)
+    if bad is not None:
+        return None
+    floor_u, on_level = snap(u)
+    return _moves_to_solve(floor_u, on_level, part.first)
+
+
 # --------------------------------------------------------------------------------------------
 # Events mode
 
@@ -403,6 +454,7 @@ def _events_piece(
     rest: Tensor | None = None  # positions of the events held back, in any order
     log_n = math.log(per_region) if sensor_size[0] % fx == 0 and sensor_size[1] % fy == 0 else (
         None)  # (log(n_r) as one float where every region is whole)
+    climbing: list[_Regions] = []  # regions that rose too far for one word
     while one_word and not dense and key.shape[0] >= ONE_WORD_MIN_EVENTS:
         tried = _one_word_moves(key, ids, inside, state.level, new_levels, firsts, first,
                                 log_pixels() if log_n is None else log_n, per_region,
@@ -414,18 +466,32 @@ def _events_piece(
         held = take(hot, torch.cumsum(first, 0, dtype=torch.int64).sub_(1))
         if key.shape[0] - int(held.sum()) < ONE_WORD_MIN_EVENTS:
             break  # the two-word sums decide (and cut) them all
-        # Try again without those regions, whose events wait for a piece re-anchored after
-        # them (_anchored_piece): each region is independent of the others.
-        waiting = take(order, where_true(held))
-        rest = waiting if rest is None else torch.cat([rest, waiting])
+        # Try again without those regions, which the two-word sums decide after the others:
+        # each region is independent of the others.
+        at = where_true(held)
+        climbing.append(_Regions(take(order, at), take(region, at), take(first, at),
+                                 take(key, at), touched[hot], ids[hot],
+                                 None if inside is None else inside[hot]))
         kept = where_true(~held)
         order, region, first, key = (take(v, kept) for v in (order, region, first, key))
-        hot_ids = ids[hot] if inside is None else ids[hot][inside[hot]]
-        new_levels.index_copy_(0, hot_ids.view(-1), take(state.level, hot_ids.view(-1)))
         touched, ids = touched[~hot], ids[~hot]
         inside = None if inside is None else inside[~hot]
         firsts = where_true(first)
         lasts = last_of_runs(firsts, kept.shape[0])
+    for part in climbing:
+        decided = None if moves is None else _two_word_moves(
+            events, part, state.level, sensor_size, factor, contrast, threshold)
+        if moves is None or decided is None:
+            # They wait for a piece re-anchored after them (_anchored_piece).
+            rest = part.order if rest is None else torch.cat([rest, part.order])
+            hot_ids = part.ids.view(-1) if part.inside is None else part.ids[part.inside]
+            new_levels.index_copy_(0, hot_ids, take(state.level, hot_ids))
+            continue
+        # Decided here: their moves follow the others' (each region's stay together).
+        moves = (torch.cat([moves[0], decided[0].add_(order.shape[0])]),
+                 torch.cat([moves[1], decided[1]]), torch.cat([moves[2], decided[2]]))
+        order, region, first = (torch.cat([order, part.order]), torch.cat([region, part.region]),
+                                torch.cat([first, part.first]))
     if moves is None:
         rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
         # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
@@ -438,14 +504,10 @@ def _events_piece(
             offset = m.to(torch.float64).mul_(contrast).sub_(take(log_pixels(), rank))
             u = offset.div_(threshold).add_(total.log_(), alpha=1 / threshold)
         else:
-            def slot() -> Tensor:  # each event's column in ids, for regions that climb
-                return torch.remainder(take(events.y, order), fy).mul_(fx).add_(
-                    torch.remainder(take(events.x, order), fx))
-
-            sums = running_sums(key, ids, inside, state.level, firsts, lasts, rank, per_region,
-                                contrast, threshold, slot)
+            u, bad = _two_word_u(events, _Regions(order, region, first, key, touched, ids,
+                                                  inside), state.level, sensor_size, factor,
+                                 contrast, threshold)
             del ids, inside, key
-            m, total, bad, anchor_of = sums.anchor, sums.total, sums.bad, sums.anchor_of
             if bad is not None:  # the running sums cannot hold an event: its region waits
                 # Each region keeps its events before the first that its sums cannot hold.
                 bad_at = where_true(bad)
@@ -459,16 +521,12 @@ def _events_piece(
                 waiting = take(order, where_true(~keep))
                 rest = waiting if rest is None else torch.cat([rest, waiting])
                 kept = where_true(keep)
-                order, region, total = take(order, kept), take(region, kept), take(total, kept)
-                first, anchor_of = take(first, kept), take(anchor_of, kept)
+                order, region, first, u = (take(v, kept) for v in (order, region, first, u))
                 new_levels = state.level.clone()
                 new_levels.index_add_(0, take(events.y, order) * w + take(events.x, order),
                                       polarity_sign(take(events.p, order), torch.int64))
-            offset = m.to(torch.float64).mul_(contrast).sub_(
-                take(log_pixels(), sums.anchor_region))
-            u = take(offset.div_(threshold), anchor_of).add_(total.log_(), alpha=1 / threshold)
         floor_u, on_level = snap(u)
-        del u, total
+        del u
         # The reference rule on the moves that can change q only (a move that stays strictly
         # inside the cell its predecessor ended in keeps q and crosses nothing): a tenth or
         # less of the events when a level takes several events to cross.
