@@ -105,6 +105,7 @@ def test_a_climbing_region_is_decided_in_its_piece(rng, monkeypatch):
     # one-word sums decide every other region, and the two-word sums the hot one in the same
     # piece, with anchors 32 / 0.25 = 128 levels apart.
     from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
+    from evdown_torch.transforms.functional.photocurrent import one_word as one_word_module
     from evdown_torch.transforms.functional.photocurrent import sums
 
     monkeypatch.setattr(kernel, "ONE_WORD_MIN_EVENTS", 256)
@@ -116,14 +117,14 @@ def test_a_climbing_region_is_decided_in_its_piece(rng, monkeypatch):
         return out
 
     monkeypatch.setattr(sums, "rising_anchors", count_anchors)
-    one_word, tried = [], kernel.one_word_sums
+    one_word, tried = [], one_word_module.one_word_sums
 
     def spy_one_word(*args):
         out = tried(*args)
         one_word.append(type(out).__name__)
         return out
 
-    monkeypatch.setattr(kernel, "one_word_sums", spy_one_word)
+    monkeypatch.setattr(one_word_module, "one_word_sums", spy_one_word)
     held = _spy_pieces(kernel, monkeypatch)
     arr = hot_pixel_stream(rng, 600, 600, dt=2, n_rest=1500)
     out = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)(arr)
@@ -544,12 +545,12 @@ def test_fixed_point_intensities_are_within_a_few_ulps(contrast):
     # |c * j| / 2 ulps): against exact decimal arithmetic.
     from decimal import Decimal, localcontext
 
-    from evdown_torch.transforms.functional.photocurrent.sums import _split
+    from evdown_torch.transforms.functional.photocurrent.sums import intensity_words
 
     scale, fine = 2.0**10, 2.0**40
     js = sorted(j for j in {0, 1, -1, 7, -7, 150, -3000, -int(700 / contrast),
                             int(30 / contrast)} if -700 <= contrast * j <= 30)
-    high, low = _split(torch.tensor(js), contrast, scale, fine)
+    high, low = intensity_words(torch.tensor(js), contrast, scale, fine)
     with localcontext() as context:
         context.prec = 60
         for j, h, lo in zip(js, high.tolist(), low.tolist(), strict=True):

@@ -1,6 +1,6 @@
 """PhotocurrentPooling's events mode: the one-word running sums against the two-word ones.
 
-The one-word path (:func:`~evdown_torch.transforms.functional.photocurrent.sums.one_word_sums`)
+The one-word path (:func:`~evdown_torch.transforms.functional.photocurrent.one_word.one_word_sums`)
 must decide every event exactly as the two-word path (``running_sums``) does, bit for bit, and
 hand a piece over to it wherever it cannot be sure.
 """
@@ -16,7 +16,7 @@ import torch
 from evdown_torch import PhotocurrentPooling
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
-from evdown_torch.transforms.functional.photocurrent import sums
+from evdown_torch.transforms.functional.photocurrent import one_word, sums
 from tests.helpers import DVS_DTYPE, photocurrent_events_reference, random_stream, rows
 
 
@@ -28,19 +28,19 @@ def one_word_for_every_piece(monkeypatch):
 
 def _one_word_calls(monkeypatch) -> list[bool]:
     """Spy on the one-word sums: a list that gets, per call, whether they could be used."""
-    calls, one_word = [], kernel.one_word_sums
+    calls, tried = [], one_word.one_word_sums
 
     def spy(*args, **kwargs):
-        out = one_word(*args, **kwargs)
-        calls.append(isinstance(out, sums.OneWordSums))
+        out = tried(*args, **kwargs)
+        calls.append(isinstance(out, one_word.OneWordSums))
         return out
 
-    monkeypatch.setattr(kernel, "one_word_sums", spy)
+    monkeypatch.setattr(one_word, "one_word_sums", spy)
     return calls
 
 
 def _two_word_only(monkeypatch) -> None:
-    monkeypatch.setattr(kernel, "one_word_sums", lambda *args, **kwargs: None)
+    monkeypatch.setattr(one_word, "one_word_sums", lambda *args, **kwargs: None)
 
 
 CASES = [
@@ -125,15 +125,15 @@ def test_near_a_snap_bound_the_two_word_sums_decide(rng, monkeypatch):
     pool = PhotocurrentPooling(sensor, factor=2, contrast=math.log(2))
     expected = rows(pool(arr))
     declined = []
-    one_word_moves = kernel._one_word_moves
+    one_word_moves = kernel.one_word_moves
 
     def spy(*args, **kwargs):
         out = one_word_moves(*args, **kwargs)
         declined.append(out is None)
         return out
 
-    monkeypatch.setattr(kernel, "EPS", 2.0**-30)
-    monkeypatch.setattr(kernel, "_one_word_moves", spy)
+    monkeypatch.setattr(one_word, "EPS", 2.0**-30)
+    monkeypatch.setattr(kernel, "one_word_moves", spy)
     assert rows(pool(arr)) == expected
     assert any(declined)
 
@@ -160,7 +160,7 @@ def test_one_word_totals_are_the_exact_integer_sums(rng):
     touched, counts = torch.unique_consecutive(region, return_counts=True)
     firsts = torch.cumsum(counts, 0) - counts
     ids, inside = kernel.region_pixel_ids(touched, sensor, factor)
-    got = sums.one_word_sums(key, ids, inside, levels, current, firsts, counts, per_region,
+    got = one_word.one_word_sums(key, ids, inside, levels, current, firsts, counts, per_region,
                              contrast, contrast)
     assert got is not None
     scale = math.ldexp(1.0, got.bits)
@@ -171,31 +171,42 @@ def test_one_word_totals_are_the_exact_integer_sums(rng):
         j = current[ids[segment]] - got.top[segment]
         if inside is not None:
             j = j[inside[segment]]
-        intensities = sums._split(j, contrast, scale, 1.0)[0]
+        intensities = sums.intensity_words(j, contrast, scale, 1.0)[0]
         assert int(got.total[i]) == int(intensities.sum())
         assert int(got.top[segment]) >= int(current[ids[segment]].max())
 
 
-def test_a_fresh_rise_past_the_exponent_cap_still_cuts(monkeypatch):
+def test_a_fresh_rise_past_the_exponent_cap_takes_a_new_anchor(monkeypatch):
     # One pixel rising 200 levels (c = 0.2: 40 log units, above MAX_EXPONENT) in one piece:
-    # the one-word sums decline and the two-word ones cut the piece.
+    # the one-word sums decline and the two-word ones anchor the region again as it climbs.
     n = 200
     arr = np.zeros(n, dtype=DVS_DTYPE)
     arr["t"] = np.arange(n)
     arr["p"] = True
     pool = PhotocurrentPooling((2, 2, 2), factor=2, contrast=0.2)
     calls = _one_word_calls(monkeypatch)
+    anchors, rising = [], sums.rising_anchors
+
+    def spy(*args):
+        out = rising(*args)
+        anchors.append(out.level.tolist())
+        return out
+
+    monkeypatch.setattr(sums, "rising_anchors", spy)
     out = rows(pool(arr))
     assert calls[0] is False
+    assert anchors == [[0, 160]]  # an anchor every 32 / 0.2 = 160 levels
     _two_word_only(monkeypatch)
     assert out == rows(pool(arr))
+    assert sorted(out) == sorted(photocurrent_events_reference(arr, (2, 2, 2), 2, 0.2, 0.2))
     assert len(out) > 150
 
 
-def test_regions_rising_too_far_wait_while_the_others_take_one_word(rng, monkeypatch):
+def test_regions_rising_too_far_take_two_words_while_the_others_take_one(rng, monkeypatch):
     # One region's pixel rises 200 levels (c = 0.2: past MAX_EXPONENT) among random events:
-    # the one-word sums name that region (TooBright), decide the others, and the held-back
-    # region goes to the two-word sums; the result is the two-word path's, bit for bit.
+    # the one-word sums name that region (TooBright) and decide the others, and that region
+    # goes to the two-word sums in the same piece; the result is the two-word path's, bit
+    # for bit.
     hot = np.zeros(200, dtype=DVS_DTYPE)
     hot["t"] = np.arange(200) * 5
     hot["p"] = True
@@ -203,14 +214,14 @@ def test_regions_rising_too_far_wait_while_the_others_take_one_word(rng, monkeyp
     rest = rest[(rest["x"] >= 2) | (rest["y"] >= 2)]
     arr = np.sort(np.concatenate([hot, rest]), order="t", kind="stable")
     pool = PhotocurrentPooling((8, 8, 2), factor=2, contrast=0.2)
-    answers, one_word = [], kernel.one_word_sums
+    answers, tried = [], one_word.one_word_sums
 
     def spy(*args, **kwargs):
-        out = one_word(*args, **kwargs)
+        out = tried(*args, **kwargs)
         answers.append(type(out).__name__)
         return out
 
-    monkeypatch.setattr(kernel, "one_word_sums", spy)
+    monkeypatch.setattr(one_word, "one_word_sums", spy)
     out = rows(pool(arr))
     assert answers[:2] == ["TooBright", "OneWordSums"]
     _two_word_only(monkeypatch)

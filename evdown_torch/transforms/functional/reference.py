@@ -45,10 +45,11 @@ __all__ = [
     "group_by_region",
     "level_index",
     "level_value",
+    "move_crossings",
+    "moves_to_solve",
     "reference_index",
     "region_dtype",
     "region_runs",
-    "move_crossings",
     "threshold_fraction",
 ]
 
@@ -221,6 +222,31 @@ class Crossings(NamedTuple):
     move: Tensor
     level: Tensor
     on: Tensor
+
+
+def moves_to_solve(
+    floor_u: Tensor, on_level: Tensor, first: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The moves that can change ``q``, with their ``floor(u)`` and on-level flags.
+
+    A move that stays strictly inside the cell its predecessor ended in keeps ``q`` and
+    crosses nothing (a tenth or less of the events when a level takes several events to
+    cross): ``(kept positions, floor(u), on level)`` of the others, for moves grouped by
+    region (``first``: a region's first move) as :func:`reference_index` takes them.
+
+    Example:
+        >>> floor_u = torch.tensor([0, 0, 0, 1, 1, 1])
+        >>> on_level = torch.tensor([False, False, False, True, False, False])
+        >>> first = torch.tensor([True, False, False, False, False, True])
+        >>> [v.tolist() for v in moves_to_solve(floor_u, on_level, first)]
+        [[0, 3, 4, 5], [0, 1, 1, 1], [False, True, False, False]]
+    """
+    moved = changes(floor_u)
+    moved |= first
+    moved |= on_level
+    moved[1:] |= on_level[:-1]
+    kept = where_true(moved)
+    return kept, take(floor_u, kept), take(on_level, kept)
 
 
 def crossings(q_before: Tensor, q_after: Tensor, *, emitted: int = 0) -> Crossings:

@@ -23,7 +23,7 @@ few are left from a row of its region's levels after each event; a piece that wo
 nothing decides its first event alone that way. The reference rule then runs on the events
 that can change a region's reference index.
 
-A long piece is first tried with one int64 word per sum (:func:`.sums.one_word_sums`), which
+A long piece is first tried with one int64 word per sum (:func:`.one_word.one_word_sums`), which
 decides every event clear of the snap bounds by more than its error bound as the two words
 would; a piece with an event within it goes to them. Regions that climb too far for one word
 are held back, and their events follow on the two-word sums.
@@ -43,7 +43,6 @@ from torch import Tensor
 
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
-    changes,
     divide,
     ends,
     last_of_runs,
@@ -64,23 +63,17 @@ from evdown_torch.transforms.functional.photocurrent.levels import (
     region_pixel_ids,
     snap,
 )
-from evdown_torch.transforms.functional.photocurrent.sums import (
-    EPS,
-    NEAR_CAP,
-    TooBright,
-    grouped_levels,
-    one_word_sums,
-    running_sums,
-)
+from evdown_torch.transforms.functional.photocurrent.one_word import TooBright, one_word_moves
+from evdown_torch.transforms.functional.photocurrent.sums import grouped_levels, running_sums
 from evdown_torch.transforms.functional.reference import (
-    SNAP,
     crossings,
+    moves_to_solve,
     reference_index,
     region_dtype,
     region_runs,
 )
 
-#: Fewest events of a piece that the one-word sums (:func:`_one_word_moves`) decide: below,
+#: Fewest events of a piece that the one-word sums (:func:`.one_word.one_word_moves`) decide: below,
 #: their few fixed costs (a table of every level that counts, and their checks) outweigh
 #: their lower cost per event, and the two-word sums decide.
 ONE_WORD_MIN_EVENTS = 1 << 14
@@ -125,77 +118,6 @@ def initial_state(
         torch.zeros(out_w * out_h * recordings, dtype=torch.int64, device=device),
         None,
     )
-
-
-def _moves_to_solve(
-    floor_u: Tensor, on_level: Tensor, first: Tensor
-) -> tuple[Tensor, Tensor, Tensor]:
-    """The moves that can change ``q``, with their ``floor(u)`` and on-level flags.
-
-    A move that stays strictly inside the cell its predecessor ended in keeps ``q`` and
-    crosses nothing (a tenth or less of the events when a level takes several events to
-    cross): ``(kept positions, floor(u), on level)`` of the others.
-    """
-    moved = changes(floor_u)
-    moved |= first
-    moved |= on_level
-    moved[1:] |= on_level[:-1]
-    kept = where_true(moved)
-    return kept, take(floor_u, kept), take(on_level, kept)
-
-
-def _one_word_moves(
-    key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, new_levels: Tensor,
-    firsts: Tensor, first: Tensor, log_pixels: Tensor | float, per_region: int,
-    contrast: float, threshold: float,
-) -> tuple[Tensor, Tensor, Tensor] | TooBright | None:
-    """:func:`_moves_to_solve` of a piece from its one-word sums (:func:`.sums.one_word_sums`).
-
-    Every event whose ``u`` lies farther than the one-word sums' error bound from both snap
-    bounds of its level (``k - SNAP`` and ``k + SNAP``) gets the ``floor(u)`` and on-level
-    flag that the two-word sums (:func:`.sums.running_sums`) give; ``None`` where an event
-    lies within it (or the one-word sums cannot be used): the caller then takes the two-word
-    sums; :class:`~.sums.TooBright` where some regions rise too far for either. The bound is
-    about ``1e-15`` in ``u`` where a region's sum is near its brightest intensity of the
-    piece, so on ordinary streams that never happens.
-    """
-    n = key.shape[0]
-    counts = torch.diff(firsts, append=firsts.new_tensor([n]))
-    sums = one_word_sums(key, ids, inside, levels, new_levels, firsts, counts, per_region,
-                         contrast, threshold)
-    if sums is None or isinstance(sums, TooBright):
-        return sums
-    # u = (c * m - log(n_r) + log(sum)) / theta with sum = total * exp(c * (top - m)) / 2**bits,
-    # within `margin` of the two-word path's u: twice the bound of the sums' relative error
-    # over theta and of a few ulps of every term.
-    offset = sums.top.to(torch.float64).mul_(contrast).sub_(log_pixels)
-    offset.sub_(sums.bits * math.log(2)).div_(threshold)
-    largest = float(offset.abs().max()) + (64 * math.log(2) + 1) / threshold
-
-    def margin(smallest: Tensor | float) -> Tensor | float:
-        relative = per_region / smallest + sums.two_word_error + 16 * EPS
-        return 2 * (1.01 * relative / threshold + 8 * EPS * largest)
-
-    widest = float(margin(float(sums.smallest)))
-    if widest > NEAR_CAP:
-        return None
-    # w = u + SNAP + widest: a w less than 2 * (SNAP + widest) above its floor is near a
-    # level; any other has floor(w) = floor(u) and is off every level, certainly.
-    shift = SNAP + widest
-    log_total = sums.total.to(torch.float64).log_()
-    w = take(offset.add_(shift), sums.region).add_(log_total, alpha=1 / threshold)
-    floor_w = torch.floor(w, out=log_total)
-    frac = w.sub_(floor_w)
-    near = frac <= 2 * shift
-    kept, floor_w, near = _moves_to_solve(floor_w, near, first)
-    u = floor_w.add_(take(frac, kept)).sub_(shift)
-    distance = torch.round(u).sub_(u).abs_().sub_(SNAP).abs_()
-    doubt = where_true(distance <= widest)  # (each event's own bound is at most widest)
-    if doubt.shape[0] and bool((take(distance, doubt) <= margin(
-            take(take(sums.total, kept), doubt).to(torch.float64))).any()):
-        return None  # an event within the error bound of a snap bound
-    floor_u, on_level = snap(u)
-    return kept, floor_u, on_level
 
 
 class _Regions(NamedTuple):
@@ -246,7 +168,7 @@ def _two_word_moves(
     if bad is not None:
         return None
     floor_u, on_level = snap(u)
-    return _moves_to_solve(floor_u, on_level, part.first)
+    return moves_to_solve(floor_u, on_level, part.first)
 
 
 # --------------------------------------------------------------------------------------------
@@ -456,7 +378,7 @@ def _events_piece(
         None)  # (log(n_r) as one float where every region is whole)
     climbing: list[_Regions] = []  # regions that rose too far for one word
     while one_word and not dense and key.shape[0] >= ONE_WORD_MIN_EVENTS:
-        tried = _one_word_moves(key, ids, inside, state.level, new_levels, firsts, first,
+        tried = one_word_moves(key, ids, inside, state.level, new_levels, firsts, first,
                                 log_pixels() if log_n is None else log_n, per_region,
                                 contrast, threshold)
         if not isinstance(tried, TooBright):
@@ -530,7 +452,7 @@ def _events_piece(
         # The reference rule on the moves that can change q only (a move that stays strictly
         # inside the cell its predecessor ended in keeps q and crosses nothing): a tenth or
         # less of the events when a level takes several events to cross.
-        moves = _moves_to_solve(floor_u, on_level, first)
+        moves = moves_to_solve(floor_u, on_level, first)
     kept, floor_u, on_level = moves
     del moves
     region, first = take(region, kept), take(first, kept)

@@ -7,7 +7,8 @@ and every intensity ``exp(c * (L - m_r))`` in two-word int64 fixed point (:func:
 so that the region's sum after each event is an exact integer running sum in which a pixel's
 changes telescope to its current intensity (:func:`running_sums`, with the zero-sum segmented
 cumulative sum :func:`zero_sum_cumsum`). The error is a few ulps of each current sum plus
-half a fine unit per pixel, however many events the piece has.
+half a fine unit per pixel, however many events the piece has. The one-word sums a long
+piece tries first are in :mod:`.one_word`.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from evdown_torch._tensors import (
 #: scale is fitted to the brightest intensity of the piece, so a pixel rising far above its
 #: region's anchor would coarsen every region's fine unit (``2**-65`` of an anchor at 32).
 #: The two-word sums take a new anchor there (:func:`rising_anchors`); the one-word sums
-#: hand such regions over to them (:class:`TooBright`).
+#: hand such regions over to them (:class:`.one_word.TooBright`).
 MAX_EXPONENT = 32.0
 
 #: Unit roundoff of float64.
@@ -121,7 +122,9 @@ def zero_sum_cumsum(
     return values.cumsum_(0).index_copy_(0, lasts, total)
 
 
-def _split(j: Tensor, contrast: float, scale: float, fine: float) -> tuple[Tensor, Tensor]:
+def intensity_words(
+    j: Tensor, contrast: float, scale: float, fine: float
+) -> tuple[Tensor, Tensor]:
     """``exp(c * j) * scale`` of int64 ``j`` in two int64 words: ``high + low / fine``.
 
     ``c * j`` is rarely a float; ``exp(c * j)`` is taken as ``exp(c_hi * j) * exp(c_lo * j)``
@@ -173,7 +176,8 @@ def fixed_point(
         return (values if inside is None else values.masked_fill_(~inside, 0)).sum(1)
 
     if hi - lo + 3 <= TABLE_SIZE:  # a table of intensities, then look-ups
-        words = _split(torch.arange(lo - 1, hi + 2, device=key.device), contrast, scale, fine)
+        words = intensity_words(torch.arange(lo - 1, hi + 2, device=key.device), contrast, scale,
+                                fine)
         index = pixel_j.sub_(lo - 1).view(-1)
         anchor_high, anchor_low = (region_sums(take(word, index).view_as(pixel_j))
                                    for word in words)
@@ -185,12 +189,13 @@ def fixed_point(
             for word in words)
         return FixedPoint((anchor_high, anchor_low), (change_high, change_low))
     anchor_high, anchor_low = (region_sums(word)
-                               for word in _split(pixel_j, contrast, scale, fine))
+                               for word in intensity_words(pixel_j, contrast, scale, fine))
     before = divide(key, 2)
     after = torch.where(key - 2 * before == 1, before + 1, before - 1)
-    change_high, change_low = (a.sub_(b) for a, b in zip(_split(after, contrast, scale, fine),
-                                                          _split(before, contrast, scale, fine),
-                                                          strict=True))
+    change_high, change_low = (
+        a.sub_(b) for a, b in zip(intensity_words(after, contrast, scale, fine),
+                                  intensity_words(before, contrast, scale, fine),
+                                  strict=True))
     return FixedPoint((anchor_high, anchor_low), (change_high, change_low))
 
 
@@ -210,8 +215,8 @@ def two_word_scale(
 
     ``scale`` and ``fine`` keep a region's sum of either word below ``2**61``; ``lowest`` is
     the smallest sum the two words hold to ``1e-10 * threshold`` (error bound of each sum: a
-    few ulps of every intensity, see :func:`_split`, and of the conversions, and half a fine unit
-    of the fine word per pixel).
+    few ulps of every intensity, see :func:`intensity_words`, and of the conversions, and half
+    a fine unit of the fine word per pixel).
     """
     top = max(math.exp(contrast * (hi + 1)), 1.0)
     bits = 61 - (2 * per_region).bit_length()
@@ -404,137 +409,3 @@ def rising_anchors(
     pixel_level = take(pixel_j, region).add_(done)
     return RisingAnchors(take(k, run_firsts).mul_(step), region, run_firsts, anchor_of,
                          pixel_level)
-
-
-#: Largest error bound in ``u`` of :func:`one_word_sums` that its caller works with: events
-#: this close to a level are solved on the few it keeps.
-NEAR_CAP = 1e-2
-
-#: Bits of :func:`one_word_sums`' fixed point: a region's intensities sum to an integer
-#: below ``2**62``.
-WORD_BITS = 62
-
-
-class OneWordSums(NamedTuple):
-    """Running photocurrent sums of a piece in one int64 word (:func:`one_word_sums`).
-
-    ``total * exp(c * (top - m)) / 2**bits`` (``m``: the region's anchor, as in
-    :func:`running_sums`) is within ``per_region / total + two_word_error + 16 * EPS`` of the
-    sum :func:`running_sums` gives for the same event, relative to it.
-    """
-
-    region: Tensor  # (N,) int64 the segment (touched region) of each event
-    top: Tensor  # (S,) int64 each region's highest level before an event, plus 1 (>= any)
-    total: Tensor  # (N,) int64 sum of round(exp(c * (L_p - top)) * 2**bits) after each event
-    bits: int
-    smallest: int  # the smallest total
-    two_word_error: float  # bound of the two-word sums' fine units, relative to their sum
-
-
-class TooBright(NamedTuple):
-    """:func:`one_word_sums`' answer where some regions rise too far above their anchors.
-
-    Their pixels go more than :data:`MAX_EXPONENT` above the regions' brightest before the
-    piece (the two-word sums would cut them); the other regions can be decided without them.
-    """
-
-    regions: Tensor  # (S,) bool, the touched regions that rise too far
-
-
-def one_word_sums(
-    key: Tensor, ids: Tensor, inside: Tensor | None, levels: Tensor, new_levels: Tensor,
-    firsts: Tensor, counts: Tensor, per_region: int, contrast: float, threshold: float,
-) -> OneWordSums | TooBright | None:
-    """Each region's sum after each of its events in one word, or ``None`` where it cannot.
-
-    Each region's intensities are taken relative to its brightest level during the piece
-    (``top``): one int64 table of ``round(exp(c * j) * 2**bits)`` for ``j <= 0`` serves all
-    regions, each event's change is looked up in it, and one cumulative sum runs over the
-    grouped events, its first change of each region also moving it from the previous region's
-    last sum to this region's sum before the piece (a telescoping correction). Every partial
-    sum is a region's sum, an integer below ``2**62``: the result is exact and independent of
-    the order of the additions. Its error is half a unit per pixel plus a few ulps of each
-    intensity (about ``1e-17`` of the region's brightest intensity), so it decides every
-    event whose ``u`` does not lie within that error of a snap bound as :func:`running_sums`
-    does, with one word instead of two.
-
-    :class:`TooBright` where a pixel rises too far above its anchor (:func:`running_sums`
-    would cut its region there). ``None`` where a sum is too small for the two words, where a
-    region's sum before or after the piece lies so far below its brightest (a rise or fall of
-    some 200 levels at ``c = 0.2``) that the error bound exceeds :data:`NEAR_CAP`, or where
-    the levels that count span more than :data:`TABLE_SIZE`: the caller then takes
-    :func:`running_sums`.
-
-    Args:
-        key: ``(N,)`` int32 or int64 ``2 * L + on`` of each event (``L``: its pixel's level
-            before it), grouped by region (not modified).
-        ids: ``(S, n)`` int64 pixel ids of the touched regions (``region_pixel_ids``).
-        inside: their mask (``None``: all inside).
-        levels: ``(H * W,)`` int64 pixel levels before the piece.
-        new_levels: ``(H * W,)`` int64 pixel levels after it.
-        firsts: ``(S,)`` int64 first position of each region's events.
-        counts: ``(S,)`` int64 number of events of each region.
-        per_region: ``fx * fy``.
-        contrast: ``c``.
-        threshold: ``theta``.
-    """
-    n, segments = key.shape[0], firsts.shape[0]
-    region = torch.repeat_interleave(torch.arange(segments, device=key.device), counts,
-                                     output_size=n)
-    lowest_level = torch.iinfo(torch.int64).min
-    pixel = take(levels, ids.view(-1)).view_as(ids)
-    if inside is not None:
-        pixel.masked_fill_(~inside, lowest_level)
-    m = pixel.amax(1)
-    # The level after an ON at the highest level before an event, or the anchor's.
-    top = torch.full_like(m, lowest_level).scatter_reduce_(0, region, key.long(), "amax")
-    top = torch.maximum(divide(top, 2), m).add_(1)
-    rise = top - m
-    if int(rise.max()) - 1 > brightest_level(contrast):
-        return TooBright(rise > brightest_level(contrast) + 1)
-    bits = WORD_BITS - per_region.bit_length()
-    # exp(c * j) * 2**bits rounds to 0 at j <= darkest + 1: levels below count as darkest.
-    darkest = math.floor(-(bits + 2) * math.log(2) / contrast) - 1
-    relative = [take(values, ids.view(-1)).view_as(ids).sub_(top[:, None]).clamp_(min=darkest)
-                for values in (levels, new_levels)]
-    if inside is not None:  # (ids outside the sensor read pixel 0)
-        relative = [j.masked_fill_(~inside, 0) for j in relative]
-    key = key - take((2 * top).to(key.dtype), region)
-    lo = darkest
-    if 2 - darkest > TABLE_SIZE:  # (a contrast below 6e-4) the levels the piece reaches
-        lo = max(min(int(key.min()) // 2, min(int(j.min()) for j in relative)), darkest)
-        if 2 - lo > TABLE_SIZE:
-            return None
-    # table[i]: the intensity at j = lo - 1 + i, up to j = 0.
-    table = _split(torch.arange(lo - 1, 1, device=key.device), contrast,
-                   math.ldexp(1.0, bits), 1.0)[0]
-    anchor, final = ((v if inside is None else v.masked_fill_(~inside, 0)).sum(1)
-                     for v in (take(table, j.sub_(lo - 1).view(-1)).view_as(j)
-                               for j in relative))
-    # A region whose sum lies far below its brightest of the piece (it rose or fell by some
-    # 200 levels at c = 0.2) holds too few bits to decide levels there: the two-word sums
-    # take it (the caller's error bound would exceed NEAR_CAP anyway).
-    if int(torch.minimum(anchor, final).min()) * threshold * NEAR_CAP < 2.02 * per_region:
-        return None
-    # Row i (j = lo + i): [change by OFF, change by ON], at 2 * (j - lo) + on.
-    by_level = torch.stack([table[:-2] - table[1:-1], table[2:] - table[1:-1]], 1).reshape(-1)
-    change = take(by_level, key.clamp_(min=2 * lo).sub_(2 * lo))
-    anchor[1:] -= final[:-1]
-    total = change.index_add_(0, firsts, anchor).cumsum_(0)
-    smallest = int(total.min())
-    # The smallest two-word sum, at least (each region's factor exp(c * (top - m)) / 2**bits
-    # is above 2**-bits, and above its own smallest total): running_sums cuts before a sum
-    # below its lowest, and then it must decide the piece; above it, its half a fine unit
-    # per pixel is its error.
-    scale, fine, lowest = two_word_scale(int((top - m).max()) - 1, per_region, contrast,
-                                         threshold)
-    factor = (top - m).to(torch.float64).mul_(contrast).exp_()
-    least = math.ldexp(smallest, -bits) * float(factor.min())
-    if not least >= lowest:  # each region's smallest total times its factor
-        smallest_of = torch.full_like(top, torch.iinfo(torch.int64).max).scatter_reduce_(
-            0, region, total, "amin")
-        least = math.ldexp(float((smallest_of.to(torch.float64) * factor).min()), -bits)
-    least *= 1 - per_region / max(smallest, 1) - 16 * EPS
-    if not least >= lowest:
-        return None
-    return OneWordSums(region, top, total, bits, smallest, per_region / (2 * fine * scale) / least)
