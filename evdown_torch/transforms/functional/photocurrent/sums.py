@@ -385,14 +385,15 @@ def rising_anchors(
     before = divide(key, 2)
     change = (key - 2 * before).mul_(2).sub_(1)
     after = before + change
-    # R(e): a running maximum of the levels after each event, kept inside each region by
-    # lifting every region's values above the previous region's.
-    low = int(after.min())
-    lift = rank * (int(after.max()) - low + 1)
-    climbed = torch.cummax(after.sub_(low).add_(lift), 0).values.sub_(lift).add_(low)
+    # R(e): a running maximum of the levels after each event (from 0: levels below count as
+    # 0, and a piece climbs at most one level an event), kept inside each region by lifting
+    # every region's values above the previous region's (below N**2: no overflow).
+    after.clamp_(min=0)
+    lift = rank * (int(after.max()) + 1)
+    climbed = torch.cummax(after.add_(lift), 0).values.sub_(lift)
     reach = torch.zeros_like(climbed)
     reach[1:] = climbed[:-1]
-    reach.index_fill_(0, firsts, 0).clamp_(min=0)
+    reach.index_fill_(0, firsts, 0)
     k = divide(reach, step)
     starts = changes(k).index_fill_(0, firsts, True)
     run_firsts = where_true(starts)
