@@ -163,7 +163,7 @@ def _two_word_moves(
     events: Events, part: _Regions, levels: Tensor, sensor_size: tuple[int, int, int],
     factor: tuple[int, int], contrast: float, threshold: float,
 ) -> tuple[Tensor, Tensor, Tensor] | None:
-    """:func:`_moves_to_solve` of ``part`` from the two-word sums; ``None`` where they cut."""
+    """The moves to solve (``moves_to_solve``) of ``part``; ``None`` where its sums cut."""
     u, bad = _two_word_u(events, part, levels, sensor_size, factor, contrast, threshold)
     if bad is not None:
         return None
@@ -379,8 +379,8 @@ def _events_piece(
     climbing: list[_Regions] = []  # regions that rose too far for one word
     while one_word and not dense and key.shape[0] >= ONE_WORD_MIN_EVENTS:
         tried = one_word_moves(key, ids, inside, state.level, new_levels, firsts, first,
-                                log_pixels() if log_n is None else log_n, per_region,
-                                contrast, threshold)
+                               log_pixels() if log_n is None else log_n, per_region,
+                               contrast, threshold)
         if not isinstance(tried, TooBright):
             moves = tried
             break

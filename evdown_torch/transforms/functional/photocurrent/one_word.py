@@ -44,8 +44,8 @@ class OneWordSums(NamedTuple):
     """Running photocurrent sums of a piece in one int64 word (:func:`one_word_sums`).
 
     ``total * exp(c * (top - m)) / 2**bits`` (``m``: the region's anchor, as in
-    :func:`running_sums`) is within ``per_region / total + two_word_error + 16 * EPS`` of the
-    sum :func:`running_sums` gives for the same event, relative to it.
+    :func:`.sums.running_sums`) is within ``per_region / total + two_word_error + 16 * EPS`` of the
+    sum :func:`.sums.running_sums` gives for the same event, relative to it.
     """
 
     region: Tensor  # (N,) int64 the segment (touched region) of each event
@@ -59,8 +59,9 @@ class OneWordSums(NamedTuple):
 class TooBright(NamedTuple):
     """:func:`one_word_sums`' answer where some regions rise too far above their anchors.
 
-    Their pixels go more than :data:`MAX_EXPONENT` above the regions' brightest before the
-    piece (the two-word sums would cut them); the other regions can be decided without them.
+    Their pixels go more than :data:`~.sums.MAX_EXPONENT` above the regions' brightest
+    before the piece (the two-word sums anchor them again as they climb,
+    :func:`~.sums.rising_anchors`); the other regions can be decided without them.
     """
 
     regions: Tensor  # (S,) bool, the touched regions that rise too far
@@ -80,15 +81,15 @@ def one_word_sums(
     sum is a region's sum, an integer below ``2**62``: the result is exact and independent of
     the order of the additions. Its error is half a unit per pixel plus a few ulps of each
     intensity (about ``1e-17`` of the region's brightest intensity), so it decides every
-    event whose ``u`` does not lie within that error of a snap bound as :func:`running_sums`
-    does, with one word instead of two.
+    event whose ``u`` does not lie within that error of a snap bound as
+    :func:`.sums.running_sums` does, with one word instead of two.
 
-    :class:`TooBright` where a pixel rises too far above its anchor (:func:`running_sums`
-    would cut its region there). ``None`` where a sum is too small for the two words, where a
-    region's sum before or after the piece lies so far below its brightest (a rise or fall of
-    some 200 levels at ``c = 0.2``) that the error bound exceeds :data:`NEAR_CAP`, or where
-    the levels that count span more than :data:`TABLE_SIZE`: the caller then takes
-    :func:`running_sums`.
+    :class:`TooBright` where a pixel rises too far above its anchor (where
+    :func:`~.sums.running_sums` would anchor its region again). ``None`` where a sum is too
+    small for the two words, where a region's sum before or after the piece lies so far below
+    its brightest (a rise or fall of some 200 levels at ``c = 0.2``) that the error bound
+    exceeds :data:`NEAR_CAP`, or where the levels that count span more than
+    :data:`.sums.TABLE_SIZE`: the caller then takes :func:`.sums.running_sums`.
 
     Args:
         key: ``(N,)`` int32 or int64 ``2 * L + on`` of each event (``L``: its pixel's level
@@ -176,7 +177,7 @@ def one_word_moves(
     bounds of its level (``k - SNAP`` and ``k + SNAP``) gets the ``floor(u)`` and on-level
     flag that the two-word sums (:func:`.sums.running_sums`) give; ``None`` where an event
     lies within it (or the one-word sums cannot be used): the caller then takes the two-word
-    sums; :class:`TooBright` where some regions rise too far for either. The bound is
+    sums; :class:`TooBright` where some regions rise too far for one word. The bound is
     about ``1e-15`` in ``u`` where a region's sum is near its brightest intensity of the
     piece, so on ordinary streams that never happens.
     """
