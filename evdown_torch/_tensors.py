@@ -55,10 +55,10 @@ def take(values: Tensor, index: Tensor) -> Tensor:
 def where_true(mask: Tensor) -> Tensor:
     """``(M,)`` int64 positions of the True entries of a 1-D bool ``mask``, ascending.
 
-    On the CPU through NumPy's ``flatnonzero`` (sharing the mask's memory): 4 to 12 times
+    On the CPU through NumPy's ``flatnonzero`` (reading the mask in place): 4 to 12 times
     faster than ``torch.nonzero`` there on 250k entries, which counts the entries in one pass
-    and writes them in a second (docs/benchmarks.md, "Positions of a mask"). The kernels call
-    it a few dozen times per chunk.
+    and writes them in a second (docs/benchmarks.md, "Fourth session of 2026-11-27"). The
+    kernels call it a few dozen times per chunk.
 
     Example:
         >>> where_true(torch.tensor([False, True, True, False, True])).tolist()
