@@ -17,6 +17,7 @@ from evdown_torch.events import Events
 
 __all__ = [
     "CHUNK_EVENTS",
+    "NUMPY_ON_CPU",
     "changes",
     "chunk_bounds",
     "differences",
@@ -29,6 +30,8 @@ __all__ = [
     "region_xy",
     "last_of_runs",
     "run_index",
+    "run_max",
+    "runs_of",
     "continued_cumsum",
     "segmented_cumsum",
     "sort_by_time",
@@ -42,6 +45,16 @@ __all__ = [
 #: length stay small enough (8 MB of int64) to be recycled by the allocator instead of being
 #: mapped afresh, which costs more than the arithmetic on them.
 CHUNK_EVENTS = 1 << 20
+
+
+#: CPU tensors take NumPy's primitive where it is several times faster than this torch
+#: build's (:func:`where_true`, :func:`runs_of`, :func:`run_max`); ``False`` runs torch's
+#: everywhere, as on other devices (the tests run both).
+NUMPY_ON_CPU = True
+
+
+def _numpy(tensor: Tensor) -> bool:
+    return NUMPY_ON_CPU and tensor.device.type == "cpu"
 
 
 # --- Indexing -----------------------------------------------------------------------------
@@ -64,7 +77,7 @@ def where_true(mask: Tensor) -> Tensor:
         >>> where_true(torch.tensor([False, True, True, False, True])).tolist()
         [1, 2, 4]
     """
-    if mask.device.type == "cpu":
+    if _numpy(mask):
         return torch.from_numpy(np.flatnonzero(mask.numpy()).astype(np.int64, copy=False))
     return torch.nonzero(mask).squeeze(1)
 
@@ -110,6 +123,44 @@ def last_of_runs(first_at: Tensor, n: int) -> Tensor:
 def run_index(starts: Tensor) -> Tensor:
     """``(N,)`` int64 index of the run each element belongs to, given the runs' ``starts``."""
     return torch.cumsum(starts.to(torch.int64), 0) - 1
+
+
+def runs_of(lengths: Tensor, n: int) -> Tensor:
+    """``(N,)`` int64 index of the run each element belongs to, from the runs' ``lengths``.
+
+    ``lengths``: ``(R,)`` int64, summing to ``n``. On the CPU through NumPy's ``repeat``
+    (about 3x ``torch.repeat_interleave`` there on 262k elements in 1,000 runs).
+
+    Example:
+        >>> runs_of(torch.tensor([2, 1, 3]), 6).tolist()
+        [0, 0, 1, 2, 2, 2]
+    """
+    if _numpy(lengths):
+        return torch.from_numpy(np.repeat(np.arange(lengths.shape[0], dtype=np.int64),
+                                          lengths.numpy()))
+    return torch.repeat_interleave(torch.arange(lengths.shape[0], device=lengths.device),
+                                   lengths, output_size=n)
+
+
+def run_max(values: Tensor, first_at: Tensor) -> Tensor:
+    """``(R,)`` largest of ``values`` in each run (runs one after another, none empty).
+
+    ``first_at``: ``(R,)`` int64 first position of each run, ascending, the first 0. On the
+    CPU through NumPy's ``maximum.reduceat`` (about 13x ``scatter_reduce`` there on 262k
+    elements in 1,000 runs); exact for integers.
+
+    Example:
+        >>> run_max(torch.tensor([3, 1, 4, 1, 5, 9, 2]), torch.tensor([0, 2, 5])).tolist()
+        [3, 5, 9]
+    """
+    if _numpy(values):
+        return torch.from_numpy(np.maximum.reduceat(values.numpy(), first_at.numpy()))
+    lengths = torch.diff(first_at, append=first_at.new_tensor([values.shape[0]]))
+    run = runs_of(lengths, values.shape[0])
+    lowest = torch.finfo(values.dtype).min if values.is_floating_point() else (
+        torch.iinfo(values.dtype).min)
+    return torch.full((first_at.shape[0],), lowest, dtype=values.dtype,
+                      device=values.device).scatter_reduce_(0, run, values, "amax")
 
 
 def differences(values: Tensor, starts_at: Tensor) -> Tensor:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
-from evdown_torch._tensors import stable_sort_small
+from evdown_torch import _tensors
+from evdown_torch._tensors import run_max, runs_of, stable_sort_small, where_true
 
 
 @pytest.mark.parametrize("n", [0, 100, 4096, 8191, 8192, 9000, 32767, 40000])
@@ -36,3 +38,30 @@ def test_narrow_sort_returns_the_keys_in_the_dtype_they_were_sorted_as(bound, dt
     assert values.dtype == dtype and order.dtype == torch.int64
     assert torch.equal(values.to(torch.int64), expected.values)
     assert torch.equal(order, expected.indices)
+
+
+@pytest.mark.parametrize("numpy_on_cpu", [True, False])
+@pytest.mark.parametrize("runs", [1, 7, 300])
+def test_run_helpers_against_a_python_loop(runs, numpy_on_cpu, rng, device, monkeypatch):
+    # NumPy's primitives on the CPU, torch's elsewhere (and on the CPU with the switch off).
+    monkeypatch.setattr(_tensors, "NUMPY_ON_CPU", numpy_on_cpu)
+    lengths = rng.integers(1, 50, runs)
+    n = int(lengths.sum())
+    values = rng.integers(-10**12, 10**12, n)
+    first_at = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    expected_ids = [i for i, length in enumerate(lengths) for _ in range(length)]
+    expected_max = [int(values[a:a + length].max()) for a, length in zip(first_at, lengths,
+                                                                         strict=True)]
+    ids = runs_of(torch.tensor(lengths, device=device), n)
+    assert ids.dtype == torch.int64 and ids.device == device and ids.tolist() == expected_ids
+    for dtype in (torch.int64, torch.int32, torch.float64):
+        column = torch.tensor(values, device=device)
+        column = (column // 10**4 if dtype == torch.int32 else column).to(dtype)
+        got = run_max(column, torch.tensor(first_at, device=device))
+        want = [max(column[a:a + length].tolist()) for a, length in zip(first_at, lengths,
+                                                                         strict=True)]
+        assert got.dtype == dtype and got.device == device and got.tolist() == want
+    assert run_max(torch.tensor(values), torch.tensor(first_at)).tolist() == expected_max
+    mask = torch.tensor(rng.random(n) < 0.3, device=device)
+    assert where_true(mask).tolist() == [i for i in range(n) if mask[i]]
+    assert where_true(mask).dtype == torch.int64
