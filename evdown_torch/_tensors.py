@@ -48,8 +48,9 @@ CHUNK_EVENTS = 1 << 20
 
 
 #: CPU tensors take NumPy's primitive where it is several times faster than this torch
-#: build's (:func:`where_true`, :func:`runs_of`, :func:`run_max`); ``False`` runs torch's
-#: everywhere, as on other devices (the tests run both).
+#: build's (:func:`where_true`, :func:`changes`, :func:`runs_of`, :func:`run_max`,
+#: :func:`divide`); ``False`` runs torch's everywhere, as on other devices (the tests run
+#: both).
 NUMPY_ON_CPU = True
 
 
@@ -93,7 +94,11 @@ def changes(values: Tensor) -> Tensor:
         [True, False, True, False, True]
     """
     flags = torch.ones(values.shape[0], dtype=torch.bool, device=values.device)
-    torch.ne(values[1:], values[:-1], out=flags[1:])
+    if _numpy(values):  # NumPy's comparison: about 2x torch's on the CPU (262k int64 values)
+        plain = values.numpy()
+        np.not_equal(plain[1:], plain[:-1], out=flags.numpy()[1:])
+    else:
+        torch.ne(values[1:], values[:-1], out=flags[1:])
     return flags
 
 
@@ -363,6 +368,11 @@ def divide(values: Tensor, divisor: int | Tensor, *, out: Tensor | None = None) 
     if isinstance(divisor, int) and divisor & (divisor - 1) == 0:
         # A power of two (1 included): an arithmetic shift floors negative values too.
         return torch.bitwise_right_shift(values, divisor.bit_length() - 1, out=out)
+    if _numpy(values) and (isinstance(divisor, int) or _numpy(divisor)):
+        # NumPy's floor division: about 5x torch's on the CPU (262k int64 values).
+        quotient = np.floor_divide(values.numpy(), divisor if isinstance(divisor, int) else
+                                   divisor.numpy(), out=None if out is None else out.numpy())
+        return out if out is not None else torch.from_numpy(quotient)
     return torch.div(values, divisor, rounding_mode="floor", out=out)
 
 

@@ -7,7 +7,14 @@ import pytest
 import torch
 
 from evdown_torch import _tensors
-from evdown_torch._tensors import run_max, runs_of, stable_sort_small, where_true
+from evdown_torch._tensors import (
+    changes,
+    divide,
+    run_max,
+    runs_of,
+    stable_sort_small,
+    where_true,
+)
 
 
 @pytest.mark.parametrize("n", [0, 100, 4096, 8191, 8192, 9000, 32767, 40000])
@@ -65,3 +72,24 @@ def test_run_helpers_against_a_python_loop(runs, numpy_on_cpu, rng, device, monk
     mask = torch.tensor(rng.random(n) < 0.3, device=device)
     assert where_true(mask).tolist() == [i for i in range(n) if mask[i]]
     assert where_true(mask).dtype == torch.int64
+    for dtype in (torch.int64, torch.int16, torch.float64, torch.bool):
+        column = torch.tensor(rng.integers(0, 2, n), device=device).to(dtype)
+        plain = column.tolist()
+        assert changes(column).tolist() == [i == 0 or plain[i] != plain[i - 1] for i in range(n)]
+
+
+@pytest.mark.parametrize("numpy_on_cpu", [True, False])
+@pytest.mark.parametrize("dtype", [torch.int64, torch.int32, torch.int16])
+def test_divide_floors_like_python(dtype, numpy_on_cpu, rng, device, monkeypatch):
+    monkeypatch.setattr(_tensors, "NUMPY_ON_CPU", numpy_on_cpu)
+    values = rng.integers(-30000, 30000, 500)
+    column = torch.tensor(values, dtype=dtype, device=device)
+    for divisor in (1, 2, 3, 9, 64, 87, 30001):
+        got = divide(column, divisor)
+        assert got.dtype == dtype and got.device == device
+        assert got.tolist() == [int(v) // divisor for v in values]
+    divisors = rng.integers(1, 100, 500)
+    got = divide(column.long(), torch.tensor(divisors, device=device))
+    assert got.tolist() == [int(v) // int(d) for v, d in zip(values, divisors, strict=True)]
+    out = torch.empty_like(column)
+    assert divide(column, 7, out=out) is out and out.tolist() == [int(v) // 7 for v in values]
