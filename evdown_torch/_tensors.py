@@ -32,6 +32,7 @@ __all__ = [
     "run_index",
     "run_max",
     "runs_of",
+    "searchsorted_ascending",
     "continued_cumsum",
     "segmented_cumsum",
     "sort_by_time",
@@ -49,8 +50,8 @@ CHUNK_EVENTS = 1 << 20
 
 #: CPU tensors take NumPy's primitive where it is several times faster than this torch
 #: build's (:func:`where_true`, :func:`changes`, :func:`runs_of`, :func:`run_max`,
-#: :func:`divide`); ``False`` runs torch's everywhere, as on other devices (the tests run
-#: both).
+#: :func:`divide`, :func:`searchsorted_ascending`); ``False`` runs torch's everywhere, as on
+#: other devices (the tests run both).
 NUMPY_ON_CPU = True
 
 
@@ -81,6 +82,23 @@ def where_true(mask: Tensor) -> Tensor:
     if _numpy(mask):
         return torch.from_numpy(np.flatnonzero(mask.numpy()).astype(np.int64, copy=False))
     return torch.nonzero(mask).squeeze(1)
+
+
+def searchsorted_ascending(ordered: Tensor, keys: Tensor, *, right: bool = False) -> Tensor:
+    """``torch.searchsorted(ordered, keys, right=right)`` for ascending ``keys``.
+
+    On the CPU through NumPy's, which starts each search from the previous key's place when
+    the keys ascend: about 2x torch's there (300k keys in 400k).
+
+    Example:
+        >>> searchsorted_ascending(torch.tensor([1, 3, 3, 7]), torch.tensor([0, 3, 8]),
+        ...                        right=True).tolist()
+        [0, 3, 4]
+    """
+    if _numpy(keys) and _numpy(ordered):
+        return torch.from_numpy(np.searchsorted(ordered.numpy(), keys.numpy(),
+                                                side="right" if right else "left"))
+    return torch.searchsorted(ordered, keys, right=right)
 
 
 # --- Runs of equal values ------------------------------------------------------------------

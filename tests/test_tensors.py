@@ -12,6 +12,7 @@ from evdown_torch._tensors import (
     divide,
     run_max,
     runs_of,
+    searchsorted_ascending,
     stable_sort_small,
     where_true,
 )
@@ -76,6 +77,13 @@ def test_run_helpers_against_a_python_loop(runs, numpy_on_cpu, rng, device, monk
         column = torch.tensor(rng.integers(0, 2, n), device=device).to(dtype)
         plain = column.tolist()
         assert changes(column).tolist() == [i == 0 or plain[i] != plain[i - 1] for i in range(n)]
+    ordered = np.sort(rng.integers(0, 50, n))
+    keys = np.sort(rng.integers(-5, 55, 40))
+    for right in (False, True):
+        got = searchsorted_ascending(torch.tensor(ordered, device=device),
+                                     torch.tensor(keys, device=device), right=right)
+        want = [sum(int(v) < k or right and int(v) == k for v in ordered) for k in keys]
+        assert got.dtype == torch.int64 and got.tolist() == want
 
 
 @pytest.mark.parametrize("numpy_on_cpu", [True, False])

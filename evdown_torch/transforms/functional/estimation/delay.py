@@ -13,7 +13,14 @@ import math
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import changes, stable_sort_small, take, time_order, where_true
+from evdown_torch._tensors import (
+    changes,
+    searchsorted_ascending,
+    stable_sort_small,
+    take,
+    time_order,
+    where_true,
+)
 from evdown_torch.checks import MAX_EXACT_SPAN
 from evdown_torch.events import Events, polarity_sign
 
@@ -203,4 +210,4 @@ def _count_before(ordered: Tensor, t: Tensor, *, right: bool) -> Tensor | int:
         return 0
     if t[0] > ordered[-1] or (right and t[0] == ordered[-1]):
         return n
-    return torch.searchsorted(ordered, t, right=right)
+    return searchsorted_ascending(ordered, t, right=right)
