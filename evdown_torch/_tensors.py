@@ -17,6 +17,7 @@ from evdown_torch.events import Events
 
 __all__ = [
     "CHUNK_EVENTS",
+    "NUMPY_MIN_ELEMENTS",
     "NUMPY_ON_CPU",
     "changes",
     "chunk_bounds",
@@ -51,12 +52,18 @@ CHUNK_EVENTS = 1 << 20
 #: CPU tensors take NumPy's primitive where it is several times faster than this torch
 #: build's (:func:`where_true`, :func:`changes`, :func:`runs_of`, :func:`run_max`,
 #: :func:`divide`, :func:`searchsorted_ascending`); ``False`` runs torch's everywhere, as on
-#: other devices (the tests run both).
+#: other devices (the tests run both). Below :data:`NUMPY_MIN_ELEMENTS` torch's call costs
+#: no more.
 NUMPY_ON_CPU = True
+
+#: Fewest elements for which the helpers above take NumPy's primitive (measured on this
+#: build: from about 1,000 NumPy's is as fast or faster; below, its extra Python calls and
+#: conversions cost up to half a microsecond more a call).
+NUMPY_MIN_ELEMENTS = 1 << 10
 
 
 def _numpy(tensor: Tensor) -> bool:
-    return NUMPY_ON_CPU and tensor.device.type == "cpu"
+    return NUMPY_ON_CPU and tensor.device.type == "cpu" and tensor.numel() >= NUMPY_MIN_ELEMENTS
 
 
 # --- Indexing -----------------------------------------------------------------------------
@@ -70,7 +77,7 @@ def take(values: Tensor, index: Tensor) -> Tensor:
 def where_true(mask: Tensor) -> Tensor:
     """``(M,)`` int64 positions of the True entries of a 1-D bool ``mask``, ascending.
 
-    On the CPU through NumPy's ``flatnonzero`` (reading the mask in place): 4 to 12 times
+    On the CPU through NumPy's ``nonzero`` (reading the mask in place): 4 to 12 times
     faster than ``torch.nonzero`` there on 250k entries, which counts the entries in one pass
     and writes them in a second (docs/benchmarks.md, "Fourth session of 2026-11-27"). The
     kernels call it a few dozen times per chunk.
@@ -80,7 +87,7 @@ def where_true(mask: Tensor) -> Tensor:
         [1, 2, 4]
     """
     if _numpy(mask):
-        return torch.from_numpy(np.flatnonzero(mask.numpy()).astype(np.int64, copy=False))
+        return torch.from_numpy(mask.numpy().nonzero()[0].astype(np.int64, copy=False))
     return torch.nonzero(mask).squeeze(1)
 
 
@@ -95,7 +102,7 @@ def searchsorted_ascending(ordered: Tensor, keys: Tensor, *, right: bool = False
         ...                        right=True).tolist()
         [0, 3, 4]
     """
-    if _numpy(keys) and _numpy(ordered):
+    if _numpy(keys) and ordered.device.type == "cpu":
         return torch.from_numpy(np.searchsorted(ordered.numpy(), keys.numpy(),
                                                 side="right" if right else "left"))
     return torch.searchsorted(ordered, keys, right=right)
@@ -158,7 +165,7 @@ def runs_of(lengths: Tensor, n: int) -> Tensor:
         >>> runs_of(torch.tensor([2, 1, 3]), 6).tolist()
         [0, 0, 1, 2, 2, 2]
     """
-    if _numpy(lengths):
+    if NUMPY_ON_CPU and lengths.device.type == "cpu" and n >= NUMPY_MIN_ELEMENTS:
         return torch.from_numpy(np.repeat(np.arange(lengths.shape[0], dtype=np.int64),
                                           lengths.numpy()))
     return torch.repeat_interleave(torch.arange(lengths.shape[0], device=lengths.device),
@@ -386,7 +393,7 @@ def divide(values: Tensor, divisor: int | Tensor, *, out: Tensor | None = None) 
     if isinstance(divisor, int) and divisor & (divisor - 1) == 0:
         # A power of two (1 included): an arithmetic shift floors negative values too.
         return torch.bitwise_right_shift(values, divisor.bit_length() - 1, out=out)
-    if _numpy(values) and (isinstance(divisor, int) or _numpy(divisor)):
+    if _numpy(values) and (isinstance(divisor, int) or divisor.device.type == "cpu"):
         # NumPy's floor division: about 5x torch's on the CPU (262k int64 values).
         quotient = np.floor_divide(values.numpy(), divisor if isinstance(divisor, int) else
                                    divisor.numpy(), out=None if out is None else out.numpy())

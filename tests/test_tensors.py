@@ -53,6 +53,7 @@ def test_narrow_sort_returns_the_keys_in_the_dtype_they_were_sorted_as(bound, dt
 def test_run_helpers_against_a_python_loop(runs, numpy_on_cpu, rng, device, monkeypatch):
     # NumPy's primitives on the CPU, torch's elsewhere (and on the CPU with the switch off).
     monkeypatch.setattr(_tensors, "NUMPY_ON_CPU", numpy_on_cpu)
+    monkeypatch.setattr(_tensors, "NUMPY_MIN_ELEMENTS", 0)
     lengths = rng.integers(1, 50, runs)
     n = int(lengths.sum())
     values = rng.integers(-10**12, 10**12, n)
@@ -90,6 +91,7 @@ def test_run_helpers_against_a_python_loop(runs, numpy_on_cpu, rng, device, monk
 @pytest.mark.parametrize("dtype", [torch.int64, torch.int32, torch.int16])
 def test_divide_floors_like_python(dtype, numpy_on_cpu, rng, device, monkeypatch):
     monkeypatch.setattr(_tensors, "NUMPY_ON_CPU", numpy_on_cpu)
+    monkeypatch.setattr(_tensors, "NUMPY_MIN_ELEMENTS", 0)
     values = rng.integers(-30000, 30000, 500)
     column = torch.tensor(values, dtype=dtype, device=device)
     for divisor in (1, 2, 3, 9, 64, 87, 30001):

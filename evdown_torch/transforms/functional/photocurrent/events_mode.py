@@ -135,26 +135,30 @@ class _Regions(NamedTuple):
 def _two_word_u(
     events: Events, part: _Regions, levels: Tensor, sensor_size: tuple[int, int, int],
     factor: tuple[int, int], contrast: float, threshold: float,
+    runs: tuple[Tensor, Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """``u = log(I_r) / theta`` after each event of ``part`` from the two-word running sums.
 
-    Returns ``(u, bad)``: ``bad`` as :attr:`.sums.RunningSums.bad` (``part.key`` is
-    overwritten).
+    ``runs``: each region's first and last event and each event's region (rank), when the
+    caller has them. Returns ``(u, bad)``: ``bad`` as :attr:`.sums.RunningSums.bad`
+    (``part.key`` is overwritten).
     """
     fx, fy = factor
-    first = part.first
-    firsts = where_true(first)
-    rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
+    if runs is None:
+        firsts = where_true(part.first)
+        runs = (firsts, last_of_runs(firsts, part.first.shape[0]),
+                torch.cumsum(part.first, 0, dtype=torch.int64).sub_(1))
+    firsts, lasts, rank = runs
 
     def slot() -> Tensor:  # each event's column in ids, for regions that climb
         return torch.remainder(take(events.y, part.order), fy).mul_(fx).add_(
             torch.remainder(take(events.x, part.order), fx))
 
-    sums = running_sums(part.key, part.ids, part.inside, levels, firsts,
-                        last_of_runs(firsts, first.shape[0]), rank, fx * fy, contrast,
-                        threshold, slot)
-    log_pixels = region_pixel_count(take(part.touched, sums.anchor_region).long(), sensor_size,
-                                    factor).to(torch.float64).log_()
+    sums = running_sums(part.key, part.ids, part.inside, levels, firsts, lasts, rank, fx * fy,
+                        contrast, threshold, slot)
+    anchored = part.touched if sums.anchor_region is None else take(part.touched,
+                                                                    sums.anchor_region)
+    log_pixels = region_pixel_count(anchored, sensor_size, factor).to(torch.float64).log_()
     offset = sums.anchor.to(torch.float64).mul_(contrast).sub_(log_pixels).div_(threshold)
     return take(offset, sums.anchor_of).add_(sums.total.log_(), alpha=1 / threshold), sums.bad
 
@@ -428,7 +432,7 @@ def _events_piece(
         else:
             u, bad = _two_word_u(events, _Regions(order, region, first, key, touched, ids,
                                                   inside), state.level, sensor_size, factor,
-                                 contrast, threshold)
+                                 contrast, threshold, (firsts, lasts, rank))
             del ids, inside, key
             if bad is not None:  # the running sums cannot hold an event: its region waits
                 # Each region keeps its events before the first that its sums cannot hold.

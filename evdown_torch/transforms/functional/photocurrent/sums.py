@@ -235,7 +235,8 @@ class RunningSums(NamedTuple):
 
     Attributes:
         anchor: ``(G,)`` int64 level of each anchor.
-        anchor_region: ``(G,)`` int64 rank of each anchor's region among the touched regions.
+        anchor_region: ``(G,)`` int64 rank of each anchor's region among the touched regions,
+            or ``None`` where each region has one anchor (``G = S``, in region order).
         anchor_of: ``(N,)`` int64 anchor of each event.
         total: ``(N,)`` float64 ``sum exp(c * (L_p - anchor))`` over the region after each
             event.
@@ -245,7 +246,7 @@ class RunningSums(NamedTuple):
     """
 
     anchor: Tensor
-    anchor_region: Tensor
+    anchor_region: Tensor | None
     anchor_of: Tensor
     total: Tensor
     bad: Tensor | None
@@ -292,7 +293,8 @@ def running_sums(
     key -= take((m * 2).to(key.dtype), rank)
     brightest = brightest_level(contrast)
     anchor_region = anchor_of = None
-    if int(key.max()) // 2 > brightest:  # climbing regions: new anchors
+    lo, hi = (int(v) // 2 for v in torch.aminmax(key))
+    if hi > brightest:  # climbing regions: new anchors
         rising = rising_anchors(key, rank, firsts, pixel_j, slot(), brightest + 1)
         anchor_of, anchor_region, firsts = rising.anchor_of, rising.region, rising.firsts
         key -= take((2 * rising.level).to(key.dtype), anchor_of)
@@ -302,7 +304,7 @@ def running_sums(
             pixel_j.masked_fill_(~inside, 0)
         m = take(m, anchor_region).add_(rising.level)
         rank, lasts = anchor_of, last_of_runs(firsts, key.shape[0])
-    lo, hi = (int(v) // 2 for v in torch.aminmax(key))
+        lo, hi = (int(v) // 2 for v in torch.aminmax(key))
     # (Every anchor is a level some pixel of its region is at when the anchor is taken.)
     lowest_j, highest_j = (int(v) for v in torch.aminmax(pixel_j))
     lo, hi = min(lo, lowest_j), max(hi, highest_j)
@@ -327,9 +329,7 @@ def running_sums(
         bad = weak if bad is None else bad | weak
     if bad is not None and not bool(bad.any()):
         bad = None
-    if anchor_of is None or anchor_region is None:
-        anchor_of, anchor_region = rank, torch.arange(m.shape[0], device=m.device)
-    return RunningSums(m, anchor_region, anchor_of, total, bad)
+    return RunningSums(m, anchor_region, rank if anchor_of is None else anchor_of, total, bad)
 
 
 class RisingAnchors(NamedTuple):
