@@ -22,6 +22,19 @@ LOG_LUMINANCE = [EventCount, LinearEstimation, CubicEstimation]
 FLOAT_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", bool), ("t", np.float64)])
 
 
+def spy(monkeypatch, module, name: str, record=lambda out: out) -> list:
+    """Wrap ``module.name`` for the test: the list returned gets ``record(output)`` per call."""
+    seen, real = [], getattr(module, name)
+
+    def wrapper(*args, **kwargs):
+        out = real(*args, **kwargs)
+        seen.append(record(out))
+        return out
+
+    monkeypatch.setattr(module, name, wrapper)
+    return seen
+
+
 def random_stream(
     rng: np.random.Generator,
     n: int,

@@ -19,6 +19,7 @@ from tests.helpers import (
     random_stream,
     region_members,
     rows,
+    spy,
 )
 
 SENSOR = (10, 7, 2)
@@ -109,22 +110,8 @@ def test_a_climbing_region_is_decided_in_its_piece(rng, monkeypatch):
     from evdown_torch.transforms.functional.photocurrent import sums
 
     monkeypatch.setattr(kernel, "ONE_WORD_MIN_EVENTS", 256)
-    anchors, rising = [], sums.rising_anchors
-
-    def count_anchors(*args):
-        out = rising(*args)
-        anchors.append(out.level.tolist())
-        return out
-
-    monkeypatch.setattr(sums, "rising_anchors", count_anchors)
-    one_word, tried = [], one_word_module.one_word_sums
-
-    def spy_one_word(*args):
-        out = tried(*args)
-        one_word.append(type(out).__name__)
-        return out
-
-    monkeypatch.setattr(one_word_module, "one_word_sums", spy_one_word)
+    anchors = spy(monkeypatch, sums, "rising_anchors", lambda out: out.level.tolist())
+    one_word = spy(monkeypatch, one_word_module, "one_word_sums", lambda out: type(out).__name__)
     held = _spy_pieces(kernel, monkeypatch)
     arr = hot_pixel_stream(rng, 600, 600, dt=2, n_rest=1500)
     out = PhotocurrentPooling((4, 4, 2), factor=2, contrast=0.25, threshold=0.4)(arr)

@@ -17,7 +17,7 @@ from evdown_torch import PhotocurrentPooling
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.photocurrent import events_mode as kernel
 from evdown_torch.transforms.functional.photocurrent import one_word, sums
-from tests.helpers import DVS_DTYPE, photocurrent_events_reference, random_stream, rows
+from tests.helpers import DVS_DTYPE, photocurrent_events_reference, random_stream, rows, spy
 
 
 @pytest.fixture(autouse=True)
@@ -28,15 +28,8 @@ def one_word_for_every_piece(monkeypatch):
 
 def _one_word_calls(monkeypatch) -> list[bool]:
     """Spy on the one-word sums: a list that gets, per call, whether they could be used."""
-    calls, tried = [], one_word.one_word_sums
-
-    def spy(*args, **kwargs):
-        out = tried(*args, **kwargs)
-        calls.append(isinstance(out, one_word.OneWordSums))
-        return out
-
-    monkeypatch.setattr(one_word, "one_word_sums", spy)
-    return calls
+    return spy(monkeypatch, one_word, "one_word_sums",
+               lambda out: isinstance(out, one_word.OneWordSums))
 
 
 def _two_word_only(monkeypatch) -> None:
@@ -124,16 +117,8 @@ def test_near_a_snap_bound_the_two_word_sums_decide(rng, monkeypatch):
     arr = random_stream(rng, 2000, sensor, t_max=2000)
     pool = PhotocurrentPooling(sensor, factor=2, contrast=math.log(2))
     expected = rows(pool(arr))
-    declined = []
-    one_word_moves = kernel.one_word_moves
-
-    def spy(*args, **kwargs):
-        out = one_word_moves(*args, **kwargs)
-        declined.append(out is None)
-        return out
-
     monkeypatch.setattr(one_word, "EPS", 2.0**-30)
-    monkeypatch.setattr(kernel, "one_word_moves", spy)
+    declined = spy(monkeypatch, kernel, "one_word_moves", lambda out: out is None)
     assert rows(pool(arr)) == expected
     assert any(declined)
 
@@ -185,14 +170,7 @@ def test_a_fresh_rise_past_the_exponent_cap_takes_a_new_anchor(monkeypatch):
     arr["p"] = True
     pool = PhotocurrentPooling((2, 2, 2), factor=2, contrast=0.2)
     calls = _one_word_calls(monkeypatch)
-    anchors, rising = [], sums.rising_anchors
-
-    def spy(*args):
-        out = rising(*args)
-        anchors.append(out.level.tolist())
-        return out
-
-    monkeypatch.setattr(sums, "rising_anchors", spy)
+    anchors = spy(monkeypatch, sums, "rising_anchors", lambda out: out.level.tolist())
     out = rows(pool(arr))
     assert calls[0] is False
     assert anchors == [[0, 160]]  # an anchor every 32 / 0.2 = 160 levels
@@ -214,14 +192,7 @@ def test_regions_rising_too_far_take_two_words_while_the_others_take_one(rng, mo
     rest = rest[(rest["x"] >= 2) | (rest["y"] >= 2)]
     arr = np.sort(np.concatenate([hot, rest]), order="t", kind="stable")
     pool = PhotocurrentPooling((8, 8, 2), factor=2, contrast=0.2)
-    answers, tried = [], one_word.one_word_sums
-
-    def spy(*args, **kwargs):
-        out = tried(*args, **kwargs)
-        answers.append(type(out).__name__)
-        return out
-
-    monkeypatch.setattr(one_word, "one_word_sums", spy)
+    answers = spy(monkeypatch, one_word, "one_word_sums", lambda out: type(out).__name__)
     out = rows(pool(arr))
     assert answers[:2] == ["TooBright", "OneWordSums"]
     _two_word_only(monkeypatch)
