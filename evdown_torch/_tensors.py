@@ -63,7 +63,8 @@ NUMPY_MIN_ELEMENTS = 1 << 10
 
 
 def _numpy(tensor: Tensor) -> bool:
-    return NUMPY_ON_CPU and tensor.device.type == "cpu" and tensor.numel() >= NUMPY_MIN_ELEMENTS
+    return (NUMPY_ON_CPU and tensor.device.type == "cpu" and tensor.numel() >= NUMPY_MIN_ELEMENTS
+            and tensor.dtype != torch.bfloat16)  # (the one CPU dtype NumPy has no type for)
 
 
 # --- Indexing -----------------------------------------------------------------------------

@@ -74,7 +74,7 @@ def test_run_helpers_against_a_python_loop(runs, numpy_on_cpu, rng, device, monk
     mask = torch.tensor(rng.random(n) < 0.3, device=device)
     assert where_true(mask).tolist() == [i for i in range(n) if mask[i]]
     assert where_true(mask).dtype == torch.int64
-    for dtype in (torch.int64, torch.int16, torch.float64, torch.bool):
+    for dtype in (torch.int64, torch.int16, torch.float64, torch.bool, torch.bfloat16):
         column = torch.tensor(rng.integers(0, 2, n), device=device).to(dtype)
         plain = column.tolist()
         assert changes(column).tolist() == [i == 0 or plain[i] != plain[i - 1] for i in range(n)]
