@@ -26,6 +26,7 @@ __all__ = [
     "ends",
     "floor_divide_exact",
     "narrow_dtype",
+    "pixel_columns",
     "region_of",
     "region_pixel_count",
     "region_xy",
@@ -424,6 +425,24 @@ def floor_divide_exact(values: Tensor, divisor: int | Tensor) -> tuple[Tensor, T
 def region_of(events: Events, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:
     """Region coordinates ``(x // fx, y // fy)`` of every event, as new int64 tensors."""
     return divide(events.x, factor[0]), divide(events.y, factor[1])
+
+
+def pixel_columns(
+    events: Events, factor: tuple[int, int], regions: tuple[Tensor, Tensor] | None = None
+) -> Tensor:
+    """``(N,)`` int64 place of each event's pixel in its region, ``(y % fy) * fx + x % fx``.
+
+    The column of the pixel in its region's row of pixel ids (the photocurrent kernels'
+    ``region_pixel_ids``). ``regions``: the events' :func:`region_of`, when the caller has it.
+
+    Example:
+        >>> pixel_columns(Events.from_columns([0, 3, 2], [1, 0, 3], [0, 1, 2], [1, 1, 1]),
+        ...               (2, 2)).tolist()
+        [2, 1, 2]
+    """
+    fx, fy = factor
+    rx, ry = region_of(events, factor) if regions is None else regions
+    return torch.sub(events.y, ry, alpha=fy).mul_(fx).add_(events.x).sub_(rx, alpha=fx)
 
 
 def region_xy(region: Tensor, out_width: int) -> tuple[Tensor, Tensor]:

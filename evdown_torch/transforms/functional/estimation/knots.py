@@ -38,6 +38,7 @@ from evdown_torch._tensors import (
     differences,
     ends,
     last_of_runs,
+    pixel_columns,
     region_of,
     region_pixel_count,
     region_xy,
@@ -151,13 +152,10 @@ def region_chunks(
     Yields:
         :class:`RegionChunk` s covering the stream, regions ascending.
     """
-    fx, fy = factor
     if change is None:
         change = polarity_sign(events.p)
     rx, ry = region_of(events, factor)
-    local = torch.sub(events.y, ry, alpha=fy).mul_(fx)  # (y - ry * fy) * fx + x - rx * fx
-    local += events.x
-    local.sub_(rx, alpha=fx)
+    local = pixel_columns(events, factor, (rx, ry))
     region = ry.mul_(out_width).add_(rx)
     del rx, ry
     region, order = stable_sort_small(region, int(region.max()) + 1)

@@ -46,6 +46,7 @@ from evdown_torch._tensors import (
     divide,
     ends,
     last_of_runs,
+    pixel_columns,
     region_pixel_count,
     region_xy,
     sort_by_time,
@@ -143,7 +144,6 @@ def _two_word_u(
     caller has them. Returns ``(u, bad)``: ``bad`` as :attr:`.sums.RunningSums.bad`
     (``part.key`` is overwritten).
     """
-    fx, fy = factor
     if runs is None:
         firsts = where_true(part.first)
         runs = (firsts, last_of_runs(firsts, part.first.shape[0]),
@@ -151,11 +151,10 @@ def _two_word_u(
     firsts, lasts, rank = runs
 
     def slot() -> Tensor:  # each event's column in ids, for regions that climb
-        return torch.remainder(take(events.y, part.order), fy).mul_(fx).add_(
-            torch.remainder(take(events.x, part.order), fx))
+        return pixel_columns(events.select(part.order), factor)
 
-    sums = running_sums(part.key, part.ids, part.inside, levels, firsts, lasts, rank, fx * fy,
-                        contrast, threshold, slot)
+    sums = running_sums(part.key, part.ids, part.inside, levels, firsts, lasts, rank,
+                        factor[0] * factor[1], contrast, threshold, slot)
     anchored = part.touched if sums.anchor_region is None else take(part.touched,
                                                                     sums.anchor_region)
     log_pixels = region_pixel_count(anchored, sensor_size, factor).to(torch.float64).log_()

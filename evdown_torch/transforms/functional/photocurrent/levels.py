@@ -18,6 +18,7 @@ from evdown_torch._tensors import (
     changes,
     continued_cumsum,
     last_of_runs,
+    pixel_columns,
     region_xy,
     stable_sort_small,
     take,
@@ -182,7 +183,7 @@ def region_levels_after(
     """
     fx, fy = factor
     n = events.num_events
-    slot = torch.remainder(events.y, fy).mul_(fx).add_(torch.remainder(events.x, fx))
+    slot = pixel_columns(events, factor)
     rows = torch.zeros(n, fx * fy, dtype=torch.int64, device=slot.device)
     rows.scatter_(1, slot[:, None], polarity_sign(events.p, torch.int64)[:, None])
     rows.cumsum_(0)
