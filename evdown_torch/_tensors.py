@@ -52,9 +52,9 @@ CHUNK_EVENTS = 1 << 20
 
 #: CPU tensors take NumPy's primitive where it is several times faster than this torch
 #: build's (:func:`where_true`, :func:`changes`, :func:`runs_of`, :func:`run_max`,
-#: :func:`divide`, :func:`searchsorted_ascending`); ``False`` runs torch's everywhere, as on
-#: other devices (the tests run both). Below :data:`NUMPY_MIN_ELEMENTS` torch's call costs
-#: no more.
+#: :func:`divide`, :func:`searchsorted_ascending`, and :func:`stable_sort_small` for short
+#: keys); ``False`` runs torch's everywhere, as on other devices (the tests run both). Below
+#: :data:`NUMPY_MIN_ELEMENTS` torch's call costs no more (short sorts excepted).
 NUMPY_ON_CPU = True
 
 #: Fewest elements for which the helpers above take NumPy's primitive (measured on this
@@ -340,7 +340,8 @@ def stable_sort_small(
     if bound is None:
         bound = int(keys.max()) + 1 if keys.numel() else 0
     n = keys.shape[0]
-    if keys.device.type == "cpu" and n < RADIX_SORT_MIN and bound <= NUMPY_RADIX_BOUND:
+    if NUMPY_ON_CPU and keys.device.type == "cpu" and n < RADIX_SORT_MIN and (
+            bound <= NUMPY_RADIX_BOUND):
         # The order of a stable sort is unique: NumPy's radix sort gives torch's, faster.
         small = keys.to(torch.uint8 if bound <= 1 << 8 else torch.int16).numpy()
         perm = np.argsort(small, kind="stable").astype(np.int64, copy=False)

@@ -18,11 +18,13 @@ from evdown_torch._tensors import (
 )
 
 
+@pytest.mark.parametrize("numpy_on_cpu", [True, False])
 @pytest.mark.parametrize("n", [0, 100, 4096, 8191, 8192, 9000, 32767, 40000])
 @pytest.mark.parametrize("bound", [7, 256, 257, 1 << 15, 921_600])
-def test_padded_sort_is_the_stable_sort(n, bound, rng):
-    # Keys padded to radix-sort length (ties with the padding key bound - 1 included) must
-    # sort exactly as torch's plain stable sort.
+def test_padded_sort_is_the_stable_sort(n, bound, numpy_on_cpu, rng, monkeypatch):
+    # Keys padded to radix-sort length (ties with the padding key bound - 1 included), or
+    # short keys through NumPy's radix sort, must sort exactly as torch's plain stable sort.
+    monkeypatch.setattr(_tensors, "NUMPY_ON_CPU", numpy_on_cpu)
     keys = torch.as_tensor(rng.integers(0, bound, n))
     keys[: n // 3] = bound - 1
     values, order = stable_sort_small(keys, bound)
