@@ -366,19 +366,18 @@ def move_crossings(
         The crossings, with ``move`` indexing the given moves.
     """
     if lands_on_levels:
-        moved = first | on_level
+        kept = where_true(first | on_level)
+        floor_k, on_k = take(floor_u, kept), take(on_level, kept)
     else:
-        moved = first | on_level | changes(floor_u)
-        moved[1:] |= on_level[:-1]
-    kept = where_true(moved)
-    floor_k, first_k = take(floor_u, kept), take(first, kept)
+        kept, floor_k, on_k = moves_to_solve(floor_u, on_level, first)
+    first_k = take(first, kept)
     if q_start is not None:
         q0 = take(q_start, kept)
     else:
         q0 = torch.zeros_like(floor_k)
         if q_first is not None:  # every first move is kept, in order
             q0[first_k] = q_first.to(q0.dtype)
-    q = reference_index(floor_k, take(on_level, kept), first_k, q0)
+    q = reference_index(floor_k, on_k, first_k, q0)
     q_before = torch.empty_like(q)
     q_before[1:] = q[:-1]
     q_before = torch.where(first_k, q0, q_before)
