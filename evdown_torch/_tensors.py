@@ -8,12 +8,16 @@ region). The output sensor size itself is :func:`evdown_torch.checks.output_size
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 from torch import Tensor
 
 from evdown_torch.checks import output_size
-from evdown_torch.events import Events
+
+if TYPE_CHECKING:  # events.py imports this module
+    from evdown_torch.events import Events
 
 __all__ = [
     "CHUNK_EVENTS",
@@ -437,6 +441,7 @@ def pixel_columns(
     ``region_pixel_ids``). ``regions``: the events' :func:`region_of`, when the caller has it.
 
     Example:
+        >>> from evdown_torch.events import Events
         >>> pixel_columns(Events.from_columns([0, 3, 2], [1, 0, 3], [0, 1, 2], [1, 1, 1]),
         ...               (2, 2)).tolist()
         [2, 1, 2]

@@ -42,6 +42,7 @@ import numpy.typing as npt
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import where_true
 from evdown_torch.checks import check_has_values
 
 __all__ = [
@@ -146,7 +147,7 @@ class Events(NamedTuple):
             ([7, 5], [0, 2])
         """
         if index.dtype == torch.bool:  # the positions once, not a mask per column
-            index = torch.nonzero(index).squeeze(1)
+            index = where_true(index)
         if index.ndim == 1 and index.dtype in (torch.int64, torch.int32):
             # index_select: several times faster than advanced indexing on the CPU.
             return Events(*(column.index_select(0, index) for column in self))

@@ -121,18 +121,19 @@ def test_events_container_checks_its_tensors():
 
 @pytest.mark.parametrize("kind", ["int64", "int32", "mask", "empty", "rows"])
 def test_select_picks_the_same_events_as_a_python_loop(kind, rng, device):
-    columns = [rng.integers(0, 9, 40), rng.integers(0, 9, 40), rng.integers(0, 99, 40),
-               rng.random(40) < 0.5]
+    n = 3000  # past NUMPY_MIN_ELEMENTS: a mask takes NumPy's positions on the CPU
+    columns = [rng.integers(0, 9, n), rng.integers(0, 9, n), rng.integers(0, 99, n),
+               rng.random(n) < 0.5]
     ev = Events.from_columns(*(torch.from_numpy(c).to(device) for c in columns))
     if kind == "mask":
-        mask = rng.random(40) < 0.3
-        picked = [i for i in range(40) if mask[i]]
+        mask = rng.random(n) < 0.3
+        picked = [i for i in range(n) if mask[i]]
         index = torch.from_numpy(mask).to(device)
     elif kind == "rows":  # a 2-D index keeps advanced indexing's shape
         picked = None
         index = torch.tensor([[3, 1], [0, 3]], device=device)
     else:
-        picked = [] if kind == "empty" else rng.integers(0, 40, 60).tolist()  # repeats
+        picked = [] if kind == "empty" else rng.integers(0, n, 60).tolist()  # repeats
         index = torch.tensor(picked, dtype=getattr(torch, "int32" if kind == "int32" else "int64"),
                              device=device)
     out = ev.select(index)
