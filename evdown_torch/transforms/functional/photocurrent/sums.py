@@ -152,6 +152,17 @@ class FixedPoint(NamedTuple):
     change: tuple[Tensor, Tensor]  # (N,) int64 change of (high, low) at each event
 
 
+def key_levels(key: Tensor) -> tuple[Tensor, Tensor]:
+    """Each event's pixel level before it and its change (+1, -1), from ``key = 2 * L + on``.
+
+    Example:
+        >>> [t.tolist() for t in key_levels(torch.tensor([1, 4, -3]))]
+        [[0, 2, -2], [1, -1, 1]]
+    """
+    before = divide(key, 2)
+    return before, (key - 2 * before).mul_(2).sub_(1)
+
+
 def fixed_point(
     key: Tensor, pixel_j: Tensor, inside: Tensor | None, lo: int, hi: int, contrast: float,
     scale: float, fine: float,
@@ -190,8 +201,8 @@ def fixed_point(
         return FixedPoint((anchor_high, anchor_low), (change_high, change_low))
     anchor_high, anchor_low = (region_sums(word)
                                for word in intensity_words(pixel_j, contrast, scale, fine))
-    before = divide(key, 2)
-    after = torch.where(key - 2 * before == 1, before + 1, before - 1)
+    before, change = key_levels(key)
+    after = before + change
     change_high, change_low = (
         a.sub_(b) for a, b in zip(intensity_words(after, contrast, scale, fine),
                                   intensity_words(before, contrast, scale, fine),
@@ -382,8 +393,7 @@ def rising_anchors(
         ([0, 2, 4], [0, 0, 1, 1, 2], [[0, -1], [2, -1], [4, -1]])
     """
     key = key.long()
-    before = divide(key, 2)
-    change = (key - 2 * before).mul_(2).sub_(1)
+    before, change = key_levels(key)
     after = before + change
     # R(e): a running maximum of the levels after each event (from 0: levels below count as
     # 0, and a piece climbs at most one level an event), kept inside each region by lifting
