@@ -50,6 +50,7 @@ __all__ = [
     "reference_index",
     "region_dtype",
     "region_runs",
+    "rule_crossings",
     "threshold_fraction",
 ]
 
@@ -377,9 +378,36 @@ def move_crossings(
         q0 = torch.zeros_like(floor_k)
         if q_first is not None:  # every first move is kept, in order
             q0[first_k] = q_first.to(q0.dtype)
-    q = reference_index(floor_k, on_k, first_k, q0)
+    cross, _ = rule_crossings(floor_k, on_k, first_k, q0, emitted=emitted)
+    return Crossings(take(kept, cross.move), cross.level, cross.on)
+
+
+def rule_crossings(
+    floor_u: Tensor, on_level: Tensor, first: Tensor, q_start: Tensor, *, emitted: int = 0
+) -> tuple[Crossings, Tensor]:
+    """The reference rule over moves grouped by region: their crossings and ``q`` after each.
+
+    Args:
+        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each move.
+        on_level: ``(S,)`` bool, the move ends on a level.
+        first: ``(S,)`` bool, the move is its region's first.
+        q_start: ``(S,)`` int64 ``q`` of each move's region before its first move (read where
+            ``first``), or a 0-d int64 tensor for every region.
+        emitted: events the call already emitted (see :func:`crossings`).
+
+    Returns:
+        ``(crossings, q)``: the crossings, ``move`` indexing the given moves, and the
+        ``(S,)`` int64 reference index after each move (:func:`reference_index`).
+
+    Example:
+        >>> floor_u = torch.tensor([1, 3, -1])
+        >>> first = torch.tensor([True, False, True])
+        >>> cross, q = rule_crossings(floor_u, floor_u == 9, first, torch.tensor([0, 0, 1]))
+        >>> cross.move.tolist(), cross.level.tolist(), q.tolist()
+        ([0, 1, 1, 2], [1, 2, 3, 0], [1, 3, 0])
+    """
+    q = reference_index(floor_u, on_level, first, q_start)
     q_before = torch.empty_like(q)
     q_before[1:] = q[:-1]
-    q_before = torch.where(first_k, q0, q_before)
-    cross = crossings(q_before, q, emitted=emitted)
-    return Crossings(take(kept, cross.move), cross.level, cross.on)
+    q_before = torch.where(first, q_start, q_before)
+    return crossings(q_before, q, emitted=emitted), q

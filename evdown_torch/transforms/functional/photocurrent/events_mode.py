@@ -67,11 +67,10 @@ from evdown_torch.transforms.functional.photocurrent.levels import (
 from evdown_torch.transforms.functional.photocurrent.one_word import TooBright, one_word_moves
 from evdown_torch.transforms.functional.photocurrent.sums import grouped_levels, running_sums
 from evdown_torch.transforms.functional.reference import (
-    crossings,
     moves_to_solve,
-    reference_index,
     region_dtype,
     region_runs,
+    rule_crossings,
 )
 
 #: Fewest events of a piece that the one-word sums (:func:`.one_word.one_word_moves`) decide: below,
@@ -459,15 +458,11 @@ def _events_piece(
     kept, floor_u, on_level = moves
     del moves
     region, first = take(region, kept), take(first, kept)
-    firsts = where_true(first)
     # Every region's q before the piece (a 0-d zero while all are 0: no look-up).
     q_start = take(state.reference, region.long()) if bool(state.reference.any()) else (
         first.new_zeros((), dtype=torch.int64))
-    q = reference_index(floor_u, on_level, first, q_start)
+    cross, q = rule_crossings(floor_u, on_level, first, q_start, emitted=emitted)
     del q_start, floor_u, on_level
-    q_before = q.roll(1)
-    q_before[firsts] = take(state.reference, take(region, firsts).long())
-    cross = crossings(q_before, q, emitted=emitted)
 
     # Back to time order: crossings of one move keep their level order.
     move_at = take(kept, cross.move)
