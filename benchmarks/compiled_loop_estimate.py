@@ -3,10 +3,11 @@
 The package's kernels are vectorised eager torch (the project's rule). Issue 29's live goals
 for PhotocurrentPooling and the estimators are out of their reach
 (``benchmarks/bench_realtime_floor.py``); a compiled kernel is the other way. This script
-estimates what one would cost, with Numba (``pip install numba``; **not** a dependency of
-the package, and nothing here is part of it): one sequential loop over the events of each
-chunk of the live replay (the synthetic gesture recording retimed to 25 M events/s, 10 ms
-chunks, factor 4, one thread), beside the package's own sessions on the same chunks.
+estimates what one would cost, with Numba (the package never imports it; Tonic brings it,
+through librosa, so the ``all`` extra installs it; nothing here is part of the package):
+one sequential loop over the events of each chunk of the live replay (the synthetic
+gesture recording retimed to 25 M events/s, 10 ms chunks, factor 4, one thread), beside the
+package's own sessions on the same chunks.
 
 * EventCount's loop is exact for threshold 1 (integer region sums against multiples of
   ``n_r``), and its event count is checked against the package's.
