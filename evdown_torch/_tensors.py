@@ -452,7 +452,10 @@ def pixel_columns(
 
 
 def region_xy(region: Tensor, out_width: int) -> tuple[Tensor, Tensor]:
-    """Output coordinates ``(x, y)`` of int64 region ids ``y * out_width + x``.
+    """Coordinates ``(x, y)`` of int64 ids ``y * out_width + x``: output regions, or pixels.
+
+    ``out_width``: the width of the grid the ids number (the output sensor's for regions,
+    the input sensor's for pixel ids ``y * W + x``).
 
     Example:
         >>> x, y = region_xy(torch.tensor([0, 4, 7]), 3)

@@ -15,6 +15,7 @@ from torch import Tensor
 
 from evdown_torch._tensors import (
     changes,
+    region_xy,
     searchsorted_ascending,
     stable_sort_small,
     take,
@@ -142,8 +143,9 @@ def held_knots(events: Events, *, max_delay: float, t_start: Tensor) -> Events:
     held_pixel = take(pixel, held_at)
     held_t, held_order = torch.sort(take(t, held_at) - delay, stable=True)
     held_pixel = take(held_pixel, held_order)
-    return Events(held_pixel % width, torch.div(held_pixel, width, rounding_mode="floor"),
-                  held_t, torch.zeros(held_t.shape[0], dtype=torch.bool, device=t.device))
+    held_x, held_y = region_xy(held_pixel, width)
+    return Events(held_x, held_y, held_t,
+                  torch.zeros(held_t.shape[0], dtype=torch.bool, device=t.device))
 
 
 #: Windows (knot events) below which a merge sorts them whole and a session's step trims them

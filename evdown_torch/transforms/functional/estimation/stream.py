@@ -38,6 +38,7 @@ from evdown_torch._tensors import (
     differences,
     ends,
     region_of,
+    region_xy,
     run_index,
     segmented_cumsum,
     stable_sort_small,
@@ -195,8 +196,8 @@ def _trim(
     kept = where_true(~done | (position >= take(n_done, rank) - keep))
     pixel, t, level = take(pixel, kept), take(t, kept), take(level, kept)
     change = differences(level, where_true(changes(pixel)))
-    y = torch.div(pixel, width, rounding_mode="floor")
-    return Events(pixel - y * width, y, t, change > 0), change
+    x, y = region_xy(pixel, width)
+    return Events(x, y, t, change > 0), change
 
 
 def _recent(
@@ -229,8 +230,8 @@ def _recent(
     carried = torch.zeros(pixels, dtype=torch.int64, device=t.device)
     carried.index_add_(0, pixel, head_change.masked_fill(~fold, 0))
     at = where_true(folded > 0)
-    y = torch.div(at, width, rounding_mode="floor")
-    carry = Events(at - y * width, y, take(since, at), torch.zeros_like(at, dtype=torch.bool))
+    x, y = region_xy(at, width)
+    carry = Events(x, y, take(since, at), torch.zeros_like(at, dtype=torch.bool))
     passed = where_true(~fold)
     tail = window.part(cut)
     events = Events.cat([carry, window.select(passed), tail])
