@@ -43,6 +43,7 @@ __all__ = [
     "segmented_cumsum",
     "sort_by_time",
     "stable_sort_small",
+    "telescoped_cumsum",
     "take",
     "time_order",
     "where_true",
@@ -253,9 +254,23 @@ def continued_cumsum(
     plain = torch.cumsum(change, 0, dtype=change.dtype)
     final = take(plain, lasts) - take(plain, starts) + take(change, starts) + initial
     del plain
+    return telescoped_cumsum(change, starts, initial, final), final
+
+
+def telescoped_cumsum(change: Tensor, starts: Tensor, initial: Tensor, final: Tensor) -> Tensor:
+    """:func:`continued_cumsum`'s running sums when each group's ``final`` value is known.
+
+    Each group's first change also moves the one cumulative sum from the previous group's
+    ``final`` to this group's ``initial``; ``change`` and ``initial`` are overwritten.
+
+    Example:
+        >>> telescoped_cumsum(torch.tensor([1, 1, -1, 1, -1]), torch.tensor([0, 2]),
+        ...                   torch.tensor([5, -3]), torch.tensor([7, -4])).tolist()
+        [6, 7, -4, -3, -4]
+    """
     jump = initial
     jump[1:] -= final[:-1]
-    return change.index_add_(0, starts, jump).cumsum_(0), final
+    return change.index_add_(0, starts, jump).cumsum_(0)
 
 
 # --- Time order and chunks -----------------------------------------------------------------

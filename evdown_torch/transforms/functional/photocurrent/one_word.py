@@ -18,7 +18,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, run_max, runs_of, take, where_true
+from evdown_torch._tensors import (
+    divide,
+    run_max,
+    runs_of,
+    take,
+    telescoped_cumsum,
+    where_true,
+)
 from evdown_torch.transforms.functional.photocurrent.levels import snap
 from evdown_torch.transforms.functional.photocurrent.sums import (
     EPS,
@@ -144,8 +151,7 @@ def one_word_sums(
     # Row i (j = lo + i): [change by OFF, change by ON], at 2 * (j - lo) + on.
     by_level = torch.stack([table[:-2] - table[1:-1], table[2:] - table[1:-1]], 1).reshape(-1)
     change = take(by_level, key.clamp_(min=2 * lo).sub_(2 * lo))
-    anchor[1:] -= final[:-1]
-    total = change.index_add_(0, firsts, anchor).cumsum_(0)
+    total = telescoped_cumsum(change, firsts, anchor, final)
     smallest = int(total.min())
     # The smallest two-word sum, at least (each region's factor exp(c * (top - m)) / 2**bits
     # is above 2**-bits, and above its own smallest total): running_sums cuts before a sum
