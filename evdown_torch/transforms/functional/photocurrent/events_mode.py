@@ -49,6 +49,7 @@ from evdown_torch._tensors import (
     pixel_columns,
     region_pixel_count,
     region_xy,
+    run_index,
     sort_by_time,
     stable_sort_small,
     take,
@@ -146,7 +147,7 @@ def _two_word_u(
     if runs is None:
         firsts = where_true(part.first)
         runs = (firsts, last_of_runs(firsts, part.first.shape[0]),
-                torch.cumsum(part.first, 0, dtype=torch.int64).sub_(1))
+                run_index(part.first))
     firsts, lasts, rank = runs
 
     def slot() -> Tensor:  # each event's column in ids, for regions that climb
@@ -387,7 +388,7 @@ def _events_piece(
             moves = tried
             break
         hot = tried.regions
-        held = take(hot, torch.cumsum(first, 0, dtype=torch.int64).sub_(1))
+        held = take(hot, run_index(first))
         if key.shape[0] - int(held.sum()) < ONE_WORD_MIN_EVENTS:
             break  # the two-word sums decide (and cut) them all
         # Try again without those regions, which the two-word sums decide after the others:
@@ -417,7 +418,7 @@ def _events_piece(
         order, region, first = (torch.cat([order, part.order]), torch.cat([region, part.region]),
                                 torch.cat([first, part.first]))
     if moves is None:
-        rank = torch.cumsum(first, 0, dtype=torch.int64).sub_(1)
+        rank = run_index(first)
         # u = log(I_r) / theta = (c * m + log(total / n_r)) / theta, then the reference rule.
         if dense or key.shape[0] == 1:  # each event's sum from its region's levels after it
             rows = region_levels_after(events.select(order), factor, rank, firsts,
