@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, stable_sort_small, where_true
+from evdown_torch._tensors import changes, divide, run_index, stable_sort_small, where_true
 from evdown_torch.events import Events
 
 __all__ = ["TABLE_KEYS_PER_SPIKE", "by_step_then_neuron", "counted_cells", "grouped_cells"]
@@ -99,19 +99,17 @@ def grouped_cells(
         key, order = torch.sort(region.mul_(span).add_(steps).sub_(low))
         polarity = events.p.index_select(0, order)
         del order
-        starts = torch.ones(n, dtype=torch.bool, device=device)
-        torch.ne(key[1:], key[:-1], out=starts[1:])
-        cell_of_event = torch.cumsum(starts, 0).sub_(1)
+        starts = changes(key)
+        cell_of_event = run_index(starts)
         cell_step = key.index_select(0, where_true(starts))
     else:
         region, order = stable_sort_small(region, plane)  # stable: time order within a region
         steps = steps.index_select(0, order)
         polarity = events.p.index_select(0, order)
         del order
-        starts = torch.ones(n, dtype=torch.bool, device=device)
-        torch.ne(region[1:], region[:-1], out=starts[1:])
+        starts = changes(region)
         starts[1:] |= steps[1:] != steps[:-1]
-        cell_of_event = torch.cumsum(starts, 0).sub_(1)
+        cell_of_event = run_index(starts)
         first = where_true(starts)
         cell_region, cell_step = region.index_select(0, first), steps.index_select(0, first)
         del region, steps, starts, first

@@ -64,7 +64,15 @@ from typing import NamedTuple, cast
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, sort_by_time, stable_sort_small, where_true
+from evdown_torch._tensors import (
+    changes,
+    divide,
+    last_of_runs,
+    run_index,
+    sort_by_time,
+    stable_sort_small,
+    where_true,
+)
 from evdown_torch.checks import check_output_count, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.lif.chains import Leak
@@ -392,11 +400,9 @@ def lif_spikes(
         return empty, empty, state if state is not None else initial_state(plane, device)
 
     # Each region's cells: its first one, and the empty steps before and after each cell.
-    new_region = torch.ones(n_cells, dtype=torch.bool, device=device)
-    torch.ne(cell_region[1:], cell_region[:-1], out=new_region[1:])
+    new_region = changes(cell_region)
     region_first = where_true(new_region)
-    region_last = torch.roll(region_first, -1).sub_(1)
-    region_last[-1] = n_cells - 1
+    region_last = last_of_runs(region_first, n_cells)
     cells_per_region = region_last - region_first + 1
     gap_after = torch.empty_like(cell_step)
     torch.sub(cell_step[1:], cell_step[:-1], out=gap_after[:-1]).sub_(1)
@@ -408,7 +414,7 @@ def lif_spikes(
     # The membranes: in closed form where that is certain to give the rounds' spikes (calls
     # whose new state is not needed), else by rounds.
     rounds = int(cells_per_region.max())
-    region_index = torch.cumsum(new_region, 0).sub_(1)
+    region_index = run_index(new_region)
     certain = None
     if not keep_state and rounds >= MIN_ROUNDS:
         certain = certain_spikes(cell_step, current, region_first, region_index,
