@@ -8,16 +8,13 @@ region). The output sensor size itself is :func:`evdown_torch.checks.output_size
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from evdown_torch.checks import output_size
-
-if TYPE_CHECKING:  # events.py imports this module
-    from evdown_torch.events import Events
 
 __all__ = [
     "CHUNK_EVENTS",
@@ -41,13 +38,22 @@ __all__ = [
     "runs_of",
     "searchsorted_ascending",
     "segmented_cumsum",
-    "sort_by_time",
     "stable_sort_small",
     "take",
     "telescoped_cumsum",
     "time_order",
     "where_true",
 ]
+
+class Pixels(Protocol):
+    """Anything with ``x`` and ``y`` columns (:class:`~evdown_torch.events.Events`)."""
+
+    @property
+    def x(self) -> Tensor: ...  # noqa: D102
+
+    @property
+    def y(self) -> Tensor: ...  # noqa: D102
+
 
 #: Events per chunk when a kernel processes a long stream piece by piece: temporaries of this
 #: length stay small enough (8 MB of int64) to be recycled by the allocator instead of being
@@ -290,12 +296,6 @@ def time_order(t: Tensor) -> Tensor | None:
     return torch.sort(t, stable=True).indices
 
 
-def sort_by_time(events: Events) -> Events:
-    """Events in stable time order (the input itself when already sorted)."""
-    order = time_order(events.t)
-    return events if order is None else events.select(order)
-
-
 def chunk_bounds(t: Tensor, chunk: int | None = None, *, split_ties: bool = True) -> list[int]:
     """Start indices of consecutive chunks of about ``chunk`` events of a time-sorted stream.
 
@@ -442,13 +442,13 @@ def floor_divide_exact(values: Tensor, divisor: int | Tensor) -> tuple[Tensor, T
 # --- Region geometry -----------------------------------------------------------------------
 
 
-def region_of(events: Events, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:
+def region_of(events: Pixels, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:
     """Region coordinates ``(x // fx, y // fy)`` of every event, as new int64 tensors."""
     return divide(events.x, factor[0]), divide(events.y, factor[1])
 
 
 def pixel_columns(
-    events: Events, factor: tuple[int, int], regions: tuple[Tensor, Tensor] | None = None
+    events: Pixels, factor: tuple[int, int], regions: tuple[Tensor, Tensor] | None = None
 ) -> Tensor:
     """``(N,)`` int64 place of each event's pixel in its region, ``(y % fy) * fx + x % fx``.
 
@@ -456,8 +456,8 @@ def pixel_columns(
     ``region_pixel_ids``). ``regions``: the events' :func:`region_of`, when the caller has it.
 
     Example:
-        >>> from evdown_torch.events import Events
-        >>> pixel_columns(Events.from_columns([0, 3, 2], [1, 0, 3], [0, 1, 2], [1, 1, 1]),
+        >>> from types import SimpleNamespace
+        >>> pixel_columns(SimpleNamespace(x=torch.tensor([0, 3, 2]), y=torch.tensor([1, 0, 3])),
         ...               (2, 2)).tolist()
         [2, 1, 2]
     """

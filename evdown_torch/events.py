@@ -42,7 +42,7 @@ import numpy.typing as npt
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import where_true
+from evdown_torch._tensors import time_order, where_true
 from evdown_torch.checks import check_has_values
 
 __all__ = [
@@ -225,6 +225,17 @@ class EventFormat:
     dtype: np.dtype | torch.dtype | None
     polarity: Literal["bool", "binary", "signed"]
     device: torch.device
+
+
+def sort_by_time(events: Events) -> Events:
+    """Events in stable time order (the input itself when already sorted).
+
+    Example:
+        >>> sort_by_time(Events.from_columns([0, 1, 2], [0, 0, 0], [5, 3, 5], [1, 1, 0])).t.tolist()
+        [3, 5, 5]
+    """
+    order = time_order(events.t)
+    return events if order is None else events.select(order)
 
 
 def _polarity_encoding(p: Tensor) -> Literal["bool", "binary", "signed"]:

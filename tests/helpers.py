@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from evdown_torch import CubicEstimation, EventCount, LinearEstimation
 from evdown_torch.events import DVS_DTYPE
+from evdown_torch.models import SpikingPooling
 
 #: The estimators, and the three log-luminance methods (EventCount and the estimators).
 ESTIMATORS = [LinearEstimation, CubicEstimation]
@@ -226,7 +227,7 @@ def lif_dense_reference(arr: np.ndarray, pool) -> list[tuple]:
     k = (t - t0) // dt
     frames = np.zeros((int(k.max()) + 1, 1, 2, h, w), dtype=np.float32)
     np.add.at(frames, (k, 0, (arr["p"] > 0).astype(int), arr["y"], arr["x"]), 1)
-    spikes, _ = pool.to_module()(torch.from_numpy(frames))
+    spikes, _ = SpikingPooling.from_transform(pool)(torch.from_numpy(frames))
     step, _, p, y, x = (c.tolist() for c in spikes.nonzero(as_tuple=True))
     times = [min(t0 + (s + 1) * dt, t1) for s in step]
     return sorted(zip(x, y, times, [bool(v) for v in p], strict=True))

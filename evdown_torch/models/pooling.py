@@ -19,6 +19,7 @@ from evdown_torch.transforms.functional.lif.settings import (
     ResetMechanism,
     decay_factor,
 )
+from evdown_torch.transforms.lif import LIFPooling
 
 __all__ = [
     "SpikingPooling",
@@ -150,6 +151,24 @@ class SpikingPooling(nn.Module):
                 spike_grad=spike_grad,
             )
         )
+
+    @classmethod
+    def from_transform(cls, pool: LIFPooling) -> SpikingPooling:
+        """The module with a :class:`~evdown_torch.LIFPooling` transform's factor and neurons.
+
+        Run on the stream's frames ``ToFrame(sensor_size, time_window=dt,
+        include_incomplete=True)`` (windows from the first event on, as a ``(T, 1, 2, H, W)``
+        float tensor), it gives the spikes that the transform turns into events (up to float32
+        rounding over silences, see :mod:`evdown_torch.transforms.functional.lif.pooling`).
+
+        Example:
+            >>> module = SpikingPooling.from_transform(LIFPooling((8, 8, 2), 2, tau=5000.0))
+            >>> module.factor, round(module.beta, 4)
+            ((2, 2), 0.8187)
+        """
+        if not isinstance(pool, LIFPooling):
+            raise TypeError(f"from_transform takes a LIFPooling, got {type(pool).__name__}")
+        return cls(pool.factor_xy, **pool.settings.neuron.constants._asdict())
 
     @property
     def beta(self) -> float:

@@ -29,8 +29,7 @@ from evdown_torch.events import Events
 from evdown_torch.plot._mpl import MissingMatplotlib
 from evdown_torch.plot.recording import SYNTHETIC_DURATION_MS, load_recording, method_name
 from evdown_torch.time_units import check_timing, time_settings
-from evdown_torch.transforms import Downscaler
-from evdown_torch.transforms._base import ThresholdDownscaler
+from evdown_torch.transforms import Downscaler, ThresholdDownscaler
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
 DEFAULT_ANIMATION = "evdown_show.gif"

@@ -30,14 +30,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import region_of, region_pixel_count, sort_by_time
+from evdown_torch._tensors import region_of, region_pixel_count
 from evdown_torch.checks import check_factor, check_positive_int, check_sensor_size, output_size
-from evdown_torch.events import Events, EventsLike, to_events
+from evdown_torch.events import Events, EventsLike, sort_by_time, to_events
 from evdown_torch.plot import _mpl
 from evdown_torch.plot.recording import method_name
 from evdown_torch.time_units import display_unit
-from evdown_torch.transforms import Downscaler
-from evdown_torch.transforms._base import ThresholdDownscaler
+from evdown_torch.transforms import Downscaler, ThresholdDownscaler
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount
 from evdown_torch.transforms.functional.estimation.cubic import pchip_slopes

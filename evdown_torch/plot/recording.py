@@ -14,9 +14,8 @@ from typing import Any, NamedTuple, cast
 import numpy as np
 import torch
 
-from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import check_factor, check_sensor_size, output_size
-from evdown_torch.events import Events, EventsLike, to_events
+from evdown_torch.events import Events, EventsLike, sort_by_time, to_events
 from evdown_torch.io import read_microseconds
 from evdown_torch.transforms import Downscaler
 from evdown_torch.transforms.registry import METHODS, make_method

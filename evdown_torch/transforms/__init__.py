@@ -1,12 +1,19 @@
 """Downscaling transforms, usable alone or inside ``tonic.transforms.Compose``."""
 
-from evdown_torch.transforms._base import Chain, Downscaler, Method, Session, Streaming
+from evdown_torch.transforms._base import (
+    Chain,
+    Downscaler,
+    Session,
+    Streaming,
+    ThresholdDownscaler,
+)
 from evdown_torch.transforms.calibrate import BudgetTarget, calibrate
 from evdown_torch.transforms.downsample import Downsample, EventFunnelling
 from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
-from evdown_torch.transforms.event_count import EventCount, EventCountSession
+from evdown_torch.transforms.event_count import EventCount
+from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
-from evdown_torch.transforms.photocurrent import PhotocurrentPooling, PhotocurrentSession
+from evdown_torch.transforms.photocurrent import PhotocurrentPooling
 from evdown_torch.transforms.temporal import TemporalFunnelling
 from evdown_torch.transforms.thinning import ThinnedDownsample
 
@@ -17,17 +24,16 @@ __all__ = [
     "Downscaler",
     "Downsample",
     "EventCount",
-    "EventCountSession",
     "EventFunnelling",
     "LIFPooling",
     "LinearEstimation",
     "Method",
     "PhotocurrentPooling",
-    "PhotocurrentSession",
     "Session",
     "Streaming",
     "TemporalFunnelling",
     "ThinnedDownsample",
+    "ThresholdDownscaler",
     "calibrate",
     "calibrate_weight",
 ]

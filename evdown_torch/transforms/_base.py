@@ -2,85 +2,60 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
 from functools import cached_property
 from typing import Any, ClassVar, overload
 
 import torch
 
-from evdown_torch._tensors import sort_by_time
+from evdown_torch.checks import check_factor, check_sensor_size
 from evdown_torch.collate import EventBatch, from_batch, to_batch
-from evdown_torch.events import EventFormat, Events, EventsLike, from_events, to_events
+from evdown_torch.events import (
+    EventFormat,
+    Events,
+    EventsLike,
+    from_events,
+    sort_by_time,
+    to_events,
+)
+from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
-
-
-def finish_nothing(state: Any, settings: Any) -> Events | None:
-    """The ``finish`` kernel of a causal method: the end of a stream decides nothing."""
-    return None
-
-
-@dataclass(frozen=True)
-class Method:
-    """A method's three pure kernels over its settings, and optional fast paths.
-
-    Every method is a frozen settings dataclass ``S`` (checked and normalised once) plus:
-
-    - ``init_state(settings, first_chunk) -> state``: the state of a fresh stream whose first
-      non-empty, time-sorted chunk is ``first_chunk`` (its device, dtype and first timestamp
-      are what a state may need from it; it is not consumed).
-    - ``step(chunk, state, settings) -> (output, state)``: one non-empty, time-sorted chunk;
-      the output is what the chunk *decides* (no later input can change it), sorted by
-      ``t`` and not earlier than any earlier output.
-    - ``finish(state, settings) -> output``: what only the end of the stream decides
-      (``None``: nothing; the default, for causal methods).
-
-    :class:`Streaming` builds a transform's ``__call__``, ``batch`` and ``session`` from
-    these, so a stream cut in chunks equals the whole and a batch equals one call per
-    recording by construction. Two optional fast paths give the same results faster and are
-    tested equal to the protocol (``tests/transforms/test_streaming.py``):
-
-    - ``whole(events, settings) -> output``: the whole stream in one call (events in any order).
-    - ``stacked(batch, settings) -> EventBatch | None``: a batch of recordings in one call
-      (``None``: this batch goes one recording at a time).
-    """
-
-    init_state: Callable[[Any, Events], Any]
-    step: Callable[[Events, Any, Any], tuple[Events, Any]]
-    finish: Callable[[Any, Any], Events | None] = finish_nothing
-    whole: Callable[[Events, Any], Events] | None = None
-    stacked: Callable[[EventBatch, Any], EventBatch | None] | None = None
-
-
-def run_protocol(method: Method, settings: Any, events: Events) -> Events:
-    """The whole stream as one chunk through ``init_state``, ``step`` and ``finish``."""
-    if events.num_events == 0:
-        return Events.empty(events.t.dtype, events.device)
-    events = sort_by_time(events)
-    state = method.init_state(settings, events)
-    out, state = method.step(events, state, settings)
-    tail = method.finish(state, settings)
-    if tail is None or tail.num_events == 0:
-        return out
-    return Events.cat([out, tail])
 
 
 class Streaming:
     """A transform built from a :class:`Method`: its settings and three kernels.
 
-    Subclasses set the class attribute :attr:`method` and expose their checked settings as
-    :attr:`settings`; everything else is generic: :meth:`kernel` (the whole stream, through
-    the method's ``whole`` fast path when it has one), :meth:`stream` / :meth:`stream_end`
-    (the steps of a :class:`Session`), :meth:`__call__`, :meth:`batch` and :meth:`session`.
-    The concatenation of every chunk's output and the end's equals the transform applied to
-    the whole stream (docs/semantics.md, "Processing a stream in consecutive chunks").
-    A method that cannot stream (:attr:`method` ``None``, or a ``session`` override saying
-    why) has no session.
+    A subclass names its method's bundle, defined beside the kernels
+    (``method = EVENT_COUNT``, from :mod:`.functional.event_count`), its registry
+    :attr:`name`, and its checked settings as :attr:`settings`; everything else is generic:
+    :meth:`kernel` (the whole stream, through the method's ``whole`` fast path when it has
+    one), :meth:`stream` / :meth:`stream_end` (the steps of a :class:`Session`),
+    :meth:`__call__`, :meth:`batch` and :meth:`session`. The concatenation of every chunk's
+    output and the end's equals the transform applied to the whole stream
+    (docs/semantics.md, "Processing a stream in consecutive chunks"). A transform that
+    cannot stream (a ``session`` override saying why) has no session.
+
+    A class that is not abstract (``abstract=True`` in its class statement) and names no
+    ``method`` or no ``settings`` is refused when it is defined.
     """
 
     sensor_size: tuple[int, int, int] | None
-    #: The method's kernels (``None``: a composition such as :class:`Chain`).
-    method: ClassVar[Method | None] = None
+    #: The method's kernels (``None``: an abstract base, or a composition such as
+    #: :class:`Chain`).
+    method: ClassVar[Method[Any, Any] | None] = None
+    #: The method's name in the registry (``transforms.registry.METHODS``), the command line
+    #: and the study's configs; empty for a transform outside the registry.
+    name: ClassVar[str] = ""
+
+    def __init_subclass__(cls, abstract: bool = False, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if abstract:
+            return
+        if cls.method is None and cls.kernels is Streaming.kernels:
+            raise TypeError(f"{cls.__name__} names no method: set `method = <its bundle>`")
+        if cls.settings is Streaming.settings:
+            raise TypeError(f"{cls.__name__} has no settings: define its `settings` property")
 
     @property
     def settings(self) -> Any:
@@ -88,51 +63,49 @@ class Streaming:
         raise NotImplementedError(f"{type(self).__name__} has no settings")
 
     @property
-    def method_settings(self) -> Any:
-        """The settings the method's kernels take.
+    def kernels(self) -> Method[Any, Any]:
+        """The bundle this transform runs: its class's :attr:`method`.
 
-        That is :attr:`settings`, except where the public settings are a part of them (LIF:
-        the neuron's ``LIFSettings``, shared with the ``nn.Module``, inside the region's
-        ``LIFPoolingSettings``).
+        A transform with several modes (PhotocurrentPooling) picks one from its settings.
         """
-        return self.settings
+        if self.method is None:
+            raise NotImplementedError(f"{type(self).__name__} has no method kernels")
+        return self.method
+
+    def algorithmic_delay(self) -> float:
+        """How long after an input event, in stream time, its output can be final.
+
+        0 for a causal method (the default); ``inf`` for one that needs the whole stream.
+        """
+        return 0.0
 
     def kernel(self, events: Events) -> Events:
         """The whole stream of validated events (any order), sorted by ``t``."""
-        method = self._method()
-        if method.whole is not None:
-            return method.whole(events, self.method_settings)
-        return run_protocol(method, self.method_settings, events)
+        return self.kernels.run_whole(events, self.settings)
 
     def stream(self, events: Events, state: Any | None) -> tuple[Events, Any]:
         """One non-empty, time-sorted chunk through the method's ``step``.
 
         ``state`` is ``None`` for the first chunk of a stream. Returns ``(output, new state)``.
         """
-        method = self._method()
+        init_state, step = self.kernels.streaming()
         if state is None:
-            state = method.init_state(self.method_settings, events)
-        return method.step(events, state, self.method_settings)
+            state = init_state(self.settings, events)
+        return step(events, state, self.settings)
 
     def stream_end(self, state: Any | None) -> Events | None:
         """The output only the end of the stream decides (``None``: nothing)."""
         if state is None:
             return None
-        return self._method().finish(state, self.method_settings)
+        return self.kernels.finish(state, self.settings)
 
     def batch_kernel(self, batch: EventBatch) -> EventBatch | None:
         """A batch of validated recordings through the method's ``stacked`` fast path.
 
         ``None`` when it has none (:meth:`batch` then goes one recording at a time).
         """
-        if self.method is None or self.method.stacked is None:
-            return None
-        return self.method.stacked(batch, self.method_settings)
-
-    def _method(self) -> Method:
-        if self.method is None:
-            raise NotImplementedError(f"{type(self).__name__} has no method kernels")
-        return self.method
+        stacked = self.kernels.stacked
+        return None if stacked is None else stacked(batch, self.settings)
 
     def __call__(self, events: EventsLike) -> EventsLike:
         """Downscale events of any accepted kind and return the same kind.
@@ -205,9 +178,13 @@ class Streaming:
         """Start a streaming session over consecutive chunks of one stream (see :class:`Session`).
 
         Raises:
-            NotImplementedError: for a transform without method kernels.
+            NotImplementedError: for a transform without method kernels, or whose method
+                cannot stream (saying why).
         """
-        self._method()
+        try:
+            self.kernels.streaming()
+        except NotImplementedError as error:
+            raise NotImplementedError(f"{type(self).__name__} has {error}") from None
         return Session(self)
 
 
@@ -308,7 +285,7 @@ class Session:
 
 
 @dataclass(frozen=True)
-class Downscaler(Streaming):
+class Downscaler(Streaming, abstract=True):
     """Base of the downscaling transforms: region settings, batches and the edge conversions.
 
     Subclasses are frozen dataclasses whose fields are the method's settings, built once
@@ -331,26 +308,34 @@ class Downscaler(Streaming):
     factor: int | tuple[int, int] = 2
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "sensor_size", self.method_settings.sensor_size)
+        settings = self.settings  # checks every setting, once
+        for field in fields(self):  # the normalised values back (the factor stays as given)
+            if field.name != "factor" and hasattr(settings, field.name):
+                object.__setattr__(self, field.name, getattr(settings, field.name))
+
+    def region_geometry(self) -> tuple[tuple[int, int, int], tuple[int, int]]:
+        """The checked ``(sensor_size, (fx, fy))`` every region method's settings start with."""
+        sensor_size = check_sensor_size(self.sensor_size)
+        return sensor_size, check_factor(self.factor, sensor_size)
 
     @cached_property
     def settings(self) -> RegionSettings:
         """The checked settings the kernels take (built once, in ``__post_init__``)."""
-        return RegionSettings(self.sensor_size, self.factor)  # type: ignore[arg-type]
+        return RegionSettings(*self.region_geometry())
 
     @property
     def factor_xy(self) -> tuple[int, int]:
         """The factor as a pair ``(fx, fy)``."""
-        return self.method_settings.factor
+        return self.settings.factor
 
     @property
     def output_sensor_size(self) -> tuple[int, int, int]:
         """Output sensor size ``(ceil(W / fx), ceil(H / fy), P)``, for the next transform."""
-        return self.method_settings.output_sensor_size
+        return self.settings.output_sensor_size
 
 
 @dataclass(frozen=True)
-class ThresholdDownscaler(Downscaler):
+class ThresholdDownscaler(Downscaler, abstract=True):
     """Base of the log-luminance methods: a DVS reference rule at a contrast threshold.
 
     Attributes:
@@ -369,19 +354,14 @@ class ThresholdDownscaler(Downscaler):
 
     threshold: float = 1.0
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        object.__setattr__(self, "threshold", self.settings.threshold)
-
     @cached_property
     def settings(self) -> ThresholdSettings:
         """The checked settings the kernels take (built once, in ``__post_init__``)."""
-        return ThresholdSettings(self.sensor_size, self.factor,  # type: ignore[arg-type]
-                                 self.threshold)
+        return ThresholdSettings(*self.region_geometry(), self.threshold)
 
 
 @dataclass(frozen=True, init=False)
-class Chain(Streaming):
+class Chain(Streaming, abstract=True):
     """Transforms applied one after the other, as one transform with one session.
 
     ``tonic.transforms.Compose`` chains transforms for whole recordings; ``Chain`` does the
@@ -418,6 +398,10 @@ class Chain(Streaming):
     def sensor_size(self) -> tuple[int, int, int] | None:  # type: ignore[override]
         """The first stage's input sensor size."""
         return self.transforms[0].sensor_size
+
+    def batch_kernel(self, batch: EventBatch) -> EventBatch | None:
+        """``None``: a chain's batch goes one recording at a time through every stage."""
+        return None
 
     def kernel(self, events: Events) -> Events:
         """Every stage's kernel in order; each stage checks its input as its call would."""

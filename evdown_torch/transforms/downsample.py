@@ -2,60 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import ClassVar
 
-from evdown_torch._tensors import region_of
-from evdown_torch.collate import EventBatch
-from evdown_torch.events import Events
-from evdown_torch.transforms._base import Downscaler, Method
-from evdown_torch.transforms._batch import run_stacked, sorted_within
-from evdown_torch.transforms.functional.downsample import (
-    downsample_init,
-    downsample_step,
-    downsample_whole,
-)
-from evdown_torch.transforms.functional.funnelling import (
-    funnel_batch,
-    funnel_init,
-    funnel_step,
-    funnel_whole,
-)
-from evdown_torch.transforms.functional.settings import RegionSettings
-
-
-def _divided(batch: EventBatch, settings: RegionSettings) -> EventBatch:
-    """Events do not interact: recordings each in time order need only the division."""
-    events = batch.events
-    x, y = region_of(events, settings.factor)
-    return EventBatch(Events(x, y, events.t.clone(), events.p.clone()), batch.lengths)
-
-
-def _funnelled(batch: EventBatch, settings: RegionSettings) -> EventBatch:
-    """Recordings each in time order go through :func:`funnel_batch` (no stacking)."""
-    width, height, _ = settings.output_sensor_size
-    return EventBatch(*funnel_batch(batch.events, batch.lengths, settings.factor,
-                                    (width, height)))
-
-
-def _stacked(
-    sorted_kernel: Callable[[EventBatch, RegionSettings], EventBatch],
-    whole: Callable[[Events, RegionSettings], Events],
-) -> Callable[[EventBatch, RegionSettings], EventBatch]:
-    """A batch kernel from a method's sorted and whole-stream kernels.
-
-    ``sorted_kernel`` when every recording is in time order, else the whole-stream kernel once
-    on the stacked recordings.
-    """
-
-    def stacked(batch: EventBatch, settings: RegionSettings) -> EventBatch:
-        if sorted_within(batch.events.t, batch.lengths):
-            return sorted_kernel(batch, settings)
-        return run_stacked(batch, lambda s: whole(s.events, settings),
-                           sensor_size=settings.sensor_size, factor=settings.factor)
-
-    return stacked
+from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms.functional.downsample import DOWNSAMPLE
+from evdown_torch.transforms.functional.funnelling import FUNNELLING
 
 
 @dataclass(frozen=True)
@@ -76,8 +27,8 @@ class Downsample(Downscaler):
         ([(1, 0, True, 0), (1, 0, False, 5)], (2, 2, 2))
     """
 
-    method: ClassVar[Method] = Method(downsample_init, downsample_step, whole=downsample_whole,
-                                      stacked=_stacked(_divided, downsample_whole))
+    method = DOWNSAMPLE
+    name = "downsample"
 
 
 @dataclass(frozen=True)
@@ -95,5 +46,5 @@ class EventFunnelling(Downscaler):
         [[0, 0, 7, 1], [0, 0, 7, 0]]
     """
 
-    method: ClassVar[Method] = Method(funnel_init, funnel_step, whole=funnel_whole,
-                                      stacked=_stacked(_funnelled, funnel_whole))
+    method = FUNNELLING
+    name = "funnelling"

@@ -2,43 +2,18 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 from typing import ClassVar
 
-from evdown_torch.collate import EventBatch
-from evdown_torch.events import Events
-from evdown_torch.transforms._base import Method, Session, ThresholdDownscaler
-from evdown_torch.transforms._batch import run_stacked
-from evdown_torch.transforms.functional.estimation.cubic import cubic_regions
-from evdown_torch.transforms.functional.estimation.driver import RegionSolver, estimate
-from evdown_torch.transforms.functional.estimation.linear import linear_regions
-from evdown_torch.transforms.functional.estimation.stream import (
-    EstimationSettings,
-    window_end,
-    window_init,
-    window_step,
-)
-
-
-def _whole(events: Events, settings: EstimationSettings) -> Events:
-    """The whole stream (any order) in one call."""
-    return estimate(events, settings)
-
-
-def _stacked(batch: EventBatch, settings: EstimationSettings) -> EventBatch:
-    """The whole-stream kernel once on the stacked batch, with each recording's own span."""
-    return run_stacked(batch, lambda s: estimate(s.events, settings,
-                                                 recording_spans=(s.starts, s.ends)),
-                       sensor_size=settings.sensor_size, factor=settings.factor)
-
-
-#: Both estimators' kernels: the settings name the curve (``solver``) and the delay.
-ESTIMATION = Method(window_init, window_step, window_end, whole=_whole, stacked=_stacked)
+from evdown_torch.transforms._base import Session, ThresholdDownscaler
+from evdown_torch.transforms.functional.estimation.method import ESTIMATION
+from evdown_torch.transforms.functional.estimation.settings import Curve, EstimationSettings
 
 
 @dataclass(frozen=True)
-class _Estimation(ThresholdDownscaler):
+class _Estimation(ThresholdDownscaler, abstract=True):
     """What both estimators share: the bounded delay and its streaming session.
 
     Attributes:
@@ -48,16 +23,24 @@ class _Estimation(ThresholdDownscaler):
 
     max_delay: float | None = None
 
-    #: Output up to ``tau - lag * D`` is decided by input up to ``tau``.
-    lag: ClassVar[int] = 1
-    #: The curve's solver of one chunk of regions.
-    solver: ClassVar[RegionSolver] = staticmethod(linear_regions)
+    method = ESTIMATION
+    #: The pixels' curve (the settings' ``curve``, which picks the solver).
+    curve: ClassVar[Curve] = "linear"
 
     @cached_property
     def settings(self) -> EstimationSettings:
         """The checked settings the kernels take (built once, in ``__post_init__``)."""
-        return EstimationSettings(self.sensor_size, self.factor,  # type: ignore[arg-type]
-                                  self.threshold, self.max_delay, self.lag, type(self).solver)
+        return EstimationSettings(*self.region_geometry(), self.threshold, self.max_delay,
+                                  self.curve)
+
+    @property
+    def lag(self) -> int:
+        """Output up to ``tau - lag * D`` is decided by input up to ``tau``: 1 or 2."""
+        return self.settings.lag
+
+    def algorithmic_delay(self) -> float:
+        """``lag * max_delay``; ``inf`` without ``max_delay`` (the whole recording)."""
+        return math.inf if self.max_delay is None else self.lag * self.max_delay
 
     def session(self) -> Session:
         """Start a streaming session (needs a finite ``max_delay``; see :meth:`stream`).
@@ -110,7 +93,7 @@ class LinearEstimation(_Estimation):
         [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 5, 1], [0, 0, 10, 1]]
     """
 
-    method: ClassVar[Method] = ESTIMATION
+    name = "linear"
 
 
 @dataclass(frozen=True)
@@ -145,7 +128,5 @@ class CubicEstimation(_Estimation):
         [[0, 0, 0, 1], [0, 0, 0, 1], [0, 0, 6, 1], [0, 0, 20, 0]]
     """
 
-    lag: ClassVar[int] = 2
-    solver: ClassVar[RegionSolver] = staticmethod(cubic_regions)
-
-    method: ClassVar[Method] = ESTIMATION
+    name = "cubic"
+    curve = "cubic"

@@ -4,15 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 from functools import cached_property
-from typing import TYPE_CHECKING, ClassVar
 
-from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import check_positive_float
-from evdown_torch.collate import EventBatch
-from evdown_torch.events import Events, EventsLike, to_events
-from evdown_torch.transforms._base import Downscaler, Method
-from evdown_torch.transforms._batch import Stacked, run_stacked
-from evdown_torch.transforms.functional.lif.pooling import lif_pooling
+from evdown_torch.events import EventsLike, sort_by_time, to_events
+from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.functional.lif.settings import (
     DEFAULT_DT,
     DEFAULT_TAU,
@@ -22,31 +17,9 @@ from evdown_torch.transforms.functional.lif.settings import (
     LIFSettings,
     ResetMechanism,
 )
-from evdown_torch.transforms.functional.lif.stream import lif_finish, lif_init, lif_step
-
-if TYPE_CHECKING:
-    from evdown_torch.models.pooling import SpikingPooling
+from evdown_torch.transforms.functional.lif.stream import LIF_POOLING
 
 __all__ = ["LIFPooling", "calibrate_weight"]
-
-
-def _lif_whole(events: Events, settings: LIFPoolingSettings) -> Events:
-    """The whole stream in one call: :func:`.pooling.lif_pooling`."""
-    return lif_pooling(events, settings.neuron, sensor_size=settings.sensor_size,
-                       factor=settings.factor)
-
-
-def _lif_stacked(batch: EventBatch, settings: LIFPoolingSettings) -> EventBatch:
-    """The whole-stream kernel once on the stacked batch.
-
-    Each recording is binned from its own ``t_start`` and ends at its own ``t_end``.
-    """
-
-    def kernel(stacked: Stacked) -> Events:
-        return lif_pooling(stacked.events, settings.neuron, sensor_size=settings.sensor_size,
-                           factor=settings.factor, recording_spans=(stacked.starts, stacked.ends))
-
-    return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
 
 
 @dataclass(frozen=True)
@@ -58,8 +31,9 @@ class LIFPooling(Downscaler):
     same-polarity events, ``-mutual_inhibition`` from the other polarity), which follow
     ``snntorch.Leaky`` with ``beta = exp(-dt / tau)`` (see
     :class:`~evdown_torch.models.SpikingPooling`, which computes the same spikes on the
-    dense ``ToFrame``-like tensor; :meth:`to_module` builds it). A spike in step ``k`` becomes an
-    event at the block's coordinates with the neuron's polarity, at
+    dense ``ToFrame``-like tensor, and which
+    :meth:`~evdown_torch.models.SpikingPooling.from_transform` builds). A spike in step ``k``
+    becomes an event at the block's coordinates with the neuron's polarity, at
     ``t_start + (k + 1) * dt`` clipped to ``t_end``. The kernel is event-driven: a neuron is
     touched only at the steps where its block has events, the silences in between (decay, and
     a neuron firing on above threshold) are solved in closed form, so the cost follows the
@@ -102,7 +76,7 @@ class LIFPooling(Downscaler):
         reset_mechanism: ``"subtract"``, ``"zero"`` or ``"none"`` (snntorch's meanings).
 
     The settings are checked and normalised (to floats) once, by :class:`LIFSettings`
-    (:attr:`settings`), which the kernels and :meth:`to_module` share.
+    (:attr:`settings`), which the kernels and :class:`~evdown_torch.models.SpikingPooling` share.
 
     A call that would emit more events than the output limit raises a ``ValueError`` naming
     the count instead: a neuron kept above threshold, e.g. with no leak and
@@ -125,8 +99,6 @@ class LIFPooling(Downscaler):
         [(0, 0, True, 1100)]
     """
 
-    budget_setting: ClassVar[str | None] = "weight"
-
     dt: float = DEFAULT_DT
     tau: float = DEFAULT_TAU
     threshold: float = DEFAULT_THRESHOLD
@@ -134,48 +106,38 @@ class LIFPooling(Downscaler):
     mutual_inhibition: float = 0.0
     reset_mechanism: ResetMechanism = "subtract"
 
-    method: ClassVar[Method] = Method(lif_init, lif_step, lif_finish, whole=_lif_whole,
-                                      stacked=_lif_stacked)
+    method = LIF_POOLING
+    name = "lif"
+    budget_setting = "weight"
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for field in fields(LIFSettings):
+        neuron = self.settings.neuron
+        for field in fields(LIFSettings):  # the neuron's normalised values back
             if field.name != "beta":
-                object.__setattr__(self, field.name, getattr(self.settings, field.name))
+                object.__setattr__(self, field.name, getattr(neuron, field.name))
 
     @cached_property
-    def method_settings(self) -> LIFPoolingSettings:
-        """What the kernels take: the region geometry and :attr:`settings` (checked once)."""
+    def settings(self) -> LIFPoolingSettings:
+        """The checked settings the kernels take: the region geometry and the neuron's.
+
+        The neuron's :class:`LIFSettings` (``settings.neuron``) is shared with
+        :class:`~evdown_torch.models.SpikingPooling` (``SpikingPooling.from_transform``).
+        """
         neuron = LIFSettings(
             dt=self.dt, tau=self.tau, threshold=self.threshold, weight=self.weight,
             mutual_inhibition=self.mutual_inhibition, reset_mechanism=self.reset_mechanism,
         )
-        return LIFPoolingSettings(self.sensor_size, self.factor, neuron)  # type: ignore[arg-type]
-
-    @property
-    def settings(self) -> LIFSettings:  # type: ignore[override]
-        """The neuron's settings, checked and normalised.
-
-        Shared with the kernels and :class:`~evdown_torch.models.SpikingPooling`.
-        """
-        return self.method_settings.neuron
+        return LIFPoolingSettings(*self.region_geometry(), neuron)
 
     @property
     def beta(self) -> float:
         """Membrane decay per step, ``exp(-dt / tau)``."""
-        return self.settings.neuron.beta
+        return self.settings.neuron.constants.beta
 
-    def to_module(self) -> SpikingPooling:
-        """The :class:`~evdown_torch.models.SpikingPooling` with these settings.
-
-        Run on the stream's frames ``ToFrame(sensor_size, time_window=dt,
-        include_incomplete=True)`` (windows from the first event on, as a ``(T, 1, 2, H, W)``
-        float tensor), it gives the spikes that this transform turns into events (up to float32
-        rounding over silences, see :mod:`evdown_torch.transforms.functional.lif.pooling`).
-        """
-        from evdown_torch.models.pooling import SpikingPooling  # models build on transforms
-
-        return SpikingPooling(self.factor_xy, **self.settings.neuron._asdict())
+    def algorithmic_delay(self) -> float:
+        """One time step: a step's spikes come out once the stream reaches the step's end."""
+        return float(self.dt)
 
 
 #: How far below its target :func:`calibrate_weight` may end before it calls the target

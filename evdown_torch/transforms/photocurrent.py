@@ -4,39 +4,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import ClassVar
+from typing import Any
 
-from evdown_torch.collate import EventBatch
-from evdown_torch.events import Events
-from evdown_torch.transforms._base import Downscaler, Method, Session
-from evdown_torch.transforms._batch import Stacked, run_stacked
-from evdown_torch.transforms.functional.photocurrent.events_mode import photocurrent_events
+from evdown_torch.transforms._base import Downscaler, Session
 from evdown_torch.transforms.functional.photocurrent.method import (
-    photocurrent_finish,
-    photocurrent_init,
-    photocurrent_step,
-    photocurrent_whole,
+    PHOTOCURRENT_EVENTS,
+    PHOTOCURRENT_FRAMES,
 )
 from evdown_torch.transforms.functional.photocurrent.settings import PhotocurrentSettings
-
-
-def _stacked(batch: EventBatch, settings: PhotocurrentSettings) -> EventBatch | None:
-    """Events mode: the kernel once on the stacked batch, one block of regions per recording.
-
-    The frames mode has no batched kernel (``None``: one by one).
-    """
-    if settings.fps is not None:
-        return None
-
-    def kernel(stacked: Stacked) -> Events:
-        out, _ = photocurrent_events(
-            stacked.events, sensor_size=settings.sensor_size, factor=settings.factor,
-            contrast=settings.contrast, threshold=settings.threshold,  # type: ignore[arg-type]
-            recordings=stacked.recordings,
-        )
-        return out
-
-    return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
+from evdown_torch.transforms.functional.protocol import Method
 
 
 @dataclass(frozen=True)
@@ -93,23 +69,28 @@ class PhotocurrentPooling(Downscaler):
     time_unit: float | None = None
 
     #: The setting :func:`calibrate` searches to meet an event budget.
-    budget_setting: ClassVar[str | None] = "threshold"
-
-    method: ClassVar[Method] = Method(photocurrent_init, photocurrent_step, photocurrent_finish,
-                                      whole=photocurrent_whole, stacked=_stacked)
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        for name in ("contrast", "threshold", "fps", "cutoff_hz", "time_unit"):
-            object.__setattr__(self, name, getattr(self.settings, name))
+    budget_setting = "threshold"
+    name = "photocurrent"
+    #: The events mode's kernels; :attr:`kernels` binds the frames mode's when ``fps`` is set.
+    method = PHOTOCURRENT_EVENTS
 
     @cached_property
     def settings(self) -> PhotocurrentSettings:
         """The checked settings the kernels take (built once, in ``__post_init__``)."""
-        return PhotocurrentSettings(
-            self.sensor_size, self.factor, self.contrast,  # type: ignore[arg-type]
-            self.threshold, self.fps, self.cutoff_hz, self.time_unit,
-        )
+        return PhotocurrentSettings(*self.region_geometry(), self.contrast, self.threshold,
+                                    self.fps, self.cutoff_hz, self.time_unit)
+
+    @property
+    def kernels(self) -> Method[PhotocurrentSettings, Any]:
+        """The events mode's bundle, or the frames mode's when ``fps`` is set."""
+        return PHOTOCURRENT_EVENTS if self.fps is None else PHOTOCURRENT_FRAMES
+
+    def algorithmic_delay(self) -> float:
+        """0 in the events mode; in the frames mode one frame, ``1 / fps`` in stream time."""
+        fps, time_unit = self.settings.fps, self.settings.time_unit
+        if fps is None or time_unit is None:
+            return 0.0
+        return 1.0 / (fps * time_unit)
 
     def session(self) -> Session:
         """Start a streaming session over consecutive chunks of one stream (both modes).
@@ -128,7 +109,3 @@ class PhotocurrentPooling(Downscaler):
             [[], [], [[0, 0, 20, 1]]]
         """
         return super().session()
-
-
-#: The PhotocurrentPooling session is the common :class:`~evdown_torch.transforms._base.Session`.
-PhotocurrentSession = Session

@@ -12,19 +12,16 @@ from evdown_torch.transforms.event_count import EventCount
 from evdown_torch.transforms.lif import LIFPooling
 from evdown_torch.transforms.photocurrent import PhotocurrentPooling
 
-#: Method name -> transform class, in the paper's order: the spatial downscalers, each built
-#: as ``cls(sensor_size, factor, **settings)`` and compared at every factor by the evaluation
-#: and the benchmarks. TemporalFunnelling (method 8) is not one of them: it has no factor and
-#: is composed with a spatial method (``evdown_torch.Chain`` or Tonic's ``Compose``), so the
-#: real-time benchmark names it in its own line-up (``bench.realtime.REALTIME_METHODS``).
+#: Method name (each class's ``name``) -> transform class, in the paper's order: the spatial
+#: downscalers, each built as ``cls(sensor_size, factor, **settings)`` and compared at every
+#: factor by the evaluation and the benchmarks. TemporalFunnelling (method 8) is not one of
+#: them: it has no factor and is composed with a spatial method (``evdown_torch.Chain`` or
+#: Tonic's ``Compose``), so the real-time benchmark names it in its own line-up
+#: (``bench.realtime.REALTIME_METHODS``).
 METHODS: dict[str, type[Downscaler]] = {
-    "downsample": Downsample,
-    "funnelling": EventFunnelling,
-    "event_count": EventCount,
-    "linear": LinearEstimation,
-    "cubic": CubicEstimation,
-    "lif": LIFPooling,
-    "photocurrent": PhotocurrentPooling,
+    cls.name: cls
+    for cls in (Downsample, EventFunnelling, EventCount, LinearEstimation, CubicEstimation,
+                LIFPooling, PhotocurrentPooling)
 }
 
 

@@ -4,15 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import ClassVar
 
-from evdown_torch.transforms._base import Method, Streaming
+from evdown_torch.transforms._base import Streaming
 from evdown_torch.transforms.functional.temporal import (
+    TEMPORAL_FUNNELLING,
     TemporalSettings,
     TemporalState,
-    temporal_init,
-    temporal_step,
-    temporal_whole,
 )
 
 __all__ = ["TemporalFunnelling", "TemporalState"]
@@ -45,7 +42,8 @@ class TemporalFunnelling(Streaming):
     dt: int | float
     sensor_size: tuple[int, int, int] | None = None
 
-    method: ClassVar[Method] = Method(temporal_init, temporal_step, whole=temporal_whole)
+    method = TEMPORAL_FUNNELLING
+    name = "temporal"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sensor_size", self.settings.sensor_size)

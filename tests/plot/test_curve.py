@@ -11,7 +11,8 @@ from scipy.interpolate import PchipInterpolator
 from evdown_torch import CubicEstimation, EventCount, LinearEstimation
 from evdown_torch.events import Events
 from evdown_torch.plot import curve_figure, region_curves
-from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms import Downscaler
+from evdown_torch.transforms.functional.downsample import DOWNSAMPLE
 from evdown_torch.transforms.registry import METHODS, make_method
 from tests.helpers import DVS_DTYPE, random_stream
 
@@ -182,6 +183,8 @@ def test_bad_pixels_are_refused(rng):
 @dataclass(frozen=True)
 class PhotocurrentPooling(Downscaler):
     """A stand-in with the registry class's name and settings (its output is not used here)."""
+
+    method = DOWNSAMPLE
 
     contrast: float = 0.5
     threshold: float | None = None

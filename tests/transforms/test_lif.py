@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evdown_torch import Events, LIFPooling, max_output_events
+from evdown_torch.models import SpikingPooling
 from evdown_torch.transforms import calibrate_weight
 from tests.helpers import (
     DVS_DTYPE,
@@ -230,7 +231,7 @@ def test_nmnist_matches_tonic_toframe_and_composes(nmnist):
     duration = int(nmnist["t"].max() - nmnist["t"].min())
     assert duration % 1000  # Tonic drops events on the last window edge otherwise
     frames = tonic.transforms.ToFrame(sensor, time_window=1000, include_incomplete=True)(nmnist)
-    spikes, _ = pool.to_module()(torch.from_numpy(frames).float()[:, None])
+    spikes, _ = SpikingPooling.from_transform(pool)(torch.from_numpy(frames).float()[:, None])
     step, _, p, y, x = (c.numpy() for c in spikes.nonzero(as_tuple=True))
     np.testing.assert_array_equal(np.bincount(step, minlength=len(frames)),
                                   np.bincount((out["t"] - nmnist["t"].min() - 1) // 1000,

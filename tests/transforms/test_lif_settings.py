@@ -22,7 +22,7 @@ def test_every_number_becomes_a_float_and_beta_follows_dt_and_tau():
     values = (s.dt, s.tau, s.threshold, s.weight, s.mutual_inhibition, s.beta)
     assert all(type(v) is float for v in values)
     assert values == (4.0, 8.0, 2.0, 0.5, 1.0, math.exp(-0.5))
-    assert s.neuron == LIFNeuron(math.exp(-0.5), 2.0, 0.5, 1.0, "subtract")
+    assert s.constants == LIFNeuron(math.exp(-0.5), 2.0, 0.5, 1.0, "subtract")
 
 
 def test_the_leak_is_tau_or_beta_and_defaults_to_ten_steps():
@@ -64,9 +64,9 @@ def test_the_transform_holds_its_normalised_settings_and_builds_the_module_from_
     pool = LIFPooling((8, 8, 2), 2, dt=np.int32(500), tau=2000, threshold=np.float64(1.5),
                       weight=1, mutual_inhibition=np.float32(0.25), reset_mechanism="zero")
     assert (type(pool.dt), type(pool.tau), type(pool.weight)) == (float, float, float)
-    assert pool.settings == LIFSettings(500.0, 2000.0, 1.5, 1.0, 0.25, "zero")
-    assert pool.beta == pool.settings.beta == math.exp(-0.25)
-    module = pool.to_module()
+    assert pool.settings.neuron == LIFSettings(500.0, 2000.0, 1.5, 1.0, 0.25, "zero")
+    assert pool.beta == pool.settings.neuron.constants.beta == math.exp(-0.25)
+    module = SpikingPooling.from_transform(pool)
     assert (module.beta, module.threshold, module.reset_mechanism) == (
         float(np.float32(math.exp(-0.25))), 1.5, "zero")
     assert (module.weight.item(), module.mutual_inhibition.item()) == (1.0, 0.25)

@@ -10,7 +10,7 @@ import torch
 import evdown_torch as ev
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import to_events
-from evdown_torch.transforms._base import Method, run_protocol
+from evdown_torch.transforms.functional.protocol import Method, run_protocol
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
 from tests.helpers import random_stream
 
@@ -35,7 +35,7 @@ def _same(a: ev.Events, b: ev.Events) -> bool:
 
 @pytest.mark.parametrize("name", sorted(METHODS))
 def test_every_method_is_three_kernels(name):
-    method = type(METHODS[name]).method
+    method = METHODS[name].kernels
     assert isinstance(method, Method)
     assert callable(method.init_state) and callable(method.step) and callable(method.finish)
 
@@ -47,9 +47,9 @@ def test_the_whole_stream_fast_path_equals_the_protocol(name, seed):
     rng = np.random.default_rng(seed)
     arr = random_stream(rng, int(rng.integers(1, 120)), SENSOR, t_max=60)
     events, _ = to_events(arr[rng.permutation(len(arr))], SENSOR)  # any order
-    assert type(transform).method.whole is not None
+    assert transform.kernels.whole is not None
     fast = transform.kernel(events)
-    slow = run_protocol(type(transform).method, transform.method_settings, events)
+    slow = run_protocol(transform.kernels, transform.settings, events)
     assert _same(fast, slow)
 
 
@@ -60,7 +60,7 @@ def test_the_stacked_fast_path_equals_one_protocol_run_per_recording(name, rng):
     batch = EventBatch(ev.Events(*(torch.cat(c) for c in zip(*parts, strict=True))),
                        tuple(p.num_events for p in parts))
     out = transform._batch_events(batch)
-    expected = [run_protocol(type(transform).method, transform.method_settings, p)
+    expected = [run_protocol(transform.kernels, transform.settings, p)
                 for p in parts]
     assert out.lengths == tuple(e.num_events for e in expected)
     for got, want in zip(out.unbind(), expected, strict=True):

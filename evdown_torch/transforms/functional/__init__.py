@@ -9,9 +9,11 @@ settings as keywords, for direct use.
 """
 
 from evdown_torch.transforms.functional.downsample import downsample
-from evdown_torch.transforms.functional.estimation.cubic import cubic_estimation
-from evdown_torch.transforms.functional.estimation.linear import linear_estimation
-from evdown_torch.transforms.functional.estimation.stream import EstimationSettings
+from evdown_torch.transforms.functional.estimation.method import (
+    cubic_estimation,
+    linear_estimation,
+)
+from evdown_torch.transforms.functional.estimation.settings import EstimationSettings
 from evdown_torch.transforms.functional.event_count import event_count
 from evdown_torch.transforms.functional.funnelling import event_funnelling
 from evdown_torch.transforms.functional.lif.pooling import lif_pooling

@@ -2,11 +2,21 @@
 
 from __future__ import annotations
 
-from evdown_torch._tensors import region_of, sort_by_time
-from evdown_torch.events import Events
+from evdown_torch._tensors import region_of
+from evdown_torch.collate import EventBatch
+from evdown_torch.events import Events, sort_by_time
+from evdown_torch.transforms.functional.batch import Stacked, run_stacked, sorted_within
+from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings
 
-__all__ = ["downsample", "downsample_init", "downsample_step", "downsample_whole"]
+__all__ = [
+    "DOWNSAMPLE",
+    "downsample",
+    "downsample_init",
+    "downsample_stacked",
+    "downsample_step",
+    "downsample_whole",
+]
 
 
 def downsample(events: Events, *, factor: tuple[int, int]) -> Events:
@@ -46,3 +56,26 @@ def downsample_step(
 def downsample_whole(events: Events, settings: RegionSettings) -> Events:
     """Downsample's whole-stream kernel (events in any order): :func:`downsample`."""
     return downsample(events, factor=settings.factor)
+
+
+def downsample_stacked(batch: EventBatch, settings: RegionSettings) -> EventBatch:
+    """A batch in one call (events do not interact).
+
+    Recordings each in time order need only the division; others go through
+    :func:`downsample` once on the stacked batch.
+    """
+    events = batch.events
+    if sorted_within(events.t, batch.lengths):
+        x, y = region_of(events, settings.factor)
+        return EventBatch(Events(x, y, events.t.clone(), events.p.clone()), batch.lengths)
+
+    def kernel(stacked: Stacked) -> Events:
+        return downsample(stacked.events, factor=settings.factor)
+
+    return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
+
+
+#: Downsample's kernels (:class:`~evdown_torch.Downsample`).
+DOWNSAMPLE: Method[RegionSettings, None] = Method(
+    downsample_init, downsample_step, whole=downsample_whole, stacked=downsample_stacked
+)

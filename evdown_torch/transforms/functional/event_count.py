@@ -16,12 +16,14 @@ from evdown_torch._tensors import (
     floor_divide_exact,
     region_pixel_count,
     region_xy,
-    sort_by_time,
     stable_sort_small,
     take,
 )
 from evdown_torch.checks import output_size
-from evdown_torch.events import Events, polarity_sign
+from evdown_torch.collate import EventBatch
+from evdown_torch.events import Events, polarity_sign, sort_by_time
+from evdown_torch.transforms.functional.batch import Stacked, run_stacked, sorted_within
+from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.reference import (
     capped_threshold,
     move_crossings,
@@ -32,10 +34,12 @@ from evdown_torch.transforms.functional.reference import (
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
 
 __all__ = [
+    "EVENT_COUNT",
     "EventCountState",
     "event_count",
     "event_count_batch",
     "event_count_init",
+    "event_count_stacked",
     "event_count_step",
     "event_count_whole",
     "initial_state",
@@ -95,7 +99,7 @@ def event_count(
             for a fresh stream.
         recordings: ``B``, for a batch of recordings stacked vertically: recording ``b``'s
             pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)`` (regions never mix recordings;
-            see :mod:`evdown_torch.transforms._batch`). 1 for one stream.
+            see :mod:`evdown_torch.transforms.functional.batch`). 1 for one stream.
 
     Returns:
         ``(output events sorted by t, state after the last event)``.
@@ -153,12 +157,12 @@ def event_count_batch(
 
     The recordings are not moved onto a virtual sensor or clock: recording ``b``'s regions
     are the block ``[b * Ho * Wo, (b + 1) * Ho * Wo)`` of region ids (as in
-    :mod:`evdown_torch.transforms._batch`'s stacking), its events are taken in the batch's
+    :mod:`evdown_torch.transforms.functional.batch`'s stacking), its events are taken in the batch's
     order (recording after recording), and its output comes back in its own coordinates.
 
     Args:
         events: the recordings' events concatenated, recording 0 first, each recording sorted
-            by ``t`` (:func:`~evdown_torch.transforms._batch.sorted_within`).
+            by ``t`` (:func:`~evdown_torch.transforms.functional.batch.sorted_within`).
         lengths: number of events of each recording.
         settings: the method's settings.
 
@@ -197,6 +201,28 @@ def event_count_batch(
     recording = divide(out.y, out_h)
     out_counts = tuple(torch.bincount(recording, minlength=recordings).tolist())
     return Events(out.x, out.y.sub_(recording, alpha=out_h), out.t, out.p), out_counts
+
+
+def event_count_stacked(batch: EventBatch, settings: ThresholdSettings) -> EventBatch:
+    """The kernel once on the batch, with one block of regions per recording.
+
+    Recordings in time order need no stacking (:func:`event_count_batch`).
+    """
+    if sorted_within(batch.events.t, batch.lengths):
+        return EventBatch(*event_count_batch(batch.events, batch.lengths, settings))
+
+    def kernel(stacked: Stacked) -> Events:
+        state = initial_state(settings, stacked.events.device, stacked.recordings)
+        out, _ = event_count_step(sort_by_time(stacked.events), state, settings)
+        return out
+
+    return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
+
+
+#: EventCount's kernels (:class:`~evdown_torch.EventCount`).
+EVENT_COUNT: Method[ThresholdSettings, EventCountState] = Method(
+    event_count_init, event_count_step, whole=event_count_whole, stacked=event_count_stacked
+)
 
 
 def _event_count_sorted(

@@ -10,22 +10,26 @@ from evdown_torch._tensors import (
     chunk_bounds,
     divide,
     narrow_dtype,
-    sort_by_time,
     stable_sort_small,
     take,
     where_true,
 )
-from evdown_torch.events import Events
+from evdown_torch.collate import EventBatch
+from evdown_torch.events import Events, sort_by_time
+from evdown_torch.transforms.functional.batch import Stacked, run_stacked, sorted_within
+from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings
 
 __all__ = [
+    "FUNNELLING",
     "drop_repeats",
     "event_funnelling",
-    "funnel_batch",
-    "funnel_init",
-    "funnel_sorted",
-    "funnel_step",
-    "funnel_whole",
+    "funnelling_batch",
+    "funnelling_init",
+    "funnelling_sorted",
+    "funnelling_stacked",
+    "funnelling_step",
+    "funnelling_whole",
     "last_instant",
 ]
 
@@ -50,7 +54,7 @@ def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
     # Repeats share t: pieces that never split a run of equal timestamps are independent.
     bounds = chunk_bounds(events.t, split_ties=False)
     pieces = [
-        funnel_sorted(events.part(start, stop), factor)
+        funnelling_sorted(events.part(start, stop), factor)
         for start, stop in zip(bounds[:-1], bounds[1:])
     ]
     if len(pieces) == 1:
@@ -80,19 +84,19 @@ def drop_repeats(events: Events, *, seen: Events | None = None) -> Events:
     """
     bounds = chunk_bounds(events.t, split_ties=False)
     pieces = [
-        funnel_sorted(events.part(start, stop), (1, 1),
+        funnelling_sorted(events.part(start, stop), (1, 1),
                       seen=seen if start == 0 else None)
         for start, stop in zip(bounds[:-1], bounds[1:])
     ]
     return pieces[0] if len(pieces) == 1 else Events.cat(pieces)
 
 
-def funnel_init(settings: RegionSettings, events: Events) -> Events | None:
+def funnelling_init(settings: RegionSettings, events: Events) -> Events | None:
     """EventFunnelling's ``init_state``: no output yet (``None``)."""
     return None
 
 
-def funnel_step(
+def funnelling_step(
     events: Events, state: Events | None, settings: RegionSettings
 ) -> tuple[Events, Events | None]:
     """EventFunnelling's ``step``: one time-sorted chunk.
@@ -102,11 +106,11 @@ def funnel_step(
     are still dropped.
     """
     width, height, _ = settings.output_sensor_size
-    out = funnel_sorted(events, settings.factor, seen=state, size=(width, height))
+    out = funnelling_sorted(events, settings.factor, seen=state, size=(width, height))
     return out, last_instant(out, state)
 
 
-def funnel_whole(events: Events, settings: RegionSettings) -> Events:
+def funnelling_whole(events: Events, settings: RegionSettings) -> Events:
     """EventFunnelling's whole-stream kernel (events in any order): :func:`event_funnelling`."""
     return event_funnelling(events, factor=settings.factor)
 
@@ -126,7 +130,7 @@ def last_instant(events: Events, previous: Events | None) -> Events | None:
     return tail
 
 
-def funnel_batch(
+def funnelling_batch(
     events: Events, lengths: tuple[int, ...], factor: tuple[int, int], size: tuple[int, int]
 ) -> tuple[Events, tuple[int, ...]]:
     """:func:`event_funnelling` of each of a batch of recordings, each in time order.
@@ -138,7 +142,7 @@ def funnel_batch(
 
     Args:
         events: the recordings' events concatenated, recording 0 first, each recording sorted
-            by ``t`` (:func:`~evdown_torch.transforms._batch.sorted_within`).
+            by ``t`` (:func:`~evdown_torch.transforms.functional.batch.sorted_within`).
         lengths: number of events of each recording.
         factor: ``(fx, fy)``.
         size: one recording's output ``(width, height)``.
@@ -149,13 +153,13 @@ def funnel_batch(
 
     Example:
         >>> ev = Events.from_columns([0, 1, 0, 1], [0, 0, 0, 0], [5, 5, 5, 5], [1, 1, 1, 1])
-        >>> out, counts = funnel_batch(ev, (2, 2), (2, 2), (1, 1))
+        >>> out, counts = funnelling_batch(ev, (2, 2), (2, 2), (1, 1))
         >>> out.t.tolist(), counts
         ([5, 5], (1, 1))
     """
     n = events.num_events
     if n == 0:
-        return funnel_sorted(events, factor, size=size), lengths
+        return funnelling_sorted(events, factor, size=size), lengths
     runs = changes(events.t)
     ends = torch.tensor(lengths, dtype=torch.int64).cumsum(0)
     starts = ends[:-1][ends[:-1] < n].to(events.device)
@@ -185,7 +189,7 @@ def funnel_batch(
     return kept, tuple(length - drop for length, drop in zip(lengths, lost))
 
 
-def funnel_sorted(
+def funnelling_sorted(
     events: Events,
     factor: tuple[int, int],
     *,
@@ -226,10 +230,10 @@ def _repeats(
     size: tuple[int, int] | None = None,
     runs: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor | None]:
-    """:func:`funnel_sorted`'s output coordinates and repeat flags of ``N >= 1`` events.
+    """:func:`funnelling_sorted`'s output coordinates and repeat flags of ``N >= 1`` events.
 
     The coordinates are of a narrow dtype, the flags ``None`` when nothing repeats. ``runs``,
-    when given, replaces ``t`` as what repeats share (:func:`funnel_batch`).
+    when given, replaces ``t`` as what repeats share (:func:`funnelling_batch`).
     """
     n = events.num_events
     fx, fy = factor
@@ -303,3 +307,27 @@ def _compact(events: Events, keep: Tensor) -> Events:
         .scatter_(0, slot, column)[1:]
         for column in events
     ))
+
+
+def funnelling_stacked(batch: EventBatch, settings: RegionSettings) -> EventBatch:
+    """A batch in one call.
+
+    Recordings each in time order go through :func:`funnelling_batch` (no stacking); others
+    through :func:`event_funnelling` once on the stacked batch.
+    """
+    if sorted_within(batch.events.t, batch.lengths):
+        width, height, _ = settings.output_sensor_size
+        return EventBatch(*funnelling_batch(batch.events, batch.lengths, settings.factor,
+                                            (width, height)))
+
+    def kernel(stacked: Stacked) -> Events:
+        return event_funnelling(stacked.events, factor=settings.factor)
+
+    return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
+
+
+#: EventFunnelling's kernels (:class:`~evdown_torch.EventFunnelling`); the state is the output
+#: at the latest timestamp so far.
+FUNNELLING: Method[RegionSettings, Events | None] = Method(
+    funnelling_init, funnelling_step, whole=funnelling_whole, stacked=funnelling_stacked
+)

@@ -9,19 +9,21 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, sort_by_time
+from evdown_torch._tensors import divide
 from evdown_torch.checks import check_positive_float, check_sensor_size
-from evdown_torch.events import Events
+from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.funnelling import drop_repeats, last_instant
+from evdown_torch.transforms.functional.protocol import Method
 
 __all__ = [
+    "TEMPORAL_FUNNELLING",
     "TemporalSettings",
     "TemporalState",
     "bin_start",
     "temporal_funnelling",
-    "temporal_init",
-    "temporal_step",
-    "temporal_whole",
+    "temporal_funnelling_init",
+    "temporal_funnelling_step",
+    "temporal_funnelling_whole",
 ]
 
 _INT64_MAX = torch.iinfo(torch.int64).max
@@ -143,12 +145,12 @@ class TemporalState(NamedTuple):
     last_bin: Events | None
 
 
-def temporal_init(settings: TemporalSettings, events: Events) -> TemporalState:
+def temporal_funnelling_init(settings: TemporalSettings, events: Events) -> TemporalState:
     """``init_state``: the bins start at the first chunk's first timestamp."""
     return TemporalState(events.t[0].item(), None)
 
 
-def temporal_step(
+def temporal_funnelling_step(
     events: Events, state: TemporalState, settings: TemporalSettings
 ) -> tuple[Events, TemporalState]:
     """``step``: one time-sorted chunk.
@@ -161,6 +163,12 @@ def temporal_step(
     return out, TemporalState(state.t_start, last_instant(out, state.last_bin))
 
 
-def temporal_whole(events: Events, settings: TemporalSettings) -> Events:
+def temporal_funnelling_whole(events: Events, settings: TemporalSettings) -> Events:
     """The whole stream (any order): :func:`temporal_funnelling`."""
     return temporal_funnelling(events, dt=settings.dt)
+
+
+#: TemporalFunnelling's kernels (:class:`~evdown_torch.TemporalFunnelling`).
+TEMPORAL_FUNNELLING: Method[TemporalSettings, TemporalState] = Method(
+    temporal_funnelling_init, temporal_funnelling_step, whole=temporal_funnelling_whole
+)

@@ -6,21 +6,20 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import CHUNK_EVENTS, run_index, segmented_cumsum, take, where_true
-from evdown_torch.events import Events
-from evdown_torch.transforms.functional.estimation.driver import CurveCrossings, RegionJob, estimate
 from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
     level_changes,
     piece_time,
     region_pixels,
 )
-from evdown_torch.transforms.functional.estimation.stream import (
-    EstimationSettings,
+from evdown_torch.transforms.functional.estimation.solver import (
+    CurveCrossings,
+    RegionJob,
     resume_moves,
 )
 from evdown_torch.transforms.functional.reference import level_index, level_value, move_crossings
 
-__all__ = ["cubic_estimation", "cubic_regions", "pchip_slopes"]
+__all__ = ["cubic_regions", "pchip_slopes"]
 
 #: Pixel-segment evaluations per chunk: bounds the kernel's memory and keeps its temporary
 #: tensors small enough to be recycled by the allocator instead of faulted in afresh.
@@ -338,57 +337,6 @@ def _monotone_moves(
         move_whole.scatter_(0, pos, take(whole, begin))
         move_part.scatter_(0, pos, value)
     return move_bp, move_s, move_whole, move_part
-
-
-def cubic_estimation(
-    events: Events,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    threshold: float,
-    recording_spans: tuple[Tensor, Tensor] | None = None,
-    max_delay: float | None = None,
-) -> Events:
-    """Downscale by cubic log-luminance estimation (docs/semantics.md, method 5).
-
-    Each pixel's log-luminance is the piecewise cubic Hermite interpolant of its knots (see
-    :mod:`~evdown_torch.transforms.functional.estimation.knots`) with SciPy's ``PchipInterpolator``
-    slopes; each region's mean ``M_r`` is watched by the DVS reference rule at contrast
-    ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
-    the crossing times, rounded half up to integers when ``t`` is int64.
-
-    Between two breakpoints (consecutive knot times of a region) ``M_r`` is one cubic, known
-    from its values and derivatives at both ends. Those are sums over the region's pixels: an
-    exact integer part (the levels of pixels with a knot there) plus the pixels strictly inside
-    a segment, evaluated in each segment's normalised time. Each piece is split at the roots of
-    its derivative into monotone moves for the reference rule, and each crossing is solved on
-    its monotone move, in the piece's normalised time, by safeguarded Newton iterations to
-    about 1e-15 of the piece's length.
-
-    Args:
-        events: ``N`` input events (any order; sorted stably by ``t`` here).
-        sensor_size: input ``(W, H, P)``.
-        factor: ``(fx, fy)``.
-        threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
-            nearest fraction with denominator at most 10**6.
-        recording_spans: as :func:`.linear.linear_estimation`.
-        max_delay: as there; besides, each pixel's slope at its first knot is 0 (at rest
-            before the stream).
-
-    Returns:
-        Output events sorted by ``t``, ``t`` of the input's dtype.
-
-    Example:
-        The region's curve rises faster than the polyline: its third level at ``t = 6.18``
-        (rounded to 6), where the linear estimate reaches it at 10.
-
-        >>> ev = Events.from_columns([0, 1, 0], [0, 0, 0], [0, 10, 20], [1, 1, 0])
-        >>> out = cubic_estimation(ev, sensor_size=(2, 1, 2), factor=(2, 1), threshold=0.25)
-        >>> out.t.tolist(), out.p.tolist()
-        ([0, 0, 6, 20], [True, True, True, False])
-    """
-    curve = EstimationSettings(sensor_size, factor, threshold, max_delay, solver=cubic_regions)
-    return estimate(events, curve, recording_spans=recording_spans)
 
 
 def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:

@@ -6,34 +6,37 @@
 regions' :class:`~evdown_torch.transforms.functional.estimation.knots.Knots` to the curve's solver
 (:func:`~evdown_torch.transforms.functional.estimation.linear.linear_regions` or
 :func:`~evdown_torch.transforms.functional.estimation.cubic.cubic_regions`), which returns its
-:class:`CurveCrossings`.
+:class:`~.solver.CurveCrossings`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from fractions import Fraction
-from typing import TYPE_CHECKING, NamedTuple
-
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, sort_by_time, take, where_true
-from evdown_torch.events import Events, polarity_sign
+from evdown_torch._tensors import divide, take, where_true
+from evdown_torch.events import Events, polarity_sign, sort_by_time
+from evdown_torch.transforms.functional.estimation.cubic import cubic_regions
 from evdown_torch.transforms.functional.estimation.delay import hold_knots
 from evdown_torch.transforms.functional.estimation.knots import (
-    Knots,
     check_span,
     emit,
     pixel_knots,
     region_chunks,
 )
+from evdown_torch.transforms.functional.estimation.linear import linear_regions
+from evdown_torch.transforms.functional.estimation.settings import Curve, EstimationSettings
+from evdown_torch.transforms.functional.estimation.solver import (
+    RegionJob,
+    RegionSolver,
+    Resume,
+)
 from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
 
-if TYPE_CHECKING:
-    from evdown_torch.transforms.functional.estimation.stream import EstimationSettings, Resume
+__all__ = ["SOLVERS", "estimate", "estimate_window"]
 
-__all__ = ["CurveCrossings", "RegionJob", "RegionSolver", "estimate", "estimate_window"]
+#: The solver of each curve (:attr:`EstimationSettings.curve`): the one table of them.
+SOLVERS: dict[Curve, RegionSolver] = {"linear": linear_regions, "cubic": cubic_regions}
 
 #: Events per chunk of regions in :func:`estimate_window`. The kernels keep a few dozen
 #: temporaries of a chunk's size alive at once; at 2**17 events (about 1 MB each) the
@@ -42,49 +45,6 @@ __all__ = ["CurveCrossings", "RegionJob", "RegionSolver", "estimate", "estimate_
 #: 2**20 on the CPU (docs/benchmarks.md, "Estimators"). A region's result does not depend on
 #: the regions solved with it, so the chunk size changes no output.
 REGION_CHUNK_EVENTS = 1 << 17
-
-
-class RegionJob(NamedTuple):
-    """What a curve's solver needs besides the knots of one chunk of regions.
-
-    Attributes:
-        sensor_size: input ``(W, H, P)``.
-        factor: ``(fx, fy)``.
-        fraction: the threshold as the rational ``a / b`` of ``threshold_fraction``.
-        emitted: events of the chunks before (for the output limit).
-        resume: where a streaming window starts
-            (:func:`~evdown_torch.transforms.functional.estimation.stream.resume_moves`), or
-            ``None``.
-        front_at_rest: a bounded delay: pixels at rest before their first knot (the cubic
-            slope there is 0; nothing changes for polylines).
-    """
-
-    sensor_size: tuple[int, int, int]
-    factor: tuple[int, int]
-    fraction: Fraction
-    emitted: int = 0
-    resume: Resume | None = None
-    front_at_rest: bool = False
-
-
-class CurveCrossings(NamedTuple):
-    """The crossings a solver finds, in region order.
-
-    Attributes:
-        region: ``(C,)`` int64 output region of every crossing.
-        t: ``(C,)`` crossing times (the events' dtype).
-        on: ``(C,)`` bool, an ON crossing.
-        breakpoint: ``(C,)`` int64 breakpoint that ends each crossing's piece.
-    """
-
-    region: Tensor
-    t: Tensor
-    on: Tensor
-    breakpoint: Tensor
-
-
-#: A curve's solver: the crossings of the regions of one chunk of knots.
-RegionSolver = Callable[[Knots, RegionJob], CurveCrossings]
 
 
 def estimate(
@@ -97,16 +57,13 @@ def estimate(
 
     Args:
         events: ``N`` input events (any order; sorted stably by ``t`` here).
-        settings: the estimator's settings; its ``solver``, ``solver(knots, sensor_size=,
-            factor=, fraction=, emitted=, resume=, front_at_rest=)``, returns the crossings
-            ``(region, t, on, breakpoint)`` of the regions of one chunk, in region order
-            (``emitted``: events of the chunks before, for the output limit; ``breakpoint``:
-            the one ending each crossing's piece; ``front_at_rest``: a bounded delay, see
-            :func:`estimate_window`). With ``max_delay`` (:func:`hold_knots`) the pixels hold
-            their level until ``D`` before each knot; ``None`` is the paper's method.
+        settings: the estimator's settings; the solver of its ``curve`` (:data:`SOLVERS`)
+            returns the :class:`~.solver.CurveCrossings` of the regions of one chunk, in
+            region order. With ``max_delay`` (:func:`hold_knots`) the pixels hold their level
+            until ``D`` before each knot; ``None`` is the paper's method.
         recording_spans: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
             ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
-            :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps
+            :mod:`evdown_torch.transforms.functional.batch`), the ``(B,)`` first and last timestamps
             of each recording, its ``t_start`` and ``t_end``; ``None`` for one stream.
 
     Returns:
@@ -161,7 +118,7 @@ def estimate_window(
         t_end: ``()`` last timestamp of the stream so far (the back knots), or ``(B,)``.
         settings: as for :func:`estimate` (its ``max_delay`` is not read here).
         resume: where a window picks up
-            (:class:`~evdown_torch.transforms.functional.estimation.stream.Resume`), or
+            (:class:`~.solver.Resume`), or
             ``None`` (from ``t_start``).
         next_cut: with ``resume``, the next window's cut: the returned ``q`` is each region's
             reference index after its last breakpoint earlier than it.
@@ -178,9 +135,7 @@ def estimate_window(
     # Every curve stays within its knots' levels, at most sum |change| in size (PCHIP is
     # shape-preserving; a window's first knot of a pixel carries its whole level).
     bound = n if change is None else int(change.abs().sum())
-    sensor_size, factor, solver = settings.sensor_size, settings.factor, settings.solver
-    if solver is None:
-        raise ValueError("the estimation kernels need the settings' solver (the curve), got None")
+    sensor_size, factor, solver = settings.sensor_size, settings.factor, SOLVERS[settings.curve]
     fraction = capped_threshold(threshold_fraction(settings.threshold), bound)
     out_w, out_h, _ = settings.output_sensor_size
     q = None if resume is None else resume.q.clone()

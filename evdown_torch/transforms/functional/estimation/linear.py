@@ -15,21 +15,20 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.events import Events
-from evdown_torch.transforms.functional.estimation.driver import CurveCrossings, RegionJob, estimate
 from evdown_torch.transforms.functional.estimation.knots import (
     Knots,
     level_changes,
     piece_time,
     region_pixels,
 )
-from evdown_torch.transforms.functional.estimation.stream import (
-    EstimationSettings,
+from evdown_torch.transforms.functional.estimation.solver import (
+    CurveCrossings,
+    RegionJob,
     resume_moves,
 )
 from evdown_torch.transforms.functional.reference import level_index, level_value, move_crossings
 
-__all__ = ["linear_estimation", "linear_regions", "local_cumsum", "rows_cumsum",
+__all__ = ["linear_regions", "local_cumsum", "rows_cumsum",
            "segment_rows", "SegmentRows"]
 
 
@@ -140,57 +139,6 @@ def rows_cumsum(values: Tensor, rows: SegmentRows) -> Tensor:
     sums = [torch.cumsum(take(padded, at).reshape(-1, width), 1).reshape(-1)
             for at, width in rows.groups]
     return take(sums[0] if len(sums) == 1 else torch.cat(sums), rows.back)
-
-
-def linear_estimation(
-    events: Events,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    threshold: float,
-    recording_spans: tuple[Tensor, Tensor] | None = None,
-    max_delay: float | None = None,
-) -> Events:
-    """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
-
-    Each pixel's log-luminance is the polyline through its knots (see
-    :mod:`.knots`); each region's mean ``M_r`` (sum of its
-    pixels' polylines over ``n_r``) is watched by the DVS reference rule at contrast
-    ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
-    the exact crossing times, rounded half up to integers when ``t`` is int64.
-
-    The kernel sweeps each region's breakpoints once. ``n_r * M_r`` at a breakpoint is an
-    exact integer (the levels of the pixels' latest knots) plus the progress of the pixels
-    strictly inside a segment; that progress is the running integral of the region's slope,
-    whose sum is kept in fixed point so that it does not drift, and it is exactly 0 wherever no
-    pixel is inside a segment. All time arithmetic is relative to breakpoints, so shifting the
-    clock shifts the output exactly.
-
-    Args:
-        events: ``N`` input events (any order; sorted stably by ``t`` here).
-        sensor_size: input ``(W, H, P)``.
-        factor: ``(fx, fy)``.
-        threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
-            nearest fraction with denominator at most 10**6.
-        recording_spans: ``(B,)`` first and last timestamps of each recording of a batch stacked
-            vertically (see :func:`.driver.estimate`), or
-            ``None`` for one stream.
-        max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
-            "Bounded delay"; a whole number for int64 ``t``), or ``None`` for the paper's
-            method. With ``D`` a pixel holds its level until ``D`` before its next knot.
-
-    Returns:
-        Output events sorted by ``t``, ``t`` of the input's dtype.
-
-    Example:
-        >>> ev = Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1])
-        >>> out = linear_estimation(ev, sensor_size=(2, 1, 2), factor=(2, 1), threshold=0.25)
-        >>> out.t.tolist(), out.p.tolist()
-        ([0, 0, 5, 10], [True, True, True, True])
-    """
-    settings = EstimationSettings(sensor_size, factor, threshold, max_delay,
-                                  solver=linear_regions)
-    return estimate(events, settings, recording_spans=recording_spans)
 
 
 def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:

@@ -27,7 +27,6 @@ knots before the new horizon (:func:`_recent`), without grouping the whole windo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple, cast
 
 import torch
@@ -45,7 +44,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import check_positive_float, output_size
+from evdown_torch.checks import output_size
 from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.estimation import delay
 from evdown_torch.transforms.functional.estimation.delay import (
@@ -53,92 +52,14 @@ from evdown_torch.transforms.functional.estimation.delay import (
     held_knots,
     merge_by_time,
 )
-from evdown_torch.transforms.functional.estimation.driver import RegionSolver, estimate_window
+from evdown_torch.transforms.functional.estimation.driver import estimate_window
 from evdown_torch.transforms.functional.estimation.knots import (
-    Knots,
     check_span,
 )
-from evdown_torch.transforms.functional.settings import ThresholdSettings
+from evdown_torch.transforms.functional.estimation.settings import EstimationSettings
+from evdown_torch.transforms.functional.estimation.solver import Resume
 
-__all__ = [
-    "EstimationSettings",
-    "Resume",
-    "WindowState",
-    "resume_moves",
-    "window_end",
-    "window_init",
-    "window_step",
-]
-
-
-class Resume(NamedTuple):
-    """Where a streaming window of the stream picks up (a bounded-delay session's state).
-
-    The window holds, for each of its pixels, the knots it had before ``cut`` that the curves
-    after ``cut`` still need (the last one, or the last two for PCHIP slopes) and every knot
-    since. Each region resumes at its last breakpoint earlier than ``cut`` with the reference
-    index it had there; the pieces before are not solved (the window's curves are not the
-    stream's there).
-
-    Attributes:
-        cut: ``()`` time, or ``None`` for a window that starts at ``t_start`` (from ``q = 0``).
-        q: ``(Wo * Ho,)`` int64 reference index of every output region after its last
-            breakpoint earlier than ``cut`` (0 for a region without one).
-    """
-
-    cut: Tensor | None
-    q: Tensor
-
-
-def resume_moves(
-    knots: Knots,
-    move_bp: Tensor | None,
-    floor_u: Tensor,
-    on_level: Tensor,
-    resume: Resume | None,
-    bp_rank: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Tensor | None]:
-    """The moves of a window as the reference rule must see them, and each move's ``q_start``.
-
-    Steps whose piece ends at a breakpoint earlier than ``resume.cut`` take the value of
-    their region's last such move (the cut), so that they cross nothing: the region starts
-    there from ``resume.q``, which is consistent with that value.
-
-    Args:
-        knots: the window's :class:`Knots` (one chunk of regions).
-        move_bp: ``(S,)`` int64 breakpoint at the end of each move's piece, ascending, or
-            ``None`` for one move per breakpoint (move ``i`` ends at breakpoint ``i``).
-        floor_u: ``(S,)`` int64 ``floor(M / theta)`` at the end of each move.
-        on_level: ``(S,)`` bool, the move ends on a level.
-        resume: where the window picks up, or ``None`` (the whole stream from ``q = 0``).
-        bp_rank: ``(B,)`` int64 rank of each breakpoint's region among ``knots.regions``,
-            when the caller has it.
-
-    Returns:
-        ``(floor_u, on_level, q_start)`` for
-        :func:`~evdown_torch.transforms.functional.reference.move_crossings`.
-    """
-    if resume is None:
-        return floor_u, on_level, None
-    if bp_rank is None:
-        bp_rank = run_index(knots.bp_first)
-    move_rank = bp_rank if move_bp is None else take(bp_rank, move_bp)
-    q_start = take(take(resume.q, knots.regions), move_rank)
-    if resume.cut is None:
-        return floor_u, on_level, q_start
-    done = knots.bp_t < resume.cut  # a prefix of each region's breakpoints
-    n_done = torch.zeros_like(knots.regions).index_add_(0, bp_rank, done.to(torch.int64))
-    cut_bp = knots.region_first_bp + n_done - 1
-    if move_bp is None:
-        cut_move, at = cut_bp, where_true(done)
-    else:
-        cut_move = torch.searchsorted(move_bp, cut_bp, right=True) - 1
-        at = where_true(take(done, move_bp))
-    source = take(cut_move, take(move_rank, at))
-    floor_u, on_level = floor_u.clone(), on_level.clone()
-    floor_u[at] = take(floor_u, source)
-    on_level[at] = take(on_level, source)
-    return floor_u, on_level, q_start
+__all__ = ["WindowState", "estimation_finish", "estimation_init", "estimation_step"]
 
 
 class WindowState(NamedTuple):
@@ -238,31 +159,7 @@ def _recent(
     return events, torch.cat([take(carried, at), take(head_change, passed), change[cut:]])
 
 
-@dataclass(frozen=True)
-class EstimationSettings(ThresholdSettings):
-    """The estimators' settings: the threshold method's, the bounded delay and the curve.
-
-    Attributes:
-        max_delay: ``D`` in the stream's time unit, or ``None`` (the paper's method, whole
-            stream only).
-        lag: output up to ``tau - lag * D`` is decided by input up to ``tau``: 1 (linear)
-            or 2 (cubic).
-        solver: the curve's solver of one chunk of regions
-            (:func:`~evdown_torch.transforms.functional.estimation.linear.linear_regions` or
-            :func:`~evdown_torch.transforms.functional.estimation.cubic.cubic_regions`).
-    """
-
-    max_delay: float | None = None
-    lag: int = 1
-    solver: RegionSolver | None = None
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.max_delay is not None:
-            check_positive_float("max_delay", self.max_delay)
-
-
-def window_init(settings: EstimationSettings, events: Events) -> WindowState:
+def estimation_init(settings: EstimationSettings, events: Events) -> WindowState:
     """The estimators' ``init_state`` (bounded delay).
 
     Before the first (time-sorted) chunk ``events``: no knot yet, every pixel's last knot at
@@ -280,7 +177,7 @@ def window_init(settings: EstimationSettings, events: Events) -> WindowState:
     )
 
 
-def window_step(
+def estimation_step(
     events: Events, state: WindowState | None, settings: EstimationSettings
 ) -> tuple[Events, WindowState]:
     """One chunk of a bounded-delay stream: the outputs decided so far, and the new state.
@@ -301,14 +198,12 @@ def window_step(
     Example:
         Two pixels of one region (threshold 0.25); pixel (1, 0) holds 0 until ``10 - D``:
 
-        >>> from evdown_torch.transforms.functional.estimation.linear import linear_regions
-        >>> settings = EstimationSettings((2, 1, 2), (2, 1), 0.25, max_delay=3, lag=1,
-        ...                               solver=linear_regions)
+        >>> settings = EstimationSettings((2, 1, 2), (2, 1), 0.25, max_delay=3, curve="linear")
         >>> ev = Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1])
-        >>> out, state = window_step(ev, None, settings)
+        >>> out, state = estimation_step(ev, None, settings)
         >>> out.t.tolist(), state.horizon  # decided: before 10 - 3
         ([0, 0], 7)
-        >>> window_end(state, settings).t.tolist()  # the ramp on [7, 10]
+        >>> estimation_finish(state, settings).t.tolist()  # the ramp on [7, 10]
         [9, 10]
     """
     sensor_size, factor, max_delay = settings.sensor_size, settings.factor, settings.max_delay
@@ -318,7 +213,7 @@ def window_step(
     width = sensor_size[0]
     out_w, out_h, _ = output_size(sensor_size, factor)
     if state is None:
-        state = window_init(settings, events)
+        state = estimation_init(settings, events)
     tau = events.t[-1]
     check_span(state.t_start, tau)  # before any time arithmetic
     pixel = events.y * width + events.x
@@ -370,7 +265,7 @@ def window_step(
     return out.select(where_true(decided)), new_state
 
 
-def window_end(state: WindowState, settings: EstimationSettings) -> Events | None:
+def estimation_finish(state: WindowState, settings: EstimationSettings) -> Events | None:
     """The output from the horizon to the end of the stream (its last timestamp).
 
     Returns:

@@ -69,12 +69,11 @@ from evdown_torch._tensors import (
     divide,
     last_of_runs,
     run_index,
-    sort_by_time,
     stable_sort_small,
     where_true,
 )
 from evdown_torch.checks import check_output_count, output_size
-from evdown_torch.events import Events
+from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.lif.chains import Leak
 from evdown_torch.transforms.functional.lif.closed_form import MIN_ROUNDS, certain_spikes
 from evdown_torch.transforms.functional.lif.keys import (
@@ -255,12 +254,12 @@ def lif_pooling(
         settings: the neuron's settings (``dt`` in the unit of ``t``).
         sensor_size: input sensor ``(W, H, P)``.
         factor: ``(fx, fy)``, positive integers.
-        recording_spans: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
-            ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
-            :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps of
-            each recording: each is binned from its own ``t_start`` and its spikes end at
-            its own ``t_end``; the output is then sorted by recording, then step. ``None``
-            for one stream.
+        recording_spans: for a batch of ``B`` recordings stacked vertically (recording
+            ``b``'s pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
+            :mod:`evdown_torch.transforms.functional.batch`), the ``(B,)`` first and last
+            timestamps of each recording: each is binned from its own ``t_start`` and its
+            spikes end at its own ``t_end``; the output is then sorted by recording, then
+            step. ``None`` for one stream.
 
     Returns:
         Output events sorted by ``t`` (within a step: OFF before ON, then row-major region),
@@ -374,7 +373,7 @@ def lif_spikes(
         region``) of the spikes, sorted by step, then neuron; the neurons after the events
         (``None`` unless ``keep_state``).
     """
-    beta, threshold, weight, mutual_inhibition, reset_mechanism = settings.neuron
+    beta, threshold, weight, mutual_inhibition, reset_mechanism = settings.constants
     fx, fy = factor
     wo, ho, _ = output_size(sensor_size, factor)
     plane = num_recordings * wo * ho  # num_recordings recordings stacked vertically

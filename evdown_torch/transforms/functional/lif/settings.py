@@ -152,7 +152,7 @@ class LIFSettings:
             object.__setattr__(self, name, value)
 
     @property
-    def neuron(self) -> LIFNeuron:
+    def constants(self) -> LIFNeuron:
         """The neuron's settings, as :class:`~evdown_torch.models.SpikingPooling` takes them.
 
         ``beta``, ``threshold``, ``weight``, ``mutual_inhibition`` and ``reset_mechanism``.

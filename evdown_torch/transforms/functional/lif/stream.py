@@ -38,13 +38,14 @@ from typing import NamedTuple, cast
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import sort_by_time
 from evdown_torch.checks import output_size
+from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.lif.pooling import (
-    LIFSettings,
     LIFState,
     initial_state,
+    lif_pooling,
     lif_spikes,
 )
 from evdown_torch.transforms.functional.lif.settings import LIFPoolingSettings
@@ -53,14 +54,16 @@ from evdown_torch.transforms.functional.lif.steps import (
     step_end_time,
     step_indices,
 )
+from evdown_torch.transforms.functional.protocol import Method
 
 __all__ = [
+    "LIF_POOLING",
     "LIFStreamState",
-    "lif_finish",
-    "lif_init",
-    "lif_pooling_stream",
-    "lif_pooling_stream_end",
-    "lif_step",
+    "lif_pooling_finish",
+    "lif_pooling_init",
+    "lif_pooling_stacked",
+    "lif_pooling_step",
+    "lif_pooling_whole",
 ]
 
 
@@ -135,30 +138,26 @@ def _fresh_state(
     )
 
 
-def lif_pooling_stream(
-    events: Events,
-    state: LIFStreamState | None,
-    settings: LIFSettings,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-    time_sorted: bool = False,
-) -> tuple[Events, LIFStreamState | None]:
-    """One chunk of a LIF pooling stream: the spikes it decides, and the new state.
+def lif_pooling_init(settings: LIFPoolingSettings, events: Events) -> LIFStreamState:
+    """LIF pooling's ``init_state``: a stream whose first (time-sorted) chunk is ``events``."""
+    return _fresh_state(events, settings.sensor_size, settings.factor)
+
+
+def lif_pooling_step(
+    events: Events, state: LIFStreamState, settings: LIFPoolingSettings
+) -> tuple[Events, LIFStreamState]:
+    """LIF pooling's ``step``: the spikes one time-sorted chunk decides, and the new state.
 
     Args:
-        events: the chunk, no earlier than the previous chunks' last event.
-        state: the state after the previous chunks, ``None`` for the first.
-        settings: the neuron's settings (``dt`` in the unit of ``t``).
-        sensor_size: input sensor ``(W, H, P)``.
-        factor: ``(fx, fy)``, positive integers.
-        time_sorted: the chunk is known to be in time order (a session's, which sorts it
-            first), so its order is not checked again.
+        events: the chunk (non-empty, time-sorted), no earlier than the previous chunks'
+            last event.
+        state: the state after the previous chunks (:func:`lif_pooling_init` for the first).
+        settings: the region geometry and the neuron's settings (``dt`` in the unit of ``t``).
 
     Returns:
         ``(output, state)``: the events of the newly decided steps (sorted by ``t``; the
-        concatenation over the chunks and :func:`lif_pooling_stream_end` is the batch output),
-        and the new state (``state`` itself for an empty chunk).
+        concatenation over the chunks and :func:`lif_pooling_finish` is the batch output),
+        and the new state.
 
     Raises:
         ValueError: when the stream's steps cannot be indexed in int64, or the output exceeds
@@ -168,27 +167,24 @@ def lif_pooling_stream(
     Example:
         >>> ev = Events.from_columns([0, 1, 0, 1, 3], [0, 0, 1, 1, 0], [0, 1, 2, 3, 9],
         ...                          [1, 1, 1, 1, 0])
-        >>> settings = LIFSettings(dt=2, beta=1.0, threshold=1.0, weight=0.3)
-        >>> grid = dict(sensor_size=(4, 2, 2), factor=(2, 2))
-        >>> out, state = lif_pooling_stream(ev.select(torch.arange(4)), None, settings, **grid)
+        >>> from evdown_torch.transforms.functional.lif.settings import LIFSettings
+        >>> neuron = LIFSettings(dt=2, beta=1.0, threshold=1.0, weight=0.3)
+        >>> settings = LIFPoolingSettings((4, 2, 2), (2, 2), neuron)
+        >>> first = ev.select(torch.arange(4))
+        >>> out, state = lif_pooling_step(first, lif_pooling_init(settings, first), settings)
         >>> out.t.tolist()  # step 1 ([2, 4)) is still open at t = 3
         []
-        >>> out, state = lif_pooling_stream(ev.select(torch.tensor([4])), state, settings, **grid)
+        >>> out, state = lif_pooling_step(ev.select(torch.tensor([4])), state, settings)
         >>> out.t.tolist(), state.decided
         ([4], 3)
     """
-    if events.num_events == 0:
-        return Events.empty(events.t.dtype, events.device), state
-    if not time_sorted:
-        events = sort_by_time(events)
-    if state is None:
-        state = _fresh_state(events, sensor_size, factor)
+    cell, sensor_size, factor = settings.neuron, settings.sensor_size, settings.factor
     # The steps of the new events only (the pending ones' are kept: the same, see
     # step_indices, whose dt changes only while every event is in step 0).
-    steps, last_step, end_dt = step_indices(events.t, settings.dt, t_start=state.t_start)
+    steps, last_step, end_dt = step_indices(events.t, cell.dt, t_start=state.t_start)
     last_t = events.t[-1]
     decided = _last_decided_step(
-        last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=settings.dt
+        last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=cell.dt
     )
     if decided == state.decided:
         return Events.empty(events.t.dtype, events.device), state._replace(
@@ -201,7 +197,7 @@ def lif_pooling_stream(
     n = int(torch.searchsorted(steps, decided, right=True))
     spike_step, neuron, neurons = lif_spikes(
         [state.pending.part(0, k), events.part(0, n)],
-        [state.pending_steps[:k], steps[:n]], settings,
+        [state.pending_steps[:k], steps[:n]], cell,
         state=state.neurons, last_step=decided, from_step=state.decided + 1,
         sensor_size=sensor_size, factor=factor,
     )
@@ -213,56 +209,49 @@ def lif_pooling_stream(
     return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest, rest_steps)
 
 
-def lif_pooling_stream_end(
-    state: LIFStreamState | None,
-    settings: LIFSettings,
-    *,
-    sensor_size: tuple[int, int, int],
-    factor: tuple[int, int],
-) -> Events | None:
-    """The end of a LIF pooling stream: the spikes of the steps no chunk decided.
+
+def lif_pooling_finish(state: LIFStreamState, settings: LIFPoolingSettings) -> Events | None:
+    """LIF pooling's ``finish``: the spikes of the steps no chunk decided.
 
     The pending input is processed and the neurons' firing chains run up to the step of
     ``t_end`` (the stream's last timestamp); times are clipped to ``t_end``, as in the batch.
 
-    Args:
-        state: the state after the last chunk (``None``: no event, returns ``None``).
-        settings: the neuron's settings, as for every chunk.
-        sensor_size: input sensor ``(W, H, P)``.
-        factor: ``(fx, fy)``, positive integers.
-
     Returns:
-        The remaining events, sorted by ``t``, or ``None`` when no event was streamed.
+        The remaining events, sorted by ``t``.
     """
-    if state is None:
-        return None
+    cell, sensor_size, factor = settings.neuron, settings.sensor_size, settings.factor
     pending = state.pending
     times = torch.cat([pending.t, state.last_t.reshape(1)])
-    steps, last_step, end_dt = step_indices(times, settings.dt, t_start=state.t_start)
+    steps, last_step, end_dt = step_indices(times, cell.dt, t_start=state.t_start)
     spike_step, neuron, _ = lif_spikes(
-        pending, steps[:-1], settings, state=state.neurons, last_step=last_step,
+        pending, steps[:-1], cell, state=state.neurons, last_step=last_step,
         from_step=state.decided + 1, sensor_size=sensor_size, factor=factor, keep_state=False,
     )
     t = step_end_time(spike_step, t_start=state.t_start, t_end=state.last_t, dt=end_dt)
     return spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
 
 
-def lif_init(settings: LIFPoolingSettings, events: Events) -> LIFStreamState:
-    """LIF pooling's ``init_state``: a stream whose first (time-sorted) chunk is ``events``."""
-    return _fresh_state(events, settings.sensor_size, settings.factor)
+def lif_pooling_whole(events: Events, settings: LIFPoolingSettings) -> Events:
+    """The whole stream in one call: :func:`.pooling.lif_pooling`."""
+    return lif_pooling(events, settings.neuron, sensor_size=settings.sensor_size,
+                       factor=settings.factor)
 
 
-def lif_step(
-    events: Events, state: LIFStreamState, settings: LIFPoolingSettings
-) -> tuple[Events, LIFStreamState]:
-    """LIF pooling's ``step``: :func:`lif_pooling_stream` on one (time-sorted) chunk."""
-    out, new = lif_pooling_stream(events, state, settings.neuron,
-                                  sensor_size=settings.sensor_size, factor=settings.factor,
-                                  time_sorted=True)
-    return out, new if new is not None else state
+def lif_pooling_stacked(batch: EventBatch, settings: LIFPoolingSettings) -> EventBatch:
+    """The whole-stream kernel once on the stacked batch.
+
+    Each recording is binned from its own ``t_start`` and ends at its own ``t_end``.
+    """
+
+    def kernel(stacked: Stacked) -> Events:
+        return lif_pooling(stacked.events, settings.neuron, sensor_size=settings.sensor_size,
+                           factor=settings.factor, recording_spans=(stacked.starts, stacked.ends))
+
+    return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
 
 
-def lif_finish(state: LIFStreamState, settings: LIFPoolingSettings) -> Events | None:
-    """LIF pooling's ``finish``: :func:`lif_pooling_stream_end`."""
-    return lif_pooling_stream_end(state, settings.neuron, sensor_size=settings.sensor_size,
-                                  factor=settings.factor)
+#: LIFPooling's kernels (:class:`~evdown_torch.LIFPooling`).
+LIF_POOLING: Method[LIFPoolingSettings, LIFStreamState] = Method(
+    lif_pooling_init, lif_pooling_step, lif_pooling_finish,
+    whole=lif_pooling_whole, stacked=lif_pooling_stacked,
+)

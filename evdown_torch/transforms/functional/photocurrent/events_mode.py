@@ -50,13 +50,12 @@ from evdown_torch._tensors import (
     region_pixel_count,
     region_xy,
     run_index,
-    sort_by_time,
     stable_sort_small,
     take,
     where_true,
 )
 from evdown_torch.checks import output_size
-from evdown_torch.events import Events, polarity_sign
+from evdown_torch.events import Events, polarity_sign, sort_by_time
 from evdown_torch.transforms.functional.photocurrent.levels import (
     check_contrast_range,
     check_level_range,
@@ -109,7 +108,7 @@ def initial_state(
 
     With ``recordings > 1``, the state of that many recordings stacked vertically (recording
     ``b``'s pixel ``(x, y)`` at ``(x, y + b * Ho * fy)``, see
-    :mod:`evdown_torch.transforms._batch`).
+    :mod:`evdown_torch.transforms.functional.batch`).
     """
     w, h, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
@@ -203,7 +202,7 @@ def photocurrent_events(
         state: the state returned for the previous chunk of the same stream, or ``None``.
         recordings: ``B``, for a batch of recordings stacked vertically (recording ``b``'s
             pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
-            :mod:`evdown_torch.transforms._batch`). 1 for one stream.
+            :mod:`evdown_torch.transforms.functional.batch`). 1 for one stream.
 
     Returns:
         ``(output events sorted by t, state after the last event)``.

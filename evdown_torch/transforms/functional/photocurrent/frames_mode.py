@@ -30,12 +30,11 @@ from evdown_torch._tensors import (
     ends,
     region_of,
     region_pixel_count,
-    sort_by_time,
     take,
     where_true,
 )
 from evdown_torch.checks import DEFAULT_TIME_UNIT, output_limit, output_size
-from evdown_torch.events import Events, polarity_sign
+from evdown_torch.events import Events, polarity_sign, sort_by_time
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, emit
 from evdown_torch.transforms.functional.photocurrent.levels import (
     check_level_range,

@@ -137,3 +137,8 @@ class PhotocurrentSettings(RegionSettings):
         FrameClock.make(fps, 0, time_unit)
         object.__setattr__(self, "fps", fps)
         object.__setattr__(self, "time_unit", time_unit)
+
+    @property
+    def output_threshold(self) -> float:
+        """The output pixel's contrast threshold: :attr:`threshold`, or :attr:`contrast`."""
+        return self.contrast if self.threshold is None else self.threshold
