@@ -49,7 +49,7 @@ import numpy as np
 from evdown_torch.checks import check_positive_int
 from evdown_torch.threads import torch_threads
 from evdown_torch.transforms import Chain, Streaming, TemporalFunnelling
-from evdown_torch.transforms.registry import make_method
+from evdown_torch.transforms.registry import METHODS, make_method
 
 __all__ = [
     "ALLOCATOR_VARIABLES",
@@ -72,16 +72,19 @@ REALTIME_RATE = 25_000_000.0
 REALTIME_CHUNKS_US = (1_000, 10_000)
 #: Bounded delay of the estimators in the replay (microseconds).
 REALTIME_MAX_DELAY_US = 1_000
-#: Method label -> (registry name or "temporal", settings).
+#: The replay's settings where a method's defaults do not stream or do not fit a live sensor:
+#: a bounded delay for the estimators, 1 ms steps for LIF pooling and temporal funnelling.
+REALTIME_SETTINGS: dict[str, dict[str, Any]] = {
+    "temporal": {"dt": 1000},
+    "linear": {"max_delay": REALTIME_MAX_DELAY_US},
+    "cubic": {"max_delay": REALTIME_MAX_DELAY_US},
+    "lif": {"dt": 1000},
+}
+#: Method label -> (registry name or "temporal", settings): every registry method (in its
+#: order, temporal funnelling after the causal region methods) with its replay settings.
 REALTIME_METHODS: dict[str, tuple[str, dict[str, Any]]] = {
-    "downsample": ("downsample", {}),
-    "funnelling": ("funnelling", {}),
-    "event_count": ("event_count", {}),
-    "temporal": ("temporal", {"dt": 1000}),
-    "linear": ("linear", {"max_delay": REALTIME_MAX_DELAY_US}),
-    "cubic": ("cubic", {"max_delay": REALTIME_MAX_DELAY_US}),
-    "lif": ("lif", {"dt": 1000}),
-    "photocurrent": ("photocurrent", {}),
+    name: (name, REALTIME_SETTINGS.get(name, {}))
+    for name in [*list(METHODS)[:3], "temporal", *list(METHODS)[3:]]
 }
 
 

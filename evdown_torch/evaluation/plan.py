@@ -14,6 +14,7 @@ on ``training.seeds``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -29,7 +30,8 @@ __all__ = ["CONTROL_ROLE", "EXPLORATORY", "PRIMARY", "SANITY", "Planned", "delay
 PRIMARY, CONTROL_ROLE, SANITY, EXPLORATORY = "primary", "control", "sanity", "exploratory"
 _ORDER = {PRIMARY: 0, CONTROL_ROLE: 1, SANITY: 2, EXPLORATORY: 3}
 #: The estimators, whose sessions need ``max_delay``.
-ESTIMATORS = ("linear", "cubic")
+ESTIMATORS = tuple(name for name, cls in METHODS.items()
+                   if "max_delay" in {f.name for f in fields(cls)})
 
 
 @dataclass(frozen=True)
@@ -118,11 +120,6 @@ def plan(config: EvaluationConfig) -> list[Planned]:
     return planned
 
 
-def _default(method: str, name: str) -> Any:
-    """The default of setting ``name`` of a registry method's transform."""
-    return next(f.default for f in fields(METHODS[method]) if f.name == name)
-
-
 def delay_of(cell: Cell) -> str:
     """A cell's algorithmic delay: how long after an input event its output can be final.
 
@@ -137,17 +134,14 @@ def delay_of(cell: Cell) -> str:
         >>> delay_of(Cell("linear", (4, 4), 1.0)), delay_of(Cell("event_count", (4, 4), 1.0))
         ('whole recording', '0')
     """
-    settings = dict(cell.settings)
-    if cell.method in ESTIMATORS:
-        d = settings.get("max_delay")
-        if d is None:
-            return "whole recording"
-        return f"{d * (2 if cell.method == 'cubic' else 1) / 1000:g} ms"
-    if cell.method == "lif":
-        dt = settings.get("dt", _default(cell.method, "dt"))
-        return f"{dt / 1000:g} ms"
     if cell.method == TONIC:
         return f"{TONIC_DT_MS:g} ms"
-    if cell.method == "photocurrent" and settings.get("fps"):
-        return f"{1000 / settings['fps']:g} ms"
-    return "0" if cell.method != BASELINE else "–"
+    if cell.method not in METHODS:
+        return "0" if cell.method != BASELINE else "–"
+    # The class's own delay, asked of an instance on one region (timestamps in microseconds).
+    fx, fy = cell.factor
+    delay = METHODS[cell.method]((fx, fy, 2), cell.factor, **dict(cell.settings))
+    us = delay.algorithmic_delay()
+    if math.isinf(us):
+        return "whole recording"
+    return f"{us / 1000:g} ms" if us else "0"

@@ -183,10 +183,8 @@ def read_file(
 
 def method_name(transform: Downscaler) -> str:
     """The registry name of a transform's class (its class name when not registered)."""
-    for name, cls in METHODS.items():
-        if type(transform) is cls:
-            return name
-    return type(transform).__name__
+    name = type(transform).name
+    return name if METHODS.get(name) is type(transform) else type(transform).__name__
 
 
 def panels(

@@ -37,12 +37,12 @@ from evdown_torch.checks import (
     check_positive_int,
     check_unit_interval,
 )
-from evdown_torch.transforms.functional.reference import crossings, reference_index
-from evdown_torch.transforms.functional.two_thresholds import (
+from evdown_torch.synthetic.two_thresholds import (
     PixelSamples,
     two_threshold_counts,
     two_threshold_crossings,
 )
+from evdown_torch.transforms.functional.reference import crossings, reference_index
 
 __all__ = [
     "PixelModelConfig",

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch.transforms.functional.two_thresholds import (
+from evdown_torch.synthetic.two_thresholds import (
     PixelSamples,
     two_threshold_counts,
     two_threshold_crossings,

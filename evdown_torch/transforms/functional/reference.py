@@ -20,7 +20,8 @@ the clamp recurrence ``q_k = clamp(q_{k-1}, floor(u_k), ceil(u_k))`` solved in c
 This module is the rule's one home: the exact level test (:func:`level_index`), the value of a
 level (:func:`level_value`), the reference index (:func:`reference_index`) and its crossings
 (:func:`crossings`, :func:`move_crossings`), used by the kernels and the synthetic pixel
-model (whose two-threshold variant is :mod:`.two_thresholds`).
+model (whose two-threshold variant, for the synthetic pixels, is
+:mod:`evdown_torch.synthetic.two_thresholds`).
 """
 
 from __future__ import annotations
