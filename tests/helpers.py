@@ -11,9 +11,20 @@ import pytest
 import torch
 from hypothesis import strategies as st
 
-from evdown_torch import CubicEstimation, EventCount, LinearEstimation
+from evdown_torch import (
+    CubicEstimation,
+    Downsample,
+    EventCount,
+    EventFunnelling,
+    LIFPooling,
+    LinearEstimation,
+    PhotocurrentPooling,
+    TemporalFunnelling,
+)
 from evdown_torch.events import DVS_DTYPE
 from evdown_torch.models import SpikingPooling
+from evdown_torch.transforms import Streaming
+from evdown_torch.transforms.thinning import ThinnedDownsample
 
 #: The estimators, and the three log-luminance methods (EventCount and the estimators).
 ESTIMATORS = [LinearEstimation, CubicEstimation]
@@ -21,6 +32,44 @@ LOG_LUMINANCE = [EventCount, LinearEstimation, CubicEstimation]
 
 #: DVS_DTYPE with float64 timestamps (seconds or any float unit).
 FLOAT_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", bool), ("t", np.float64)])
+
+
+def transform_cases(
+    sensor_size: tuple[int, int, int], factor: int | tuple[int, int], *, step: int
+) -> dict[str, Streaming]:
+    """Every transform of the package, once per method and mode: the one table of instances.
+
+    The protocol, streaming and batch tests all run over it, and ``test_registry`` checks that
+    it holds every method of the registry. Its keys are the registry names, plus the variants
+    of a method (``linear_delay``, ``photocurrent_frames``) and the transforms outside the
+    registry (``temporal``, ``thinned``). ``step`` is the time scale of the test's streams
+    (in their ticks): LIF's ``dt``, the estimators' ``max_delay``, two frames, one temporal bin.
+    """
+    return {
+        "downsample": Downsample(sensor_size, factor),
+        "funnelling": EventFunnelling(sensor_size, factor),
+        "event_count": EventCount(sensor_size, factor, threshold=0.3),
+        "linear": LinearEstimation(sensor_size, factor, threshold=0.25),
+        "cubic": CubicEstimation(sensor_size, factor, threshold=0.25),
+        "linear_delay": LinearEstimation(sensor_size, factor, threshold=0.25, max_delay=step),
+        "cubic_delay": CubicEstimation(sensor_size, factor, threshold=0.25, max_delay=step),
+        "lif": LIFPooling(sensor_size, factor, dt=step, tau=3.0 * step, weight=0.6),
+        "photocurrent": PhotocurrentPooling(sensor_size, factor, contrast=0.3, threshold=0.2),
+        "photocurrent_frames": PhotocurrentPooling(sensor_size, factor, contrast=0.3,
+                                                   threshold=0.2, fps=1e6 / (2 * step)),
+        "temporal": TemporalFunnelling(dt=step, sensor_size=sensor_size),
+        "thinned": ThinnedDownsample(sensor_size, factor, keep=0.5, seed=3),
+    }
+
+
+def streaming_cases(
+    sensor_size: tuple[int, int, int], factor: int | tuple[int, int], *, step: int
+) -> dict[str, Streaming]:
+    """:func:`transform_cases` that have a session (a method that streams; the estimators
+    with a delay)."""
+    cases = transform_cases(sensor_size, factor, step=step)
+    return {name: transform for name, transform in cases.items()
+            if transform.kernels.no_stream is None and name not in ("linear", "cubic")}
 
 
 def spy(monkeypatch, module, name: str, record=lambda out: out) -> list:

@@ -393,11 +393,8 @@ class Chain(Streaming, abstract=True):
                     f"Chain takes evdown_torch transforms, got {type(transform).__name__}"
                 )
         object.__setattr__(self, "transforms", tuple(transforms))
-
-    @property
-    def sensor_size(self) -> tuple[int, int, int] | None:  # type: ignore[override]
-        """The first stage's input sensor size."""
-        return self.transforms[0].sensor_size
+        #: The first stage's input sensor size.
+        object.__setattr__(self, "sensor_size", transforms[0].sensor_size)
 
     def batch_kernel(self, batch: EventBatch) -> EventBatch | None:
         """``None``: a chain's batch goes one recording at a time through every stage."""

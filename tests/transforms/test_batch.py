@@ -10,26 +10,18 @@ import evdown_torch as ev
 from evdown_torch import _tensors as tensors
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import DVS_DTYPE
+from evdown_torch.transforms import Streaming
 from evdown_torch.transforms.functional.reference import region_dtype
-from evdown_torch.transforms.thinning import ThinnedDownsample
-from tests.helpers import random_stream
+from tests.helpers import random_stream, transform_cases
 
 SENSOR = (7, 5, 2)  # not a multiple of the factors: edge regions have fewer pixels
 
-METHODS = {
-    "downsample": lambda f: ev.Downsample(SENSOR, factor=f),
-    "funnelling": lambda f: ev.EventFunnelling(SENSOR, factor=f),
-    "event_count": lambda f: ev.EventCount(SENSOR, factor=f, threshold=0.25),
-    "linear": lambda f: ev.LinearEstimation(SENSOR, factor=f, threshold=0.2),
-    "cubic": lambda f: ev.CubicEstimation(SENSOR, factor=f, threshold=0.2),
-    "linear_delay": lambda f: ev.LinearEstimation(SENSOR, factor=f, threshold=0.2, max_delay=9),
-    "cubic_delay": lambda f: ev.CubicEstimation(SENSOR, factor=f, threshold=0.2, max_delay=9),
-    "lif": lambda f: ev.LIFPooling(SENSOR, factor=f, dt=50, tau=200),
-    "photocurrent": lambda f: ev.PhotocurrentPooling(SENSOR, factor=f, contrast=0.3, threshold=0.2),
-    "thinned": lambda f: ThinnedDownsample(SENSOR, factor=f, keep=0.5, seed=3),
-    "photocurrent_frames": lambda f: ev.PhotocurrentPooling(SENSOR, factor=f, contrast=0.3,
-                                                         threshold=0.2, fps=20_000),
-}
+#: The table of instances (tests/helpers.py), every method and mode.
+NAMES = sorted(transform_cases(SENSOR, 2, step=50))
+
+
+def _case(name: str, factor: int | tuple[int, int]) -> Streaming:
+    return transform_cases(SENSOR, factor, step=50)[name]
 
 
 def _recordings(rng: np.random.Generator, t_max: int = 400) -> list[np.ndarray]:
@@ -50,9 +42,9 @@ def _assert_same(got: np.ndarray, want: np.ndarray) -> None:
 
 
 @pytest.mark.parametrize("factor", [2, (3, 2)])
-@pytest.mark.parametrize("name", sorted(METHODS))
+@pytest.mark.parametrize("name", NAMES)
 def test_batch_equals_one_by_one(name, factor, rng):
-    transform = METHODS[name](factor)
+    transform = _case(name, factor)
     recordings = _recordings(rng)
     originals = [r.copy() for r in recordings]
     outputs = transform.batch(recordings)
@@ -63,10 +55,10 @@ def test_batch_equals_one_by_one(name, factor, rng):
         assert recording.tolist() == original.tolist()  # input untouched
 
 
-@pytest.mark.parametrize("name", sorted(METHODS))
+@pytest.mark.parametrize("name", NAMES)
 def test_batch_float_times_and_tensors(name, rng):
     """Float timestamps are not shifted (the kernel sorts the batch); tensors come back."""
-    transform = METHODS[name](2)
+    transform = _case(name, 2)
     recordings = []
     for n in (25, 0, 1, 40):
         stream = random_stream(rng, n, SENSOR, t_max=300)
@@ -104,7 +96,7 @@ def test_batch_mixed_kinds(rng):
 
 @pytest.mark.parametrize("name", ["event_count", "cubic"])
 def test_event_batch_keeps_device(name, device, rng):
-    transform = METHODS[name](2)
+    transform = _case(name, 2)
     recordings = [torch.from_numpy(np.stack(
         [r["x"].astype(np.int64), r["y"], r["t"], r["p"]], 1)).to(device)
         for r in _recordings(rng)]
@@ -159,9 +151,9 @@ def test_lif_batch_with_firing_chains(reset, dt, rng):
         _assert_same(output, transform(recording))
 
 
-@pytest.mark.parametrize("name", sorted(METHODS))
+@pytest.mark.parametrize("name", NAMES)
 def test_batch_of_empty_recordings_and_of_one(name, rng):
-    transform = METHODS[name](2)
+    transform = _case(name, 2)
     empty = random_stream(rng, 0, SENSOR)
     assert [len(out) for out in transform.batch([empty, empty.copy()])] == [0, 0]
     recording = random_stream(rng, 30, SENSOR)

@@ -12,21 +12,12 @@ from evdown_torch.collate import EventBatch
 from evdown_torch.events import to_events
 from evdown_torch.transforms.functional.protocol import Method, run_protocol
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
-from tests.helpers import random_stream
+from tests.helpers import random_stream, streaming_cases
 
 SENSOR = (9, 7, 2)
 
-METHODS = {  # the methods of test_streaming, and the estimators and frames mode
-    "downsample": ev.Downsample(SENSOR, factor=2),
-    "funnelling": ev.EventFunnelling(SENSOR, factor=(3, 2)),
-    "event_count": ev.EventCount(SENSOR, factor=3, threshold=0.3),
-    "linear": ev.LinearEstimation(SENSOR, factor=2, threshold=0.25, max_delay=6),
-    "cubic": ev.CubicEstimation(SENSOR, factor=(3, 2), threshold=0.25, max_delay=4),
-    "temporal": ev.TemporalFunnelling(dt=7, sensor_size=SENSOR),
-    "photocurrent": ev.PhotocurrentPooling(SENSOR, factor=(2, 3), contrast=0.3, threshold=0.2),
-    "photocurrent_frames": ev.PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, fps=1e5),
-    "lif": ev.LIFPooling(SENSOR, factor=2, dt=7, tau=20.0, weight=0.6),
-}
+#: The table of instances (tests/helpers.py) that stream through the protocol's kernels.
+METHODS = streaming_cases(SENSOR, (3, 2), step=7)
 
 
 def _same(a: ev.Events, b: ev.Events) -> bool:

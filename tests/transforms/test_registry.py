@@ -6,6 +6,7 @@ import pytest
 
 from evdown_torch.transforms import EventCount
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
+from tests.helpers import transform_cases
 
 
 def test_every_method_builds_with_defaults():
@@ -25,3 +26,22 @@ def test_unknown_method_and_setting():
         make_method("nope", (8, 8, 2), 2)
     with pytest.raises(ValueError, match="does not take setting"):
         make_method("downsample", (8, 8, 2), 2, threshold=1.0)
+
+
+def test_every_registry_method_is_in_the_tests_table_of_instances():
+    cases = transform_cases((8, 8, 2), 2, step=10)
+    for name, cls in METHODS.items():
+        assert cls.name == name
+        assert isinstance(cases[name], cls)
+
+
+def test_a_transform_class_without_method_or_settings_is_refused_when_defined():
+    from evdown_torch.transforms import Downscaler, Streaming
+
+    with pytest.raises(TypeError, match="names no method"):
+        class NoMethod(Downscaler):
+            pass
+
+    with pytest.raises(TypeError, match="has no settings"):
+        class NoSettings(Streaming):
+            method = EventCount.method

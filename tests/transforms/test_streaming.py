@@ -16,25 +16,18 @@ from evdown_torch import (
     EventCount,
     EventFunnelling,
     Events,
-    LIFPooling,
     LinearEstimation,
-    PhotocurrentPooling,
     TemporalFunnelling,
 )
 from evdown_torch.transforms import Session
 from evdown_torch.transforms.thinning import ThinnedDownsample
 from tests import helpers
-from tests.helpers import DVS_DTYPE, chunkings, random_stream, run_in_chunks
+from tests.helpers import DVS_DTYPE, chunkings, random_stream, run_in_chunks, streaming_cases
 
 SENSOR = (9, 7, 2)
 
 TRANSFORMS = {
-    "downsample": Downsample(SENSOR, factor=2),
-    "funnelling": EventFunnelling(SENSOR, factor=(3, 2)),
-    "event_count": EventCount(SENSOR, factor=3, threshold=0.3),
-    "temporal": TemporalFunnelling(dt=7, sensor_size=SENSOR),
-    "photocurrent": PhotocurrentPooling(SENSOR, factor=(2, 3), contrast=0.3, threshold=0.2),
-    "lif": LIFPooling(SENSOR, factor=2, dt=7, tau=20.0, weight=0.6),
+    **streaming_cases(SENSOR, (3, 2), step=7),
     "temporal_then_count": Chain(
         TemporalFunnelling(dt=5), EventCount(SENSOR, factor=2, threshold=0.5)
     ),

@@ -52,12 +52,10 @@ class EventCountState(NamedTuple):
     Attributes:
         level_sum: ``(Ho * Wo,)`` int64 sum of the region's pixel levels (ON +1, OFF -1).
         reference: ``(Ho * Wo,)`` int64 reference index ``q`` of each region.
-        last_t: ``()`` tensor, the latest timestamp seen (``None`` before any event).
     """
 
     level_sum: Tensor
     reference: Tensor
-    last_t: Tensor | None
 
 
 def initial_state(
@@ -69,7 +67,7 @@ def initial_state(
     """
     out_w, out_h, _ = settings.output_sensor_size
     zeros = torch.zeros(out_w * out_h * recordings, dtype=torch.int64, device=device)
-    return EventCountState(zeros, zeros.clone(), None)
+    return EventCountState(zeros, zeros.clone())
 
 
 def event_count(
@@ -306,4 +304,4 @@ def _event_count_sorted(
         crossed = take(region, cross.move).to(torch.int64)
         last = ends(changes(crossed))
         new_reference[crossed[last]] = cross.level[last].to(torch.int64)
-    return out, EventCountState(new_sum, new_reference, events.t[-1].clone())
+    return out, EventCountState(new_sum, new_reference)

@@ -43,11 +43,11 @@ Rounding bounds, derived (``eps32 = 2**-24``, ``eps64 = 2**-53``, ``KAPPA = 16 e
    (a cumsum of ``width`` terms, scales ``exp(lam * offset)`` of relative error about
    ``lam * offset`` units). A decision is certain when its margin exceeds that sum.
 3. *A firing chain before a cell* (reset "subtract", between cells) is at most
-   :data:`~.lif_chains.EXACT_CHAIN_STEPS` = 8 float32 steps, each of two roundings of sizes
+   :data:`~.chains.EXACT_CHAIN_STEPS` = 8 float32 steps, each of two roundings of sizes
    below ``|v| + theta`` (the membrane falls along a chain), then a float64 closed form: at
    most ``16 KAPPA (|v| + theta)`` in all, added at the next cell.
 4. *Where a chain stops.* The chain ``j`` steps after a membrane ``u`` with error bound
-   ``error`` is ``chain(u, j)`` (:class:`~.lif_chains.Leak`); the rounds' float32 value lies
+   ``error`` is ``chain(u, j)`` (:class:`~.chains.Leak`); the rounds' float32 value lies
    within ``beta**j error`` (the carried error decays) plus ``2 eps32 (u + theta)`` per
    float32 step, of which there are at most 8 (then the closed form adds float64 error only):
    ``2 min(j, 8) eps32 (u + theta)``. The code uses ``KAPPA (2 min(j, 9) + 4) (u + theta)``,
@@ -116,7 +116,7 @@ def certain_spikes(
         leak: the neurons' ``beta``, threshold and reset.
 
     Returns:
-        The :class:`~.lif_chains.CellSpikes`: the neurons whose membrane exceeds the
+        The :class:`~.chains.CellSpikes`: the neurons whose membrane exceeds the
         threshold after the update at a cell, and the runs of spikes a neuron fires through
         the empty steps after a cell (``run_length`` spikes from step ``run_start``);
         ``None`` when a decision lies within float32 rounding of the threshold or the call is

@@ -125,7 +125,7 @@ def spikes_and_runs(
     *,
     leak: Leak,
 ) -> CellSpikes:
-    """The rounds' spikes (:class:`~.lif_chains.CellSpikes`).
+    """The rounds' spikes (:class:`~.chains.CellSpikes`).
 
     Those at the cells, and the runs of spikes of neurons that go on firing through the
     silent steps after a cell.

@@ -90,7 +90,7 @@ class LIFStreamState(NamedTuple):
 def _spike_time_within(step: int, *, t_start: Tensor, last_t: Tensor, dt: float) -> bool:
     """Whether ``t_start + (step + 1) * dt``, as the kernel computes it, is at most ``last_t``.
 
-    The same arithmetic as :func:`~evdown_torch.transforms.functional.lif.pooling.step_end_time`
+    The same arithmetic as :func:`~evdown_torch.transforms.functional.lif.steps.step_end_time`
     before its clip (Python ints and IEEE doubles, as torch's int64 and float64).
     """
     if t_start.is_floating_point():

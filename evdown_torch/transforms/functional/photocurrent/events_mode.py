@@ -1,4 +1,4 @@
-"""Photocurrent pooling kernels (SEMANTICS.md method 7): events to video to events.
+"""Photocurrent pooling kernels (docs/semantics.md, method 7): events to video to events.
 
 Each input pixel keeps an integer level ``L_p`` (ON +1, OFF -1) and its log intensity is
 ``c * L_p``. A region's photocurrent is the mean of its pixels' intensities,
@@ -187,7 +187,7 @@ def photocurrent_events(
     state: PhotocurrentState | None = None,
     recordings: int = 1,
 ) -> tuple[Events, PhotocurrentState]:
-    """Photocurrent pooling, events mode (SEMANTICS.md method 7): causal, streamable.
+    """Photocurrent pooling, events mode (docs/semantics.md, method 7): causal, streamable.
 
     After each input event, in stable time order, its region's ``u = log(I_r) / threshold``
     with ``I_r = mean(exp(contrast * L_p))`` is tested with the DVS reference rule; emitted
