@@ -552,15 +552,14 @@ def test_levels_beyond_float_resolution_are_refused():
     from evdown_torch.events import Events
     from evdown_torch.transforms.functional.photocurrent.events_mode import (
         initial_state,
-        photocurrent_events,
+        photocurrent_sorted,
     )
 
     state = initial_state(SENSOR, (2, 2))
     state.level[3 * SENSOR[0] + 4] = 2**40
     ev = Events.from_columns([4], [3], [10], [1])
     with pytest.raises(ValueError, match="2\\*\\*50"):
-        photocurrent_events(ev, sensor_size=SENSOR, factor=(2, 2), contrast=1.0,
-                            threshold=1e-6, state=state)
+        photocurrent_sorted(ev, SENSOR, (2, 2), 1.0, 1e-6, state)
 
 
 def test_int64_levels_give_the_int32_result(rng):

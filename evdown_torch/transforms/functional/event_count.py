@@ -42,7 +42,6 @@ __all__ = [
     "event_count_stacked",
     "event_count_step",
     "event_count_whole",
-    "initial_state",
 ]
 
 
@@ -76,9 +75,7 @@ def event_count(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     threshold: float,
-    state: EventCountState | None = None,
-    recordings: int = 1,
-) -> tuple[Events, EventCountState]:
+) -> Events:
     """Downscale by the log-luminance event count (docs/semantics.md, method 3).
 
     Each pixel keeps an integer level (ON adds 1, OFF subtracts 1). After each input event, in
@@ -93,25 +90,18 @@ def event_count(
         sensor_size: input ``(W, H, P)``.
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0.
-        state: the state returned for the previous chunk of the same stream, or ``None``
-            for a fresh stream.
-        recordings: ``B``, for a batch of recordings stacked vertically: recording ``b``'s
-            pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)`` (regions never mix recordings;
-            see :mod:`evdown_torch.transforms.functional.batch`). 1 for one stream.
 
     Returns:
-        ``(output events sorted by t, state after the last event)``.
+        Output events sorted by ``t``. A stream in chunks goes through
+        :data:`EVENT_COUNT`'s ``init_state`` and ``step`` (a transform's session).
 
     Example:
         >>> ev = Events.from_columns([0, 1, 0, 1], [0, 0, 0, 1], [1, 2, 3, 4], [1, 1, 0, 0])
-        >>> out, _ = event_count(ev, sensor_size=(2, 2, 2), factor=(2, 2), threshold=0.5)
+        >>> out = event_count(ev, sensor_size=(2, 2, 2), factor=(2, 2), threshold=0.5)
         >>> out.t.tolist(), out.p.tolist()
         ([2, 4], [True, False])
     """
-    settings = ThresholdSettings(sensor_size, factor, threshold)
-    if state is None:
-        state = initial_state(settings, events.device, recordings)
-    return event_count_step(sort_by_time(events), state, settings)
+    return event_count_whole(events, ThresholdSettings(sensor_size, factor, threshold))
 
 
 def event_count_init(settings: ThresholdSettings, events: Events) -> EventCountState:
@@ -124,8 +114,8 @@ def event_count_step(
 ) -> tuple[Events, EventCountState]:
     """EventCount's ``step``: causal, so every output is decided by its (time-sorted) chunk.
 
-    Args and returns as :func:`event_count`, the settings checked and ``events`` sorted by
-    ``t``.
+    Returns:
+        ``(output events sorted by t, state after the chunk's last event)``.
     """
     bounds = chunk_bounds(events.t)
     if len(bounds) == 2:

@@ -10,8 +10,6 @@ functional faces, with the settings as keywords.
 
 from __future__ import annotations
 
-from torch import Tensor
-
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked
@@ -61,7 +59,6 @@ def linear_estimation(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     threshold: float,
-    recording_spans: tuple[Tensor, Tensor] | None = None,
     max_delay: float | None = None,
 ) -> Events:
     """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
@@ -85,9 +82,6 @@ def linear_estimation(
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
-        recording_spans: ``(B,)`` first and last timestamps of each recording of a batch stacked
-            vertically (see :func:`~.driver.estimate`), or
-            ``None`` for one stream.
         max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
             "Bounded delay"; a whole number for int64 ``t``), or ``None`` for the paper's
             method. With ``D`` a pixel holds its level until ``D`` before its next knot.
@@ -102,7 +96,7 @@ def linear_estimation(
         ([0, 0, 5, 10], [True, True, True, True])
     """
     settings = EstimationSettings(sensor_size, factor, threshold, max_delay, curve="linear")
-    return estimate(events, settings, recording_spans=recording_spans)
+    return estimate(events, settings)
 
 
 def cubic_estimation(
@@ -111,7 +105,6 @@ def cubic_estimation(
     sensor_size: tuple[int, int, int],
     factor: tuple[int, int],
     threshold: float,
-    recording_spans: tuple[Tensor, Tensor] | None = None,
     max_delay: float | None = None,
 ) -> Events:
     """Downscale by cubic log-luminance estimation (docs/semantics.md, method 5).
@@ -136,7 +129,6 @@ def cubic_estimation(
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
-        recording_spans: as :func:`linear_estimation`.
         max_delay: as there; besides, each pixel's slope at its first knot is 0 (at rest
             before the stream).
 
@@ -153,4 +145,4 @@ def cubic_estimation(
         ([0, 0, 6, 20], [True, True, True, False])
     """
     settings = EstimationSettings(sensor_size, factor, threshold, max_delay, curve="cubic")
-    return estimate(events, settings, recording_spans=recording_spans)
+    return estimate(events, settings)

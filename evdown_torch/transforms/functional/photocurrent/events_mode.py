@@ -184,9 +184,7 @@ def photocurrent_events(
     factor: tuple[int, int],
     contrast: float,
     threshold: float,
-    state: PhotocurrentState | None = None,
-    recordings: int = 1,
-) -> tuple[Events, PhotocurrentState]:
+) -> Events:
     """Photocurrent pooling, events mode (docs/semantics.md, method 7): causal, streamable.
 
     After each input event, in stable time order, its region's ``u = log(I_r) / threshold``
@@ -199,13 +197,10 @@ def photocurrent_events(
         factor: ``(fx, fy)``.
         contrast: ``c``, the input camera's contrast threshold in log units, in [1e-6, 50].
         threshold: ``theta``, the output pixel's contrast threshold in log units.
-        state: the state returned for the previous chunk of the same stream, or ``None``.
-        recordings: ``B``, for a batch of recordings stacked vertically (recording ``b``'s
-            pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
-            :mod:`evdown_torch.transforms.functional.batch`). 1 for one stream.
 
     Returns:
-        ``(output events sorted by t, state after the last event)``.
+        Output events sorted by ``t`` (a stream in chunks goes through
+        :func:`photocurrent_sorted`, a session's step).
 
     Example:
         Two ON events in a 2x1 region at contrast ln 2: the photocurrent goes 1 -> 1.5 -> 2,
@@ -213,20 +208,27 @@ def photocurrent_events(
 
         >>> import math
         >>> ev = Events.from_columns([0, 1], [0, 0], [5, 9], [1, 1])
-        >>> out, _ = photocurrent_events(ev, sensor_size=(2, 1, 2), factor=(2, 1),
-        ...                              contrast=math.log(2), threshold=math.log(2))
+        >>> out = photocurrent_events(ev, sensor_size=(2, 1, 2), factor=(2, 1),
+        ...                           contrast=math.log(2), threshold=math.log(2))
         >>> out.t.tolist(), out.p.tolist()
         ([9], [True])
     """
-    return photocurrent_sorted(sort_by_time(events), sensor_size, factor, contrast, threshold,
-                               state, recordings)
+    out, _ = photocurrent_sorted(sort_by_time(events), sensor_size, factor, contrast, threshold,
+                                 None)
+    return out
 
 
 def photocurrent_sorted(
     events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int], contrast: float,
     threshold: float, state: PhotocurrentState | None, recordings: int = 1,
 ) -> tuple[Events, PhotocurrentState]:
-    """:func:`photocurrent_events` of events already in stable time order (a session's chunk)."""
+    """:func:`photocurrent_events` of events already in stable time order (a session's chunk).
+
+    ``state``: the state after the previous chunk of the stream (``None``: a fresh stream);
+    ``recordings``: ``B``, for a batch of recordings stacked vertically (recording ``b``'s
+    pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
+    :mod:`evdown_torch.transforms.functional.batch`). Returns ``(output, state)``.
+    """
     check_contrast_range(contrast, threshold)
     if state is None:
         state = initial_state(sensor_size, factor, events.device, recordings)

@@ -10,7 +10,7 @@ The events mode's kernels are in :mod:`.events_mode`, the frames mode's in
 from __future__ import annotations
 
 from evdown_torch.collate import EventBatch
-from evdown_torch.events import Events
+from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.photocurrent.events_mode import (
     PhotocurrentState,
@@ -55,21 +55,19 @@ def photocurrent_events_step(
 
 def photocurrent_events_whole(events: Events, settings: PhotocurrentSettings) -> Events:
     """Events mode on the whole stream (any order) in one call."""
-    out, _ = photocurrent_events(
+    return photocurrent_events(
         events, sensor_size=settings.sensor_size, factor=settings.factor,
         contrast=settings.contrast, threshold=settings.output_threshold,
     )
-    return out
 
 
 def photocurrent_events_stacked(batch: EventBatch, settings: PhotocurrentSettings) -> EventBatch:
     """Events mode: the kernel once on the stacked batch, one block of regions per recording."""
 
     def kernel(stacked: Stacked) -> Events:
-        out, _ = photocurrent_events(
-            stacked.events, sensor_size=settings.sensor_size, factor=settings.factor,
-            contrast=settings.contrast, threshold=settings.output_threshold,
-            recordings=stacked.recordings,
+        out, _ = photocurrent_sorted(
+            sort_by_time(stacked.events), settings.sensor_size, settings.factor,
+            settings.contrast, settings.output_threshold, None, stacked.recordings,
         )
         return out
 
