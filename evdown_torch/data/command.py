@@ -7,7 +7,6 @@ one rank of a ``torchrun`` launch: it joins the gloo process group torchrun desc
 from __future__ import annotations
 
 import argparse
-from datetime import timedelta
 from pathlib import Path
 
 from evdown_torch.arguments import (
@@ -22,6 +21,7 @@ from evdown_torch.arguments import (
 from evdown_torch.data import shards
 from evdown_torch.data.preprocessing import RecordingError, preprocess
 from evdown_torch.data.sources import open_source
+from evdown_torch.distributed import process_group
 from evdown_torch.transforms.registry import METHODS
 
 __all__ = ["add_command", "run"]
@@ -80,14 +80,9 @@ def add_command(subparsers: Subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``evdown preprocess`` (also one rank of a ``torchrun`` launch)."""
-    import torch.distributed as dist
-
     refuse_threshold_flag(args)
-    launched = dist.is_available() and dist.is_torchelastic_launched()
-    if launched and not dist.is_initialized():
-        # Ranks finish their shares at different times; the manifest collective waits.
-        dist.init_process_group("gloo", timeout=timedelta(hours=24))
-    try:
+    # Ranks finish their shares at different times; the manifest collective waits for them.
+    with process_group():
         source = open_source(
             args.dataset, split=args.split, root=args.root,
             sensor_size=tuple(args.sensor_size) if args.sensor_size else None,
@@ -101,9 +96,6 @@ def run(args: argparse.Namespace) -> int:
                                 progress=False if args.no_progress else None)
         except (RecordingError, OSError) as error:
             raise ValueError(f"{error} (complete shards are kept; a rerun resumes)") from None
-    finally:
-        if launched and dist.is_initialized():
-            dist.destroy_process_group()
     if result.manifest is not None:
         counts = result.manifest["counts"]
         rate = result.recordings / result.seconds if result.seconds > 0 else float("inf")

@@ -34,6 +34,7 @@ import evdown_torch
 from evdown_torch.checks import check_choice, check_factor, check_positive_int
 from evdown_torch.data import shards
 from evdown_torch.data.sources import check_label
+from evdown_torch.distributed import all_gather, rank_and_world
 from evdown_torch.threads import torch_threads
 from evdown_torch.transforms import Downscaler
 from evdown_torch.transforms.registry import make_method, method_settings
@@ -88,14 +89,6 @@ def _default_workers() -> int:
     if hasattr(os, "sched_getaffinity"):
         return max(len(os.sched_getaffinity(0)), 1)
     return max(os.cpu_count() or 1, 1)
-
-
-def _rank_and_world() -> tuple[int, int]:
-    import torch.distributed as dist
-
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
 
 
 # Worker side ---------------------------------------------------------------------------------
@@ -375,7 +368,7 @@ def preprocess(
     threads = check_positive_int("threads", threads)
     fxy = check_factor(factor, source.sensor_size)
     transform = make_method(method, source.sensor_size, factor, **(settings or {}))
-    rank, world = _rank_and_world()
+    rank, world = rank_and_world()
     out = Path(out)
     job = _job(source, method, fxy, transform, shard_size)
     job_id = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()[:16]
@@ -409,12 +402,7 @@ def preprocess(
             error = caught
     mine: dict[str, Any] = {"records": records, "kept": kept, "recordings": total,
                             "error": None if error is None else str(error)}
-    gathered: list[Any] = [mine]
-    if world > 1:
-        import torch.distributed as dist
-
-        gathered = [None] * world
-        dist.all_gather_object(gathered, mine)
+    gathered = all_gather(mine)
     if error is not None:
         raise error
     failed = [g["error"] for g in gathered if g["error"] is not None]

@@ -2,8 +2,9 @@
 
 See docs/evaluation.md for the design and every measure. Modules: :mod:`.data` (where the
 recordings come from), :mod:`.cache` (the disk cache), :mod:`.cells` (a cell and the jobs that
-fill it), :mod:`.study` (the stages, through worker processes), :mod:`.statistics`
-(intervals and tests) and :mod:`.report` (CSV, Markdown, plot).
+fill it), :mod:`.study` (the stages, through worker processes), :mod:`.ranks` (the stages over
+the ranks of a ``torchrun`` launch), :mod:`.statistics` (intervals and tests) and
+:mod:`.report` (CSV, Markdown, plot).
 """
 
 from evdown_torch.evaluation.cells import BASELINE, CONTROL, Cell
@@ -12,6 +13,7 @@ from evdown_torch.evaluation.study import (
     CellResult,
     Comparison,
     EvaluationResult,
+    RankRun,
     run_evaluation,
 )
 
@@ -22,6 +24,7 @@ __all__ = [
     "CellResult",
     "Comparison",
     "EvaluationResult",
+    "RankRun",
     "markdown_table",
     "run_evaluation",
     "write_report",

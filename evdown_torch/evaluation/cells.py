@@ -246,7 +246,9 @@ def downscale_job(source: StudyData, units: list[tuple[Cell, int]], split: str,
     cache = source.cache
     paths = [cache.path("frames", frames_key(source, c, split, indices, config, d), ".pt")
              for c, d in units]
-    todo = [j for j, path in enumerate(paths) if not path.is_file()]
+    # a unit is done once its measures are stored (after its frames): a run killed between
+    # the two redoes it
+    todo = [j for j, path in enumerate(paths) if not path.with_suffix(".json").is_file()]
     if todo:
         sensor = source.sensor_size
         inputs = []

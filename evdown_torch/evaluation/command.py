@@ -3,7 +3,9 @@
 ``evdown evaluate --config FILE [--output DIR] [--no-cache]`` runs
 :func:`~evdown_torch.evaluation.study.run_evaluation` on a TOML configuration
 (:mod:`evdown_torch.evaluation.config`) and writes ``results.csv``, ``report.md`` and
-``tradeoff.png``. :func:`add_command` registers it on the ``evdown`` parser.
+``tradeoff.png``. :func:`add_command` registers it on the ``evdown`` parser. Under
+``torchrun`` each rank runs the command: they share the study's jobs and rank 0 writes the
+report (docs/evaluation.md, "On a cluster").
 """
 
 from __future__ import annotations
@@ -17,15 +19,19 @@ __all__ = ["add_command"]
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    from evdown_torch.distributed import process_group, rank_and_world
     from evdown_torch.evaluation.config import load_config
     from evdown_torch.evaluation.report import markdown_table, primary_table, write_report
     from evdown_torch.evaluation.study import run_evaluation
 
-    try:
-        config = load_config(args.config)
-        result = run_evaluation(config, cache=not args.no_cache)
-    except (OSError, RuntimeError) as error:
-        raise CommandError(str(error)) from None
+    with process_group():  # one rank of a torchrun launch joins the others
+        try:
+            config = load_config(args.config)
+            result = run_evaluation(config, cache=not args.no_cache)
+        except (OSError, RuntimeError) as error:
+            raise CommandError(str(error)) from None
+        if rank_and_world()[0] != 0:
+            return 0
     write_report(result, args.output or config.output.directory,
                  log=lambda line: print(line, file=sys.stderr))
     print(primary_table(result) + "\n" + markdown_table(result), end="")
@@ -44,7 +50,8 @@ def add_command(commands: Subparsers) -> None:
         "configuration (TOML, e.g. configs/quick.toml) names the dataset, methods, factors, "
         "training and output folder; recordings, frames and predictions are cached, so a "
         "rerun resumes. configs/quick.toml takes about 6 minutes on an idle 2-core machine, "
-        "with a progress bar per stage.",
+        "with a progress bar per stage. Under torchrun the ranks (on one machine or many) "
+        "share the jobs and rank 0 writes the report.",
     )
     evaluate.add_argument("--config", required=True, metavar="FILE",
                           help="TOML configuration, e.g. configs/quick.toml")

@@ -23,7 +23,10 @@ from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.statistics import dunnett_seeds
 from evdown_torch.transforms.registry import METHODS
 
-__all__ = ["CONTROL_ROLE", "EXPLORATORY", "PRIMARY", "SANITY", "Planned", "delay_of", "plan"]
+__all__ = [
+    "CONTROL_ROLE", "EXPLORATORY", "PRIMARY", "SANITY", "Planned", "delay_of", "plan",
+    "selection_cells",
+]
 
 #: Roles of the cells: the primary family's methods, its shared control, the sanity check's
 #: Downsample, and every other (exploratory) cell.
@@ -118,6 +121,30 @@ def plan(config: EvaluationConfig) -> list[Planned]:
         baseline = training.baseline_seeds
         planned.insert(0, Planned(Cell(BASELINE, (1, 1)), EXPLORATORY, baseline))
     return planned
+
+
+def selection_cells(config: EvaluationConfig, planned: list[Planned]
+                    ) -> dict[tuple[int, int], Cell]:
+    """The cell each factor's learning rate is chosen on.
+
+    The control at the primary budget, else the factor's first control, else its first cell.
+
+    Example:
+        >>> from evdown_torch.evaluation.config import parse_config
+        >>> def chosen(budgets):
+        ...     config = parse_config({"methods": {"include": ["event_count"], "factors": [4],
+        ...         "budgets": budgets, "primary": [], "full_resolution": False}})
+        ...     return selection_cells(config, plan(config))[(4, 4)].label
+        >>> chosen([0.5, 1.0]), chosen([0.5, 2.0])  # the primary budget is 1.0
+        ('control x4 @ 1', 'control x4 @ 0.5')
+    """
+    selection = {}
+    for f in dict.fromkeys(p.cell.factor for p in planned):
+        cells = [p.cell for p in planned if p.cell.factor == f]
+        controls = [c for c in cells if c.method == CONTROL]
+        preferred = [c for c in controls if c.budget == config.methods.primary_budget]
+        selection[f] = (preferred or controls or cells)[0]
+    return selection
 
 
 def delay_of(cell: Cell) -> str:

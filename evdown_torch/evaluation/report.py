@@ -229,6 +229,29 @@ def per_class_table(result: EvaluationResult, num_classes: int = 11) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _run_lines(result: EvaluationResult) -> str:
+    """How the run went: its wall time and CPU seconds, in all and per ``torchrun`` rank.
+
+    The only part of the report besides the cost table that differs between runs.
+    """
+    if not result.ranks:
+        return (f"**Run.** Wall time {result.wall_seconds:.0f} s, {result.cpu_seconds:.0f} CPU "
+                f"s, with {result.workers} worker process(es); {result.generated} recordings "
+                "or renders generated.\n")
+    lines = [
+        f"**Run.** {len(result.ranks)} ranks (torchrun), {result.workers} worker process(es) "
+        f"each; results gathered through {result.gathered_through}. Wall time "
+        f"{result.wall_seconds:.0f} s (rank 0, from start to report), {result.cpu_seconds:.0f} "
+        f"CPU s in total (every rank and its workers); {result.generated} recordings or "
+        "renders generated.\n",
+        "| rank | host | device | jobs | generated | wall s | CPU s |",
+        "|---|---|---|---|---|---|---|"]
+    for r in result.ranks:
+        lines.append(f"| {r.rank} | {r.host} | {r.device} | {r.jobs} | {r.generated} "
+                     f"| {r.wall_seconds:.0f} | {r.cpu_seconds:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
 def _speed_table(result: EvaluationResult) -> str:
     lines = ["| cell | CPU us/recording | throughput (M ev/s, 1 thread) | delay | "
              "training s/seed |", "|---|---|---|---|---|"]
@@ -262,11 +285,9 @@ def _markdown(result: EvaluationResult) -> str:
         f"{config.data.calibration_samples} training recordings. "
         f"Classifier: SpikingClassifier(channels={list(m.channels)}, grid={m.grid}, "
         f"stem_channels={m.stem_channels}, pool_size={m.pool_size}), {t.epochs} epochs, "
-        f"batch {t.batch_size}, {t.encoding} input, trained on {result.device}. "
-        f"Wall time {result.wall_seconds:.0f} s, {result.cpu_seconds:.0f} CPU s, with "
-        f"{result.workers} worker process(es); {result.generated} recordings or renders "
-        "generated.\n\n"
-        "**Every cell** (exploratory rows carry no p-value):\n\n"
+        f"batch {t.batch_size}, {t.encoding} input, trained on {result.device}.\n\n"
+        + _run_lines(result)
+        + "\n**Every cell** (exploratory rows carry no p-value):\n\n"
         + markdown_table(result)
         + f"\nevents/rec: mean output events per test recording; x camera: output events / "
         "the low-resolution camera's events; accuracy: mean over seeds and test recordings, "

@@ -11,7 +11,7 @@ from evdown_torch.evaluation.cells import Cell
 from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.plan import PRIMARY
 
-__all__ = ["CellResult", "EvaluationResult"]
+__all__ = ["CellResult", "EvaluationResult", "RankRun"]
 
 
 @dataclass(frozen=True)
@@ -108,6 +108,29 @@ class CellResult:
 
 
 @dataclass(frozen=True)
+class RankRun:
+    """How one rank of a ``torchrun`` launch went.
+
+    Attributes:
+        rank: its rank.
+        host: the machine it ran on.
+        device: where it trained.
+        jobs: the jobs it ran (made, or found in its cache).
+        generated: recordings and renders it generated.
+        wall_seconds: its wall time (rank 0: the whole run, measuring included).
+        cpu_seconds: CPU seconds of the rank and its workers.
+    """
+
+    rank: int
+    host: str
+    device: str
+    jobs: int
+    generated: int
+    wall_seconds: float
+    cpu_seconds: float
+
+
+@dataclass(frozen=True)
 class EvaluationResult:
     """All cells of one run and how the run went.
 
@@ -121,10 +144,14 @@ class EvaluationResult:
         sanity: per factor, check (a): the control's accuracy minus Downsample's (a random
             subset against its superset), one-sided; the check passes where not significant.
         wall_seconds: the run's wall time.
-        cpu_seconds: CPU seconds of this process and its workers.
-        workers: worker processes used.
-        generated: recordings and renders generated (not read from the cache).
-        device: where the classifier trained.
+        cpu_seconds: CPU seconds of this process and its workers (of every rank).
+        workers: worker processes used (per rank).
+        generated: recordings and renders generated (not read from the cache; by every rank).
+        device: where the classifier trained (under ``torchrun``: the device type; each
+            rank's device is in ``ranks``).
+        ranks: under ``torchrun``, how each rank went; empty for one process.
+        gathered_through: under ``torchrun``, how the results reached rank 0 (``"the shared
+            cache folder"`` or ``"the process group"``); empty for one process.
     """
 
     config: EvaluationConfig
@@ -137,6 +164,8 @@ class EvaluationResult:
     workers: int
     generated: int
     device: str
+    ranks: tuple[RankRun, ...] = ()
+    gathered_through: str = ""
 
     def primary(self) -> list[CellResult]:
         """The primary family's method cells, in order."""

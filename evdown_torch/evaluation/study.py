@@ -1,7 +1,8 @@
 """The study: plan the cells, fill them through worker processes, and measure them.
 
 :func:`run_evaluation` runs these stages, each a batch of jobs (:mod:`.cells`) over a pool of
-worker processes, each reading what an earlier run cached:
+worker processes (and, under ``torchrun``, shared out among the ranks: :mod:`.ranks`), each
+reading what an earlier run cached:
 
 1. generate the recordings (synthetic data), and the low-resolution camera's renders of the
    calibration and test recordings at every factor;
@@ -22,10 +23,11 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import socket
 import statistics
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any, cast
@@ -34,6 +36,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from evdown_torch.distributed import all_gather, barrier, broadcast, local_rank, rank_and_world
 from evdown_torch.evaluation import cells as jobs
 from evdown_torch.evaluation import classifier
 from evdown_torch.evaluation.analysis import Comparison, compare, sanity_check
@@ -41,11 +44,32 @@ from evdown_torch.evaluation.cache import Cache
 from evdown_torch.evaluation.cells import BASELINE, CONTROL, Cell
 from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.data import StudyData, check_available
-from evdown_torch.evaluation.plan import EXPLORATORY, PRIMARY, SANITY, Planned, delay_of, pair, plan
-from evdown_torch.evaluation.results import CellResult, EvaluationResult
+from evdown_torch.evaluation.plan import (
+    EXPLORATORY,
+    PRIMARY,
+    SANITY,
+    Planned,
+    delay_of,
+    pair,
+    plan,
+    selection_cells,
+)
+from evdown_torch.evaluation.ranks import (
+    EVERY_GROUP,
+    Ranks,
+    Stage,
+    cell_groups,
+    check_agreement,
+    claim_cache,
+    downscale_seconds,
+    release,
+    seed_recordings,
+    training_seconds,
+)
+from evdown_torch.evaluation.results import CellResult, EvaluationResult, RankRun
 from evdown_torch.evaluation.statistics import hierarchical_means, interval_of
 
-__all__ = ["CellResult", "Comparison", "EvaluationResult", "run_evaluation"]
+__all__ = ["CellResult", "Comparison", "EvaluationResult", "RankRun", "run_evaluation"]
 
 Log = Callable[[str], None]
 CHUNK = 24  # recordings per downscaling job
@@ -79,15 +103,22 @@ def _worker_init(threads: int) -> None:
     torch.set_num_threads(max(threads, 1))
 
 
-def _resolve_device(name: str) -> torch.device:
+def _resolve_device(name: str, world: int = 1) -> torch.device:
+    """The device of ``training.device``.
+
+    Of ``world`` ranks, ``"auto"`` and ``"cuda"`` take the GPU of the rank's ``LOCAL_RANK``
+    (modulo the GPUs present); ``"auto"`` takes the CPU without CUDA.
+    """
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        name = "cuda" if torch.cuda.is_available() else "cpu"
     try:
         device = torch.device(name)
     except RuntimeError:
         raise ValueError(f"training.device {name!r} is not a torch device") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"training.device is {name!r} but CUDA is not available here")
+    if device.type == "cuda" and device.index is None and world > 1:
+        device = torch.device("cuda", local_rank() % torch.cuda.device_count())
     return device
 
 
@@ -123,25 +154,40 @@ def run_evaluation(
     Args:
         config: the configuration (see :mod:`evdown_torch.evaluation.config`).
         log: receives progress lines (default: stderr, with a progress bar per long stage);
-            ``None`` for silence.
+            ``None`` for silence. Rank 0's only, under ``torch.distributed``.
         cache: reuse and keep what is cached under ``config.output.cache``; ``False`` works
             in a temporary directory removed at the end.
 
     Returns:
-        The :class:`EvaluationResult`.
+        The :class:`EvaluationResult` (the same on every rank).
 
     With ``training.workers > 0`` the stages run in spawned worker processes, which import
-    the calling script again: call this from under ``if __name__ == "__main__":``.
+    the calling script again: call this from under ``if __name__ == "__main__":``. Under an
+    initialised ``torch.distributed`` process group (``evdown evaluate`` under ``torchrun``
+    joins one) every rank calls this: the ranks share out each stage's jobs, each with its own
+    workers and device (:mod:`.ranks`), and rank 0 times the transforms and measures.
 
     Raises:
         FileNotFoundError: for DVS128 Gesture absent from its root.
         RuntimeError: if a needed optional package (tonic) is missing.
+        ValueError: where the ranks hold different configs, or the cache holds an unfinished
+            run of this study under another config.
     """
-    progress = _Progress(log)
+    rank, world = rank_and_world()
+    progress = _Progress(log if rank == 0 else None)
     cpu_start = _cpu_seconds()
-    check_available(config.data)
-    device = _resolve_device(config.training.device)
+    check_agreement(config)
+    if rank == 0:  # first, alone: it may download the dataset
+        check_available(config.data)
+    barrier()
+    if rank != 0:
+        check_available(config.data)
+    device = _resolve_device(config.training.device, world)
     store = Cache(config.output.cache if cache else None)
+    ranks = Ranks(store.root)
+    record = claim_cache(store, config, ranks)
+    if world > 1:
+        progress(ranks.describe())
     source = StudyData(config.data, str(store.root))
     training = config.training
     threads = torch.get_num_threads()
@@ -153,25 +199,39 @@ def run_evaluation(
             training.workers, mp_context=multiprocessing.get_context("spawn"),
             initializer=_worker_init, initargs=(training.num_threads,))
     try:
-        filled = _fill(config, source, pool, device, progress)
+        filled = _fill(config, source, pool, ranks, device, progress)
     finally:
         pool.shutdown()
+    mine = RankRun(rank, socket.gethostname(), str(device), ranks.jobs, filled.generated,
+                   time.perf_counter() - progress.start, _cpu_seconds() - cpu_start)
+    every = all_gather(mine)
+    result = None
     try:
-        torch.set_num_threads(1)
-        speeds = {p.cell: jobs.throughput(source, p.cell, config.measures.throughput_recordings)
-                  for p in filled.planned}
-        progress("timed every transform on one thread")
-        results = _measure(config, source, filled, speeds)
+        if rank == 0:
+            torch.set_num_threads(1)
+            speeds = {p.cell: jobs.throughput(source, p.cell,
+                                              config.measures.throughput_recordings)
+                      for p in filled.planned}
+            progress("timed every transform on one thread")
+            results = _measure(config, source, filled, speeds)
     finally:
         torch.set_num_threads(threads)
         store.close()
-    results, sanity = _compare(results, config)
-    wall = time.perf_counter() - progress.start
-    cpu = _cpu_seconds() - cpu_start
-    progress(f"done: {len(results)} cells in {wall:.0f} s, {cpu:.0f} CPU s "
-             f"({filled.generated} recordings or renders generated)")
-    return EvaluationResult(config, source.description(), tuple(results), filled.rates, sanity,
-                            wall, cpu, training.workers, filled.generated, str(device))
+    if rank == 0:
+        results, sanity = _compare(results, config)
+        every[0] = replace(mine, wall_seconds=time.perf_counter() - progress.start,
+                           cpu_seconds=_cpu_seconds() - cpu_start)
+        wall, cpu = every[0].wall_seconds, sum(r.cpu_seconds for r in every)
+        generated = sum(r.generated for r in every)
+        progress(f"done: {len(results)} cells in {wall:.0f} s, {cpu:.0f} CPU s "
+                 f"({generated} recordings or renders generated)")
+        result = EvaluationResult(
+            config, source.description(), tuple(results), filled.rates, sanity, wall, cpu,
+            training.workers, generated, str(device) if world == 1 else device.type,
+            tuple(every) if world > 1 else (), ranks.gathered_through)
+    result = broadcast(result)
+    release(record)
+    return cast(EvaluationResult, result)
 
 
 @dataclass
@@ -184,63 +244,84 @@ class _Filled:
     generated: int
 
 
-def _map(pool: Any, progress: _Progress, what: str, fn: Callable, *columns: list) -> list:
-    """``pool.map`` with a progress bar (to stderr while logging)."""
-    out = pool.map(fn, *columns)
+def _map(pool: Any, ranks: Ranks, progress: _Progress, what: str, fn: Callable,
+         *columns: list, costs: list[float] | None = None,
+         where: Sequence[int] | str | None = None, gather: bool = True) -> Stage:
+    """A stage: this rank's jobs of ``fn`` over ``columns``, then every job's result.
+
+    This rank's jobs (:meth:`Ranks.runners`, by ``costs``: 1 per job by default) run through
+    ``pool``, with a progress bar to stderr while logging; then :meth:`Ranks.gather`.
+    """
+    n = len(columns[0])
+    runners = ranks.runners([1.0] * n if costs is None else costs, where)
+    here = [j for j in range(n) if ranks.rank in runners[j]]
+    out = pool.map(fn, *([column[j] for j in here] for column in columns))
     if progress.log is not None:
-        out = tqdm(out, total=len(columns[0]), desc=what, unit="job", file=sys.stderr,
+        out = tqdm(out, total=len(here), desc=what, unit="job", file=sys.stderr,
                    leave=False, mininterval=2.0)
-    return list(out)
+    mine = dict(zip(here, out))
+    ranks.jobs += len(here)
+    return Stage(ranks.gather(fn, columns, runners, mine, gather), here)
 
 
-def _fill(config: EvaluationConfig, source: StudyData, pool: Any, device: torch.device,
-          progress: _Progress) -> _Filled:
+def _fill(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ranks,
+          device: torch.device, progress: _Progress) -> _Filled:
     chunks = {s: _chunks(range(source.size(s))) for s in ("train", "test")}
     for split, parts in chunks.items():
         if not parts:
             raise ValueError(f"the {split} split has no recordings")
     calibration_samples = min(config.data.calibration_samples, source.size("train"))
     generated = 0
+    by = " by rank 0" if ranks.world > 1 else ""  # whose generation the log counts
     factors = [pair(f) for f in config.methods.all_factors]
     if source.synthetic:
         splits = [s for s in ("train", "test") for _ in chunks[s]]
-        out = _map(pool, progress, "recordings", jobs.generate_job, [source] * len(splits),
-                   splits, chunks["train"] + chunks["test"])
-        generated += sum(g for g, _ in out)
+        parts = chunks["train"] + chunks["test"]
+        stage = _map(pool, ranks, progress, "recordings", jobs.generate_job,
+                     [source] * len(splits), splits, parts, costs=[len(p) for p in parts],
+                     where=EVERY_GROUP, gather=False)
+        generated += sum(stage.results[j][0] for j in stage.here)
         progress(f"recordings: {source.size('train')} train and {source.size('test')} test "
-                 f"({generated} generated)")
+                 f"({generated} generated{by})")
     camera: dict[tuple[int, int], int] = {}
     if source.has_ground_truth:
         measured = _chunks(range(_consistency_recordings(config, source)))
         renders = [(s, c, f) for f in factors
                    for s, c in [("train", list(range(calibration_samples)))]
                    + [("test", c) for c in measured]]
-        out = _map(pool, progress, "camera renders", jobs.generate_job,
-                   [source] * len(renders), [r[0] for r in renders], [r[1] for r in renders],
-                   [r[2] for r in renders])
-        made = sum(g for g, _ in out)
+        stage = _map(pool, ranks, progress, "camera renders", jobs.generate_job,
+                     [source] * len(renders), [r[0] for r in renders], [r[1] for r in renders],
+                     [r[2] for r in renders], costs=[len(r[1]) for r in renders],
+                     where=EVERY_GROUP)
+        made = sum(stage.results[j][0] for j in stage.here)
         generated += made
-        for (split, _, factor), (_, counts) in zip(renders, out):
+        for (split, _, factor), (_, counts) in zip(renders, stage.results):
             if split == "train":
                 camera[factor] = sum(counts)
         progress(f"low-resolution camera renders at x{', x'.join(str(f[0]) for f in camera)} "
-                 f"({made} generated)")
-    planned, found = _calibrate(config, source, pool, plan(config), camera,
+                 f"({made} generated{by})")
+    planned, found = _calibrate(config, source, pool, ranks, plan(config), camera,
                                 calibration_samples, progress)
-    # One job per factor, split and chunk: it reads the chunk's recordings once for every
-    # unit (a cell and, for the control, each seed's thinning draw) of that factor.
-    by_factor: dict[tuple[int, int], list[tuple[Cell, int]]] = {}
+    selection = selection_cells(config, planned)
+    group = cell_groups(config, ranks, planned, selection, source.size("train"),
+                        source.size("test"))
+    # One job per factor, split and chunk (and group of ranks): it reads the chunk's
+    # recordings once for every unit (a cell and, for the control, each seed's thinning draw)
+    # of that factor.
+    by_factor: dict[tuple[tuple[int, int], int], list[tuple[Cell, int]]] = {}
     for p in planned:
         for draw in (p.seeds if p.cell.random else (0,)):
-            by_factor.setdefault(p.cell.factor, []).append((p.cell, draw))
-    work = [(units, s, part) for units in by_factor.values() for s in ("train", "test")
+            by_factor.setdefault((p.cell.factor, group[p.cell]), []).append((p.cell, draw))
+    work = [(units, s, part, g) for (_, g), units in by_factor.items() for s in ("train", "test")
             for part in chunks[s]]
-    out = _map(pool, progress, "downscaling", jobs.downscale_job, [source] * len(work),
+    out = _map(pool, ranks, progress, "downscaling", jobs.downscale_job, [source] * len(work),
                [w[0] for w in work], [w[1] for w in work], [w[2] for w in work],
-               [config] * len(work))
+               [config] * len(work),
+               costs=[downscale_seconds(config, [c for c, _ in w[0]], len(w[2])) for w in work],
+               where=[w[3] for w in work]).results
     stats: dict[Cell, dict[str, dict[str, list[float]]]] = {
         p.cell: {"train": {}, "test": {}} for p in planned}
-    for (units, split, _), parts in zip(work, out):
+    for (units, split, _, _), parts in zip(work, out):
         first = jobs.measured_draws(units)
         for (cell, draw), part in zip(units, parts):
             if draw == first[cell]:
@@ -249,12 +330,16 @@ def _fill(config: EvaluationConfig, source: StudyData, pool: Any, device: torch.
     progress(f"downscaled every recording for {len(planned)} cells "
              f"({sum(len(u) for u in by_factor.values())} with the control's draws)")
     trainer = pool if device.type == "cpu" else _Inline()
-    rates = _choose_rates(config, source, trainer, planned, chunks, device, progress)
+    rates = _choose_rates(config, source, trainer, ranks, planned, selection, group, chunks,
+                          device, progress)
     runs = [(p.cell, seed) for p in planned for seed in p.seeds]
-    out = _map(trainer, progress, "training", classifier.train_job, [source] * len(runs),
+    cost = {p.cell: training_seconds(config, p.cell, seed_recordings(config, source.size("train")),
+                                     source.size("test")) for p in planned}
+    out = _map(trainer, ranks, progress, "training", classifier.train_job, [source] * len(runs),
                [r[0] for r in runs], [chunks] * len(runs), [config] * len(runs),
                [r[1] for r in runs], [str(device)] * len(runs),
-               [rates[r[0].factor][0] for r in runs])
+               [rates[r[0].factor][0] for r in runs],
+               costs=[cost[r[0]] for r in runs], where=[group[r[0]] for r in runs]).results
     predictions: dict[Cell, dict[int, dict[str, Any]]] = {p.cell: {} for p in planned}
     for (cell, seed), result in zip(runs, out):
         predictions[cell][seed] = result
@@ -265,13 +350,14 @@ def _fill(config: EvaluationConfig, source: StudyData, pool: Any, device: torch.
     return _Filled(planned, stats, predictions, found, rates, generated)
 
 
-def _choose_rates(config: EvaluationConfig, source: StudyData, trainer: Any,
-                  planned: list[Planned], chunks: dict, device: torch.device,
+def _choose_rates(config: EvaluationConfig, source: StudyData, trainer: Any, ranks: Ranks,
+                  planned: list[Planned], selection: dict[tuple[int, int], Cell],
+                  group: dict[Cell, int], chunks: dict, device: torch.device,
                   progress: _Progress) -> dict[tuple[int, int], tuple[float, dict]]:
     """The learning rate of each factor, chosen on the validation split of the training pool.
 
-    Each candidate of ``training.learning_rates`` trains the factor's selection cell (the
-    control at the primary budget, else the first control, else the first cell) on
+    Each candidate of ``training.learning_rates`` trains the factor's selection cell
+    (:func:`~evdown_torch.evaluation.plan.selection_cells`; in its ``group`` of ranks) on
     ``training.selection_seeds`` seeds, on draws from the pool less its first
     ``data.validation_samples`` recordings, and is scored on those; the best mean accuracy
     wins (ties: the smaller rate). The test split is never read. Without candidates every
@@ -282,18 +368,17 @@ def _choose_rates(config: EvaluationConfig, source: StudyData, trainer: Any,
     if not training.learning_rates or not config.data.validation_samples:
         return {f: (training.learning_rate, {}) for f in factors}
     chosen = {}
-    selection = {}
-    for f in factors:
-        cells = [p.cell for p in planned if p.cell.factor == f]
-        controls = [c for c in cells if c.method == CONTROL]
-        preferred = [c for c in controls if c.budget == config.methods.primary_budget]
-        selection[f] = (preferred or controls or cells)[0]
     runs = [(f, rate, seed) for f in factors for rate in training.learning_rates
             for seed in range(training.selection_seeds)]
-    out = _map(trainer, progress, "learning rates", classifier.train_job, [source] * len(runs),
-               [selection[r[0]] for r in runs], [chunks] * len(runs), [config] * len(runs),
-               [r[2] for r in runs], [str(device)] * len(runs), [r[1] for r in runs],
-               [True] * len(runs))
+    cost = {f: training_seconds(config, selection[f],
+                                seed_recordings(config, source.size("train"), True),
+                                config.data.validation_samples) for f in factors}
+    out = _map(trainer, ranks, progress, "learning rates", classifier.train_job,
+               [source] * len(runs), [selection[r[0]] for r in runs], [chunks] * len(runs),
+               [config] * len(runs), [r[2] for r in runs], [str(device)] * len(runs),
+               [r[1] for r in runs], [True] * len(runs),
+               costs=[cost[r[0]] for r in runs], where=[group[selection[r[0]]] for r in runs]
+               ).results
     scores: dict[tuple[int, int], dict[float, list[float]]] = {f: {} for f in factors}
     for (f, rate, _), result in zip(runs, out):
         scores[f].setdefault(rate, []).append(sum(result["correct"]) / len(result["correct"]))
@@ -307,9 +392,9 @@ def _choose_rates(config: EvaluationConfig, source: StudyData, trainer: Any,
     return chosen
 
 
-def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, planned: list[Planned],
-               camera: dict[tuple[int, int], int], samples: int, progress: _Progress
-               ) -> tuple[list[Planned], dict[Cell, dict[str, Any]]]:
+def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ranks,
+               planned: list[Planned], camera: dict[tuple[int, int], int], samples: int,
+               progress: _Progress) -> tuple[list[Planned], dict[Cell, dict[str, Any]]]:
     """Calibrate every budgeted cell on the first ``samples`` training recordings."""
     todo = [i for i, p in enumerate(planned) if p.cell.budget is not None]
     if not todo:
@@ -320,8 +405,10 @@ def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, planned: 
                * (camera[planned[i].cell.factor] if config.methods.budget_reference == "camera"
                   else inputs)
                for i in todo]
-    out = _map(pool, progress, "calibration", jobs.calibrate_job, [source] * len(todo),
-               [planned[i].cell for i in todo], targets, [samples] * len(todo))
+    out = _map(pool, ranks, progress, "calibration", jobs.calibrate_job, [source] * len(todo),
+               [planned[i].cell for i in todo], targets, [samples] * len(todo),
+               costs=[downscale_seconds(config, [planned[i].cell], samples) for i in todo]
+               ).results
     cells, found = list(planned), {}
     for i, (cell, search) in zip(todo, out):
         cells[i], found[cell] = replace(planned[i], cell=cell), search
