@@ -12,6 +12,7 @@ import torch
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.events import EventFormat, Events, EventsLike, from_events, to_events
+from evdown_torch.threads import OneCallAtATime
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
 
 
@@ -222,9 +223,15 @@ class Session:
 
     Chunks must follow each other in time: a chunk may not hold a timestamp earlier than the
     previous chunks' last one (equal timestamps are fine and keep chunk order). A chunk that
-    breaks this, or any other bad chunk, raises a ``ValueError`` and leaves the session as it
-    was, so it stays usable. The method's own state is held explicitly in :attr:`state`
-    (``None`` before the first event); the transform itself is never modified.
+    breaks this, or any other bad chunk (an empty one included, e.g. of another timestamp
+    dtype), raises a ``ValueError`` and leaves the session as it was, so it stays usable. The
+    method's own state is held explicitly in :attr:`state` (``None`` before the first event);
+    the transform itself is never modified.
+
+    A session takes one call at a time: a call, ``flush()`` or ``reset()`` made while another
+    one is running (from another thread) raises a ``RuntimeError`` and changes nothing. Give
+    each thread its own session (``transform.session()``); a copy (``copy.deepcopy``)
+    continues the stream on its own.
 
     Attributes:
         transform: the settings.
@@ -244,10 +251,16 @@ class Session:
 
     def __init__(self, transform: Streaming) -> None:
         self.transform = transform
-        self.reset()
+        self._busy = OneCallAtATime("session",
+                                    "give each thread its own session (transform.session())")
+        self._forget()
 
     def reset(self) -> None:
         """Forget the stream: the next chunk starts a new one."""
+        with self._busy:
+            self._forget()
+
+    def _forget(self) -> None:
         self.state: Any | None = None
         self.last_t: int | float | None = None
         self._fmt: EventFormat | None = None
@@ -258,14 +271,17 @@ class Session:
         """Process the next chunk; returns the events it decides, in the chunk's kind.
 
         Raises:
-            ValueError: for a chunk that starts before the previous chunk's last event, on
-                another device or with another timestamp dtype than the stream's, or that
-                fails the transform's input checks; the session is unchanged.
+            ValueError: for a chunk (even an empty one) that starts before the previous
+                chunk's last event, on another device or with another timestamp dtype than
+                the stream's, or that fails the transform's input checks; the session is
+                unchanged.
+            RuntimeError: while another call of this session is running (another thread).
         """
+        with self._busy:
+            return self._next(chunk)
+
+    def _next(self, chunk: EventsLike) -> EventsLike:
         events, fmt = to_events(chunk, self.transform.sensor_size)
-        if events.num_events == 0:
-            self._fmt = fmt
-            return from_events(Events.empty(events.t.dtype, events.device), fmt)
         if self._device is not None:
             if events.device != self._device:
                 raise ValueError(
@@ -275,6 +291,9 @@ class Session:
                 raise ValueError(
                     f"chunk timestamps are {events.t.dtype} but the stream's are {self._t_dtype}"
                 )
+        if events.num_events == 0:
+            self._fmt = fmt
+            return from_events(Events.empty(events.t.dtype, events.device), fmt)
         events = sort_by_time(events)
         first = events.t[0].item()
         if self.last_t is not None and first < self.last_t:
@@ -294,16 +313,23 @@ class Session:
         Returns:
             The remaining events in the kind of the last chunk (empty Events when no chunk
             was fed).
+
+        Raises:
+            RuntimeError: while another call of this session is running (another thread).
         """
+        with self._busy:
+            return self._end()
+
+    def _end(self) -> EventsLike:
         if self._fmt is None:
-            self.reset()
+            self._forget()
             return Events.empty()
         out = self.transform.stream_end(self.state)
         if out is None:
             t_dtype = self._t_dtype if self._t_dtype is not None else torch.int64
             out = Events.empty(t_dtype, self._device)
         fmt = self._fmt
-        self.reset()
+        self._forget()
         return from_events(out, fmt)
 
 
