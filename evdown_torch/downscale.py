@@ -38,6 +38,7 @@ from evdown_torch.io import (
     event_files,
     write_events,
 )
+from evdown_torch.threads import command_threads
 from evdown_torch.time_units import check_timing, time_settings
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
@@ -138,7 +139,7 @@ def _downscale(args: argparse.Namespace) -> int:
                            f"takes {list(method_settings(args.method))}")
     pairs = _plan(args.paths, args.output_format)
     several = len(pairs) > 1
-    torch.set_num_threads(args.threads)
+    torch.set_num_threads(command_threads(args.threads))
     # Three steps per file (read, downscale, write), so that one long file shows progress too.
     bar = tqdm(total=3 * len(pairs), unit="step", disable=not sys.stderr.isatty(),
                file=sys.stderr, dynamic_ncols=True, leave=False,

@@ -88,8 +88,9 @@ def command_threads(given: int | None) -> int:
             return 1
         try:
             threads = check_threads(int(text.split(",")[0]), "OMP_NUM_THREADS")
-        except (TypeError, ValueError) as error:
-            warnings.warn(f"{error} ({text!r}); using 1 thread", stacklevel=2)
+        except ValueError:
+            warnings.warn(f"OMP_NUM_THREADS={text!r} is not a thread count (a positive integer "
+                          f"of at most {MAX_THREADS}); using 1 thread", stacklevel=2)
             return 1
         source = f"OMP_NUM_THREADS={text}"
     cores = available_cores()
