@@ -50,7 +50,8 @@ class BudgetTarget:
         value: the target, positive.
         time_unit: seconds per timestamp unit, for ``"rate"`` only (``None``, the default,
             is 1e-6: microseconds; see :func:`~evdown_torch.checks.check_time_unit`). The
-            other kinds have no time in them and refuse one.
+            other kinds have no time in them and refuse one. Stored as given (``None`` stays
+            ``None``, so a copy of another kind stays valid).
 
     Example:
         >>> BudgetTarget.ratio(0.1).events(input_events=5000, duration=2e6)
@@ -73,8 +74,8 @@ class BudgetTarget:
                     f"second); a {self.kind} target has no time in it"
                 )
             return
-        time_unit = DEFAULT_TIME_UNIT if self.time_unit is None else self.time_unit
-        object.__setattr__(self, "time_unit", check_time_unit(time_unit))
+        if self.time_unit is not None:
+            object.__setattr__(self, "time_unit", check_time_unit(self.time_unit))
 
     @classmethod
     def ratio(cls, value: float) -> BudgetTarget:
@@ -104,7 +105,7 @@ class BudgetTarget:
             return self.value
         if duration <= 0:
             raise ValueError("a rate target needs recordings that span a positive duration")
-        time_unit = cast(float, self.time_unit)  # set for a rate target
+        time_unit = DEFAULT_TIME_UNIT if self.time_unit is None else self.time_unit
         return self.value * duration * time_unit
 
 

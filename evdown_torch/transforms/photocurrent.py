@@ -77,7 +77,8 @@ class PhotocurrentPooling(Downscaler):
             second) become per timestamp unit: ``None`` (the default) is 1e-6, microseconds
             as Tonic's datasets; 1.0 for float seconds (as some tools store N-Caltech101).
             Only the frames mode has rates: the events mode refuses a ``time_unit``. See
-            :func:`~evdown_torch.checks.check_time_unit`.
+            :func:`~evdown_torch.checks.check_time_unit`. Stored as given (a name becomes
+            seconds; ``None`` stays ``None``); :attr:`settings` holds the one in use.
 
     Example:
         >>> import torch
@@ -100,8 +101,10 @@ class PhotocurrentPooling(Downscaler):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("contrast", "threshold", "fps", "cutoff_hz", "time_unit"):
+        for name in ("contrast", "threshold", "fps", "cutoff_hz"):
             object.__setattr__(self, name, getattr(self.settings, name))
+        if self.time_unit is not None:  # None stays None: a copy without fps stays valid
+            object.__setattr__(self, "time_unit", self.settings.time_unit)
 
     @cached_property
     def settings(self) -> PhotocurrentSettings:
