@@ -248,13 +248,16 @@ def output_limit() -> int | None:
 def max_output_events(limit: int | None) -> AbstractContextManager[int | None]:
     """A block in which one call of a downscaler may emit at most ``limit`` events.
 
-    Every downscaler counts its output before it builds it and raises a ``ValueError`` naming
-    the count when it exceeds the limit, instead of running out of memory: the log-luminance
-    methods (EventCount, LinearEstimation, CubicEstimation, PhotocurrentPooling), whose small
-    thresholds can emit many events per input event, and LIFPooling, whose neurons can fire at
-    every step of a long silence. The limit counts one call: one ``transform(events)``, one
-    ``transform.batch(...)`` as a whole, one chunk of a session. Outside any block it is
-    :data:`DEFAULT_MAX_OUTPUT_EVENTS` (100 million events, about 2.5 GB as tensors).
+    Every transform counts its output and raises a ``ValueError`` naming the count when it
+    exceeds the limit: no call emits more. The log-luminance methods (EventCount,
+    LinearEstimation, CubicEstimation, PhotocurrentPooling), whose small thresholds can emit
+    many events per input event, and LIFPooling, whose neurons can fire at every step of a
+    long silence, count before they build anything, instead of running out of memory; the
+    methods whose output is at most their input (Downsample, EventFunnelling,
+    TemporalFunnelling, ThinnedDownsample) count what they built. The limit counts one call:
+    one ``transform(events)``, one ``transform.batch(...)`` as a whole, one chunk of a
+    session. Outside any block it is :data:`DEFAULT_MAX_OUTPUT_EVENTS` (100 million events,
+    about 2.5 GB as tensors).
 
     The limit lives in a context variable: it holds for the calls made inside the ``with``
     block, in this thread (or asyncio task) only, and the previous limit comes back when the
@@ -303,10 +306,11 @@ def set_max_output_events(limit: int | None) -> int | None:
     of the whole process; kept for one version.
 
     Args:
-        limit: a positive number of events, or ``None`` for :data:`DEFAULT_MAX_OUTPUT_EVENTS`.
+        limit: a positive number of events, or ``None`` for no limit (as
+            :func:`max_output_events` takes it).
 
     Returns:
-        The limit that was in force before.
+        The limit that was in force before (``None``: none), which this function takes back.
     """
     warnings.warn(
         "evdown_torch.set_max_output_events is deprecated and will be removed; use "
@@ -315,9 +319,7 @@ def set_max_output_events(limit: int | None) -> int | None:
         stacklevel=2,
     )
     previous = _OUTPUT_LIMIT.get()
-    _OUTPUT_LIMIT.set(
-        DEFAULT_MAX_OUTPUT_EVENTS if limit is None else check_positive_int("limit", limit)
-    )
+    _OUTPUT_LIMIT.set(None if limit is None else check_positive_int("limit", limit))
     return previous
 
 

@@ -10,6 +10,7 @@ from typing import Any, ClassVar, overload
 import torch
 
 from evdown_torch._tensors import sort_by_time
+from evdown_torch.checks import check_output_count
 from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.events import EventFormat, Events, EventsLike, from_events, to_events
 from evdown_torch.threads import OneCallAtATime
@@ -196,8 +197,12 @@ class Streaming:
     def _batch_events(self, batch: EventBatch) -> EventBatch:
         """:meth:`batch` on validated events."""
         out = self.batch_kernel(batch)
-        if out is None:  # no batched kernel: one recording at a time
-            parts = [self.kernel(part) for part in batch.unbind()]
+        if out is None:  # no batched kernel: one recording at a time, the limit on them all
+            parts, emitted = [], 0
+            for part in batch.unbind():
+                parts.append(self.kernel(part))
+                emitted += parts[-1].num_events
+                check_output_count(emitted, detail=" in the batch")
             events = Events.cat(parts)
             out = EventBatch(events, tuple(part.num_events for part in parts))
         return out

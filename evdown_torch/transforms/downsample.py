@@ -7,16 +7,19 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from evdown_torch._tensors import region_of
+from evdown_torch.checks import check_output_count
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Downscaler, Method
 from evdown_torch.transforms._batch import run_stacked, sorted_within
 from evdown_torch.transforms.functional.downsample import (
+    KEEPS_EVERY_EVENT,
     downsample_init,
     downsample_step,
     downsample_whole,
 )
 from evdown_torch.transforms.functional.funnelling import (
+    FUNNEL_FEWER,
     funnel_batch,
     funnel_init,
     funnel_step,
@@ -28,6 +31,7 @@ from evdown_torch.transforms.functional.settings import RegionSettings
 def _divided(batch: EventBatch, settings: RegionSettings) -> EventBatch:
     """Events do not interact: recordings each in time order need only the division."""
     events = batch.events
+    check_output_count(events.num_events, fewer=KEEPS_EVERY_EVENT)
     x, y = region_of(events, settings.factor)
     return EventBatch(Events(x, y, events.t.clone(), events.p.clone()), batch.lengths)
 
@@ -35,8 +39,9 @@ def _divided(batch: EventBatch, settings: RegionSettings) -> EventBatch:
 def _funnelled(batch: EventBatch, settings: RegionSettings) -> EventBatch:
     """Recordings each in time order go through :func:`funnel_batch` (no stacking)."""
     width, height, _ = settings.output_sensor_size
-    return EventBatch(*funnel_batch(batch.events, batch.lengths, settings.factor,
-                                    (width, height)))
+    out = EventBatch(*funnel_batch(batch.events, batch.lengths, settings.factor, (width, height)))
+    check_output_count(out.events.num_events, fewer=FUNNEL_FEWER)
+    return out
 
 
 def _stacked(

@@ -9,12 +9,15 @@ from typing import ClassVar, NoReturn
 
 import torch
 
-from evdown_torch.checks import check_non_negative_int, check_unit_interval
+from evdown_torch.checks import check_non_negative_int, check_output_count, check_unit_interval
 from evdown_torch.events import Events
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.functional.downsample import downsample
 
 __all__ = ["ThinnedDownsample", "recording_seed"]
+
+#: How the thinning control's output gets under the output limit.
+THINNED_FEWER = "a smaller keep gives fewer events"
 
 
 def _content_digest(events: Events) -> bytes:
@@ -108,6 +111,7 @@ class ThinnedDownsample(Downscaler):
         """
         out = downsample(events, factor=self.factor_xy)
         if self.keep >= 1.0 or out.num_events == 0:
+            check_output_count(out.num_events, fewer=THINNED_FEWER)
             return [out] * len(seeds)
         content = _content_digest(events)
         kept = []
@@ -116,4 +120,5 @@ class ThinnedDownsample(Downscaler):
             generator = torch.Generator().manual_seed(_mixed(content, seed))
             draws = torch.rand(out.num_events, generator=generator, dtype=torch.float64)
             kept.append(out.select((draws < self.keep).to(out.device)))
+            check_output_count(kept[-1].num_events, fewer=THINNED_FEWER)  # at most the input
         return kept

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from evdown_torch._tensors import region_of, sort_by_time
+from evdown_torch.checks import check_output_count
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.settings import RegionSettings
 
 __all__ = ["downsample", "downsample_init", "downsample_step", "downsample_whole"]
+
+#: How Downsample's output gets under the output limit: it keeps every event it is given.
+KEEPS_EVERY_EVENT = "Downsample keeps every input event: give it fewer events per call"
 
 
 def downsample(events: Events, *, factor: tuple[int, int]) -> Events:
@@ -39,10 +43,12 @@ def downsample_step(
     events: Events, state: None, settings: RegionSettings
 ) -> tuple[Events, None]:
     """Downsample's ``step``: one time-sorted chunk, every event decided by it."""
+    check_output_count(events.num_events, fewer=KEEPS_EVERY_EVENT)
     x, y = region_of(events, settings.factor)
     return Events(x, y, events.t.clone(), events.p.clone()), None
 
 
 def downsample_whole(events: Events, settings: RegionSettings) -> Events:
     """Downsample's whole-stream kernel (events in any order): :func:`downsample`."""
+    check_output_count(events.num_events, fewer=KEEPS_EVERY_EVENT)
     return downsample(events, factor=settings.factor)

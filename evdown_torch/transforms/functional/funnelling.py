@@ -15,6 +15,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
+from evdown_torch.checks import check_output_count
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.settings import RegionSettings
 
@@ -28,6 +29,10 @@ __all__ = [
     "funnel_whole",
     "last_instant",
 ]
+
+
+#: How EventFunnelling's output gets under the output limit (a repeat shares its region).
+FUNNEL_FEWER = "a larger factor gives fewer events"
 
 
 def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
@@ -103,12 +108,15 @@ def funnel_step(
     """
     width, height, _ = settings.output_sensor_size
     out = funnel_sorted(events, settings.factor, seen=state, size=(width, height))
+    check_output_count(out.num_events, fewer=FUNNEL_FEWER)  # at most the input: built already
     return out, last_instant(out, state)
 
 
 def funnel_whole(events: Events, settings: RegionSettings) -> Events:
     """EventFunnelling's whole-stream kernel (events in any order): :func:`event_funnelling`."""
-    return event_funnelling(events, factor=settings.factor)
+    out = event_funnelling(events, factor=settings.factor)
+    check_output_count(out.num_events, fewer=FUNNEL_FEWER)  # at most the input: built already
+    return out
 
 
 def last_instant(events: Events, previous: Events | None) -> Events | None:
