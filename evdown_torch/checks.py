@@ -25,6 +25,7 @@ __all__ = [
     "MAX_EXACT_SPAN",
     "check_choice",
     "check_factor",
+    "check_finite_number",
     "check_has_values",
     "check_item_index",
     "check_non_negative_float",
@@ -166,6 +167,25 @@ def check_positive_int(name: str, value: Any) -> int:
     if value <= 0:
         raise ValueError(f"{name} must be a positive integer, got {value!r}")
     return int(value)
+
+
+def check_finite_number(name: str, value: Any) -> int | float:
+    """Validate a finite real number (a time, a bound); integers stay exact Python ints.
+
+    Raises:
+        TypeError: for a bool or a non-number.
+        ValueError: for NaN or an infinity.
+
+    Example:
+        >>> check_finite_number("t_start", 2**62), check_finite_number("t_end", 2.5)
+        (4611686018427387904, 2.5)
+    """
+    if _is_int(value):
+        return int(value)
+    number = _real(name, value, "a finite number")
+    if not math.isfinite(number):
+        raise ValueError(f"{name} must be a finite number, got {number!r}")
+    return number
 
 
 def check_non_negative_float(name: str, value: Any) -> float:
