@@ -23,6 +23,7 @@ __all__ = [
     "DEFAULT_MAX_OUTPUT_EVENTS",
     "DEFAULT_TIME_UNIT",
     "MAX_EXACT_SPAN",
+    "OutputLimitError",
     "check_choice",
     "check_factor",
     "check_finite_number",
@@ -68,6 +69,14 @@ MAX_TIME_UNIT_DENOMINATOR = 10**12
 #: which stop holding every integer there (below it, a time is within 1e-12 of its piece's
 #: length of the exact one, and shifting the clock shifts it exactly).
 MAX_EXACT_SPAN = 2**53
+
+
+class OutputLimitError(ValueError):
+    """A call would emit (or compute) more than the output limit (:func:`max_output_events`).
+
+    A ``ValueError``, so that code catching those keeps working; calibration catches this one
+    alone as "too many events".
+    """
 
 
 def _is_int(value: Any) -> bool:
@@ -354,11 +363,11 @@ def check_output_count(
         fewer: how the method's settings give fewer events.
 
     Raises:
-        ValueError: naming the count and the limit, when ``count`` exceeds the limit.
+        OutputLimitError: naming the count and the limit, when ``count`` exceeds the limit.
     """
     limit = _OUTPUT_LIMIT.get()
     if limit is not None and count > limit:
-        raise ValueError(
+        raise OutputLimitError(
             f"the output would hold at least {count:,} events{detail}, more than the limit of "
             f"{limit:,}; {fewer}, and `with evdown_torch.max_output_events(n):` around the "
             "call raises the limit (None: no limit)"

@@ -34,7 +34,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import DEFAULT_TIME_UNIT, output_limit, output_size
+from evdown_torch.checks import DEFAULT_TIME_UNIT, OutputLimitError, output_limit, output_size
 from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, emit
 from evdown_torch.transforms.functional.photocurrent.levels import (
@@ -324,7 +324,7 @@ def check_leaky_frames(frames: int, sensor_size: tuple[int, int, int], fps: floa
     values = frames * sensor_size[0] * sensor_size[1]
     limit = output_limit()
     if limit is not None and values > limit:
-        raise ValueError(
+        raise OutputLimitError(
             f"fps={fps:g} with a leak (cutoff_hz > 0) means {frames:,} frames in this call, "
             f"each computed for all {sensor_size[0] * sensor_size[1]:,} pixels: {values:,} "
             f"values, more than the limit of {limit:,}; a lower fps or no leak "
