@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import warnings
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
@@ -35,10 +36,12 @@ __all__ = [
     "check_positive_float",
     "check_positive_int",
     "check_sensor_size",
+    "check_state_memory",
     "check_time_constant",
     "check_time_span",
     "check_time_unit",
     "check_unit_interval",
+    "device_memory",
     "max_output_events",
     "output_limit",
     "output_size",
@@ -64,6 +67,10 @@ DEFAULT_TIME_UNIT = 1e-6
 #: 1/10**6 and 1e-9 exactly 1/10**9); a time unit must be at least its inverse (1e-12 s).
 MAX_TIME_UNIT_DENOMINATOR = 10**12
 
+#: The share of a device's memory that a method's dense per-pixel state may take: the kernels
+#: need room besides it (a chunk's events and regions, the output).
+STATE_MEMORY_SHARE = 0.25
+
 #: Spans ``t_end - t_start`` of integer timestamps the estimators refuse from (2**53, about
 #: 285 years in microseconds): crossing times are float64 offsets from the pieces' starts,
 #: which stop holding every integer there (below it, a time is within 1e-12 of its piece's
@@ -72,11 +79,7 @@ MAX_EXACT_SPAN = 2**53
 
 
 class OutputLimitError(ValueError):
-    """A call would emit (or compute) more than the output limit (:func:`max_output_events`).
-
-    A ``ValueError``, so that code catching those keeps working; calibration catches this one
-    alone as "too many events".
-    """
+    """A call would emit (or compute) more than the output limit (:func:`max_output_events`)."""
 
 
 def _is_int(value: Any) -> bool:
@@ -184,10 +187,6 @@ def check_finite_number(name: str, value: Any) -> int | float:
     Raises:
         TypeError: for a bool or a non-number.
         ValueError: for NaN or an infinity.
-
-    Example:
-        >>> check_finite_number("t_start", 2**62), check_finite_number("t_end", 2.5)
-        (4611686018427387904, 2.5)
     """
     if _is_int(value):
         return int(value)
@@ -441,3 +440,60 @@ def check_has_values(tensor: torch.Tensor, what: str = "events") -> None:
             f"{what} are on the 'meta' device, which holds shapes but no values; downscaling "
             "reads the values: move them to a real device first (e.g. .to('cpu'))"
         )
+
+
+def device_memory(device: torch.device | str | None = None) -> int | None:
+    """Bytes of memory of ``device`` (RAM for the CPU, the GPU's for CUDA); ``None``: unknown."""
+    device = torch.device("cpu" if device is None else device)
+    if device.type == "cuda":
+        return int(torch.cuda.get_device_properties(device).total_memory)
+    if device.type == "cpu":
+        try:
+            return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+        except (AttributeError, ValueError, OSError):
+            return None
+    return None
+
+
+def check_state_memory(
+    method: str,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    *,
+    pixel_bytes: int = 0,
+    region_bytes: int = 0,
+    recordings: int = 1,
+    device: torch.device | str | None = None,
+) -> None:
+    """Refuse a dense per-pixel state larger than :data:`STATE_MEMORY_SHARE` of the memory.
+
+    The methods that keep a value for every pixel or region (EventCount, the estimators' and
+    LIFPooling's sessions, PhotocurrentPooling) call this before they allocate it.
+
+    Args:
+        method: the method's name, for the message.
+        sensor_size: ``(W, H, P)``; factor: ``(fx, fy)``.
+        pixel_bytes: bytes of state per input pixel; region_bytes: per output region.
+        recordings: recordings whose states are stacked (a batch).
+        device: where the state lives (:func:`device_memory`; unknown memory: no check).
+
+    Raises:
+        ValueError: naming the memory the state needs, the device's, and the largest sensor
+            of this shape that fits.
+    """
+    w, h, _ = sensor_size
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    need = recordings * (pixel_bytes * w * h + region_bytes * out_w * out_h)
+    memory = device_memory(device)
+    if memory is None or need <= memory * STATE_MEMORY_SHARE:
+        return
+    scale = math.sqrt(memory * STATE_MEMORY_SHARE / need)
+    fit_w, fit_h = max(int(w * scale), 1), max(int(h * scale), 1)
+    several = f" for {recordings} recordings" if recordings > 1 else ""
+    raise ValueError(
+        f"{method} keeps state for every pixel or region of its sensor: {w} x {h} pixels at "
+        f"factor {factor} need {need / 1e9:.3g} GB{several}, more than a quarter of the "
+        f"{memory / 1e9:.3g} GB of memory here ({torch.device(device or 'cpu')}); the largest "
+        f"sensor of this shape that fits is about {fit_w} x {fit_h} pixels"
+        + ("; or give fewer recordings per batch" if several else "")
+    )

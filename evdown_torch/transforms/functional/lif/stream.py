@@ -39,7 +39,7 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import sort_by_time
-from evdown_torch.checks import output_size
+from evdown_torch.checks import check_state_memory, output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.lif.pooling import (
     LIFSettings,
@@ -128,6 +128,8 @@ def _fresh_state(
     pending.
     """
     wo, ho, _ = output_size(sensor_size, factor)
+    check_state_memory("LIFPooling's session", sensor_size, factor, region_bytes=16,
+                       device=events.device)  # two float32 membranes and an int64 step
     return LIFStreamState(
         events.t[0], events.t[0], initial_state(wo * ho, events.device), -1,
         Events.empty(events.t.dtype, events.device),

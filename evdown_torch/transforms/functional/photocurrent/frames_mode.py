@@ -34,7 +34,13 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import DEFAULT_TIME_UNIT, OutputLimitError, output_limit, output_size
+from evdown_torch.checks import (
+    DEFAULT_TIME_UNIT,
+    OutputLimitError,
+    check_state_memory,
+    output_limit,
+    output_size,
+)
 from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, emit
 from evdown_torch.transforms.functional.photocurrent.levels import (
@@ -164,6 +170,8 @@ def fresh_frames_state(
     w, h, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
     device = events.device
+    check_state_memory("PhotocurrentPooling's frames mode", sensor_size, factor,
+                       pixel_bytes=16, region_bytes=16, device=device)  # 64-bit pairs
     carry = FramesCarry(levels=torch.zeros(w * h, dtype=torch.int64, device=device),
                         ell=torch.zeros(w * h, dtype=torch.float64, device=device),
                         ell_time=0.0,
