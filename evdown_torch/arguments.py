@@ -26,6 +26,7 @@ __all__ = [
     "add_out_option",
     "add_sensor_size_option",
     "add_threads_option",
+    "check_creatable",
     "factor_argument",
     "read_input",
     "refuse_threshold_flag",
@@ -38,6 +39,24 @@ Subparsers = argparse._SubParsersAction
 
 class CommandError(Exception):
     """A problem with the command's input, reported as one line without a traceback."""
+
+
+def check_creatable(folder: Path, what: str = "", hint: str = "") -> None:
+    """Refuse a ``folder`` that cannot be made because a file stands at or above it.
+
+    Args:
+        folder: the folder a command will create (or that exists).
+        what: what the folder is, for the message (``"output folder"``).
+        hint: said after the message when the file is ``folder`` itself.
+
+    Raises:
+        CommandError: ``cannot create [what] 'folder': 'file' is a file``.
+    """
+    for above in (folder, *folder.parents):  # the folder, and its missing parents
+        if above.exists() and not above.is_dir():
+            name = f"the {what} {str(folder)!r}" if what else repr(str(folder))
+            raise CommandError(f"cannot create {name}: {str(above)!r} is a file"
+                               + (hint if above == folder else ""))
 
 
 def factor_argument(text: str) -> int | tuple[int, int]:
