@@ -106,7 +106,7 @@ def test_a_damaged_hdf5_file_is_a_value_error_wherever_the_damage_lies(tmp_path,
     assert raised > 5
 
 
-def test_hdf5_errors_of_every_kind_name_the_file(tmp_path, stream, monkeypatch):
+def test_hdf5_errors_of_every_kind_name_the_file(tmp_path, stream, monkeypatch, capsys):
     h5py = pytest.importorskip("h5py")
     path = write_events(tmp_path / "rec.h5", stream, sensor_size=SENSOR)
     for error in (RuntimeError("Link iteration failed (bad local heap signature)"),
@@ -118,6 +118,8 @@ def test_hdf5_errors_of_every_kind_name_the_file(tmp_path, stream, monkeypatch):
         monkeypatch.setattr(h5py, "File", broken)
         with pytest.raises(ValueError, match=r"cannot read .*rec\.h5.* as HDF5"):
             read_events(path)
+        assert _downscale(path, tmp_path / "out.npy") == 2
+        _one_error_line(capsys, "rec.h5", "as HDF5")
 
 
 # ----------------------------------------------------------------------------- metadata
