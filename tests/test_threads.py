@@ -83,7 +83,7 @@ def set_threads(monkeypatch) -> list[int]:
 ])
 def test_omp_num_threads_is_the_default_of_threads(npy, monkeypatch, set_threads, capsys,
                                                    environment, option, expected):
-    monkeypatch.setattr("evdown_torch.threads.available_cores", lambda: 64)
+    monkeypatch.setattr("evdown_torch.threads.available_cores", lambda: 64, raising=False)
     if environment is None:
         monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     else:
@@ -108,7 +108,7 @@ def test_a_bad_omp_num_threads_warns_and_uses_one(npy, monkeypatch, set_threads,
 ])
 def test_more_threads_than_cores_warn_once(npy, monkeypatch, set_threads, capsys,
                                            environment, option, said):
-    monkeypatch.setattr("evdown_torch.threads.available_cores", lambda: 2)
+    monkeypatch.setattr("evdown_torch.threads.available_cores", lambda: 2, raising=False)
     if environment is None:
         monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     else:
