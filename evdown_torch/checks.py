@@ -472,8 +472,10 @@ def check_state_memory(
 
     Args:
         method: the method's name, for the message.
-        sensor_size: ``(W, H, P)``; factor: ``(fx, fy)``.
-        pixel_bytes: bytes of state per input pixel; region_bytes: per output region.
+        sensor_size: ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        pixel_bytes: bytes of state per input pixel.
+        region_bytes: bytes of state per output region.
         recordings: recordings whose states are stacked (a batch).
         device: where the state lives (:func:`device_memory`; unknown memory: no check).
 
@@ -495,5 +497,4 @@ def check_state_memory(
         f"factor {factor} need {need / 1e9:.3g} GB{several}, more than a quarter of the "
         f"{memory / 1e9:.3g} GB of memory here ({torch.device(device or 'cpu')}); the largest "
         f"sensor of this shape that fits is about {fit_w} x {fit_h} pixels"
-        + ("; or give fewer recordings per batch" if several else "")
-    )
+        + ("; or give fewer recordings per batch" if several else ""))

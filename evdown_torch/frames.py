@@ -151,7 +151,7 @@ def to_frames(
     flat = ((index * 2 + ev.p[inside].to(torch.int64)) * h + ev.y[inside]) * w + ev.x[inside]
     counts = torch.bincount(flat, minlength=size)
     frames = counts.to(torch.float32).reshape(bins, 2, h, w)
-    if not mean_time:
+    if within is None:  # no mean_time
         return frames
     total = torch.bincount(flat, weights=within * 2 - 1, minlength=size)
     mean = (total / counts.clamp(min=1)).to(torch.float32).reshape(bins, 2, h, w)

@@ -81,7 +81,7 @@ def test_the_largest_sensor_said_to_fit_runs_and_a_larger_one_is_refused(name, m
 def test_long_thin_sensors_and_the_sparse_methods_are_unaffected():
     long_thin = (65535, 2, 2)  # the sensor that works
     ev = _events(long_thin)
-    for name, (run, *_) in DENSE.items():
+    for run, *_ in DENSE.values():
         run(long_thin, ev)
     out = Downsample(HUGE, 1)(_events(HUGE))  # no per-pixel state
     assert len(out) == 200
