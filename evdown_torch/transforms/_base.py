@@ -228,15 +228,13 @@ class Session:
 
     Chunks must follow each other in time: a chunk may not hold a timestamp earlier than the
     previous chunks' last one (equal timestamps are fine and keep chunk order). A chunk that
-    breaks this, or any other bad chunk (an empty one included, e.g. of another timestamp
-    dtype), raises a ``ValueError`` and leaves the session as it was, so it stays usable. The
-    method's own state is held explicitly in :attr:`state` (``None`` before the first event);
-    the transform itself is never modified.
+    breaks this, or any other bad chunk (an empty one too), raises a ``ValueError`` and leaves
+    the session as it was, so it stays usable. The method's own state is held explicitly in
+    :attr:`state` (``None`` before the first event); the transform itself is never modified.
 
-    A session takes one call at a time: a call, ``flush()`` or ``reset()`` made while another
-    one is running (from another thread) raises a ``RuntimeError`` and changes nothing. Give
-    each thread its own session (``transform.session()``); a copy (``copy.deepcopy``)
-    continues the stream on its own.
+    A call, ``flush()`` or ``reset()`` made while another one runs (another thread) raises a
+    ``RuntimeError`` and changes nothing: give each thread its own session (a copy,
+    ``copy.deepcopy``, continues the stream on its own).
 
     Attributes:
         transform: the settings.
