@@ -75,6 +75,15 @@ def set_threads(monkeypatch) -> list[int]:
     return calls
 
 
+def _machine(monkeypatch, cores: int, omp_num_threads: str | None) -> None:
+    """A machine of ``cores`` cores, ``OMP_NUM_THREADS`` set to ``omp_num_threads`` (or unset)."""
+    monkeypatch.setattr("evdown_torch.threads.available_cores", lambda: cores, raising=False)
+    if omp_num_threads is None:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", omp_num_threads)
+
+
 @pytest.mark.parametrize(("environment", "option", "expected"), [
     (None, (), 1),  # neither: one thread
     ("3", (), 3),  # OMP_NUM_THREADS when --threads is not given
@@ -83,11 +92,7 @@ def set_threads(monkeypatch) -> list[int]:
 ])
 def test_omp_num_threads_is_the_default_of_threads(npy, monkeypatch, set_threads, capsys,
                                                    environment, option, expected):
-    monkeypatch.setattr("evdown_torch.threads.available_cores", lambda: 64, raising=False)
-    if environment is None:
-        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    else:
-        monkeypatch.setenv("OMP_NUM_THREADS", environment)
+    _machine(monkeypatch, cores=64, omp_num_threads=environment)
     assert _downscale(npy, *option) == 0
     assert set_threads == [expected]
     assert capsys.readouterr().err == ""
@@ -108,11 +113,7 @@ def test_a_bad_omp_num_threads_warns_and_uses_one(npy, monkeypatch, set_threads,
 ])
 def test_more_threads_than_cores_warn_once(npy, monkeypatch, set_threads, capsys,
                                            environment, option, said):
-    monkeypatch.setattr("evdown_torch.threads.available_cores", lambda: 2, raising=False)
-    if environment is None:
-        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    else:
-        monkeypatch.setenv("OMP_NUM_THREADS", environment)
+    _machine(monkeypatch, cores=2, omp_num_threads=environment)
     assert _downscale(npy, *option) == 0
     assert set_threads == [4]
     err = capsys.readouterr().err.strip().splitlines()
