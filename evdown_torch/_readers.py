@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -80,13 +81,21 @@ def _columns(x: Any, y: Any, t: Any, p: Any, source: str) -> np.ndarray:
     return out
 
 
+def _one_value(attrs: Any, name: str) -> Any:
+    """Attribute ``name`` as one Python value (bytes decoded), or the list it holds."""
+    value = attrs[name]
+    if isinstance(value, (np.ndarray, np.generic)):
+        value = value.reshape(-1).tolist() if value.size != 1 else value.reshape(-1)[0].item()
+    return value.decode() if isinstance(value, bytes) else value
+
+
 def _time_unit_attribute(attrs: Any, source: str) -> str | None:
     """A ``time_unit`` attribute or array, if present."""
     if "time_unit" not in attrs:
         return None
-    value = attrs["time_unit"]
-    value = value.item() if isinstance(value, np.ndarray) else value
-    value = value.decode() if isinstance(value, bytes) else value
+    value = _one_value(attrs, "time_unit")
+    if isinstance(value, list):
+        raise ValueError(f"{source}: stored time_unit must be one unit name, got {value!r}")
     try:
         return check_unit_name(value)
     except ValueError as error:
@@ -94,7 +103,10 @@ def _time_unit_attribute(attrs: Any, source: str) -> str | None:
 
 
 def _sensor_attribute(attrs: Any, source: str) -> tuple[int, int, int] | None:
-    """``sensor_size`` (W, H, P) or ``width``/``height`` attributes, if present."""
+    """``sensor_size`` (W, H, P) or ``width``/``height`` attributes, if present.
+
+    Checked as a ``sensor_size`` argument is: whole numbers (not bools, floats or text).
+    """
     if "sensor_size" in attrs:
         value = np.asarray(attrs["sensor_size"]).reshape(-1).tolist()
         try:
@@ -102,7 +114,14 @@ def _sensor_attribute(attrs: Any, source: str) -> tuple[int, int, int] | None:
         except (TypeError, ValueError) as error:
             raise ValueError(f"{source}: stored sensor_size is not valid: {error}") from None
     if "width" in attrs and "height" in attrs:
-        return check_sensor_size((int(attrs["width"]), int(attrs["height"]), 2))
+        sides = []
+        for name in ("width", "height"):
+            value = _one_value(attrs, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+                raise ValueError(
+                    f"{source}: stored {name} must be one positive integer, got {value!r}")
+            sides.append(value)
+        return check_sensor_size((*sides, 2))
     return None
 
 
@@ -225,10 +244,52 @@ def _read_hdf5(path: Path) -> Read:
                     "events"
                 )
             columns = [group[name][()] for name in "xytp"]
-    except OSError as error:
-        raise ValueError(f"cannot read {source!r} as HDF5: {error}") from None
+    # h5py reports damage as OSError, RuntimeError ("bad local heap signature") or KeyError
+    except (OSError, RuntimeError, KeyError) as error:
+        raise ValueError(f"cannot read {source!r} as HDF5 (a damaged file?): {error}") from None
     x, y, t, p = columns
     return Read(_columns(x, y, t, p, source), recorded, None, unit)
+
+
+def _native_failure(error: BaseException) -> bool:
+    """Whether a native decoder's ``error`` means a damaged file.
+
+    Any ``Exception``, and pyo3's ``PanicException`` (a Rust panic, which Python sees as a
+    ``BaseException``); never an interrupt or an exit.
+    """
+    return isinstance(error, Exception) or type(error).__name__ == "PanicException"
+
+
+#: An AEDAT4 file's first line.
+_AEDAT4_MAGIC = b"#!AER-DAT4.0\r\n"
+
+#: The fewest bytes of an AEDAT4 packet: a size-prefixed flatbuffer's size prefix, root
+#: offset and file identifier (the aedat decoder panics on fewer).
+_AEDAT4_MIN_PACKET = 12
+
+
+def _short_aedat4_packet(path: Path) -> str | None:
+    """What is wrong where the aedat decoder would panic: a packet too short to decode.
+
+    Walks the packet headers (stream id, size) after the file's header without decoding
+    anything; the decoder itself reports every other damage.
+    """
+    with open(path, "rb") as file:
+        end = os.fstat(file.fileno()).st_size
+        if file.read(len(_AEDAT4_MAGIC)) != _AEDAT4_MAGIC:
+            return None
+        prefix = file.read(4)
+        if len(prefix) < 4:
+            return None
+        at = len(_AEDAT4_MAGIC) + 4 + int.from_bytes(prefix, "little")
+        while at + 8 <= end:
+            file.seek(at + 4)
+            size = int.from_bytes(file.read(4), "little")
+            if size < _AEDAT4_MIN_PACKET:
+                return (f"the packet at byte {at} holds {size} bytes, fewer than the "
+                        f"{_AEDAT4_MIN_PACKET} of any packet (a damaged or cut file)")
+            at += 8 + size
+    return None
 
 
 def _read_aedat4(path: Path) -> Read:
@@ -237,9 +298,14 @@ def _read_aedat4(path: Path) -> Read:
     import tonic.io
 
     source = str(path)
+    short = _short_aedat4_packet(path)
+    if short is not None:
+        raise ValueError(f"cannot read {source!r} as AEDAT4: {short}")
     try:
         streams = aedat.Decoder(source).id_to_stream()
-    except Exception as error:  # the decoder raises plain exceptions for damaged files
+    except BaseException as error:  # plain exceptions for damaged files, or a Rust panic
+        if not _native_failure(error):
+            raise
         raise ValueError(f"cannot read {source!r} as AEDAT4: {error}") from None
     ids = [i for i, stream in streams.items() if stream.get("type") == "events"]
     if not ids:
@@ -252,7 +318,9 @@ def _read_aedat4(path: Path) -> Read:
         if "need at least one array" not in str(error):  # no event packet at all
             raise ValueError(f"cannot read {source!r} as AEDAT4: {error}") from None
         return Read(np.empty(0, dtype=DVS_DTYPE), recorded, None, "us")
-    except Exception as error:  # as above
+    except BaseException as error:  # as above
+        if not _native_failure(error):
+            raise
         raise ValueError(f"cannot read {source!r} as AEDAT4: {error}") from None
     return Read(_columns(data["x"], data["y"], data["t"], data["on"], source), recorded, None,
                  "us")
@@ -300,7 +368,9 @@ def _read_prophesee(path: Path) -> Read:
                 raise
             _, packets = decode(_SIZE_FALLBACK)
             recorded = None
-    except (RuntimeError, OSError) as error:  # faery reports damaged files as RuntimeError
+    except BaseException as error:  # faery reports damaged files as RuntimeError, or panics
+        if not _native_failure(error) or isinstance(error, ValueError):
+            raise
         raise ValueError(f"cannot read {source!r} as a Prophesee file: {error}") from None
     data = np.concatenate(packets) if packets else np.empty(0, DVS_DTYPE)
     p = data["payload"] if dat_file and len(packets) else data["p"]

@@ -16,6 +16,7 @@ import numpy as np
 
 from evdown_torch._text import parse_factor, parse_setting
 from evdown_torch.io import check_columns, read_microseconds
+from evdown_torch.threads import check_threads
 from evdown_torch.time_units import TIME_UNITS
 
 __all__ = [
@@ -25,6 +26,7 @@ __all__ = [
     "add_out_option",
     "add_sensor_size_option",
     "add_threads_option",
+    "check_creatable",
     "factor_argument",
     "read_input",
     "refuse_threshold_flag",
@@ -37,6 +39,24 @@ Subparsers = argparse._SubParsersAction
 
 class CommandError(Exception):
     """A problem with the command's input, reported as one line without a traceback."""
+
+
+def check_creatable(folder: Path, what: str = "", hint: str = "") -> None:
+    """Refuse a ``folder`` that cannot be made because a file stands at or above it.
+
+    Args:
+        folder: the folder a command will create (or that exists).
+        what: what the folder is, for the message (``"output folder"``).
+        hint: said after the message when the file is ``folder`` itself.
+
+    Raises:
+        CommandError: ``cannot create [what] 'folder': 'file' is a file``.
+    """
+    for above in (folder, *folder.parents):  # the folder, and its missing parents
+        if above.exists() and not above.is_dir():
+            name = f"the {what} {str(folder)!r}" if what else repr(str(folder))
+            raise CommandError(f"cannot create {name}: {str(above)!r} is a file"
+                               + (hint if above == folder else ""))
 
 
 def factor_argument(text: str) -> int | tuple[int, int]:
@@ -66,10 +86,12 @@ def _threads(text: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"threads must be a positive integer, got {text!r}")
-    return value
+        raise argparse.ArgumentTypeError(
+            f"--threads must be a positive integer, got {text!r}") from None
+    try:
+        return check_threads(value, "--threads")
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def add_sensor_size_option(parser: argparse.ArgumentParser, help: str) -> None:
@@ -83,8 +105,14 @@ def add_out_option(parser: argparse.ArgumentParser, help: str) -> None:
 
 
 def add_threads_option(parser: argparse.ArgumentParser, help: str) -> None:
-    """Add ``--threads N`` (a positive integer, default 1) with its own ``help``."""
-    parser.add_argument("--threads", type=_threads, default=1, metavar="N", help=help)
+    """Add ``--threads N`` with its own ``help``.
+
+    A positive integer of at most :data:`~evdown_torch.threads.MAX_THREADS`; ``None`` when
+    not given, which :func:`~evdown_torch.threads.command_threads` resolves at run time
+    (``OMP_NUM_THREADS`` where set, else 1).
+    """
+    parser.add_argument("--threads", type=_threads, metavar="N",
+                        help=f"{help}; default: OMP_NUM_THREADS where set, else 1")
 
 
 def add_input_arguments(parser: argparse.ArgumentParser) -> None:
@@ -104,8 +132,8 @@ def add_input_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--columns", type=_columns, metavar="A,B,C,D",
                         help="column order of .npy files holding an (N, 4) array, e.g. "
                         "t,x,y,p (default x,y,t,p)")
-    add_threads_option(parser, "torch threads (default 1: never much slower, often faster on a "
-                       "busy machine; see docs/benchmarks.md)")
+    add_threads_option(parser, "torch threads (one is never much slower, often faster on a busy "
+                       "machine; see docs/benchmarks.md)")
 
 
 def read_input(

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import warnings
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
@@ -23,8 +24,10 @@ __all__ = [
     "DEFAULT_MAX_OUTPUT_EVENTS",
     "DEFAULT_TIME_UNIT",
     "MAX_EXACT_SPAN",
+    "OutputLimitError",
     "check_choice",
     "check_factor",
+    "check_finite_number",
     "check_has_values",
     "check_item_index",
     "check_non_negative_float",
@@ -33,10 +36,12 @@ __all__ = [
     "check_positive_float",
     "check_positive_int",
     "check_sensor_size",
+    "check_state_memory",
     "check_time_constant",
     "check_time_span",
     "check_time_unit",
     "check_unit_interval",
+    "device_memory",
     "max_output_events",
     "output_limit",
     "output_size",
@@ -62,11 +67,19 @@ DEFAULT_TIME_UNIT = 1e-6
 #: 1/10**6 and 1e-9 exactly 1/10**9); a time unit must be at least its inverse (1e-12 s).
 MAX_TIME_UNIT_DENOMINATOR = 10**12
 
+#: The share of a device's memory that a method's dense per-pixel state may take: the kernels
+#: need room besides it (a chunk's events and regions, the output).
+STATE_MEMORY_SHARE = 0.25
+
 #: Spans ``t_end - t_start`` of integer timestamps the estimators refuse from (2**53, about
 #: 285 years in microseconds): crossing times are float64 offsets from the pieces' starts,
 #: which stop holding every integer there (below it, a time is within 1e-12 of its piece's
 #: length of the exact one, and shifting the clock shifts it exactly).
 MAX_EXACT_SPAN = 2**53
+
+
+class OutputLimitError(ValueError):
+    """A call would emit (or compute) more than the output limit (:func:`max_output_events`)."""
 
 
 def _is_int(value: Any) -> bool:
@@ -168,6 +181,21 @@ def check_positive_int(name: str, value: Any) -> int:
     return int(value)
 
 
+def check_finite_number(name: str, value: Any) -> int | float:
+    """Validate a finite real number (a time, a bound); integers stay exact Python ints.
+
+    Raises:
+        TypeError: for a bool or a non-number.
+        ValueError: for NaN or an infinity.
+    """
+    if _is_int(value):
+        return int(value)
+    number = _real(name, value, "a finite number")
+    if not math.isfinite(number):
+        raise ValueError(f"{name} must be a finite number, got {number!r}")
+    return number
+
+
 def check_non_negative_float(name: str, value: Any) -> float:
     """Validate a finite real number ``>= 0`` and return it as a float."""
     value = _real(name, value, "a non-negative number")
@@ -248,13 +276,16 @@ def output_limit() -> int | None:
 def max_output_events(limit: int | None) -> AbstractContextManager[int | None]:
     """A block in which one call of a downscaler may emit at most ``limit`` events.
 
-    Every downscaler counts its output before it builds it and raises a ``ValueError`` naming
-    the count when it exceeds the limit, instead of running out of memory: the log-luminance
-    methods (EventCount, LinearEstimation, CubicEstimation, PhotocurrentPooling), whose small
-    thresholds can emit many events per input event, and LIFPooling, whose neurons can fire at
-    every step of a long silence. The limit counts one call: one ``transform(events)``, one
-    ``transform.batch(...)`` as a whole, one chunk of a session. Outside any block it is
-    :data:`DEFAULT_MAX_OUTPUT_EVENTS` (100 million events, about 2.5 GB as tensors).
+    Every transform counts its output and raises a ``ValueError`` naming the count when it
+    exceeds the limit: no call emits more. The log-luminance methods (EventCount,
+    LinearEstimation, CubicEstimation, PhotocurrentPooling), whose small thresholds can emit
+    many events per input event, and LIFPooling, whose neurons can fire at every step of a
+    long silence, count before they build anything, instead of running out of memory; the
+    methods whose output is at most their input (Downsample, EventFunnelling,
+    TemporalFunnelling, ThinnedDownsample) count what they built. The limit counts one call:
+    one ``transform(events)``, one ``transform.batch(...)`` as a whole, one chunk of a
+    session. Outside any block it is :data:`DEFAULT_MAX_OUTPUT_EVENTS` (100 million events,
+    about 2.5 GB as tensors).
 
     The limit lives in a context variable: it holds for the calls made inside the ``with``
     block, in this thread (or asyncio task) only, and the previous limit comes back when the
@@ -303,10 +334,11 @@ def set_max_output_events(limit: int | None) -> int | None:
     of the whole process; kept for one version.
 
     Args:
-        limit: a positive number of events, or ``None`` for :data:`DEFAULT_MAX_OUTPUT_EVENTS`.
+        limit: a positive number of events, or ``None`` for no limit (as
+            :func:`max_output_events` takes it).
 
     Returns:
-        The limit that was in force before.
+        The limit that was in force before (``None``: none), which this function takes back.
     """
     warnings.warn(
         "evdown_torch.set_max_output_events is deprecated and will be removed; use "
@@ -315,9 +347,7 @@ def set_max_output_events(limit: int | None) -> int | None:
         stacklevel=2,
     )
     previous = _OUTPUT_LIMIT.get()
-    _OUTPUT_LIMIT.set(
-        DEFAULT_MAX_OUTPUT_EVENTS if limit is None else check_positive_int("limit", limit)
-    )
+    _OUTPUT_LIMIT.set(None if limit is None else check_positive_int("limit", limit))
     return previous
 
 
@@ -332,11 +362,11 @@ def check_output_count(
         fewer: how the method's settings give fewer events.
 
     Raises:
-        ValueError: naming the count and the limit, when ``count`` exceeds the limit.
+        OutputLimitError: naming the count and the limit, when ``count`` exceeds the limit.
     """
     limit = _OUTPUT_LIMIT.get()
     if limit is not None and count > limit:
-        raise ValueError(
+        raise OutputLimitError(
             f"the output would hold at least {count:,} events{detail}, more than the limit of "
             f"{limit:,}; {fewer}, and `with evdown_torch.max_output_events(n):` around the "
             "call raises the limit (None: no limit)"
@@ -410,3 +440,61 @@ def check_has_values(tensor: torch.Tensor, what: str = "events") -> None:
             f"{what} are on the 'meta' device, which holds shapes but no values; downscaling "
             "reads the values: move them to a real device first (e.g. .to('cpu'))"
         )
+
+
+def device_memory(device: torch.device | str | None = None) -> int | None:
+    """Bytes of memory of ``device`` (RAM for the CPU, the GPU's for CUDA); ``None``: unknown."""
+    device = torch.device("cpu" if device is None else device)
+    if device.type == "cuda":
+        return int(torch.cuda.get_device_properties(device).total_memory)
+    if device.type == "cpu":
+        try:
+            return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+        except (AttributeError, ValueError, OSError):
+            return None
+    return None
+
+
+def check_state_memory(
+    method: str,
+    sensor_size: tuple[int, int, int],
+    factor: tuple[int, int],
+    *,
+    pixel_bytes: int = 0,
+    region_bytes: int = 0,
+    recordings: int = 1,
+    device: torch.device | str | None = None,
+) -> None:
+    """Refuse a dense per-pixel state larger than :data:`STATE_MEMORY_SHARE` of the memory.
+
+    The methods that keep a value for every pixel or region (EventCount, the estimators' and
+    LIFPooling's sessions, PhotocurrentPooling) call this before they allocate it.
+
+    Args:
+        method: the method's name, for the message.
+        sensor_size: ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        pixel_bytes: bytes of state per input pixel.
+        region_bytes: bytes of state per output region.
+        recordings: recordings whose states are stacked (a batch).
+        device: where the state lives (:func:`device_memory`; unknown memory: no check).
+
+    Raises:
+        ValueError: naming the memory the state needs, the device's, and the largest sensor
+            of this shape that fits.
+    """
+    w, h, _ = sensor_size
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    need = recordings * (pixel_bytes * w * h + region_bytes * out_w * out_h)
+    memory = device_memory(device)
+    if memory is None or need <= memory * STATE_MEMORY_SHARE:
+        return
+    scale = math.sqrt(memory * STATE_MEMORY_SHARE / need)
+    fit_w, fit_h = max(int(w * scale), 1), max(int(h * scale), 1)
+    several = f" for {recordings} recordings" if recordings > 1 else ""
+    raise ValueError(
+        f"{method} keeps state for every pixel or region of its sensor: {w} x {h} pixels at "
+        f"factor {factor} need {need / 1e9:.3g} GB{several}, more than a quarter of the "
+        f"{memory / 1e9:.3g} GB of memory here ({torch.device(device or 'cpu')}); the largest "
+        f"sensor of this shape that fits is about {fit_w} x {fit_h} pixels"
+        + ("; or give fewer recordings per batch" if several else ""))

@@ -26,6 +26,7 @@ from evdown_torch.arguments import (
     CommandError,
     Subparsers,
     add_input_arguments,
+    check_creatable,
     factor_argument,
     read_input,
     refuse_threshold_flag,
@@ -38,6 +39,7 @@ from evdown_torch.io import (
     event_files,
     write_events,
 )
+from evdown_torch.threads import command_threads
 from evdown_torch.time_units import check_timing, time_settings
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
@@ -106,11 +108,8 @@ def _plan(paths: Sequence[str], output_format: str) -> list[tuple[Path, Path]]:
     into_folder = (len(inputs) > 1 or inputs[0].is_dir() or output.is_dir()
                    or paths[-1].endswith(("/", os.sep)))  # "out/" names a folder to create
     folder = output if into_folder else output.parent
-    for above in (folder, *folder.parents):  # the folder to create, and its missing parents
-        if above.exists() and not above.is_dir():
-            raise CommandError(f"cannot create {str(folder)!r}: {str(above)!r} is a file"
-                               + ("; several inputs, a folder input or a trailing '/' need "
-                                  "an output folder" if above == output else ""))
+    check_creatable(folder, hint="; several inputs, a folder input or a trailing '/' need an "
+                    "output folder" if folder == output else "")
     if not into_folder:
         check_writable(output, folder_may_be_missing=True)
         pairs = [(files[0], output)]
@@ -138,7 +137,7 @@ def _downscale(args: argparse.Namespace) -> int:
                            f"takes {list(method_settings(args.method))}")
     pairs = _plan(args.paths, args.output_format)
     several = len(pairs) > 1
-    torch.set_num_threads(args.threads)
+    torch.set_num_threads(command_threads(args.threads))
     # Three steps per file (read, downscale, write), so that one long file shows progress too.
     bar = tqdm(total=3 * len(pairs), unit="step", disable=not sys.stderr.isatty(),
                file=sys.stderr, dynamic_ncols=True, leave=False,

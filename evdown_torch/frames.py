@@ -7,8 +7,9 @@ its downscaled versions are binned over the same window.
 The window ``[t_start, t_end]`` (by default the smallest and largest ``t`` of the stream) is
 cut into ``T`` bins of equal length ``D / T``, ``D = t_end - t_start``: an event at ``t`` goes
 to bin ``floor((t - t_start) * T / D)``, the last bin also holding ``t_end`` itself. The index
-is computed exactly for integer timestamps (int64 arithmetic relative to ``t_start``). Events
-outside the window are left out. A window of zero length puts every event in bin 0.
+is computed exactly for integer timestamps (int64 arithmetic relative to ``t_start``, or, for
+spans whose ``D * T`` leaves int64, against the exact bin edges ``t_start + ceil(k D / T)``).
+Events outside the window are left out. A window of zero length puts every event in bin 0.
 
 With ``mean_time=True`` two more channels say *when* in its bin each pixel fired: the mean
 position of its OFF (channel 2) and ON (channel 3) events within the bin, from -1 at the bin's
@@ -26,10 +27,50 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from evdown_torch.checks import check_positive_int, check_sensor_size
+from evdown_torch.checks import check_finite_number, check_positive_int, check_sensor_size
 from evdown_torch.events import EventsLike, to_events
 
 __all__ = ["ToFrames", "to_frames"]
+
+_INT64 = torch.iinfo(torch.int64)
+
+
+def _window_bound(name: str, value: object) -> int | float | None:
+    """``t_start`` or ``t_end`` checked: ``None``, or a finite number (an int within int64)."""
+    if value is None:
+        return None
+    if isinstance(value, Tensor) and value.numel() == 1:
+        value = value.item()
+    bound = check_finite_number(name, value)
+    if isinstance(bound, int) and not _INT64.min <= bound <= _INT64.max:
+        raise ValueError(f"{name} must lie in int64's range (as the timestamps), got {bound}")
+    return bound
+
+
+def _int_bins(t: Tensor, start: int, span: int, bins: int,
+              mean_time: bool) -> tuple[Tensor, Tensor | None]:
+    """Each integer ``t``'s bin index (and position in it, with ``mean_time``), exactly.
+
+    Only the values of ``t`` inside the window ``[start, start + span]`` are meaningful.
+    """
+    if span * bins <= _INT64.max:  # (t - start) * bins holds in int64 inside the window
+        offset = t - start
+        if span == 0:
+            return torch.zeros_like(offset), (torch.zeros_like(offset, dtype=torch.float64)
+                                              if mean_time else None)
+        scaled = offset * bins
+        index = scaled // span
+        # position within the bin, exactly in [0, 1): (offset * T - index * D) / D
+        within = (scaled - index * span).to(torch.float64) / span if mean_time else None
+        return index, within
+    # A span too long for int64 arithmetic: count the exact bin edges at or below each t.
+    edges = torch.tensor([start + -(-k * span // bins) for k in range(1, bins)],
+                         dtype=torch.int64, device=t.device)
+    index = torch.searchsorted(edges, t, right=True)
+    if not mean_time:
+        return index, None
+    within = ((t.to(torch.float64) - float(start)) * (bins / span) - index).clamp_(0.0, 1.0)
+    return index, within
 
 
 def to_frames(
@@ -59,7 +100,9 @@ def to_frames(
         position in their bin, in ``[-1, 1]``); all zeros for an empty stream.
 
     Raises:
-        ValueError: for ``t_end < t_start``, a bad ``n_time_bins`` or invalid events.
+        ValueError: for ``t_end < t_start``, a bound that is not finite (or an integer outside
+            int64), a bad ``n_time_bins`` or invalid events.
+        TypeError: for a bound that is not a number.
 
     Example:
         >>> import torch
@@ -73,27 +116,23 @@ def to_frames(
     """
     w, h, _ = check_sensor_size(sensor_size)
     bins = check_positive_int("n_time_bins", n_time_bins)
+    t_start, t_end = _window_bound("t_start", t_start), _window_bound("t_end", t_end)
     ev, _ = to_events(events, (w, h, 2))
     size = bins * 2 * h * w
     channels = 4 if mean_time else 2
     if ev.num_events == 0:
         return torch.zeros(bins, channels, h, w, dtype=torch.float32, device=ev.device)
     t = ev.t
-    start = t.min() if t_start is None else torch.as_tensor(t_start, device=t.device)
-    end = t.max() if t_end is None else torch.as_tensor(t_end, device=t.device)
-    if t.dtype == torch.int64 and not (start.is_floating_point() or end.is_floating_point()):
-        start, end = start.to(torch.int64), end.to(torch.int64)
-        span = end - start
-        if int(span) < 0:
-            raise ValueError(f"t_end must not be before t_start, got {int(start)} and {int(end)}")
-        offset = t - start
-        length = int(span)
-        scaled = offset * bins
-        index = scaled // length if length > 0 else torch.zeros_like(offset)
-        if mean_time:  # position within the bin, exactly in [0, 1): (offset * T - index * D) / D
-            within = ((scaled - index * length).to(torch.float64) / length if length > 0
-                      else torch.zeros_like(offset, dtype=torch.float64))
+    if t.dtype == torch.int64 and not (isinstance(t_start, float) or isinstance(t_end, float)):
+        start_int = int(t.min()) if t_start is None else int(t_start)
+        end_int = int(t.max()) if t_end is None else int(t_end)
+        if end_int < start_int:  # Python ints: no span overflows
+            raise ValueError(f"t_end must not be before t_start, got {start_int} and {end_int}")
+        index, within = _int_bins(t, start_int, end_int - start_int, bins, mean_time)
+        inside = (t >= start_int) & (t <= end_int)  # no t - t_start, which may wrap
     else:
+        start = t.min() if t_start is None else torch.as_tensor(t_start, device=t.device)
+        end = t.max() if t_end is None else torch.as_tensor(t_end, device=t.device)
         t = t.to(torch.float64)
         start, end = start.to(torch.float64), end.to(torch.float64)
         span = end - start
@@ -104,16 +143,15 @@ def to_frames(
         offset = t - start
         scaled = offset * bins / span if float(span) > 0 else torch.zeros_like(offset)
         index = torch.floor(scaled).to(torch.int64)
-        if mean_time:
-            within = scaled - index
-    inside = (offset >= 0) & (t <= end)
-    if mean_time:  # t_end itself (index T) belongs to the last bin, at its end
+        within = scaled - index if mean_time else None
+        inside = (offset >= 0) & (t <= end)
+    if within is not None:  # t_end itself (index T) belongs to the last bin, at its end
         within = torch.where(index >= bins, 1.0, within)[inside]
     index = index.clamp(max=bins - 1)[inside]
     flat = ((index * 2 + ev.p[inside].to(torch.int64)) * h + ev.y[inside]) * w + ev.x[inside]
     counts = torch.bincount(flat, minlength=size)
     frames = counts.to(torch.float32).reshape(bins, 2, h, w)
-    if not mean_time:
+    if within is None:  # no mean_time
         return frames
     total = torch.bincount(flat, weights=within * 2 - 1, minlength=size)
     mean = (total / counts.clamp(min=1)).to(torch.float32).reshape(bins, 2, h, w)

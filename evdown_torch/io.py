@@ -47,7 +47,11 @@ Files other than ``.npy``/``.npz`` come back with :data:`~evdown_torch.events.DV
 from __future__ import annotations
 
 import json
+import os
+import threading
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -307,6 +311,10 @@ def write_events(
     ...: DSEC's layout) and the sensor size and time unit as the file attributes
     ``sensor_size`` and ``time_unit``. :func:`read_events` gets both back.
 
+    Everything is written under temporary names in the output's folder first and renamed into
+    place last (the sidecar, then the file), so a write that fails leaves an existing file
+    and its sidecar as they were.
+
     Args:
         path: the output file; its folder must exist. An existing file is replaced.
         events: ``(N,)`` structured array with fields ``x``, ``y``, ``t``, ``p``.
@@ -317,9 +325,11 @@ def write_events(
         The path written (not the sidecar).
 
     Raises:
-        ValueError: for an unknown extension, a missing folder or events without the fields.
+        ValueError: for an unknown extension, a missing folder, events without the fields or
+            a sidecar path that is not a file.
         TypeError: if ``events`` is not a structured array.
         ImportError: for HDF5 without h5py (naming the extra).
+        OSError: when the files cannot be written (nothing is replaced then).
     """
     path = check_writable(path)
     if not isinstance(events, np.ndarray) or events.dtype.names is None:
@@ -335,16 +345,21 @@ def write_events(
     unit = None if time_unit is None else check_unit_name(time_unit)
     extension = path.suffix.lower()
     if extension == ".npy":
-        with open(path, "wb") as file:  # np.save(path) would append ".npy" to other names
-            np.save(file, events, allow_pickle=False)
+        meta_path = sidecar(path)
+        if meta_path.exists() and not meta_path.is_file():
+            raise ValueError(f"cannot write {str(path)!r}: its sidecar {str(meta_path)!r} is a "
+                             "folder")
         meta = {k: v for k, v in (("sensor_size", size), ("time_unit", unit)) if v is not None}
-        if meta:
-            sidecar(path).write_text(json.dumps(meta) + "\n")
-        else:
-            sidecar(path).unlink(missing_ok=True)
+        with _renamed_into_place(*((meta_path,) if meta else ()), path) as temporaries:
+            with open(temporaries[-1], "wb") as file:  # np.save(name) would append ".npy"
+                np.save(file, events, allow_pickle=False)
+            if meta:
+                temporaries[0].write_text(json.dumps(meta) + "\n")
+        if not meta:
+            meta_path.unlink(missing_ok=True)  # it would describe another file
         return path
     h5py = require("h5py", extension, "writing")
-    with h5py.File(path, "w") as file:
+    with _renamed_into_place(path) as (temporary,), h5py.File(temporary, "w") as file:
         group = file.create_group("events")
         for name in events.dtype.names:
             group.create_dataset(name, data=np.ascontiguousarray(events[name]))
@@ -353,3 +368,22 @@ def write_events(
         if unit is not None:
             file.attrs["time_unit"] = unit
     return path
+
+
+@contextmanager
+def _renamed_into_place(*paths: Path) -> Iterator[tuple[Path, ...]]:
+    """Temporary names beside ``paths`` for the block to write, renamed onto them at its end.
+
+    The renames happen in the order given, once the block has succeeded; if the block or a
+    rename fails, the temporaries are removed and the paths not yet renamed onto keep what
+    they held.
+    """
+    tag = f"{os.getpid()}-{threading.get_ident()}"
+    temporaries = tuple(p.with_name(f".{p.name}.{tag}.part") for p in paths)
+    try:
+        yield temporaries
+        for temporary, path in zip(temporaries, paths, strict=True):
+            os.replace(temporary, path)
+    finally:
+        for temporary in temporaries:
+            temporary.unlink(missing_ok=True)

@@ -192,3 +192,49 @@ def test_to_frames_transform_keeps_the_shape_of_an_empty_output_in_a_dataloader(
     with pytest.raises(TypeError, match="mean_time must be a bool"):
         ToFrames((9, 9, 2), 4, mean_time=1)
     assert ToFrames((9, 9, 2), 4, mean_time=True)(busy[:0]).shape == (4, 4, 9, 9)
+
+
+INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
+
+
+@pytest.mark.parametrize("bins", [1, 2, 7, 1000])
+@pytest.mark.parametrize(("lo", "hi"), [(-(2**62), 2**62), (0, 2**62), (INT64_MIN, INT64_MAX),
+                                        (2**40, 2**40 + 2**57)])
+def test_spans_beyond_int64_arithmetic_are_binned_exactly(lo, hi, bins):
+    # Spans of 2**62 and more: (t - t_start) * T (or the span itself) leaves int64.
+    generator = np.random.default_rng(bins)
+    t = np.concatenate([[lo, hi], generator.integers(lo, hi, 60, endpoint=True)])
+    edges = [lo + -(-k * (hi - lo) // bins) for k in range(bins + 1)]  # exact bin edges
+    t = np.concatenate([t, [min(max(e + d, lo), hi) for e in edges for d in (-1, 0, 1)]])
+    ev = np.zeros(len(t), DVS_DTYPE)
+    ev["t"], ev["x"], ev["p"] = np.sort(t), generator.integers(0, 3, len(t)), True
+    expected = reference_frames(ev, (3, 1, 2), bins, lo, hi)
+    np.testing.assert_array_equal(to_frames(ev, (3, 1, 2), bins).numpy(), expected)
+    timed = to_frames(ev, (3, 1, 2), bins, mean_time=True)
+    np.testing.assert_array_equal(timed[:, :2].numpy(), expected)
+    np.testing.assert_allclose(timed[:, 2:].numpy(),
+                               reference_mean_times(ev, (3, 1, 2), bins, lo, hi), atol=1e-6)
+
+
+def test_a_window_far_from_the_events_leaves_them_out_without_overflow():
+    ev = np.zeros(3, DVS_DTYPE)
+    ev["t"] = [INT64_MIN, 0, INT64_MAX]
+    frames = to_frames(ev, (1, 1, 2), 4, t_start=2**62, t_end=INT64_MAX)
+    assert frames.sum() == 1 and frames[3].sum() == 1  # only t = INT64_MAX, in the last bin
+    frames = to_frames(ev, (1, 1, 2), 4, t_start=INT64_MIN + 5, t_end=-(2**62))
+    assert frames.sum() == 0  # INT64_MIN lies before the window (t - t_start wraps in int64)
+
+
+@pytest.mark.parametrize(("name", "value", "error", "message"), [
+    ("t_start", float("nan"), ValueError, "t_start must be a finite number, got nan"),
+    ("t_end", float("inf"), ValueError, "t_end must be a finite number, got inf"),
+    ("t_start", -float("inf"), ValueError, "t_start must be a finite number, got -inf"),
+    ("t_start", "3", TypeError, "t_start must be a finite number, got '3'"),
+    ("t_end", True, TypeError, "t_end must be a finite number, got True"),
+    ("t_start", 2**70, ValueError, r"t_start must lie in int64's range"),
+])
+def test_window_bounds_must_be_finite_numbers(name, value, error, message):
+    ev = torch.tensor([[0, 0, 5, 1], [0, 0, 9, 0]])
+    with pytest.raises(error, match=message):
+        to_frames(ev, (1, 1, 2), 2, **{name: value})
+    assert to_frames(ev, (1, 1, 2), 2, t_start=np.int64(5), t_end=torch.tensor(9)).sum() == 2

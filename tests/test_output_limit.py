@@ -9,8 +9,18 @@ import numpy as np
 import pytest
 
 import evdown_torch
-from evdown_torch import EventCount, LIFPooling, max_output_events, output_limit
+from evdown_torch import (
+    Chain,
+    Downsample,
+    EventCount,
+    EventFunnelling,
+    LIFPooling,
+    TemporalFunnelling,
+    max_output_events,
+    output_limit,
+)
 from evdown_torch.checks import DEFAULT_MAX_OUTPUT_EVENTS
+from evdown_torch.transforms.thinning import ThinnedDownsample
 from tests.helpers import DVS_DTYPE, random_stream
 
 # Factor 1 at threshold 1: EventCount copies its input, so the output count is the input's.
@@ -126,3 +136,57 @@ def test_the_old_setter_warns_and_sets_this_threads_limit_only():
     thread.join(timeout=60)
     assert seen == [42]
     assert output_limit() == DEFAULT_MAX_OUTPUT_EVENTS
+
+
+def test_the_old_setters_return_value_restores_no_limit_too():
+    with max_output_events(None), pytest.warns(DeprecationWarning):
+        previous = evdown_torch.set_max_output_events(5)
+        assert previous is None and output_limit() == 5
+        assert evdown_torch.set_max_output_events(previous) == 5
+        assert output_limit() is None  # "no limit" back, not the default
+
+
+# Methods whose output is at most their input: with 40 distinct events (no repeats, one per
+# time bin) each keeps every one, so a limit of 39 must refuse every way of calling them.
+KEEP_ALL = {
+    "downsample": Downsample((8, 8, 2), 2),
+    "funnelling": EventFunnelling((8, 8, 2), 2),
+    "temporal": TemporalFunnelling(dt=1, sensor_size=(8, 8, 2)),
+    "thinned": ThinnedDownsample((8, 8, 2), 2, keep=0.999999, seed=3),
+    "chain": Chain(TemporalFunnelling(dt=1), Downsample((8, 8, 2), 2)),
+}
+
+
+def _distinct(n: int, seed: int, shuffled: bool = False) -> np.ndarray:
+    events = np.zeros(n, DVS_DTYPE)
+    generator = np.random.default_rng(seed)
+    events["x"], events["y"] = generator.integers(0, 8, n), generator.integers(0, 8, n)
+    events["p"], events["t"] = generator.random(n) < 0.5, np.arange(n) * 10
+    return generator.permutation(events) if shuffled else events
+
+
+@pytest.mark.parametrize("name", sorted(KEEP_ALL))
+def test_methods_that_keep_their_input_obey_the_limit_too(name):
+    transform = KEEP_ALL[name]
+    one, other = _distinct(40, 1), _distinct(40, 2, shuffled=True)
+    assert len(transform(one)) == 40  # what the limits below are measured against
+    with max_output_events(40):
+        assert len(transform(one)) == 40
+    with max_output_events(39):
+        for call in (lambda: transform(one), lambda: transform(other)):
+            with pytest.raises(ValueError, match="at least 40 events, more than the limit of 39"):
+                call()
+    with max_output_events(79):  # a batch counts as a whole, in order or not
+        for batch in ([one, one], [one, other]):
+            with pytest.raises(ValueError, match="at least 80 events"):
+                transform.batch(batch)
+    if name == "thinned":
+        return  # no session: its draws are seeded by the whole recording
+    session = transform.session()
+    later = _distinct(40, 3)
+    later["t"] += 1000  # after the first chunk
+    with max_output_events(39):
+        assert len(session(one[:39])) == 39
+        with pytest.raises(ValueError, match="at least 40 events"):
+            session(later)
+        assert len(session(later[:39])) == 39  # the refused chunk changed nothing

@@ -22,6 +22,7 @@ from evdown_torch.data import shards
 from evdown_torch.data.preprocessing import RecordingError, preprocess
 from evdown_torch.data.sources import open_source
 from evdown_torch.distributed import process_group
+from evdown_torch.threads import command_threads
 from evdown_torch.transforms.registry import METHODS
 
 __all__ = ["add_command", "run"]
@@ -68,7 +69,7 @@ def add_command(subparsers: Subparsers) -> None:
     parser.add_argument("--workers", type=int, metavar="N",
                         help="processes working, this one included (default: one per "
                         "core; 1 per rank under torchrun)")
-    add_threads_option(parser, "torch threads of each working process (default 1: never much "
+    add_threads_option(parser, "torch threads of each working process (one is never much "
                        "slower per process, and the cores go to the workers)")
     parser.add_argument("--on-error", choices=("skip", "stop"), default="skip",
                         help="a recording that cannot be read: report and skip it (default), "
@@ -92,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             result = preprocess(source, args.out, args.method, args.factor, settings,
                                 shard_size=args.shard_size, workers=args.workers,
-                                on_error=args.on_error, threads=args.threads,
+                                on_error=args.on_error,
+                                threads=command_threads(args.threads),
                                 progress=False if args.no_progress else None)
         except (RecordingError, OSError) as error:
             raise ValueError(f"{error} (complete shards are kept; a rerun resumes)") from None

@@ -15,7 +15,6 @@ import hashlib
 import json
 import math
 import multiprocessing
-import os
 import sys
 import threading
 import time
@@ -35,7 +34,7 @@ from evdown_torch.checks import check_choice, check_factor, check_positive_int
 from evdown_torch.data import shards
 from evdown_torch.data.sources import check_label
 from evdown_torch.distributed import all_gather, rank_and_world
-from evdown_torch.threads import torch_threads
+from evdown_torch.threads import available_cores, check_threads, torch_threads
 from evdown_torch.transforms import Downscaler
 from evdown_torch.transforms.registry import make_method, method_settings
 
@@ -83,12 +82,6 @@ class PreprocessResult:
     read_seconds: float
     transform_seconds: float
     write_seconds: float
-
-
-def _default_workers() -> int:
-    if hasattr(os, "sched_getaffinity"):
-        return max(len(os.sched_getaffinity(0)), 1)
-    return max(os.cpu_count() or 1, 1)
 
 
 # Worker side ---------------------------------------------------------------------------------
@@ -365,7 +358,7 @@ def preprocess(
     shard_size = check_positive_int("shard_size", shard_size)
     if workers is not None:
         workers = check_positive_int("workers", workers)
-    threads = check_positive_int("threads", threads)
+    threads = check_threads(threads)
     fxy = check_factor(factor, source.sensor_size)
     transform = make_method(method, source.sensor_size, factor, **(settings or {}))
     rank, world = rank_and_world()
@@ -386,7 +379,7 @@ def preprocess(
     if todo:
         (out / shards.MANIFEST).unlink(missing_ok=True)
     if workers is None:
-        workers = 1 if world > 1 else _default_workers()
+        workers = 1 if world > 1 else available_cores()
     workers = min(workers, max(len(todo), 1))
     state = {"source": source, "transform": transform, "shard_size": shard_size, "out": out,
              "job_id": job_id, "on_error": on_error, "threads": threads}

@@ -11,9 +11,11 @@ report (docs/evaluation.md, "On a cluster").
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from pathlib import Path
 
-from evdown_torch.arguments import CommandError, Subparsers
+from evdown_torch.arguments import CommandError, Subparsers, check_creatable
 
 __all__ = ["add_command"]
 
@@ -27,13 +29,23 @@ def _evaluate(args: argparse.Namespace) -> int:
     with process_group():  # one rank of a torchrun launch joins the others
         try:
             config = load_config(args.config)
+        except (OSError, RuntimeError) as error:
+            raise CommandError(str(error)) from None
+        output = Path(args.output or config.output.directory)
+        # Every folder the study writes, checked before any work (the study takes minutes).
+        check_creatable(output, "output folder")
+        if not args.no_cache:
+            check_creatable(Path(config.output.cache), "cache folder")
+        output.mkdir(parents=True, exist_ok=True)
+        if not os.access(output, os.W_OK | os.X_OK):
+            raise CommandError(f"cannot write into the output folder {str(output)!r}")
+        try:
             result = run_evaluation(config, cache=not args.no_cache)
         except (OSError, RuntimeError) as error:
             raise CommandError(str(error)) from None
         if rank_and_world()[0] != 0:
             return 0
-    write_report(result, args.output or config.output.directory,
-                 log=lambda line: print(line, file=sys.stderr))
+    write_report(result, output, log=lambda line: print(line, file=sys.stderr))
     print(primary_table(result) + "\n" + markdown_table(result), end="")
     return 0
 

@@ -94,6 +94,7 @@ from evdown_torch.checks import (
     check_positive_int,
 )
 from evdown_torch.evaluation.toml_fields import section, toml_loads
+from evdown_torch.threads import check_threads
 from evdown_torch.transforms.registry import METHODS, make_method
 
 __all__ = [
@@ -291,7 +292,8 @@ class TrainingConfig:
         check_positive_int("training.selection_seeds", self.selection_seeds)
         for rate in self.learning_rates:
             check_positive_float("training.learning_rates", rate)
-        check_non_negative_int("training.num_threads", self.num_threads)
+        if check_non_negative_int("training.num_threads", self.num_threads):
+            check_threads(self.num_threads, "training.num_threads")
         check_non_negative_int("training.workers", self.workers)
         check_non_negative_int("training.full_resolution_seeds", self.full_resolution_seeds)
         if not self.device:

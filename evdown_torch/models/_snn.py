@@ -10,6 +10,29 @@ import torch
 from torch import Tensor
 
 
+class Surrogate:
+    """A snntorch surrogate gradient as an object that pickles.
+
+    snntorch's ``surrogate.atan()`` and ``surrogate.fast_sigmoid(slope)`` return local
+    closures, which ``pickle`` (and so ``torch.save(model)`` of a whole model) cannot store.
+    This computes the same, ``function.apply(x, parameter)``, from snntorch's module-level
+    autograd function and its parameter.
+
+    Args:
+        function: snntorch's autograd function, e.g. ``snntorch.surrogate.ATan``.
+        parameter: its parameter (ATan's ``alpha``, FastSigmoid's ``slope``).
+    """
+
+    def __init__(self, function: type[torch.autograd.Function], parameter: float) -> None:
+        self.function, self.parameter = function, parameter
+
+    def __call__(self, x: Tensor) -> Tensor:
+        return self.function.apply(x, self.parameter)
+
+    def __repr__(self) -> str:
+        return f"Surrogate({self.function.__name__}, {self.parameter!r})"
+
+
 def unregistered(neuron: snntorch.SpikingNeuron) -> snntorch.SpikingNeuron:
     """Take a neuron out of snntorch's class-level registry and return it.
 

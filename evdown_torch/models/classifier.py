@@ -12,7 +12,7 @@ from torch import Tensor, nn
 from torch.nn import functional
 
 from evdown_torch.checks import check_positive_float, check_positive_int
-from evdown_torch.models._snn import leaky_through_time, unregistered
+from evdown_torch.models._snn import Surrogate, leaky_through_time, unregistered
 
 __all__ = ["ClassifierState", "SpikingClassifier", "class_scores", "stem_stride_for"]
 
@@ -47,7 +47,7 @@ def _run_neuron(
 
 def _leaky(beta: float, threshold: float) -> snntorch.Leaky:
     neuron = snntorch.Leaky(
-        beta=beta, threshold=threshold, spike_grad=surrogate.fast_sigmoid(slope=_SLOPE)
+        beta=beta, threshold=threshold, spike_grad=Surrogate(surrogate.FastSigmoid, _SLOPE)
     )
     return unregistered(neuron)
 

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from evdown_torch.checks import check_factor, output_size
-from evdown_torch.models._snn import register_for_snntorch_reset, unregistered
+from evdown_torch.models._snn import Surrogate, register_for_snntorch_reset, unregistered
 from evdown_torch.transforms.functional.lif.settings import (
     DEFAULT_THRESHOLD,
     DEFAULT_WEIGHT,
@@ -83,7 +83,9 @@ class SpikingPooling(nn.Module):
             subtracted (0: no inhibition).
         reset_mechanism: ``"subtract"``, ``"zero"`` or ``"none"`` (snntorch's meanings).
         learnable: make ``weight`` and ``mutual_inhibition`` trainable parameters.
-        spike_grad: snntorch surrogate gradient (``None``: snntorch's default ATan).
+        spike_grad: snntorch surrogate gradient (``None``: snntorch's default, ATan with
+            ``alpha = 2``, as an object that pickles, so ``torch.save`` of a whole model
+            works; snntorch's own ``surrogate.atan()`` is a closure that does not).
         batch_first: input and output spikes are ``(B, T, ...)`` (as Tonic's ``PadTensors``
             gives them by default) instead of ``(T, B, ...)``, like PyTorch's RNNs.
 
@@ -148,7 +150,8 @@ class SpikingPooling(nn.Module):
                 beta=torch.tensor(settings.beta, dtype=torch.float32),
                 threshold=torch.tensor(settings.threshold, dtype=torch.float32),
                 reset_mechanism=settings.reset_mechanism,
-                spike_grad=spike_grad,
+                spike_grad=Surrogate(snntorch.surrogate.ATan, 2.0) if spike_grad is None
+                else spike_grad,
             )
         )
 
@@ -230,6 +233,7 @@ class SpikingPooling(nn.Module):
             ``(..., 2, ceil(H / fy), ceil(W / fx))`` currents, in ``x``'s floating dtype
             (the module's, float32 by default, for integer or bool input).
         """
+        _check_tensor(x, "spikes")
         if x.ndim < 3 or x.shape[-3] != 2:
             raise ValueError(
                 "spikes must have shape (..., 2, H, W) with channels (OFF, ON), "
@@ -271,6 +275,7 @@ class SpikingPooling(nn.Module):
             ``(spikes, state)``: output spikes ``(T, B, 2, Ho, Wo)`` (``(B, T, ...)`` with
             ``batch_first=True``) and the membrane after the last step.
         """
+        _check_tensor(x, "spikes")
         if x.ndim != 5 or x.shape[2] != 2:
             order = "(B, T, 2, H, W), batch first" if self.batch_first else (
                 "(T, B, 2, H, W), time first (batch_first=False)"
@@ -287,6 +292,8 @@ class SpikingPooling(nn.Module):
     def _run(self, x: Tensor, state: Tensor | None) -> tuple[Tensor, Tensor]:
         """:meth:`forward` on a time-first ``(T, B, 2, H, W)`` tensor."""
         current = self.current(x)
+        if state is not None:
+            _check_tensor(state, "state", "or None")
         if state is None:
             dtype = torch.promote_types(current.dtype, self.neuron.beta.dtype)
             state = torch.zeros(current.shape[1:], dtype=dtype, device=current.device)
@@ -316,10 +323,16 @@ class SpikingPooling(nn.Module):
         )
 
 
+def _check_tensor(value: object, what: str, alternative: str = "") -> None:
+    """Refuse a ``value`` that is not a tensor, naming ``what`` and the type it got."""
+    if not isinstance(value, Tensor):
+        wanted = f"a tensor {alternative}".rstrip()
+        raise TypeError(f"{what} must be {wanted}, got {type(value).__name__}")
+
+
 def _check_step(x: Tensor) -> None:
     """Refuse one step of spikes that is not a ``(B, 2, H, W)`` tensor, naming its shape."""
-    if not isinstance(x, Tensor):
-        raise TypeError(f"one step of spikes must be a tensor, got {type(x).__name__}")
+    _check_tensor(x, "one step of spikes")
     if x.ndim != 4:
         raise ValueError(
             f"one step of spikes must have shape (B, 2, H, W), got {tuple(x.shape)}"

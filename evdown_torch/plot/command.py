@@ -28,6 +28,7 @@ from evdown_torch.checks import check_factor, output_size
 from evdown_torch.events import Events
 from evdown_torch.plot._mpl import MissingMatplotlib
 from evdown_torch.plot.recording import SYNTHETIC_DURATION_MS, load_recording, method_name
+from evdown_torch.threads import command_threads
 from evdown_torch.time_units import check_timing, time_settings
 from evdown_torch.transforms import Downscaler, ThresholdDownscaler
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
@@ -191,7 +192,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.curve and suffix in ("", ".gif"):
         raise ValueError(f"--out for --curve must be an image such as .png, .svg or .pdf, "
                          f"got {str(out)!r}")
-    torch.set_num_threads(args.threads)
+    torch.set_num_threads(command_threads(args.threads))
     sensor = tuple(args.sensor_size) if args.sensor_size else None
     recording = load_recording(args.input, sensor_size=sensor, duration_ms=args.duration,
                             time_unit=args.time_unit, columns=args.columns)

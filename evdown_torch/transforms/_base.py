@@ -9,7 +9,7 @@ from typing import Any, ClassVar, overload
 
 import torch
 
-from evdown_torch.checks import check_factor, check_sensor_size
+from evdown_torch.checks import check_factor, check_output_count, check_sensor_size
 from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.events import (
     EventFormat,
@@ -19,6 +19,7 @@ from evdown_torch.events import (
     sort_by_time,
     to_events,
 )
+from evdown_torch.threads import OneCallAtATime
 from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
 
@@ -168,8 +169,12 @@ class Streaming:
     def _batch_events(self, batch: EventBatch) -> EventBatch:
         """:meth:`batch` on validated events."""
         out = self.batch_kernel(batch)
-        if out is None:  # no batched kernel: one recording at a time
-            parts = [self.kernel(part) for part in batch.unbind()]
+        if out is None:  # no batched kernel: one recording at a time, the limit on them all
+            parts, emitted = [], 0
+            for part in batch.unbind():
+                parts.append(self.kernel(part))
+                emitted += parts[-1].num_events
+                check_output_count(emitted, detail=" in the batch")
             events = Events.cat(parts)
             out = EventBatch(events, tuple(part.num_events for part in parts))
         return out
@@ -199,9 +204,13 @@ class Session:
 
     Chunks must follow each other in time: a chunk may not hold a timestamp earlier than the
     previous chunks' last one (equal timestamps are fine and keep chunk order). A chunk that
-    breaks this, or any other bad chunk, raises a ``ValueError`` and leaves the session as it
-    was, so it stays usable. The method's own state is held explicitly in :attr:`state`
-    (``None`` before the first event); the transform itself is never modified.
+    breaks this, or any other bad chunk (an empty one too), raises a ``ValueError`` and leaves
+    the session as it was, so it stays usable. The method's own state is held explicitly in
+    :attr:`state` (``None`` before the first event); the transform itself is never modified.
+
+    A call, ``flush()`` or ``reset()`` made while another one runs (another thread) raises a
+    ``RuntimeError`` and changes nothing: give each thread its own session (a copy,
+    ``copy.deepcopy``, continues the stream on its own).
 
     Attributes:
         transform: the settings.
@@ -221,10 +230,16 @@ class Session:
 
     def __init__(self, transform: Streaming) -> None:
         self.transform = transform
-        self.reset()
+        self._busy = OneCallAtATime("session",
+                                    "give each thread its own session (transform.session())")
+        self._forget()
 
     def reset(self) -> None:
         """Forget the stream: the next chunk starts a new one."""
+        with self._busy:
+            self._forget()
+
+    def _forget(self) -> None:
         self.state: Any | None = None
         self.last_t: int | float | None = None
         self._fmt: EventFormat | None = None
@@ -235,14 +250,17 @@ class Session:
         """Process the next chunk; returns the events it decides, in the chunk's kind.
 
         Raises:
-            ValueError: for a chunk that starts before the previous chunk's last event, on
-                another device or with another timestamp dtype than the stream's, or that
-                fails the transform's input checks; the session is unchanged.
+            ValueError: for a chunk (even an empty one) that starts before the previous
+                chunk's last event, on another device or with another timestamp dtype than
+                the stream's, or that fails the transform's input checks; the session is
+                unchanged.
+            RuntimeError: while another call of this session is running (another thread).
         """
+        with self._busy:
+            return self._next(chunk)
+
+    def _next(self, chunk: EventsLike) -> EventsLike:
         events, fmt = to_events(chunk, self.transform.sensor_size)
-        if events.num_events == 0:
-            self._fmt = fmt
-            return from_events(Events.empty(events.t.dtype, events.device), fmt)
         if self._device is not None:
             if events.device != self._device:
                 raise ValueError(
@@ -252,6 +270,9 @@ class Session:
                 raise ValueError(
                     f"chunk timestamps are {events.t.dtype} but the stream's are {self._t_dtype}"
                 )
+        if events.num_events == 0:
+            self._fmt = fmt
+            return from_events(Events.empty(events.t.dtype, events.device), fmt)
         events = sort_by_time(events)
         first = events.t[0].item()
         if self.last_t is not None and first < self.last_t:
@@ -271,16 +292,23 @@ class Session:
         Returns:
             The remaining events in the kind of the last chunk (empty Events when no chunk
             was fed).
+
+        Raises:
+            RuntimeError: while another call of this session is running (another thread).
         """
+        with self._busy:
+            return self._end()
+
+    def _end(self) -> EventsLike:
         if self._fmt is None:
-            self.reset()
+            self._forget()
             return Events.empty()
         out = self.transform.stream_end(self.state)
         if out is None:
             t_dtype = self._t_dtype if self._t_dtype is not None else torch.int64
             out = Events.empty(t_dtype, self._device)
         fmt = self._fmt
-        self.reset()
+        self._forget()
         return from_events(out, fmt)
 
 
@@ -303,6 +331,8 @@ class Downscaler(Streaming, abstract=True):
     #: The one setting that sets the output's event budget (see ``transforms.calibrate``);
     #: ``None`` for methods whose output count is fixed by the input.
     budget_setting: ClassVar[str | None] = None
+    #: Fields that stay ``None`` when left out, whatever default the settings fill in.
+    none_stays_none: ClassVar[tuple[str, ...]] = ()
 
     sensor_size: tuple[int, int, int]
     factor: int | tuple[int, int] = 2
@@ -310,7 +340,10 @@ class Downscaler(Streaming, abstract=True):
     def __post_init__(self) -> None:
         settings = self.settings  # checks every setting, once
         for field in fields(self):  # the normalised values back (the factor stays as given)
-            if field.name != "factor" and hasattr(settings, field.name):
+            if field.name == "factor" or (field.name in self.none_stays_none
+                                           and getattr(self, field.name) is None):
+                continue
+            if hasattr(settings, field.name):
                 object.__setattr__(self, field.name, getattr(settings, field.name))
 
     def region_geometry(self) -> tuple[tuple[int, int, int], tuple[int, int]]:

@@ -26,12 +26,14 @@ from typing import Any, Generic, Literal, TypeVar, cast
 
 from evdown_torch.checks import (
     DEFAULT_TIME_UNIT,
+    OutputLimitError,
     check_choice,
     check_positive_float,
     check_positive_int,
     check_time_unit,
 )
-from evdown_torch.events import Events, EventsLike, to_events
+from evdown_torch.collate import to_batch
+from evdown_torch.events import Events, EventsLike
 from evdown_torch.transforms._base import Downscaler
 
 __all__ = ["BudgetTarget", "Calibration", "calibrate", "calibration"]
@@ -50,7 +52,8 @@ class BudgetTarget:
         value: the target, positive.
         time_unit: seconds per timestamp unit, for ``"rate"`` only (``None``, the default,
             is 1e-6: microseconds; see :func:`~evdown_torch.checks.check_time_unit`). The
-            other kinds have no time in them and refuse one.
+            other kinds have no time in them and refuse one. Stored as given (``None`` stays
+            ``None``, so a copy of another kind stays valid).
 
     Example:
         >>> BudgetTarget.ratio(0.1).events(input_events=5000, duration=2e6)
@@ -73,8 +76,8 @@ class BudgetTarget:
                     f"second); a {self.kind} target has no time in it"
                 )
             return
-        time_unit = DEFAULT_TIME_UNIT if self.time_unit is None else self.time_unit
-        object.__setattr__(self, "time_unit", check_time_unit(time_unit))
+        if self.time_unit is not None:
+            object.__setattr__(self, "time_unit", check_time_unit(self.time_unit))
 
     @classmethod
     def ratio(cls, value: float) -> BudgetTarget:
@@ -104,7 +107,7 @@ class BudgetTarget:
             return self.value
         if duration <= 0:
             raise ValueError("a rate target needs recordings that span a positive duration")
-        time_unit = cast(float, self.time_unit)  # set for a rate target
+        time_unit = DEFAULT_TIME_UNIT if self.time_unit is None else self.time_unit
         return self.value * duration * time_unit
 
 
@@ -151,8 +154,11 @@ def calibrate(
         The calibrated transform (the input transform is not modified).
 
     Raises:
-        ValueError: for a transform without a budget setting, no events, or an output that
-            does not depend on the setting.
+        ValueError: for a transform without a budget setting, no events, recordings with
+            both integer and float timestamps (or on several devices; refused before any
+            run), or an output that does not depend on the setting. A setting whose output
+            exceeds the output limit counts as more than any target; any other error of the
+            transform is raised as it is.
 
     Example:
         >>> import torch
@@ -196,7 +202,10 @@ def calibration(
             "events per second")
     rtol = check_positive_float("rtol", rtol)
     max_evaluations = check_positive_int("max_evaluations", max_evaluations)
-    streams = [to_events(r, transform.sensor_size)[0] for r in recordings]
+    try:  # one device, one clock: integer and float timestamps do not mix
+        streams = list(to_batch(recordings, transform.sensor_size)[0].unbind())
+    except ValueError as error:
+        raise ValueError(f"calibration recordings: {error}") from None
     inputs = sum(s.num_events for s in streams)
     if inputs == 0:
         raise ValueError("calibrate needs recordings with at least one event")
@@ -237,7 +246,7 @@ class _Search(Generic[D]):
                 # one pass over every recording (Events in, Events out)
                 outputs = cast(list[Events], down.batch(self.streams))
                 self.counts[value] = float(sum(out.num_events for out in outputs))
-            except ValueError:  # an output too large to produce: more than any target
+            except OutputLimitError:  # an output too large to produce: more than any target
                 self.counts[value] = math.inf
         return self.counts[value]
 

@@ -53,7 +53,8 @@ class PhotocurrentPooling(Downscaler):
             second) become per timestamp unit: ``None`` (the default) is 1e-6, microseconds
             as Tonic's datasets; 1.0 for float seconds (as some tools store N-Caltech101).
             Only the frames mode has rates: the events mode refuses a ``time_unit``. See
-            :func:`~evdown_torch.checks.check_time_unit`.
+            :func:`~evdown_torch.checks.check_time_unit`. Stored as given (a name becomes
+            seconds; ``None`` stays ``None``); :attr:`settings` holds the one in use.
 
     Example:
         >>> import torch
@@ -71,6 +72,8 @@ class PhotocurrentPooling(Downscaler):
     #: The setting :func:`calibrate` searches to meet an event budget.
     budget_setting = "threshold"
     name = "photocurrent"
+    #: A ``time_unit`` left out stays out (``None``): a copy without ``fps`` stays valid.
+    none_stays_none = ("time_unit",)
     #: The events mode's kernels; :attr:`kernels` binds the frames mode's when ``fps`` is set.
     method = PHOTOCURRENT_EVENTS
 

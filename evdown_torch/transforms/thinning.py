@@ -17,6 +17,9 @@ from evdown_torch.transforms.functional.thinning import (
 
 __all__ = ["ThinnedDownsample", "recording_seed"]
 
+#: How the thinning control's output gets under the output limit.
+THINNED_FEWER = "a smaller keep gives fewer events"
+
 
 @dataclass(frozen=True)
 class ThinnedDownsample(Downscaler):

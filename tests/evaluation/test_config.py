@@ -120,6 +120,8 @@ def test_study_settings():
         ({"measures": {"consistency_bin_us": 0}}, ValueError, "consistency_bin_us must be a "),
         ({"model": {"grid": -1}}, ValueError, "model.grid must be a non-negative"),
         ({"training": {"workers": -2}}, ValueError, "training.workers must be a non-negative"),
+        ({"training": {"num_threads": 10**20}}, ValueError,
+         "training.num_threads must be at most 1024"),
         ({"output": {"cache": 3}}, TypeError, "output.cache must be a string"),
     ],
 )

@@ -185,3 +185,16 @@ def test_all_steps_at_once_equal_one_step_at_a_time():
     torch.testing.assert_close(torch.cat(stepped_membrane), membrane, rtol=1e-6, atol=1e-6)
     for a, b in zip(state.conv, stepped_state.conv):
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6)
+
+
+def test_the_classifier_saves_and_loads_whole():
+    import io
+
+    torch.manual_seed(0)
+    net = SpikingClassifier(num_classes=3, channels=(4,), pool_size=2)
+    x = torch.rand(5, 2, 2, 8, 8)
+    buffer = io.BytesIO()
+    torch.save(net, buffer)  # snntorch's fast_sigmoid(slope) was a closure pickle refused
+    buffer.seek(0)
+    loaded = torch.load(buffer, weights_only=False)
+    assert torch.equal(loaded(x)[0], net(x)[0])

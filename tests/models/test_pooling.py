@@ -7,6 +7,7 @@ import gc
 import math
 import re
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -427,3 +428,50 @@ def test_state_dict_records_the_reset_mechanism():
     layer = SpikingPoolingLayer(2, reset_mechanism="none")
     with pytest.raises(ValueError, match="reset_mechanism='none'"):
         SpikingPoolingLayer(2).load_state_dict(layer.state_dict())
+
+
+def test_models_holding_the_layer_save_and_load_whole(rng):
+    import io
+
+    import snntorch as snn
+    import snntorch.utils
+
+    from evdown_torch.models._snn import Surrogate
+
+    torch.manual_seed(0)
+    net = nn.Sequential(SpikingPoolingLayer(2, tau=5.0, weight=0.6), nn.Flatten(),
+                        nn.Linear(2 * 3 * 3, 4),  # snntorch's own Leaky pickles with a
+                        snn.Leaky(beta=0.8, init_hidden=True,  # surrogate that pickles
+                                  spike_grad=Surrogate(snn.surrogate.ATan, 2.0)))
+    x = torch.from_numpy(rng.integers(0, 2, size=(6, 3, 2, 6, 6))).float()
+    buffer = io.BytesIO()
+    torch.save(net, buffer)  # the whole model, as pickle does (snntorch's atan was a closure)
+
+    def run(model) -> tuple[torch.Tensor, torch.Tensor]:
+        """Output spikes and the input's gradient (the default surrogate, ATan, alpha 2)."""
+        inp = x.clone().requires_grad_(True)
+        out = torch.stack([model(inp[k]) for k in range(6)])
+        out.sum().backward()
+        return out.detach(), inp.grad
+
+    expected = run(net)
+    buffer.seek(0)
+    loaded = torch.load(buffer, weights_only=False)
+    got = run(loaded)
+    assert expected[1].abs().sum() > 0
+    assert torch.equal(got[0], expected[0]) and torch.equal(got[1], expected[1])
+    assert loaded[0].mem is not None
+    snntorch.utils.reset(loaded)  # the loaded layer answers snntorch's reset too
+    assert loaded[0].mem is None
+
+
+def test_spikes_of_another_type_are_a_type_error_naming_it():
+    pool = SpikingPooling(2, tau=5.0)
+    with pytest.raises(TypeError, match="spikes must be a tensor, got ndarray"):
+        pool(np.zeros((3, 1, 2, 4, 4)))
+    with pytest.raises(TypeError, match="spikes must be a tensor, got list"):
+        pool.current([[0.0]])
+    with pytest.raises(TypeError, match="state must be a tensor or None, got ndarray"):
+        pool(torch.zeros(3, 1, 2, 4, 4), np.zeros((1, 2, 2, 2)))
+    with pytest.raises(TypeError, match="state must be a tensor or None, got list"):
+        pool.step(torch.zeros(1, 2, 4, 4), [0.0])

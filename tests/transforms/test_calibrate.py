@@ -155,3 +155,36 @@ def test_thinning_draws_equal_one_control_per_seed():
     everything = dataclasses.replace(control, keep=1.0)
     for out in everything.draws(events, [0, 1]):
         assert _same(out, everything.kernel(events)) and out.num_events == n
+
+
+def test_integer_and_float_recordings_together_are_refused_up_front(monkeypatch):
+    from tests.helpers import FLOAT_DTYPE, random_stream
+
+    ints = random_stream(np.random.default_rng(0), 300, (8, 8, 2), t_max=10_000)
+    floats = random_stream(np.random.default_rng(1), 300, (8, 8, 2), t_max=10_000
+                           ).astype(FLOAT_DTYPE)
+    runs: list[int] = []
+    real = EventCount.batch
+    monkeypatch.setattr(EventCount, "batch", lambda self, r: runs.append(1) or real(self, r))
+    with pytest.raises(ValueError, match="calibration recordings: .*all have integer or all "
+                                         "float timestamps; got both"):
+        calibrate(EventCount((8, 8, 2), 2), [ints, floats], BudgetTarget.ratio(0.1))
+    assert runs == []  # nothing was run
+    for same in ([ints, ints], [floats, floats]):  # one clock: calibrated as before
+        calibrate(EventCount((8, 8, 2), 2), same, BudgetTarget.ratio(0.1))
+
+
+def test_only_the_output_limit_counts_as_too_many_events(monkeypatch):
+    import importlib
+
+    kernel = importlib.import_module("evdown_torch.transforms.functional.event_count")
+    from tests.helpers import random_stream
+
+    ev = random_stream(np.random.default_rng(2), 300, (8, 8, 2), t_max=10_000)
+
+    def broken(*args, **kwargs):
+        raise ValueError("a kernel's own complaint")
+
+    monkeypatch.setattr(kernel, "event_count_batch", broken)
+    with pytest.raises(ValueError, match="a kernel's own complaint"):  # not "always inf"
+        calibrate(EventCount((8, 8, 2), 2), [ev], BudgetTarget.ratio(0.1))

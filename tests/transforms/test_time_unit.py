@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -53,8 +54,29 @@ def test_float_seconds_give_the_microsecond_result_scaled(rng):
 def test_time_unit_is_normalised_and_kept_with_the_frames_mode():
     pool = PhotocurrentPooling(SENSOR, fps=30, time_unit=1)
     assert pool.time_unit == 1.0 and type(pool.time_unit) is float
-    assert PhotocurrentPooling(SENSOR, fps=30).time_unit == 1e-6
+    assert PhotocurrentPooling(SENSOR, fps=30, time_unit="ms").time_unit == 1e-3
+    default = PhotocurrentPooling(SENSOR, fps=30)
+    assert default.time_unit is None and default.settings.time_unit == 1e-6  # as given
     assert PhotocurrentPooling(SENSOR).time_unit is None
+
+
+def test_a_time_unit_left_out_stays_out_of_copies():
+    # The field keeps what was given (None), not the default filled in for the kernels, so a
+    # copy without the rate that needs it is valid, and a copy with another rate still
+    # converts it at the default.
+    frames = PhotocurrentPooling(SENSOR, 2, fps=1000.0)
+    events_mode = dataclasses.replace(frames, fps=None)
+    assert events_mode.time_unit is None and events_mode.fps is None
+    assert dataclasses.replace(events_mode, fps=50.0).settings.time_unit == 1e-6
+    given = PhotocurrentPooling(SENSOR, 2, fps=1000.0, time_unit=1e-6)  # given: kept, refused
+    with pytest.raises(ValueError, match="time_unit=1e-06 converts the frames mode's fps"):
+        dataclasses.replace(given, fps=None)
+    rate = BudgetTarget.rate(100.0)
+    assert rate.time_unit is None
+    assert dataclasses.replace(rate, kind="ratio", value=0.1) == BudgetTarget.ratio(0.1)
+    assert rate.events(input_events=10, duration=2e6) == 200.0  # the default, microseconds
+    with pytest.raises(ValueError, match="time_unit=1e-06 applies only to a rate target"):
+        dataclasses.replace(BudgetTarget.rate(100.0, 1e-6), kind="count")
 
 
 @pytest.mark.parametrize(("time_unit", "error", "message"), [
@@ -91,7 +113,7 @@ def test_budget_rates_convert_through_time_unit():
     # 2e6 ticks: 2 s of microseconds, 2000 s of milliseconds.
     assert BudgetTarget.rate(300.0).events(input_events=1, duration=2e6) == 600.0
     assert BudgetTarget.rate(300.0, 1e-3).events(input_events=1, duration=2e6) == 600_000.0
-    assert BudgetTarget.rate(300.0).time_unit == 1e-6
+    assert BudgetTarget.rate(300.0).time_unit is None  # as given: read as 1e-6
 
 
 def test_calibrate_weight_reads_a_rate_in_the_given_unit(rng):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from evdown_torch._tensors import region_of
+from evdown_torch.checks import check_output_count
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked, sorted_within
@@ -17,6 +18,9 @@ __all__ = [
     "downsample_step",
     "downsample_whole",
 ]
+
+#: How Downsample's output gets under the output limit: it keeps every event it is given.
+KEEPS_EVERY_EVENT = "Downsample keeps every input event: give it fewer events per call"
 
 
 def downsample(events: Events, *, factor: tuple[int, int]) -> Events:
@@ -49,12 +53,14 @@ def downsample_step(
     events: Events, state: None, settings: RegionSettings
 ) -> tuple[Events, None]:
     """Downsample's ``step``: one time-sorted chunk, every event decided by it."""
+    check_output_count(events.num_events, fewer=KEEPS_EVERY_EVENT)
     x, y = region_of(events, settings.factor)
     return Events(x, y, events.t.clone(), events.p.clone()), None
 
 
 def downsample_whole(events: Events, settings: RegionSettings) -> Events:
     """Downsample's whole-stream kernel (events in any order): :func:`downsample`."""
+    check_output_count(events.num_events, fewer=KEEPS_EVERY_EVENT)
     return downsample(events, factor=settings.factor)
 
 
@@ -62,15 +68,16 @@ def downsample_stacked(batch: EventBatch, settings: RegionSettings) -> EventBatc
     """A batch in one call (events do not interact).
 
     Recordings each in time order need only the division; others go through
-    :func:`downsample` once on the stacked batch.
+    :func:`downsample_whole` once on the stacked batch.
     """
     events = batch.events
     if sorted_within(events.t, batch.lengths):
+        check_output_count(events.num_events, fewer=KEEPS_EVERY_EVENT)
         x, y = region_of(events, settings.factor)
         return EventBatch(Events(x, y, events.t.clone(), events.p.clone()), batch.lengths)
 
     def kernel(stacked: Stacked) -> Events:
-        return downsample(stacked.events, factor=settings.factor)
+        return downsample_whole(stacked.events, settings)
 
     return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
 

@@ -19,7 +19,7 @@ from evdown_torch._tensors import (
     stable_sort_small,
     take,
 )
-from evdown_torch.checks import output_size
+from evdown_torch.checks import check_state_memory, output_size
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, polarity_sign, sort_by_time
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked, sorted_within
@@ -65,6 +65,8 @@ def initial_state(
     The regions are those of each of ``recordings`` stacked recordings.
     """
     out_w, out_h, _ = settings.output_sensor_size
+    check_state_memory("EventCount", settings.sensor_size, settings.factor, region_bytes=16,
+                       recordings=recordings, device=device)  # two int64 per region
     zeros = torch.zeros(out_w * out_h * recordings, dtype=torch.int64, device=device)
     return EventCountState(zeros, zeros.clone())
 

@@ -14,6 +14,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
+from evdown_torch.checks import check_output_count
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked, sorted_within
@@ -32,6 +33,10 @@ __all__ = [
     "funnelling_whole",
     "last_instant",
 ]
+
+
+#: How EventFunnelling's output gets under the output limit (a repeat shares its region).
+FUNNEL_FEWER = "a larger factor gives fewer events"
 
 
 def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
@@ -107,12 +112,15 @@ def funnelling_step(
     """
     width, height, _ = settings.output_sensor_size
     out = funnelling_sorted(events, settings.factor, seen=state, size=(width, height))
+    check_output_count(out.num_events, fewer=FUNNEL_FEWER)  # at most the input: built already
     return out, last_instant(out, state)
 
 
 def funnelling_whole(events: Events, settings: RegionSettings) -> Events:
     """EventFunnelling's whole-stream kernel (events in any order): :func:`event_funnelling`."""
-    return event_funnelling(events, factor=settings.factor)
+    out = event_funnelling(events, factor=settings.factor)
+    check_output_count(out.num_events, fewer=FUNNEL_FEWER)  # at most the input: built already
+    return out
 
 
 def last_instant(events: Events, previous: Events | None) -> Events | None:
@@ -313,15 +321,17 @@ def funnelling_stacked(batch: EventBatch, settings: RegionSettings) -> EventBatc
     """A batch in one call.
 
     Recordings each in time order go through :func:`funnelling_batch` (no stacking); others
-    through :func:`event_funnelling` once on the stacked batch.
+    through :func:`funnelling_whole` once on the stacked batch.
     """
     if sorted_within(batch.events.t, batch.lengths):
         width, height, _ = settings.output_sensor_size
-        return EventBatch(*funnelling_batch(batch.events, batch.lengths, settings.factor,
-                                            (width, height)))
+        out = EventBatch(*funnelling_batch(batch.events, batch.lengths, settings.factor,
+                                           (width, height)))
+        check_output_count(out.events.num_events, fewer=FUNNEL_FEWER)
+        return out
 
     def kernel(stacked: Stacked) -> Events:
-        return event_funnelling(stacked.events, factor=settings.factor)
+        return funnelling_whole(stacked.events, settings)
 
     return run_stacked(batch, kernel, sensor_size=settings.sensor_size, factor=settings.factor)
 

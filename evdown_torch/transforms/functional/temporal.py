@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import divide
-from evdown_torch.checks import check_positive_float, check_sensor_size
+from evdown_torch.checks import check_output_count, check_positive_float, check_sensor_size
 from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.funnelling import drop_repeats, last_instant
 from evdown_torch.transforms.functional.protocol import Method
@@ -145,6 +145,10 @@ class TemporalState(NamedTuple):
     last_bin: Events | None
 
 
+#: How TemporalFunnelling's output gets under the output limit (repeats share a bin).
+TEMPORAL_FEWER = "a longer dt gives fewer events"
+
+
 def temporal_funnelling_init(settings: TemporalSettings, events: Events) -> TemporalState:
     """``init_state``: the bins start at the first chunk's first timestamp."""
     return TemporalState(events.t[0].item(), None)
@@ -160,12 +164,15 @@ def temporal_funnelling_step(
     """
     out = temporal_funnelling(events, dt=settings.dt, t_start=state.t_start,
                               seen=state.last_bin)
+    check_output_count(out.num_events, fewer=TEMPORAL_FEWER)  # at most the input: built already
     return out, TemporalState(state.t_start, last_instant(out, state.last_bin))
 
 
 def temporal_funnelling_whole(events: Events, settings: TemporalSettings) -> Events:
     """The whole stream (any order): :func:`temporal_funnelling`."""
-    return temporal_funnelling(events, dt=settings.dt)
+    out = temporal_funnelling(events, dt=settings.dt)
+    check_output_count(out.num_events, fewer=TEMPORAL_FEWER)  # at most the input: built already
+    return out
 
 
 #: TemporalFunnelling's kernels (:class:`~evdown_torch.TemporalFunnelling`).

@@ -11,11 +11,14 @@ from dataclasses import dataclass
 
 import torch
 
-from evdown_torch.checks import check_non_negative_int, check_unit_interval
+from evdown_torch.checks import check_non_negative_int, check_output_count, check_unit_interval
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.downsample import downsample
 from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings
+
+#: How the thinning control's output gets under the output limit.
+THINNED_FEWER = "a smaller keep gives fewer events"
 
 __all__ = ["THINNING", "ThinningSettings", "recording_seed", "thinning_draws", "thinning_whole"]
 
@@ -78,6 +81,7 @@ def thinning_draws(
     """
     out = downsample(events, factor=settings.factor)
     if settings.keep >= 1.0 or out.num_events == 0:
+        check_output_count(out.num_events, fewer=THINNED_FEWER)
         return [out] * len(seeds)
     content = _content_digest(events)
     kept = []
@@ -86,6 +90,7 @@ def thinning_draws(
         generator = torch.Generator().manual_seed(_mixed(content, seed))
         draws = torch.rand(out.num_events, generator=generator, dtype=torch.float64)
         kept.append(out.select((draws < settings.keep).to(out.device)))
+        check_output_count(kept[-1].num_events, fewer=THINNED_FEWER)  # at most the input
     return kept
 
 

@@ -44,7 +44,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import output_size
+from evdown_torch.checks import check_state_memory, output_size
 from evdown_torch.events import Events, polarity_sign
 from evdown_torch.transforms.functional.estimation import delay
 from evdown_torch.transforms.functional.estimation.delay import (
@@ -168,6 +168,8 @@ def estimation_init(settings: EstimationSettings, events: Events) -> WindowState
     device, t_dtype = events.t.device, events.t.dtype
     width, height, _ = settings.sensor_size
     out_w, out_h, _ = settings.output_sensor_size
+    check_state_memory("an estimator's session", settings.sensor_size, settings.factor,
+                       pixel_bytes=events.t.element_size(), region_bytes=8, device=device)
     t_start = events.t[0]
     return WindowState(
         t_start, t_start, None, Events.empty(t_dtype, device),

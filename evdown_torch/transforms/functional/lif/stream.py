@@ -38,7 +38,7 @@ from typing import NamedTuple, cast
 import torch
 from torch import Tensor
 
-from evdown_torch.checks import output_size
+from evdown_torch.checks import check_state_memory, output_size
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked
@@ -131,6 +131,8 @@ def _fresh_state(
     pending.
     """
     wo, ho, _ = output_size(sensor_size, factor)
+    check_state_memory("LIFPooling's session", sensor_size, factor, region_bytes=16,
+                       device=events.device)  # two float32 membranes and an int64 step
     return LIFStreamState(
         events.t[0], events.t[0], initial_state(wo * ho, events.device), -1,
         Events.empty(events.t.dtype, events.device),

@@ -54,7 +54,7 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import output_size
+from evdown_torch.checks import check_state_memory, output_size
 from evdown_torch.events import Events, polarity_sign, sort_by_time
 from evdown_torch.transforms.functional.photocurrent.levels import (
     check_contrast_range,
@@ -112,6 +112,8 @@ def initial_state(
     """
     w, h, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
+    check_state_memory("PhotocurrentPooling", sensor_size, factor, pixel_bytes=8,
+                       region_bytes=8, recordings=recordings, device=device)  # int64 each
     rows = h if recordings == 1 else out_h * factor[1] * recordings
     return PhotocurrentState(
         torch.zeros(w * rows, dtype=torch.int64, device=device),

@@ -33,7 +33,13 @@ from evdown_torch._tensors import (
     take,
     where_true,
 )
-from evdown_torch.checks import DEFAULT_TIME_UNIT, output_limit, output_size
+from evdown_torch.checks import (
+    DEFAULT_TIME_UNIT,
+    OutputLimitError,
+    check_state_memory,
+    output_limit,
+    output_size,
+)
 from evdown_torch.events import Events, polarity_sign, sort_by_time
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, emit
 from evdown_torch.transforms.functional.photocurrent.levels import (
@@ -163,6 +169,8 @@ def fresh_frames_state(
     w, h, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
     device = events.device
+    check_state_memory("PhotocurrentPooling's frames mode", sensor_size, factor,
+                       pixel_bytes=16, region_bytes=16, device=device)  # 64-bit pairs
     carry = FramesCarry(levels=torch.zeros(w * h, dtype=torch.int64, device=device),
                         ell=torch.zeros(w * h, dtype=torch.float64, device=device),
                         ell_time=0.0,
@@ -323,7 +331,7 @@ def check_leaky_frames(frames: int, sensor_size: tuple[int, int, int], fps: floa
     values = frames * sensor_size[0] * sensor_size[1]
     limit = output_limit()
     if limit is not None and values > limit:
-        raise ValueError(
+        raise OutputLimitError(
             f"fps={fps:g} with a leak (cutoff_hz > 0) means {frames:,} frames in this call, "
             f"each computed for all {sensor_size[0] * sensor_size[1]:,} pixels: {values:,} "
             f"values, more than the limit of {limit:,}; a lower fps or no leak "
