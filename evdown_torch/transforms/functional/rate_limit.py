@@ -24,7 +24,9 @@ a running maximum or minimum, which torch computes in one pass (``cummax``, ``cu
   starts with it.
 
 So the kernel loops over episodes, not events: each one costs a few vectorised passes over
-its events (blocks of doubling length find its end without rereading the rest of the chunk).
+its events (a chunk goes in one block until an episode ends in it; then blocks of twice the
+last episode's length, doubling while none ends, find the next end without rereading the
+rest of the chunk).
 An overflow episode lasts at least ``W (1 - 1 / R)`` (the bucket must refill), so a stream
 has at most about ``duration / W`` of them, and as many only where it overflows in every
 window. Integer timestamps: the gaps between events are capped at ``W`` (a longer gap fills
@@ -260,7 +262,7 @@ def rate_limit_step(
     if integer:  # every sum of a block stays below 2**62
         largest = max(1, min(_MAX_BLOCK, _INT64_LIMIT // (int(b.capacity) + int(b.cost))))
     keep = torch.ones(n, dtype=torch.bool, device=t.device)
-    pos, size = 0, min(_MIN_BLOCK, largest)
+    pos, size = 0, largest  # the whole chunk at once, unless an episode ends in it
     while pos < n:
         block = t[pos:min(n, pos + size)]
         if state.full:
@@ -273,8 +275,10 @@ def rate_limit_step(
             keep[pos:pos + passed.shape[0]] = passed
             step = passed.shape[0]
         pos += step
-        # a block without an episode's end: longer next time; else back to shorter
-        size = min(2 * size, largest) if k is None else max(_MIN_BLOCK, size // 2)
+        # Next block: twice this one when no episode ended in it, else twice the episode's
+        # part in it. Each block then costs at most twice the episode before it, so the
+        # blocks of a chunk cost O(its events) plus a few passes' overhead per episode.
+        size = min(2 * (size if k is None else max(step, _MIN_BLOCK // 2)), largest)
     return events.select(keep), state
 
 
