@@ -1,4 +1,9 @@
-"""Downscaling transforms, usable alone or inside ``tonic.transforms.Compose``."""
+"""Downscaling transforms, usable alone or inside ``tonic.transforms.Compose``.
+
+With them: the rate limiter (:class:`RateLimiter`), the event-budget calibration
+(:func:`calibrate`, :class:`BudgetTarget`) and the window rates of a stream
+(:func:`window_rates`).
+"""
 
 from evdown_torch.transforms._base import Chain, Downscaler, Method, Session, Streaming
 from evdown_torch.transforms.calibrate import BudgetTarget, calibrate
@@ -10,6 +15,7 @@ from evdown_torch.transforms.photocurrent import PhotocurrentPooling, Photocurre
 from evdown_torch.transforms.rate_limit import RateLimiter
 from evdown_torch.transforms.temporal import TemporalFunnelling
 from evdown_torch.transforms.thinning import ThinnedDownsample
+from evdown_torch.transforms.window_rates import WindowRates, window_rates
 
 __all__ = [
     "BudgetTarget",
@@ -30,6 +36,8 @@ __all__ = [
     "Streaming",
     "TemporalFunnelling",
     "ThinnedDownsample",
+    "WindowRates",
     "calibrate",
     "calibrate_weight",
+    "window_rates",
 ]

@@ -153,6 +153,9 @@ def test_no_interval_passes_more_than_the_bucket_allows(rng):
         span = t[i:] - t[i]
         count = np.arange(1, len(span) + 1)
         assert (count <= 7 + 7 * span / 40 + 1e-9).all()
+    # so a window [s, s + W) holds at most 2 R - 1
+    busiest = max(int(((t >= s) & (t < s + 40)).sum()) for s in t)
+    assert busiest <= 2 * 7 - 1
 
 
 def test_a_stream_within_the_peak_loses_nothing(rng):
