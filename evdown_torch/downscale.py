@@ -3,7 +3,9 @@
 ``evdown downscale IN [IN ...] OUT --method NAME --factor F [--set KEY=VALUE ...]`` reads any
 format :mod:`evdown_torch.io` reads, runs one method of
 :data:`~evdown_torch.transforms.registry.METHODS` on each file and writes the result with its
-sensor size and time unit. :func:`add_command` registers it on the ``evdown`` parser.
+sensor size and time unit. ``--budget TARGET`` first calibrates the method's budget setting on
+all the inputs (:meth:`~evdown_torch.transforms.BudgetTarget.parse`) and records it beside
+each output. :func:`add_command` registers it on the ``evdown`` parser.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from evdown_torch.transforms.registry import METHODS, make_method, method_settin
 from evdown_torch.transforms.window_rates import WindowRates
 
 #: Window of the rates printed and recorded for a budget without one (a peak has its own).
-PEAK_REPORT_WINDOW_US = 1_000
+RATES_WINDOW_US = 1_000
 
 __all__ = ["add_command"]
 
@@ -175,7 +177,7 @@ def _calibrated(args: argparse.Namespace, settings: dict[str, object],
                            f"share one sensor size; got {sizes}")
     transform = make_method(args.method, sizes[0], args.factor, **settings)
     budget = cast(_Budget, args.budget)
-    window = budget.target.window or PEAK_REPORT_WINDOW_US
+    window = budget.target.window or RATES_WINDOW_US
     found = calibration(transform, [events for events, _, _ in inputs], budget.target,
                         window=window)
     setting = cast(str, type(transform).budget_setting)
