@@ -11,6 +11,7 @@ from evdown_torch.transforms import (
     LIFPooling,
     LinearEstimation,
     PhotocurrentPooling,
+    RateLimiter,
     TemporalFunnelling,
 )
 
@@ -26,6 +27,7 @@ __all__ = [
     "LIFPooling",
     "LinearEstimation",
     "PhotocurrentPooling",
+    "RateLimiter",
     "TemporalFunnelling",
     "__version__",
     "from_events",

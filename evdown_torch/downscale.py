@@ -3,7 +3,9 @@
 ``evdown downscale IN [IN ...] OUT --method NAME --factor F [--set KEY=VALUE ...]`` reads any
 format :mod:`evdown_torch.io` reads, runs one method of
 :data:`~evdown_torch.transforms.registry.METHODS` on each file and writes the result with its
-sensor size and time unit. :func:`add_command` registers it on the ``evdown`` parser.
+sensor size and time unit. ``--budget TARGET`` first calibrates the method's budget setting on
+all the inputs (:meth:`~evdown_torch.transforms.BudgetTarget.parse`) and records it beside
+each output. :func:`add_command` registers it on the ``evdown`` parser.
 """
 
 from __future__ import annotations
@@ -13,10 +15,11 @@ import os
 import sys
 import textwrap
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import MISSING, fields
 from pathlib import Path
-from typing import cast
+from typing import NamedTuple, cast
 
 import numpy as np
 import torch
@@ -41,7 +44,13 @@ from evdown_torch.io import (
 )
 from evdown_torch.threads import command_threads
 from evdown_torch.time_units import check_timing, time_settings
+from evdown_torch.transforms import Downscaler
+from evdown_torch.transforms.calibrate import BudgetTarget, calibration
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
+from evdown_torch.transforms.window_rates import WindowRates
+
+#: Window of the rates printed and recorded for a budget without one (a peak has its own).
+RATES_WINDOW_US = 1_000
 
 __all__ = ["add_command"]
 
@@ -128,6 +137,68 @@ def _plan(paths: Sequence[str], output_format: str) -> list[tuple[Path, Path]]:
     return pairs
 
 
+class _Budget(NamedTuple):
+    """``--budget`` as written and as read."""
+
+    text: str
+    target: BudgetTarget
+
+
+def _budget(text: str) -> _Budget:
+    """An argparse type: ``--budget ratio=R | count=N | rate=HZ | peak=HZ/WINDOW``."""
+    try:
+        return _Budget(text, BudgetTarget.parse(text))
+    except (ValueError, TypeError) as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _check_budget(args: argparse.Namespace, settings: dict[str, object]) -> None:
+    """Refuse ``--budget`` for a method without a budget setting, or with that setting set."""
+    if args.budget is None:
+        return
+    setting = METHODS[args.method].budget_setting
+    if setting is None:
+        budgeted = ", ".join(n for n, c in METHODS.items() if c.budget_setting is not None)
+        raise CommandError(f"--budget: method {args.method!r} has no budget setting (its "
+                           f"output count is fixed by its input); these have one: {budgeted}")
+    if setting in settings:
+        raise CommandError(f"--budget chooses {setting}: give --budget or --set {setting}=..., "
+                           "not both")
+
+
+def _calibrated(args: argparse.Namespace, settings: dict[str, object],
+                inputs: list[tuple[np.ndarray, tuple[int, int, int], str | None]]
+                ) -> tuple[Downscaler, dict[str, object]]:
+    """The method calibrated to ``--budget`` on every input, and what the sidecar records."""
+    sizes = sorted({size for _, size, _ in inputs})
+    if len(sizes) > 1:
+        raise CommandError(f"--budget calibrates one setting on all the inputs, which must "
+                           f"share one sensor size; got {sizes}")
+    transform = make_method(args.method, sizes[0], args.factor, **settings)
+    budget = cast(_Budget, args.budget)
+    window = budget.target.window or RATES_WINDOW_US
+    found = calibration(transform, [events for events, _, _ in inputs], budget.target,
+                        window=window)
+    setting = cast(str, type(transform).budget_setting)
+    rates = cast(WindowRates, found.rates)
+    total_in = sum(len(events) for events, _, _ in inputs)
+    output = (f"peak {found.count} events per window (at most {found.target:g})"
+              if budget.target.kind == "peak" else
+              f"{rates.events} events, {rates.events / total_in:.4f} of the input "
+              f"(target {found.target:.6g} events)")
+    _say(f"{args.method}: calibrated {setting}={found.value:.6g} on {len(inputs)} file(s) "
+         f"for --budget {budget.text}: {output}; {rates.describe()}")
+    if budget.target.kind == "peak" and found.count > found.target:
+        warnings.warn(f"no {setting} tried keeps the peak at or under {found.target:g} events "
+                      f"per window; the lowest found is {found.count}", stacklevel=2)
+    record = {"method": args.method, "budget": budget.text, setting: found.value,
+              "rates_per_second": {"window_us": window,
+                                   "mean": rates.per_second(rates.mean),
+                                   "p99": rates.per_second(rates.p99),
+                                   "peak": rates.per_second(rates.peak)}}
+    return found.transform, {"calibration": record}
+
+
 def _downscale(args: argparse.Namespace) -> int:
     refuse_threshold_flag(args)
     settings = dict(args.set or [])
@@ -135,9 +206,20 @@ def _downscale(args: argparse.Namespace) -> int:
     if unknown:  # before reading anything
         raise CommandError(f"method {args.method!r} does not take setting(s) {unknown}; it "
                            f"takes {list(method_settings(args.method))}")
+    _check_budget(args, settings)
     pairs = _plan(args.paths, args.output_format)
     several = len(pairs) > 1
     torch.set_num_threads(command_threads(args.threads))
+    calibrated: Downscaler | None = None
+    metadata: dict[str, object] = {}
+    inputs: list[tuple[np.ndarray, tuple[int, int, int], str | None]] = []
+    if args.budget is not None:  # every input first: the calibration sees them all
+        for source, _ in pairs:
+            try:
+                inputs.append(read_input(source, args))
+            except (ValueError, TypeError) as error:
+                raise CommandError(f"{source}: {error}" if several else str(error)) from None
+        calibrated, metadata = _calibrated(args, settings, inputs)
     # Three steps per file (read, downscale, write), so that one long file shows progress too.
     bar = tqdm(total=3 * len(pairs), unit="step", disable=not sys.stderr.isatty(),
                file=sys.stderr, dynamic_ncols=True, leave=False,
@@ -146,8 +228,9 @@ def _downscale(args: argparse.Namespace) -> int:
         file_label = f"file {index + 1}/{len(pairs)} {source.name}" if several else source.name
         try:
             bar.set_description_str(f"{file_label}: reading")
-            events, sensor_size, unit = read_input(source, args)
-            transform = make_method(args.method, sensor_size, args.factor, **settings)
+            events, sensor_size, unit = inputs[index] if inputs else read_input(source, args)
+            transform = calibrated or make_method(args.method, sensor_size, args.factor,
+                                                  **settings)
             check_timing(events["t"], time_settings(transform), source=str(source))
             bar.update()
             bar.set_description_str(f"{file_label}: downscaling {len(events)} events")
@@ -157,7 +240,7 @@ def _downscale(args: argparse.Namespace) -> int:
             bar.update()
             bar.set_description_str(f"{file_label}: writing")
             written = write_events(target, out, sensor_size=transform.output_sensor_size,
-                                   time_unit=unit)
+                                   time_unit=unit, metadata=metadata)
             bar.update()
         except (ValueError, TypeError) as error:
             bar.close()
@@ -195,6 +278,15 @@ def add_command(commands: Subparsers) -> None:
     down.add_argument("--set", type=setting_argument, action="append", metavar="KEY=VALUE",
                       help="a setting of the method (listed below), e.g. --set threshold=0.5; "
                       "repeatable")
+    down.add_argument("--budget", type=_budget, metavar="TARGET",
+                      help="choose the method's budget setting (threshold, or lif's weight) "
+                      "on all the input files together so that the output meets TARGET: "
+                      "ratio=R (output events per input event), rate=HZ (mean events per "
+                      "second), count=N (events in all) or peak=HZ/WINDOW (at most HZ events "
+                      "per second in every window, e.g. peak=500000/1ms: 500 events in any "
+                      "1 ms). Prints the setting and the mean, p99 and peak rates, and records "
+                      "them in each output's sidecar (HDF5: attribute 'calibration'); reads "
+                      "every input before writing any output")
     add_input_arguments(down)
     down.add_argument("--output-format", choices=("npy", "h5"), default="npy",
                       help="format of the files written into an output folder (default npy)")

@@ -50,7 +50,7 @@ import json
 import os
 import threading
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -301,7 +301,8 @@ def event_files(folder: str | Path) -> list[Path]:
 
 
 def write_events(
-    path: str | Path, events: np.ndarray, *, sensor_size: Any = None, time_unit: str | None = None
+    path: str | Path, events: np.ndarray, *, sensor_size: Any = None, time_unit: str | None = None,
+    metadata: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write a structured event array to exactly ``path`` (``.npy``, ``.h5`` or ``.hdf5``).
 
@@ -320,6 +321,9 @@ def write_events(
         events: ``(N,)`` structured array with fields ``x``, ``y``, ``t``, ``p``.
         sensor_size: ``(W, H, P)`` to store.
         time_unit: the unit of ``t`` to store (see :mod:`evdown_torch.time_units`).
+        metadata: more to record beside them (e.g. how the file was made), each value
+            JSON-serialisable: in the sidecar, or as HDF5 attributes holding JSON text.
+            Readers ignore it.
 
     Returns:
         The path written (not the sidecar).
@@ -343,6 +347,11 @@ def write_events(
         )
     size = None if sensor_size is None else check_sensor_size(sensor_size)
     unit = None if time_unit is None else check_unit_name(time_unit)
+    extra = dict(metadata or {})
+    clash = sorted({"sensor_size", "time_unit"} & set(extra))
+    if clash:
+        raise ValueError(f"metadata may not hold {clash}: give them as their own arguments")
+    json.dumps(extra)  # a TypeError naming the value that JSON cannot hold, before writing
     extension = path.suffix.lower()
     if extension == ".npy":
         meta_path = sidecar(path)
@@ -350,6 +359,7 @@ def write_events(
             raise ValueError(f"cannot write {str(path)!r}: its sidecar {str(meta_path)!r} is a "
                              "folder")
         meta = {k: v for k, v in (("sensor_size", size), ("time_unit", unit)) if v is not None}
+        meta.update(extra)
         with _renamed_into_place(*((meta_path,) if meta else ()), path) as temporaries:
             with open(temporaries[-1], "wb") as file:  # np.save(name) would append ".npy"
                 np.save(file, events, allow_pickle=False)
@@ -367,6 +377,8 @@ def write_events(
             file.attrs["sensor_size"] = np.asarray(size, dtype=np.int64)
         if unit is not None:
             file.attrs["time_unit"] = unit
+        for key, value in extra.items():
+            file.attrs[key] = json.dumps(value)
     return path
 
 

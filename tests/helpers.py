@@ -19,6 +19,7 @@ from evdown_torch import (
     LIFPooling,
     LinearEstimation,
     PhotocurrentPooling,
+    RateLimiter,
     TemporalFunnelling,
 )
 from evdown_torch.events import DVS_DTYPE
@@ -42,7 +43,7 @@ def transform_cases(
     The protocol, streaming and batch tests all run over it, and ``test_registry`` checks that
     it holds every method of the registry. Its keys are the registry names, plus the variants
     of a method (``linear_delay``, ``photocurrent_frames``) and the transforms outside the
-    registry (``temporal``, ``thinned``). ``step`` is the time scale of the test's streams
+    registry (``temporal``, ``thinned``, ``rate_limit``). ``step`` is the time scale of the test's streams
     (in their ticks): LIF's ``dt``, the estimators' ``max_delay``, two frames, one temporal bin.
     """
     return {
@@ -59,6 +60,7 @@ def transform_cases(
                                                    threshold=0.2, fps=1e6 / (2 * step)),
         "temporal": TemporalFunnelling(dt=step, sensor_size=sensor_size),
         "thinned": ThinnedDownsample(sensor_size, factor, keep=0.5, seed=3),
+        "rate_limit": RateLimiter(max_events=3, window=step, sensor_size=sensor_size),
     }
 
 

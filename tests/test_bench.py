@@ -408,17 +408,24 @@ def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_pat
     from evdown_torch.bench.realtime import REALTIME_METHODS
 
     out = tmp_path / "rt"
-    # 80,000 events last 3.2 ms at 25 M events/s: two timed 1 ms chunks, no 10 ms one.
+    # 80,000 events last 3.2 ms at 25 M events/s: two timed 1 ms chunks, no 2 or 10 ms one.
     code = main(["bench", "--realtime", "--short", "--events", "80000", "--out", str(out)])
     assert code == 0
     table = (out / "realtime.md").read_text()
     rows = [line for line in table.splitlines() if line.startswith("| ") and "---" not in line]
-    assert len(rows) - 1 == len(REALTIME_METHODS) * 2 * 2  # methods x rates x chunk sizes
+    assert len(rows) - 1 == len(REALTIME_METHODS) * 2 * 3  # methods x rates x chunk sizes
+    assert "latency budget (ms): delay + chunk + p99" in rows[0]
     data = json.loads((out / "realtime.json").read_text())
     assert {(d["method"], d["chunk_us"]) for d in data} == {
-        (m, c) for m in REALTIME_METHODS for c in (1000, 10_000)}
+        (m, c) for m in REALTIME_METHODS for c in (1000, 2000, 10_000)}
     fast = [d for d in data if d["rate"] == 25e6 and d["chunk_us"] == 1000 and not d["note"]]
     assert fast and all(d["chunks"] >= 1 and d["sustained_rate"] > 0 for d in fast)
+    for d in fast:  # where it keeps up: the method's delay + the chunk + the p99
+        if d["keeps_up"]:
+            expected = (d["algorithmic_delay_us"] + 1000) * 1e-6 + d["p99_s"]
+            assert d["latency_budget_s"] == pytest.approx(expected)
+        else:
+            assert d["latency_budget_s"] is None
     slow = [d for d in data if d["rate"] == 25e6 and d["chunk_us"] == 10_000 and not d["note"]]
     assert all(d["chunks"] == 0 and d["p99_s"] is None for d in slow)
     # Delays only for the lagging methods, and never below their max_delay (1 ms).
@@ -428,6 +435,32 @@ def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_pat
     assert skipped <= {"lif", "photocurrent"}  # only methods without the common session
     printed = capsys.readouterr().out
     assert "realtime.md" in printed and "Memory allocator: " in printed
+
+
+def test_the_latency_budget_is_delay_plus_chunk_plus_p99():
+    from evdown_torch.bench.realtime import ReplayResult, realtime_markdown
+
+    # p99 of [0.4, 0.5, 0.6] ms: 0.5 + 0.98 * 0.1 = 0.598 ms; + 1 ms delay + 2 ms chunk.
+    kept = ReplayResult("linear", 25e6, 2000, seconds=[0.0004, 0.0005, 0.0006],
+                        algorithmic_delay_us=1000.0)
+    assert kept.latency_budget_s == pytest.approx(0.003598)
+    behind = ReplayResult("cubic", 25e6, 1000, seconds=[0.002], algorithmic_delay_us=2000.0)
+    assert behind.keeps_up is False and behind.latency_budget_s is None
+    rows = [line.split(" | ") for line in realtime_markdown([kept, behind]).splitlines()[2:]]
+    assert [(r[11], r[12]) for r in rows] == [("1", "3.6 |"), ("2", "falls behind |")]
+
+
+def test_each_method_of_the_replay_has_the_delay_its_definition_asks():
+    from evdown_torch import LinearEstimation, PhotocurrentPooling
+    from evdown_torch.bench.realtime import REALTIME_METHODS, _transform
+
+    delays = {label: _transform(label, (32, 32, 2), 4).algorithmic_delay()
+              for label in REALTIME_METHODS}
+    assert delays == {"downsample": 0, "funnelling": 0, "event_count": 0, "temporal": 0,
+                      "linear": 1000, "cubic": 2000, "lif": 1000, "photocurrent": 0}
+    assert LinearEstimation((8, 8, 2), 2).algorithmic_delay() == math.inf
+    framed = PhotocurrentPooling((8, 8, 2), 2, fps=500.0)
+    assert framed.algorithmic_delay() == pytest.approx(2000)
 
 
 def test_sustained_rate_scales_the_replayed_rate_to_the_p99():

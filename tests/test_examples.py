@@ -25,7 +25,8 @@ def run_example(name: str, *args: str) -> str:
 
 def test_every_example_has_a_main_guard_and_a_test():
     scripts = sorted(p.name for p in (ROOT / "examples").glob("*.py"))
-    assert scripts == ["live_stream.py", "preprocess_folder.py", "tonic_pipeline.py"]
+    assert scripts == ["chip_budget.py", "live_stream.py", "preprocess_folder.py",
+                       "tonic_pipeline.py"]
     for name in scripts:
         assert 'if __name__ == "__main__":' in (ROOT / "examples" / name).read_text()
 
@@ -58,3 +59,17 @@ def test_preprocess_folder_writes_reads_and_resumes(tmp_path):
     assert "first batch: frames (4, 5, 2, 16, 16), labels [0, 0, 1, 1]" in out
     assert "rerun: 2 shards kept, 0 written" in out
     assert (tmp_path / "cache" / "manifest.json").is_file()
+
+
+def test_chip_budget_calibrates_to_a_peak_limits_and_times_the_chain():
+    out = run_example("chip_budget.py", "--duration-ms", "300", "--rate", "5e6")
+    assert "EventCount at factor 6: (346, 260) -> (58, 44)" in out
+    # three rate lines, in order: the mean-only calibration, the peak one, the limited chain
+    mean_only, peak, limited = (int(found.replace(",", "")) for found in
+                                re.findall(r"peak ([\d,]+) events/s in windows of 1 ms", out))
+    assert mean_only > 500_000 >= peak  # the mean hides the peak; the peak target meets it
+    assert limited <= 2 * 500_000  # a token bucket of 500: at most 2 x 500 in 1 ms
+    assert int(re.search(r"([\d,]+) dropped", out)[1].replace(",", "")) > 0
+    for chunk in ("1", "2", "10"):
+        assert re.search(rf"^{chunk} ms chunks: (delay 0 \+ chunk {chunk} ms \+ p99 "
+                         r"[\d.]+ ms .*= latency budget|the stream is too short)", out, re.M)

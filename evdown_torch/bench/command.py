@@ -49,8 +49,10 @@ def add_command(commands: Subparsers) -> None:
     bench.add_argument("--no-memory", action="store_true", help="skip peak-memory measurements")
     bench.add_argument("--realtime", action="store_true",
                        help="replay a recording (the first --input, else a synthetic gesture "
-                       "one) through every streaming session in 1 ms and 10 ms chunks, at its "
-                       "own rate and at 25 M events/s; writes realtime.md/.json/.png")
+                       "one) through every streaming session in 1, 2 and 10 ms chunks, at its "
+                       "own rate and at 25 M events/s, with each method's latency budget "
+                       "(algorithmic delay + chunk + p99 processing time); writes "
+                       "realtime.md/.json/.png")
     bench.set_defaults(run=run_from_args)
 
 

@@ -1,11 +1,16 @@
 """``evdown bench --realtime``: can a method keep up with a live sensor, and with what delay?
 
 A recording is replayed through each method's streaming session (:meth:`session`) in chunks
-of fixed *stream* time (1 ms and 10 ms by default), at the recording's own rate and retimed to
+of fixed *stream* time (1, 2 and 10 ms by default), at the recording's own rate and retimed to
 25 M events/s (a fast sensor's peak: its timestamps are compressed by the ratio of the rates,
 so the same events arrive faster). Per method, rate and chunk size it reports:
 
 * the wall-clock processing time of each chunk (median and 99th percentile), on one thread;
+* the **latency budget**: the method's algorithmic delay (its ``algorithmic_delay()``) plus
+  the chunk's duration (an event waits up to that long for its chunk to close) plus the 99th
+  percentile of the processing time, i.e. how late after it happened an event's output is
+  in hand in 99 % of the chunks; only where the method keeps up (else the queue grows without
+  bound and no budget holds);
 * whether the method **keeps up** (99th percentile below the chunk's duration) and the
   largest input rate it **sustains**: the replayed rate times the chunk's duration over the
   99th percentile, i.e. the rate at which the 99th percentile would reach the chunk's
@@ -69,7 +74,7 @@ __all__ = [
 #: A fast sensor's peak event rate (events per second).
 REALTIME_RATE = 25_000_000.0
 #: Chunk durations in stream time (microseconds).
-REALTIME_CHUNKS_US = (1_000, 10_000)
+REALTIME_CHUNKS_US = (1_000, 2_000, 10_000)
 #: Bounded delay of the estimators in the replay (microseconds).
 REALTIME_MAX_DELAY_US = 1_000
 #: The replay's settings where a method's defaults do not stream or do not fit a live sensor:
@@ -134,6 +139,7 @@ class ReplayResult:
             during each timed chunk.
         delays_us: output delay of every output event (only for lagging methods).
         note: why a method was skipped, else empty.
+        algorithmic_delay_us: the method's own delay (its ``algorithmic_delay()``, in us).
     """
 
     method: str
@@ -148,6 +154,7 @@ class ReplayResult:
     faults: list[int] = field(default_factory=list)
     delays_us: list[float] = field(default_factory=list)
     note: str = ""
+    algorithmic_delay_us: float = 0.0
 
     @property
     def median_s(self) -> float | None:
@@ -171,6 +178,18 @@ class ReplayResult:
         return None if p99 is None else p99 < self.chunk_us * 1e-6
 
     @property
+    def latency_budget_s(self) -> float | None:
+        """Algorithmic delay + chunk duration + 99th percentile of the processing (seconds).
+
+        ``None`` when nothing was timed or the method does not keep up (its queue, and so its
+        latency, grows without bound).
+        """
+        p99 = self.p99_s
+        if p99 is None or not self.keeps_up:
+            return None
+        return (self.algorithmic_delay_us + self.chunk_us) * 1e-6 + p99
+
+    @property
     def sustained_rate(self) -> float | None:
         """Input rate (events/s) at which a chunk's 99th-percentile time reaches its duration.
 
@@ -188,7 +207,7 @@ class ReplayResult:
             out.pop(name)
         delays = out.pop("delays_us")
         out.update(median_s=self.median_s, p99_s=self.p99_s, p99_cpu_s=self.p99_cpu_s,
-                   keeps_up=self.keeps_up,
+                   keeps_up=self.keeps_up, latency_budget_s=self.latency_budget_s,
                    sustained_rate=self.sustained_rate,
                    median_faults=statistics.median(self.faults) if self.faults else None)
         if delays:
@@ -269,7 +288,8 @@ def replay(
         (3, 3, 6, 3)
     """
     chunk_us = check_positive_int("chunk_us", chunk_us)
-    result = ReplayResult(label or type(transform).__name__, rate, chunk_us)
+    result = ReplayResult(label or type(transform).__name__, rate, chunk_us,
+                          algorithmic_delay_us=transform.algorithmic_delay())
     session = transform.session()
     bounds = chunk_bounds_us(events["t"], chunk_us)
     t0 = int(events["t"][0]) if len(events) else 0
@@ -366,18 +386,21 @@ def realtime_markdown(results: Sequence[ReplayResult]) -> str:
 
     With :data:`PEER` (EventCount) among them, the column "x EventCount" gives each method's
     sustained rate over EventCount's at the same input rate and chunk size, in the same run:
-    a ratio that the machine's speed and load move far less than the rates themselves.
+    a ratio that the machine's speed and load move far less than the rates themselves. The
+    last column is the latency budget (:attr:`ReplayResult.latency_budget_s`): algorithmic
+    delay + chunk + p99, or "falls behind" where the p99 exceeds the chunk.
     """
     peer = {(r.rate, r.chunk_us): r.sustained_rate for r in results
             if r.method == PEER and not r.note}
     lines = ["| method | input rate (M ev/s) | chunk (ms) | chunks | median (ms) | p99 (ms) | "
              "p99 CPU (ms) | keeps up | sustains (M ev/s) | x EventCount | "
-             "delay median / p99 / max (µs) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "delay median / p99 / max (µs) | algorithmic delay (ms) | "
+             "latency budget (ms): delay + chunk + p99 |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         if r.note:
             lines.append(f"| {r.method} | {r.rate / 1e6:.3g} | {r.chunk_us / 1e3:g} | – | – | – "
-                         f"| – | – | – | – | {r.note.split(';')[0]} |")
+                         f"| – | – | – | – | {r.note.split(';')[0]} | – | – |")
             continue
         s = r.summary()
         delay = s.get("delay_us")
@@ -391,8 +414,15 @@ def realtime_markdown(results: Sequence[ReplayResult]) -> str:
             f"| {_ms(r.median_s)} | {_ms(r.p99_s)} | {_ms(r.p99_cpu_s)} "
             f"| {'–' if r.keeps_up is None else 'yes' if r.keeps_up else 'no'} "
             f"| {'–' if sustained is None else f'{sustained / 1e6:.3g}'} | {ratio} "
-            f"| {delay_text} |")
+            f"| {delay_text} | {_ms(r.algorithmic_delay_us * 1e-6)} | {_latency(r)} |")
     return "\n".join(lines) + "\n"
+
+
+def _latency(result: ReplayResult) -> str:
+    """The latency budget in ms, "falls behind" where the method does not keep up."""
+    if result.keeps_up is False:
+        return "falls behind"
+    return _ms(result.latency_budget_s)
 
 
 def write_realtime_report(

@@ -1,4 +1,9 @@
-"""Downscaling transforms, usable alone or inside ``tonic.transforms.Compose``."""
+"""Downscaling transforms, usable alone or inside ``tonic.transforms.Compose``.
+
+With them: the rate limiter (:class:`RateLimiter`), the event-budget calibration
+(:func:`calibrate`, :class:`BudgetTarget`) and the window rates of a stream
+(:func:`window_rates`).
+"""
 
 from evdown_torch.transforms._base import (
     Chain,
@@ -14,8 +19,10 @@ from evdown_torch.transforms.event_count import EventCount
 from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
 from evdown_torch.transforms.photocurrent import PhotocurrentPooling
+from evdown_torch.transforms.rate_limit import RateLimiter
 from evdown_torch.transforms.temporal import TemporalFunnelling
 from evdown_torch.transforms.thinning import ThinnedDownsample
+from evdown_torch.transforms.window_rates import WindowRates, window_rates
 
 __all__ = [
     "BudgetTarget",
@@ -29,11 +36,14 @@ __all__ = [
     "LinearEstimation",
     "Method",
     "PhotocurrentPooling",
+    "RateLimiter",
     "Session",
     "Streaming",
     "TemporalFunnelling",
     "ThinnedDownsample",
     "ThresholdDownscaler",
+    "WindowRates",
     "calibrate",
     "calibrate_weight",
+    "window_rates",
 ]

@@ -433,6 +433,10 @@ class Chain(Streaming, abstract=True):
         """``None``: a chain's batch goes one recording at a time through every stage."""
         return None
 
+    def algorithmic_delay(self) -> float:
+        """The sum of the stages' delays."""
+        return sum(stage.algorithmic_delay() for stage in self.transforms)
+
     def kernel(self, events: Events) -> Events:
         """Every stage's kernel in order; each stage checks its input as its call would."""
         for i, transform in enumerate(self.transforms):

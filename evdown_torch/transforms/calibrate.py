@@ -14,11 +14,20 @@ falsi on ``log(count)`` (the Illinois variant, with bisection where a count is 0
 when the count is within ``rtol`` of the target. Every evaluation runs the transform once on
 every recording; counts are remembered, so no setting is run twice. The result is the
 evaluated setting whose count is closest to the target.
+
+A peak target (:meth:`BudgetTarget.peak`: at most ``R`` events in any window of ``W``, a
+chip's input limit) runs the same search on the output's peak
+(:func:`~evdown_torch.transforms.window_rates.peak_count`, the busiest window of any
+recording) instead of its total, and returns the evaluated setting with the largest peak not
+above ``R`` (within ``rtol`` below it stops the search). Its :class:`Calibration` reports the
+output's mean, 99th-percentile and peak window rates (:class:`WindowRates`), which the other
+targets report too when given a ``window``.
 """
 
 from __future__ import annotations
 
 import math
+import re
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -34,7 +43,9 @@ from evdown_torch.checks import (
 )
 from evdown_torch.collate import to_batch
 from evdown_torch.events import Events, EventsLike
+from evdown_torch.time_units import TIME_UNITS
 from evdown_torch.transforms._base import Downscaler
+from evdown_torch.transforms.window_rates import WindowRates, window_rates
 
 __all__ = ["BudgetTarget", "Calibration", "calibrate", "calibration"]
 
@@ -44,36 +55,52 @@ D = TypeVar("D", bound=Downscaler)
 
 @dataclass(frozen=True)
 class BudgetTarget:
-    """What the total output over the calibration recordings should be.
+    """What the output over the calibration recordings should be.
 
     Attributes:
         kind: ``"ratio"`` (output events per input event), ``"count"`` (output events, all
-            recordings together) or ``"rate"`` (output events per second of recording).
+            recordings together), ``"rate"`` (output events per second of recording, on
+            average) or ``"peak"`` (at most ``value`` output events in any window of
+            ``window``: a chip's input limit; docs/semantics.md, "Peak budget").
         value: the target, positive.
-        time_unit: seconds per timestamp unit, for ``"rate"`` only (``None``, the default,
-            is 1e-6: microseconds; see :func:`~evdown_torch.checks.check_time_unit`). The
-            other kinds have no time in them and refuse one. Stored as given (``None`` stays
-            ``None``, so a copy of another kind stays valid).
+        time_unit: seconds per timestamp unit, for ``"rate"`` and ``"peak"`` only (``None``,
+            the default, is 1e-6: microseconds; see
+            :func:`~evdown_torch.checks.check_time_unit`). The other kinds have no time in
+            them and refuse one. Stored as given (``None`` stays ``None``, so a copy of
+            another kind stays valid).
+        window: the window's length in timestamp units, for ``"peak"`` only.
 
     Example:
         >>> BudgetTarget.ratio(0.1).events(input_events=5000, duration=2e6)
         500.0
         >>> BudgetTarget.rate(300.0).events(input_events=5000, duration=2e6)
         600.0
+        >>> BudgetTarget.peak(500, window=1000).events(input_events=5000, duration=2e6)
+        500.0
     """
 
-    kind: Literal["ratio", "count", "rate"]
+    kind: Literal["ratio", "count", "rate", "peak"]
     value: float
     time_unit: float | None = None
+    window: float | None = None
 
     def __post_init__(self) -> None:
-        check_choice("target kind", self.kind, ("ratio", "count", "rate"))
+        check_choice("target kind", self.kind, ("ratio", "count", "rate", "peak"))
         object.__setattr__(self, "value", check_positive_float("target", self.value))
-        if self.kind != "rate":
+        if self.kind == "peak":
+            if self.window is None:
+                raise ValueError("a peak target needs a window (timestamp units)")
+            object.__setattr__(self, "window", check_positive_float("window", self.window))
+        elif self.window is not None:
+            raise ValueError(
+                f"window={self.window!r} applies only to a peak target (events per window); "
+                f"a {self.kind} target has none"
+            )
+        if self.kind not in ("rate", "peak"):
             if self.time_unit is not None:
                 raise ValueError(
-                    f"time_unit={self.time_unit!r} applies only to a rate target (events per "
-                    f"second); a {self.kind} target has no time in it"
+                    f"time_unit={self.time_unit!r} applies only to a rate or peak target "
+                    f"(events per second); a {self.kind} target has no time in it"
                 )
             return
         if self.time_unit is not None:
@@ -94,8 +121,67 @@ class BudgetTarget:
         """``events_per_second`` output events per second (timestamps count ``time_unit`` s)."""
         return cls("rate", events_per_second, time_unit)
 
+    @classmethod
+    def peak(cls, max_events: float, window: float,
+             time_unit: float | None = None) -> BudgetTarget:
+        """At most ``max_events`` output events in any window of ``window`` timestamp units.
+
+        ``BudgetTarget.peak(500, window=1000)``: 500 events per millisecond at the busiest
+        (500 k events/s at peak) for microsecond timestamps. ``time_unit`` (seconds per
+        timestamp unit, default 1e-6) only turns the reported rates into events per second.
+        """
+        return cls("peak", max_events, time_unit, window)
+
+    @classmethod
+    def parse(cls, text: str) -> BudgetTarget:
+        """A target written ``ratio=R``, ``count=N``, ``rate=HZ`` or ``peak=HZ/WINDOW``.
+
+        For microsecond timestamps (the command line's). ``peak=500000/1ms`` is a peak rate
+        of 500,000 events per second in windows of 1 ms, i.e. ``BudgetTarget.peak(500,
+        1000)``; the window takes a unit (``s``, ``ms``, ``us``, ``ns``) and the rate times
+        the window must be a whole number of events.
+
+        Raises:
+            ValueError: naming the forms accepted, for anything else.
+
+        Example:
+            >>> BudgetTarget.parse("peak=500000/1ms")
+            BudgetTarget(kind='peak', value=500.0, time_unit=None, window=1000.0)
+            >>> BudgetTarget.parse("ratio=0.05").value
+            0.05
+        """
+        forms = "ratio=R, count=N, rate=EVENTS_PER_S or peak=EVENTS_PER_S/WINDOW (e.g. 1ms)"
+        kind, sep, value = (part.strip() for part in str(text).partition("="))
+        if not sep or kind not in ("ratio", "count", "rate", "peak"):
+            raise ValueError(f"a budget must be {forms}, got {text!r}")
+        rate, _, window = value.partition("/")
+        if (kind == "peak") != bool(window):
+            raise ValueError(f"a budget must be {forms}, got {text!r}")
+        try:
+            number = float(rate)
+        except ValueError:
+            raise ValueError(f"a budget must be {forms}, got {text!r}") from None
+        if kind != "peak":
+            return cls(cast(Literal["ratio", "count", "rate"], kind), number)
+        found = re.fullmatch(r"([0-9.eE+-]+)\s*(s|ms|us|ns)", window.strip())
+        try:
+            if found is None:
+                raise ValueError
+            length_us = float(found[1]) * TIME_UNITS[found[2]]
+        except ValueError:
+            raise ValueError(f"the window of {text!r} must be a number and a unit (s, ms, us "
+                             "or ns), e.g. 1ms") from None
+        check_positive_float("peak window", length_us)
+        per_window = check_positive_float("peak rate", number) * length_us * 1e-6
+        if abs(per_window - round(per_window)) > 1e-9 * per_window or round(per_window) < 1:
+            raise ValueError(
+                f"{text!r} allows {per_window:g} events per window: choose a rate and a window "
+                "whose product is a whole number of events (at least 1)"
+            )
+        return cls.peak(float(round(per_window)), length_us)
+
     def events(self, *, input_events: int, duration: float) -> float:
-        """The target as a total count.
+        """The target as a count: a total (a peak target: the most events in one window).
 
         Args:
             input_events: the recordings' input events, all together.
@@ -103,7 +189,7 @@ class BudgetTarget:
         """
         if self.kind == "ratio":
             return self.value * input_events
-        if self.kind == "count":
+        if self.kind in ("count", "peak"):
             return self.value
         if duration <= 0:
             raise ValueError("a rate target needs recordings that span a positive duration")
@@ -118,9 +204,12 @@ class Calibration(Generic[D]):
     Attributes:
         transform: the calibrated copy of the transform.
         value: its budget setting.
-        count: its total output over the recordings.
-        target: the target as a total count.
+        count: its total output over the recordings (for a peak target: its peak, the most
+            events in one window).
+        target: the target as a count (:meth:`BudgetTarget.events`).
         evaluations: how many settings were run.
+        rates: its output's mean, 99th-percentile and peak window rates, for a peak target
+            or a ``window`` given (else ``None``).
     """
 
     transform: D
@@ -128,6 +217,7 @@ class Calibration(Generic[D]):
     count: int
     target: float
     evaluations: int
+    rates: WindowRates | None = None
 
 
 def calibrate(
@@ -146,8 +236,9 @@ def calibrate(
             current setting is where the search starts, its other settings are kept.
         recordings: the calibration streams, any kind the transform accepts (at least one
             event in all).
-        target: the wanted total output (:class:`BudgetTarget`).
-        rtol: stop once the count is within this fraction of the target.
+        target: the wanted output (:class:`BudgetTarget`): a total, or a peak per window.
+        rtol: stop once the count is within this fraction of the target (below it, for a
+            peak).
         max_evaluations: run the transform with at most this many settings.
 
     Returns:
@@ -170,6 +261,12 @@ def calibrate(
         >>> down = calibrate(EventCount((32, 32, 2), 4), [ev], BudgetTarget.ratio(0.05))
         >>> abs(len(down(ev)) / 20_000 - 0.05) < 0.05 * 0.05
         True
+
+        At most 40 events in any window of 1,000 timestamp units (40 k events/s at peak):
+
+        >>> found = calibration(EventCount((32, 32, 2), 4), [ev], BudgetTarget.peak(40, 1000))
+        >>> found.count <= 40, found.rates.peak == found.count
+        (True, True)
     """
     return calibration(transform, recordings, target, rtol=rtol,
                        max_evaluations=max_evaluations).transform
@@ -182,8 +279,14 @@ def calibration(
     *,
     rtol: float = 0.01,
     max_evaluations: int = 40,
+    window: float | None = None,
 ) -> Calibration[D]:
-    """As :func:`calibrate`, returning what the search found (:class:`Calibration`)."""
+    """As :func:`calibrate`, returning what the search found (:class:`Calibration`).
+
+    ``window`` (timestamp units): also report the output's window rates
+    (:attr:`Calibration.rates`) for a ratio, count or rate target; a peak target reports them
+    in its own window.
+    """
     if not isinstance(transform, Downscaler):
         raise TypeError(f"transform must be a Downscaler, got {type(transform).__name__}")
     setting = type(transform).budget_setting
@@ -198,10 +301,14 @@ def calibration(
         raise TypeError(
             f"target must be a BudgetTarget, got {target!r}: give BudgetTarget.ratio(r) for a "
             f"fraction of the input events (e.g. BudgetTarget.ratio({example!r})), "
-            "BudgetTarget.count(n) for events per recording or BudgetTarget.rate(hz) for "
-            "events per second")
+            "BudgetTarget.count(n) for events over all recordings, BudgetTarget.rate(hz) for "
+            "events per second or BudgetTarget.peak(n, window) for at most n events per window")
     rtol = check_positive_float("rtol", rtol)
     max_evaluations = check_positive_int("max_evaluations", max_evaluations)
+    if target.kind == "peak":
+        window = target.window
+    elif window is not None:
+        window = check_positive_float("window", window)
     try:  # one device, one clock: integer and float timestamps do not mix
         streams = list(to_batch(recordings, transform.sensor_size)[0].unbind())
     except ValueError as error:
@@ -211,20 +318,32 @@ def calibration(
         raise ValueError("calibrate needs recordings with at least one event")
     duration = sum(float(s.t.max() - s.t.min()) for s in streams if s.num_events)
     wanted = target.events(input_events=inputs, duration=duration)
-    search = _Search(transform, setting, streams, wanted, max_evaluations)
+    search = _Search(transform, setting, streams, wanted, max_evaluations,
+                     _Measure(target.kind == "peak", window, target.time_unit))
     best = search.run(float(getattr(transform, setting)), rtol)
     return Calibration(search.build(best), best, int(search.counts[best]), wanted,
-                       len(search.counts))
+                       len(search.counts), search.rates.get(best))
+
+
+@dataclass(frozen=True)
+class _Measure:
+    """What a search counts: the total (or, ``peak``, the busiest window) of the outputs."""
+
+    peak: bool = False
+    window: float | None = None  # also measure the window rates (a peak's own window)
+    time_unit: float | None = None
 
 
 class _Search(Generic[D]):
     """The output count as a function of the setting, remembered, and the search over it."""
 
     def __init__(self, transform: D, setting: str, streams: list[Events],
-                 wanted: float, max_evaluations: int) -> None:
+                 wanted: float, max_evaluations: int, measure: _Measure) -> None:
         self.transform, self.setting, self.streams = transform, setting, streams
         self.wanted, self.max_evaluations = wanted, max_evaluations
+        self.measure = measure
         self.counts: dict[float, float] = {}
+        self.rates: dict[float, WindowRates] = {}
 
     def build(self, value: float) -> D:
         # The setting is named at run time: no field's type can be checked here (the
@@ -245,9 +364,15 @@ class _Search(Generic[D]):
             try:
                 # one pass over every recording (Events in, Events out)
                 outputs = cast(list[Events], down.batch(self.streams))
-                self.counts[value] = float(sum(out.num_events for out in outputs))
             except OutputLimitError:  # an output too large to produce: more than any target
                 self.counts[value] = math.inf
+                return math.inf
+            self.counts[value] = float(sum(out.num_events for out in outputs))
+            if self.measure.window is not None:
+                rates = window_rates(outputs, self.measure.window, self.measure.time_unit)
+                self.rates[value] = rates
+                if self.measure.peak:
+                    self.counts[value] = float(rates.peak)
         return self.counts[value]
 
     def edge(self, inside: float, outside: float) -> float:
@@ -276,9 +401,16 @@ class _Search(Generic[D]):
         return len(self.counts) >= self.max_evaluations
 
     def close(self, value: float, rtol: float) -> bool:
+        if self.measure.peak:  # at most the target, and within rtol below it
+            return (1 - rtol) * self.wanted <= self.count(value) <= self.wanted
         return abs(self.count(value) - self.wanted) <= rtol * self.wanted
 
     def best(self) -> float:
+        if self.measure.peak:
+            under = [v for v in self.counts if self.counts[v] <= self.wanted]
+            if under:  # the largest peak not above the target
+                return min(under, key=lambda v: (-self.counts[v], v))
+            return min(self.counts, key=lambda v: (self.counts[v], v))
         return min(self.counts, key=lambda v: (abs(self.counts[v] - self.wanted), v))
 
     def direction(self, start: float) -> int:
@@ -318,12 +450,15 @@ class _Search(Generic[D]):
             value, other = other, following
         # Narrow: regula falsi (Illinois) on log(count) against log(setting).
         lo, hi = sorted((value, other))
+        # A peak (one window's count) jumps as the setting moves: settings 1e-4 apart are
+        # as close as it is worth telling apart.
+        narrowest = 1e-4 if self.measure.peak else 1e-9
         log_target = math.log(self.wanted)
         keep_lo = keep_hi = 1.0
         side = 0
         while not self.spent():
             c_lo, c_hi = self.count(lo), self.count(hi)
-            if self.close(lo, rtol) or self.close(hi, rtol) or hi / lo - 1.0 < 1e-9:
+            if self.close(lo, rtol) or self.close(hi, rtol) or hi / lo - 1.0 < narrowest:
                 break
             u_lo, u_hi = math.log(lo), math.log(hi)
             if 0 < c_lo < math.inf and 0 < c_hi < math.inf and c_lo != c_hi:

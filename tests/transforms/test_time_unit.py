@@ -75,7 +75,7 @@ def test_a_time_unit_left_out_stays_out_of_copies():
     assert rate.time_unit is None
     assert dataclasses.replace(rate, kind="ratio", value=0.1) == BudgetTarget.ratio(0.1)
     assert rate.events(input_events=10, duration=2e6) == 200.0  # the default, microseconds
-    with pytest.raises(ValueError, match="time_unit=1e-06 applies only to a rate target"):
+    with pytest.raises(ValueError, match="time_unit=1e-06 applies only to a rate or peak target"):
         dataclasses.replace(BudgetTarget.rate(100.0, 1e-6), kind="count")
 
 
@@ -100,12 +100,12 @@ def test_bad_time_units_are_refused_everywhere_with_one_message(time_unit, error
 def test_time_unit_is_refused_where_no_rate_uses_it(rng):
     with pytest.raises(ValueError, match="time_unit=0.001 converts the frames mode"):
         PhotocurrentPooling(SENSOR, time_unit=1e-3)
-    with pytest.raises(ValueError, match="applies only to a rate target"):
+    with pytest.raises(ValueError, match="applies only to a rate or peak target"):
         BudgetTarget("ratio", 0.5, 1e-3)
-    with pytest.raises(ValueError, match="applies only to a rate target"):
+    with pytest.raises(ValueError, match="applies only to a rate or peak target"):
         BudgetTarget("count", 100, 1.0)
     arr = random_stream(rng, 500, (8, 8, 2))
-    with pytest.raises(ValueError, match="applies only to a rate target"):
+    with pytest.raises(ValueError, match="applies only to a rate or peak target"):
         calibrate_weight(arr, (8, 8, 2), 2, target_ratio=0.1, time_unit=1e-3)
 
 

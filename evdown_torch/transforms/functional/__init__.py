@@ -2,8 +2,8 @@
 
 Each method is a frozen settings dataclass, checked once (:class:`RegionSettings`,
 :class:`ThresholdSettings`, :class:`EstimationSettings`, :class:`PhotocurrentSettings`,
-:class:`TemporalSettings`, :class:`LIFSettings` inside :class:`LIFPoolingSettings`), and
-three kernels ``init_state``, ``step`` and ``finish`` on them
+:class:`TemporalSettings`, :class:`RateLimitSettings`, :class:`LIFSettings` inside
+:class:`LIFPoolingSettings`), and three kernels ``init_state``, ``step`` and ``finish`` on them
 (:class:`~evdown_torch.transforms.Method`). The whole-stream functions below take the
 settings as keywords, for direct use.
 """
@@ -21,6 +21,7 @@ from evdown_torch.transforms.functional.lif.settings import LIFPoolingSettings, 
 from evdown_torch.transforms.functional.photocurrent.events_mode import photocurrent_events
 from evdown_torch.transforms.functional.photocurrent.frames_mode import photocurrent_frames
 from evdown_torch.transforms.functional.photocurrent.settings import PhotocurrentSettings
+from evdown_torch.transforms.functional.rate_limit import RateLimitSettings, limit_rate
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
 from evdown_torch.transforms.functional.temporal import TemporalSettings, temporal_funnelling
 
@@ -29,6 +30,7 @@ __all__ = [
     "LIFPoolingSettings",
     "LIFSettings",
     "PhotocurrentSettings",
+    "RateLimitSettings",
     "RegionSettings",
     "TemporalSettings",
     "ThresholdSettings",
@@ -37,6 +39,7 @@ __all__ = [
     "event_count",
     "event_funnelling",
     "lif_pooling",
+    "limit_rate",
     "linear_estimation",
     "photocurrent_events",
     "photocurrent_frames",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import torch
@@ -215,6 +216,19 @@ EVENT_COUNT: Method[ThresholdSettings, EventCountState] = Method(
 )
 
 
+@functools.lru_cache(maxsize=32)
+def _region_sizes(sensor_size: tuple[int, int, int], factor: tuple[int, int], regions: int,
+                  device: torch.device) -> tuple[Tensor, int, bool]:
+    """``n_r`` of every region (never written to), the largest, and whether all are equal.
+
+    The same for every chunk of a stream: computed once, not per call (a live stream's small
+    chunks would pay it each time).
+    """
+    pixels = region_pixel_count(torch.arange(regions, device=device), sensor_size, factor)
+    most = int(pixels.max())
+    return pixels, most, most == int(pixels.min())
+
+
 def _event_count_sorted(
     events: Events,
     settings: ThresholdSettings,
@@ -243,9 +257,7 @@ def _event_count_sorted(
     sensor_size, factor = settings.sensor_size, settings.factor
     out_w, _, _ = settings.output_sensor_size
     regions = state.level_sum.shape[0]  # Ho * Wo per stacked recording
-    pixels = region_pixel_count(torch.arange(regions, device=device), sensor_size, factor)
-    most = int(pixels.max())
-    uniform = most == int(pixels.min())
+    pixels, most, uniform = _region_sizes(sensor_size, factor, regions, device)
     # int32 arithmetic is exact when every b * S and a * n_r fits (the usual case).
     dtype = torch.int32 if 4 * bound * b < 2**31 and most * a < 2**31 else torch.int64
 

@@ -32,7 +32,14 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import changes, narrow_dtype, stable_sort_small, take, where_true
+from evdown_torch._tensors import (
+    changes,
+    last_of_runs,
+    narrow_dtype,
+    stable_sort_small,
+    take,
+    where_true,
+)
 from evdown_torch.checks import check_output_count, output_size
 
 __all__ = [
@@ -122,14 +129,25 @@ class RegionRuns(NamedTuple):
 
 
 def region_runs(region: Tensor, regions: int) -> RegionRuns:
-    """The runs of sorted region ids ``region`` (``(N,)``, ids below ``regions``), by bisection.
+    """The runs of sorted region ids ``region`` (``(N,)``, ids below ``regions``).
+
+    By bisection for every region id when the events outnumber the regions; from the run
+    starts of ``region`` when they do not (a live stream's small chunk, whose cost would
+    otherwise follow the sensor's regions rather than its events). Both give the same runs.
 
     Example:
         >>> runs = region_runs(torch.tensor([0, 0, 2, 3, 3, 3]), 5)
         >>> runs.touched.tolist(), runs.firsts.tolist(), runs.lasts.tolist()
         ([0, 2, 3], [0, 2, 3], [1, 2, 5])
+        >>> region_runs(torch.tensor([0, 0, 2, 3, 3, 3]), 9).lasts.tolist()
+        [1, 2, 5]
     """
     n = region.shape[0]
+    if n < regions:
+        first = changes(region)
+        firsts = where_true(first)
+        return RegionRuns(take(region, firsts).to(torch.int64), firsts,
+                          last_of_runs(firsts, n), first)
     ids = torch.arange(regions, dtype=region.dtype, device=region.device)
     edges = torch.cat([torch.searchsorted(region, ids), ids.new_tensor([n], dtype=torch.int64)])
     touched = where_true(edges[1:] > edges[:-1])
