@@ -1,7 +1,7 @@
 """The paper's Figure 5 for one output pixel: what each method watches and what it emits.
 
 :func:`region_curves` computes, for the region behind one output pixel, the values the kernels
-work with, from the kernels' own machinery (SEMANTICS.md methods 3 to 5 and 7):
+work with, from the kernels' own machinery (docs/semantics.md, methods 3 to 5 and 7):
 
 * each pixel's level ``L_p`` (ON +1, OFF -1) after each of its events;
 * the region's mean level ``M_r = sum L_p / n_r`` after each event (what EventCount watches);

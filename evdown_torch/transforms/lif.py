@@ -63,8 +63,8 @@ class LIFPooling(Downscaler):
     ``t_start + (k + 1) * dt`` clipped to ``t_end``. The kernel is event-driven: a neuron is
     touched only at the steps where its block has events, the silences in between (decay, and
     a neuron firing on above threshold) are solved in closed form, so the cost follows the
-    events, not steps x regions (see :mod:`evdown_torch.transforms.functional.lif.pooling`, also for
-    the float32 rounding over a silence, the only difference from stepping).
+    events, not steps x regions (see :func:`~evdown_torch.transforms.functional.lif_pooling`,
+    also for the float32 rounding over a silence, the only difference from stepping).
 
     Choosing the settings. ``dt`` and ``tau`` are in the stream's time unit (microseconds for
     Tonic datasets; nothing is rescaled). A neuron fires once its membrane *exceeds*
@@ -145,7 +145,7 @@ class LIFPooling(Downscaler):
 
     @cached_property
     def method_settings(self) -> LIFPoolingSettings:
-        """What the kernels take: the region geometry and :attr:`settings` (checked once)."""
+        """What the kernels take, the region geometry and :attr:`settings` (checked once)."""
         neuron = LIFSettings(
             dt=self.dt, tau=self.tau, threshold=self.threshold, weight=self.weight,
             mutual_inhibition=self.mutual_inhibition, reset_mechanism=self.reset_mechanism,
@@ -171,7 +171,7 @@ class LIFPooling(Downscaler):
         Run on the stream's frames ``ToFrame(sensor_size, time_window=dt,
         include_incomplete=True)`` (windows from the first event on, as a ``(T, 1, 2, H, W)``
         float tensor), it gives the spikes that this transform turns into events (up to float32
-        rounding over silences, see :mod:`evdown_torch.transforms.functional.lif.pooling`).
+        rounding over silences, see :func:`~evdown_torch.transforms.functional.lif_pooling`).
         """
         from evdown_torch.models.pooling import SpikingPooling  # models build on transforms
 

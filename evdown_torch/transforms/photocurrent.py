@@ -41,7 +41,7 @@ def _stacked(batch: EventBatch, settings: PhotocurrentSettings) -> EventBatch | 
 
 @dataclass(frozen=True)
 class PhotocurrentPooling(Downscaler):
-    """Photocurrent pooling (SEMANTICS.md method 7): what a physically larger pixel would see.
+    """Photocurrent pooling (docs/semantics.md, method 7): what a physically larger pixel would see.
 
     Each input pixel's log intensity is ``contrast * L_p`` (``L_p``: its integer level, ON +1,
     OFF -1; every pixel starts at intensity 1). A region's photocurrent is the mean of its

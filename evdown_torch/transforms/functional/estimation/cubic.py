@@ -352,7 +352,7 @@ def cubic_estimation(
     """Downscale by cubic log-luminance estimation (docs/semantics.md, method 5).
 
     Each pixel's log-luminance is the piecewise cubic Hermite interpolant of its knots (see
-    :mod:`~evdown_torch.transforms.functional.estimation.knots`) with SciPy's ``PchipInterpolator``
+    ``estimation.knots``) with SciPy's ``PchipInterpolator``
     slopes; each region's mean ``M_r`` is watched by the DVS reference rule at contrast
     ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
     the crossing times, rounded half up to integers when ``t`` is int64.
@@ -371,7 +371,7 @@ def cubic_estimation(
         factor: ``(fx, fy)``.
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
-        recording_spans: as :func:`.linear.linear_estimation`.
+        recording_spans: as :func:`~evdown_torch.transforms.functional.linear_estimation`.
         max_delay: as there; besides, each pixel's slope at its first knot is 0 (at rest
             before the stream).
 
@@ -396,7 +396,7 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
 
     :class:`~evdown_torch.transforms.functional.estimation.driver.RegionJob` says what ``job``
     holds. With ``job.front_at_rest`` each pixel's slope at its first knot is 0
-    (:func:`pchip_slopes`).
+    (``pchip_slopes``).
     """
     sensor_size, factor, fraction = job.sensor_size, job.factor, job.fraction
     emitted, resume, front_at_rest = job.emitted, job.resume, job.front_at_rest

@@ -53,7 +53,7 @@ class RegionJob(NamedTuple):
         fraction: the threshold as the rational ``a / b`` of ``threshold_fraction``.
         emitted: events of the chunks before (for the output limit).
         resume: where a streaming window starts
-            (:func:`~evdown_torch.transforms.functional.estimation.stream.resume_moves`), or
+            (``estimation.stream.resume_moves``), or
             ``None``.
         front_at_rest: a bounded delay: pixels at rest before their first knot (the cubic
             slope there is 0; nothing changes for polylines).
@@ -106,7 +106,7 @@ def estimate(
             their level until ``D`` before each knot; ``None`` is the paper's method.
         recording_spans: for a batch of ``B`` recordings stacked vertically (recording ``b``'s pixel
             ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
-            :mod:`evdown_torch.transforms._batch`), the ``(B,)`` first and last timestamps
+            ``evdown_torch.transforms._batch``), the ``(B,)`` first and last timestamps
             of each recording, its ``t_start`` and ``t_end``; ``None`` for one stream.
 
     Returns:

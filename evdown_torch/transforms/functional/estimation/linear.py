@@ -154,7 +154,7 @@ def linear_estimation(
     """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
 
     Each pixel's log-luminance is the polyline through its knots (see
-    :mod:`.knots`); each region's mean ``M_r`` (sum of its
+    ``estimation.knots``); each region's mean ``M_r`` (sum of its
     pixels' polylines over ``n_r``) is watched by the DVS reference rule at contrast
     ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
     the exact crossing times, rounded half up to integers when ``t`` is int64.
@@ -173,7 +173,7 @@ def linear_estimation(
         threshold: contrast threshold ``theta`` on the region's mean level, > 0, used as the
             nearest fraction with denominator at most 10**6.
         recording_spans: ``(B,)`` first and last timestamps of each recording of a batch stacked
-            vertically (see :func:`.driver.estimate`), or
+            vertically (see ``estimation.driver.estimate``), or
             ``None`` for one stream.
         max_delay: bounded delay ``D`` in the stream's time unit (docs/semantics.md,
             "Bounded delay"; a whole number for int64 ``t``), or ``None`` for the paper's

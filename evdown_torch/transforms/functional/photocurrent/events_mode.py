@@ -1,4 +1,4 @@
-"""Photocurrent pooling kernels (SEMANTICS.md method 7): events to video to events.
+"""Photocurrent pooling kernels (docs/semantics.md, method 7): events to video to events.
 
 Each input pixel keeps an integer level ``L_p`` (ON +1, OFF -1) and its log intensity is
 ``c * L_p``. A region's photocurrent is the mean of its pixels' intensities,
@@ -109,7 +109,7 @@ def initial_state(
 
     With ``recordings > 1``, the state of that many recordings stacked vertically (recording
     ``b``'s pixel ``(x, y)`` at ``(x, y + b * Ho * fy)``, see
-    :mod:`evdown_torch.transforms._batch`).
+    ``evdown_torch.transforms._batch``).
     """
     w, h, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
@@ -188,7 +188,7 @@ def photocurrent_events(
     state: PhotocurrentState | None = None,
     recordings: int = 1,
 ) -> tuple[Events, PhotocurrentState]:
-    """Photocurrent pooling, events mode (SEMANTICS.md method 7): causal, streamable.
+    """Photocurrent pooling, events mode (docs/semantics.md, method 7): causal, streamable.
 
     After each input event, in stable time order, its region's ``u = log(I_r) / threshold``
     with ``I_r = mean(exp(contrast * L_p))`` is tested with the DVS reference rule; emitted
@@ -203,7 +203,7 @@ def photocurrent_events(
         state: the state returned for the previous chunk of the same stream, or ``None``.
         recordings: ``B``, for a batch of recordings stacked vertically (recording ``b``'s
             pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
-            :mod:`evdown_torch.transforms._batch`). 1 for one stream.
+            ``evdown_torch.transforms._batch``). 1 for one stream.
 
     Returns:
         ``(output events sorted by t, state after the last event)``.

@@ -1,4 +1,4 @@
-"""Photocurrent pooling, frames mode (SEMANTICS.md method 7): the paper's literal pipeline.
+"""Photocurrent pooling, frames mode (docs/semantics.md, method 7): the paper's literal pipeline.
 
 Frames at ``t_start + k / fps`` (the last one clipped to ``t_end``), each region's log
 photocurrent interpolated linearly in time between consecutive frames, crossings at exact
@@ -71,7 +71,7 @@ def photocurrent_frames(
     cutoff_hz: float = 0.0,
     time_unit: float = DEFAULT_TIME_UNIT,
 ) -> Events:
-    """Photocurrent pooling, frames mode (SEMANTICS.md method 7): the paper's literal pipeline.
+    """Photocurrent pooling, frames mode (docs/semantics.md, method 7): the paper's pipeline.
 
     Intensity frames at ``t_start + k / fps`` (``t`` counting ``time_unit`` seconds; the last
     frame is clipped to ``t_end``) hold every event up to their time. Each pixel's log intensity is

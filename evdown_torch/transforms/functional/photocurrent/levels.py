@@ -1,4 +1,4 @@
-"""What both modes of photocurrent pooling share (SEMANTICS.md method 7).
+"""What both modes of photocurrent pooling share (docs/semantics.md, method 7).
 
 The range checks of the contrast, threshold and levels, the geometry of a region's pixels,
 the exact pixel levels after each event, a region's log-mean-exp of its levels, and the

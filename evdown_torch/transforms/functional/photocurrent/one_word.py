@@ -1,4 +1,4 @@
-"""The one-word running sums of the photocurrent events mode (SEMANTICS.md method 7).
+"""The one-word running sums of the photocurrent events mode (docs/semantics.md, method 7).
 
 A long piece is first tried with one int64 word per region sum (:func:`one_word_sums`): each
 region's intensities relative to its brightest level during the piece, one table of

@@ -1,4 +1,4 @@
-"""Running photocurrent sums of the photocurrent events mode (SEMANTICS.md method 7).
+"""Running photocurrent sums of the photocurrent events mode (docs/semantics.md, method 7).
 
 Per piece of a stream: each event's pixel level before it, grouped by region with a one-byte
 sort (:func:`grouped_levels`); each touched region anchored at its brightest pixel (and
