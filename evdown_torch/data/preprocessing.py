@@ -33,8 +33,9 @@ import torch
 import evdown_torch
 from evdown_torch.checks import check_choice, check_factor, check_positive_int
 from evdown_torch.data import shards
-from evdown_torch.data.sources import check_label
+from evdown_torch.data.sources import SyntheticSource, check_label
 from evdown_torch.threads import torch_threads
+from evdown_torch.time_units import check_timing, time_settings, timing_checked_by_caller
 from evdown_torch.transforms import Downscaler
 from evdown_torch.transforms.registry import make_method, method_settings
 
@@ -120,7 +121,37 @@ def _worker_shard(shard: int) -> tuple[dict[str, Any], tuple[float, float, float
 def _write_one_shard(
     state: dict[str, Any], shard: int
 ) -> tuple[dict[str, Any], tuple[float, float, float]]:
-    """Downscale shard ``shard``'s recordings and write it; returns its record and timings."""
+    """Downscale shard ``shard``'s recordings and write it; returns its record and timings.
+
+    The run checked the timing of its first recording (:func:`_check_timing`): the readers'
+    and transforms' own checks are silent here, or every file and process would repeat it.
+    """
+    with timing_checked_by_caller():
+        return _write_shard(state, shard)
+
+
+def _check_timing(source: Source, transform: Downscaler) -> None:
+    """Warn once, naming it, when the first recording that reads looks like another time unit.
+
+    The one :func:`~evdown_torch.time_units.check_timing` of a run, against the method's
+    time settings (a recording that does not read is left to the shard that meets it).
+    Synthetic recordings are rendered in microseconds: not checked.
+    """
+    if isinstance(source, SyntheticSource):
+        return
+    for index in range(min(len(source), 8)):
+        try:
+            with timing_checked_by_caller():
+                events, _ = source.load(index)
+        except (OSError, EOFError, ValueError, TypeError):
+            continue
+        check_timing(events["t"], time_settings(transform), source=source.source_name(index))
+        return
+
+
+def _write_shard(
+    state: dict[str, Any], shard: int
+) -> tuple[dict[str, Any], tuple[float, float, float]]:
     source, transform, size = state["source"], state["transform"], state["shard_size"]
     first, stop = shard * size, min((shard + 1) * size, len(source))
     shards.remove_stale_temporaries(state["out"], shard)
@@ -392,6 +423,7 @@ def preprocess(
     kept = tuple(r["shard"] for r in records)
     if todo:
         (out / shards.MANIFEST).unlink(missing_ok=True)
+        _check_timing(source, transform)
     if workers is None:
         workers = 1 if world > 1 else _default_workers()
     workers = min(workers, max(len(todo), 1))

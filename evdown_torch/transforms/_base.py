@@ -12,6 +12,7 @@ import torch
 from evdown_torch._tensors import sort_by_time
 from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.events import EventFormat, Events, EventsLike, from_events, to_events
+from evdown_torch.time_units import check_first_call
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
 
 
@@ -79,7 +80,7 @@ class Streaming:
     """
 
     sensor_size: tuple[int, int, int] | None
-    #: The method's kernels (``None``: a composition such as :class:`Chain`).
+    #: The method's kernels, or ``None`` for a composition such as :class:`Chain`.
     method: ClassVar[Method | None] = None
 
     @property
@@ -144,8 +145,15 @@ class Streaming:
         Returns:
             The output events, sorted by ``t``, in the input's kind, dtype and polarity
             encoding.
+
+        Warns:
+            TimeUnitWarning: at most once per transform, when the first recording it is called
+                on (of at least 100 events) looks like timestamps in another unit than the
+                microseconds its time settings are in
+                (:func:`~evdown_torch.time_units.check_first_call`).
         """
         ev, fmt = to_events(events, self.sensor_size)
+        check_first_call(self, ev.t)
         return from_events(self.kernel(ev), fmt)
 
     @overload
@@ -193,7 +201,11 @@ class Streaming:
         return from_batch(self._batch_events(batch), formats)
 
     def _batch_events(self, batch: EventBatch) -> EventBatch:
-        """:meth:`batch` on validated events."""
+        """:meth:`batch` on validated events (the longest recording's timing checked once)."""
+        if batch.lengths:
+            longest = max(range(len(batch.lengths)), key=batch.lengths.__getitem__)
+            start = sum(batch.lengths[:longest])
+            check_first_call(self, batch.events.t[start:start + batch.lengths[longest]])
         out = self.batch_kernel(batch)
         if out is None:  # no batched kernel: one recording at a time
             parts = [self.kernel(part) for part in batch.unbind()]
@@ -223,7 +235,7 @@ class Session:
     Chunks must follow each other in time: a chunk may not hold a timestamp earlier than the
     previous chunks' last one (equal timestamps are fine and keep chunk order). A chunk that
     breaks this, or any other bad chunk, raises a ``ValueError`` and leaves the session as it
-    was, so it stays usable. The method's own state is held explicitly in :attr:`state`
+    was, so it stays usable. The method's own state is held explicitly in ``state``
     (``None`` before the first event); the transform itself is never modified.
 
     Attributes:
