@@ -477,3 +477,11 @@ def test_a_folder_of_float_seconds_with_time_unit_and_columns(tmp_path, rng, cap
                  "--columns", "t,x,y,p"]) == 0
     (warning,) = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
     assert "rec0.npy" in warning and "--time-unit s" in warning and "time_unit=" not in warning
+
+
+def test_help_names_every_format_a_folder_may_hold(capsys):
+    with pytest.raises(SystemExit):
+        main(["preprocess", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "PATH/CLASS/FILE" in text and ".bin" in text and ".aedat4" in text
+    assert "--time-unit" in text and "--columns" in text and "Train/" in text
