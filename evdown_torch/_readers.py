@@ -12,6 +12,7 @@ import importlib
 import json
 import zipfile
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from types import ModuleType
 from typing import Any, NamedTuple
@@ -115,7 +116,8 @@ class Read(NamedTuple):
     recorded: tuple[int, int, int] | None  # the sensor size the file records
     guess: tuple[int, int, int] | None  # a better guess than the largest coordinates
     time_unit: str | None = None  # the one the format or the file states
-    hint: str = ""  # added to an error about the coordinates (another column order?)
+    # What an error about the coordinates adds (another column order?), made only then.
+    hint: Callable[[], str] | None = None
 
 
 def sidecar(path: str | Path) -> Path:
@@ -236,12 +238,12 @@ def read_npy(path: Path, columns: Any = FIELDS) -> Read:
     source = str(path)
     data = load_npy(path)
     names = data.dtype.names or ()
-    hint = ""
+    hint = None
     if data.ndim == 1 and {"x", "y", "t", "p"} <= set(names):
         events = data
     elif data.ndim == 2 and data.shape[1] == 4 and not names:
         order = check_columns(columns)
-        hint = _columns_hint(data, order)
+        hint = partial(_columns_hint, data, order)
         x, y, t, p = (data[:, order.index(f)] for f in FIELDS)
         try:
             if np.issubdtype(data.dtype, np.floating):  # one dtype for all: whole-number x, y
@@ -250,7 +252,7 @@ def read_npy(path: Path, columns: Any = FIELDS) -> Read:
                 x, y = x.astype(np.int64), y.astype(np.int64)
             events = _columns(x, y, t, p, source)
         except ValueError as error:
-            raise ValueError(f"{error}{hint}") from None
+            raise ValueError(f"{error}{hint()}") from None
     else:
         raise ValueError(
             f"{source!r} holds an array of dtype {data.dtype} and shape {data.shape}; "

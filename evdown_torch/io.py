@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -141,7 +142,7 @@ def _resolve_sensor_size(
     recorded: tuple[int, int, int] | None,
     guess: tuple[int, int, int] | None,
     source: str,
-    hint: str = "",
+    hint: Callable[[], str] | None = None,
 ) -> tuple[tuple[int, int, int], bool]:
     n = len(events)
     if n and (int(events["x"].min()) < 0 or int(events["y"].min()) < 0):
@@ -153,7 +154,8 @@ def _resolve_sensor_size(
             where = "recorded in the file" if recorded is not None else "given"
             raise ValueError(
                 f"{source!r} holds coordinates up to x={w - 1}, y={h - 1}, outside the sensor "
-                f"size {size} {where}{swapped_sensor_hint((w, h), size) or hint}"
+                f"size {size} {where}"
+                f"{swapped_sensor_hint((w, h), size) or (hint() if hint else '')}"
             )
         return size, False
     if not n:

@@ -24,6 +24,7 @@ import warnings
 import weakref
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
+from contextvars import ContextVar
 from typing import Any
 
 import numpy as np
@@ -41,6 +42,7 @@ __all__ = [
     "display_unit",
     "time_settings",
     "timing_checked_by_caller",
+    "timing_warning",
     "to_microseconds",
 ]
 
@@ -152,6 +154,49 @@ def time_settings(transform: Any) -> dict[str, float]:
     return found
 
 
+def timing_warning(
+    t: Any, settings: Mapping[str, float] | None = None, *, source: str = "recording"
+) -> TimeUnitWarning | None:
+    """The warning of :func:`check_timing`, made but not given; ``None`` when all looks right.
+
+    Args:
+        t: ``(N,)`` timestamps in microseconds (a NumPy array or a tensor).
+        settings: name -> value in microseconds.
+        source: how the warning names the recording.
+
+    Example:
+        >>> timing_warning(np.linspace(0.0, 0.3, 3000)).command_line[:45]
+        'recording: 3000 events in 0.3 us imply 1e+10 '
+        >>> timing_warning(np.linspace(0.0, 3e5, 3000)) is None
+        True
+    """
+    n = len(t)
+    if n < 2:
+        return None
+    first, last = float(t.min()), float(t.max())
+    span_us = last - first
+    problems = []
+    rate = math.inf if span_us <= 0 else n / (span_us / 1e6)
+    if n >= MIN_EVENTS_FOR_RATE and rate > MAX_PLAUSIBLE_RATE:
+        problems.append(f"{n} events in {span_us:g} us imply {rate:.3g} events/s, more than "
+                        f"any sensor makes ({MAX_PLAUSIBLE_RATE:g})")
+    longer = {k: v for k, v in (settings or {}).items() if span_us > 0 and v > span_us}
+    if longer:
+        listed = ", ".join(f"{k}={v:g} us" for k, v in longer.items())
+        problems.append(f"{listed} exceed{'s' if len(longer) == 1 else ''} the whole "
+                        f"recording ({span_us:g} us)")
+    if not problems:
+        return None
+    said = f"{source}: {'; '.join(problems)}. Timestamps are read as microseconds: if "
+    return TimeUnitWarning(
+        said + "they are seconds, milliseconds or nanoseconds, convert them first "
+        "(evdown_torch.time_units.to_microseconds(events, 's'), or "
+        "evdown_torch.io.read_events(path, time_unit='s')); else choose shorter time settings",
+        said + "the file holds seconds, milliseconds or nanoseconds, say so (--time-unit s, "
+        "ms or ns); else choose shorter time settings",
+    )
+
+
 def check_timing(
     t: Any, settings: Mapping[str, float] | None = None, *, source: str = "recording",
     transforms: Iterable[object] = (),
@@ -162,6 +207,7 @@ def check_timing(
     that the rate ``N / span`` exceeds :data:`MAX_PLAUSIBLE_RATE` (with at least
     :data:`MIN_EVENTS_FOR_RATE` events), and when a setting is
     longer than the whole recording (so that one step, window or delay covers all of it).
+    Silent inside :func:`timing_checked_by_caller`.
 
     Args:
         t: ``(N,)`` timestamps in microseconds (a NumPy array or a tensor).
@@ -185,31 +231,12 @@ def check_timing(
     """
     for transform in transforms:
         _remember(transform)
-    n = len(t)
-    if n < 2:
+    if _CHECKED_BY_CALLER.get():
         return False
-    first, last = float(t.min()), float(t.max())
-    span_us = last - first
-    problems = []
-    rate = math.inf if span_us <= 0 else n / (span_us / 1e6)
-    if n >= MIN_EVENTS_FOR_RATE and rate > MAX_PLAUSIBLE_RATE:
-        problems.append(f"{n} events in {span_us:g} us imply {rate:.3g} events/s, more than "
-                        f"any sensor makes ({MAX_PLAUSIBLE_RATE:g})")
-    longer = {k: v for k, v in (settings or {}).items() if span_us > 0 and v > span_us}
-    if longer:
-        listed = ", ".join(f"{k}={v:g} us" for k, v in longer.items())
-        problems.append(f"{listed} exceed{'s' if len(longer) == 1 else ''} the whole "
-                        f"recording ({span_us:g} us)")
-    if not problems:
+    warning = timing_warning(t, settings, source=source)
+    if warning is None:
         return False
-    said = f"{source}: {'; '.join(problems)}. Timestamps are read as microseconds: if "
-    warnings.warn(TimeUnitWarning(
-        said + "they are seconds, milliseconds or nanoseconds, convert them first "
-        "(evdown_torch.time_units.to_microseconds(events, 's'), or "
-        "evdown_torch.io.read_events(path, time_unit='s')); else choose shorter time settings",
-        said + "the file holds seconds, milliseconds or nanoseconds, say so (--time-unit s, "
-        "ms or ns); else choose shorter time settings",
-    ), stacklevel=2)
+    warnings.warn(warning, stacklevel=2)
     return True
 
 
@@ -248,21 +275,31 @@ def check_first_call(transform: object, t: Any) -> bool:
     Returns:
         ``True`` when it warned.
     """
-    if len(t) < MIN_EVENTS_FOR_RATE or id(transform) in _CHECKED:
+    if len(t) < MIN_EVENTS_FOR_RATE or id(transform) in _CHECKED or _CHECKED_BY_CALLER.get():
         return False
     return check_timing(t, time_settings(transform), source=type(transform).__name__,
                         transforms=(transform,))
 
 
+#: Whether the caller checks the timing itself (:func:`timing_checked_by_caller`): a context
+#: variable, so that the block silences its own thread (or asyncio task) only.
+_CHECKED_BY_CALLER: ContextVar[bool] = ContextVar("evdown_torch_timing_checked_by_caller",
+                                                  default=False)
+
+
 @contextmanager
 def timing_checked_by_caller() -> Iterator[None]:
-    """Silence the timing checks of readers and transforms inside the block.
+    """Silence the timing checks of readers and transforms inside the block, in this thread.
 
-    For a caller that checks the recordings itself with :func:`check_timing`, against every
-    time setting and naming the file, so that the readers' check (the rate alone) or a
-    transform's first call would not say it again: ``evdown``'s commands, and
-    ``evdown preprocess``'s workers after the run checked its first recording.
+    For a caller that checks the recordings itself (:func:`timing_warning`,
+    :func:`check_timing` outside the block), against every time setting and naming the file,
+    so that the readers' check (the rate alone) or a transform's first call would not say it
+    again: ``evdown``'s commands, and ``evdown preprocess``'s shards, which hand their first
+    recording's warning to the run. Unlike ``warnings.catch_warnings``, it leaves other
+    threads' warnings alone.
     """
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", TimeUnitWarning)
+    token = _CHECKED_BY_CALLER.set(True)
+    try:
         yield
+    finally:
+        _CHECKED_BY_CALLER.reset(token)

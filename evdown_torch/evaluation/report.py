@@ -337,7 +337,8 @@ def _markdown(result: EvaluationResult) -> str:
         f"consistency: 1 - normalised L1 distance of counts in "
         f"{config.measures.consistency_bin_us / 1000:g} ms bins to the camera's recording (the "
         "control's in brackets); MMACs/rec: the classifier's multiply-accumulates per "
-        "recording, in millions (dense); synops/rec: output events times the first layer's fan-out.\n\n"
+        "recording, in millions (dense); synops/rec: output events times the first layer's "
+        "fan-out.\n\n"
         "**Accuracy per class** (primary, control and sanity cells, all seeds):\n\n"
         + per_class_table(result)
         + "\n**Cost** (each transform timed alone on one thread; training time per seed):\n\n"
