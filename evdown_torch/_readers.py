@@ -13,6 +13,7 @@ import json
 import os
 import zipfile
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from types import ModuleType
 from typing import Any, NamedTuple
@@ -134,6 +135,8 @@ class Read(NamedTuple):
     recorded: tuple[int, int, int] | None  # the sensor size the file records
     guess: tuple[int, int, int] | None  # a better guess than the largest coordinates
     time_unit: str | None = None  # the one the format or the file states
+    # What an error about the coordinates adds (another column order?), made only then.
+    hint: Callable[[], str] | None = None
 
 
 def sidecar(path: str | Path) -> Path:
@@ -156,22 +159,119 @@ def check_columns(columns: Any) -> tuple[str, ...]:
     return names
 
 
+#: The first bytes of NumPy's files (a ``.npz`` is a zip archive; an empty one starts PK\5\6).
+_NUMPY_MAGIC = {".npy": (b"\x93NUMPY",), ".npz": (b"PK\x03\x04", b"PK\x05\x06")}
+
+
+def _what_it_holds(path: Path) -> str:
+    """``"text (a CSV file?)"`` or ``"binary data"``, from the first bytes of ``path``."""
+    with open(path, "rb") as file:
+        head = file.read(512)
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        return "binary data of another format"
+    first = text.splitlines()[0][:40] if text.strip() else ""
+    return f"text ({first!r}...: a CSV file?)" if first else "blank text"
+
+
+def _check_numpy_file(path: Path) -> None:
+    """Refuse a file named ``.npy``/``.npz`` that is not one, before NumPy guesses at it.
+
+    NumPy reads anything without its header as a pickle and advises ``allow_pickle``: never
+    the advice for a text file with the wrong name, and unsafe for a file of unknown origin.
+
+    Raises:
+        ValueError: naming what the file holds instead (text, other binary data, nothing).
+    """
+    extension = path.suffix.lower()
+    with open(path, "rb") as file:
+        head = file.read(8)
+    if not head:
+        raise ValueError("the file is empty")
+    if not head.startswith(_NUMPY_MAGIC[extension]):
+        raise ValueError(
+            f"it is not a NumPy {extension} file (no NumPy header) but {_what_it_holds(path)}; "
+            "a text table can be read with numpy.loadtxt and saved with numpy.save"
+        )
+
+
+def _numpy_error(error: Exception) -> str:
+    """NumPy's error, without its advice to load pickles (object arrays are refused)."""
+    if "pickle" in str(error):
+        return ("it holds Python objects (an object array), which are not loaded; save the "
+                "events as a structured or (N, 4) numeric array")
+    return str(error)
+
+
+def _suggest_columns(data: np.ndarray) -> tuple[str, ...] | None:
+    """The column order an ``(N, 4)`` array looks like, if only one fits; else ``None``.
+
+    ``t`` is the one column sorted in time and not constant, ``p`` the one taking two
+    values (0/1 or -1/+1), ``x`` and ``y`` the other two in their order.
+    """
+    if len(data) < 2 or not np.isfinite(data).all():
+        return None
+    columns = [data[:, i] for i in range(4)]
+    polar = [i for i, c in enumerate(columns)
+             if np.isin(c, (0, 1)).all() or np.isin(c, (-1, 1)).all()]
+    if len(polar) != 1:
+        return None
+    sorted_ = [i for i, c in enumerate(columns)
+               if i != polar[0] and c[0] < c[-1] and bool((np.diff(c) >= 0).all())]
+    if len(sorted_) != 1:
+        return None
+    x, y = (i for i in range(4) if i not in (polar[0], sorted_[0]))
+    names = [""] * 4
+    names[x], names[y], names[sorted_[0]], names[polar[0]] = FIELDS
+    return tuple(names)
+
+
+def _columns_hint(data: np.ndarray, given: tuple[str, ...]) -> str:
+    """What an error about an ``(N, 4)`` array's coordinates adds: another column order?"""
+    found = _suggest_columns(data)
+    if found is not None and found != given:
+        order = ",".join(found)
+        return (f"; its columns look like {order}, not {','.join(given)}: say so with "
+                f"columns='{order}' (--columns {order})")
+    return (f"; read as columns {','.join(given)}: if they come in another order, say so with "
+            "columns, e.g. columns='t,x,y,p' (--columns t,x,y,p)")
+
+
+def load_npy(path: Path) -> np.ndarray:
+    """The array a ``.npy`` file holds, never a pickle.
+
+    Raises:
+        ValueError: naming the problem (not a ``.npy`` file whatever its name, an object
+            array, a file cut short), never with NumPy's advice to load pickles.
+    """
+    try:
+        _check_numpy_file(path)
+        return np.load(path, allow_pickle=False)
+    except (ValueError, EOFError) as error:  # EOFError: a file cut short
+        raise ValueError(f"cannot read {str(path)!r} as a .npy array: {_numpy_error(error)}"
+                         ) from None
+
+
 def read_npy(path: Path, columns: Any = FIELDS) -> Read:
     source = str(path)
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (ValueError, EOFError) as error:  # EOFError: an empty file
-        raise ValueError(f"cannot read {source!r} as a .npy array: {error}") from None
+    data = load_npy(path)
     names = data.dtype.names or ()
+    hint = None
     if data.ndim == 1 and {"x", "y", "t", "p"} <= set(names):
         events = data
     elif data.ndim == 2 and data.shape[1] == 4 and not names:
-        x, y, t, p = (data[:, check_columns(columns).index(f)] for f in FIELDS)
-        if np.issubdtype(data.dtype, np.floating):  # one dtype for all: whole-number x, y
-            if not all(np.isfinite(c).all() and (c == np.round(c)).all() for c in (x, y)):
-                raise ValueError(f"{source}: coordinates x, y must be whole numbers")
-            x, y = x.astype(np.int64), y.astype(np.int64)
-        events = _columns(x, y, t, p, source)
+        order = check_columns(columns)
+        hint = partial(_columns_hint, data, order)
+        x, y, t, p = (data[:, order.index(f)] for f in FIELDS)
+        try:
+            if np.issubdtype(data.dtype, np.floating):  # one dtype for all: whole-number x, y
+                if not all(np.isfinite(c).all() and (c == np.round(c)).all() for c in (x, y)):
+                    raise ValueError(f"{source}: coordinates x, y must be whole numbers")
+                x, y = x.astype(np.int64), y.astype(np.int64)
+            events = _columns(x, y, t, p, source)
+        except ValueError as error:
+            raise ValueError(f"{error}{hint()}") from None
     else:
         raise ValueError(
             f"{source!r} holds an array of dtype {data.dtype} and shape {data.shape}; "
@@ -180,7 +280,7 @@ def read_npy(path: Path, columns: Any = FIELDS) -> Read:
         )
     meta = sidecar(path)
     if not meta.is_file():
-        return Read(events, None, None)
+        return Read(events, None, None, hint=hint)
     try:
         stored = json.loads(meta.read_text())
         if not isinstance(stored, dict):
@@ -189,17 +289,19 @@ def read_npy(path: Path, columns: Any = FIELDS) -> Read:
         raise ValueError(f"cannot read {str(meta)!r}, the sidecar of {source!r}: {error}"
                          ) from None
     return Read(events, _sensor_attribute(stored, str(meta)),
-                 None, _time_unit_attribute(stored, str(meta)))
+                 None, _time_unit_attribute(stored, str(meta)), hint)
 
 
 def _read_npz(path: Path) -> Read:
     source = str(path)
     try:
+        _check_numpy_file(path)
         with np.load(path, allow_pickle=False) as archive:
             arrays = {key: archive[key] for key in archive.files}
-    # EOFError: an empty file; BadZipFile: a truncated or damaged archive
+    # EOFError: an entry cut short; BadZipFile: a truncated or damaged archive
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
-        raise ValueError(f"cannot read {source!r} as a .npz archive: {error}") from None
+        raise ValueError(f"cannot read {source!r} as a .npz archive: {_numpy_error(error)}"
+                         ) from None
     recorded = _sensor_attribute(arrays, source) if "sensor_size" in arrays else None
     unit = _time_unit_attribute(arrays, source)
     if {"x", "y", "t", "p"} <= set(arrays):
@@ -331,6 +433,11 @@ def _read_bin(path: Path) -> Read:
     import tonic.io
 
     dtype = np.dtype([("x", int), ("y", int), ("t", int), ("p", int)])  # Tonic's NMNIST.dtype
+    size = path.stat().st_size
+    if size % 5:
+        raise ValueError(
+            f"cannot read {str(path)!r} as an N-MNIST .bin file: its {size} bytes are not "
+            f"5-byte events but {_what_it_holds(path)}")
     try:
         data = tonic.io.read_mnist_file(str(path), dtype=dtype)
     except (OSError, ValueError, IndexError) as error:

@@ -1,8 +1,8 @@
 """Small text parsers and formatters shared by the command line and the tools behind it.
 
 Internal (no stability promise), but the one home for these rules: the ``KEY=VALUE`` setting
-syntax of ``evdown downscale --set`` and ``evdown bench --methods NAME:KEY=VALUE,...``, and
-how a factor is read from and written to text.
+syntax of ``evdown downscale --set`` and ``evdown bench --methods NAME:KEY=VALUE,...``, how a
+factor is read from and written to text, and the two wordings of a warning (:class:`WordedWarning`).
 """
 
 from __future__ import annotations
@@ -11,7 +11,23 @@ import ast
 import re
 from typing import Any
 
-__all__ = ["format_factor", "parse_factor", "parse_setting", "parse_settings", "parse_value"]
+__all__ = ["WordedWarning", "format_factor", "parse_factor", "parse_setting", "parse_settings",
+           "parse_value"]
+
+class WordedWarning(UserWarning):
+    """A warning whose text names the fix for a Python caller, with the command line's beside it.
+
+    ``evdown`` prints :attr:`command_line` (``--sensor-size W H P``) where Python code reads
+    the text (``sensor_size=(W, H, P)``).
+
+    Attributes:
+        command_line: the same warning in the command line's words.
+    """
+
+    def __init__(self, message: str, command_line: str | None = None) -> None:
+        super().__init__(message)
+        self.command_line = message if command_line is None else command_line
+
 
 # A comma starts a new setting only where ``KEY=`` follows it, so tuples stay whole.
 _SETTING_SPLIT = re.compile(r",\s*(?=[A-Za-z_][\w-]*\s*=)")

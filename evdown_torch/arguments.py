@@ -17,11 +17,12 @@ import numpy as np
 from evdown_torch._text import parse_factor, parse_setting
 from evdown_torch.io import check_columns, read_microseconds
 from evdown_torch.threads import check_threads
-from evdown_torch.time_units import TIME_UNITS
+from evdown_torch.time_units import TIME_UNITS, timing_checked_by_caller
 
 __all__ = [
     "CommandError",
     "Subparsers",
+    "add_file_format_options",
     "add_input_arguments",
     "add_out_option",
     "add_sensor_size_option",
@@ -115,15 +116,12 @@ def add_threads_option(parser: argparse.ArgumentParser, help: str) -> None:
                         help=f"{help}; default: OMP_NUM_THREADS where set, else 1")
 
 
-def add_input_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the options that say how to read input files and how many threads to use.
+def add_file_format_options(parser: argparse.ArgumentParser) -> None:
+    """Add ``--time-unit`` and ``--columns``, what a file may not say about itself.
 
-    They are ``--sensor-size``, ``--time-unit``, ``--columns`` and ``--threads``.
+    :func:`read_input` (or :func:`evdown_torch.io.read_microseconds` with ``args.time_unit``
+    and ``args.columns``) reads files as they say.
     """
-    add_sensor_size_option(parser, "input sensor size for files that do not record one (.npy "
-                           "without a sidecar, .bin, some .raw/.dat/HDF5); a file's own size "
-                           "wins, so one value serves a mixed folder; else it is guessed with "
-                           "a warning")
     parser.add_argument("--time-unit", choices=tuple(TIME_UNITS), metavar="UNIT",
                         help="unit of the input timestamps (s, ms, us, ns) for files that do "
                         "not state one (camera formats are us; a file's own unit wins); "
@@ -132,6 +130,19 @@ def add_input_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--columns", type=_columns, metavar="A,B,C,D",
                         help="column order of .npy files holding an (N, 4) array, e.g. "
                         "t,x,y,p (default x,y,t,p)")
+
+
+def add_input_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options that say how to read input files and how many threads to use.
+
+    They are ``--sensor-size``, ``--time-unit``, ``--columns`` (:func:`add_file_format_options`)
+    and ``--threads``.
+    """
+    add_sensor_size_option(parser, "input sensor size for files that do not record one (.npy "
+                           "without a sidecar, .bin, some .raw/.dat/HDF5); a file's own size "
+                           "wins, so one value serves a mixed folder; else it is guessed with "
+                           "a warning")
+    add_file_format_options(parser)
     add_threads_option(parser, "torch threads (one is never much slower, often faster on a busy "
                        "machine; see docs/benchmarks.md)")
 
@@ -141,14 +152,18 @@ def read_input(
 ) -> tuple[np.ndarray, tuple[int, int, int], str | None]:
     """Read an input file as the options of :func:`add_input_arguments` say.
 
-    Through :func:`evdown_torch.io.read_microseconds`.
+    Through :func:`evdown_torch.io.read_microseconds`, whose timing check is left to the
+    caller (:func:`~evdown_torch.time_units.timing_checked_by_caller`): the command checks
+    the file against its settings.
 
     Returns:
         ``(events, sensor_size, time_unit)``: a structured event array with ``t`` in
         microseconds where the unit is known (``time_unit`` ``"us"``, else ``None``).
     """
-    recording = read_microseconds(path, sensor_size=args.sensor_size, time_unit=args.time_unit,
-                                  **({"columns": args.columns} if args.columns else {}))
+    with timing_checked_by_caller():
+        recording = read_microseconds(
+            path, sensor_size=args.sensor_size, time_unit=args.time_unit,
+            **({"columns": args.columns} if args.columns else {}))
     return recording.events, recording.sensor_size, recording.time_unit
 
 

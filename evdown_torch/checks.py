@@ -46,6 +46,7 @@ __all__ = [
     "output_limit",
     "output_size",
     "set_max_output_events",
+    "swapped_sensor_hint",
     "time_unit_fraction",
 ]
 
@@ -114,6 +115,26 @@ def check_sensor_size(sensor_size: Any) -> tuple[int, int, int]:
     if p not in (1, 2):
         raise ValueError(f"sensor_size polarity count P must be 1 or 2, got {sensor_size!r}")
     return w, h, p
+
+
+def swapped_sensor_hint(extent: tuple[int, int], sensor_size: tuple[int, int, int]) -> str:
+    """What an error about coordinates outside ``sensor_size`` adds when width and height swap.
+
+    Args:
+        extent: ``(largest x + 1, largest y + 1)`` of the events.
+        sensor_size: the ``(W, H, P)`` they do not fit.
+
+    Returns:
+        ``""``, or a hint that the size is width first, when the events fit ``(H, W, P)``.
+
+    Example:
+        >>> swapped_sensor_hint((320, 240), (240, 320, 2))
+        '; sensor sizes are width first, (W, H, P): (320, 240, 2)?'
+    """
+    w, h, p = sensor_size
+    if extent[0] <= h and extent[1] <= w and not (extent[0] <= w and extent[1] <= h):
+        return f"; sensor sizes are width first, (W, H, P): {(h, w, p)}?"
+    return ""
 
 
 def check_factor(factor: Any, sensor_size: tuple[int, int, int] | None = None) -> tuple[int, int]:

@@ -22,7 +22,9 @@ share (:class:`CommandError`, argument types, the input options) is in
 :mod:`evdown_torch.arguments`. A run that raises :class:`CommandError`, ``ValueError``,
 ``TypeError``, ``ImportError``, ``OSError`` or ``EOFError`` (a file that ends too soon) ends
 with the one line ``evdown COMMAND: error: ...`` and exit status 2, as argparse does for bad
-arguments; warnings print as ``evdown COMMAND: warning:``.
+arguments; warnings print as ``evdown COMMAND: warning:``, in the command line's words where
+the warning carries them (its ``command_line`` attribute: ``--time-unit`` where a Python
+caller is told ``time_unit=``).
 """
 
 from __future__ import annotations
@@ -74,7 +76,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def show(message: Warning | str, category: type[Warning], filename: str, lineno: int,
              file: TextIO | None = None, line: str | None = None) -> None:
-        tqdm.write(f"{prefix}: warning: {message}", file=sys.stderr)
+        text = getattr(message, "command_line", None) or message
+        tqdm.write(f"{prefix}: warning: {text}", file=sys.stderr)
 
     with warnings.catch_warnings():
         warnings.showwarning = show

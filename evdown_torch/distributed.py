@@ -33,8 +33,8 @@ __all__ = [
 
 T = TypeVar("T")
 
-#: How long a rank waits for the others at a collective: a stage of a study (every rank's share
-#: of the training) can last days on a few ranks. A rank that dies ends the launch sooner:
+#: How long a rank waits for the others at a collective. A stage of a study (every rank's
+#: share of the training) can last days on a few ranks. A rank that dies ends the launch sooner:
 #: torchrun stops the other ranks when one fails.
 TIMEOUT = timedelta(days=7)
 

@@ -224,14 +224,17 @@ def _downscale(args: argparse.Namespace) -> int:
     bar = tqdm(total=3 * len(pairs), unit="step", disable=not sys.stderr.isatty(),
                file=sys.stderr, dynamic_ncols=True, leave=False,
                bar_format="{desc} |{bar}| {n_fmt}/{total_fmt} [{elapsed}]")
+    failed: list[Path] = []
     for index, (source, target) in enumerate(pairs):
         file_label = f"file {index + 1}/{len(pairs)} {source.name}" if several else source.name
+        steps = bar.n
         try:
             bar.set_description_str(f"{file_label}: reading")
             events, sensor_size, unit = inputs[index] if inputs else read_input(source, args)
             transform = calibrated or make_method(args.method, sensor_size, args.factor,
                                                   **settings)
-            check_timing(events["t"], time_settings(transform), source=str(source))
+            check_timing(events["t"], time_settings(transform), source=str(source),
+                         transforms=(transform,))
             bar.update()
             bar.set_description_str(f"{file_label}: downscaling {len(events)} events")
             start = time.perf_counter()
@@ -242,9 +245,18 @@ def _downscale(args: argparse.Namespace) -> int:
             written = write_events(target, out, sensor_size=transform.output_sensor_size,
                                    time_unit=unit, metadata=metadata)
             bar.update()
-        except (ValueError, TypeError) as error:
-            bar.close()
-            raise CommandError(f"{source}: {error}" if several else str(error)) from None
+        except (ValueError, TypeError, OSError, EOFError) as error:
+            message = f"{source}: {error}" if several else str(error)
+            if args.on_error == "stop":
+                bar.close()
+                left = len(pairs) - index - 1
+                raise CommandError(message + (f" ({left} file(s) after it not done; "
+                                              "--on-error skip does them)" if left else "")
+                                   ) from None
+            failed.append(source)
+            tqdm.write(f"evdown downscale: error: {message} (skipped)", file=sys.stderr)
+            bar.update(steps + 3 - bar.n)
+            continue
         rate = len(events) / seconds if seconds > 0 else float("inf")
         _say(
             f"{args.method}: {len(events)} events in, {len(out)} events out "
@@ -253,6 +265,10 @@ def _downscale(args: argparse.Namespace) -> int:
             f"wrote {written}"
         )
     bar.close()
+    if failed:
+        print(f"evdown downscale: {len(failed)} of {len(pairs)} files failed (skipped: "
+              f"{', '.join(str(f) for f in failed)}); the others were written", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -290,5 +306,8 @@ def add_command(commands: Subparsers) -> None:
     add_input_arguments(down)
     down.add_argument("--output-format", choices=("npy", "h5"), default="npy",
                       help="format of the files written into an output folder (default npy)")
+    down.add_argument("--on-error", choices=("stop", "skip"), default="stop",
+                      help="a file that cannot be read or downscaled: stop there (default), or "
+                      "report it, skip it and do the others (exit status 1 if any failed)")
     down.add_argument("--threshold", help=argparse.SUPPRESS)  # gone: explains itself
     down.set_defaults(run=_downscale)

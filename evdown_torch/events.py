@@ -43,7 +43,7 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import time_order, where_true
-from evdown_torch.checks import check_has_values
+from evdown_torch.checks import check_has_values, swapped_sensor_hint
 
 __all__ = [
     "DVS_DTYPE",
@@ -57,8 +57,8 @@ __all__ = [
     "to_events",
 ]
 
-#: Tonic's event dtype for DVS cameras (``tonic.datasets.DVSGesture.dtype``): ``x``, ``y``
-#: int16, ``p`` bool, ``t`` int64 microseconds, in that field order.
+#: Tonic's event dtype for DVS cameras (``tonic.datasets.DVSGesture.dtype``), fields ``x``,
+#: ``y`` int16, ``p`` bool, ``t`` int64 microseconds, in that order.
 DVS_DTYPE = np.dtype([("x", np.int16), ("y", np.int16), ("p", np.bool_), ("t", np.int64)])
 
 FIELDS = ("x", "y", "t", "p")
@@ -204,8 +204,8 @@ class Events(NamedTuple):
         )
 
 
-#: What transforms take and return: a structured or ``(N, 4)`` NumPy array, an ``(N, 4)``
-#: tensor, or :class:`Events`.
+#: What transforms take and return (in the same kind), a structured or ``(N, 4)`` NumPy array,
+#: an ``(N, 4)`` tensor, or :class:`Events`.
 EventsLike = np.ndarray | Tensor | Events
 
 
@@ -278,12 +278,14 @@ def _validate(events: Events, sensor_size: tuple[int, int, int] | None) -> None:
     if sensor_size is None:
         return
     w, h, _ = sensor_size
-    for name, column, size in (("x", events.x, w), ("y", events.y, h)):
-        lo, hi = (int(v) for v in torch.aminmax(column))
+    ranges = [(int(lo), int(hi)) for lo, hi in (torch.aminmax(events.x), torch.aminmax(events.y))]
+    for name, (lo, hi), size in zip("xy", ranges, (w, h)):
         if lo < 0 or hi >= size:
+            hint = "" if lo < 0 else swapped_sensor_hint((ranges[0][1] + 1, ranges[1][1] + 1),
+                                                         sensor_size)
             raise ValueError(
                 f"event coordinate {name} must lie in [0, {size - 1}] for sensor_size "
-                f"{tuple(sensor_size)}, got values from {lo} to {hi}"
+                f"{tuple(sensor_size)}, got values from {lo} to {hi}{hint}"
             )
 
 
@@ -470,16 +472,19 @@ def from_events(events: Events, fmt: EventFormat) -> EventsLike:
 def load_npy_events(path: str | Path) -> np.ndarray:
     """Load a ``.npy`` structured event array (fields ``x``, ``y``, ``t``, ``p``).
 
+    :func:`evdown_torch.io.read_events` reads every event format (``(N, 4)`` arrays, other
+    time units and files that record their sensor size included).
+
     Raises:
-        ValueError: if the file is missing, unreadable or not a structured event array.
+        ValueError: if the file is missing, unreadable, not a ``.npy`` file (whatever its
+            name says) or not a structured event array.
     """
+    from evdown_torch._readers import load_npy
+
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"input file {str(path)!r} does not exist")
-    try:
-        events = np.load(path, allow_pickle=False)
-    except (ValueError, EOFError) as error:  # EOFError: an empty file
-        raise ValueError(f"cannot read {str(path)!r} as a .npy array: {error}") from None
+    events = load_npy(path)
     names = events.dtype.names or ()
     if events.ndim != 1 or not {"x", "y", "t", "p"} <= set(names):
         raise ValueError(

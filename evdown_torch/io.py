@@ -50,7 +50,7 @@ import json
 import os
 import threading
 import warnings
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -66,9 +66,10 @@ from evdown_torch._readers import (
     require,
     sidecar,
 )
-from evdown_torch.checks import check_sensor_size
+from evdown_torch._text import WordedWarning
+from evdown_torch.checks import check_sensor_size, swapped_sensor_hint
 from evdown_torch.events import FIELDS
-from evdown_torch.time_units import check_unit_name, to_microseconds
+from evdown_torch.time_units import check_timing, check_unit_name, to_microseconds
 
 __all__ = [
     "READ_EXTENSIONS",
@@ -127,7 +128,7 @@ class Recording(_RecordingFields):
         return f"{super().__repr__()[:-1]}, time_unit={self.time_unit!r})"
 
 
-class SensorSizeGuessWarning(UserWarning):
+class SensorSizeGuessWarning(WordedWarning):
     """The sensor size was guessed: the file does not record it and the caller gave none."""
 
 
@@ -144,6 +145,7 @@ def _resolve_sensor_size(
     recorded: tuple[int, int, int] | None,
     guess: tuple[int, int, int] | None,
     source: str,
+    hint: Callable[[], str] | None = None,
 ) -> tuple[tuple[int, int, int], bool]:
     n = len(events)
     if n and (int(events["x"].min()) < 0 or int(events["y"].min()) < 0):
@@ -156,6 +158,7 @@ def _resolve_sensor_size(
             raise ValueError(
                 f"{source!r} holds coordinates up to x={w - 1}, y={h - 1}, outside the sensor "
                 f"size {size} {where}"
+                f"{swapped_sensor_hint((w, h), size) or (hint() if hint else '')}"
             )
         return size, False
     if not n:
@@ -167,12 +170,11 @@ def _resolve_sensor_size(
         size, how = guess, "N-MNIST's sensor, as its coordinates fit in it"
     else:
         size, how = (w, h, 2), "the largest coordinates, too small if the edge pixels were quiet"
-    warnings.warn(
-        f"{source!r} does not record its sensor size; guessed {size} ({how}): give the "
-        "sensor size (--sensor-size W H P) to be sure",
-        SensorSizeGuessWarning,
-        stacklevel=3,
-    )
+    said = f"{source!r} does not record its sensor size; guessed {size} ({how}): "
+    warnings.warn(SensorSizeGuessWarning(
+        said + "give sensor_size=(W, H, P) to be sure",
+        said + "give --sensor-size W H P to be sure",
+    ), stacklevel=3)
     return size, True
 
 
@@ -218,7 +220,8 @@ def check_writable(path: str | Path, *, folder_may_be_missing: bool = False) -> 
 
 
 def read_events(
-    path: str | Path, *, sensor_size: Any = None, columns: Any = FIELDS
+    path: str | Path, *, sensor_size: Any = None, columns: Any = FIELDS,
+    time_unit: str | None = None,
 ) -> Recording:
     """Read an event recording from any supported file (see the module's table).
 
@@ -228,6 +231,11 @@ def read_events(
             wins (so that one value serves a folder of mixed files).
         columns: the column order of a ``.npy`` file holding an ``(N, 4)`` array, e.g.
             ``"t,x,y,p"`` (default ``x, y, t, p``, the order of ``(N, 4)`` tensors).
+        time_unit: the unit of ``t`` (``"s"``, ``"ms"``, ``"us"`` or ``"ns"``) where the file
+            states none (a unit the file states wins). Given, ``t`` comes back in
+            microseconds, the unit of every time setting
+            (:func:`~evdown_torch.time_units.to_microseconds`), and the recording's
+            ``time_unit`` is ``"us"``; ``None`` (default): ``t`` as the file holds it.
 
     Returns:
         A :class:`Recording` ``(events, sensor_size, guessed)`` with the attribute
@@ -237,9 +245,16 @@ def read_events(
         for ``.bin``), which also warns with a :class:`SensorSizeGuessWarning`.
 
     Raises:
-        ValueError: for a missing file, an unknown extension, a file the reader cannot read,
-            bad ``columns``, or coordinates outside the sensor size.
+        ValueError: for a missing file, an unknown extension, a file the reader cannot read
+            (or that is not what its extension says), bad ``columns``, or coordinates outside
+            the sensor size.
         ImportError: when the format's optional reader is absent (naming the extra).
+
+    Warns:
+        TimeUnitWarning: when neither the file nor ``time_unit`` states the unit and the
+            timestamps, read as microseconds, imply more events per second than any sensor
+            makes (:func:`~evdown_torch.time_units.check_timing`): float seconds, most often.
+        SensorSizeGuessWarning: when the sensor size was guessed.
 
     Example:
         >>> import tempfile, numpy as np
@@ -252,38 +267,47 @@ def read_events(
         (3, (8, 6, 2), False, 'us')
     """
     path = check_readable(path)
+    given_unit = None if time_unit is None else check_unit_name(time_unit)
     if path.suffix.lower() == ".npy":
         read = read_npy(path, columns)
     else:
         read = READERS[path.suffix.lower()](path)
     size, guessed = _resolve_sensor_size(read.events, sensor_size, read.recorded, read.guess,
-                                         str(path))
-    return Recording(read.events, size, guessed, read.time_unit)
+                                         str(path), read.hint)
+    unit = read.time_unit or given_unit
+    if unit is None:  # microseconds, unconfirmed
+        check_timing(read.events["t"], source=repr(str(path)))
+        return Recording(read.events, size, guessed, None)
+    if given_unit is None or unit == "us":
+        return Recording(read.events, size, guessed, unit)
+    return Recording(to_microseconds(read.events, unit), size, guessed, "us")
 
 
 def read_microseconds(
     path: str | Path, *, sensor_size: Any = None, time_unit: str | None = None,
     columns: Any = FIELDS,
 ) -> Recording:
-    """:func:`read_events`, with ``t`` converted to microseconds (the unit of every time setting).
+    """:func:`read_events` with ``t`` in microseconds wherever the unit is known.
+
+    Unlike :func:`read_events` without ``time_unit``, a unit the file states is converted too.
 
     Args:
         path: the file, as for :func:`read_events`.
         sensor_size: as for :func:`read_events`.
         columns: as for :func:`read_events`.
         time_unit: the unit of ``t`` where the file states none (a file's own unit wins);
-            ``None``: microseconds, unconfirmed.
+            ``None``: microseconds, unconfirmed (checked as :func:`read_events` checks).
 
     Returns:
         The :class:`Recording`, ``t`` in microseconds (see
         :func:`~evdown_torch.time_units.to_microseconds`); its ``time_unit`` is ``"us"``, or
         ``None`` where neither the file nor the caller said.
     """
-    recording = read_events(path, sensor_size=sensor_size, columns=columns)
-    unit = recording.time_unit or (None if time_unit is None else check_unit_name(time_unit))
-    if unit is None:
+    recording = read_events(path, sensor_size=sensor_size, columns=columns, time_unit=time_unit)
+    if recording.time_unit in (None, "us"):
         return recording
-    return recording._replace(events=to_microseconds(recording.events, unit), time_unit="us")
+    return recording._replace(events=to_microseconds(recording.events, recording.time_unit),
+                              time_unit="us")
 
 
 def event_files(folder: str | Path) -> list[Path]:

@@ -34,7 +34,7 @@ __all__ = [
     "torch_threads",
 ]
 
-#: The most torch threads a process may be given: more than the cores of any machine this
+#: The most torch threads a process may be given. It is more than the cores of any machine this
 #: package runs on, and few enough for OpenMP to start them (tens of thousands exhaust its
 #: memory; beyond int64 torch cannot even take the number).
 MAX_THREADS = 1024

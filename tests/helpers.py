@@ -43,8 +43,9 @@ def transform_cases(
     The protocol, streaming and batch tests all run over it, and ``test_registry`` checks that
     it holds every method of the registry. Its keys are the registry names, plus the variants
     of a method (``linear_delay``, ``photocurrent_frames``) and the transforms outside the
-    registry (``temporal``, ``thinned``, ``rate_limit``). ``step`` is the time scale of the test's streams
-    (in their ticks): LIF's ``dt``, the estimators' ``max_delay``, two frames, one temporal bin.
+    registry (``temporal``, ``thinned``, ``rate_limit``). ``step`` is the time scale of the
+    test's streams (in their ticks): LIF's ``dt``, the estimators' ``max_delay``, two frames,
+    one temporal bin, one limiter window.
     """
     return {
         "downsample": Downsample(sensor_size, factor),

@@ -172,6 +172,37 @@ def test_report_files(tiny, tmp_path):
     assert paths["plot"].stat().st_size > 0
 
 
+def test_the_tiny_report_says_it_is_a_smoke_test_and_explains_its_blanks(tiny, tmp_path):
+    _, result, _ = tiny
+    report = write_report(result, tmp_path)["markdown"].read_text()
+    lines = report.splitlines()
+    assert lines[2].startswith("**A smoke test, not a result.** 6 test recordings for 11 "
+                               "classes (5 without one; fewer than 10 per class) and 1 epoch")
+    assert "1 epoch, batch" in report and "1 epochs" not in report
+    assert "nan" not in report
+    assert "–: no test recording of class 6, 7, 8, 9, 10 (the test split has 6 recordings)." \
+        in report
+    every, cost = (_first_table(report.split(heading)[1])
+                   for heading in ("**Every cell**", "**Cost**"))
+    macs = [row[-3] for row in every[2:]]
+    assert len(macs) == len(result.cells) and all(float(m) > 0 for m in macs)  # not 0.0
+    assert macs[1] == f"{result.cells[1].macs_per_recording / 1e6:.4f}"  # 0.0270
+    seconds = [row[-2] for row in cost[2:]]
+    assert len(seconds) == len(result.cells)
+    assert all(float(v) > 0 for v in seconds)  # training took under 0.05 s
+
+
+def _first_table(text: str) -> list[list[str]]:
+    """The cells of the first Markdown table in ``text``, row by row (heading included)."""
+    rows = []
+    for line in text.splitlines():
+        if line.startswith("|"):
+            rows.append([cell.strip() for cell in line.split("|")])
+        elif rows:
+            break
+    return rows
+
+
 def test_dvsgesture_absent_says_where_to_put_it(tmp_path):
     pytest.importorskip("tonic")
     config = parse_config({"data": {"dataset": "dvsgesture", "root": str(tmp_path)},

@@ -32,3 +32,10 @@ def test_readme_block_runs(index, tmp_path):
     done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, f"README block {index}:\n{BLOCKS[index]}\n{done.stderr[-3000:]}"
+
+
+def test_the_streaming_promise_states_its_one_exception_where_it_is_made():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    promise = text[text.index("whatever the chunk sizes"):text.index("```python",
+                                                                     text.index("### Streaming"))]
+    assert "LinearEstimation on float timestamps" in promise and "last place" in promise

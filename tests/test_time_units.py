@@ -7,7 +7,8 @@ import warnings
 import numpy as np
 import pytest
 
-from evdown_torch import CubicEstimation, LIFPooling, PhotocurrentPooling
+from evdown_torch import CubicEstimation, LIFPooling, LinearEstimation, PhotocurrentPooling
+from evdown_torch.io import read_events, write_events
 from evdown_torch.time_units import (
     TimeUnitWarning,
     check_timing,
@@ -68,19 +69,28 @@ def test_time_settings_of_transforms():
     assert time_settings(PhotocurrentPooling(sensor, 2, fps=100)) == {"1/fps": 10_000.0}
 
 
-def _warned(t, settings=None) -> list[str]:
+def _caught(t, settings=None) -> list[TimeUnitWarning]:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         said = check_timing(np.asarray(t), settings, source="rec.npy")
-    messages = [str(w.message) for w in caught if w.category is TimeUnitWarning]
-    assert said == bool(messages)
-    return messages
+    found = [w.message for w in caught if w.category is TimeUnitWarning]
+    assert said == bool(found)
+    return found
 
 
-def test_an_implausible_rate_warns():
+def _warned(t, settings=None) -> list[str]:
+    return [str(w) for w in _caught(t, settings)]
+
+
+def test_an_implausible_rate_warns_in_python_words_with_the_command_lines_beside():
     seconds = np.linspace(0.0, 0.3, 2878)  # float seconds read as microseconds: 1e10 ev/s
-    (message,) = _warned(seconds)
-    assert message.startswith("rec.npy: 2878 events in 0.3 us") and "--time-unit s" in message
+    (warning,) = _caught(seconds)
+    message = str(warning)
+    assert message.startswith("rec.npy: 2878 events in 0.3 us")
+    assert "to_microseconds(events, 's')" in message and "read_events(path, time_unit='s')" in (
+        message) and "--" not in message  # a Python caller is told Python
+    assert warning.command_line.startswith("rec.npy: 2878 events in 0.3 us")
+    assert "--time-unit s" in warning.command_line  # what evdown prints
     assert not _warned(seconds * 1e6)  # the same in microseconds: 9.6 k events/s
     assert not _warned(np.zeros(99))  # too few events to tell (a burst at one timestamp)
     assert _warned(np.zeros(100))
@@ -93,3 +103,72 @@ def test_settings_longer_than_the_recording_warn():
     assert "dt=" not in message
     assert not _warned(t, {"dt": 4990.0})
     assert not _warned([5], {"dt": 1e9})  # one event spans no time: nothing to compare
+
+
+# ----------------------------------------------------------------------------- everywhere
+
+
+def _seconds_recording(rng, n=3000) -> np.ndarray:
+    """An N-Caltech101-like recording in float seconds: 0.3 s, 3000 events, 24x18 pixels."""
+    out = np.zeros(n, FLOAT64_DTYPE)
+    out["t"] = np.sort(rng.uniform(0.0, 0.3, n))
+    out["x"], out["y"] = rng.integers(0, 24, n), rng.integers(0, 18, n)
+    out["p"] = rng.random(n) < 0.5
+    return out
+
+
+FLOAT64_DTYPE = np.dtype([("x", "<i2"), ("y", "<i2"), ("p", "?"), ("t", "<f8")])
+
+
+def _time_unit_warnings(call) -> list[str]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        call()
+    return [str(w.message) for w in caught if w.category is TimeUnitWarning]
+
+
+def test_read_events_takes_a_time_unit_and_checks_an_unstated_one(tmp_path, rng):
+    seconds = _seconds_recording(rng)
+    path = tmp_path / "ncal.npy"
+    np.save(path, seconds)
+    recording = read_events(path, sensor_size=(24, 18, 2), time_unit="s")
+    assert recording.time_unit == "us" and recording.events["t"].dtype == np.float64
+    np.testing.assert_array_equal(recording.events["t"], seconds["t"] * 1e6)
+    (message,) = _time_unit_warnings(lambda: read_events(path, sensor_size=(24, 18, 2)))
+    assert str(path) in message and "read_events(path, time_unit='s')" in message
+    assert not _time_unit_warnings(lambda: read_events(path, sensor_size=(24, 18, 2),
+                                                       time_unit="s"))
+    assert not _time_unit_warnings(lambda: read_events(path, sensor_size=(24, 18, 2),
+                                                       time_unit="us"))  # said so: trusted
+    write_events(tmp_path / "stated.npy", seconds, time_unit="s")  # the file's own unit wins
+    stated = read_events(tmp_path / "stated.npy", sensor_size=(24, 18, 2), time_unit="ms")
+    np.testing.assert_array_equal(stated.events["t"], seconds["t"] * 1e6)
+    with pytest.raises(ValueError, match="time unit must be one of s, ms, us, ns, got 'sec'"):
+        read_events(path, sensor_size=(24, 18, 2), time_unit="sec")
+
+
+@pytest.mark.parametrize("make", [
+    lambda: LIFPooling((24, 18, 2), 4),
+    lambda: LinearEstimation((24, 18, 2), 4, max_delay=1000),
+])
+def test_a_transform_warns_once_at_its_first_call_on_seconds(make, rng):
+    seconds = _seconds_recording(rng)
+    transform = make()
+    before = repr(transform)
+    (message,) = _time_unit_warnings(lambda: transform(seconds))
+    assert message.startswith(type(transform).__name__) and "to_microseconds" in message
+    assert not _time_unit_warnings(lambda: transform(seconds))  # once per transform
+    assert not _time_unit_warnings(lambda: transform.batch([seconds, seconds]))
+    assert repr(transform) == before  # the frozen transform itself is not written to
+    assert len(_time_unit_warnings(lambda: make().batch([seconds[:50], seconds]))) == 1
+    session = make().session()  # a chunk is not a recording: sessions do not check
+    assert not _time_unit_warnings(lambda: [session(c) for c in np.array_split(seconds, 3)])
+
+
+def test_a_transform_checks_its_first_recording_of_enough_events_only(rng):
+    transform = LIFPooling((24, 18, 2), 4)
+    micro = to_microseconds(_seconds_recording(rng), "s")
+    assert not _time_unit_warnings(lambda: transform(_seconds_recording(rng, 99)))  # too few
+    assert not _time_unit_warnings(lambda: transform(micro))  # checked: plausible
+    assert not _time_unit_warnings(lambda: transform(_seconds_recording(rng)))  # not again
+    assert not _time_unit_warnings(lambda: LIFPooling((24, 18, 2), 4)(micro))

@@ -10,7 +10,12 @@ from typing import cast
 
 import numpy as np
 
-from evdown_torch.arguments import Subparsers, add_out_option, add_sensor_size_option
+from evdown_torch.arguments import (
+    Subparsers,
+    add_file_format_options,
+    add_out_option,
+    add_sensor_size_option,
+)
 from evdown_torch.bench.inputs import BenchInput
 from evdown_torch.bench.report import method_table, write_report
 from evdown_torch.bench.run import run_benchmark
@@ -32,10 +37,12 @@ def add_command(commands: Subparsers) -> None:
     add_out_option(bench, "folder for report.md, results.json and the PNG plots")
     bench.add_argument("--short", action="store_true",
                        help="small inputs and two points per sweep (under 2 minutes)")
-    bench.add_argument("--input", action="append", metavar="FILE.npy",
-                       help="a structured event array to add to the method table (repeatable)")
-    add_sensor_size_option(bench, "sensor of the --input files (default: from the largest "
-                           "coordinates)")
+    bench.add_argument("--input", action="append", metavar="FILE",
+                       help="an event file to add to the method table (repeatable; any format "
+                       "evdown reads)")
+    add_sensor_size_option(bench, "sensor of the --input files that do not record one "
+                           "(default: guessed from the largest coordinates, with a warning)")
+    add_file_format_options(bench)  # --time-unit, --columns of the --input files
     bench.add_argument("--events", type=int, metavar="N",
                        help="cap every stream at N events (quick checks)")
     bench.add_argument("--repeats", type=int, metavar="R",
@@ -71,6 +78,7 @@ def run_from_args(args: argparse.Namespace, *, nmnist: str | Path | None = None)
         short=args.short, inputs=args.input or (), sensor_size=args.sensor_size,
         events=args.events, repeats=args.repeats, methods=args.methods,
         scaling=not args.no_scaling, memory=not args.no_memory, nmnist=nmnist,
+        time_unit=args.time_unit, columns=args.columns,
     )
     command = "evdown bench " + " ".join(sys.argv[2:]) if len(sys.argv) > 1 else ""
     written = write_report(results, args.out, command=command)
@@ -91,13 +99,15 @@ def _realtime_from_args(args: argparse.Namespace) -> int:
         realtime_benchmark,
         write_realtime_report,
     )
-    from evdown_torch.events import load_npy_events
+    from evdown_torch.io import read_microseconds
 
     start = time.perf_counter()
     if args.input:
-        events = np.sort(load_npy_events(args.input[0]), order="t", kind="stable")
-        sensor = tuple(args.sensor_size) if args.sensor_size else (
-            int(events["x"].max()) + 1, int(events["y"].max()) + 1, 2)
+        recording = read_microseconds(args.input[0], sensor_size=args.sensor_size,
+                                      time_unit=args.time_unit,
+                                      **({"columns": args.columns} if args.columns else {}))
+        events = np.sort(recording.events, order="t", kind="stable")
+        sensor = recording.sensor_size
         source = f"{args.input[0]}"
     else:
         # Enough events for the timed chunks at 25 M events/s in 10 ms chunks.

@@ -36,7 +36,8 @@ from evdown_torch.bench.lineup import (
 )
 from evdown_torch.bench.measure import MemoryJob, measure_memory, time_call
 from evdown_torch.checks import check_positive_int, check_sensor_size
-from evdown_torch.events import load_npy_events
+from evdown_torch.io import read_microseconds
+from evdown_torch.time_units import timing_checked_by_caller
 
 __all__ = [
     "BenchResults",
@@ -268,13 +269,17 @@ def run_benchmark(
     memory: bool = True,
     seed: int = 0,
     nmnist: str | Path | None = None,
+    time_unit: str | None = None,
+    columns: Sequence[str] | str | None = None,
 ) -> BenchResults:
     """Run the benchmark: the method table, the scaling sweeps and the peak memory.
 
     Args:
         short: the short mode (small inputs, two points per sweep; under 2 minutes).
-        inputs: extra ``.npy`` structured event arrays to add to the method table.
-        sensor_size: the sensor of those files (default: largest coordinates + 1, 2 polarities).
+        inputs: extra event files to add to the method table (any format
+            :func:`evdown_torch.io.read_events` reads).
+        sensor_size: the sensor of those files that do not record one (default: guessed
+            from the largest coordinates, with a warning).
         events: cap on every stream's number of events (quick checks).
         repeats: timed calls per measurement of the method table (default 5).
         methods: a subset of method and peer names (default: all of them).
@@ -283,6 +288,9 @@ def run_benchmark(
         seed: seed of the synthetic streams.
         nmnist: an N-MNIST ``.bin`` recording (34x34) to add to the method table as
             ``nmnist`` (``benchmarks/bench_all.py`` adds the repository's sample).
+        time_unit: the unit of ``t`` in input files that state none (converted to
+            microseconds; :func:`evdown_torch.io.read_microseconds`).
+        columns: the column order of ``(N, 4)`` ``.npy`` inputs, e.g. ``"t,x,y,p"``.
 
     Returns:
         The results, for :func:`write_report`.
@@ -290,9 +298,11 @@ def run_benchmark(
     plan = make_plan(short, events, repeats)
     if nmnist is not None and not Path(nmnist).is_file():
         raise ValueError(f"N-MNIST file {str(nmnist)!r} does not exist")
-    extra = [(Path(p), load_npy_events(p)) for p in inputs]
     if sensor_size is not None:
         sensor_size = check_sensor_size(sensor_size)
+    extra = [(Path(p), read_microseconds(p, sensor_size=sensor_size, time_unit=time_unit,
+                                         **({} if columns is None else {"columns": columns})))
+             for p in inputs]
     cands = candidates(methods)
     notes = []
     if not tonic_available():
@@ -302,7 +312,9 @@ def run_benchmark(
     start = time.perf_counter()
     run = None
     try:
-        with tempfile.TemporaryDirectory(prefix="evdown-bench-") as tmp:
+        # The inputs' timing was checked as they were read; the timed transforms keep quiet.
+        with timing_checked_by_caller(), tempfile.TemporaryDirectory(prefix="evdown-bench-") \
+                as tmp:
             run = _Runner(plan, cands, memory, Path(tmp))
             tables = (1 + (nmnist is not None) + len(extra)) * len(plan.factors) + 1
             run.bar = stage_bar("method tables", tables * len(cands))
@@ -316,10 +328,9 @@ def run_benchmark(
                                     f"real N-MNIST recording ({Path(nmnist).name})")
                 for factor in plan.factors:
                     run.measure("methods", inp, events_, factor, plan.repeats)
-            for path, events_ in extra:
-                size = sensor_size or (int(events_["x"].max()) + 1 if len(events_) else 1,
-                                       int(events_["y"].max()) + 1 if len(events_) else 1, 2)
-                inp = run.add_input(path.stem, events_, size, f"file {path}")
+            for path, recording in extra:
+                events_ = recording.events
+                inp = run.add_input(path.stem, events_, recording.sensor_size, f"file {path}")
                 for factor in plan.factors:
                     run.measure("methods", inp, events_, factor, plan.repeats)
             duration = max(int(plan.large_events / LARGE_RATE * 1e6), 1)

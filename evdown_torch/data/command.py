@@ -11,6 +11,7 @@ from pathlib import Path
 
 from evdown_torch.arguments import (
     Subparsers,
+    add_file_format_options,
     add_out_option,
     add_sensor_size_option,
     add_threads_option,
@@ -20,7 +21,7 @@ from evdown_torch.arguments import (
 )
 from evdown_torch.data import shards
 from evdown_torch.data.preprocessing import RecordingError, preprocess
-from evdown_torch.data.sources import open_source
+from evdown_torch.data.sources import RECORDING_SUFFIXES, open_source
 from evdown_torch.distributed import process_group
 from evdown_torch.threads import command_threads
 from evdown_torch.transforms.registry import METHODS
@@ -45,7 +46,8 @@ def add_command(subparsers: Subparsers) -> None:
         "manifest.json; read them back with evdown_torch.data.PreprocessedDataset. Under "
         "torchrun each rank takes a disjoint share. A rerun resumes.")
     parser.add_argument("--dataset", required=True, type=_dataset_name, metavar="NAME",
-                        help="synthetic, dvsgesture, nmnist or folder:PATH (PATH/CLASS/*.npy)")
+                        help="synthetic, dvsgesture, nmnist or folder:PATH (PATH/CLASS/FILE, "
+                        f"any format evdown reads: {', '.join(RECORDING_SUFFIXES)})")
     parser.add_argument("--method", required=True, choices=sorted(METHODS), metavar="NAME",
                         help=f"one of {', '.join(sorted(METHODS))}")
     parser.add_argument("--factor", required=True, type=factor_argument, help="F or FX,FY")
@@ -56,9 +58,11 @@ def add_command(subparsers: Subparsers) -> None:
     parser.add_argument("--split", choices=("train", "test"), default="train",
                         help="dataset split (synthetic, dvsgesture, nmnist; default train)")
     parser.add_argument("--root", metavar="DIR",
-                        help="folder the Tonic dataset lives in (its save_to)")
+                        help="folder the Tonic dataset lives in (its save_to: DIR/NMNIST/Train/, "
+                        "extracted, or DIR/DVSGesture/ibmGestureTrain/)")
     add_sensor_size_option(parser, "sensor of a folder dataset (required) or of the synthetic "
                            "one")
+    add_file_format_options(parser)  # --time-unit, --columns: a folder's files
     parser.add_argument("--samples-per-class", type=int, metavar="N",
                         help="synthetic recordings per class (default 24)")
     parser.add_argument("--duration-us", type=int, metavar="US",
@@ -88,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
             args.dataset, split=args.split, root=args.root,
             sensor_size=tuple(args.sensor_size) if args.sensor_size else None,
             samples_per_class=args.samples_per_class, duration_us=args.duration_us,
-            seed=args.seed)
+            seed=args.seed, time_unit=args.time_unit, columns=args.columns)
         settings = dict(args.set or [])
         try:
             result = preprocess(source, args.out, args.method, args.factor, settings,

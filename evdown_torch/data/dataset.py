@@ -77,10 +77,10 @@ class PreprocessedDataset:
 
     Items are ``(events, label)``: a structured array in the cache's dtype (the source
     dataset's, e.g. ``x``, ``y`` int16, ``p`` bool, ``t`` int64 microseconds for gestures),
-    sorted by ``t``, on the downscaled sensor :attr:`sensor_size`, after ``transform`` /
+    sorted by ``t``, on the downscaled sensor ``sensor_size``, after ``transform`` /
     ``target_transform`` / ``transforms`` as in Tonic. Each item is a fresh array (shards are
     memory-mapped and sliced), so transforms may modify it. Recordings the run skipped are
-    absent; :attr:`source_indices` maps items to the source dataset's indices.
+    absent; ``source_indices`` maps items to the source dataset's indices.
 
     Args:
         root: the cache folder (``--out`` of ``evdown preprocess``).

@@ -18,6 +18,7 @@ import multiprocessing
 import sys
 import threading
 import time
+import warnings
 from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -35,8 +36,17 @@ from evdown_torch.data import shards
 from evdown_torch.data.sources import check_label
 from evdown_torch.distributed import all_gather, rank_and_world
 from evdown_torch.threads import available_cores, check_threads, torch_threads
+from evdown_torch.time_units import (
+    TimeUnitWarning,
+    time_settings,
+    timing_checked_by_caller,
+    timing_warning,
+)
 from evdown_torch.transforms import Downscaler
 from evdown_torch.transforms.registry import make_method, method_settings
+
+#: A timing warning from a shard, ``(text, command line's text)``, or ``None``.
+_Warning = tuple[str, str] | None
 
 if TYPE_CHECKING:
     from multiprocessing.queues import Queue
@@ -45,7 +55,7 @@ if TYPE_CHECKING:
 
     from evdown_torch.data.sources import Source
 
-    _Done = Callable[[dict[str, Any], Sequence[float]], None]
+    _Done = Callable[[dict[str, Any], Sequence[float], _Warning], None]
 
 __all__ = ["PreprocessResult", "RecordingError", "preprocess"]
 
@@ -99,14 +109,33 @@ def _ready() -> bool:
     return True
 
 
-def _worker_shard(shard: int) -> tuple[dict[str, Any], tuple[float, float, float]]:
+def _worker_shard(shard: int) -> tuple[dict[str, Any], tuple[float, float, float], _Warning]:
     return _write_one_shard(_STATE, shard)
 
 
 def _write_one_shard(
     state: dict[str, Any], shard: int
-) -> tuple[dict[str, Any], tuple[float, float, float]]:
-    """Downscale shard ``shard``'s recordings and write it; returns its record and timings."""
+) -> tuple[dict[str, Any], tuple[float, float, float], _Warning]:
+    """Downscale shard ``shard``'s recordings and write it.
+
+    Returns:
+        Its record, its timings, and the timing warning of its first recording
+        (:func:`_timing_warning`), which the run gives once: the readers' and transforms'
+        own checks are silent here, or every file and process would repeat it.
+    """
+    with timing_checked_by_caller():
+        return _write_shard(state, shard)
+
+
+def _timing_warning(events: np.ndarray, transform: Downscaler, source: str) -> _Warning:
+    """What :func:`~evdown_torch.time_units.timing_warning` says of a recording, if anything."""
+    said = timing_warning(events["t"], time_settings(transform), source=source)
+    return None if said is None else (str(said), said.command_line)
+
+
+def _write_shard(
+    state: dict[str, Any], shard: int
+) -> tuple[dict[str, Any], tuple[float, float, float], _Warning]:
     source, transform, size = state["source"], state["transform"], state["shard_size"]
     first, stop = shard * size, min((shard + 1) * size, len(source))
     shards.remove_stale_temporaries(state["out"], shard)
@@ -129,6 +158,8 @@ def _write_one_shard(
             skip(index, error)
             state["tick"]()
         read_s += time.perf_counter() - start
+    said = None if not loaded else _timing_warning(loaded[0][2], transform,
+                                                   source.source_name(loaded[0][0]))
     start = time.perf_counter()
     try:  # the whole shard in one batched pass of the transform
         outputs = transform.batch([events for _, _, events in loaded])
@@ -157,7 +188,7 @@ def _write_one_shard(
         state["out"], shard, events, np.array(rows, dtype=shards.INDEX_DTYPE),
         {"job": state["job_id"], "first": first, "stop": stop, "recordings": len(rows),
          "events_in": events_in, "events_out": events_out, "skipped": skipped})
-    return record, (read_s, transform_s, time.perf_counter() - start)
+    return record, (read_s, transform_s, time.perf_counter() - start), said
 
 
 # Driver side ---------------------------------------------------------------------------------
@@ -204,7 +235,13 @@ def _run_shards(state: dict[str, Any], todo: list[int], workers: int, bar: tqdm)
     records: list[dict[str, Any]] = []
     timings = [0.0, 0.0, 0.0]
 
-    def done(record: dict[str, Any], timing: Sequence[float]) -> None:
+    warned = False
+
+    def done(record: dict[str, Any], timing: Sequence[float], said: _Warning) -> None:
+        nonlocal warned
+        if said is not None and not warned:  # once a run, naming the recording
+            warned = True
+            warnings.warn(TimeUnitWarning(*said), stacklevel=2)
         records.append(record)
         for i, value in enumerate(timing):
             timings[i] += value
@@ -228,7 +265,7 @@ def _run_with_pool(state: dict[str, Any], waiting: deque[int], spawned: int, bar
     queue = context.Queue()  # progress ticks from every process, shown by this thread
     local = dict(state, tick=lambda: queue.put(1))
     stop = threading.Event()
-    here: list = []  # (record, timing) or an exception, from the thread working here
+    here: list = []  # (record, timing, warning) or an exception, from the thread working here
 
     def work_here() -> None:
         try:

@@ -17,7 +17,9 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from evdown_torch.checks import check_choice, check_sensor_size
-from evdown_torch.io import READ_EXTENSIONS, read_events
+from evdown_torch.events import FIELDS
+from evdown_torch.io import READ_EXTENSIONS, check_columns, read_microseconds
+from evdown_torch.time_units import check_unit_name
 
 __all__ = [
     "RECORDING_SUFFIXES",
@@ -69,16 +71,19 @@ class Source(Protocol):
         ...
 
 
-def read_recording(path: Path, sensor_size: tuple[int, int, int]) -> np.ndarray:
+def read_recording(path: Path, sensor_size: tuple[int, int, int], *,
+                   time_unit: str | None = None, columns: Any = FIELDS) -> np.ndarray:
     """Read one recording file of a folder dataset as a Tonic structured array.
 
-    The one place a folder dataset reads files, through :func:`evdown_torch.io.read_events`
-    (the dataset's ``sensor_size`` stands for files that do not record one).
+    The one place a folder dataset reads files, through
+    :func:`evdown_torch.io.read_microseconds` (the dataset's ``sensor_size`` stands for files
+    that do not record one, ``time_unit`` and ``columns`` for files that do not say theirs).
 
     Raises:
         ValueError: if the file cannot be read as a structured event array.
     """
-    return read_events(path, sensor_size=sensor_size).events
+    return read_microseconds(path, sensor_size=sensor_size, time_unit=time_unit,
+                             columns=columns).events
 
 
 class SyntheticSource:
@@ -117,6 +122,9 @@ class SyntheticSource:
 
 
 _TONIC_CLASSES = {"dvsgesture": "DVSGesture", "nmnist": "NMNIST"}
+
+#: The suffix of each Tonic dataset's recording files, in its extracted folder.
+_TONIC_RECORDINGS = {"DVSGesture": ".npy", "NMNIST": ".bin"}
 
 
 class TonicSource:
@@ -186,27 +194,46 @@ def _tonic_class(name: str) -> Any:
     return getattr(tonic.datasets, _TONIC_CLASSES[name])
 
 
-def _without_download(cls: type) -> type:
-    """A subclass of a Tonic dataset class that raises where Tonic would download."""
+def _without_download(cls: Any) -> type:
+    """A subclass of a Tonic dataset class that raises where Tonic would download.
+
+    It also takes the extracted folder without its archive (Tonic wants both, as it checks
+    the archive's presence to decide whether to download it): what it reads is the folder.
+    """
+
+    def extracted(self: Any) -> bool:
+        folder = Path(self.location_on_system, self.folder_name)
+        suffix = _TONIC_RECORDINGS[cls.__name__]
+        return bool(cls._check_exists(self)) or (
+            folder.is_dir() and any(p.is_file() for p in folder.rglob(f"*{suffix}")))
 
     def refuse(self: Any) -> None:
         folder = Path(self.location_on_system)
         raise ValueError(
-            f"the {cls.__name__} files are absent: put {self.filename} and its extracted "
-            f"folder {self.folder_name}/ in {folder} (tonic.datasets.{cls.__name__}"
-            f"(save_to={str(folder.parent)!r}) downloads them there)"
+            f"the {cls.__name__} files are absent: put the extracted folder "
+            f"{self.folder_name}/ (from {self.filename}) in {folder} "
+            f"(tonic.datasets.{cls.__name__}(save_to={str(folder.parent)!r}) downloads them "
+            "there)"
         )
 
-    return type(cls.__name__, (cls,), {"download": refuse})
+    return type(cls.__name__, (cls,), {"_check_exists": extracted, "download": refuse})
 
 
 class FolderSource:
     """Recording files under ``path/CLASS/...``, one recording per file, labels from folders.
 
     Class ``k`` is the ``k``-th subfolder of ``path`` in sorted order; each class folder is
-    searched recursively for files with a suffix in :data:`RECORDING_SUFFIXES`, in sorted
-    order. The dataset's dtype is that of the first file that reads; a file with another
-    dtype is rejected like an unreadable one.
+    searched recursively for files with a suffix in :data:`RECORDING_SUFFIXES` (any case), in
+    sorted order. Timestamps come in microseconds: a file's own unit is converted, and
+    ``time_unit`` stands for files that state none. The dataset's dtype is that of the first
+    file that reads; a file with another dtype is rejected like an unreadable one.
+
+    Args:
+        path: the dataset folder.
+        sensor_size: ``(W, H, P)`` of files that do not record theirs.
+        time_unit: the unit of ``t`` in files that do not state one (``"s"``, ``"ms"``,
+            ``"us"``, ``"ns"``); ``None``: microseconds.
+        columns: the column order of ``.npy`` files holding ``(N, 4)`` arrays.
 
     Raises:
         ValueError: if ``path`` is not a folder, has no class subfolders or no readable file.
@@ -214,11 +241,14 @@ class FolderSource:
 
     name = "folder"
 
-    def __init__(self, path: str | Path, *, sensor_size: tuple[int, int, int]) -> None:
+    def __init__(self, path: str | Path, *, sensor_size: tuple[int, int, int],
+                 time_unit: str | None = None, columns: Any = FIELDS) -> None:
         self.path = Path(path).expanduser().resolve()
         if not self.path.is_dir():
             raise ValueError(f"dataset folder {str(self.path)!r} does not exist")
         self.sensor_size = check_sensor_size(sensor_size)
+        self.time_unit = None if time_unit is None else check_unit_name(time_unit)
+        self.columns = check_columns(columns)
         self.classes = sorted(p.name for p in self.path.iterdir() if p.is_dir())
         if not self.classes:
             raise ValueError(
@@ -228,7 +258,7 @@ class FolderSource:
         self._items: list[tuple[str, int]] = []
         for label, cls in enumerate(self.classes):
             files = sorted(p for p in (self.path / cls).rglob("*")
-                           if p.suffix in RECORDING_SUFFIXES and p.is_file())
+                           if p.suffix.lower() in RECORDING_SUFFIXES and p.is_file())
             self._items += [(p.relative_to(self.path).as_posix(), label) for p in files]
         if not self._items:
             raise ValueError(
@@ -240,18 +270,25 @@ class FolderSource:
     def _first_dtype(self) -> np.dtype:
         for relative, _ in self._items:
             try:
-                return read_recording(self.path / relative, self.sensor_size).dtype
+                return self._read(relative).dtype
             except (OSError, ValueError):
                 continue
         raise ValueError(f"no file under {str(self.path)!r} reads as a structured event array")
+
+    def _read(self, relative: str) -> np.ndarray:
+        return read_recording(self.path / relative, self.sensor_size, time_unit=self.time_unit,
+                              columns=self.columns)
 
     def __len__(self) -> int:
         return len(self._items)
 
     def describe(self) -> dict[str, Any]:
         """JSON-ready facts that name the dataset (kept in a cache's manifest)."""
+        reading = {"time_unit": self.time_unit} if self.time_unit is not None else {}
+        if self.columns != FIELDS:
+            reading["columns"] = ",".join(self.columns)
         return {"name": self.name, "path": str(self.path), "sensor_size": list(self.sensor_size),
-                "files": len(self._items)}
+                "files": len(self._items), **reading}
 
     def source_name(self, index: int) -> str:
         """Where recording ``index`` comes from, for messages."""
@@ -260,7 +297,7 @@ class FolderSource:
     def load(self, index: int) -> tuple[np.ndarray, int]:
         """Recording ``index``: ``(events, label)``."""
         relative, label = self._items[index]
-        events = read_recording(self.path / relative, self.sensor_size)
+        events = self._read(relative)
         if events.dtype != self.dtype:
             raise ValueError(
                 f"its dtype {events.dtype} differs from the dataset's {self.dtype} "
@@ -278,6 +315,8 @@ def open_source(
     samples_per_class: int | None = None,
     duration_us: int | None = None,
     seed: int | None = None,
+    time_unit: str | None = None,
+    columns: Any = None,
 ) -> SyntheticSource | TonicSource | FolderSource:
     """The source named by ``--dataset``.
 
@@ -292,6 +331,8 @@ def open_source(
         samples_per_class: synthetic recordings per class (default 24).
         duration_us: synthetic recording length, microseconds (default 6 s).
         seed: synthetic dataset seed (default 0).
+        time_unit: the unit of ``t`` in a folder's files that state none (folders only).
+        columns: the column order of a folder's ``(N, 4)`` ``.npy`` files (folders only).
 
     Raises:
         ValueError: for an unknown dataset, a missing or foreign option, absent files.
@@ -315,7 +356,13 @@ def open_source(
             raise ValueError("--root is for Tonic datasets; a folder dataset is folder:PATH")
         if sensor_size is None:
             raise ValueError("a folder dataset needs --sensor-size W H P")
-        return FolderSource(dataset[len("folder:"):], sensor_size=sensor_size)
+        return FolderSource(dataset[len("folder:"):], sensor_size=sensor_size,
+                            time_unit=time_unit, columns=FIELDS if columns is None else columns)
+    reading = [name for name, value in (("time_unit", time_unit), ("columns", columns))
+               if value is not None]
+    if reading:
+        raise ValueError(f"{reading[0]} is a setting of folder datasets only (the other "
+                         "datasets' timestamps are microseconds)")
     if dataset == "synthetic":
         if root is not None:
             raise ValueError("--root is for Tonic datasets, not synthetic")

@@ -158,7 +158,7 @@ class DataConfig:
 
     @property
     def frame_channels(self) -> int:
-        """Channels of the classifier's input: OFF and ON counts, and their mean times."""
+        """Channels of the classifier's input, 2 (OFF and ON counts) or 4 (and their mean times)."""
         return 4 if self.mean_time else 2
 
     @property
@@ -351,8 +351,13 @@ class EvaluationConfig:
     """A whole ``evdown evaluate`` configuration.
 
     Attributes:
-        data, methods, model, training, statistics, measures, output: the tables of the
-            same names.
+        data: the ``[data]`` table.
+        methods: the ``[methods]`` table.
+        model: the ``[model]`` table.
+        training: the ``[training]`` table.
+        statistics: the ``[statistics]`` table.
+        measures: the ``[measures]`` table.
+        output: the ``[output]`` table.
         settings: method name -> that method's settings (keyword arguments of
             :func:`~evdown_torch.transforms.registry.make_method`).
         name: a label for the report (the config file's stem).

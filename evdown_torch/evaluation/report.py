@@ -16,10 +16,19 @@ from evdown_torch.evaluation.study import CellResult, EvaluationResult
 from evdown_torch.transforms.registry import METHODS
 
 __all__ = [
-    "CSV_COLUMNS", "markdown_table", "pareto_front", "primary_table", "question", "write_report",
+    "CSV_COLUMNS", "markdown_table", "pareto_front", "primary_table", "question",
+    "smoke_test_line", "write_report",
 ]
 
 Log = Callable[[str], None]
+
+#: Gesture classes of the study's datasets (DVS128 Gesture's 11).
+NUM_CLASSES = 11
+
+#: A run with fewer test recordings per class than this, or fewer epochs, is a smoke test: its
+#: accuracies and differences say nothing about the methods (configs/tiny.toml is one).
+SMOKE_TEST_PER_CLASS = 10
+SMOKE_TEST_EPOCHS = 5
 
 CSV_COLUMNS = (
     "method", "role", "factor_x", "factor_y", "budget", "setting", "width", "height", "seeds",
@@ -54,6 +63,23 @@ def _control(result: EvaluationResult, c: CellResult) -> CellResult | None:
 
 def _number(value: float | None, fmt: str) -> str:
     return "" if value is None else format(value, fmt)
+
+
+def _significant(value: float, digits: int = 3) -> str:
+    """``value`` to ``digits`` significant digits in plain notation: 0.0270, 15.3, 1,204.
+
+    Example:
+        >>> _significant(0.027012), _significant(15.31), _significant(1204.4), _significant(0.0)
+        ('0.0270', '15.3', '1,204', '0')
+    """
+    if value == 0 or not math.isfinite(value):
+        return f"{value:g}"
+    decimals = max(0, digits - 1 - math.floor(math.log10(abs(value))))
+    return f"{value:,.{decimals}f}"
+
+
+def _plural(count: int, noun: str) -> str:
+    return f"{count} {noun}{'' if count == 1 else 's'}"
 
 
 def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
@@ -95,7 +121,7 @@ def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
             "synops_per_recording": f"{c.synops_per_recording:.0f}",
             "cpu_us_per_recording": _number(c.cpu_us_per_recording, ".0f"),
             "throughput_events_per_s": _number(c.throughput, ".0f"),
-            "train_seconds": f"{c.train_seconds:.1f}",
+            "train_seconds": f"{c.train_seconds:.4g}",
         })
     return rows
 
@@ -174,7 +200,7 @@ def markdown_table(result: EvaluationResult) -> str:
             f"| {c.events_per_recording:,.0f} | {_number(c.rate_vs_camera, '.2f') or 'n/a'} "
             f"| {len(c.seeds)} | {c.accuracy:.3f} [{c.interval[0]:.3f}, {c.interval[1]:.3f}] "
             f"| {versus} | {equivalent} | {c.delay} | {consistency or '–'} "
-            f"| {c.macs_per_recording / 1e6:.1f} | {c.synops_per_recording:,.0f} |"
+            f"| {_significant(c.macs_per_recording / 1e6)} | {c.synops_per_recording:,.0f} |"
         )
     return "\n".join(lines) + f"\n\nequivalent: TOST within +-{margin:g} at {alpha:g}.\n"
 
@@ -216,16 +242,24 @@ def sanity_lines(result: EvaluationResult) -> str:
     return "\n".join(lines) + "\n"
 
 
-def per_class_table(result: EvaluationResult, num_classes: int = 11) -> str:
-    """Accuracy per class of the primary cells and their controls (over all seeds)."""
+def per_class_table(result: EvaluationResult, num_classes: int = NUM_CLASSES) -> str:
+    """Accuracy per class of the primary cells and their controls (over all seeds).
+
+    A class without test recordings shows ``–``, and a line below the table says which.
+    """
     cells = [c for c in result.cells if c.role in (PRIMARY, CONTROL_ROLE, SANITY)]
     if not cells:
         return ""
     head = "| cell | " + " | ".join(str(k) for k in range(num_classes)) + " |"
     lines = [head, "|---|" + "---|" * num_classes]
     for c in cells:
-        values = " | ".join(_number(v, ".2f") for v in c.per_class(num_classes))
+        values = " | ".join("–" if math.isnan(v) else f"{v:.2f}"
+                            for v in c.per_class(num_classes))
         lines.append(f"| {c.cell.label} | {values} |")
+    untested = _untested_classes(result, num_classes)
+    if untested:
+        lines.append(f"\n–: no test recording of class {', '.join(map(str, untested))} (the "
+                     f"test split has {_plural(len(cells[0].labels), 'recording')}).")
     return "\n".join(lines) + "\n"
 
 
@@ -252,13 +286,38 @@ def _run_lines(result: EvaluationResult) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _untested_classes(result: EvaluationResult, num_classes: int) -> list[int]:
+    labels = set(result.cells[0].labels) if result.cells else set()
+    return [k for k in range(num_classes) if k not in labels]
+
+
+def smoke_test_line(result: EvaluationResult, num_classes: int = NUM_CLASSES) -> str:
+    """A line saying the run is too small for its accuracies to mean anything, or ``""``.
+
+    Too small: fewer than :data:`SMOKE_TEST_PER_CLASS` test recordings per class, or fewer
+    than :data:`SMOKE_TEST_EPOCHS` training epochs.
+    """
+    tested = len(result.cells[0].labels) if result.cells else 0
+    epochs = result.config.training.epochs
+    if tested >= SMOKE_TEST_PER_CLASS * num_classes and epochs >= SMOKE_TEST_EPOCHS:
+        return ""
+    untested = len(_untested_classes(result, num_classes))
+    return (
+        f"**A smoke test, not a result.** {_plural(tested, 'test recording')} for "
+        f"{num_classes} classes ({f'{untested} without one; ' if untested else ''}fewer than "
+        f"{SMOKE_TEST_PER_CLASS} per class) and {_plural(epochs, 'epoch')} of training: the "
+        "accuracies and differences below mean nothing about the methods. configs/quick.toml "
+        "is the smallest run that answers the primary question.\n\n"
+    )
+
+
 def _speed_table(result: EvaluationResult) -> str:
     lines = ["| cell | CPU us/recording | throughput (M ev/s, 1 thread) | delay | "
              "training s/seed |", "|---|---|---|---|---|"]
     for c in result.cells:
         speed = "–" if c.throughput is None else f"{c.throughput / 1e6:.2f}"
         lines.append(f"| {c.cell.label} | {_number(c.cpu_us_per_recording, ',.0f') or '–'} "
-                     f"| {speed} | {c.delay} | {c.train_seconds:.1f} |")
+                     f"| {speed} | {c.delay} | {_significant(c.train_seconds)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -272,7 +331,8 @@ def _markdown(result: EvaluationResult) -> str:
                 else f"all {config.data.train_samples} training recordings")
     return (
         f"# evdown evaluate: {config.name}\n\n"
-        f"**Primary question.** {question(config)}\n\n"
+        + smoke_test_line(result)
+        + f"**Primary question.** {question(config)}\n\n"
         + primary_table(result)
         + "\nhalf A / half B: the seeds at even / odd positions of each cell (no extra "
         "training); replicated: significant after Holm, interval above zero and the same sign "
@@ -284,7 +344,8 @@ def _markdown(result: EvaluationResult) -> str:
         f"Budgets: multiples of {reference}, calibrated on the first "
         f"{config.data.calibration_samples} training recordings. "
         f"Classifier: SpikingClassifier(channels={list(m.channels)}, grid={m.grid}, "
-        f"stem_channels={m.stem_channels}, pool_size={m.pool_size}), {t.epochs} epochs, "
+        f"stem_channels={m.stem_channels}, pool_size={m.pool_size}), "
+        f"{_plural(t.epochs, 'epoch')}, "
         f"batch {t.batch_size}, {t.encoding} input, trained on {result.device}.\n\n"
         + _run_lines(result)
         + "\n**Every cell** (exploratory rows carry no p-value):\n\n"
@@ -297,7 +358,8 @@ def _markdown(result: EvaluationResult) -> str:
         f"consistency: 1 - normalised L1 distance of counts in "
         f"{config.measures.consistency_bin_us / 1000:g} ms bins to the camera's recording (the "
         "control's in brackets); MMACs/rec: the classifier's multiply-accumulates per "
-        "recording; synops/rec: output events times the first layer's fan-out.\n\n"
+        "recording, in millions (dense); synops/rec: output events times the first layer's "
+        "fan-out.\n\n"
         "**Accuracy per class** (primary, control and sanity cells, all seeds):\n\n"
         + per_class_table(result)
         + "\n**Cost** (each transform timed alone on one thread; training time per seed):\n\n"

@@ -73,7 +73,7 @@ class SpikingClassifier(nn.Module):
         beta: membrane decay per time step, in ``(0, 1]``.
         threshold: firing threshold of every layer.
         stem_stride: side and stride of the stem convolution (1: no stem). A stride that brings
-            a large input down to a small working grid (:func:`stem_stride_for`) keeps the cost
+            a large input down to a small working grid (``stem_stride_for``) keeps the cost
             of the blocks the same for every input size and lets their receptive field cover
             the whole input (with four blocks, a grid of 16 is covered).
         stem_channels: output channels of the stem (default: ``channels[0]``).

@@ -138,7 +138,7 @@ def evaluate_classifier(model: nn.Module, loader: Batches) -> float:
     """Accuracy of a spiking classifier, in ``[0, 1]``.
 
     A sample's class is the output neuron with the most spikes, ties broken by the summed
-    output membrane (:func:`~evdown_torch.models.classifier.class_scores`).
+    output membrane (``evdown_torch.models.classifier.class_scores``).
 
     Args:
         model: as for :func:`train_classifier`.

@@ -29,7 +29,7 @@ from evdown_torch.events import Events
 from evdown_torch.plot._mpl import MissingMatplotlib
 from evdown_torch.plot.recording import SYNTHETIC_DURATION_MS, load_recording, method_name
 from evdown_torch.threads import command_threads
-from evdown_torch.time_units import check_timing, time_settings
+from evdown_torch.time_units import check_timing, time_settings, timing_checked_by_caller
 from evdown_torch.transforms import Downscaler, ThresholdDownscaler
 from evdown_torch.transforms.registry import METHODS, make_method, method_settings
 
@@ -194,15 +194,16 @@ def _run(args: argparse.Namespace) -> int:
                          f"got {str(out)!r}")
     torch.set_num_threads(command_threads(args.threads))
     sensor = tuple(args.sensor_size) if args.sensor_size else None
-    recording = load_recording(args.input, sensor_size=sensor, duration_ms=args.duration,
-                            time_unit=args.time_unit, columns=args.columns)
+    with timing_checked_by_caller():  # checked below, against every setting
+        recording = load_recording(args.input, sensor_size=sensor, duration_ms=args.duration,
+                                   time_unit=args.time_unit, columns=args.columns)
     transforms = build_transforms(args.methods, recording.sensor_size, args.factor,
                                   args.threshold, args.set or [])
     settings = {f"{method_name(t)}.{key}": value
                 for t in transforms for key, value in time_settings(t).items()}
     if not args.curve:
         settings["--window"] = 1000.0 * args.window
-    check_timing(recording.events.t.cpu().numpy(), settings, source=recording.name)
+    check_timing(recording.events.t, settings, source=recording.name, transforms=transforms)
     truth = None if args.no_ground_truth else recording.ground_truth(args.factor)
     if args.curve:
         curves = curve.region_curves(recording.events, recording.sensor_size, args.factor,

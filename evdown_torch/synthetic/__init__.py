@@ -1,9 +1,9 @@
 """Synthetic DVS gesture recordings: a DVS pixel model, 11 gesture classes, low-res ground truth.
 
-Scenes (:mod:`.scenes`: a person who sways slowly and gestures) are rasterised
-(:mod:`.raster`) onto a grid whose swaying body is rendered at its own key steps
-(:mod:`.grid`), lit (:mod:`.lighting`) and rendered through the pixel model
-(:mod:`.pixel_model`) by :mod:`.render`; :mod:`.dataset` wraps them in
+Scenes (``scenes``: a person who sways slowly and gestures) are rasterised
+(``raster``) onto a grid whose swaying body is rendered at its own key steps
+(``grid``), lit (``lighting``) and rendered through the pixel model
+(``pixel_model``) by ``render``; ``dataset`` wraps them in
 ``tonic.datasets.DVSGesture``'s interface.
 
 Measured against DVS128 Gesture (``python benchmarks/synthetic_stats.py --seeds 2``: 22

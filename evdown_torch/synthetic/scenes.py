@@ -83,7 +83,7 @@ class GestureScene:
         noise_scale: factor on the background-activity rate (0.5 to 1.5).
         active: ``(start_us, end_us)`` of the gesture: before and after it the person stands
             with arms at rest (idle start and end, each 3 % to 12 % of the recording); arms
-            swing in and out over :data:`RAMP_FRACTION` of the recording.
+            swing in and out over ``RAMP_FRACTION`` of the recording.
         pauses: ``(start_us, length_us)`` of each pause inside the gesture (1 to 3, each 4 %
             to 10 % of the recording): the motion slows to a halt and resumes, holding its pose.
         accent: depth ``a`` of the speed change within each repetition (0.5 to 0.9): the
@@ -104,7 +104,7 @@ class GestureScene:
             phase)`` of, in turn, the horizontal offset (two waves, amplitudes 0.01 to 0.025
             and 0.003 to 0.01 body units, 0.08 to 0.25 Hz and 0.25 to 0.45 Hz), the vertical
             offset (one, 0.002 to 0.006 body units, 0.1 to 0.35 Hz) and the lean about
-            :data:`HIP` (one, 0.004 to 0.012 rad, 0.08 to 0.25 Hz), flat; empty: no sway.
+            ``HIP`` (one, 0.004 to 0.012 rad, 0.08 to 0.25 Hz), flat; empty: no sway.
     """
 
     label: int
@@ -297,7 +297,7 @@ class GestureScene:
 
         Returns:
             Per capsule of ``BODY`` ``(a, b, radius, look)``: ``(S, 2)`` float64 pixel
-            coordinates of its ends, its radius in pixels and its index into :attr:`looks`.
+            coordinates of its ends, its radius in pixels and its index into ``looks``.
         """
         t = torch.as_tensor(t_us, dtype=torch.float64) * 1e-6
         ends = torch.tensor([[a, b] for _, a, b, _, _ in BODY], dtype=torch.float64)

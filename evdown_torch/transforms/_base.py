@@ -20,6 +20,7 @@ from evdown_torch.events import (
     to_events,
 )
 from evdown_torch.threads import OneCallAtATime
+from evdown_torch.time_units import check_first_call
 from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings, ThresholdSettings
 
@@ -42,8 +43,8 @@ class Streaming:
     """
 
     sensor_size: tuple[int, int, int] | None
-    #: The method's kernels (``None``: an abstract base, or a composition such as
-    #: :class:`Chain`).
+    #: The method's kernels, or ``None`` for an abstract base or a composition such as
+    #: :class:`Chain`.
     method: ClassVar[Method[Any, Any] | None] = None
     #: The method's name in the registry (``transforms.registry.METHODS``), the command line
     #: and the study's configs; empty for a transform outside the registry.
@@ -65,7 +66,7 @@ class Streaming:
 
     @property
     def kernels(self) -> Method[Any, Any]:
-        """The bundle this transform runs: its class's :attr:`method`.
+        """The bundle this transform runs, its class's :attr:`method`.
 
         A transform with several modes (PhotocurrentPooling) picks one from its settings.
         """
@@ -118,8 +119,15 @@ class Streaming:
         Returns:
             The output events, sorted by ``t``, in the input's kind, dtype and polarity
             encoding.
+
+        Warns:
+            TimeUnitWarning: at most once per transform, when the first recording it is called
+                on (of at least 100 events) looks like timestamps in another unit than the
+                microseconds its time settings are in
+                (:func:`~evdown_torch.time_units.check_first_call`).
         """
         ev, fmt = to_events(events, self.sensor_size)
+        check_first_call(self, ev.t)
         return from_events(self.kernel(ev), fmt)
 
     @overload
@@ -167,7 +175,11 @@ class Streaming:
         return from_batch(self._batch_events(batch), formats)
 
     def _batch_events(self, batch: EventBatch) -> EventBatch:
-        """:meth:`batch` on validated events."""
+        """:meth:`batch` on validated events (the longest recording's timing checked once)."""
+        if batch.lengths:
+            longest = max(range(len(batch.lengths)), key=batch.lengths.__getitem__)
+            start = sum(batch.lengths[:longest])
+            check_first_call(self, batch.events.t[start:start + batch.lengths[longest]])
         out = self.batch_kernel(batch)
         if out is None:  # no batched kernel: one recording at a time, the limit on them all
             parts, emitted = [], 0
@@ -206,7 +218,7 @@ class Session:
     previous chunks' last one (equal timestamps are fine and keep chunk order). A chunk that
     breaks this, or any other bad chunk (an empty one too), raises a ``ValueError`` and leaves
     the session as it was, so it stays usable. The method's own state is held explicitly in
-    :attr:`state` (``None`` before the first event); the transform itself is never modified.
+    ``state`` (``None`` before the first event); the transform itself is never modified.
 
     A call, ``flush()`` or ``reset()`` made while another one runs (another thread) raises a
     ``RuntimeError`` and changes nothing: give each thread its own session (a copy,

@@ -35,7 +35,7 @@ class _Estimation(ThresholdDownscaler, abstract=True):
 
     @property
     def lag(self) -> int:
-        """Output up to ``tau - lag * D`` is decided by input up to ``tau``: 1 or 2."""
+        """The lag (1 or 2) of output behind input, in units of ``max_delay``."""
         return self.settings.lag
 
     def algorithmic_delay(self) -> float:

@@ -37,8 +37,8 @@ class LIFPooling(Downscaler):
     ``t_start + (k + 1) * dt`` clipped to ``t_end``. The kernel is event-driven: a neuron is
     touched only at the steps where its block has events, the silences in between (decay, and
     a neuron firing on above threshold) are solved in closed form, so the cost follows the
-    events, not steps x regions (see :mod:`evdown_torch.transforms.functional.lif.pooling`, also for
-    the float32 rounding over a silence, the only difference from stepping).
+    events, not steps x regions (see :func:`~evdown_torch.transforms.functional.lif_pooling`,
+    also for the float32 rounding over a silence, the only difference from stepping).
 
     Choosing the settings. ``dt`` and ``tau`` are in the stream's time unit (microseconds for
     Tonic datasets; nothing is rescaled). A neuron fires once its membrane *exceeds*
@@ -119,7 +119,7 @@ class LIFPooling(Downscaler):
 
     @cached_property
     def settings(self) -> LIFPoolingSettings:
-        """The checked settings the kernels take: the region geometry and the neuron's.
+        """The checked settings the kernels take, the region geometry and the neuron's.
 
         The neuron's :class:`LIFSettings` (``settings.neuron``) is shared with
         :class:`~evdown_torch.models.SpikingPooling` (``SpikingPooling.from_transform``).

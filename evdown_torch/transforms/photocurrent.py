@@ -72,7 +72,7 @@ class PhotocurrentPooling(Downscaler):
     #: The setting :func:`calibrate` searches to meet an event budget.
     budget_setting = "threshold"
     name = "photocurrent"
-    #: A ``time_unit`` left out stays out (``None``): a copy without ``fps`` stays valid.
+    #: A ``time_unit`` left out stays ``None``, so a copy without ``fps`` stays valid.
     none_stays_none = ("time_unit",)
     #: The events mode's kernels; :attr:`kernels` binds the frames mode's when ``fps`` is set.
     method = PHOTOCURRENT_EVENTS

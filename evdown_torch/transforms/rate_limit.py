@@ -67,5 +67,5 @@ class RateLimiter(Streaming):
 
     @property
     def output_sensor_size(self) -> tuple[int, int, int] | None:
-        """The input sensor size: the limiter does not move events."""
+        """The input sensor size, as the limiter does not move events."""
         return self.sensor_size

@@ -55,5 +55,5 @@ class TemporalFunnelling(Streaming):
 
     @property
     def output_sensor_size(self) -> tuple[int, int, int] | None:
-        """The input sensor size: temporal funnelling does not move events in space."""
+        """The input sensor size, as temporal funnelling does not move events in space."""
         return self.sensor_size

@@ -27,7 +27,7 @@ class ThinnedDownsample(Downscaler):
 
     The *thinning control* of the evaluation (docs/semantics.md, "Event budget"): it spends an
     event budget with no method at all, every kept event at its downsampled place and time.
-    The random draws are seeded by the recording itself (:func:`recording_seed` of the input
+    The random draws are seeded by the recording itself (``recording_seed`` of the input
     stream and ``seed``), so a recording is always thinned the same way, in any order, batch
     or worker process, and nothing reads global random state. ``keep`` is the budget setting
     that :func:`~evdown_torch.transforms.calibrate.calibrate` searches.

@@ -450,3 +450,38 @@ def test_threads_apply_while_working_and_the_callers_count_is_restored(reference
     assert _digests(tmp_path / "two") == _digests(reference)  # threads change no result
     with pytest.raises(ValueError, match="threads must be a positive integer"):
         preprocess(source, tmp_path / "zero", "downsample", 2, workers=1, threads=0)
+
+
+def test_a_folder_of_float_seconds_with_time_unit_and_columns(tmp_path, rng, capsys):
+    # The same recordings as (N, 4) float arrays of t in seconds, x, y, p: with --time-unit s
+    # and --columns t,x,y,p the cache equals the one of the microsecond files; without the
+    # unit, one warning names the fix (the run's first recording), in the command's words.
+    micro = _folder_dataset(tmp_path / "micro", rng)
+    seconds = tmp_path / "seconds"
+    for path in sorted(micro.glob("*/*.npy")):
+        events = np.load(path)
+        (seconds / path.parent.name).mkdir(parents=True, exist_ok=True)
+        np.save(seconds / path.parent.name / path.name, np.stack(
+            [events["t"] / 1e6, events["x"], events["y"], events["p"]], axis=1))
+    common = ["preprocess", "--sensor-size", "64", "48", "2", "--method", "lif", "--factor",
+              "4", "--workers", "1", "--no-progress"]
+    assert main([*common, "--dataset", f"folder:{micro}", "--out", str(tmp_path / "a")]) == 0
+    assert main([*common, "--dataset", f"folder:{seconds}", "--out", str(tmp_path / "b"),
+                 "--time-unit", "s", "--columns", "t,x,y,p"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    a, b = PreprocessedDataset(tmp_path / "a"), PreprocessedDataset(tmp_path / "b")
+    assert len(a) == len(b) == 4
+    for i in range(4):
+        np.testing.assert_array_equal(a[i][0]["t"], b[i][0]["t"])
+    assert main([*common, "--dataset", f"folder:{seconds}", "--out", str(tmp_path / "c"),
+                 "--columns", "t,x,y,p"]) == 0
+    (warning,) = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert "rec0.npy" in warning and "--time-unit s" in warning and "time_unit=" not in warning
+
+
+def test_help_names_every_format_a_folder_may_hold(capsys):
+    with pytest.raises(SystemExit):
+        main(["preprocess", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "PATH/CLASS/FILE" in text and ".bin" in text and ".aedat4" in text
+    assert "--time-unit" in text and "--columns" in text and "Train/" in text

@@ -286,3 +286,25 @@ def test_sessions_stay_on_the_chunks_device(name, device, rng):
     parts = [session(chunk) for chunk in torch.split(data, 70)] + [session.flush()]
     assert all(part.device == data.device for part in parts)
     assert torch.equal(torch.cat(parts), transform(data))
+
+
+@pytest.mark.parametrize("kind", sorted(ESTIMATORS))
+def test_estimator_sessions_on_float_timestamps_keep_the_stated_bound(kind):
+    # docs/guide.md, "Streaming": with float timestamps CubicEstimation's session is the batch
+    # bit for bit; LinearEstimation's gives the same events, each time within two units in
+    # the last place (its running remainder is summed from different starts).
+    cls, _ = ESTIMATORS[kind]
+    rng = np.random.default_rng(0)
+    events = random_stream(rng, 8000, (32, 24, 2), dtype=helpers.FLOAT_DTYPE)
+    events["t"] = np.sort(rng.uniform(0.0, 3e5, len(events)))  # 0.3 s in float microseconds
+    transform = cls((32, 24, 2), factor=4, threshold=0.3, max_delay=1000.0)
+    batch = transform(events)
+    for pieces in (7, 30):
+        session = transform.session()
+        out = np.concatenate([*(session(c) for c in np.array_split(events, pieces)),
+                              session.flush()])
+        np.testing.assert_array_equal(out[["x", "y", "p"]], batch[["x", "y", "p"]])
+        if kind == "cubic":
+            np.testing.assert_array_equal(out["t"], batch["t"])
+        else:
+            assert (np.abs(out["t"] - batch["t"]) <= 2 * np.spacing(batch["t"])).all()

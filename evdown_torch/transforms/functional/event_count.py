@@ -85,7 +85,7 @@ def event_count(
     stable time order, its region's mean level ``M_r = sum(L_p) / n_r`` is tested with the
     DVS reference rule against ``threshold``; emitted events take the triggering event's
     ``t``. Levels are compared in exact integer arithmetic: ``threshold`` is taken as the
-    rational ``a / b`` of :func:`threshold_fraction`, and ``b * sum(L_p)`` is compared with
+    rational ``a / b`` of ``threshold_fraction``, and ``b * sum(L_p)`` is compared with
     ``a * n_r * k``.
 
     Args:
@@ -148,7 +148,7 @@ def event_count_batch(
 
     The recordings are not moved onto a virtual sensor or clock: recording ``b``'s regions
     are the block ``[b * Ho * Wo, (b + 1) * Ho * Wo)`` of region ids (as in
-    :mod:`evdown_torch.transforms.functional.batch`'s stacking), its events are taken in the batch's
+    ``transforms.functional.batch``'s stacking), its events are taken in the batch's
     order (recording after recording), and its output comes back in its own coordinates.
 
     Args:

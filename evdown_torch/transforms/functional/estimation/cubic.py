@@ -344,7 +344,7 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
 
     :class:`~evdown_torch.transforms.functional.estimation.driver.RegionJob` says what ``job``
     holds. With ``job.front_at_rest`` each pixel's slope at its first knot is 0
-    (:func:`pchip_slopes`).
+    (``pchip_slopes``).
     """
     sensor_size, factor, fraction = job.sensor_size, job.factor, job.fraction
     emitted, resume, front_at_rest = job.emitted, job.resume, job.front_at_rest

@@ -35,7 +35,7 @@ from evdown_torch.transforms.functional.reference import capped_threshold, thres
 
 __all__ = ["SOLVERS", "estimate", "estimate_window"]
 
-#: The solver of each curve (:attr:`EstimationSettings.curve`): the one table of them.
+#: The solver of each curve (``EstimationSettings.curve``): the one table of them.
 SOLVERS: dict[Curve, RegionSolver] = {"linear": linear_regions, "cubic": cubic_regions}
 
 #: Events per chunk of regions in :func:`estimate_window`. The kernels keep a few dozen

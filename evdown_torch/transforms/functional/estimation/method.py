@@ -64,7 +64,7 @@ def linear_estimation(
     """Downscale by linear log-luminance estimation (docs/semantics.md, method 4).
 
     Each pixel's log-luminance is the polyline through its knots (see
-    :mod:`~.knots`); each region's mean ``M_r`` (sum of its
+    ``estimation.knots``); each region's mean ``M_r`` (sum of its
     pixels' polylines over ``n_r``) is watched by the DVS reference rule at contrast
     ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
     the exact crossing times, rounded half up to integers when ``t`` is int64.
@@ -110,7 +110,7 @@ def cubic_estimation(
     """Downscale by cubic log-luminance estimation (docs/semantics.md, method 5).
 
     Each pixel's log-luminance is the piecewise cubic Hermite interpolant of its knots (see
-    :mod:`~evdown_torch.transforms.functional.estimation.knots`) with SciPy's ``PchipInterpolator``
+    ``estimation.knots``) with SciPy's ``PchipInterpolator``
     slopes; each region's mean ``M_r`` is watched by the DVS reference rule at contrast
     ``threshold`` over ``[t_start, t_end]``, from level 0 just before ``t_start``. Events get
     the crossing times, rounded half up to integers when ``t`` is int64.

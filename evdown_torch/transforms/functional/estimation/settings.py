@@ -41,7 +41,9 @@ class EstimationSettings(ThresholdSettings):
 
     @property
     def lag(self) -> int:
-        """Output up to ``tau - lag * D`` is decided by input up to ``tau``: 1 (linear), 2 (cubic).
+        """The lag, 1 (linear) or 2 (cubic), of output behind input.
+
+        Output up to ``tau - lag * D`` is decided by input up to ``tau``.
 
         PCHIP slopes need one more knot than a polyline.
         """

@@ -66,7 +66,7 @@ def resume_moves(
 
     Returns:
         ``(floor_u, on_level, q_start)`` for
-        :func:`~evdown_torch.transforms.functional.reference.move_crossings`.
+        ``reference.move_crossings``.
     """
     if resume is None:
         return floor_u, on_level, None
@@ -100,7 +100,7 @@ class RegionJob(NamedTuple):
         fraction: the threshold as the rational ``a / b`` of ``threshold_fraction``.
         emitted: events of the chunks before (for the output limit).
         resume: where a streaming window starts
-            (:func:`~evdown_torch.transforms.functional.estimation.stream.resume_moves`), or
+            (:func:`resume_moves`), or
             ``None``.
         front_at_rest: a bounded delay: pixels at rest before their first knot (the cubic
             slope there is 0; nothing changes for polylines).

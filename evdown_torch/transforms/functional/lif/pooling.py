@@ -256,7 +256,7 @@ def lif_pooling(
         factor: ``(fx, fy)``, positive integers.
         recording_spans: for a batch of ``B`` recordings stacked vertically (recording
             ``b``'s pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
-            :mod:`evdown_torch.transforms.functional.batch`), the ``(B,)`` first and last
+            ``transforms.functional.batch``), the ``(B,)`` first and last
             timestamps of each recording: each is binned from its own ``t_start`` and its
             spikes end at its own ``t_end``; the output is then sorted by recording, then
             step. ``None`` for one stream.

@@ -90,7 +90,7 @@ class LIFSettings:
     """The settings of one LIF pooling neuron per region and polarity, checked once.
 
     The leak is given by exactly one of ``tau`` and ``beta = exp(-dt / tau)``; with neither,
-    ``tau`` is :data:`DEFAULT_TAU_STEPS` steps. Times (``dt``, ``tau``) are in the stream's
+    ``tau`` is ``DEFAULT_TAU_STEPS`` (10) steps. Times (``dt``, ``tau``) are in the stream's
     own unit. Once built, every number is a float, ``beta`` is always set and ``tau`` is set
     unless the leak was given as ``beta``.
 
@@ -168,7 +168,8 @@ class LIFPoolingSettings(RegionSettings):
     """What the LIF pooling kernels take: the region geometry and the neuron's settings.
 
     Attributes:
-        sensor_size, factor: as :class:`.settings.RegionSettings`.
+        sensor_size: as :class:`~evdown_torch.transforms.functional.RegionSettings`.
+        factor: as :class:`~evdown_torch.transforms.functional.RegionSettings`.
         neuron: the neuron's :class:`LIFSettings` (what ``LIFPooling.settings`` returns and
             :class:`~evdown_torch.models.SpikingPooling` shares).
     """

@@ -108,7 +108,7 @@ def initial_state(
 
     With ``recordings > 1``, the state of that many recordings stacked vertically (recording
     ``b``'s pixel ``(x, y)`` at ``(x, y + b * Ho * fy)``, see
-    :mod:`evdown_torch.transforms.functional.batch`).
+    ``transforms.functional.batch``).
     """
     w, h, _ = sensor_size
     out_w, out_h, _ = output_size(sensor_size, factor)
@@ -229,7 +229,7 @@ def photocurrent_sorted(
     ``state``: the state after the previous chunk of the stream (``None``: a fresh stream);
     ``recordings``: ``B``, for a batch of recordings stacked vertically (recording ``b``'s
     pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
-    :mod:`evdown_torch.transforms.functional.batch`). Returns ``(output, state)``.
+    ``transforms.functional.batch``). Returns ``(output, state)``.
     """
     check_contrast_range(contrast, threshold)
     if state is None:

@@ -140,5 +140,5 @@ class PhotocurrentSettings(RegionSettings):
 
     @property
     def output_threshold(self) -> float:
-        """The output pixel's contrast threshold: :attr:`threshold`, or :attr:`contrast`."""
+        """The output pixel's contrast threshold, ``threshold`` or else ``contrast``."""
         return self.contrast if self.threshold is None else self.threshold
