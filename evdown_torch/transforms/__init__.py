@@ -7,6 +7,7 @@ from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount, EventCountSession
 from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
 from evdown_torch.transforms.photocurrent import PhotocurrentPooling, PhotocurrentSession
+from evdown_torch.transforms.subsampling import DensitySubsampling, PoissonSubsampling
 from evdown_torch.transforms.temporal import TemporalFunnelling
 from evdown_torch.transforms.thinning import ThinnedDownsample
 
@@ -14,6 +15,7 @@ __all__ = [
     "BudgetTarget",
     "Chain",
     "CubicEstimation",
+    "DensitySubsampling",
     "Downscaler",
     "Downsample",
     "EventCount",
@@ -24,6 +26,7 @@ __all__ = [
     "Method",
     "PhotocurrentPooling",
     "PhotocurrentSession",
+    "PoissonSubsampling",
     "Session",
     "Streaming",
     "TemporalFunnelling",

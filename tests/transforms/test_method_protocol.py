@@ -26,6 +26,8 @@ METHODS = {  # the methods of test_streaming, and the estimators and frames mode
     "photocurrent": ev.PhotocurrentPooling(SENSOR, factor=(2, 3), contrast=0.3, threshold=0.2),
     "photocurrent_frames": ev.PhotocurrentPooling(SENSOR, factor=2, contrast=0.3, fps=1e5),
     "lif": ev.LIFPooling(SENSOR, factor=2, dt=7, tau=20.0, weight=0.6),
+    "density": ev.DensitySubsampling(SENSOR, factor=2, tau=30.0, k=5, s=0.2),
+    "poisson": ev.PoissonSubsampling(SENSOR, factor=(2, 3), window=9, alpha=0.4),
 }
 
 
