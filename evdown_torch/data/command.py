@@ -55,7 +55,8 @@ def add_command(subparsers: Subparsers) -> None:
     parser.add_argument("--split", choices=("train", "test"), default="train",
                         help="dataset split (synthetic, dvsgesture, nmnist; default train)")
     parser.add_argument("--root", metavar="DIR",
-                        help="folder the Tonic dataset lives in (its save_to)")
+                        help="folder the Tonic dataset lives in (its save_to); for nmnist also "
+                        "a folder in N-MNIST's layout (Train/<digit>/*.bin, Test/...)")
     add_sensor_size_option(parser, "sensor of a folder dataset (required) or of the synthetic "
                            "one")
     parser.add_argument("--samples-per-class", type=int, metavar="N",

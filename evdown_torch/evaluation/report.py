@@ -216,8 +216,13 @@ def sanity_lines(result: EvaluationResult) -> str:
     return "\n".join(lines) + "\n"
 
 
-def per_class_table(result: EvaluationResult, num_classes: int = 11) -> str:
-    """Accuracy per class of the primary cells and their controls (over all seeds)."""
+def per_class_table(result: EvaluationResult, num_classes: int | None = None) -> str:
+    """Accuracy per class of the primary cells and their controls (over all seeds).
+
+    ``num_classes`` defaults to the dataset's.
+    """
+    if num_classes is None:
+        num_classes = result.config.data.num_classes
     cells = [c for c in result.cells if c.role in (PRIMARY, CONTROL_ROLE, SANITY)]
     if not cells:
         return ""
