@@ -127,9 +127,11 @@ class DensityState(NamedTuple):
     """A DensitySubsampling stream between chunks (bounded by the sensor).
 
     Attributes:
-        decayed: ``(2 * H * W,)`` float64 decayed count of each pixel and polarity just after
-            its last event (0: no event yet); index ``(p * H + y) * W + x``.
-        last_t: ``(2 * H * W,)`` time of that last event (the stream's ``t`` dtype).
+        decayed: ``(2 * H' * W',)`` float64 decayed count of each pixel and polarity just
+            after its last event (0: no event yet), on the sensor padded by ``r = k // 2``
+            on every side (``W' = W + 2r``, ``H' = H + 2r``); index
+            ``(p * H' + y + r) * W' + x + r``.
+        last_t: ``(2 * H' * W',)`` time of that last event (the stream's ``t`` dtype).
         seen: events seen so far (the next event's position in the stream).
         origin: the stream's first timestamp (the draws' clock origin).
     """
@@ -145,9 +147,21 @@ def _decay(elapsed: Tensor, tau: float) -> Tensor:
     return torch.exp(elapsed.to(torch.float64).div_(-tau))
 
 
-def _pixel_keys(events: Events, width: int, height: int) -> Tensor:
-    """``(N,)`` int64 ``(p * H + y) * W + x``: each event's pixel and polarity."""
-    return (events.p.to(torch.int64) * height + events.y) * width + events.x
+def _padded(settings: DensitySettings) -> tuple[int, int, int]:
+    """``(W + 2r, H + 2r, r)``: the sensor padded by the patch radius ``r`` on every side.
+
+    On the padded sensor every patch pixel of an event has a key, so no lookup needs a
+    bounds test: the padding never holds an event.
+    """
+    width, height, _ = settings.sensor_size
+    r = settings.k // 2
+    return width + 2 * r, height + 2 * r, r
+
+
+def _pixel_keys(events: Events, settings: DensitySettings) -> Tensor:
+    """``(N,)`` int64 key of each event's pixel and polarity on the padded sensor."""
+    width, height, r = _padded(settings)
+    return (events.p.to(torch.int64) * height + events.y + r) * width + events.x + r
 
 
 def _decayed_counts(t: Tensor, starts: Tensor, first_at: Tensor, initial: Tensor | None,
@@ -196,17 +210,16 @@ def _density_sorted(
         order, and each touched pixel's key with its decayed count and time after its last
         event (the new state's entries).
     """
-    width, height, _ = settings.sensor_size
+    width, height, _ = _padded(settings)
     n = events.num_events
     tau = settings.tau
     planes = 2 * width * height
-    if (planes + width * height) * n >= _INT64_LIMIT:
-        raise ValueError(f"a chunk of {n} events on a {width}x{height} sensor is too long for "
-                         "the density's int64 search keys; feed it in shorter chunks")
+    if (planes + 1) * (n + 1) >= _INT64_LIMIT:
+        raise ValueError(f"a chunk of {n} events on a {settings.sensor_size[:2]} sensor is too "
+                         "long for the density's int64 search keys; feed it in shorter chunks")
     # Grouped by pixel and polarity, stream order kept within a group.
-    key, order = stable_sort_small(_pixel_keys(events, width, height), planes)
+    key, order = stable_sort_small(_pixel_keys(events, settings), planes)
     t = take(events.t, order)
-    x, y = take(events.x, order), take(events.y, order)
     starts = changes(key)
     first_at = where_true(starts)
     carry = state if state is not None and state.seen else None  # None: nothing carried
@@ -218,35 +231,37 @@ def _density_sorted(
         initial.masked_fill_(carried == 0, 0.0)
     counts = _decayed_counts(t, starts, first_at, initial, tau)
     # Search keys (key, stream position) ascend through the grouped events, and so do the
-    # queries of one neighbour offset (the key shifts by a constant): cheap searches.
-    search = key * n + order
+    # queries of one neighbour offset (the key shifts by a constant): cheap searches. A
+    # sentinel in front answers the queries that precede every event (its key is -1).
+    search = torch.cat([key.new_tensor([-1]), key * n + order])
+    key = torch.cat([key.new_tensor([-1]), key])
+    t = torch.cat([t[:1], t])
+    counts = torch.cat([counts.new_zeros(1), counts])
     density = torch.zeros(n, dtype=torch.float64, device=events.device)
     offsets = patch_offsets(settings.k)
     group = max(1, min(len(offsets), LOOKUP_ELEMENTS // n))
     for begin in range(0, len(offsets), group):
         part = offsets[begin:begin + group]
-        dx = torch.tensor([o[0] for o in part], device=events.device).unsqueeze(1)
-        dy = torch.tensor([o[1] for o in part], device=events.device).unsqueeze(1)
-        shift = dy * width + dx
-        inside = (x + dx >= 0) & (x + dx < width) & (y + dy >= 0) & (y + dy < height)
-        neighbour = key + shift
-        # The neighbour's last event at or before this one in the stream, if it has one.
-        after = searchsorted_ascending(search, (neighbour * n + order).reshape(-1), right=True)
-        at = (after - 1).clamp_(min=0)
-        found = (inside & (after > 0).reshape(inside.shape)
-                 & (take(key, at).reshape(inside.shape) == neighbour))
-        elapsed = t - take(t, at).reshape(inside.shape)
-        value = take(counts, at).reshape(inside.shape) * _decay(elapsed, tau)
-        value.masked_fill_(~found, 0.0)
+        shift = torch.tensor([dy * width + dx for dx, dy, _ in part],
+                             device=events.device).unsqueeze(1)
+        neighbour = key[1:] + shift
+        # The neighbour's last event at or before this one in the stream (or the sentinel).
+        at = searchsorted_ascending(search, (search[1:] + shift * n).reshape(-1), right=True)
+        at -= 1
+        found = take(key, at).reshape(neighbour.shape) == neighbour
+        elapsed = t[1:] - take(t, at).reshape(neighbour.shape)
+        value = take(counts, at).reshape(neighbour.shape) * _decay(elapsed, tau)
         if carry is not None:  # pixels whose last event came in an earlier chunk
-            flat = neighbour.clamp(0, planes - 1).reshape(-1)
-            carried = take(carry.decayed, flat).reshape(inside.shape)
-            late = carried * _decay(t - take(carry.last_t, flat).reshape(inside.shape), tau)
-            late.masked_fill_(found | ~inside | (carried == 0), 0.0)
-            value += late
+            flat = neighbour.reshape(-1)
+            carried = take(carry.decayed, flat).reshape(neighbour.shape)
+            late = carried * _decay(t[1:] - take(carry.last_t, flat).reshape(neighbour.shape),
+                                    tau)
+            value = torch.where(found, value, late.masked_fill_(carried == 0, 0.0))
+        else:
+            value.masked_fill_(~found, 0.0)
         for row, (_, _, weight) in zip(value, part, strict=True):
             density.add_(row, alpha=weight)
-    lasts = last_of_runs(first_at, n)
+    lasts = last_of_runs(first_at, n) + 1
     in_order = torch.empty_like(density).index_copy_(0, order, density)
     return in_order, (take(key, lasts), take(counts, lasts), take(t, lasts))
 
@@ -295,7 +310,7 @@ def event_density(
 
 def density_init(settings: DensitySettings, events: Events) -> DensityState:
     """DensitySubsampling's ``init_state``: no pixel has a count; the clock starts at ``t[0]``."""
-    width, height, _ = settings.sensor_size
+    width, height, _ = _padded(settings)
     zeros = torch.zeros(2 * width * height, dtype=torch.float64, device=events.device)
     return DensityState(zeros, torch.zeros(zeros.shape[0], dtype=events.t.dtype,
                                            device=events.device), 0, events.t[0].item())
