@@ -7,7 +7,13 @@ import warnings
 import numpy as np
 import pytest
 
-from evdown_torch import CubicEstimation, LIFPooling, PhotocurrentPooling
+from evdown_torch import (
+    CubicEstimation,
+    DensitySubsampling,
+    LIFPooling,
+    PhotocurrentPooling,
+    PoissonSubsampling,
+)
 from evdown_torch.time_units import (
     TimeUnitWarning,
     check_timing,
@@ -66,6 +72,8 @@ def test_time_settings_of_transforms():
     assert time_settings(CubicEstimation(sensor, 2, max_delay=300)) == {"max_delay": 300.0}
     assert time_settings(CubicEstimation(sensor, 2)) == {}
     assert time_settings(PhotocurrentPooling(sensor, 2, fps=100)) == {"1/fps": 10_000.0}
+    assert time_settings(PoissonSubsampling(sensor, 2, window=6000)) == {"window": 6000.0}
+    assert time_settings(DensitySubsampling(sensor, 2, tau=2e4)) == {"tau": 20_000.0}
 
 
 def _warned(t, settings=None) -> list[str]:
