@@ -1,8 +1,9 @@
 """Whole datasets, downscaled once: ``evdown preprocess`` and the dataset that reads its cache.
 
 * :func:`open_source` names a dataset (synthetic gestures, Tonic's DVSGesture, N-MNIST in its
-  own folder layout (:class:`NMNISTSource`), a folder of ``.npy`` recordings), :func:`preprocess` downscales it into ``.npy`` shards with a
-  JSON manifest (worker processes on one machine, ranks under ``torchrun``; resumable);
+  own folder layout (:class:`NMNISTSource`), a folder of ``.npy`` recordings),
+  :func:`preprocess` downscales it into ``.npy`` shards with a JSON manifest (worker processes
+  on one machine, ranks under ``torchrun``; resumable);
 * :class:`PreprocessedDataset` reads the cache back as Tonic structured arrays, with
   ``transform=`` like Tonic datasets; :func:`verify_cache` checks its checksums.
 """

@@ -162,19 +162,19 @@ def load_recording(
         raw = render_gesture(label, seed, sensor_size=size, duration_us=duration_us)
         return ShownRecording(to_events(raw, size)[0], size, f"synthetic:{label}:{seed}",
                          label, seed, duration_us)
+    digit = None
     if spec.startswith("nmnist:"):
-        raw, sensor_size, label, spec = _nmnist_recording(spec, root, split, sensor_size)
+        raw, sensor_size, digit, spec = _nmnist_recording(spec, root, split, sensor_size)
     else:
         if root is not None:
             raise ValueError(f"--root names the N-MNIST folder of an nmnist:DIGIT[:N] input, "
                              f"not of {spec!r}")
         raw, sensor_size = read_file(spec, sensor_size, time_unit=time_unit, columns=columns)
-        label = None
     events = sort_by_time(to_events(raw, sensor_size)[0])
     if duration_ms is not None and events.num_events:
         end = events.t[0] + duration_ms * 1000
         events = events.select(events.t < end)
-    return ShownRecording(events, sensor_size, spec, label)
+    return ShownRecording(events, sensor_size, spec, digit)
 
 
 def _nmnist_recording(

@@ -16,9 +16,10 @@ from evdown_torch.transforms.subsampling import DensitySubsampling, PoissonSubsa
 #: Method name -> transform class, in the paper's order: the spatial downscalers, each built
 #: as ``cls(sensor_size, factor, **settings)`` and compared at every factor by the evaluation
 #: and the benchmarks; then the subsamplers, peers that keep input events at a budget and
-#: Downsample them (docs/semantics.md, methods 9 and 10). TemporalFunnelling (method 8) is not one of them: it has no factor and
-#: is composed with a spatial method (``evdown_torch.Chain`` or Tonic's ``Compose``), so the
-#: real-time benchmark names it in its own line-up (``bench.realtime.REALTIME_METHODS``).
+#: Downsample them (docs/semantics.md, methods 9 and 10). TemporalFunnelling (method 8) is not
+#: one of them: it has no factor and is composed with a spatial method (``evdown_torch.Chain``
+#: or Tonic's ``Compose``), so the real-time benchmark names it in its own line-up
+#: (``bench.realtime.REALTIME_METHODS``).
 METHODS: dict[str, type[Downscaler]] = {
     "downsample": Downsample,
     "funnelling": EventFunnelling,

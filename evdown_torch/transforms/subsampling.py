@@ -2,9 +2,9 @@
 
 docs/semantics.md, "Subsamplers": each keeps or drops the input events at the input
 resolution, causally, one seeded draw per event
-(:func:`~evdown_torch.transforms.thinning.event_uniforms`, the same in a batch call and in a
-session), then divides the coordinates by the factor. Each has one budget setting that
-:func:`~evdown_torch.transforms.calibrate.calibrate` searches.
+(:func:`~evdown_torch.transforms.functional.draws.event_uniforms`, the same in a batch call
+and in a session), then divides the coordinates by the factor. Each has one budget setting
+that :func:`~evdown_torch.transforms.calibrate.calibrate` searches.
 """
 
 from __future__ import annotations
@@ -53,8 +53,8 @@ class DensitySubsampling(Downscaler):
         >>> import torch
         >>> g = torch.Generator().manual_seed(0)
         >>> ev = torch.stack([torch.randint(0, 16, (2000,), generator=g),
-        ...                   torch.randint(0, 16, (2000,), generator=g),
-        ...                   torch.arange(2000) * 50, torch.randint(0, 2, (2000,), generator=g)], 1)
+        ...                   torch.randint(0, 16, (2000,), generator=g), torch.arange(2000) * 50,
+        ...                   torch.randint(0, 2, (2000,), generator=g)], 1)
         >>> sub = DensitySubsampling((16, 16, 2), factor=2, s=0.05)
         >>> out = sub(ev)
         >>> 0 < len(out) < 2000, bool(out.equal(sub(ev))), int(out[:, 0].max()) < 8
@@ -100,8 +100,8 @@ class PoissonSubsampling(Downscaler):
         >>> import torch
         >>> g = torch.Generator().manual_seed(0)
         >>> ev = torch.stack([torch.randint(0, 16, (2000,), generator=g),
-        ...                   torch.randint(0, 16, (2000,), generator=g),
-        ...                   torch.arange(2000) * 50, torch.randint(0, 2, (2000,), generator=g)], 1)
+        ...                   torch.randint(0, 16, (2000,), generator=g), torch.arange(2000) * 50,
+        ...                   torch.randint(0, 2, (2000,), generator=g)], 1)
         >>> out = PoissonSubsampling((16, 16, 2), factor=2, alpha=0.1)(ev)
         >>> 0 < len(out) <= 200
         True

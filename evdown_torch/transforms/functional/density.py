@@ -3,7 +3,7 @@
 Each event's local density is the Gaussian-weighted sum, over the ``k x k`` patch around its
 pixel, of every patch pixel's decayed count of same-polarity events up to the event (each
 count decays as ``exp(-dt / tau)`` and gains 1 per event). The event is kept when its draw
-``u_e`` (:func:`~evdown_torch.transforms.thinning.event_uniforms`) is below ``s`` times its
+``u_e`` (:func:`~evdown_torch.transforms.functional.draws.event_uniforms`) is below ``s`` times its
 density; kept events are then downsampled. Causal: each event is decided at once.
 
 How it is computed, without a loop over events:
@@ -15,20 +15,22 @@ How it is computed, without a loop over events:
   tau)``, so ``ceil(log2 m)`` passes serve groups of up to ``m`` events. Every factor is the
   exponential of a time difference that is not positive: nothing can overflow, whatever the
   stream's length or clock, and no time origin is needed (a cumulative sum of
-  ``exp(t_i / tau)`` would overflow after ``709 tau``). Each value is a sum of positive terms
-  each rounded about ``log2 m`` times: relative error below ``(3 log2 m + 3) * 2**-53``.
+  ``exp(t_i / tau)`` would overflow after ``709 tau``). Each value is a sum of positive terms,
+  each a product of at most ``ceil(log2 m)`` rounded exponentials: a few ``1e-15`` relative
+  (the bound is in docs/semantics.md, "How the subsamplers are computed").
 * **The patch sum** needs, for each event and each pixel of its patch, that pixel's count at
   the event: the pixel's last event up to this one in stream order is found by one binary
-  search (``searchsorted`` over the events sorted by pixel, then stream position), and its
-  ``S`` decays to the event's time. The ``k * k`` neighbours go through in groups whose
-  temporaries stay near a million elements, added in a fixed order.
+  search (``searchsorted`` over the events sorted by pixel, then stream position; keys on the
+  sensor padded by the patch radius, so no lookup needs a bounds test), and its ``S`` decays
+  to the event's time. The ``k * k`` neighbours go through in groups whose temporaries stay
+  near a million elements, added in a fixed order.
 * **A stream** carries, per pixel and polarity, the decayed count after its last event and
   that event's time (:class:`DensityState`: bounded by the sensor), plus the number of events
   seen and the first timestamp (the draws' position and clock origin).
 
-A session and the whole-stream call compute each density with different roundings (the scan
-runs over other groupings), within the bound above: their decisions differ only for an event
-whose draw lies that close to ``s * density``, about one chance in ``10**14`` per event.
+A session and the whole-stream call can round a density differently (the scan runs over other
+groupings), within that bound: their decisions can differ only for an event whose draw lies
+that close to ``s * density``, about one chance in ``10**14`` per event.
 """
 
 from __future__ import annotations
@@ -59,8 +61,8 @@ from evdown_torch.checks import (
     check_time_constant,
 )
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.settings import RegionSettings
 from evdown_torch.transforms.functional.draws import event_uniforms
+from evdown_torch.transforms.functional.settings import RegionSettings
 
 __all__ = [
     "DensitySettings",

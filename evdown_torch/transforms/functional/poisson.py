@@ -48,9 +48,9 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import check_non_negative_int, check_positive_float
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.draws import event_uniforms
 from evdown_torch.transforms.functional.settings import RegionSettings
 from evdown_torch.transforms.functional.temporal import bin_index
-from evdown_torch.transforms.functional.draws import event_uniforms
 
 __all__ = [
     "BLUR_RADIUS",
