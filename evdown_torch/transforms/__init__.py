@@ -10,6 +10,7 @@ from evdown_torch.transforms.photocurrent import PhotocurrentPooling, Photocurre
 from evdown_torch.transforms.subsampling import DensitySubsampling, PoissonSubsampling
 from evdown_torch.transforms.temporal import TemporalFunnelling
 from evdown_torch.transforms.thinning import ThinnedDownsample
+from evdown_torch.transforms.tonic_peers import TonicDecimation, TonicRefractoryPeriod
 
 __all__ = [
     "BudgetTarget",
@@ -31,6 +32,8 @@ __all__ = [
     "Streaming",
     "TemporalFunnelling",
     "ThinnedDownsample",
+    "TonicDecimation",
+    "TonicRefractoryPeriod",
     "calibrate",
     "calibrate_weight",
 ]
