@@ -8,7 +8,8 @@ region). The output sensor size itself is :func:`evdown_torch.checks.output_size
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 import torch
@@ -18,6 +19,9 @@ from evdown_torch.checks import output_size
 
 if TYPE_CHECKING:  # events.py imports this module
     from evdown_torch.events import Events
+
+#: A kernel's state, carried through :func:`step_in_pieces`.
+S = TypeVar("S")
 
 __all__ = [
     "CHUNK_EVENTS",
@@ -43,6 +47,7 @@ __all__ = [
     "segmented_cumsum",
     "sort_by_time",
     "stable_sort_small",
+    "step_in_pieces",
     "take",
     "telescoped_cumsum",
     "time_order",
@@ -315,6 +320,24 @@ def chunk_bounds(t: Tensor, chunk: int | None = None, *, split_ties: bool = True
     if not split_ties:
         starts = torch.searchsorted(t, t[starts], side="left")
     return sorted({0, n, *starts.tolist()})
+
+
+def step_in_pieces(
+    events: Events, state: S, step: Callable[[Events, S], tuple[Events, S]]
+) -> tuple[Events, S]:
+    """``step`` over the pieces of :func:`chunk_bounds` of a time-sorted chunk, state carried.
+
+    What a streaming session fed those pieces would give: a kernel's temporaries stay bounded
+    on a long stream. Returns the pieces' outputs, concatenated, and the last state.
+    """
+    from evdown_torch.events import Events  # events.py imports this module
+
+    outputs = []
+    bounds = chunk_bounds(events.t)
+    for start, stop in zip(bounds[:-1], bounds[1:]):
+        out, state = step(events.part(start, stop), state)
+        outputs.append(out)
+    return (outputs[0] if len(outputs) == 1 else Events.cat(outputs)), state
 
 
 #: Shortest key tensor that torch's CPU sort orders by radix sort (``at::internal::GRAIN_SIZE``);

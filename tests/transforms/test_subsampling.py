@@ -337,3 +337,13 @@ def test_kernel_pieces_use_the_lookup_groups(rng, monkeypatch):
     monkeypatch.setattr(density_kernel, "LOOKUP_ELEMENTS", 450)  # 2 offsets a group
     np.testing.assert_array_equal(event_density(events, sensor_size=SENSOR, tau=90.0, k=5),
                                   whole)
+
+
+def test_the_kernels_run_where_the_events_are(device, rng):
+    arr = random_stream(rng, 600, SENSOR, t_max=4_000)
+    columns = np.stack([arr["x"], arr["y"], arr["t"], arr["p"]], 1).astype(np.int64)
+    for transform in SUBSAMPLERS.values():
+        on_cpu = transform(torch.tensor(columns))
+        out = transform(torch.tensor(columns, device=device))
+        assert out.device.type == device.type
+        torch.testing.assert_close(out.cpu(), on_cpu, rtol=0, atol=0)

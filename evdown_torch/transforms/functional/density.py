@@ -51,6 +51,7 @@ from evdown_torch._tensors import (
     searchsorted_ascending,
     sort_by_time,
     stable_sort_small,
+    step_in_pieces,
     take,
     where_true,
 )
@@ -340,22 +341,24 @@ def _kept(events: Events, density: Tensor, settings: DensitySettings, seen: int,
     return Events(x, y, kept.t.clone(), kept.p.clone())
 
 
+def _step_sorted(
+    events: Events, state: DensityState, settings: DensitySettings
+) -> tuple[Events, DensityState]:
+    """One piece of time-sorted events: the kept ones, downsampled, and the next state."""
+    density, touched = _density_sorted(events, settings, state)
+    kept = _kept(events, density, settings, state.seen, state.origin)
+    return kept, _next_state(state, settings, events, touched)
+
+
 def density_step(
     events: Events, state: DensityState, settings: DensitySettings
 ) -> tuple[Events, DensityState]:
     """DensitySubsampling's ``step``: one time-sorted chunk, every event decided by it.
 
-    A long chunk goes through in pieces (:func:`~evdown_torch._tensors.chunk_bounds`), as a
+    A long chunk goes through in pieces (:func:`~evdown_torch._tensors.step_in_pieces`), as a
     session would feed it.
     """
-    outputs = []
-    bounds = chunk_bounds(events.t)
-    for start, stop in zip(bounds[:-1], bounds[1:]):
-        piece = events.part(start, stop)
-        density, touched = _density_sorted(piece, settings, state)
-        outputs.append(_kept(piece, density, settings, state.seen, state.origin))
-        state = _next_state(state, settings, piece, touched)
-    return (outputs[0] if len(outputs) == 1 else Events.cat(outputs)), state
+    return step_in_pieces(events, state, lambda piece, s: _step_sorted(piece, s, settings))
 
 
 def density_whole(events: Events, settings: DensitySettings) -> Events:

@@ -39,11 +39,11 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import (
-    chunk_bounds,
     divide,
     region_of,
     searchsorted_ascending,
     sort_by_time,
+    step_in_pieces,
     take,
 )
 from evdown_torch.checks import check_non_negative_int, check_positive_float
@@ -296,15 +296,10 @@ def poisson_step(
 ) -> tuple[Events, PoissonState]:
     """PoissonSubsampling's ``step``: one time-sorted chunk, every event decided by it.
 
-    A long chunk goes through in pieces (:func:`~evdown_torch._tensors.chunk_bounds`), as a
+    A long chunk goes through in pieces (:func:`~evdown_torch._tensors.step_in_pieces`), as a
     session would feed it.
     """
-    outputs = []
-    bounds = chunk_bounds(events.t)
-    for start, stop in zip(bounds[:-1], bounds[1:]):
-        out, state = _step_sorted(events.part(start, stop), state, settings)
-        outputs.append(out)
-    return (outputs[0] if len(outputs) == 1 else Events.cat(outputs)), state
+    return step_in_pieces(events, state, lambda piece, s: _step_sorted(piece, s, settings))
 
 
 def poisson_whole(events: Events, settings: PoissonSettings) -> Events:
