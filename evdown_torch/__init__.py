@@ -5,12 +5,14 @@ from evdown_torch.events import Events, from_events, to_events
 from evdown_torch.transforms import (
     Chain,
     CubicEstimation,
+    DensitySubsampling,
     Downsample,
     EventCount,
     EventFunnelling,
     LIFPooling,
     LinearEstimation,
     PhotocurrentPooling,
+    PoissonSubsampling,
     RateLimiter,
     TemporalFunnelling,
 )
@@ -20,6 +22,7 @@ __version__ = "0.1.0"
 __all__ = [
     "Chain",
     "CubicEstimation",
+    "DensitySubsampling",
     "Downsample",
     "EventCount",
     "EventFunnelling",
@@ -27,6 +30,7 @@ __all__ = [
     "LIFPooling",
     "LinearEstimation",
     "PhotocurrentPooling",
+    "PoissonSubsampling",
     "RateLimiter",
     "TemporalFunnelling",
     "__version__",

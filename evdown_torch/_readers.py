@@ -428,10 +428,28 @@ def _read_aedat4(path: Path) -> Read:
                  "us")
 
 
+#: Bytes of one event of an N-MNIST ``.bin`` file (40 bits: x, y, polarity and time).
+NMNIST_EVENT_BYTES = 5
+
+
+def check_nmnist_size(path: Path, size: int) -> None:
+    """Refuse an N-MNIST ``.bin`` file of ``size`` bytes that cannot hold whole events.
+
+    Raises:
+        ValueError: naming the file, when ``size`` is not a multiple of 5 (a truncated file).
+    """
+    if size % NMNIST_EVENT_BYTES:
+        raise ValueError(
+            f"{str(path)!r} is truncated: its {size} bytes are not a whole number of "
+            f"{NMNIST_EVENT_BYTES}-byte N-MNIST events"
+        )
+
+
 def _read_bin(path: Path) -> Read:
     require("tonic", ".bin")
     import tonic.io
 
+    check_nmnist_size(path, path.stat().st_size)
     dtype = np.dtype([("x", int), ("y", int), ("t", int), ("p", int)])  # Tonic's NMNIST.dtype
     size = path.stat().st_size
     if size % 5:

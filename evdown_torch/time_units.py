@@ -57,7 +57,7 @@ MAX_PLAUSIBLE_RATE = 1e9
 MIN_EVENTS_FOR_RATE = 100
 
 #: Settings of the downscalers that are times in the stream's unit (microseconds here).
-TIME_SETTINGS = ("dt", "tau", "max_delay")
+TIME_SETTINGS = ("dt", "tau", "max_delay", "window")
 
 
 class TimeUnitWarning(WordedWarning):
@@ -140,8 +140,8 @@ def display_unit(span_us: float) -> tuple[str, float]:
 def time_settings(transform: Any) -> dict[str, float]:
     """The time settings of a downscaler, in the stream's unit.
 
-    ``dt``, ``tau``, ``max_delay`` and the frame period of ``fps``, leaving out those unset or
-    infinite.
+    ``dt``, ``tau``, ``max_delay``, ``window`` and the frame period of ``fps``, leaving out
+    those unset or infinite.
     """
     found = {}
     for name in TIME_SETTINGS:

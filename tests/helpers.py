@@ -13,12 +13,14 @@ from hypothesis import strategies as st
 
 from evdown_torch import (
     CubicEstimation,
+    DensitySubsampling,
     Downsample,
     EventCount,
     EventFunnelling,
     LIFPooling,
     LinearEstimation,
     PhotocurrentPooling,
+    PoissonSubsampling,
     RateLimiter,
     TemporalFunnelling,
 )
@@ -26,6 +28,7 @@ from evdown_torch.events import DVS_DTYPE
 from evdown_torch.models import SpikingPooling
 from evdown_torch.transforms import Streaming
 from evdown_torch.transforms.thinning import ThinnedDownsample
+from evdown_torch.transforms.tonic_peers import TonicDecimation, TonicRefractoryPeriod
 
 #: The estimators, and the three log-luminance methods (EventCount and the estimators).
 ESTIMATORS = [LinearEstimation, CubicEstimation]
@@ -62,6 +65,10 @@ def transform_cases(
         "temporal": TemporalFunnelling(dt=step, sensor_size=sensor_size),
         "thinned": ThinnedDownsample(sensor_size, factor, keep=0.5, seed=3),
         "rate_limit": RateLimiter(max_events=3, window=step, sensor_size=sensor_size),
+        "density": DensitySubsampling(sensor_size, factor, tau=4.0 * step, k=5, s=0.2),
+        "poisson": PoissonSubsampling(sensor_size, factor, window=step, alpha=0.4),
+        "refractory": TonicRefractoryPeriod(sensor_size, factor, delta=step),
+        "decimation": TonicDecimation(sensor_size, factor, n=2),
     }
 
 

@@ -457,7 +457,8 @@ def test_each_method_of_the_replay_has_the_delay_its_definition_asks():
     delays = {label: _transform(label, (32, 32, 2), 4).algorithmic_delay()
               for label in REALTIME_METHODS}
     assert delays == {"downsample": 0, "funnelling": 0, "event_count": 0, "temporal": 0,
-                      "linear": 1000, "cubic": 2000, "lif": 1000, "photocurrent": 0}
+                      "linear": 1000, "cubic": 2000, "lif": 1000, "photocurrent": 0,
+                      "density": 0, "poisson": 0}
     assert LinearEstimation((8, 8, 2), 2).algorithmic_delay() == math.inf
     framed = PhotocurrentPooling((8, 8, 2), 2, fps=500.0)
     assert framed.algorithmic_delay() == pytest.approx(2000)

@@ -7,7 +7,14 @@ import warnings
 import numpy as np
 import pytest
 
-from evdown_torch import CubicEstimation, LIFPooling, LinearEstimation, PhotocurrentPooling
+from evdown_torch import (
+    CubicEstimation,
+    DensitySubsampling,
+    LIFPooling,
+    LinearEstimation,
+    PhotocurrentPooling,
+    PoissonSubsampling,
+)
 from evdown_torch.io import read_events, write_events
 from evdown_torch.time_units import (
     TimeUnitWarning,
@@ -67,6 +74,8 @@ def test_time_settings_of_transforms():
     assert time_settings(CubicEstimation(sensor, 2, max_delay=300)) == {"max_delay": 300.0}
     assert time_settings(CubicEstimation(sensor, 2)) == {}
     assert time_settings(PhotocurrentPooling(sensor, 2, fps=100)) == {"1/fps": 10_000.0}
+    assert time_settings(PoissonSubsampling(sensor, 2, window=6000)) == {"window": 6000.0}
+    assert time_settings(DensitySubsampling(sensor, 2, tau=2e4)) == {"tau": 20_000.0}
 
 
 def _caught(t, settings=None) -> list[TimeUnitWarning]:

@@ -85,11 +85,14 @@ REALTIME_SETTINGS: dict[str, dict[str, Any]] = {
     "cubic": {"max_delay": REALTIME_MAX_DELAY_US},
     "lif": {"dt": 1000},
 }
-#: Method label -> (registry name or "temporal", settings): every registry method (in its
-#: order, temporal funnelling after the causal region methods) with its replay settings.
+#: Method label -> (registry name or "temporal", settings): every registry method that
+#: streams (in its order, temporal funnelling after the causal region methods) with its
+#: replay settings.
+_STREAMING = [name for name, cls in METHODS.items()
+              if cls.method is not None and cls.method.no_stream is None]
 REALTIME_METHODS: dict[str, tuple[str, dict[str, Any]]] = {
     name: (name, REALTIME_SETTINGS.get(name, {}))
-    for name in [*list(METHODS)[:3], "temporal", *list(METHODS)[3:]]
+    for name in [*_STREAMING[:3], "temporal", *_STREAMING[3:]]
 }
 
 

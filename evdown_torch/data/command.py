@@ -59,7 +59,8 @@ def add_command(subparsers: Subparsers) -> None:
                         help="dataset split (synthetic, dvsgesture, nmnist; default train)")
     parser.add_argument("--root", metavar="DIR",
                         help="folder the Tonic dataset lives in (its save_to: DIR/NMNIST/Train/, "
-                        "extracted, or DIR/DVSGesture/ibmGestureTrain/)")
+                        "extracted, or DIR/DVSGesture/ibmGestureTrain/); for nmnist also a "
+                        "folder in N-MNIST's layout (Train/<digit>/*.bin, Test/...)")
     add_sensor_size_option(parser, "sensor of a folder dataset (required) or of the synthetic "
                            "one")
     add_file_format_options(parser)  # --time-unit, --columns: a folder's files

@@ -4,8 +4,8 @@ A :class:`Source` (the package's one notion of a source) is a picklable object (
 processes receive it) with ``len()``, ``sensor_size``, ``dtype``, ``classes``, ``describe()``
 (JSON facts naming it) and ``load(i) -> (events, label)`` plus ``source_name(i)`` for
 messages. :func:`open_source` builds one from ``evdown preprocess``'s ``--dataset`` choice;
-:class:`TonicSource` is the one place DVS128 Gesture and N-MNIST are opened (``evdown
-evaluate`` reads DVS128 Gesture through it too).
+:class:`TonicSource` is the one place DVS128 Gesture is opened and :class:`NMNISTSource` the one
+place N-MNIST is (``evdown evaluate`` and ``evdown show`` read them through these too).
 """
 
 from __future__ import annotations
@@ -16,14 +16,16 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from evdown_torch._readers import NMNIST_SENSOR, check_nmnist_size
 from evdown_torch.checks import check_choice, check_sensor_size
-from evdown_torch.events import FIELDS
+from evdown_torch.events import DVS_DTYPE, FIELDS
 from evdown_torch.io import READ_EXTENSIONS, check_columns, read_microseconds
 from evdown_torch.time_units import check_unit_name
 
 __all__ = [
     "RECORDING_SUFFIXES",
     "FolderSource",
+    "NMNISTSource",
     "Source",
     "SyntheticSource",
     "TonicSource",
@@ -121,17 +123,17 @@ class SyntheticSource:
         return self._data[index]
 
 
-_TONIC_CLASSES = {"dvsgesture": "DVSGesture", "nmnist": "NMNIST"}
+_TONIC_CLASSES = {"dvsgesture": "DVSGesture"}
 
 #: The suffix of each Tonic dataset's recording files, in its extracted folder.
 _TONIC_RECORDINGS = {"DVSGesture": ".npy", "NMNIST": ".bin"}
 
 
 class TonicSource:
-    """A dataset of ``tonic.datasets`` (DVS128 Gesture or N-MNIST) whose files are on disk.
+    """A dataset of ``tonic.datasets`` (DVS128 Gesture) whose files are on disk.
 
     Args:
-        name: ``"dvsgesture"`` or ``"nmnist"``.
+        name: ``"dvsgesture"``.
         root: the folder the dataset lives in (Tonic's ``save_to``).
         split: ``"train"`` or ``"test"``.
         download: let Tonic download absent files (default: refuse, saying where they go).
@@ -217,6 +219,127 @@ def _without_download(cls: Any) -> type:
         )
 
     return type(cls.__name__, (cls,), {"_check_exists": extracted, "download": refuse})
+
+
+#: N-MNIST's split folders.
+NMNIST_SPLITS = {"train": "Train", "test": "Test"}
+
+#: Problems listed in full in a refusal; more are counted.
+_SHOWN_PROBLEMS = 5
+
+
+def nmnist_folder(root: str | Path, split: str) -> Path:
+    """The folder of an N-MNIST split: ``ROOT/Train`` (``Test``), else ``ROOT/NMNIST/Train``.
+
+    The second is where ``tonic.datasets.NMNIST(save_to=ROOT)`` extracts the dataset.
+
+    Raises:
+        ValueError: when neither exists, saying where the files go.
+    """
+    root = Path(root).expanduser().resolve()
+    name = NMNIST_SPLITS[check_choice("split", split, tuple(NMNIST_SPLITS))]
+    for folder in (root / name, root / "NMNIST" / name):
+        if folder.is_dir():
+            return folder
+    raise ValueError(
+        f"the N-MNIST files are absent: no {name}/ folder in {str(root)!r} nor in "
+        f"{str(root / 'NMNIST')!r} (N-MNIST's layout is {name}/<digit>/<id>.bin, as "
+        f"tonic.datasets.NMNIST(save_to={str(root)!r}) extracts it in {str(root / 'NMNIST')!r})"
+    )
+
+
+class NMNISTSource:
+    """N-MNIST (Orchard et al. 2015) read from a folder in its own layout.
+
+    ``ROOT/Train/<digit>/<id>.bin`` and ``ROOT/Test/<digit>/<id>.bin`` (or the same under
+    ``ROOT/NMNIST/``, where Tonic puts it), any number of recordings per digit; the label is
+    the digit of the folder. Files are read with ``tonic.io.read_mnist_file`` (through
+    :func:`evdown_torch.io.read_events`) as :data:`~evdown_torch.events.DVS_DTYPE` arrays on
+    the 34 x 34 ATIS crop, ``t`` in microseconds. The folder is checked when the source opens:
+    every digit folder present and holding ``.bin`` files, and no file empty or truncated.
+
+    Args:
+        root: the folder holding ``Train/`` and ``Test/`` (or ``NMNIST/``).
+        split: ``"train"`` or ``"test"``.
+
+    Raises:
+        ValueError: naming what is missing: the split folder, digit folders, recordings in a
+            digit folder, or files that are empty or truncated (not whole 5-byte events).
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as root:
+        ...     NMNISTSource(root, split="test")
+        Traceback (most recent call last):
+        ...
+        ValueError: the N-MNIST files are absent: no Test/ folder in ...
+    """
+
+    name = "nmnist"
+
+    def __init__(self, root: str | Path, *, split: str) -> None:
+        self.split = check_choice("split", split, tuple(NMNIST_SPLITS))
+        self.folder = nmnist_folder(root, self.split)
+        self.sensor_size = NMNIST_SENSOR
+        self.dtype = DVS_DTYPE
+        self.classes = [str(digit) for digit in range(10)]
+        missing = [c for c in self.classes if not (self.folder / c).is_dir()]
+        if missing:
+            raise ValueError(
+                f"N-MNIST folder {str(self.folder)!r} lacks the class folder(s) "
+                f"{', '.join(missing)}: it needs one folder per digit 0-9, each holding "
+                "<id>.bin recordings"
+            )
+        self._items: list[tuple[str, int]] = []
+        problems = []
+        for label, digit in enumerate(self.classes):
+            files = sorted(p for p in (self.folder / digit).iterdir()
+                           if p.suffix == ".bin" and p.is_file())
+            if not files:
+                problems.append(f"class folder {digit}/ holds no .bin recording")
+            for path in files:
+                problems += self._check_file(path)
+                self._items.append((f"{digit}/{path.name}", label))
+        if problems:
+            more = len(problems) - _SHOWN_PROBLEMS
+            raise ValueError(
+                f"N-MNIST folder {str(self.folder)!r} is incomplete: "
+                + "; ".join(problems[:_SHOWN_PROBLEMS])
+                + (f"; and {more} more" if more > 0 else "")
+            )
+
+    def _check_file(self, path: Path) -> list[str]:
+        size = path.stat().st_size
+        if size == 0:
+            return [f"{path.parent.name}/{path.name} is empty"]
+        try:
+            check_nmnist_size(path, size)
+        except ValueError:
+            return [f"{path.parent.name}/{path.name} is truncated ({size} bytes, not whole "
+                    "5-byte events)"]
+        return []
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-ready facts that name the dataset (kept in a cache's manifest)."""
+        return {"name": self.name, "root": str(self.folder.parent), "split": self.split,
+                "sensor_size": list(self.sensor_size), "files": len(self._items)}
+
+    def source_name(self, index: int) -> str:
+        """Where recording ``index`` comes from, for messages."""
+        return str(self.folder / self._items[index][0])
+
+    @property
+    def labels(self) -> list[int]:
+        """The label of every recording, in order (without reading the files)."""
+        return [label for _, label in self._items]
+
+    def load(self, index: int) -> tuple[np.ndarray, int]:
+        """Recording ``index``: ``(events, label)``."""
+        relative, label = self._items[index]
+        return read_recording(self.folder / relative, self.sensor_size), label
 
 
 class FolderSource:
@@ -317,7 +440,7 @@ def open_source(
     seed: int | None = None,
     time_unit: str | None = None,
     columns: Any = None,
-) -> SyntheticSource | TonicSource | FolderSource:
+) -> SyntheticSource | TonicSource | NMNISTSource | FolderSource:
     """The source named by ``--dataset``.
 
     ``synthetic``, ``dvsgesture``, ``nmnist`` or ``folder:PATH``.
@@ -325,7 +448,8 @@ def open_source(
     Args:
         dataset: the source's name.
         split: ``"train"`` or ``"test"`` (synthetic and Tonic datasets).
-        root: the folder Tonic datasets live in (``save_to``); required for them.
+        root: the folder Tonic's datasets live in (``save_to``; for N-MNIST, the folder
+            holding ``Train/`` and ``Test/`` in its own layout also serves); required for them.
         sensor_size: ``(W, H, P)``; required for folders, the synthetic sensor (default
             ``(128, 128, 2)``), not accepted for Tonic datasets (theirs is fixed).
         samples_per_class: synthetic recordings per class (default 24).
@@ -369,11 +493,13 @@ def open_source(
         defaults = {"samples_per_class": 24, "duration_us": 6_000_000, "seed": 0}
         options = {k: defaults[k] if v is None else v for k, v in synthetic_options.items()}
         return SyntheticSource(split=split, sensor_size=sensor_size or (128, 128, 2), **options)
-    if dataset in _TONIC_CLASSES:
+    if dataset in (*_TONIC_CLASSES, "nmnist"):
         if root is None:
             raise ValueError(f"--dataset {dataset} needs --root DIR, the folder its files are in")
         if sensor_size is not None:
             raise ValueError(f"{dataset} has a fixed sensor size; drop --sensor-size")
+        if dataset == "nmnist":
+            return NMNISTSource(root, split=split)
         return TonicSource(dataset, root=root, split=split)
     raise ValueError(
         f"unknown dataset {dataset!r}; expected synthetic, dvsgesture, nmnist or folder:PATH"

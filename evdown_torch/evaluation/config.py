@@ -7,17 +7,19 @@ default. Keys left out take the defaults shown.
 .. code-block:: toml
 
     [data]
-    dataset = "synthetic"      # "synthetic" (evdown_torch.synthetic) or "dvsgesture" (tonic)
-    root = "data"              # dvsgesture: tonic's save_to (the dataset lies in ROOT/DVSGesture)
+    dataset = "synthetic"      # "synthetic" (evdown_torch.synthetic), "dvsgesture" (tonic) or
+                               # "nmnist" (a folder in N-MNIST's layout)
+    root = "data"              # dvsgesture: tonic's save_to (the dataset lies in ROOT/DVSGesture);
+                               # nmnist: the folder holding Train/<digit>/*.bin and Test/...
     download = false           # dvsgesture: let tonic download it when absent
     sensor_size = [128, 128]   # synthetic: sensor width and height, pixels
-    duration_us = 6_000_000    # synthetic: recording length; dvsgesture: crop (0 = whole), us
-    train_samples = 264        # synthetic: number of samples; dvsgesture: at most (0 = all)
+    duration_us = 6_000_000    # synthetic: recording length; dvsgesture, nmnist: crop (0 = whole)
+    train_samples = 264        # synthetic: number of samples; real data: at most (0 = all)
     test_samples = 264         # as train_samples, for the test split
     calibration_samples = 22   # the first training recordings, on which budgets are calibrated
     train_per_seed = 0         # recordings each seed draws from the training pool (0: all)
     validation_samples = 0     # the first training recordings, held out to pick the rate
-    seed = 0                   # which samples (synthetic scenes, dvsgesture subset)
+    seed = 0                   # which samples (synthetic scenes, subset of a real dataset)
     time_bins = 6              # frames per sample fed to the classifier
     mean_time = false          # add each bin's mean event time (OFF, ON) as two more channels
 
@@ -94,6 +96,7 @@ from evdown_torch.checks import (
     check_positive_int,
 )
 from evdown_torch.evaluation.toml_fields import section, toml_loads
+from evdown_torch.io import NMNIST_SENSOR
 from evdown_torch.threads import check_threads
 from evdown_torch.transforms.registry import METHODS, make_method
 
@@ -110,10 +113,13 @@ __all__ = [
     "parse_config",
 ]
 
-DATASETS = ("synthetic", "dvsgesture")
+DATASETS = ("synthetic", "dvsgesture", "nmnist")
 REFERENCES = ("camera", "input")
 ENCODINGS = ("counts", "log", "binary")
 DVS_GESTURE_SENSOR = (128, 128, 2)
+
+#: Classes of each dataset (11 gestures: synthetic ones follow DVS128 Gesture's; 10 digits).
+NUM_CLASSES = {"synthetic": 11, "dvsgesture": 11, "nmnist": 10}
 
 
 @dataclass(frozen=True)
@@ -166,7 +172,14 @@ class DataConfig:
         """``(W, H, 2)`` of the dataset's recordings."""
         if self.dataset == "dvsgesture":
             return DVS_GESTURE_SENSOR
+        if self.dataset == "nmnist":
+            return NMNIST_SENSOR
         return (self.sensor_size[0], self.sensor_size[1], 2)
+
+    @property
+    def num_classes(self) -> int:
+        """The number of classes of the dataset."""
+        return NUM_CLASSES[self.dataset]
 
 
 @dataclass(frozen=True)

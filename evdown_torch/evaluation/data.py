@@ -2,9 +2,9 @@
 
 A :class:`StudyData` is a small picklable description of the dataset that every worker
 process can read recordings through: synthetic gestures are generated once and cached as
-``.npy`` files (and so are their low-resolution ground-truth renders); DVS128 Gesture is read
-from its own files through :class:`evdown_torch.data.sources.TonicSource`, the package's one
-way of opening it.
+``.npy`` files (and so are their low-resolution ground-truth renders); DVS128 Gesture and
+N-MNIST are read from their own files through :class:`evdown_torch.data.sources.TonicSource`
+and :class:`evdown_torch.data.sources.NMNISTSource`, the package's one way of opening each.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from evdown_torch.checks import check_factor
-from evdown_torch.data.sources import TonicSource
+from evdown_torch.data.sources import NMNISTSource, TonicSource
 from evdown_torch.evaluation.cache import Cache, code_fingerprint
 from evdown_torch.evaluation.config import DataConfig
 
@@ -66,8 +66,8 @@ class StudyData:
 
     @property
     def num_classes(self) -> int:
-        """The number of gesture classes (11)."""
-        return 11
+        """The number of classes (11 gestures, 10 digits)."""
+        return self.config.num_classes
 
     @property
     def has_ground_truth(self) -> bool:
@@ -81,6 +81,8 @@ class StudyData:
             return (f"synthetic gestures (seed {c.seed}), {c.sensor_size[0]}x{c.sensor_size[1]}, "
                     f"{c.duration_us / 1e6:g} s")
         crop = f"first {c.duration_us / 1e6:g} s" if c.duration_us else "whole recordings"
+        if c.dataset == "nmnist":
+            return f"N-MNIST ({Path(c.root).expanduser()}), {crop}"
         return f"DVS128 Gesture ({Path(c.root).expanduser() / 'DVSGesture'}), {crop}"
 
     def size(self, split: str) -> int:
@@ -88,7 +90,7 @@ class StudyData:
         wanted = self.config.train_samples if split == "train" else self.config.test_samples
         if self.synthetic:
             return wanted
-        return len(_dvsgesture_indices(self.config, split == "train"))
+        return len(_indices(self.config, split == "train"))
 
     def key(self, split: str) -> dict[str, Any]:
         """The settings that determine the recordings of ``split`` (index by index)."""
@@ -97,7 +99,7 @@ class StudyData:
             return {"dataset": "synthetic", "generator": code_fingerprint("synthetic"),
                     "sensor": list(c.sensor_size), "duration_us": c.duration_us,
                     "seed": c.seed, "split": split}
-        return {"dataset": "dvsgesture", "root": str(Path(c.root).expanduser().resolve()),
+        return {"dataset": c.dataset, "root": str(Path(c.root).expanduser().resolve()),
                 "duration_us": c.duration_us, "seed": c.seed, "split": split,
                 "samples": c.train_samples if split == "train" else c.test_samples}
 
@@ -141,8 +143,8 @@ class StudyData:
             self.ensure(split, index)
             return (Cache.load_array(self._recording_path(split, index, (1, 1))),
                     self.label(split, index))
-        dataset = _dvsgesture(self.config.root, split == "train")
-        events, label = dataset.load(_dvsgesture_indices(self.config, split == "train")[index])
+        dataset = _opened(self.config.dataset, self.config.root, split == "train")
+        events, label = dataset.load(_indices(self.config, split == "train")[index])
         if self.config.duration_us and len(events):
             events = events[events["t"] < events["t"].min() + self.config.duration_us]
         return events, int(label)
@@ -157,13 +159,16 @@ class StudyData:
 
 
 @functools.cache
-def _dvsgesture(root: str, train: bool) -> TonicSource:
-    return TonicSource("dvsgesture", root=root, split="train" if train else "test")
+def _opened(dataset: str, root: str, train: bool) -> TonicSource | NMNISTSource:
+    split = "train" if train else "test"
+    if dataset == "nmnist":
+        return NMNISTSource(root, split=split)
+    return TonicSource(dataset, root=root, split=split)
 
 
 @functools.cache
-def _dvsgesture_indices(config: DataConfig, train: bool) -> tuple[int, ...]:
-    dataset = _dvsgesture(config.root, train)
+def _indices(config: DataConfig, train: bool) -> tuple[int, ...]:
+    dataset = _opened(config.dataset, config.root, train)
     wanted = config.train_samples if train else config.test_samples
     order = torch.randperm(len(dataset), generator=torch.Generator().manual_seed(config.seed))
     return tuple(sorted(order[: wanted or len(dataset)].tolist()))
@@ -175,6 +180,8 @@ def check_available(config: DataConfig) -> None:
     Raises:
         FileNotFoundError: for DVS128 Gesture absent from ``root`` (the message says where to
             put it).
+        ValueError: for an N-MNIST folder that is absent or incomplete (the message names
+            what is missing).
         RuntimeError: if tonic is missing.
     """
     if config.dataset == "synthetic":
@@ -183,8 +190,13 @@ def check_available(config: DataConfig) -> None:
         import tonic
     except ModuleNotFoundError:
         raise RuntimeError(
-            "the dvsgesture dataset needs tonic: pip install tonic (or evdown_torch[tonic])"
+            f"the {config.dataset} dataset needs tonic: pip install tonic (or "
+            "evdown_torch[tonic])"
         ) from None
+    if config.dataset == "nmnist":
+        for split in SPLITS:
+            NMNISTSource(config.root, split=split)
+        return
     cls = tonic.datasets.DVSGesture
     location = Path(config.root).expanduser() / cls.__name__
     missing = [

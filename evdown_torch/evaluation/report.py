@@ -242,11 +242,14 @@ def sanity_lines(result: EvaluationResult) -> str:
     return "\n".join(lines) + "\n"
 
 
-def per_class_table(result: EvaluationResult, num_classes: int = NUM_CLASSES) -> str:
+def per_class_table(result: EvaluationResult, num_classes: int | None = None) -> str:
     """Accuracy per class of the primary cells and their controls (over all seeds).
 
-    A class without test recordings shows ``–``, and a line below the table says which.
+    ``num_classes`` defaults to the dataset's. A class without test recordings shows ``–``,
+    and a line below the table says which.
     """
+    if num_classes is None:
+        num_classes = result.config.data.num_classes
     cells = [c for c in result.cells if c.role in (PRIMARY, CONTROL_ROLE, SANITY)]
     if not cells:
         return ""

@@ -162,7 +162,7 @@ class SpikingPooling(nn.Module):
         Run on the stream's frames ``ToFrame(sensor_size, time_window=dt,
         include_incomplete=True)`` (windows from the first event on, as a ``(T, 1, 2, H, W)``
         float tensor), it gives the spikes that the transform turns into events (up to float32
-        rounding over silences, see :mod:`evdown_torch.transforms.functional.lif.pooling`).
+        rounding over silences, see :func:`~evdown_torch.transforms.functional.lif_pooling`).
 
         Example:
             >>> module = SpikingPooling.from_transform(LIFPooling((8, 8, 2), 2, tau=5000.0))

@@ -3,8 +3,8 @@
 ``evdown show IN --factor F [--methods a,b,...] [--window MS] [--out FILE.gif|FILE.png]``
 writes a side-by-side animation (GIF) or a contact sheet (PNG); with ``--curve X,Y`` it writes
 the paper's Figure 5 for output pixel ``(X, Y)`` instead. ``IN`` is an event file (any format
-of :mod:`evdown_torch.io`) or ``synthetic:CLASS[:SEED]`` (see
-:func:`~evdown_torch.plot.recording.load_recording`).
+of :mod:`evdown_torch.io`), ``synthetic:CLASS[:SEED]`` or ``nmnist:DIGIT[:N]`` with ``--root``
+(see :func:`~evdown_torch.plot.recording.load_recording`).
 """
 
 from __future__ import annotations
@@ -78,8 +78,10 @@ def add_command(subparsers: Subparsers) -> None:
     )
     show.add_argument("input", metavar="IN",
                       help="an event file (.npy, .h5, .aedat4, .bin, .raw, .dat; t in "
-                      "microseconds unless the file or --time-unit says otherwise) or "
-                      "synthetic:CLASS[:SEED] (a synthetic gesture, class index or name)")
+                      "microseconds unless the file or --time-unit says otherwise), "
+                      "synthetic:CLASS[:SEED] (a synthetic gesture, class index or name) or "
+                      "nmnist:DIGIT[:N] (the N-th recording of a digit of the N-MNIST folder "
+                      "--root)")
     show.add_argument("--factor", required=True, type=factor_argument, help="F or FX,FY")
     show.add_argument("--methods", type=_methods, metavar="A,B,...",
                       help=f"methods to show (default: all of {', '.join(METHODS)})")
@@ -101,6 +103,11 @@ def add_command(subparsers: Subparsers) -> None:
                       "for a file, show only its first MS milliseconds")
     show.add_argument("--windows", type=int, default=4, metavar="N",
                       help="windows on a contact sheet (default 4)")
+    show.add_argument("--root", metavar="DIR",
+                      help="the N-MNIST folder of an nmnist: input (Train/<digit>/*.bin and "
+                      "Test/...)")
+    show.add_argument("--split", choices=("train", "test"), default="train",
+                      help="the N-MNIST split of an nmnist: input (default train)")
     show.add_argument("--no-ground-truth", action="store_true",
                       help="leave out the low-resolution ground truth of a synthetic input")
     show.set_defaults(run=run)
@@ -196,7 +203,8 @@ def _run(args: argparse.Namespace) -> int:
     sensor = tuple(args.sensor_size) if args.sensor_size else None
     with timing_checked_by_caller():  # checked below, against every setting
         recording = load_recording(args.input, sensor_size=sensor, duration_ms=args.duration,
-                                   time_unit=args.time_unit, columns=args.columns)
+                                   time_unit=args.time_unit, columns=args.columns,
+                                   root=args.root, split=args.split)
     transforms = build_transforms(args.methods, recording.sensor_size, args.factor,
                                   args.threshold, args.set or [])
     settings = {f"{method_name(t)}.{key}": value

@@ -51,7 +51,7 @@ class ShownRecording:
         events: the events, sorted by ``t`` (microseconds).
         sensor_size: ``(W, H, P)``.
         name: where it came from (file name or ``synthetic:CLASS:SEED``).
-        label: gesture class of a synthetic recording, else ``None``.
+        label: class of a synthetic gesture or an N-MNIST recording, else ``None``.
         seed: seed of a synthetic recording, else ``None``.
         duration_us: length of a synthetic recording, else ``None``.
     """
@@ -106,14 +106,21 @@ def load_recording(
     duration_ms: float | None = None,
     time_unit: str | None = None,
     columns: Any = None,
+    root: str | None = None,
+    split: str = "train",
 ) -> ShownRecording:
     """Read the recording named ``spec``.
 
     Args:
         spec: an event file that :func:`evdown_torch.io.read_events` reads (``.npy``, HDF5,
-            AEDAT4, N-MNIST ``.bin``, Prophesee ``.raw``/``.dat``; ``t`` in microseconds), or
+            AEDAT4, N-MNIST ``.bin``, Prophesee ``.raw``/``.dat``; ``t`` in microseconds),
             ``synthetic:CLASS[:SEED]`` (a gesture of :mod:`evdown_torch.synthetic`; ``CLASS``
-            an index or a class name, case, spaces and underscores ignored; seed 0 by default).
+            an index or a class name, case, spaces and underscores ignored; seed 0 by
+            default), or ``nmnist:DIGIT[:N]`` (the ``N``-th recording, from 0 in file-name
+            order, of digit ``DIGIT`` of the N-MNIST folder ``root``; 0 by default).
+        root: the N-MNIST folder (:class:`~evdown_torch.data.sources.NMNISTSource`), for
+            ``nmnist:`` only.
+        split: ``"train"`` or ``"test"``, the N-MNIST split.
         sensor_size: ``(W, H, P)``; default: the synthetic sensor (128, 128, 2), or for a file
             its own, else the largest coordinates + 1.
         time_unit: the unit of a file's timestamps where the file states none (default
@@ -154,12 +161,43 @@ def load_recording(
         raw = render_gesture(label, seed, sensor_size=size, duration_us=duration_us)
         return ShownRecording(to_events(raw, size)[0], size, f"synthetic:{label}:{seed}",
                          label, seed, duration_us)
-    raw, sensor_size = read_file(spec, sensor_size, time_unit=time_unit, columns=columns)
+    digit = None
+    if spec.startswith("nmnist:"):
+        raw, sensor_size, digit, spec = _nmnist_recording(spec, root, split, sensor_size)
+    else:
+        if root is not None:
+            raise ValueError(f"--root names the N-MNIST folder of an nmnist:DIGIT[:N] input, "
+                             f"not of {spec!r}")
+        raw, sensor_size = read_file(spec, sensor_size, time_unit=time_unit, columns=columns)
     events = sort_by_time(to_events(raw, sensor_size)[0])
     if duration_ms is not None and events.num_events:
         end = events.t[0] + duration_ms * 1000
         events = events.select(events.t < end)
-    return ShownRecording(events, sensor_size, spec)
+    return ShownRecording(events, sensor_size, spec, digit)
+
+
+def _nmnist_recording(
+    spec: str, root: str | None, split: str, sensor_size: tuple[int, int, int] | None
+) -> tuple[np.ndarray, tuple[int, int, int], int, str]:
+    """``nmnist:DIGIT[:N]`` of the folder ``root``: ``(events, sensor, label, name)``."""
+    from evdown_torch.data.sources import NMNISTSource
+
+    parts = spec.split(":")
+    if len(parts) > 3 or not all(part.isdigit() for part in parts[1:]) or int(parts[1]) > 9:
+        raise ValueError(f"an N-MNIST input looks like nmnist:DIGIT[:N] (a digit 0-9, then "
+                         f"which of its recordings, from 0), got {spec!r}")
+    if root is None:
+        raise ValueError(f"{spec} needs --root DIR, the N-MNIST folder (Train/<digit>/*.bin)")
+    source = NMNISTSource(root, split=split)
+    if sensor_size is not None and sensor_size != source.sensor_size:
+        raise ValueError(f"N-MNIST's sensor is {source.sensor_size}; drop --sensor-size")
+    digit, nth = int(parts[1]), int(parts[2]) if len(parts) == 3 else 0
+    indices = [i for i, label in enumerate(source.labels) if label == digit]
+    if nth >= len(indices):
+        raise ValueError(f"{spec}: the {split} split has {len(indices)} recordings of digit "
+                         f"{digit} (N from 0 to {len(indices) - 1})")
+    events, label = source.load(indices[nth])
+    return events, source.sensor_size, label, source.source_name(indices[nth])
 
 
 def read_file(

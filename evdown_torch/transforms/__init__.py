@@ -20,14 +20,17 @@ from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.lif import LIFPooling, calibrate_weight
 from evdown_torch.transforms.photocurrent import PhotocurrentPooling
 from evdown_torch.transforms.rate_limit import RateLimiter
+from evdown_torch.transforms.subsampling import DensitySubsampling, PoissonSubsampling
 from evdown_torch.transforms.temporal import TemporalFunnelling
 from evdown_torch.transforms.thinning import ThinnedDownsample
+from evdown_torch.transforms.tonic_peers import TonicDecimation, TonicRefractoryPeriod
 from evdown_torch.transforms.window_rates import WindowRates, window_rates
 
 __all__ = [
     "BudgetTarget",
     "Chain",
     "CubicEstimation",
+    "DensitySubsampling",
     "Downscaler",
     "Downsample",
     "EventCount",
@@ -36,12 +39,15 @@ __all__ = [
     "LinearEstimation",
     "Method",
     "PhotocurrentPooling",
+    "PoissonSubsampling",
     "RateLimiter",
     "Session",
     "Streaming",
     "TemporalFunnelling",
     "ThinnedDownsample",
     "ThresholdDownscaler",
+    "TonicDecimation",
+    "TonicRefractoryPeriod",
     "WindowRates",
     "calibrate",
     "calibrate_weight",

@@ -29,7 +29,7 @@ class Streaming:
     """A transform built from a :class:`Method`: its settings and three kernels.
 
     A subclass names its method's bundle, defined beside the kernels
-    (``method = EVENT_COUNT``, from :mod:`.functional.event_count`), its registry
+    (``method = EVENT_COUNT``, from ``transforms.functional.event_count``), its registry
     :attr:`name`, and its checked settings as :attr:`settings`; everything else is generic:
     :meth:`kernel` (the whole stream, through the method's ``whole`` fast path when it has
     one), :meth:`stream` / :meth:`stream_end` (the steps of a :class:`Session`),

@@ -121,7 +121,8 @@ class LIFPooling(Downscaler):
     def settings(self) -> LIFPoolingSettings:
         """The checked settings the kernels take, the region geometry and the neuron's.
 
-        The neuron's :class:`LIFSettings` (``settings.neuron``) is shared with
+        The neuron's :class:`~evdown_torch.transforms.functional.LIFSettings`
+        (``settings.neuron``) is shared with
         :class:`~evdown_torch.models.SpikingPooling` (``SpikingPooling.from_transform``).
         """
         neuron = LIFSettings(

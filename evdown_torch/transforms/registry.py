@@ -11,17 +11,22 @@ from evdown_torch.transforms.estimation import CubicEstimation, LinearEstimation
 from evdown_torch.transforms.event_count import EventCount
 from evdown_torch.transforms.lif import LIFPooling
 from evdown_torch.transforms.photocurrent import PhotocurrentPooling
+from evdown_torch.transforms.subsampling import DensitySubsampling, PoissonSubsampling
+from evdown_torch.transforms.tonic_peers import TonicDecimation, TonicRefractoryPeriod
 
 #: Method name (each class's ``name``) -> transform class, in the paper's order: the spatial
 #: downscalers, each built as ``cls(sensor_size, factor, **settings)`` and compared at every
-#: factor by the evaluation and the benchmarks. TemporalFunnelling (method 8) is not one of
-#: them: it has no factor and is composed with a spatial method (``evdown_torch.Chain`` or
-#: Tonic's ``Compose``), so the real-time benchmark names it in its own line-up
+#: factor by the evaluation and the benchmarks; then the subsamplers, peers that keep input
+#: events at a budget and Downsample them (docs/semantics.md, methods 9 and 10, and Tonic's
+#: RefractoryPeriod and Decimation through Tonic itself). TemporalFunnelling (method 8) is not
+#: one of them: it has no factor and is composed with a spatial method (``evdown_torch.Chain``
+#: or Tonic's ``Compose``), so the real-time benchmark names it in its own line-up
 #: (``bench.realtime.REALTIME_METHODS``).
 METHODS: dict[str, type[Downscaler]] = {
     cls.name: cls
     for cls in (Downsample, EventFunnelling, EventCount, LinearEstimation, CubicEstimation,
-                LIFPooling, PhotocurrentPooling)
+                LIFPooling, PhotocurrentPooling, DensitySubsampling, PoissonSubsampling,
+                TonicRefractoryPeriod, TonicDecimation)
 }
 
 

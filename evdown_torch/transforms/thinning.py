@@ -17,9 +17,6 @@ from evdown_torch.transforms.functional.thinning import (
 
 __all__ = ["ThinnedDownsample", "recording_seed"]
 
-#: How the thinning control's output gets under the output limit.
-THINNED_FEWER = "a smaller keep gives fewer events"
-
 
 @dataclass(frozen=True)
 class ThinnedDownsample(Downscaler):
@@ -63,6 +60,7 @@ class ThinnedDownsample(Downscaler):
         """The outputs of this control with each of ``seeds`` in place of ``self.seed``.
 
         Equal to ``[replace(self, seed=s).kernel(events) for s in seeds]``, with the
-        downsampling and the digest of the recording done once (:func:`.thinning_draws`).
+        downsampling and the digest of the recording done once
+        (``transforms.functional.thinning.thinning_draws``).
         """
         return thinning_draws(events, self.settings, seeds)

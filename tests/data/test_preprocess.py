@@ -345,26 +345,30 @@ def test_progress_bar_with_rate_only_when_asked(tmp_path, capsys):
     assert "11/11" in err and "rec/s" in err
 
 
-def test_nmnist_through_tonic(tmp_path, monkeypatch, nmnist):
-    import shutil
+def test_nmnist_in_its_own_layout(tmp_path):
+    """The real N-MNIST test folder, read where it lies: labels from the digit folders."""
+    tonic = pytest.importorskip("tonic")
+    from tests.conftest import SHARED_DATA
 
-    import tonic
-
-    from tests.conftest import NMNIST_FILE
-
-    train = tmp_path / "NMNIST" / "Train"
-    for digit in (3, 7):
-        (train / str(digit)).mkdir(parents=True)
-        shutil.copy(NMNIST_FILE, train / str(digit) / "00001.bin")
-    (tmp_path / "NMNIST" / "train.zip").write_bytes(b"")
-    monkeypatch.setattr(tonic.datasets.NMNIST, "_check_exists", lambda self: True)
-    source = open_source("nmnist", root=tmp_path)
-    assert len(source) == 2 and source.sensor_size == (34, 34, 2)
+    root = SHARED_DATA / "nmnist_small"
+    if not root.is_dir():
+        pytest.skip(f"{root} is absent")
+    source = open_source("nmnist", root=root, split="test")
+    assert len(source) == 100 and source.sensor_size == (34, 34, 2)
+    assert sorted(set(source.labels)) == list(range(10))
     preprocess(source, tmp_path / "out", "event_count", 2, {"threshold": 1}, workers=1)
     cache = PreprocessedDataset(tmp_path / "out")
-    expected = make_method("event_count", (34, 34, 2), 2, threshold=1)(nmnist)
-    assert cache.targets == [3, 7] and len(expected) > 0
-    np.testing.assert_array_equal(cache[1][0], expected)
+    assert cache.targets == source.labels
+    for index in (0, 57, 99):
+        path = source.source_name(index)
+        assert Path(path).parent.name == str(source.labels[index])
+        raw = tonic.io.read_mnist_file(path, dtype=tonic.datasets.NMNIST.dtype)
+        expected = make_method("event_count", (34, 34, 2), 2, threshold=1)(raw)
+        got = cache[index][0]
+        assert len(got) == len(expected) > 0
+        for name in ("x", "y", "t"):
+            np.testing.assert_array_equal(got[name], expected[name])
+        np.testing.assert_array_equal(got["p"], expected["p"] > 0)
 
 
 @pytest.mark.parametrize("dataset", ["dvsgesture", "nmnist"])

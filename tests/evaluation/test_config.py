@@ -99,7 +99,7 @@ def test_study_settings():
         ({"model": {"channels": [8, "16"]}}, TypeError, r"model.channels\[1\] must be an integer"),
         ({"model": {"beta": 1.5}}, ValueError, r"model.beta must lie in \(0, 1\]"),
         ({"data": {"sensor_size": [8]}}, TypeError, "data.sensor_size must be an array of 2"),
-        ({"data": {"dataset": "nmnist"}}, ValueError, "data.dataset must be one of"),
+        ({"data": {"dataset": "cifar10"}}, ValueError, "data.dataset must be one of"),
         ({"data": "synthetic"}, TypeError, r"\[data\] must be a table"),
         ({"methods": {"factors": [2.5]}}, TypeError, r"methods.factors\[0\] must be an integer "
                                                      "or an array of 2"),

@@ -28,6 +28,10 @@ from tests.helpers import DVS_DTYPE, FLOAT_DTYPE, random_stream
 
 SENSOR = (48, 48, 2)
 BUDGETED = [name for name, cls in METHODS.items() if cls.budget_setting is not None]
+#: Tonic's filters reach only some counts (Decimation keeps 1 in n per pixel; RefractoryPeriod
+#: keeps at least each pixel's first event): tests/transforms/test_tonic_peers.py checks that
+#: calibrate takes the closest.
+COARSE = ("refractory", "decimation")
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +51,7 @@ def test_every_budgeted_method_is_found():
     assert METHODS["downsample"].budget_setting is None
 
 
-@pytest.mark.parametrize("name", BUDGETED)
+@pytest.mark.parametrize("name", [n for n in BUDGETED if n not in COARSE])
 @pytest.mark.parametrize("factor", [2, 4])
 def test_ratio_and_count_targets_within_5_percent(name, factor, recordings):
     inputs = sum(len(r) for r in recordings)

@@ -15,10 +15,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
+from evdown_torch._tensors import chunk_bounds
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, sort_by_time
 
-__all__ = ["Method", "finish_nothing", "run_protocol"]
+__all__ = ["Method", "finish_nothing", "run_protocol", "step_in_pieces"]
 
 #: A method's settings type.
 S = TypeVar("S")
@@ -108,3 +109,19 @@ def run_protocol(method: Method[S, Any], settings: S, events: Events) -> Events:
     if tail is None or tail.num_events == 0:
         return out
     return Events.cat([out, tail])
+
+
+def step_in_pieces(
+    events: Events, state: St, step: Callable[[Events, St], tuple[Events, St]]
+) -> tuple[Events, St]:
+    """``step`` over the pieces of ``chunk_bounds`` of a time-sorted chunk, state carried.
+
+    What a streaming session fed those pieces would give: a kernel's temporaries stay bounded
+    on a long stream. Returns the pieces' outputs, concatenated, and the last state.
+    """
+    outputs = []
+    bounds = chunk_bounds(events.t)
+    for start, stop in zip(bounds[:-1], bounds[1:]):
+        out, state = step(events.part(start, stop), state)
+        outputs.append(out)
+    return (outputs[0] if len(outputs) == 1 else Events.cat(outputs)), state

@@ -19,6 +19,7 @@ __all__ = [
     "TEMPORAL_FUNNELLING",
     "TemporalSettings",
     "TemporalState",
+    "bin_index",
     "bin_start",
     "temporal_funnelling",
     "temporal_funnelling_init",
@@ -27,6 +28,47 @@ __all__ = [
 ]
 
 _INT64_MAX = torch.iinfo(torch.int64).max
+
+
+def bin_index(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
+    """``floor((t - t_start) / dt)``: the bin of each timestamp, bins of ``dt`` from ``t_start``.
+
+    Args and errors as :func:`bin_start`; for float ``t`` also a ``ValueError`` when an index
+    reaches ``2**62`` (a ``dt`` far too small for the stream's span).
+
+    Returns:
+        ``(N,)`` int64 bin indices; exact for int64 ``t``.
+
+    Example:
+        >>> bin_index(torch.tensor([3, 9, 13, 25]), dt=10, t_start=3).tolist()
+        [0, 0, 1, 2]
+        >>> bin_index(torch.tensor([0.5, 2.0]), dt=1.5, t_start=0.5).tolist()
+        [0, 1]
+    """
+    if t.is_floating_point():
+        index = torch.floor((t - t_start) / dt)
+        if index.numel() and float(index.abs().max()) >= 2.0**62:
+            raise ValueError(
+                f"bins of {dt!r} time units number 2**62 or more over these timestamps: the "
+                "bin length is far too small for the stream's span"
+            )
+        return index.to(torch.int64)
+    if not (isinstance(dt, numbers.Integral) or float(dt).is_integer()):
+        raise ValueError(
+            f"dt must be a whole number for integer timestamps (bin starts must stay "
+            f"integers), got {dt!r}"
+        )
+    origin = int(t_start)
+    offset = t - origin
+    if bool((offset < 0).any()):  # t >= t_start, so only a wrap past 2**63 - 1 is negative
+        raise ValueError(
+            f"the timestamps span 2**63 or more time units from {origin} (up to "
+            f"{int(t.max())}): their offsets do not fit in int64"
+        )
+    step = int(dt)
+    if step > _INT64_MAX:  # longer than any offset: one bin (torch cannot take the int)
+        return torch.zeros_like(t)
+    return divide(offset, step)
 
 
 def bin_start(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
@@ -56,22 +98,11 @@ def bin_start(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
     """
     if t.is_floating_point():
         return (torch.floor((t - t_start) / dt) * dt).add_(t_start)
-    if not (isinstance(dt, numbers.Integral) or float(dt).is_integer()):
-        raise ValueError(
-            f"dt must be a whole number for integer timestamps (bin starts must stay "
-            f"integers), got {dt!r}"
-        )
-    origin = int(t_start)
-    offset = t - origin
-    if bool((offset < 0).any()):  # t >= t_start, so only a wrap past 2**63 - 1 is negative
-        raise ValueError(
-            f"the timestamps span 2**63 or more time units from {origin} (up to "
-            f"{int(t.max())}): their offsets do not fit in int64"
-        )
+    index = bin_index(t, dt=dt, t_start=t_start)
     step = int(dt)
-    if step > _INT64_MAX:  # longer than any offset: one bin (torch cannot take the int)
-        return torch.full_like(t, origin)
-    return divide(offset, step).mul_(step).add_(origin)
+    if step > _INT64_MAX:  # one bin, starting at t_start
+        return index.add_(int(t_start))
+    return index.mul_(step).add_(int(t_start))
 
 
 def temporal_funnelling(

@@ -5,7 +5,6 @@ The draws are seeded by the recording itself (its content digest) and a seed.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -14,6 +13,7 @@ import torch
 from evdown_torch.checks import check_non_negative_int, check_output_count, check_unit_interval
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.downsample import downsample
+from evdown_torch.transforms.functional.draws import content_digest, mixed_seed, recording_seed
 from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings
 
@@ -21,36 +21,6 @@ from evdown_torch.transforms.functional.settings import RegionSettings
 THINNED_FEWER = "a smaller keep gives fewer events"
 
 __all__ = ["THINNING", "ThinningSettings", "recording_seed", "thinning_draws", "thinning_whole"]
-
-
-def _content_digest(events: Events) -> bytes:
-    """A digest of a stream's content (``x, y, t, p`` in order), whatever its container."""
-    digest = hashlib.blake2b(digest_size=16)
-    for column in events:
-        digest.update(column.detach().cpu().contiguous().numpy().tobytes())
-    return digest.digest()
-
-
-def _mixed(content: bytes, seed: int) -> int:
-    """A 63-bit seed from a content digest and ``seed``."""
-    digest = hashlib.blake2b(content, digest_size=8)
-    digest.update(int(seed).to_bytes(8, "little", signed=False))
-    return int.from_bytes(digest.digest(), "little") >> 1
-
-
-def recording_seed(events: Events, seed: int = 0) -> int:
-    """A 63-bit seed derived from a stream's content and ``seed``.
-
-    The same events (same ``x, y, t, p`` in the same order) always give the same seed,
-    whatever container or device they came in; different recordings give different seeds.
-
-    Example:
-        >>> ev = Events.from_columns([0, 1], [0, 0], [5, 9], [1, 0])
-        >>> recording_seed(ev) == recording_seed(Events.from_columns([0, 1], [0, 0], [5, 9],
-        ...                                                          [True, False]))
-        True
-    """
-    return _mixed(_content_digest(events), seed)
 
 
 @dataclass(frozen=True)
@@ -83,11 +53,11 @@ def thinning_draws(
     if settings.keep >= 1.0 or out.num_events == 0:
         check_output_count(out.num_events, fewer=THINNED_FEWER)
         return [out] * len(seeds)
-    content = _content_digest(events)
+    content = content_digest(events)
     kept = []
     for seed in seeds:
         check_non_negative_int("seed", seed)
-        generator = torch.Generator().manual_seed(_mixed(content, seed))
+        generator = torch.Generator().manual_seed(mixed_seed(content, seed))
         draws = torch.rand(out.num_events, generator=generator, dtype=torch.float64)
         kept.append(out.select((draws < settings.keep).to(out.device)))
         check_output_count(kept[-1].num_events, fewer=THINNED_FEWER)  # at most the input
