@@ -11,8 +11,8 @@ import pytest
 import torch
 from hypothesis import strategies as st
 
-from evdown_torch import CubicEstimation, EventCount, LinearEstimation
-from evdown_torch.events import DVS_DTYPE
+from evdown_torch import CubicEstimation, EventCount, LinearEstimation, eager_kernels
+from evdown_torch.events import DVS_DTYPE, Events
 
 #: The estimators, and the three log-luminance methods (EventCount and the estimators).
 ESTIMATORS = [LinearEstimation, CubicEstimation]
@@ -99,6 +99,40 @@ def rows(events: np.ndarray) -> list[tuple]:
                     (events["p"] > 0).tolist(), strict=True))
 
 
+# --- the two kernel paths ------------------------------------------------------------------
+
+
+def both_paths(call):
+    """``call()`` through the compiled CPU kernels, then through the eager ones (skips without
+    numba): ``(compiled output, eager output)``."""
+    pytest.importorskip("numba")
+    with eager_kernels(False):
+        compiled = call()
+    with eager_kernels(True):
+        eager = call()
+    return compiled, eager
+
+
+def assert_identical(a, b) -> None:
+    """Two outputs equal bit for bit: same kind, same dtypes, same bytes (Events, tensors,
+    structured arrays, or tuples of them)."""
+    assert type(a) is type(b)
+    if isinstance(a, (tuple, list)) and not isinstance(a, Events):
+        assert len(a) == len(b)
+        for x, y in zip(a, b):
+            assert_identical(x, y)
+        return
+    if isinstance(a, Events):
+        for x, y in zip(a, b):
+            assert_identical(x, y)
+        return
+    if isinstance(a, torch.Tensor):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        a, b = a.contiguous().numpy(), b.contiguous().numpy()
+    assert a.dtype == b.dtype and a.shape == b.shape
+    assert a.tobytes() == b.tobytes()
+
+
 # --- the DVS reference rule, one level at a time --------------------------------------------
 
 
@@ -124,6 +158,21 @@ def walk(q: int, u) -> tuple[int, list[tuple[int, bool]]]:
     """The reference rule from index ``q`` to value ``u``: ``(new q, [(level, on), ...])``."""
     new_q = reference_index(q, u)
     return new_q, crossed_levels(q, new_q)
+
+
+def event_count_reference(arr: np.ndarray, sensor, factor, threshold) -> list[tuple]:
+    """Event by event, in Fractions: the reference rule on each region's mean level."""
+    theta = Fraction(threshold).limit_denominator(10**6)
+    w, h, _ = sensor
+    fx, fy = (factor, factor) if isinstance(factor, int) else factor
+    level_sum, q, out = defaultdict(int), defaultdict(int), []
+    for i in np.argsort(arr["t"], kind="stable"):
+        rx, ry = int(arr["x"][i]) // fx, int(arr["y"][i]) // fy
+        n_r = min(fx, w - rx * fx) * min(fy, h - ry * fy)
+        level_sum[rx, ry] += 1 if arr["p"][i] > 0 else -1
+        q[rx, ry], crossed = walk(q[rx, ry], Fraction(level_sum[rx, ry], n_r) / theta)
+        out += [(rx, ry, arr["t"][i].item(), on) for _, on in crossed]
+    return out
 
 
 # --- streaming ----------------------------------------------------------------------------

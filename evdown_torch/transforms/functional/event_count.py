@@ -22,6 +22,7 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events, polarity_sign
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.reference import (
     capped_threshold,
     move_crossings,
@@ -123,8 +124,13 @@ def event_count_step(
     """EventCount's ``step``: causal, so every output is decided by its (time-sorted) chunk.
 
     Args and returns as :func:`event_count`, the settings checked and ``events`` sorted by
-    ``t``.
+    ``t``. On the CPU, the compiled loop of :mod:`.compiled.event_count` (the same events and
+    state) unless the eager kernels are forced (:func:`.compiled.use_compiled`).
     """
+    if use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled import event_count as compiled
+
+        return compiled.event_count_step(events, state, settings)
     bounds = chunk_bounds(events.t)
     if len(bounds) == 2:
         return _event_count_sorted(events, settings, state)
@@ -172,6 +178,10 @@ def event_count_batch(
         >>> out.t.tolist(), counts
         ([2, 2], (1, 1))
     """
+    if use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled import event_count as compiled
+
+        return compiled.event_count_batch(events, lengths, settings)
     device = events.device
     sensor_size, factor = settings.sensor_size, settings.factor
     recordings = len(lengths)

@@ -1,0 +1,211 @@
+"""EventCount's compiled loop: each event in time order, its region's sum and reference rule.
+
+The same arithmetic as the eager kernel (:mod:`..event_count`): the threshold is the
+rational ``a / b`` of :func:`~..reference.threshold_fraction` (capped as
+:func:`~..reference.capped_threshold` caps it), and after each event its region's
+``b * S`` (``S`` the integer sum of the region's pixel levels) is compared with the levels
+``a * n_r * j`` in int64, so both paths give the same events, bit for bit.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from evdown_torch._tensors import region_pixel_count
+from evdown_torch.checks import check_output_count, output_limit, output_size
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.event_count import EventCountState, initial_state
+from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
+from evdown_torch.transforms.functional.settings import ThresholdSettings
+
+__all__ = ["event_count_batch", "event_count_step"]
+
+
+@compiled_loop
+def _event_count_loop(
+    x: np.ndarray, y: np.ndarray, p: np.ndarray, column: np.ndarray, row: np.ndarray,
+    out_w: int, ends: np.ndarray, block: int, level_step: np.ndarray, b: int,
+    level_sum: np.ndarray, reference: np.ndarray, start: int, k: int, most: int,
+    out_x: np.ndarray, out_y: np.ndarray, out_source: np.ndarray, out_on: np.ndarray,
+    count_only: bool,
+) -> tuple[int, int]:  # pragma: no cover - compiled
+    """The reference rule after each event ``start, start + 1, ...`` (time-sorted).
+
+    Region of event ``i``: ``rec * block + row[y] * out_w + column[x]``, ``rec`` the
+    recording whose span ``ends`` (each recording's end, the last ``n``) holds ``i``. Writes
+    each crossing's region ``(column, row)``, source event and polarity at ``k, k + 1, ...``;
+    stops before an event that could overflow the outputs (``most`` crossings at most per
+    event). ``count_only``: counts the crossings, writes nothing, never stops.
+
+    Returns:
+        ``(next event, crossings so far)``; ``(-1 - i, k)`` for an event ``i`` outside the
+        tables (a coordinate outside the sensor).
+    """
+    n = x.shape[0]
+    capacity = out_source.shape[0]
+    width = column.shape[0]
+    height = row.shape[0]
+    recording = 0
+    while recording < ends.shape[0] - 1 and ends[recording] <= start:
+        recording += 1
+    offset = recording * block
+    for i in range(start, n):
+        while ends[recording] <= i:
+            recording += 1
+            offset = recording * block
+        if not count_only and k + most > capacity:
+            return i, k
+        xi = x[i]
+        yi = y[i]
+        if xi < 0 or xi >= width or yi < 0 or yi >= height:
+            return -1 - i, k
+        rx = column[xi]
+        ry = row[yi]
+        r = offset + ry * out_w + rx
+        s = level_sum[r] + 1 if p[i] else level_sum[r] - 1
+        level_sum[r] = s
+        scaled = s * b
+        step = level_step[r]
+        q = reference[r]
+        if scaled >= (q + 1) * step:
+            while scaled >= (q + 1) * step:
+                q += 1
+                if not count_only:
+                    out_x[k] = rx
+                    out_y[k] = ry
+                    out_source[k] = i
+                    out_on[k] = True
+                k += 1
+        elif scaled <= (q - 1) * step:
+            while scaled <= (q - 1) * step:
+                q -= 1
+                if not count_only:
+                    out_x[k] = rx
+                    out_y[k] = ry
+                    out_source[k] = i
+                    out_on[k] = False
+                k += 1
+        reference[r] = q
+    return n, k
+
+
+@functools.lru_cache(maxsize=32)
+def _tables(
+    sensor_size: tuple[int, int, int], factor: tuple[int, int], regions: int, rows: int, a: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The loop's tables (int64; shared between calls, never written).
+
+    ``(column, row, level_step)``: ``x // fx`` for each ``x``, ``y // fy`` for each of
+    ``rows * fy`` values of ``y``, and ``a * n_r`` of each of ``regions`` regions.
+    """
+    fx, fy = factor
+    out_w = output_size(sensor_size, factor)[0]
+    column = np.arange(out_w * fx, dtype=np.int64) // fx
+    row = np.arange(rows * fy, dtype=np.int64) // fy
+    pixels = region_pixel_count(torch.arange(regions), sensor_size, factor).numpy()
+    return column, row, pixels * a
+
+
+def _run(
+    events: Events, state: EventCountState, settings: ThresholdSettings,
+    lengths: tuple[int, ...] | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, EventCountState]:
+    """The loop over ``N >= 1`` time-sorted events.
+
+    ``lengths``: a batch's recordings, each in its own coordinates; ``None``: one stream
+    (stacked recordings included).
+
+    Returns:
+        ``(x, y, source event, on)`` of each output event and the new state (new tensors:
+        ``state`` is left as it was, also when the output limit is exceeded).
+    """
+    n = events.num_events
+    bound = int(state.level_sum.abs().max()) + n if state.level_sum.numel() else n
+    fraction = capped_threshold(threshold_fraction(settings.threshold), bound)
+    a, b = fraction.numerator, fraction.denominator
+    out_w, out_h, _ = settings.output_sensor_size
+    regions = state.level_sum.shape[0]
+    if lengths is None:
+        ends, block, rows = np.array([n], dtype=np.int64), 0, regions // out_w
+    else:
+        ends, block, rows = np.cumsum(lengths, dtype=np.int64), out_w * out_h, out_h
+    column, row, level_step = _tables(settings.sensor_size, settings.factor, regions, rows, a)
+    # An event moves b * S by b: it crosses at most b // (a * n_r) + 1 levels.
+    most = b // int(level_step.min()) + 1
+    room = output_limit()  # events this call may emit
+    capacity = min(n * most, 2 * n + most)
+    if room is not None:
+        capacity = min(capacity, room + most)
+    level_sum, reference = state.level_sum.clone(), state.reference.clone()
+    x = np.ascontiguousarray(events.x.numpy())
+    y = np.ascontiguousarray(events.y.numpy())
+    p = np.ascontiguousarray(events.p.numpy())
+    sums, levels = level_sum.numpy(), reference.numpy()
+    out = _outputs(capacity)
+    i, k = 0, 0
+    while True:
+        i, k = _event_count_loop(x, y, p, column, row, out_w, ends, block, level_step, b, sums,
+                                 levels, i, k, most, *out, False)
+        if i < 0:
+            raise ValueError(
+                f"event {-1 - i} at (x={int(x[-1 - i])}, y={int(y[-1 - i])}) lies outside the "
+                f"sensor of size {settings.sensor_size} (stacked: {regions} regions)"
+            )
+        if room is not None and k > room:  # count the rest, for the error's message
+            _, total = _event_count_loop(x, y, p, column, row, out_w, ends, block, level_step,
+                                         b, sums, levels, i, k, most, *out, True)
+            check_output_count(total)
+        if i == n:
+            break
+        capacity = 2 * capacity if room is None else min(2 * capacity, room + most)
+        out = _grown(out, k, capacity)
+    columns = tuple(torch.from_numpy(column[:k]) for column in out)
+    if k < capacity // 2:  # do not keep a mostly empty buffer alive
+        columns = tuple(column.clone() for column in columns)
+    out_x, out_y, source, on = columns
+    new_state = EventCountState(level_sum, reference, events.t[-1].clone())
+    return out_x, out_y, source, on, new_state
+
+
+def _outputs(capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Empty output columns ``(x, y, source, on)`` for ``capacity`` events."""
+    return (np.empty(capacity, np.int64), np.empty(capacity, np.int64),
+            np.empty(capacity, np.int64), np.empty(capacity, np.bool_))
+
+
+def _grown(
+    out: tuple[np.ndarray, ...], k: int, capacity: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``out``'s first ``k`` events in new columns of ``capacity`` events."""
+    grown = _outputs(capacity)
+    for old, new in zip(out, grown):
+        new[:k] = old[:k]
+    return grown
+
+
+def event_count_step(
+    events: Events, state: EventCountState, settings: ThresholdSettings
+) -> tuple[Events, EventCountState]:
+    """:func:`~..event_count.event_count_step` on the CPU: the same events and state."""
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device), state
+    x, y, source, on, new_state = _run(events, state, settings, None)
+    return Events(x, y, events.t.index_select(0, source), on), new_state
+
+
+def event_count_batch(
+    events: Events, lengths: tuple[int, ...], settings: ThresholdSettings
+) -> tuple[Events, tuple[int, ...]]:
+    """:func:`~..event_count.event_count_batch` on the CPU: the same events and counts."""
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device), tuple(0 for _ in lengths)
+    state = initial_state(settings, events.device, len(lengths))
+    x, y, source, on, _ = _run(events, state, settings, lengths)
+    ends = torch.tensor(lengths, dtype=torch.int64).cumsum(0)
+    counts = torch.searchsorted(source, ends).diff(prepend=torch.zeros(1, dtype=torch.int64))
+    return Events(x, y, events.t.index_select(0, source), on), tuple(counts.tolist())
