@@ -16,9 +16,14 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import region_pixel_count
-from evdown_torch.checks import check_output_count, output_limit, output_size
+from evdown_torch.checks import check_output_count, output_limit
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled.regions import (
+    columns_of,
+    outside_error,
+    region_tables,
+)
 from evdown_torch.transforms.functional.event_count import EventCountState, initial_state
 from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
 from evdown_torch.transforms.functional.settings import ThresholdSettings
@@ -95,20 +100,11 @@ def _event_count_loop(
 
 
 @functools.lru_cache(maxsize=32)
-def _tables(
-    sensor_size: tuple[int, int, int], factor: tuple[int, int], regions: int, rows: int, a: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The loop's tables (int64; shared between calls, never written).
-
-    ``(column, row, level_step)``: ``x // fx`` for each ``x``, ``y // fy`` for each of
-    ``rows * fy`` values of ``y``, and ``a * n_r`` of each of ``regions`` regions.
-    """
-    fx, fy = factor
-    out_w = output_size(sensor_size, factor)[0]
-    column = np.arange(out_w * fx, dtype=np.int64) // fx
-    row = np.arange(rows * fy, dtype=np.int64) // fy
-    pixels = region_pixel_count(torch.arange(regions), sensor_size, factor).numpy()
-    return column, row, pixels * a
+def _level_steps(
+    sensor_size: tuple[int, int, int], factor: tuple[int, int], regions: int, a: int
+) -> np.ndarray:
+    """``a * n_r`` of each of ``regions`` regions (int64; shared between calls, never written)."""
+    return region_pixel_count(torch.arange(regions), sensor_size, factor).numpy() * a
 
 
 def _run(
@@ -134,7 +130,8 @@ def _run(
         ends, block, rows = np.array([n], dtype=np.int64), 0, regions // out_w
     else:
         ends, block, rows = np.cumsum(lengths, dtype=np.int64), out_w * out_h, out_h
-    column, row, level_step = _tables(settings.sensor_size, settings.factor, regions, rows, a)
+    column, row = region_tables(settings.factor, out_w, rows)
+    level_step = _level_steps(settings.sensor_size, settings.factor, regions, a)
     # An event moves b * S by b: it crosses at most b // (a * n_r) + 1 levels.
     most = b // int(level_step.min()) + 1
     room = output_limit()  # events this call may emit
@@ -142,9 +139,7 @@ def _run(
     if room is not None:
         capacity = min(capacity, room + most)
     level_sum, reference = state.level_sum.clone(), state.reference.clone()
-    x = np.ascontiguousarray(events.x.numpy())
-    y = np.ascontiguousarray(events.y.numpy())
-    p = np.ascontiguousarray(events.p.numpy())
+    x, y, p = columns_of(events.x, events.y, events.p)
     sums, levels = level_sum.numpy(), reference.numpy()
     out = _outputs(capacity)
     i, k = 0, 0
@@ -152,10 +147,7 @@ def _run(
         i, k = _event_count_loop(x, y, p, column, row, out_w, ends, block, level_step, b, sums,
                                  levels, i, k, most, *out, False)
         if i < 0:
-            raise ValueError(
-                f"event {-1 - i} at (x={int(x[-1 - i])}, y={int(y[-1 - i])}) lies outside the "
-                f"sensor of size {settings.sensor_size} (stacked: {regions} regions)"
-            )
+            raise outside_error(-1 - i, x, y, column, row)
         if room is not None and k > room:  # count the rest, for the error's message
             _, total = _event_count_loop(x, y, p, column, row, out_w, ends, block, level_step,
                                          b, sums, levels, i, k, most, *out, True)
