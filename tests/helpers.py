@@ -175,6 +175,37 @@ def event_count_reference(arr: np.ndarray, sensor, factor, threshold) -> list[tu
     return out
 
 
+# --- funnelling: keep the first of each repeat ---------------------------------------------
+
+
+def funnel_reference(arr: np.ndarray, fx: int, fy: int) -> list[tuple]:
+    """Slow reference: stable time order, then keep the first of each (x', y', t, p)."""
+    seen, out = set(), []
+    for i in np.argsort(arr["t"], kind="stable"):
+        key = (int(arr["x"][i]) // fx, int(arr["y"][i]) // fy, int(arr["t"][i]), bool(arr["p"][i]))
+        if key not in seen:
+            seen.add(key)
+            out.append(key)
+    return out
+
+
+def temporal_reference(arr: np.ndarray, dt) -> list[tuple]:
+    """Event by event in stable time order: bin start from the first t, keep first repeats."""
+    order = np.argsort(arr["t"], kind="stable")
+    if len(order) == 0:
+        return []
+    t0 = arr["t"][order[0]].item()
+    seen, out = set(), []
+    for i in order:
+        t = arr["t"][i].item()
+        key = (int(arr["x"][i]), int(arr["y"][i]), t0 + math.floor((t - t0) / dt) * dt,
+               bool(arr["p"][i] > 0))
+        if key not in seen:
+            seen.add(key)
+            out.append(key)
+    return out
+
+
 # --- streaming ----------------------------------------------------------------------------
 
 

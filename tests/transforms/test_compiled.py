@@ -159,7 +159,7 @@ print(json.dumps(out))
 """
 
 #: The methods with a compiled loop.
-COMPILED_METHODS = ["event_count"]
+COMPILED_METHODS = ["downsample", "funnelling", "event_count"]
 
 
 @pytest.mark.slow

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from evdown_torch._tensors import region_of, sort_by_time
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.settings import RegionSettings
 
 __all__ = ["downsample", "downsample_init", "downsample_step", "downsample_whole"]
@@ -38,11 +39,21 @@ def downsample_init(settings: RegionSettings, events: Events) -> None:
 def downsample_step(
     events: Events, state: None, settings: RegionSettings
 ) -> tuple[Events, None]:
-    """Downsample's ``step``: one time-sorted chunk, every event decided by it."""
+    """Downsample's ``step``: one time-sorted chunk, every event decided by it.
+
+    On the CPU, the compiled loop of :mod:`.compiled.downsample` unless the eager kernels are
+    forced (:func:`.compiled.use_compiled`).
+    """
+    if use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled import downsample as compiled
+
+        return compiled.downsample_step(events, settings), None
     x, y = region_of(events, settings.factor)
     return Events(x, y, events.t.clone(), events.p.clone()), None
 
 
 def downsample_whole(events: Events, settings: RegionSettings) -> Events:
     """Downsample's whole-stream kernel (events in any order): :func:`downsample`."""
+    if use_compiled(events.t):
+        return downsample_step(sort_by_time(events), None, settings)[0]
     return downsample(events, factor=settings.factor)
