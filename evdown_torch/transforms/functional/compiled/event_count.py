@@ -22,6 +22,7 @@ from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.regions import (
     columns_of,
     outside_error,
+    power_of_two_shifts,
     region_tables,
 )
 from evdown_torch.transforms.functional.event_count import EventCountState, initial_state
@@ -34,18 +35,20 @@ __all__ = ["event_count_batch", "event_count_step"]
 @compiled_loop
 def _event_count_loop(
     x: np.ndarray, y: np.ndarray, p: np.ndarray, column: np.ndarray, row: np.ndarray,
-    out_w: int, ends: np.ndarray, block: int, level_step: np.ndarray, b: int,
-    level_sum: np.ndarray, reference: np.ndarray, start: int, k: int, most: int,
-    out_x: np.ndarray, out_y: np.ndarray, out_source: np.ndarray, out_on: np.ndarray,
-    count_only: bool,
+    shift_x: int, shift_y: int, out_w: int, ends: np.ndarray, block: int,
+    level_step: np.ndarray, b: int, level_sum: np.ndarray, reference: np.ndarray, start: int,
+    k: int, most: int, out_x: np.ndarray, out_y: np.ndarray, out_source: np.ndarray,
+    out_on: np.ndarray, count_only: bool,
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """The reference rule after each event ``start, start + 1, ...`` (time-sorted).
 
-    Region of event ``i``: ``rec * block + row[y] * out_w + column[x]``, ``rec`` the
-    recording whose span ``ends`` (each recording's end, the last ``n``) holds ``i``. Writes
-    each crossing's region ``(column, row)``, source event and polarity at ``k, k + 1, ...``;
-    stops before an event that could overflow the outputs (``most`` crossings at most per
-    event). ``count_only``: counts the crossings, writes nothing, never stops.
+    Region of event ``i``: ``rec * block + ry * out_w + rx`` with ``(rx, ry)`` the shifts
+    ``(x >> shift_x, y >> shift_y)`` (factors that are powers of two) or, with negative
+    shifts, the tables ``(column[x], row[y])``; ``rec`` is the recording whose span ``ends``
+    (each recording's end, the last ``N``) holds ``i``. Writes each crossing's region
+    ``(rx, ry)``, source event and polarity at ``k, k + 1, ...``; stops before an event that
+    could overflow the outputs (``most`` crossings at most per event). ``count_only``: counts
+    the crossings, writes nothing, never stops.
 
     Returns:
         ``(next event, crossings so far)``; ``(-1 - i, k)`` for an event ``i`` outside the
@@ -56,46 +59,55 @@ def _event_count_loop(
     width = column.shape[0]
     height = row.shape[0]
     recording = 0
-    while recording < ends.shape[0] - 1 and ends[recording] <= start:
-        recording += 1
-    offset = recording * block
-    for i in range(start, n):
+    i = start
+    while i < n:
         while ends[recording] <= i:
             recording += 1
-            offset = recording * block
-        if not count_only and k + most > capacity:
-            return i, k
-        xi = x[i]
-        yi = y[i]
-        if xi < 0 or xi >= width or yi < 0 or yi >= height:
-            return -1 - i, k
-        rx = column[xi]
-        ry = row[yi]
-        r = offset + ry * out_w + rx
-        s = level_sum[r] + 1 if p[i] else level_sum[r] - 1
-        level_sum[r] = s
-        scaled = s * b
-        step = level_step[r]
-        q = reference[r]
-        if scaled >= (q + 1) * step:
-            while scaled >= (q + 1) * step:
-                q += 1
-                if not count_only:
-                    out_x[k] = rx
-                    out_y[k] = ry
-                    out_source[k] = i
-                    out_on[k] = True
-                k += 1
-        elif scaled <= (q - 1) * step:
-            while scaled <= (q - 1) * step:
-                q -= 1
-                if not count_only:
-                    out_x[k] = rx
-                    out_y[k] = ry
-                    out_source[k] = i
-                    out_on[k] = False
-                k += 1
-        reference[r] = q
+        offset = recording * block
+        stop = ends[recording]
+        if not count_only:  # events that cannot overflow the outputs: no check inside
+            room = (capacity - k) // most
+            if room == 0:
+                return i, k
+            stop = min(stop, i + room)
+        for j in range(i, stop):
+            xj = x[j]
+            yj = y[j]
+            if xj < 0 or xj >= width or yj < 0 or yj >= height:
+                return -1 - j, k
+            if shift_x >= 0:
+                rx = xj >> shift_x
+                ry = yj >> shift_y
+            else:
+                rx = column[xj]
+                ry = row[yj]
+            r = offset + ry * out_w + rx
+            s = level_sum[r] + (1 if p[j] else -1)
+            level_sum[r] = s
+            scaled = s * b
+            step = level_step[r]
+            q = reference[r]
+            if scaled >= (q + 1) * step:
+                while scaled >= (q + 1) * step:
+                    q += 1
+                    if not count_only:
+                        out_x[k] = rx
+                        out_y[k] = ry
+                        out_source[k] = j
+                        out_on[k] = True
+                    k += 1
+                reference[r] = q
+            elif scaled <= (q - 1) * step:
+                while scaled <= (q - 1) * step:
+                    q -= 1
+                    if not count_only:
+                        out_x[k] = rx
+                        out_y[k] = ry
+                        out_source[k] = j
+                        out_on[k] = False
+                    k += 1
+                reference[r] = q
+        i = stop
     return n, k
 
 
@@ -131,6 +143,7 @@ def _run(
     else:
         ends, block, rows = np.cumsum(lengths, dtype=np.int64), out_w * out_h, out_h
     column, row = region_tables(settings.factor, out_w, rows)
+    shift_x, shift_y = power_of_two_shifts(settings.factor)
     level_step = _level_steps(settings.sensor_size, settings.factor, regions, a)
     # An event moves b * S by b: it crosses at most b // (a * n_r) + 1 levels.
     most = b // int(level_step.min()) + 1
@@ -144,13 +157,14 @@ def _run(
     out = _outputs(capacity)
     i, k = 0, 0
     while True:
-        i, k = _event_count_loop(x, y, p, column, row, out_w, ends, block, level_step, b, sums,
-                                 levels, i, k, most, *out, False)
+        i, k = _event_count_loop(x, y, p, column, row, shift_x, shift_y, out_w, ends, block,
+                                 level_step, b, sums, levels, i, k, most, *out, False)
         if i < 0:
             raise outside_error(-1 - i, x, y, column, row)
         if room is not None and k > room:  # count the rest, for the error's message
-            _, total = _event_count_loop(x, y, p, column, row, out_w, ends, block, level_step,
-                                         b, sums, levels, i, k, most, *out, True)
+            _, total = _event_count_loop(x, y, p, column, row, shift_x, shift_y, out_w, ends,
+                                         block, level_step, b, sums, levels, i, k, most, *out,
+                                         True)
             check_output_count(total)
         if i == n:
             break

@@ -12,7 +12,7 @@ import functools
 import numpy as np
 from torch import Tensor
 
-__all__ = ["columns_of", "outside_error", "region_tables"]
+__all__ = ["columns_of", "outside_error", "power_of_two_shifts", "region_tables"]
 
 
 @functools.lru_cache(maxsize=64)
@@ -29,6 +29,21 @@ def region_tables(factor: tuple[int, int], out_w: int, rows: int) -> tuple[np.nd
     """
     fx, fy = factor
     return np.arange(out_w * fx, dtype=np.int64) // fx, np.arange(rows * fy, dtype=np.int64) // fy
+
+
+def power_of_two_shifts(factor: tuple[int, int]) -> tuple[int, int]:
+    """``(log2 fx, log2 fy)`` when both factors are powers of two, else ``(-1, -1)``.
+
+    A loop finds the region of such factors by two shifts, cheaper still than the tables.
+
+    Example:
+        >>> power_of_two_shifts((4, 1)), power_of_two_shifts((4, 3))
+        ((2, 0), (-1, -1))
+    """
+    fx, fy = factor
+    if fx & (fx - 1) or fy & (fy - 1):
+        return -1, -1
+    return fx.bit_length() - 1, fy.bit_length() - 1
 
 
 def columns_of(*columns: Tensor) -> tuple[np.ndarray, ...]:
