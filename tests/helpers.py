@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 from collections import defaultdict
 from fractions import Fraction
 
@@ -99,6 +100,15 @@ def rows(events: np.ndarray) -> list[tuple]:
                     (events["p"] > 0).tolist(), strict=True))
 
 
+def run_in_threads(*targets, timeout: float = 60) -> None:
+    """Run each function in a thread of its own, all at once, and wait for them all."""
+    threads = [threading.Thread(target=target) for target in targets]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=timeout)
+
+
 # --- the two kernel paths ------------------------------------------------------------------
 
 
@@ -131,6 +141,24 @@ def assert_identical(a, b) -> None:
         a, b = a.contiguous().numpy(), b.contiguous().numpy()
     assert a.dtype == b.dtype and a.shape == b.shape
     assert a.tobytes() == b.tobytes()
+
+
+#: Cuts of a 1,500-event stream into empty chunks, one-event chunks and long ones.
+ODD_CUTS = [0, 0, 1, 2, 2, 3, 40, 41, 700, 1100, 1101, 1499]
+
+
+def assert_sessions_on_both_paths(transform, arr: np.ndarray, whole: np.ndarray,
+                                  cuts=ODD_CUTS) -> None:
+    """``transform``'s session over ``arr`` cut at ``cuts`` equals ``whole`` bit for bit, with
+    every chunk on the compiled path, on the eager one, and the paths alternating."""
+    chunks = np.split(arr, cuts)
+    for paths in (["compiled"], ["eager"], ["compiled", "eager"], ["eager", "eager", "compiled"]):
+        session, parts = transform.session(), []
+        for i, chunk in enumerate(chunks):
+            with eager_kernels(paths[i % len(paths)] == "eager"):
+                parts.append(session(chunk))
+        parts.append(session.flush())
+        assert_identical(np.concatenate(parts), whole)
 
 
 # --- the DVS reference rule, one level at a time --------------------------------------------

@@ -18,7 +18,7 @@ import torch
 from evdown_torch import EventCount, eager_kernels, kernel_path
 from evdown_torch.transforms.functional.compiled import EAGER_VARIABLE, numba_available
 from evdown_torch.transforms.registry import make_method
-from tests.helpers import random_stream
+from tests.helpers import random_stream, run_in_threads
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -91,11 +91,7 @@ def test_a_block_in_one_thread_does_not_apply_in_another(with_numba):
         seen["other"] = kernel_path()
         checked.set()
 
-    threads = [threading.Thread(target=forcing), threading.Thread(target=other)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join(timeout=60)
+    run_in_threads(forcing, other)
     assert seen == {"inside": "eager", "other": "compiled"}
 
 

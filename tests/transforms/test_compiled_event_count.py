@@ -19,6 +19,7 @@ from tests.helpers import (
     DVS_DTYPE,
     FLOAT_DTYPE,
     assert_identical,
+    assert_sessions_on_both_paths,
     both_paths,
     event_count_reference,
     random_stream,
@@ -91,16 +92,7 @@ def test_sessions_in_odd_chunks_and_moving_between_paths(threshold, rng):
     arr = random_stream(rng, 1500, SENSOR, t_max=200)
     transform = EventCount(SENSOR, factor=(3, 2), threshold=threshold)
     whole, _ = both_paths(lambda: transform(arr))
-    # Empty chunks, one-event chunks, a long one, each given to one path or the other.
-    cuts = [0, 0, 1, 2, 2, 3, 40, 41, 700, 1100, 1101, 1499]
-    chunks = np.split(arr, cuts)
-    for paths in (["compiled"], ["eager"], ["compiled", "eager"], ["eager", "eager", "compiled"]):
-        session, parts = transform.session(), []
-        for i, chunk in enumerate(chunks):
-            with eager_kernels(paths[i % len(paths)] == "eager"):
-                parts.append(session(chunk))
-        parts.append(session.flush())
-        assert_identical(np.concatenate(parts), whole)
+    assert_sessions_on_both_paths(transform, arr, whole)
 
 
 def test_one_step_gives_the_same_state_object_on_both_paths(rng):

@@ -15,12 +15,12 @@ from evdown_torch import (
     EventFunnelling,
     Events,
     TemporalFunnelling,
-    eager_kernels,
 )
 from evdown_torch.transforms.functional.funnelling import drop_repeats, funnel_sorted
 from tests.helpers import (
     FLOAT_DTYPE,
     assert_identical,
+    assert_sessions_on_both_paths,
     both_paths,
     funnel_reference,
     random_stream,
@@ -99,14 +99,7 @@ def test_sessions_in_odd_chunks_and_moving_between_paths(name, rng):
     }[name]
     arr = random_stream(rng, 1500, SENSOR, t_max=120)  # runs of equal t cut by the chunks
     whole, _ = both_paths(lambda: transform(arr))
-    chunks = np.split(arr, [0, 0, 1, 2, 2, 3, 40, 41, 700, 1100, 1101, 1499])
-    for paths in (["compiled"], ["eager"], ["compiled", "eager"], ["eager", "eager", "compiled"]):
-        session, parts = transform.session(), []
-        for i, chunk in enumerate(chunks):
-            with eager_kernels(paths[i % len(paths)] == "eager"):
-                parts.append(session(chunk))
-        parts.append(session.flush())
-        assert_identical(np.concatenate(parts), whole)
+    assert_sessions_on_both_paths(transform, arr, whole)
 
 
 @pytest.mark.parametrize("cls", [Downsample, EventFunnelling])

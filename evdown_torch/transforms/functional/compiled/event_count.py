@@ -87,24 +87,16 @@ def _event_count_loop(
             scaled = s * b
             step = level_step[r]
             q = reference[r]
-            if scaled >= (q + 1) * step:
-                while scaled >= (q + 1) * step:
-                    q += 1
+            # The direction of the move's crossings, if any: +1 (ON), -1 (OFF), 0.
+            d = 1 if scaled >= (q + 1) * step else -1 if scaled <= (q - 1) * step else 0
+            if d:
+                while d * scaled >= d * (q + d) * step:
+                    q += d
                     if not count_only:
                         out_x[k] = rx
                         out_y[k] = ry
                         out_source[k] = j
-                        out_on[k] = True
-                    k += 1
-                reference[r] = q
-            elif scaled <= (q - 1) * step:
-                while scaled <= (q - 1) * step:
-                    q -= 1
-                    if not count_only:
-                        out_x[k] = rx
-                        out_y[k] = ry
-                        out_source[k] = j
-                        out_on[k] = False
+                        out_on[k] = d > 0
                     k += 1
                 reference[r] = q
         i = stop
