@@ -1,10 +1,11 @@
 """What a compiled per-event loop would cost in the live replay: an estimate for a decision.
 
-The package's kernels are vectorised eager torch (the project's rule). Issue 29's live goals
+Written when the package's kernels were all vectorised eager torch: issue 29's live goals
 for PhotocurrentPooling and the estimators are out of their reach
 (``benchmarks/bench_realtime_floor.py``); a compiled kernel is the other way. This script
-estimates what one would cost, with Numba (the package never imports it; Tonic brings it,
-through librosa, so the ``all`` extra installs it; nothing here is part of the package):
+estimates what one would cost, with Numba (the ``compiled`` and ``all`` extras install it;
+the package's own compiled loops, since issue 38, are in
+``evdown_torch/transforms/functional/compiled/``; nothing here is part of the package):
 one sequential loop over the events of each chunk of the live replay (the synthetic
 gesture recording retimed to 25 M events/s, 10 ms chunks, factor 4, one thread), beside the
 package's own sessions on the same chunks.
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--chunks", type=int, default=50, help="timed 10 ms chunks")
     args = parser.parse_args(argv)
     if numba is None:
-        print("this estimate needs numba (pip install numba), which the package does not use",
+        print("this estimate needs numba (pip install 'evdown_torch[compiled]')",
               file=sys.stderr)
         return 2
     torch.set_num_threads(1)

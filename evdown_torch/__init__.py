@@ -16,6 +16,7 @@ from evdown_torch.transforms import (
     RateLimiter,
     TemporalFunnelling,
 )
+from evdown_torch.transforms.functional.compiled import eager_kernels, kernel_path
 
 __version__ = "0.1.0"
 
@@ -34,7 +35,9 @@ __all__ = [
     "RateLimiter",
     "TemporalFunnelling",
     "__version__",
+    "eager_kernels",
     "from_events",
+    "kernel_path",
     "max_output_events",
     "output_limit",
     "set_max_output_events",

@@ -1,5 +1,5 @@
-"""Shared fixtures: devices (absent ones skip) x timestamp dtypes, seeded generators, the real
-recording and LIF pooling's closed form forced on.
+"""Shared fixtures: devices (absent ones skip) x timestamp dtypes, the kernel paths, seeded
+generators, the real recording and LIF pooling's closed form forced on.
 
 As in Kornia's test suite, ``device`` and ``dtype`` are separate parametrized fixtures: a test
 that takes both runs on every available device for every dtype.
@@ -7,12 +7,14 @@ that takes both runs on every available device for every dtype.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from evdown_torch import eager_kernels
 from evdown_torch.transforms.functional.lif import closed_form as lif_closed_form
 from evdown_torch.transforms.functional.lif import pooling as lif_kernel
 
@@ -45,6 +47,19 @@ DTYPES = [torch.int64, torch.float64]
 def dtype(request) -> torch.dtype:
     """Every dtype of ``(N, 4)`` event tensors: int64 and float64 timestamps."""
     return request.param
+
+
+#: The two kernel paths on the CPU: Numba's compiled loops and eager torch.
+KERNEL_PATHS = ["compiled", "eager"]
+
+
+@pytest.fixture(params=KERNEL_PATHS)
+def kernels(request) -> Iterator[str]:
+    """Each kernel path in turn, the test running inside it (compiled: skips without numba)."""
+    if request.param == "compiled":
+        pytest.importorskip("numba")
+    with eager_kernels(request.param == "eager"):
+        yield request.param
 
 
 @pytest.fixture

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 from collections import defaultdict
 from fractions import Fraction
 
@@ -23,8 +24,9 @@ from evdown_torch import (
     PoissonSubsampling,
     RateLimiter,
     TemporalFunnelling,
+    eager_kernels,
 )
-from evdown_torch.events import DVS_DTYPE
+from evdown_torch.events import DVS_DTYPE, Events
 from evdown_torch.models import SpikingPooling
 from evdown_torch.transforms import Streaming
 from evdown_torch.transforms.thinning import ThinnedDownsample
@@ -159,6 +161,67 @@ def rows(events: np.ndarray) -> list[tuple]:
                     (events["p"] > 0).tolist(), strict=True))
 
 
+def run_in_threads(*targets, timeout: float = 60) -> None:
+    """Run each function in a thread of its own, all at once, and wait for them all."""
+    threads = [threading.Thread(target=target) for target in targets]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=timeout)
+
+
+# --- the two kernel paths ------------------------------------------------------------------
+
+
+def both_paths(call):
+    """``call()`` through the compiled CPU kernels, then through the eager ones (skips without
+    numba): ``(compiled output, eager output)``."""
+    pytest.importorskip("numba")
+    with eager_kernels(False):
+        compiled = call()
+    with eager_kernels(True):
+        eager = call()
+    return compiled, eager
+
+
+def assert_identical(a, b) -> None:
+    """Two outputs equal bit for bit: same kind, same dtypes, same bytes (Events, tensors,
+    structured arrays, or tuples of them)."""
+    assert type(a) is type(b)
+    if isinstance(a, (tuple, list)) and not isinstance(a, Events):
+        assert len(a) == len(b)
+        for x, y in zip(a, b):
+            assert_identical(x, y)
+        return
+    if isinstance(a, Events):
+        for x, y in zip(a, b):
+            assert_identical(x, y)
+        return
+    if isinstance(a, torch.Tensor):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        a, b = a.contiguous().numpy(), b.contiguous().numpy()
+    assert a.dtype == b.dtype and a.shape == b.shape
+    assert a.tobytes() == b.tobytes()
+
+
+#: Cuts of a 1,500-event stream into empty chunks, one-event chunks and long ones.
+ODD_CUTS = [0, 0, 1, 2, 2, 3, 40, 41, 700, 1100, 1101, 1499]
+
+
+def assert_sessions_on_both_paths(transform, arr: np.ndarray, whole: np.ndarray,
+                                  cuts=ODD_CUTS) -> None:
+    """``transform``'s session over ``arr`` cut at ``cuts`` equals ``whole`` bit for bit, with
+    every chunk on the compiled path, on the eager one, and the paths alternating."""
+    chunks = np.split(arr, cuts)
+    for paths in (["compiled"], ["eager"], ["compiled", "eager"], ["eager", "eager", "compiled"]):
+        session, parts = transform.session(), []
+        for i, chunk in enumerate(chunks):
+            with eager_kernels(paths[i % len(paths)] == "eager"):
+                parts.append(session(chunk))
+        parts.append(session.flush())
+        assert_identical(np.concatenate(parts), whole)
+
+
 # --- the DVS reference rule, one level at a time --------------------------------------------
 
 
@@ -184,6 +247,52 @@ def walk(q: int, u) -> tuple[int, list[tuple[int, bool]]]:
     """The reference rule from index ``q`` to value ``u``: ``(new q, [(level, on), ...])``."""
     new_q = reference_index(q, u)
     return new_q, crossed_levels(q, new_q)
+
+
+def event_count_reference(arr: np.ndarray, sensor, factor, threshold) -> list[tuple]:
+    """Event by event, in Fractions: the reference rule on each region's mean level."""
+    theta = Fraction(threshold).limit_denominator(10**6)
+    w, h, _ = sensor
+    fx, fy = (factor, factor) if isinstance(factor, int) else factor
+    level_sum, q, out = defaultdict(int), defaultdict(int), []
+    for i in np.argsort(arr["t"], kind="stable"):
+        rx, ry = int(arr["x"][i]) // fx, int(arr["y"][i]) // fy
+        n_r = min(fx, w - rx * fx) * min(fy, h - ry * fy)
+        level_sum[rx, ry] += 1 if arr["p"][i] > 0 else -1
+        q[rx, ry], crossed = walk(q[rx, ry], Fraction(level_sum[rx, ry], n_r) / theta)
+        out += [(rx, ry, arr["t"][i].item(), on) for _, on in crossed]
+    return out
+
+
+# --- funnelling: keep the first of each repeat ---------------------------------------------
+
+
+def funnel_reference(arr: np.ndarray, fx: int, fy: int) -> list[tuple]:
+    """Slow reference: stable time order, then keep the first of each (x', y', t, p)."""
+    seen, out = set(), []
+    for i in np.argsort(arr["t"], kind="stable"):
+        key = (int(arr["x"][i]) // fx, int(arr["y"][i]) // fy, int(arr["t"][i]), bool(arr["p"][i]))
+        if key not in seen:
+            seen.add(key)
+            out.append(key)
+    return out
+
+
+def temporal_reference(arr: np.ndarray, dt) -> list[tuple]:
+    """Event by event in stable time order: bin start from the first t, keep first repeats."""
+    order = np.argsort(arr["t"], kind="stable")
+    if len(order) == 0:
+        return []
+    t0 = arr["t"][order[0]].item()
+    seen, out = set(), []
+    for i in order:
+        t = arr["t"][i].item()
+        key = (int(arr["x"][i]), int(arr["y"][i]), t0 + math.floor((t - t0) / dt) * dt,
+               bool(arr["p"][i] > 0))
+        if key not in seen:
+            seen.add(key)
+            out.append(key)
+    return out
 
 
 # --- streaming ----------------------------------------------------------------------------

@@ -405,7 +405,8 @@ def test_replay_gives_the_batch_output_and_bounded_delays(rng):
 
 
 def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_path, capsys):
-    from evdown_torch.bench.realtime import REALTIME_METHODS
+    from evdown_torch.bench.realtime import FLOOR, REALTIME_METHODS
+    from evdown_torch.transforms.functional.compiled import numba_available
 
     out = tmp_path / "rt"
     # 80,000 events last 3.2 ms at 25 M events/s: two timed 1 ms chunks, no 2 or 10 ms one.
@@ -413,11 +414,12 @@ def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_pat
     assert code == 0
     table = (out / "realtime.md").read_text()
     rows = [line for line in table.splitlines() if line.startswith("| ") and "---" not in line]
-    assert len(rows) - 1 == len(REALTIME_METHODS) * 2 * 3  # methods x rates x chunk sizes
+    # The floor and the methods x rates x chunk sizes.
+    assert len(rows) - 1 == (1 + len(REALTIME_METHODS)) * 2 * 3
     assert "latency budget (ms): delay + chunk + p99" in rows[0]
     data = json.loads((out / "realtime.json").read_text())
     assert {(d["method"], d["chunk_us"]) for d in data} == {
-        (m, c) for m in REALTIME_METHODS for c in (1000, 2000, 10_000)}
+        (m, c) for m in [FLOOR, *REALTIME_METHODS] for c in (1000, 2000, 10_000)}
     fast = [d for d in data if d["rate"] == 25e6 and d["chunk_us"] == 1000 and not d["note"]]
     assert fast and all(d["chunks"] >= 1 and d["sustained_rate"] > 0 for d in fast)
     for d in fast:  # where it keeps up: the method's delay + the chunk + the p99
@@ -432,7 +434,8 @@ def test_realtime_command_writes_a_table_for_every_method_rate_and_chunk(tmp_pat
     assert all(d["method"] in ("linear", "cubic") and d["delay_us"]["median"] >= 1000
                for d in data if "delay_us" in d)
     skipped = {d["method"] for d in data if d["note"]}
-    assert skipped <= {"lif", "photocurrent"}  # only methods without the common session
+    # Only methods without the common session (and the floor, without numba).
+    assert skipped <= {"lif", "photocurrent"} | (set() if numba_available() else {FLOOR})
     printed = capsys.readouterr().out
     assert "realtime.md" in printed and "Memory allocator: " in printed
 
@@ -447,7 +450,7 @@ def test_the_latency_budget_is_delay_plus_chunk_plus_p99():
     behind = ReplayResult("cubic", 25e6, 1000, seconds=[0.002], algorithmic_delay_us=2000.0)
     assert behind.keeps_up is False and behind.latency_budget_s is None
     rows = [line.split(" | ") for line in realtime_markdown([kept, behind]).splitlines()[2:]]
-    assert [(r[11], r[12]) for r in rows] == [("1", "3.6 |"), ("2", "falls behind |")]
+    assert [(r[12], r[13]) for r in rows] == [("1", "3.6 |"), ("2", "falls behind |")]
 
 
 def test_each_method_of_the_replay_has_the_delay_its_definition_asks():
@@ -487,6 +490,43 @@ def test_the_table_gives_each_rate_over_event_counts_in_the_same_run():
     assert ratio[("linear", "10")] == "0.1"  # 10x EventCount's p99
     assert ratio[("linear", "1")] == "–"
     assert ratio[("lif", "10")] == "–"
+
+
+def test_the_floor_counts_every_event_in_its_region_and_gives_the_x_floor_column(rng):
+    pytest.importorskip("numba")
+    from evdown_torch.bench.floor import RegionFloor
+    from evdown_torch.bench.realtime import realtime_benchmark, realtime_markdown, replay
+
+    sensor = (16, 12, 2)
+    arr = random_stream(rng, 4000, sensor, t_max=20_000)
+    floor = RegionFloor(sensor, (4, 3))
+    session = floor.session()
+    for chunk in np.array_split(arr, [0, 1, 1, 1000, 3999]):
+        assert len(session(chunk)) == 0
+    expected = np.bincount((arr["y"] // 3) * 4 + arr["x"] // 4, minlength=16)
+    assert session.counts.tolist() == expected.tolist()
+    assert len(session.flush()) == 0
+    result = replay(floor, arr, chunk_us=1000, label="floor")
+    assert result.events_out == 0 and result.chunks > 0
+    results = realtime_benchmark(arr, sensor, factor=4, methods=["event_count"],
+                                 chunks_us=(1000,), rates=(None,), max_chunks=5)
+    assert [r.method for r in results] == ["floor", "event_count"]
+    rows = [line.split(" | ") for line in realtime_markdown(results).splitlines()]
+    assert rows[0][10] == "x floor"
+    assert rows[2][0] == "| floor" and rows[2][10] == "1"
+    ratio = rows[3][10]
+    assert ratio == f"{results[1].sustained_rate / results[0].sustained_rate:.3g}"
+
+
+def test_without_numba_the_floor_is_a_note_not_an_error(monkeypatch, rng):
+    from evdown_torch.bench import floor as floor_module
+    from evdown_torch.bench.realtime import realtime_benchmark
+
+    monkeypatch.setattr(floor_module, "numba_available", lambda: False)
+    results = realtime_benchmark(random_stream(rng, 500, (8, 8, 2), t_max=5000), (8, 8, 2),
+                                 methods=["downsample"], chunks_us=(1000,), rates=(None,))
+    assert results[0].method == "floor" and "needs numba" in results[0].note
+    assert results[1].method == "downsample" and not results[1].note
 
 
 def test_each_stage_has_a_progress_bar_that_counts_its_measurements(monkeypatch):

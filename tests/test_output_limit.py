@@ -21,7 +21,7 @@ from evdown_torch import (
 )
 from evdown_torch.checks import DEFAULT_MAX_OUTPUT_EVENTS
 from evdown_torch.transforms.thinning import ThinnedDownsample
-from tests.helpers import DVS_DTYPE, random_stream
+from tests.helpers import DVS_DTYPE, random_stream, run_in_threads
 
 # Factor 1 at threshold 1: EventCount copies its input, so the output count is the input's.
 COPY = EventCount((8, 8, 2), 1, threshold=1.0)
@@ -76,11 +76,7 @@ def test_a_limit_set_in_one_thread_does_not_apply_in_another():
         inside["other_count"] = len(COPY(ev))
         checked.set()
 
-    threads = [threading.Thread(target=strict), threading.Thread(target=free)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join(timeout=60)
+    run_in_threads(strict, free)
     assert inside["other_limit"] == DEFAULT_MAX_OUTPUT_EVENTS
     assert inside["other_count"] == 200
     assert inside["limit"] == 10

@@ -18,6 +18,9 @@ so the same events arrive faster). Per method, rate and chunk size it reports:
   replayed rate, exact at it, conservative where a fixed cost per call dominates);
 * the sustained rate over EventCount's in the same run, at the same rate and chunk size
   (column "x EventCount"; EventCount is the cheapest method that also cuts the rate);
+* the sustained rate over the *floor*'s, in the same run and chunks (column "x floor"): the
+  floor (:mod:`evdown_torch.bench.floor`, replayed first, with Numba) reads each event and
+  counts it in its output region, the one pass no downscaler can avoid;
 * the same 99th percentile in process CPU time, which a busy machine does not inflate;
 * for methods whose output lags their input (LinearEstimation and CubicEstimation with
   ``max_delay``), the **output delay** of each output event a chunk returned: the end of that
@@ -51,6 +54,7 @@ from typing import Any, cast
 
 import numpy as np
 
+from evdown_torch.bench.floor import RegionFloor
 from evdown_torch.checks import check_positive_int
 from evdown_torch.threads import torch_threads
 from evdown_torch.transforms import Chain, Streaming, TemporalFunnelling
@@ -58,6 +62,7 @@ from evdown_torch.transforms.registry import METHODS, make_method
 
 __all__ = [
     "ALLOCATOR_VARIABLES",
+    "FLOOR",
     "REALTIME_CHUNKS_US",
     "REALTIME_METHODS",
     "REALTIME_RATE",
@@ -94,6 +99,10 @@ REALTIME_METHODS: dict[str, tuple[str, dict[str, Any]]] = {
     name: (name, REALTIME_SETTINGS.get(name, {}))
     for name in [*_STREAMING[:3], "temporal", *_STREAMING[3:]]
 }
+
+
+#: The floor's label: replayed before the methods at every rate and chunk size.
+FLOOR = "floor"
 
 
 #: Environment variables that set glibc's malloc (read once, when the process starts).
@@ -248,7 +257,11 @@ def chunk_bounds_us(t: np.ndarray, chunk_us: int) -> np.ndarray:
     return np.concatenate([[0], np.searchsorted(t, edges, side="left"), [len(t)]])
 
 
-def _transform(label: str, sensor_size: tuple[int, int, int], factor: int) -> Streaming:
+def _transform(
+    label: str, sensor_size: tuple[int, int, int], factor: int
+) -> Streaming | RegionFloor:
+    if label == FLOOR:
+        return RegionFloor(sensor_size, factor)
     name, settings = REALTIME_METHODS[label]
     if name == "temporal":
         return Chain(TemporalFunnelling(sensor_size=sensor_size, **settings),
@@ -257,7 +270,7 @@ def _transform(label: str, sensor_size: tuple[int, int, int], factor: int) -> St
 
 
 def replay(
-    transform: Streaming,
+    transform: Streaming | RegionFloor,
     events: np.ndarray,
     *,
     chunk_us: int,
@@ -269,7 +282,7 @@ def replay(
     """Replay sorted ``events`` through ``transform.session()`` in chunks of ``chunk_us``.
 
     Args:
-        transform: a transform with a session.
+        transform: a transform with a session (or the floor).
         events: a Tonic structured array sorted by ``t`` (microseconds).
         chunk_us: chunk duration in stream time (microseconds, > 0).
         label: the method's name in the result.
@@ -337,13 +350,14 @@ def realtime_benchmark(
         events: the recording, a Tonic structured array sorted by ``t`` (microseconds).
         sensor_size: its ``(W, H, P)``.
         factor: the downscaling factor.
-        methods: labels of :data:`REALTIME_METHODS` (default: all).
+        methods: labels of :data:`REALTIME_METHODS` (default: all); the :data:`FLOOR` is
+            replayed first in any case.
         chunks_us: chunk durations (microseconds).
         rates: replayed rates in events per second; ``None`` is the recording's own.
         max_chunks: timed chunks per replay at most.
 
     Returns:
-        One :class:`ReplayResult` per method, rate and chunk size.
+        One :class:`ReplayResult` per method (the floor's first), rate and chunk size.
     """
     with torch_threads(1):
         return _replay_all(events, sensor_size, factor, methods, chunks_us, rates, max_chunks)
@@ -356,8 +370,8 @@ def _replay_all(events: np.ndarray, sensor_size: tuple[int, int, int], factor: i
     for rate in rates:
         stream, actual = retime(events, rate)
         for chunk_us in chunks_us:
-            for label in methods or REALTIME_METHODS:
-                if label not in REALTIME_METHODS:
+            for label in [FLOOR, *(methods or REALTIME_METHODS)]:
+                if label != FLOOR and label not in REALTIME_METHODS:
                     raise ValueError(f"unknown realtime method {label!r}; expected one of "
                                      f"{sorted(REALTIME_METHODS)}")
                 transform = _transform(label, sensor_size, factor)
@@ -370,7 +384,7 @@ def _replay_all(events: np.ndarray, sensor_size: tuple[int, int, int], factor: i
                     results.append(ReplayResult(label, actual, chunk_us, note=(
                         f"{type(session).__name__} is not the common session (no flush)")))
                     continue
-                lagging = "max_delay" in REALTIME_METHODS[label][1]
+                lagging = label != FLOOR and "max_delay" in REALTIME_METHODS[label][1]
                 results.append(replay(transform, stream, chunk_us=chunk_us, label=label,
                                       rate=actual, max_chunks=max_chunks, lagging=lagging))
     return results
@@ -384,40 +398,46 @@ def _ms(seconds: float | None) -> str:
 PEER = "event_count"
 
 
+def _ratio(result: ReplayResult, to: dict[tuple[float, int], float | None]) -> str:
+    """``result``'s sustained rate over the one in ``to`` at its rate and chunk size."""
+    sustained, other = result.sustained_rate, to.get((result.rate, result.chunk_us))
+    return "–" if sustained is None or not other else f"{sustained / other:.3g}"
+
+
 def realtime_markdown(results: Sequence[ReplayResult]) -> str:
     """The results as a Markdown table (times in ms, rates in M events/s, delays in µs).
 
     With :data:`PEER` (EventCount) among them, the column "x EventCount" gives each method's
     sustained rate over EventCount's at the same input rate and chunk size, in the same run:
-    a ratio that the machine's speed and load move far less than the rates themselves. The
-    last column is the latency budget (:attr:`ReplayResult.latency_budget_s`): algorithmic
-    delay + chunk + p99, or "falls behind" where the p99 exceeds the chunk.
+    a ratio that the machine's speed and load move far less than the rates themselves; with
+    the :data:`FLOOR`, the column "x floor" gives it over the floor's. The last column is the
+    latency budget (:attr:`ReplayResult.latency_budget_s`): algorithmic delay + chunk + p99,
+    or "falls behind" where the p99 exceeds the chunk.
     """
-    peer = {(r.rate, r.chunk_us): r.sustained_rate for r in results
-            if r.method == PEER and not r.note}
+    peer, floor = ({(r.rate, r.chunk_us): r.sustained_rate for r in results
+                    if r.method == label and not r.note} for label in (PEER, FLOOR))
     lines = ["| method | input rate (M ev/s) | chunk (ms) | chunks | median (ms) | p99 (ms) | "
-             "p99 CPU (ms) | keeps up | sustains (M ev/s) | x EventCount | "
+             "p99 CPU (ms) | keeps up | sustains (M ev/s) | x EventCount | x floor | "
              "delay median / p99 / max (µs) | algorithmic delay (ms) | "
              "latency budget (ms): delay + chunk + p99 |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         if r.note:
             lines.append(f"| {r.method} | {r.rate / 1e6:.3g} | {r.chunk_us / 1e3:g} | – | – | – "
-                         f"| – | – | – | – | {r.note.split(';')[0]} | – | – |")
+                         f"| – | – | – | – | – | {r.note.split(';')[0]} | – | – |")
             continue
         s = r.summary()
         delay = s.get("delay_us")
         delay_text = ("–" if delay is None else
                       f"{delay['median']:.0f} / {delay['p99']:.0f} / {delay['max']:.0f}")
         sustained = r.sustained_rate
-        of_peer = peer.get((r.rate, r.chunk_us))
-        ratio = "–" if sustained is None or not of_peer else f"{sustained / of_peer:.3g}"
         lines.append(
             f"| {r.method} | {r.rate / 1e6:.3g} | {r.chunk_us / 1e3:g} | {r.chunks} "
             f"| {_ms(r.median_s)} | {_ms(r.p99_s)} | {_ms(r.p99_cpu_s)} "
             f"| {'–' if r.keeps_up is None else 'yes' if r.keeps_up else 'no'} "
-            f"| {'–' if sustained is None else f'{sustained / 1e6:.3g}'} | {ratio} "
-            f"| {delay_text} | {_ms(r.algorithmic_delay_us * 1e-6)} | {_latency(r)} |")
+            f"| {'–' if sustained is None else f'{sustained / 1e6:.3g}'} | {_ratio(r, peer)} "
+            f"| {_ratio(r, floor)} | {delay_text} | {_ms(r.algorithmic_delay_us * 1e-6)} "
+            f"| {_latency(r)} |")
     return "\n".join(lines) + "\n"
 
 

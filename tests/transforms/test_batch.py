@@ -152,6 +152,7 @@ def test_lif_batch_with_firing_chains(reset, dt, rng):
 
 
 @pytest.mark.parametrize("name", NAMES)
+@pytest.mark.usefixtures("kernels")
 def test_batch_of_empty_recordings_and_of_one(name, rng):
     transform = _case(name, 2)
     empty = random_stream(rng, 0, SENSOR)
@@ -190,6 +191,7 @@ def _funnelled(recording: np.ndarray, factor: tuple[int, int]) -> list[tuple[int
 
 @pytest.mark.parametrize("chunk", [None, 16])
 @pytest.mark.parametrize("factor", [(2, 2), (3, 1), (1, 1)])
+@pytest.mark.usefixtures("kernels")
 def test_funnelling_batch_of_sorted_recordings(factor, chunk, rng, monkeypatch):
     """Recordings in time order: against a slow reference and each recording alone (small
     chunks: the pieces never split a recording's run of equal timestamps)."""
@@ -207,6 +209,7 @@ def test_funnelling_batch_of_sorted_recordings(factor, chunk, rng, monkeypatch):
 
 
 @pytest.mark.parametrize("chunk", [None, 16])
+@pytest.mark.usefixtures("kernels")
 def test_event_count_batch_of_sorted_recordings(chunk, rng, monkeypatch):
     if chunk is not None:
         monkeypatch.setattr(tensors, "CHUNK_EVENTS", chunk)
@@ -219,6 +222,7 @@ def test_event_count_batch_of_sorted_recordings(chunk, rng, monkeypatch):
             _assert_same(output, transform(recording))
 
 
+@pytest.mark.usefixtures("kernels")
 def test_event_count_batch_with_int32_region_ids(rng):
     """More regions in the batch than int16 holds: the region ids go to int32."""
     sensor = (64, 64, 2)  # 4,096 regions at factor 1: nine recordings need 36,864 ids

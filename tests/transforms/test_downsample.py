@@ -7,20 +7,12 @@ import pytest
 import torch
 
 from evdown_torch import Downsample, EventFunnelling, Events
-from tests.helpers import DVS_DTYPE, as_tuples, random_stream
+from tests.helpers import DVS_DTYPE, as_tuples, funnel_reference, random_stream
 
 SENSOR = (10, 7, 2)
 
-
-def funnel_reference(arr: np.ndarray, fx: int, fy: int) -> list[tuple]:
-    """Slow reference: stable time order, then keep the first of each (x', y', t, p)."""
-    seen, out = set(), []
-    for i in np.argsort(arr["t"], kind="stable"):
-        key = (int(arr["x"][i]) // fx, int(arr["y"][i]) // fy, int(arr["t"][i]), bool(arr["p"][i]))
-        if key not in seen:
-            seen.add(key)
-            out.append(key)
-    return out
+# Every test on both CPU paths: the compiled loops and the eager kernels.
+pytestmark = pytest.mark.usefixtures("kernels")
 
 
 def test_downsample_hand_computed():

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-from collections import defaultdict
-from fractions import Fraction
-
 import numpy as np
 import pytest
 import torch
@@ -12,24 +9,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evdown_torch import EventCount, Events
-from tests.helpers import DVS_DTYPE, as_tuples, random_stream, rows, walk
+from tests.helpers import DVS_DTYPE, as_tuples, event_count_reference, random_stream, rows
 
 SENSOR = (10, 7, 2)
 
-
-def event_count_reference(arr: np.ndarray, sensor, factor, threshold) -> list[tuple]:
-    """Event by event, in Fractions: the reference rule on each region's mean level."""
-    theta = Fraction(threshold).limit_denominator(10**6)
-    w, h, _ = sensor
-    fx, fy = (factor, factor) if isinstance(factor, int) else factor
-    level_sum, q, out = defaultdict(int), defaultdict(int), []
-    for i in np.argsort(arr["t"], kind="stable"):
-        rx, ry = int(arr["x"][i]) // fx, int(arr["y"][i]) // fy
-        n_r = min(fx, w - rx * fx) * min(fy, h - ry * fy)
-        level_sum[rx, ry] += 1 if arr["p"][i] > 0 else -1
-        q[rx, ry], crossed = walk(q[rx, ry], Fraction(level_sum[rx, ry], n_r) / theta)
-        out += [(rx, ry, arr["t"][i].item(), on) for _, on in crossed]
-    return out
+# Every test on both CPU paths: the compiled loop and the eager kernel.
+pytestmark = pytest.mark.usefixtures("kernels")
 
 
 def test_hand_computed_region():

@@ -64,6 +64,7 @@ def test_the_output_limit_counts_the_whole_call():
         assert as_tuples(transform(ev)) == as_tuples(ev)
 
 
+@pytest.mark.usefixtures("kernels")
 def test_the_limit_counts_every_chunk_of_a_long_stream(monkeypatch):
     import evdown_torch._tensors as tensors
 

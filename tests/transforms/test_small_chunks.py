@@ -32,6 +32,7 @@ def test_region_runs_by_starts_and_by_bisection_agree_with_a_slow_count(n, regio
     assert tuple(v.tolist() for v in runs) == slow_runs(region.tolist())
 
 
+@pytest.mark.usefixtures("eager")  # the eager kernel's own work (the compiled loop has none)
 def test_a_one_event_chunk_builds_no_index_of_every_region(monkeypatch, rng):
     sensor = (256, 256, 2)  # 4,096 regions at factor 4
     events = random_stream(rng, 60, sensor, t_max=10_000)
@@ -51,3 +52,12 @@ def test_a_one_event_chunk_builds_no_index_of_every_region(monkeypatch, rng):
     monkeypatch.undo()
     assert sizes and max(sizes) < 64 * 64  # per-event work only, after the first chunk
     assert np.array_equal(np.concatenate(warm + rest + [session.flush()]), down(events))
+
+
+@pytest.fixture
+def eager():
+    """The eager kernels, forced for the test."""
+    from evdown_torch import eager_kernels
+
+    with eager_kernels():
+        yield

@@ -10,26 +10,12 @@ import torch
 
 from evdown_torch import Chain, EventCount, Events, TemporalFunnelling
 from evdown_torch.transforms.functional import temporal_funnelling
-from tests.helpers import DVS_DTYPE, random_stream, rows
+from tests.helpers import DVS_DTYPE, random_stream, rows, temporal_reference
 
 SENSOR = (8, 6, 2)
 
-
-def temporal_reference(arr: np.ndarray, dt) -> list[tuple]:
-    """Event by event in stable time order: bin start from the first t, keep first repeats."""
-    order = np.argsort(arr["t"], kind="stable")
-    if len(order) == 0:
-        return []
-    t0 = arr["t"][order[0]].item()
-    seen, out = set(), []
-    for i in order:
-        t = arr["t"][i].item()
-        key = (int(arr["x"][i]), int(arr["y"][i]), t0 + math.floor((t - t0) / dt) * dt,
-               bool(arr["p"][i] > 0))
-        if key not in seen:
-            seen.add(key)
-            out.append(key)
-    return out
+# Every test on both CPU paths: the compiled loop and the eager kernel.
+pytestmark = pytest.mark.usefixtures("kernels")
 
 
 def test_hand_computed_bins_and_repeats():

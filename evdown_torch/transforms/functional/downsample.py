@@ -7,6 +7,7 @@ from evdown_torch.checks import check_output_count
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked, sorted_within
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings
 
@@ -52,8 +53,16 @@ def downsample_init(settings: RegionSettings, events: Events) -> None:
 def downsample_step(
     events: Events, state: None, settings: RegionSettings
 ) -> tuple[Events, None]:
-    """Downsample's ``step``: one time-sorted chunk, every event decided by it."""
+    """Downsample's ``step``: one time-sorted chunk, every event decided by it.
+
+    On the CPU, the compiled loop of :mod:`.compiled.downsample` unless the eager kernels are
+    forced (:func:`.compiled.use_compiled`).
+    """
     check_output_count(events.num_events, fewer=KEEPS_EVERY_EVENT)
+    if use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled import downsample as compiled
+
+        return compiled.downsample_step(events, settings), None
     x, y = region_of(events, settings.factor)
     return Events(x, y, events.t.clone(), events.p.clone()), None
 
@@ -61,6 +70,8 @@ def downsample_step(
 def downsample_whole(events: Events, settings: RegionSettings) -> Events:
     """Downsample's whole-stream kernel (events in any order): :func:`downsample`."""
     check_output_count(events.num_events, fewer=KEEPS_EVERY_EVENT)
+    if use_compiled(events.t):
+        return downsample_step(sort_by_time(events), None, settings)[0]
     return downsample(events, factor=settings.factor)
 
 

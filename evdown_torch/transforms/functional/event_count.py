@@ -24,6 +24,7 @@ from evdown_torch.checks import check_state_memory, output_size
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, polarity_sign, sort_by_time
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked, sorted_within
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.reference import (
     capped_threshold,
@@ -117,9 +118,16 @@ def event_count_step(
 ) -> tuple[Events, EventCountState]:
     """EventCount's ``step``: causal, so every output is decided by its (time-sorted) chunk.
 
+    On the CPU, the compiled loop of :mod:`.compiled.event_count` (the same events and state)
+    runs unless the eager kernels are forced (:func:`.compiled.use_compiled`).
+
     Returns:
         ``(output events sorted by t, state after the chunk's last event)``.
     """
+    if use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled import event_count as compiled
+
+        return compiled.event_count_step(events, state, settings)
     bounds = chunk_bounds(events.t)
     if len(bounds) == 2:
         return _event_count_sorted(events, settings, state)
@@ -167,6 +175,10 @@ def event_count_batch(
         >>> out.t.tolist(), counts
         ([2, 2], (1, 1))
     """
+    if use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled import event_count as compiled
+
+        return compiled.event_count_batch(events, lengths, settings)
     device = events.device
     sensor_size, factor = settings.sensor_size, settings.factor
     recordings = len(lengths)

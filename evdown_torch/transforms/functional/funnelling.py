@@ -18,6 +18,7 @@ from evdown_torch.checks import check_output_count
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked, sorted_within
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings
 
@@ -31,6 +32,7 @@ __all__ = [
     "funnelling_stacked",
     "funnelling_step",
     "funnelling_whole",
+    "key_grid",
     "last_instant",
 ]
 
@@ -168,6 +170,12 @@ def funnelling_batch(
     n = events.num_events
     if n == 0:
         return funnelling_sorted(events, factor, size=size), lengths
+    if use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled import funnelling as compiled
+
+        done = compiled.funnelling_batch(events, lengths, factor, size)
+        if done is not None:
+            return done
     runs = changes(events.t)
     ends = torch.tensor(lengths, dtype=torch.int64).cumsum(0)
     starts = ends[:-1][ends[:-1] < n].to(events.device)
@@ -220,14 +228,40 @@ def funnelling_sorted(
             ``seen``'s included, lies inside it); by default the largest coordinates + 1.
 
     Returns:
-        The kept events in output coordinates (new tensors), in their order.
+        The kept events in output coordinates (new tensors), in their order. On the CPU, from
+        the compiled loop of :mod:`.compiled.funnelling` (for output grids up to its
+        ``DENSE_KEYS``) unless the eager kernels are forced (:func:`.compiled.use_compiled`).
     """
+    if events.num_events and use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled import funnelling as compiled
+
+        size = key_grid(events, factor, seen, size)
+        out = compiled.funnelling_sorted(events, factor, seen=seen, size=size)
+        if out is not None:
+            return out
     if events.num_events == 0:
         fx, fy = factor
         return Events(divide(events.x, fx), divide(events.y, fy), events.t.clone(),
                       events.p.clone())
     x, y, repeat = _repeats(events, factor, seen=seen, size=size)
     return _kept(events, x, y, repeat)
+
+
+def key_grid(
+    events: Events, factor: tuple[int, int], seen: Events | None, size: tuple[int, int] | None
+) -> tuple[int, int]:
+    """The output grid ``(width, height)`` of the keys of :func:`funnelling_sorted`'s events.
+
+    ``size`` when given, else the largest output coordinates of ``N >= 1`` ``events`` (and
+    ``seen``'s columns) + 1.
+    """
+    if size is not None:
+        return size
+    fx, fy = factor
+    width, height = int(events.x.max()) // fx + 1, int(events.y.max()) // fy + 1
+    if seen is not None and seen.num_events:
+        width = max(width, int(seen.x.max()) + 1)
+    return width, height
 
 
 def _repeats(
@@ -245,12 +279,7 @@ def _repeats(
     """
     n = events.num_events
     fx, fy = factor
-    if size is None:
-        width, height = int(events.x.max()) // fx + 1, int(events.y.max()) // fy + 1
-        if seen is not None and seen.num_events:
-            width = max(width, int(seen.x.max()) + 1)
-    else:
-        width, height = size
+    width, height = key_grid(events, factor, seen, size)
     # Output coordinates and keys in the narrowest integer type that holds them (int16 for
     # sensors up to 128x128 output pixels): a quarter of the memory traffic of int64.
     narrow = narrow_dtype(max(2 * width * height, width * fx, height * fy))

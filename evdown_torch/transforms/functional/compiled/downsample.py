@@ -1,0 +1,43 @@
+"""Downsample's compiled loop: each event's region, by two table lookups."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled.regions import columns_of, region_tables
+from evdown_torch.transforms.functional.settings import RegionSettings
+
+__all__ = ["downsample_step"]
+
+
+@compiled_loop
+def _downsample_loop(
+    x: np.ndarray, y: np.ndarray, fx: int, fy: int, column: np.ndarray, row: np.ndarray,
+    out_x: np.ndarray, out_y: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """``out_x = x // fx``, ``out_y = y // fy`` (floored), by the tables where they reach."""
+    width = column.shape[0]
+    height = row.shape[0]
+    for i in range(x.shape[0]):
+        xi = x[i]
+        yi = y[i]
+        out_x[i] = column[xi] if 0 <= xi < width else xi // fx
+        out_y[i] = row[yi] if 0 <= yi < height else yi // fy
+
+
+def downsample_step(events: Events, settings: RegionSettings) -> Events:
+    """:func:`~..downsample.downsample_step` on the CPU: the same events (new tensors).
+
+    Any coordinates (a batch's stacked rows too): beyond the sensor, a division.
+    """
+    out_w, out_h, _ = settings.output_sensor_size
+    fx, fy = settings.factor
+    column, row = region_tables(settings.factor, out_w, out_h)
+    x, y = columns_of(events.x, events.y)
+    out_x, out_y = np.empty_like(x), np.empty_like(y)
+    _downsample_loop(x, y, fx, fy, column, row, out_x, out_y)
+    return Events(torch.from_numpy(out_x), torch.from_numpy(out_y), events.t.clone(),
+                  events.p.clone())

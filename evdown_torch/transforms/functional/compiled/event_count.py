@@ -1,0 +1,209 @@
+"""EventCount's compiled loop: each event in time order, its region's sum and reference rule.
+
+The same arithmetic as the eager kernel (:mod:`..event_count`): the threshold is the
+rational ``a / b`` of :func:`~..reference.threshold_fraction` (capped as
+:func:`~..reference.capped_threshold` caps it), and after each event its region's
+``b * S`` (``S`` the integer sum of the region's pixel levels) is compared with the levels
+``a * n_r * j`` in int64, so both paths give the same events, bit for bit.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from evdown_torch._tensors import region_pixel_count
+from evdown_torch.checks import check_output_count, output_limit
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled.regions import (
+    columns_of,
+    outside_error,
+    power_of_two_shifts,
+    region_tables,
+)
+from evdown_torch.transforms.functional.event_count import EventCountState, initial_state
+from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
+from evdown_torch.transforms.functional.settings import ThresholdSettings
+
+__all__ = ["event_count_batch", "event_count_step"]
+
+
+@compiled_loop
+def _event_count_loop(
+    x: np.ndarray, y: np.ndarray, p: np.ndarray, column: np.ndarray, row: np.ndarray,
+    shift_x: int, shift_y: int, out_w: int, ends: np.ndarray, block: int,
+    level_step: np.ndarray, b: int, level_sum: np.ndarray, reference: np.ndarray, start: int,
+    k: int, most: int, out_x: np.ndarray, out_y: np.ndarray, out_source: np.ndarray,
+    out_on: np.ndarray, count_only: bool,
+) -> tuple[int, int]:  # pragma: no cover - compiled
+    """The reference rule after each event ``start, start + 1, ...`` (time-sorted).
+
+    Region of event ``i``: ``rec * block + ry * out_w + rx`` with ``(rx, ry)`` the shifts
+    ``(x >> shift_x, y >> shift_y)`` (factors that are powers of two) or, with negative
+    shifts, the tables ``(column[x], row[y])``; ``rec`` is the recording whose span ``ends``
+    (each recording's end, the last ``N``) holds ``i``. Writes each crossing's region
+    ``(rx, ry)``, source event and polarity at ``k, k + 1, ...``; stops before an event that
+    could overflow the outputs (``most`` crossings at most per event). ``count_only``: counts
+    the crossings, writes nothing, never stops.
+
+    Returns:
+        ``(next event, crossings so far)``; ``(-1 - i, k)`` for an event ``i`` outside the
+        tables (a coordinate outside the sensor).
+    """
+    n = x.shape[0]
+    capacity = out_source.shape[0]
+    width = column.shape[0]
+    height = row.shape[0]
+    recording = 0
+    i = start
+    while i < n:
+        while ends[recording] <= i:
+            recording += 1
+        offset = recording * block
+        stop = ends[recording]
+        if not count_only:  # events that cannot overflow the outputs: no check inside
+            room = (capacity - k) // most
+            if room == 0:
+                return i, k
+            stop = min(stop, i + room)
+        for j in range(i, stop):
+            xj = x[j]
+            yj = y[j]
+            if xj < 0 or xj >= width or yj < 0 or yj >= height:
+                return -1 - j, k
+            if shift_x >= 0:
+                rx = xj >> shift_x
+                ry = yj >> shift_y
+            else:
+                rx = column[xj]
+                ry = row[yj]
+            r = offset + ry * out_w + rx
+            s = level_sum[r] + (1 if p[j] else -1)
+            level_sum[r] = s
+            scaled = s * b
+            step = level_step[r]
+            q = reference[r]
+            # The direction of the move's crossings, if any: +1 (ON), -1 (OFF), 0.
+            d = 1 if scaled >= (q + 1) * step else -1 if scaled <= (q - 1) * step else 0
+            if d:
+                while d * scaled >= d * (q + d) * step:
+                    q += d
+                    if not count_only:
+                        out_x[k] = rx
+                        out_y[k] = ry
+                        out_source[k] = j
+                        out_on[k] = d > 0
+                    k += 1
+                reference[r] = q
+        i = stop
+    return n, k
+
+
+@functools.lru_cache(maxsize=32)
+def _level_steps(
+    sensor_size: tuple[int, int, int], factor: tuple[int, int], regions: int, a: int
+) -> np.ndarray:
+    """``a * n_r`` of each of ``regions`` regions (int64; shared between calls, never written)."""
+    return region_pixel_count(torch.arange(regions), sensor_size, factor).numpy() * a
+
+
+def _run(
+    events: Events, state: EventCountState, settings: ThresholdSettings,
+    lengths: tuple[int, ...] | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, EventCountState]:
+    """The loop over ``N >= 1`` time-sorted events.
+
+    ``lengths``: a batch's recordings, each in its own coordinates; ``None``: one stream
+    (stacked recordings included).
+
+    Returns:
+        ``(x, y, source event, on)`` of each output event and the new state (new tensors:
+        ``state`` is left as it was, also when the output limit is exceeded).
+    """
+    n = events.num_events
+    bound = int(state.level_sum.abs().max()) + n if state.level_sum.numel() else n
+    fraction = capped_threshold(threshold_fraction(settings.threshold), bound)
+    a, b = fraction.numerator, fraction.denominator
+    out_w, out_h, _ = settings.output_sensor_size
+    regions = state.level_sum.shape[0]
+    if lengths is None:
+        ends, block, rows = np.array([n], dtype=np.int64), 0, regions // out_w
+    else:
+        ends, block, rows = np.cumsum(lengths, dtype=np.int64), out_w * out_h, out_h
+    column, row = region_tables(settings.factor, out_w, rows)
+    shift_x, shift_y = power_of_two_shifts(settings.factor)
+    level_step = _level_steps(settings.sensor_size, settings.factor, regions, a)
+    # An event moves b * S by b: it crosses at most b // (a * n_r) + 1 levels.
+    most = b // int(level_step.min()) + 1
+    room = output_limit()  # events this call may emit
+    capacity = min(n * most, 2 * n + most)
+    if room is not None:
+        capacity = min(capacity, room + most)
+    level_sum, reference = state.level_sum.clone(), state.reference.clone()
+    x, y, p = columns_of(events.x, events.y, events.p)
+    sums, levels = level_sum.numpy(), reference.numpy()
+    out = _outputs(capacity)
+    i, k = 0, 0
+    while True:
+        i, k = _event_count_loop(x, y, p, column, row, shift_x, shift_y, out_w, ends, block,
+                                 level_step, b, sums, levels, i, k, most, *out, False)
+        if i < 0:
+            raise outside_error(-1 - i, x, y, column, row)
+        if room is not None and k > room:  # count the rest, for the error's message
+            _, total = _event_count_loop(x, y, p, column, row, shift_x, shift_y, out_w, ends,
+                                         block, level_step, b, sums, levels, i, k, most, *out,
+                                         True)
+            check_output_count(total)
+        if i == n:
+            break
+        capacity = 2 * capacity if room is None else min(2 * capacity, room + most)
+        out = _grown(out, k, capacity)
+    columns = tuple(torch.from_numpy(column[:k]) for column in out)
+    if k < capacity // 2:  # do not keep a mostly empty buffer alive
+        columns = tuple(column.clone() for column in columns)
+    out_x, out_y, source, on = columns
+    new_state = EventCountState(level_sum, reference)
+    return out_x, out_y, source, on, new_state
+
+
+def _outputs(capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Empty output columns ``(x, y, source, on)`` for ``capacity`` events."""
+    return (np.empty(capacity, np.int64), np.empty(capacity, np.int64),
+            np.empty(capacity, np.int64), np.empty(capacity, np.bool_))
+
+
+def _grown(
+    out: tuple[np.ndarray, ...], k: int, capacity: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``out``'s first ``k`` events in new columns of ``capacity`` events."""
+    grown = _outputs(capacity)
+    for old, new in zip(out, grown):
+        new[:k] = old[:k]
+    return grown
+
+
+def event_count_step(
+    events: Events, state: EventCountState, settings: ThresholdSettings
+) -> tuple[Events, EventCountState]:
+    """:func:`~..event_count.event_count_step` on the CPU: the same events and state."""
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device), state
+    x, y, source, on, new_state = _run(events, state, settings, None)
+    return Events(x, y, events.t.index_select(0, source), on), new_state
+
+
+def event_count_batch(
+    events: Events, lengths: tuple[int, ...], settings: ThresholdSettings
+) -> tuple[Events, tuple[int, ...]]:
+    """:func:`~..event_count.event_count_batch` on the CPU: the same events and counts."""
+    if events.num_events == 0:
+        return Events.empty(events.t.dtype, events.device), tuple(0 for _ in lengths)
+    state = initial_state(settings, events.device, len(lengths))
+    x, y, source, on, _ = _run(events, state, settings, lengths)
+    ends = torch.tensor(lengths, dtype=torch.int64).cumsum(0)
+    counts = torch.searchsorted(source, ends).diff(prepend=torch.zeros(1, dtype=torch.int64))
+    return Events(x, y, events.t.index_select(0, source), on), tuple(counts.tolist())

@@ -1,0 +1,132 @@
+"""Event funnelling's compiled loop: downsample and drop repeats in one pass over the events.
+
+An event repeats an earlier one when both have the same ``(x', y', p)`` and the same ``t``:
+in time order, each key remembers the start of the run of equal timestamps it was last kept
+in, and an event whose key was kept in the current run is dropped. The same events as the
+eager kernel (:mod:`..funnelling`), which lines repeats up with a sort of the keys instead.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled.regions import (
+    columns_of,
+    outside_error,
+    region_tables,
+)
+
+__all__ = ["DENSE_KEYS", "funnelling_batch", "funnelling_sorted"]
+
+#: Keys a call may hold in its dense table of run starts (8 MiB), or 16 per event if more:
+#: past that (output grids of many millions of regions) the eager kernel's sort of the keys
+#: costs less than clearing the table.
+DENSE_KEYS = 1 << 20
+
+
+@compiled_loop
+def _funnel_loop(
+    x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, column: np.ndarray,
+    row: np.ndarray, out_w: int, ends: np.ndarray, kept_in: np.ndarray, out_index: np.ndarray,
+    out_x: np.ndarray, out_y: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """Keep each time-sorted event whose key was not kept in its run.
+
+    The key is ``(row[y] * out_w + column[x]) * 2 + p``; a run is a stretch of equal ``t``
+    inside one recording (of ``ends``); ``kept_in[key]`` is the start of the run where the key
+    was last kept (-1: never).
+
+    Returns:
+        The number ``k`` of kept events, whose index and region are written at ``0 .. k-1``;
+        ``-1 - i`` for an event ``i`` outside the tables.
+    """
+    width = column.shape[0]
+    height = row.shape[0]
+    k = 0
+    run = 0
+    recording = 0
+    for i in range(x.shape[0]):
+        if t[i] != t[i - 1]:  # at i = 0, run is already 0
+            run = i
+        while ends[recording] <= i:  # a recording starts a run of its own
+            recording += 1
+            run = i
+        xi = x[i]
+        yi = y[i]
+        if xi < 0 or xi >= width or yi < 0 or yi >= height:
+            return -1 - i
+        rx = column[xi]
+        ry = row[yi]
+        key = (ry * out_w + rx) * 2 + (1 if p[i] else 0)
+        if kept_in[key] != run:
+            kept_in[key] = run
+            out_index[k] = i
+            out_x[k] = rx
+            out_y[k] = ry
+            k += 1
+    return k
+
+
+def _funnel(
+    events: Events, factor: tuple[int, int], size: tuple[int, int], ends: np.ndarray,
+    seen: Events | None = None,
+) -> tuple[Events, np.ndarray]:
+    """The loop over ``N >= 1`` time-sorted events on the grid ``size`` of output regions.
+
+    Returns:
+        The kept events, and their positions in ``events`` (ascending).
+    """
+    width, height = size
+    column, row = region_tables(factor, width, height)
+    kept_in = np.full(2 * width * height, -1, dtype=np.int64)
+    if seen is not None and seen.num_events and bool(events.t[0] <= seen.t[-1]):
+        # The first run shares seen's timestamp: seen's keys count as kept in it.
+        keys = (seen.y * (2 * width) + seen.x * 2 + seen.p).numpy()
+        kept_in[keys[(keys >= 0) & (keys < kept_in.shape[0])]] = 0
+    x, y, t, p = columns_of(events.x, events.y, events.t, events.p)
+    n = x.shape[0]
+    out_index, out_x, out_y = (np.empty(n, dtype=np.int64) for _ in range(3))
+    k = _funnel_loop(x, y, t, p, column, row, width, ends, kept_in, out_index, out_x, out_y)
+    if k < 0:
+        raise outside_error(-1 - k, x, y, column, row)
+    kept = torch.from_numpy(out_index[:k])
+    out = Events(torch.from_numpy(out_x[:k]), torch.from_numpy(out_y[:k]),
+                 events.t.index_select(0, kept), events.p.index_select(0, kept))
+    return out, out_index[:k]
+
+
+def _dense(size: tuple[int, int], n: int) -> bool:
+    """Whether a table of the keys of the grid ``size`` fits a call of ``n`` events."""
+    return 2 * size[0] * size[1] <= max(DENSE_KEYS, 16 * n)
+
+
+def funnelling_sorted(
+    events: Events, factor: tuple[int, int], *, seen: Events | None, size: tuple[int, int]
+) -> Events | None:
+    """:func:`~..funnelling.funnelling_sorted` of ``N >= 1`` events on the CPU (the same events).
+
+    ``size``: the output grid every coordinate lies in (:func:`~..funnelling.key_grid`).
+    ``None`` for a grid too large for the table (:data:`DENSE_KEYS`).
+    """
+    n = events.num_events
+    if not _dense(size, n):
+        return None
+    return _funnel(events, factor, size, np.array([n], dtype=np.int64), seen)[0]
+
+
+def funnelling_batch(
+    events: Events, lengths: tuple[int, ...], factor: tuple[int, int], size: tuple[int, int]
+) -> tuple[Events, tuple[int, ...]] | None:
+    """:func:`~..funnelling.funnelling_batch` of ``N >= 1`` events on the CPU (the same events).
+
+    ``None`` for a grid too large for the table (:data:`DENSE_KEYS`).
+    """
+    if not _dense(size, events.num_events):
+        return None
+    ends = np.cumsum(lengths, dtype=np.int64)
+    out, kept = _funnel(events, factor, size, ends)
+    counts = np.diff(np.searchsorted(kept, ends), prepend=0)
+    return out, tuple(counts.tolist())

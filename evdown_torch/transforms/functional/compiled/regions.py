@@ -1,0 +1,61 @@
+"""What the compiled loops share: region lookup tables and the check of an event's pixel.
+
+A loop finds an event's region by two table lookups (``column[x]``, ``row[y]``) instead of
+two integer divisions per event, and checks the pixel against the tables' extent, so a
+coordinate outside the sensor is an error (:func:`outside_error`), never a read out of bounds.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from torch import Tensor
+
+__all__ = ["columns_of", "outside_error", "power_of_two_shifts", "region_tables"]
+
+
+@functools.lru_cache(maxsize=64)
+def region_tables(factor: tuple[int, int], out_w: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """The lookup tables of region columns and rows (int64; shared, never written).
+
+    ``(column, row)``: ``x // fx`` for each of ``out_w * fx`` values of ``x``, ``y // fy``
+    for each of ``rows * fy`` values of ``y``.
+
+    Example:
+        >>> column, row = region_tables((2, 3), 2, 2)
+        >>> column.tolist(), row.tolist()
+        ([0, 0, 1, 1], [0, 0, 0, 1, 1, 1])
+    """
+    fx, fy = factor
+    return np.arange(out_w * fx, dtype=np.int64) // fx, np.arange(rows * fy, dtype=np.int64) // fy
+
+
+def power_of_two_shifts(factor: tuple[int, int]) -> tuple[int, int]:
+    """``(log2 fx, log2 fy)`` when both factors are powers of two, else ``(-1, -1)``.
+
+    A loop finds the region of such factors by two shifts, cheaper still than the tables.
+
+    Example:
+        >>> power_of_two_shifts((4, 1)), power_of_two_shifts((4, 3))
+        ((2, 0), (-1, -1))
+    """
+    fx, fy = factor
+    if fx & (fx - 1) or fy & (fy - 1):
+        return -1, -1
+    return fx.bit_length() - 1, fy.bit_length() - 1
+
+
+def columns_of(*columns: Tensor) -> tuple[np.ndarray, ...]:
+    """CPU tensors as contiguous NumPy arrays sharing their memory (the loops' one layout)."""
+    return tuple(np.ascontiguousarray(column.numpy()) for column in columns)
+
+
+def outside_error(
+    index: int, x: np.ndarray, y: np.ndarray, column: np.ndarray, row: np.ndarray
+) -> ValueError:
+    """The error for event ``index``, whose pixel lies outside the loop's tables."""
+    return ValueError(
+        f"event {index} at (x={int(x[index])}, y={int(y[index])}) lies outside the sensor "
+        f"of {len(column)} x {len(row)} pixels"
+    )

@@ -1,0 +1,157 @@
+"""Downsample, EventFunnelling and TemporalFunnelling: compiled CPU loops against the eager
+kernels and the slow references."""
+
+from __future__ import annotations
+
+import importlib
+
+import numpy as np
+import pytest
+import torch
+
+from evdown_torch import (
+    Chain,
+    Downsample,
+    EventFunnelling,
+    Events,
+    TemporalFunnelling,
+)
+from evdown_torch.transforms.functional.funnelling import drop_repeats, funnelling_sorted
+from tests.helpers import (
+    FLOAT_DTYPE,
+    assert_identical,
+    assert_sessions_on_both_paths,
+    both_paths,
+    funnel_reference,
+    random_stream,
+    rows,
+    spy,
+    temporal_reference,
+)
+
+pytest.importorskip("numba")
+
+SENSOR = (10, 7, 2)
+FACTORS = [1, 2, 3, (2, 5), (3, 1), (4, 3), (10, 7)]
+FUNNELLING = importlib.import_module("evdown_torch.transforms.functional.compiled.funnelling")
+
+
+def _pair(factor):
+    return (factor, factor) if isinstance(factor, int) else factor
+
+
+@pytest.mark.parametrize("factor", FACTORS)
+def test_downsample_and_funnelling_equal_eager_and_the_reference(factor, rng):
+    arr = random_stream(rng, 2000, SENSOR, t_max=150, sort=False)  # many repeats
+    fx, fy = _pair(factor)
+    for cls in (Downsample, EventFunnelling):
+        transform = cls(SENSOR, factor=factor)
+        compiled, eager = both_paths(lambda transform=transform: transform(arr))
+        assert_identical(compiled, eager)
+    order = np.argsort(arr["t"], kind="stable")
+    assert rows(both_paths(lambda: Downsample(SENSOR, factor=factor)(arr))[0]) == [
+        (int(arr["x"][i]) // fx, int(arr["y"][i]) // fy, int(arr["t"][i]), bool(arr["p"][i]))
+        for i in order]
+    assert rows(compiled) == funnel_reference(arr, fx, fy)
+
+
+@pytest.mark.parametrize("dt", [1, 7, 250, 10**9])
+def test_temporal_funnelling_equals_eager_and_the_reference(dt, rng):
+    arr = random_stream(rng, 1500, (8, 6, 2), t_max=2000, sort=False)
+    transform = TemporalFunnelling(dt=dt)
+    compiled, eager = both_paths(lambda: transform(arr))
+    assert_identical(compiled, eager)
+    assert rows(compiled) == temporal_reference(arr, dt)
+
+
+@pytest.mark.parametrize("dtype", [np.int64, np.float32, np.float64])
+def test_timestamp_dtypes_near_their_limits(dtype, rng):
+    arr = random_stream(rng, 900, SENSOR, t_max=40, sort=False)
+    if dtype == np.int64:
+        t = arr["t"] + (2**63 - 50)
+    else:
+        t = arr["t"].astype(dtype) * dtype(0.5) + dtype(3e5)
+    data = torch.tensor(np.stack([arr["x"], arr["y"], t, arr["p"]], 1).astype(dtype))
+    for transform in (Downsample(SENSOR, factor=(3, 2)), EventFunnelling(SENSOR, factor=(3, 2)),
+                      TemporalFunnelling(dt=4 if dtype == np.int64 else 2.5)):
+        compiled, eager = both_paths(lambda transform=transform: transform(data))
+        assert_identical(compiled, eager)
+        assert compiled.dtype == data.dtype and len(compiled) > 0
+
+
+def test_float64_seconds(rng):
+    arr = random_stream(rng, 700, SENSOR, t_max=100, dtype=FLOAT_DTYPE, sort=False)
+    arr["t"] = arr["t"] * 1e-3 + 1.7e9
+    for transform in (EventFunnelling(SENSOR, factor=2), TemporalFunnelling(dt=0.004)):
+        compiled, eager = both_paths(lambda transform=transform: transform(arr))
+        assert_identical(compiled, eager)
+    assert rows(compiled) == temporal_reference(arr, 0.004)
+
+
+@pytest.mark.parametrize("name", ["downsample", "funnelling", "temporal", "temporal_then_funnel"])
+def test_sessions_in_odd_chunks_and_moving_between_paths(name, rng):
+    transform = {
+        "downsample": Downsample(SENSOR, factor=(3, 2)),
+        "funnelling": EventFunnelling(SENSOR, factor=(3, 2)),
+        "temporal": TemporalFunnelling(dt=5),
+        "temporal_then_funnel": Chain(TemporalFunnelling(dt=3),
+                                      EventFunnelling(SENSOR, factor=2)),
+    }[name]
+    arr = random_stream(rng, 1500, SENSOR, t_max=120)  # runs of equal t cut by the chunks
+    whole, _ = both_paths(lambda: transform(arr))
+    assert_sessions_on_both_paths(transform, arr, whole)
+
+
+@pytest.mark.parametrize("cls", [Downsample, EventFunnelling])
+def test_batches_sorted_stacked_and_with_empty_recordings(cls, rng):
+    transform = cls(SENSOR, factor=(3, 2))
+    recordings = [random_stream(rng, n, SENSOR, t_max=30) for n in (50, 0, 300, 1, 120)]
+    unsorted = [random_stream(rng, n, SENSOR, t_max=30, sort=False) for n in (80, 0, 200)]
+    for batch in (recordings, unsorted):
+        compiled, eager = both_paths(lambda batch=batch: transform.batch(batch))
+        assert_identical(compiled, eager)
+        if cls is EventFunnelling:
+            for recording, out in zip(batch, compiled, strict=True):
+                assert rows(out) == funnel_reference(recording, 3, 2)
+
+
+def test_a_recording_boundary_starts_a_run_in_a_batch():
+    # Two recordings holding the same event at the same t: each keeps its own.
+    same = np.array([(1, 1, True, 5), (0, 0, True, 5)], dtype=random_stream(
+        np.random.default_rng(0), 1, SENSOR).dtype)
+    compiled, eager = both_paths(lambda: EventFunnelling(SENSOR, factor=2).batch([same, same]))
+    assert_identical(compiled, eager)
+    assert [len(out) for out in compiled] == [1, 1]
+
+
+def test_seen_events_drop_repeats_in_the_first_run_only():
+    seen = Events.from_columns([1, 4], [0, 2], [5, 5], [True, False])
+    chunk = Events.from_columns([1, 1, 4, 4, 1], [0, 0, 2, 2, 0], [5, 5, 5, 6, 6],
+                                [True, False, False, False, True])
+    compiled, eager = both_paths(lambda: drop_repeats(chunk, seen=seen))
+    assert_identical(compiled, eager)
+    assert list(zip(*(column.tolist() for column in compiled))) == [
+        (1, 0, 5, False), (4, 2, 6, False), (1, 0, 6, True)]
+    later = Events.from_columns([1], [0], [7], [True])  # after seen's time: nothing dropped
+    compiled, eager = both_paths(lambda: drop_repeats(later, seen=seen))
+    assert_identical(compiled, eager)
+    assert compiled.num_events == 1
+
+
+def test_a_grid_too_large_for_the_table_goes_to_the_eager_kernel(monkeypatch, rng):
+    taken = spy(monkeypatch, FUNNELLING, "_funnel")
+    wide = np.dtype([("x", "<i4"), ("y", "<i4"), ("p", "?"), ("t", "<i8")])
+    arr = random_stream(rng, 300, (70_000, 40_000, 2), t_max=20, dtype=wide)
+    arr[150:] = arr[:150]  # repeats
+    arr.sort(order="t", kind="stable")
+    compiled, eager = both_paths(lambda: EventFunnelling((70_000, 40_000, 2), factor=1)(arr))
+    assert_identical(compiled, eager)
+    assert taken == [] and len(compiled) < 300
+    small = EventFunnelling(SENSOR, factor=1)(random_stream(rng, 300, SENSOR, t_max=20))
+    assert len(small) > 0 and len(taken) == 1
+
+
+def test_an_event_outside_the_given_grid_is_an_error_not_a_crash():
+    events = Events.from_columns([0, 9], [0, 1], [1, 2], [True, True])
+    with pytest.raises(ValueError, match=r"event 1 at \(x=9, y=1\) lies outside the sensor"):
+        funnelling_sorted(events, (2, 2), size=(3, 3))
