@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+__all__ = ["LIFPooling", "calibrate_weight"]
+
 from dataclasses import dataclass, fields, replace
 from functools import cached_property
 
@@ -18,8 +20,6 @@ from evdown_torch.transforms.functional.lif.settings import (
     ResetMechanism,
 )
 from evdown_torch.transforms.functional.lif.stream import LIF_POOLING
-
-__all__ = ["LIFPooling", "calibrate_weight"]
 
 
 @dataclass(frozen=True)

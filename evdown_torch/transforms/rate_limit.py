@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+__all__ = ["RateLimitState", "RateLimiter"]
+
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -11,8 +13,6 @@ from evdown_torch.transforms.functional.rate_limit import (
     RateLimitSettings,
     RateLimitState,
 )
-
-__all__ = ["RateLimitState", "RateLimiter"]
 
 
 @dataclass(frozen=True)

@@ -9,14 +9,14 @@ that :func:`~evdown_torch.transforms.calibrate.calibrate` searches.
 
 from __future__ import annotations
 
+__all__ = ["DensitySubsampling", "PoissonSubsampling"]
+
 from dataclasses import dataclass
 from functools import cached_property
 
 from evdown_torch.transforms._base import Downscaler
 from evdown_torch.transforms.functional.density import DENSITY, DensitySettings
 from evdown_torch.transforms.functional.poisson import POISSON, PoissonSettings
-
-__all__ = ["DensitySubsampling", "PoissonSubsampling"]
 
 
 @dataclass(frozen=True)

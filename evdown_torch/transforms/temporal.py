@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+__all__ = ["TemporalFunnelling", "TemporalState"]
+
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -11,8 +13,6 @@ from evdown_torch.transforms.functional.temporal import (
     TemporalSettings,
     TemporalState,
 )
-
-__all__ = ["TemporalFunnelling", "TemporalState"]
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+__all__ = ["ThinnedDownsample", "recording_seed"]
+
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -14,8 +16,6 @@ from evdown_torch.transforms.functional.thinning import (
     recording_seed,
     thinning_draws,
 )
-
-__all__ = ["ThinnedDownsample", "recording_seed"]
 
 
 @dataclass(frozen=True)

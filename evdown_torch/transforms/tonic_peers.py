@@ -10,6 +10,8 @@ streaming session. Each has one budget setting that
 
 from __future__ import annotations
 
+__all__ = ["TonicDecimation", "TonicRefractoryPeriod"]
+
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -20,8 +22,6 @@ from evdown_torch.transforms.functional.tonic_peers import (
     DecimationSettings,
     RefractorySettings,
 )
-
-__all__ = ["TonicDecimation", "TonicRefractoryPeriod"]
 
 
 @dataclass(frozen=True)

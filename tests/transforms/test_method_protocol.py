@@ -38,7 +38,8 @@ def test_the_whole_stream_fast_path_equals_the_protocol(name, seed):
     rng = np.random.default_rng(seed)
     arr = random_stream(rng, int(rng.integers(1, 120)), SENSOR, t_max=60)
     events, _ = to_events(arr[rng.permutation(len(arr))], SENSOR)  # any order
-    assert transform.kernels.whole is not None
+    if transform.kernels.whole is None:
+        pytest.skip("no whole-stream fast path: the call is the protocol itself")
     fast = transform.kernel(events)
     slow = run_protocol(transform.kernels, transform.settings, events)
     assert _same(fast, slow)

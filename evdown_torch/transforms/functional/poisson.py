@@ -45,9 +45,9 @@ from evdown_torch._tensors import (
     take,
 )
 from evdown_torch.checks import check_non_negative_int, check_positive_float
-from evdown_torch.events import Events, sort_by_time
+from evdown_torch.events import Events
 from evdown_torch.transforms.functional.draws import event_uniforms
-from evdown_torch.transforms.functional.protocol import Method, step_in_pieces
+from evdown_torch.transforms.functional.protocol import Method, run_protocol, step_in_pieces
 from evdown_torch.transforms.functional.settings import RegionSettings
 from evdown_torch.transforms.functional.temporal import bin_index
 
@@ -60,7 +60,6 @@ __all__ = [
     "poisson_init",
     "poisson_step",
     "poisson_subsampling",
-    "poisson_whole",
 ]
 
 #: The blur's standard deviation, in pixels, and its truncation (3 sigma).
@@ -302,14 +301,6 @@ def poisson_step(
     return step_in_pieces(events, state, lambda piece, s: _step_sorted(piece, s, settings))
 
 
-def poisson_whole(events: Events, settings: PoissonSettings) -> Events:
-    """The whole stream (any order)."""
-    events = sort_by_time(events)
-    if events.num_events == 0:
-        return Events.empty(events.t.dtype, events.device)
-    return poisson_step(events, poisson_init(settings, events), settings)[0]
-
-
 def poisson_subsampling(
     events: Events,
     *,
@@ -342,10 +333,8 @@ def poisson_subsampling(
         >>> 0 not in out.t.tolist(), out.num_events <= 2
         (True, True)
     """
-    return poisson_whole(events, PoissonSettings(sensor_size, factor, window, alpha, seed))
+    return run_protocol(POISSON, PoissonSettings(sensor_size, factor, window, alpha, seed), events)
 
 
 #: PoissonSubsampling's kernels (:class:`~evdown_torch.PoissonSubsampling`): causal.
-POISSON: Method[PoissonSettings, PoissonState] = Method(
-    poisson_init, poisson_step, whole=poisson_whole
-)
+POISSON: Method[PoissonSettings, PoissonState] = Method(poisson_init, poisson_step)

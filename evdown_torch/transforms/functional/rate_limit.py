@@ -48,8 +48,8 @@ from torch import Tensor
 
 from evdown_torch._tensors import where_true
 from evdown_torch.checks import check_positive_float, check_positive_int, check_sensor_size
-from evdown_torch.events import Events, sort_by_time
-from evdown_torch.transforms.functional.protocol import Method
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional.protocol import Method, run_protocol
 
 __all__ = [
     "RATE_LIMIT",
@@ -60,7 +60,6 @@ __all__ = [
     "limit_rate",
     "rate_limit_init",
     "rate_limit_step",
-    "rate_limit_whole",
 ]
 
 #: The bucket's capacity in its integer units (``R * W / gcd(R, W)``) stays below this, so that
@@ -302,19 +301,8 @@ def limit_rate(events: Events, *, max_events: int, window: int | float) -> Event
         >>> limit_rate(ev, max_events=2, window=4).t.tolist()  # a token back every 2
         [0, 0, 2, 5, 6]
     """
-    return rate_limit_whole(events, RateLimitSettings(max_events, window))
-
-
-def rate_limit_whole(events: Events, settings: RateLimitSettings) -> Events:
-    """The whole stream (any order) through one step from a full bucket."""
-    events = sort_by_time(events)
-    if events.num_events == 0:
-        return Events.empty(events.t.dtype, events.device)
-    out, _ = rate_limit_step(events, rate_limit_init(settings, events), settings)
-    return out
+    return run_protocol(RATE_LIMIT, RateLimitSettings(max_events, window), events)
 
 
 #: RateLimiter's kernels (:class:`~evdown_torch.RateLimiter`): causal, its state the bucket.
-RATE_LIMIT: Method[RateLimitSettings, RateLimitState] = Method(
-    rate_limit_init, rate_limit_step, whole=rate_limit_whole
-)
+RATE_LIMIT: Method[RateLimitSettings, RateLimitState] = Method(rate_limit_init, rate_limit_step)
