@@ -36,9 +36,12 @@ def _evaluate(args: argparse.Namespace) -> int:
         check_creatable(output, "output folder")
         if not args.no_cache:
             check_creatable(Path(config.output.cache), "cache folder")
-        output.mkdir(parents=True, exist_ok=True)
-        if not os.access(output, os.W_OK | os.X_OK):
-            raise CommandError(f"cannot write into the output folder {str(output)!r}")
+        # The folder is made with the report (after the ranks agree on the config); the
+        # nearest existing folder must take it.
+        existing = next(f for f in (output, *output.parents) if f.exists())
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise CommandError(f"cannot write the output folder {str(output)!r} into "
+                               f"{str(existing)!r}")
         try:
             result = run_evaluation(config, cache=not args.no_cache)
         except (OSError, RuntimeError) as error:

@@ -24,8 +24,9 @@ from evdown_torch.evaluation.ranks import Ranks, check_agreement, study_settings
 REPO = Path(__file__).resolve().parents[2]
 RANK_MAIN = Path(__file__).with_name("rank_main.py")
 TIMES = ("throughput_events_per_s", "train_seconds", "cpu_us_per_recording")
-#: Every training job of the tiny config: 2 learning rates x 2 factors, and 21 seeds of cells.
-TRAININGS = 25
+#: Every training job of the tiny config: 2 learning rates x 2 factors, and 29 seeds of cells
+#: (every registry method, the subsampler peers included, at 2 seeds; the control; the rest).
+TRAININGS = 33
 
 
 def _config(folder: Path, out: Path, epochs: int = 1) -> Path:
