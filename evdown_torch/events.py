@@ -34,7 +34,6 @@ import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Literal, NamedTuple, cast
 
 import numpy as np
@@ -52,7 +51,6 @@ __all__ = [
     "EventsLike",
     "TimestampPrecisionWarning",
     "from_events",
-    "load_npy_events",
     "polarity_sign",
     "to_events",
 ]
@@ -467,28 +465,3 @@ def from_events(events: Events, fmt: EventFormat) -> EventsLike:
     for name, column in zip(FIELDS, (events.x, events.y, events.t, p)):
         out[name] = column.cpu().numpy()
     return out
-
-
-def load_npy_events(path: str | Path) -> np.ndarray:
-    """Load a ``.npy`` structured event array (fields ``x``, ``y``, ``t``, ``p``).
-
-    :func:`evdown_torch.io.read_events` reads every event format (``(N, 4)`` arrays, other
-    time units and files that record their sensor size included).
-
-    Raises:
-        ValueError: if the file is missing, unreadable, not a ``.npy`` file (whatever its
-            name says) or not a structured event array.
-    """
-    from evdown_torch._readers import load_npy
-
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"input file {str(path)!r} does not exist")
-    events = load_npy(path)
-    names = events.dtype.names or ()
-    if events.ndim != 1 or not {"x", "y", "t", "p"} <= set(names):
-        raise ValueError(
-            f"{str(path)!r} holds an array of dtype {events.dtype} and shape {events.shape}; "
-            "expected a 1-D structured event array with fields x, y, t, p (Tonic's format)"
-        )
-    return events

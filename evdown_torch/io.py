@@ -62,6 +62,7 @@ from evdown_torch._readers import (
     READERS,
     READERS_EXTRA,  # noqa: F401 - part of this module's API
     check_columns,
+    load_npy,
     read_npy,
     require,
     sidecar,
@@ -80,6 +81,7 @@ __all__ = [
     "check_readable",
     "check_writable",
     "event_files",
+    "load_npy_events",
     "read_events",
     "read_microseconds",
     "sidecar",
@@ -423,3 +425,26 @@ def _renamed_into_place(*paths: Path) -> Iterator[tuple[Path, ...]]:
     finally:
         for temporary in temporaries:
             temporary.unlink(missing_ok=True)
+
+
+def load_npy_events(path: str | Path) -> np.ndarray:
+    """Load a ``.npy`` structured event array (fields ``x``, ``y``, ``t``, ``p``).
+
+    :func:`read_events` reads every event format (``(N, 4)`` arrays, other
+    time units and files that record their sensor size included).
+
+    Raises:
+        ValueError: if the file is missing, unreadable, not a ``.npy`` file (whatever its
+            name says) or not a structured event array.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"input file {str(path)!r} does not exist")
+    events = load_npy(path)
+    names = events.dtype.names or ()
+    if events.ndim != 1 or not {"x", "y", "t", "p"} <= set(names):
+        raise ValueError(
+            f"{str(path)!r} holds an array of dtype {events.dtype} and shape {events.shape}; "
+            "expected a 1-D structured event array with fields x, y, t, p (Tonic's format)"
+        )
+    return events

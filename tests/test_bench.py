@@ -19,7 +19,8 @@ from benchmarks.goals import GOALS, evaluate_goals, goals_table
 from evdown_torch.bench import inputs, lineup, measure, run
 from evdown_torch.bench import report as report_module
 from evdown_torch.cli import main
-from evdown_torch.events import DVS_DTYPE, load_npy_events
+from evdown_torch.events import DVS_DTYPE
+from evdown_torch.io import load_npy_events
 from evdown_torch.transforms.registry import METHODS, make_method
 from tests.conftest import NMNIST_FILE
 from tests.helpers import random_stream

@@ -12,8 +12,7 @@ import torch
 from evdown_torch import Downsample
 from evdown_torch.bench import run
 from evdown_torch.cli import main
-from evdown_torch.events import load_npy_events
-from evdown_torch.io import SensorSizeGuessWarning, read_events
+from evdown_torch.io import SensorSizeGuessWarning, load_npy_events, read_events
 from tests.helpers import random_stream
 
 SENSOR = (16, 12, 2)

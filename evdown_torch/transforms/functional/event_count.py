@@ -127,7 +127,8 @@ def event_count_step(
     if use_compiled(events.t):
         from evdown_torch.transforms.functional.compiled import event_count as compiled
 
-        return compiled.event_count_step(events, state, settings)
+        out, (level_sum, reference) = compiled.event_count_step(events, state, settings)
+        return out, EventCountState(level_sum, reference)
     bounds = chunk_bounds(events.t)
     if len(bounds) == 2:
         return _event_count_sorted(events, settings, state)
@@ -178,7 +179,8 @@ def event_count_batch(
     if use_compiled(events.t):
         from evdown_torch.transforms.functional.compiled import event_count as compiled
 
-        return compiled.event_count_batch(events, lengths, settings)
+        fresh = initial_state(settings, events.device, len(lengths))
+        return compiled.event_count_batch(events, lengths, settings, fresh)
     device = events.device
     sensor_size, factor = settings.sensor_size, settings.factor
     recordings = len(lengths)

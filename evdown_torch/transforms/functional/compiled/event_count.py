@@ -25,7 +25,6 @@ from evdown_torch.transforms.functional.compiled.regions import (
     power_of_two_shifts,
     region_tables,
 )
-from evdown_torch.transforms.functional.event_count import EventCountState, initial_state
 from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
 from evdown_torch.transforms.functional.settings import ThresholdSettings
 
@@ -112,24 +111,27 @@ def _level_steps(
 
 
 def _run(
-    events: Events, state: EventCountState, settings: ThresholdSettings,
+    events: Events, state: tuple[Tensor, Tensor], settings: ThresholdSettings,
     lengths: tuple[int, ...] | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, EventCountState]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, tuple[Tensor, Tensor]]:
     """The loop over ``N >= 1`` time-sorted events.
 
-    ``lengths``: a batch's recordings, each in its own coordinates; ``None``: one stream
-    (stacked recordings included).
+    ``state``: ``(level_sum, reference)``, EventCount's state. ``lengths``: a batch's
+    recordings, each in its own coordinates; ``None``: one stream (stacked recordings
+    included).
 
     Returns:
-        ``(x, y, source event, on)`` of each output event and the new state (new tensors:
-        ``state`` is left as it was, also when the output limit is exceeded).
+        ``(x, y, source event, on)`` of each output event and the new ``(level_sum,
+        reference)`` (new tensors: ``state`` is left as it was, also when the output limit is
+        exceeded).
     """
+    old_sum, old_reference = state
     n = events.num_events
-    bound = int(state.level_sum.abs().max()) + n if state.level_sum.numel() else n
+    bound = int(old_sum.abs().max()) + n if old_sum.numel() else n
     fraction = capped_threshold(threshold_fraction(settings.threshold), bound)
     a, b = fraction.numerator, fraction.denominator
     out_w, out_h, _ = settings.output_sensor_size
-    regions = state.level_sum.shape[0]
+    regions = old_sum.shape[0]
     if lengths is None:
         ends, block, rows = np.array([n], dtype=np.int64), 0, regions // out_w
     else:
@@ -143,7 +145,7 @@ def _run(
     capacity = min(n * most, 2 * n + most)
     if room is not None:
         capacity = min(capacity, room + most)
-    level_sum, reference = state.level_sum.clone(), state.reference.clone()
+    level_sum, reference = old_sum.clone(), old_reference.clone()
     x, y, p = columns_of(events.x, events.y, events.p)
     sums, levels = level_sum.numpy(), reference.numpy()
     out = _outputs(capacity)
@@ -166,8 +168,7 @@ def _run(
     if k < capacity // 2:  # do not keep a mostly empty buffer alive
         columns = tuple(column.clone() for column in columns)
     out_x, out_y, source, on = columns
-    new_state = EventCountState(level_sum, reference)
-    return out_x, out_y, source, on, new_state
+    return out_x, out_y, source, on, (level_sum, reference)
 
 
 def _outputs(capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -187,9 +188,9 @@ def _grown(
 
 
 def event_count_step(
-    events: Events, state: EventCountState, settings: ThresholdSettings
-) -> tuple[Events, EventCountState]:
-    """:func:`~..event_count.event_count_step` on the CPU: the same events and state."""
+    events: Events, state: tuple[Tensor, Tensor], settings: ThresholdSettings
+) -> tuple[Events, tuple[Tensor, Tensor]]:
+    """``event_count_step`` on the CPU: the same events and ``(level_sum, reference)``."""
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device), state
     x, y, source, on, new_state = _run(events, state, settings, None)
@@ -197,12 +198,12 @@ def event_count_step(
 
 
 def event_count_batch(
-    events: Events, lengths: tuple[int, ...], settings: ThresholdSettings
+    events: Events, lengths: tuple[int, ...], settings: ThresholdSettings,
+    state: tuple[Tensor, Tensor],
 ) -> tuple[Events, tuple[int, ...]]:
-    """:func:`~..event_count.event_count_batch` on the CPU: the same events and counts."""
+    """``event_count_batch`` on the CPU: the same events and counts (``state``: fresh)."""
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device), tuple(0 for _ in lengths)
-    state = initial_state(settings, events.device, len(lengths))
     x, y, source, on, _ = _run(events, state, settings, lengths)
     ends = torch.tensor(lengths, dtype=torch.int64).cumsum(0)
     counts = torch.searchsorted(source, ends).diff(prepend=torch.zeros(1, dtype=torch.int64))
