@@ -22,6 +22,9 @@ default. Keys left out take the defaults shown.
     seed = 0                   # which samples (synthetic scenes, subset of a real dataset)
     time_bins = 6              # frames per sample fed to the classifier
     mean_time = false          # add each bin's mean event time (OFF, ON) as two more channels
+    folds = 0                  # nmnist: >= 2 pools Train and Test and cross-validates
+                               # (stratified k-fold; 0: the dataset's own train/test split)
+    repeats = 1                # with folds: repetitions, each with its own shuffle into folds
 
     [methods]
     include = ["downsample", "event_count"]   # default: every method of the registry
@@ -139,9 +142,21 @@ class DataConfig:
     seed: int = 0
     time_bins: int = 6
     mean_time: bool = False
+    folds: int = 0
+    repeats: int = 1
 
     def __post_init__(self) -> None:
         check_choice("data.dataset", self.dataset, DATASETS)
+        check_non_negative_int("data.folds", self.folds)
+        check_positive_int("data.repeats", self.repeats)
+        if self.folds == 1:
+            raise ValueError("data.folds must be 0 (the dataset's own split) or at least 2, got 1")
+        if self.folds and self.dataset != "nmnist":
+            raise ValueError(
+                f"data.folds cross-validates N-MNIST's pooled recordings; the {self.dataset} "
+                "dataset keeps its own train and test split (set data.folds = 0)")
+        if self.repeats > 1 and not self.folds:
+            raise ValueError(f"data.repeats = {self.repeats} needs data.folds >= 2")
         for i, name in enumerate(("width", "height")):
             check_positive_int(f"data.sensor_size {name}", self.sensor_size[i])
         check_positive_int("data.time_bins", self.time_bins)
@@ -180,6 +195,13 @@ class DataConfig:
     def num_classes(self) -> int:
         """The number of classes of the dataset."""
         return NUM_CLASSES[self.dataset]
+
+    @property
+    def fold_units(self) -> tuple[tuple[int, int], ...]:
+        """Every ``(repeat, fold)`` of the cross-validation; ``((0, 0),)`` without folds."""
+        if not self.folds:
+            return ((0, 0),)
+        return tuple((r, f) for r in range(self.repeats) for f in range(self.folds))
 
 
 @dataclass(frozen=True)

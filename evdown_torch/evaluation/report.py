@@ -32,7 +32,8 @@ SMOKE_TEST_EPOCHS = 5
 
 CSV_COLUMNS = (
     "method", "role", "factor_x", "factor_y", "budget", "setting", "width", "height", "seeds",
-    "learning_rate", "accuracy", "ci_low", "ci_high", "accuracies", "events_per_recording",
+    "learning_rate", "accuracy", "ci_low", "ci_high", "accuracies", "fold_accuracies",
+    "events_per_recording",
     "events_per_second", "reduction", "rate_vs_camera", "consistency", "control_consistency",
     "difference_vs_control", "difference_low", "difference_high", "p_value", "p_holm",
     "significant", "equivalence_p", "detectable_difference", "half_a", "half_b", "replicated",
@@ -97,6 +98,8 @@ def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
             "accuracy": f"{c.accuracy:.4f}", "ci_low": f"{c.interval[0]:.4f}",
             "ci_high": f"{c.interval[1]:.4f}",
             "accuracies": ";".join(f"{a:.4f}" for a in c.accuracies),
+            "fold_accuracies": ";".join(f"{r}:{f}:{s}={a:.4f}@{lr:g}"
+                                        for r, f, s, a, lr in c.units),
             "events_per_recording": f"{c.events_per_recording:.1f}",
             "events_per_second": f"{c.events_per_second:.1f}",
             "reduction": f"{c.reduction:.4f}",

@@ -49,6 +49,9 @@ class CellResult:
         train_seconds: mean training time per seed.
         comparison: against the control at the same factor and budget (for the sanity
             row, the control against it); ``None`` where there is none.
+        units: with ``data.folds``: ``(repeat, fold, seed, accuracy, learning_rate)`` of each
+            training run (``correct`` then holds one row per ``(repeat, seed)`` over every
+            pooled recording); ``()`` otherwise.
     """
 
     cell: Cell
@@ -76,6 +79,7 @@ class CellResult:
     calibration: dict[str, Any] | None
     train_seconds: float
     comparison: Comparison | None = None
+    units: tuple[tuple[int, int, int, float, float], ...] = ()
 
     @property
     def method(self) -> str:

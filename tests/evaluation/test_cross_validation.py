@@ -1,0 +1,104 @@
+"""Repeated stratified k-fold cross-validation of the pooled N-MNIST recordings."""
+
+from __future__ import annotations
+
+import csv
+from collections import Counter
+
+import pytest
+
+from evdown_torch.evaluation import run_evaluation, write_report
+from evdown_torch.evaluation.config import parse_config
+from evdown_torch.evaluation.data import StudyData, fold_assignment
+from tests.conftest import SHARED_DATA
+
+REAL = SHARED_DATA / "nmnist_small"
+
+
+def _config(cache, **data):
+    return parse_config({
+        "data": {"dataset": "nmnist", "root": str(REAL), "train_samples": 24,
+                 "test_samples": 12, "calibration_samples": 6, "time_bins": 2,
+                 "duration_us": 0, "folds": 3, "repeats": 2, "validation_samples": 6, **data},
+        "methods": {"factors": [4], "include": ["downsample", "event_count"],
+                    "budget_reference": "input", "budgets": [0.25], "primary": ["event_count"],
+                    "primary_factors": [4], "primary_budget": 0.25, "sanity": False,
+                    "full_resolution": False},
+        "model": {"channels": [2], "pool_size": 1, "grid": 8},
+        "training": {"epochs": 1, "seeds": [0, 1], "workers": 0, "device": "cpu",
+                     "primary_seeds": 2, "control_seeds": 2, "learning_rates": [0.005, 0.01],
+                     "selection_seeds": 1},
+        "statistics": {"resamples": 50},
+        "output": {"cache": str(cache)},
+    })
+
+
+@pytest.mark.parametrize("folds", [2, 3, 5])
+def test_folds_are_stratified_balanced_and_partition_the_recordings(folds):
+    labels = [0] * 7 + [1] * 4 + [2] * 9 + [3] * 1
+    order, fold_of = fold_assignment(labels, folds, seed=3)
+    assert sorted(order) == list(range(len(labels)))
+    sizes = Counter(fold_of)
+    assert max(sizes.values()) - min(sizes.values()) <= 1
+    for label in set(labels):
+        per_fold = Counter(f for f, y in zip(fold_of, labels) if y == label)
+        counts = [per_fold.get(f, 0) for f in range(folds)]
+        assert max(counts) - min(counts) <= 1, (label, counts)
+    assert fold_assignment(labels, folds, seed=3) == (order, fold_of)
+    assert fold_assignment(labels, folds, seed=4)[0] != order
+
+
+@pytest.mark.parametrize(("data", "message"), [
+    ({"folds": 1}, "at least 2, got 1"),
+    ({"folds": 0, "repeats": 2}, "needs data.folds >= 2"),
+    ({"dataset": "synthetic", "folds": 3}, "keeps its own train and test split"),
+])
+def test_bad_fold_settings_are_refused(tmp_path, data, message):
+    with pytest.raises(ValueError, match=message):
+        _config(tmp_path, **data)
+
+
+def test_each_repeat_tests_every_recording_once_on_folds_it_did_not_train_on(tmp_path):
+    pytest.importorskip("tonic")
+    if not REAL.is_dir():
+        pytest.skip(f"{REAL} is absent")
+    config = _config(tmp_path)
+    pooled = StudyData(config.data, str(tmp_path), (0, 0)).pooled_size
+    assert pooled == 36
+    for repeat in range(2):
+        tested = []
+        for fold in range(3):
+            source = StudyData(config.data, str(tmp_path), (repeat, fold))
+            train, test = source._fold_split("train"), source.test_positions
+            assert not set(train) & set(test) and len(train) + len(test) == pooled
+            tested += test
+        assert sorted(tested) == list(range(pooled))
+    a, b = (StudyData(config.data, str(tmp_path), (r, 0)).test_positions for r in (0, 1))
+    assert a != b  # each repeat deals its own folds
+    with pytest.raises(ValueError, match="needs a fold exactly when"):
+        StudyData(config.data, str(tmp_path))
+
+
+def test_cross_validated_study_end_to_end(tmp_path):
+    pytest.importorskip("tonic")
+    if not REAL.is_dir():
+        pytest.skip(f"{REAL} is absent")
+    config = _config(tmp_path / "cache")
+    result = run_evaluation(config, log=None)
+    assert [c.method for c in result.cells] == ["event_count", "control", "downsample"]
+    labels = result.cells[0].labels
+    for cell in result.cells:
+        assert len(cell.correct) == 2 * 2 and all(len(row) == 36 for row in cell.correct)
+        assert cell.labels == labels  # one pooled order for every cell: paired
+        assert sorted((r, f, s) for r, f, s, _, _ in cell.units) == [
+            (r, f, s) for r in range(2) for f in range(3) for s in (0, 1)]
+        # a (repeat, seed) row is the concatenation of that repeat's three folds
+        for r in range(2):
+            for i, s in enumerate((0, 1)):
+                folds = [a for rr, _, ss, a, _ in cell.units if rr == r and ss == s]
+                row = cell.correct[2 * r + i]
+                assert sum(row) == pytest.approx(sum(a * 12 for a in folds))
+    paths = write_report(result, tmp_path / "out")
+    with paths["csv"].open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows[0]["fold_accuracies"].split(";")) == 12
