@@ -38,23 +38,19 @@ from dataclasses import replace
 from typing import Any, cast
 
 import torch
-from torch import Tensor
 from tqdm import tqdm
 
 from evdown_torch.distributed import all_gather, barrier, broadcast, local_rank, rank_and_world
 from evdown_torch.evaluation import cells as jobs
 from evdown_torch.evaluation import classifier
-from evdown_torch.evaluation.analysis import Comparison, compare, sanity_check
+from evdown_torch.evaluation.analysis import Comparison
 from evdown_torch.evaluation.cache import Cache
-from evdown_torch.evaluation.cells import CONTROL, Cell
+from evdown_torch.evaluation.cells import Cell
 from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.data import StudyData, check_available
 from evdown_torch.evaluation.folds import pool_folds
 from evdown_torch.evaluation.measure import Filled, measure_cells
 from evdown_torch.evaluation.plan import (
-    EXPLORATORY,
-    PRIMARY,
-    SANITY,
     Planned,
     pair,
     plan,
@@ -73,6 +69,7 @@ from evdown_torch.evaluation.ranks import (
     training_seconds,
 )
 from evdown_torch.evaluation.results import CellResult, EvaluationResult, RankRun
+from evdown_torch.evaluation.verdicts import compare_cells
 
 __all__ = ["CellResult", "Comparison", "EvaluationResult", "RankRun", "run_evaluation"]
 
@@ -238,7 +235,7 @@ def run_evaluation(
         torch.set_num_threads(threads)
         store.close()
     if rank == 0:
-        results, sanity = _compare(results, config)
+        results, sanity, noninferior = compare_cells(results, config)
         every[0] = replace(mine, wall_seconds=time.perf_counter() - progress.start,
                            cpu_seconds=_cpu_seconds() - cpu_start)
         wall, cpu = every[0].wall_seconds, sum(r.cpu_seconds for r in every)
@@ -248,7 +245,7 @@ def run_evaluation(
         result = EvaluationResult(
             config, source.description(), tuple(results), filled.rates, sanity, wall, cpu,
             training.workers, generated, str(device) if world == 1 else device.type,
-            tuple(every) if world > 1 else (), ranks.gathered_through)
+            tuple(every) if world > 1 else (), ranks.gathered_through, noninferior)
     result = broadcast(result)
     release(record)
     return cast(EvaluationResult, result)
@@ -424,41 +421,3 @@ def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ra
         cells[i], found[cell] = replace(planned[i], cell=cell), search
     progress(f"calibrated {len(todo)} budgeted cells on {samples} training recordings")
     return cells, found
-
-
-def _compare(results: list[CellResult], config: EvaluationConfig
-             ) -> tuple[list[CellResult], dict[tuple[int, int], Comparison]]:
-    """The study's comparisons.
-
-    The primary family against its control (one-sided, Holm within the family), the sanity
-    check per factor, and every other budgeted cell against the control at its factor and
-    budget (exploratory: interval and TOST only).
-    """
-    st, margin = config.statistics, config.methods.equivalence_margin
-    options: dict[str, Any] = dict(resamples=st.resamples, seed=st.seed, confidence=st.confidence,
-                   alpha=st.alpha, margin=margin)
-    controls: dict[tuple, CellResult] = {}
-    for r in results:
-        if r.method == CONTROL and (r.factor, r.budget) not in controls:
-            controls[(r.factor, r.budget)] = r
-
-    def matrix(r: CellResult) -> Tensor:
-        return torch.tensor(r.correct, dtype=torch.bool)
-
-    out = list(results)
-    family = [i for i, r in enumerate(results) if r.role == PRIMARY
-              and (r.factor, r.budget) in controls]
-    others = [i for i, r in enumerate(results) if r.role == EXPLORATORY and r.budget is not None
-              and r.method != CONTROL and (r.factor, r.budget) in controls]
-    for indices, primary in ((family, True), (others, False)):
-        pairs = [(matrix(results[i]), matrix(controls[(results[i].factor, results[i].budget)]))
-                 for i in indices]
-        for i, k in zip(indices, compare(pairs, primary=primary, **options)):
-            out[i] = replace(out[i], comparison=k)
-    sanity = {}
-    for i, r in enumerate(results):
-        control = controls.get((r.factor, config.methods.primary_budget))
-        if r.role == SANITY and control is not None:
-            sanity[r.factor] = sanity_check(matrix(r), matrix(control), **options)
-            out[i] = replace(out[i], comparison=sanity[r.factor])
-    return out, sanity

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 from collections import Counter
 
 import pytest
@@ -16,10 +17,16 @@ REAL = SHARED_DATA / "nmnist_small"
 
 
 def _config(cache, **data):
-    return parse_config({
+    document = _document(cache)
+    document["data"].update(data)
+    return parse_config(document)
+
+
+def _document(cache):
+    return {
         "data": {"dataset": "nmnist", "root": str(REAL), "train_samples": 24,
                  "test_samples": 12, "calibration_samples": 6, "time_bins": 2,
-                 "duration_us": 0, "folds": 3, "repeats": 2, "validation_samples": 6, **data},
+                 "duration_us": 0, "folds": 3, "repeats": 2, "validation_samples": 6},
         "methods": {"factors": [4], "include": ["downsample", "event_count"],
                     "budget_reference": "input", "budgets": [0.25], "primary": ["event_count"],
                     "primary_factors": [4], "primary_budget": 0.25, "sanity": False,
@@ -30,7 +37,7 @@ def _config(cache, **data):
                      "selection_seeds": 1},
         "statistics": {"resamples": 50},
         "output": {"cache": str(cache)},
-    })
+    }
 
 
 @pytest.mark.parametrize("folds", [2, 3, 5])
@@ -102,3 +109,55 @@ def test_cross_validated_study_end_to_end(tmp_path):
     with paths["csv"].open() as handle:
         rows = list(csv.DictReader(handle))
     assert len(rows[0]["fold_accuracies"].split(";")) == 12
+
+
+def test_primary_family_against_control_and_peer_with_the_corrected_t(tmp_path):
+    pytest.importorskip("tonic")
+    if not REAL.is_dir():
+        pytest.skip(f"{REAL} is absent")
+    config = parse_config({
+        **_document(tmp_path / "cache"),
+        "methods": {"factors": [2, 4], "include": ["downsample"],
+                    "budget_reference": "input", "budgets": [], "control": False,
+                    "primary": ["event_count"], "primary_factors": [2, 4],
+                    "primary_budgets": [0.25, 0.05], "primary_peer": "density",
+                    "noninferiority": ["event_count", "density"], "noninferiority_margin": 0.05,
+                    "sanity": True, "full_resolution": False},
+    })
+    result = run_evaluation(config, log=None)
+    by = {(c.method, c.factor, c.budget): c for c in result.cells}
+    for factor, budget in (((2, 2), 0.25), ((4, 4), 0.05)):
+        assert by[("density", factor, budget)].role == "control"
+        assert by[("control", factor, budget)].role == "control"
+    family = result.primary()
+    assert len(family) == 2
+    p_values = []
+    for c in family:
+        for k, reference in ((c.comparison, by[("control", c.factor, c.budget)]),
+                             (c.peer_comparison, by[("density", c.factor, c.budget)])):
+            # by hand: per (repeat, fold), the mean over seeds; differences paired by split
+            d = [_split_mean(c, u) - _split_mean(reference, u)
+                 for u in config.data.fold_units]
+            mean = sum(d) / 6
+            variance = sum((x - mean) ** 2 for x in d) / 5
+            assert k.difference == pytest.approx(mean, abs=1e-12)
+            assert k.standard_error == pytest.approx(
+                math.sqrt((1 / 6 + 1 / 2) * variance), abs=1e-12)
+            assert k.halves == ()
+            p_values.append(k.p_value)
+    adjusted = sorted(k.p_holm for c in family for k in (c.comparison, c.peer_comparison))
+    # Holm over the whole family of 4: the smallest p-value is multiplied by 4
+    assert adjusted[0] == pytest.approx(min(1.0, 4 * min(p_values)))
+    assert set(result.noninferiority) == {(2, 2), (4, 4)}
+    assert set(result.sanity) == {(2, 2), (4, 4)}
+    paths = write_report(result, tmp_path / "out")
+    text = paths["markdown"].read_text()
+    assert "Non-inferiority" in text and "corrected resampled t" in text
+    with paths["csv"].open() as handle:
+        rows = [r for r in csv.DictReader(handle) if r["role"] == "primary"]
+    assert all(r["difference_vs_peer"] and r["p_holm_vs_peer"] for r in rows)
+
+
+def _split_mean(cell, unit):
+    values = [a for r, f, _, a, _ in cell.units if (r, f) == unit]
+    return sum(values) / len(values)
