@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 from collections import Counter
+from pathlib import Path
 
 import pytest
 
 from evdown_torch.evaluation import run_evaluation, write_report
-from evdown_torch.evaluation.config import parse_config
+from evdown_torch.evaluation.config import load_config, parse_config
 from evdown_torch.evaluation.data import StudyData, fold_assignment
 from tests.conftest import SHARED_DATA
 
@@ -161,3 +163,37 @@ def test_primary_family_against_control_and_peer_with_the_corrected_t(tmp_path):
 def _split_mean(cell, unit):
     values = [a for r, f, _, a, _ in cell.units if (r, f) == unit]
     return sum(values) / len(values)
+
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+@pytest.mark.parametrize("name", ["nmnist.toml", "nmnist_full.toml", "nmnist_tiny.toml"])
+def test_the_nmnist_configs_state_the_question_and_load(name):
+    config = load_config(CONFIGS / name)
+    m = config.methods
+    assert config.data.folds == 5 or name == "nmnist_tiny.toml"
+    assert m.budget_at(2) == 0.25 and m.budget_at(4) == 0.05
+    assert m.primary_peer == "density"
+    if name != "nmnist_tiny.toml":
+        assert m.primary == ("event_count", "linear", "cubic")
+        assert m.noninferiority == ("event_count", "cubic") and len(m.budgets) >= 4
+        assert {"poisson", "refractory", "decimation", "downsample"} <= set(m.names)
+        text = (CONFIGS / name).read_text()
+        assert "Primary question" in text or "primary question" in text
+
+
+def test_the_tiny_nmnist_config_end_to_end(tmp_path, monkeypatch):
+    pytest.importorskip("tonic")
+    if not REAL.is_dir():
+        pytest.skip(f"{REAL} is absent")
+    monkeypatch.chdir(CONFIGS.parent)  # its root is relative to the repository's root
+    config = load_config(CONFIGS / "nmnist_tiny.toml")
+    config = dataclasses.replace(config, output=dataclasses.replace(
+        config.output, directory=str(tmp_path / "out"), cache=str(tmp_path / "cache")))
+    result = run_evaluation(config, log=None)
+    assert len(result.primary()) == 2 and set(result.noninferiority) == {(2, 2), (4, 4)}
+    assert all(c.peer_comparison is not None for c in result.primary())
+    assert all(len(c.labels) == 24 for c in result.cells)
+    paths = write_report(result, tmp_path / "out")
+    assert "corrected resampled t" in paths["markdown"].read_text()
