@@ -22,6 +22,9 @@ default. Keys left out take the defaults shown.
     seed = 0                   # which samples (synthetic scenes, subset of a real dataset)
     time_bins = 6              # frames per sample fed to the classifier
     mean_time = false          # add each bin's mean event time (OFF, ON) as two more channels
+    folds = 0                  # nmnist: >= 2 pools Train and Test and cross-validates
+                               # (stratified k-fold; 0: the dataset's own train/test split)
+    repeats = 1                # with folds: repetitions, each with its own shuffle into folds
 
     [methods]
     include = ["downsample", "event_count"]   # default: every method of the registry
@@ -32,9 +35,14 @@ default. Keys left out take the defaults shown.
     primary = ["event_count"]  # the primary family: each method against the control
     primary_factors = [4]      # ... at these factors
     primary_budget = 1.0       # ... at this budget (one-sided tests, Holm within the family)
+    primary_budgets = []       # ... or one budget per primary factor, in order
+    primary_peer = ""          # a budgeted method each primary method also faces ("density")
     sanity = true              # Downsample at its own rate against its thinning, per factor
     live_delay = 0             # > 0: also LinearEstimation/CubicEstimation with this max_delay
     equivalence_margin = 0.03  # TOST margin of the "no difference" verdicts
+    noninferiority = []        # [tested, reference]: at each primary factor and the primary
+                               # budget, is tested at most noninferiority_margin worse?
+    noninferiority_margin = 0.02
     full_resolution = true     # the full-resolution recordings as a row
     native = false             # each budgeted method also at its own settings (its native output)
     tonic_peer = false         # Tonic's EventDownsampling (integrator) at each factor
@@ -139,9 +147,21 @@ class DataConfig:
     seed: int = 0
     time_bins: int = 6
     mean_time: bool = False
+    folds: int = 0
+    repeats: int = 1
 
     def __post_init__(self) -> None:
         check_choice("data.dataset", self.dataset, DATASETS)
+        check_non_negative_int("data.folds", self.folds)
+        check_positive_int("data.repeats", self.repeats)
+        if self.folds == 1:
+            raise ValueError("data.folds must be 0 (the dataset's own split) or at least 2, got 1")
+        if self.folds and self.dataset != "nmnist":
+            raise ValueError(
+                f"data.folds cross-validates N-MNIST's pooled recordings; the {self.dataset} "
+                "dataset keeps its own train and test split (set data.folds = 0)")
+        if self.repeats > 1 and not self.folds:
+            raise ValueError(f"data.repeats = {self.repeats} needs data.folds >= 2")
         for i, name in enumerate(("width", "height")):
             check_positive_int(f"data.sensor_size {name}", self.sensor_size[i])
         check_positive_int("data.time_bins", self.time_bins)
@@ -181,6 +201,13 @@ class DataConfig:
         """The number of classes of the dataset."""
         return NUM_CLASSES[self.dataset]
 
+    @property
+    def fold_units(self) -> tuple[tuple[int, int], ...]:
+        """Every ``(repeat, fold)`` of the cross-validation; ``((0, 0),)`` without folds."""
+        if not self.folds:
+            return ((0, 0),)
+        return tuple((r, f) for r in range(self.repeats) for f in range(self.folds))
+
 
 @dataclass(frozen=True)
 class MethodsConfig:
@@ -194,9 +221,13 @@ class MethodsConfig:
     primary: tuple[str, ...] = ()
     primary_factors: tuple[int | tuple[int, int], ...] = ()
     primary_budget: float = 1.0
+    primary_budgets: tuple[float, ...] = ()
+    primary_peer: str = ""
     sanity: bool = True
     live_delay: int = 0
     equivalence_margin: float = 0.03
+    noninferiority: tuple[str, ...] = ()
+    noninferiority_margin: float = 0.02
     full_resolution: bool = True
     native: bool = False
     tonic_peer: bool = False
@@ -206,10 +237,31 @@ class MethodsConfig:
         check_positive_float("methods.primary_budget", self.primary_budget)
         check_non_negative_int("methods.live_delay", self.live_delay)
         check_positive_float("methods.equivalence_margin", self.equivalence_margin)
+        check_positive_float("methods.noninferiority_margin", self.noninferiority_margin)
         for factor in self.primary_factors:
             check_factor(factor)
+        if self.noninferiority and (
+                len(self.noninferiority) != 2 or not self.primary_factors
+                or any(n not in METHODS or METHODS[n].budget_setting is None
+                       for n in self.noninferiority)):
+            raise ValueError(
+                "methods.noninferiority must name [tested, reference], two methods with a "
+                "budget setting, and needs methods.primary_factors; got "
+                f"{list(self.noninferiority)}")
         if self.primary and not self.primary_factors:
             raise ValueError("methods.primary needs methods.primary_factors, got []")
+        for budget in self.primary_budgets:
+            check_positive_float("methods.primary_budgets", budget)
+        if self.primary_budgets and len(self.primary_budgets) != len(self.primary_factors):
+            raise ValueError(
+                f"methods.primary_budgets must give one budget per primary factor "
+                f"({len(self.primary_factors)}), got {list(self.primary_budgets)}")
+        if self.primary_peer and (
+                self.primary_peer not in METHODS or METHODS[self.primary_peer].budget_setting
+                is None or self.primary_peer in self.primary or not self.primary):
+            raise ValueError(
+                f"methods.primary_peer must name a method with a budget setting that is not "
+                f"itself primary, beside methods.primary; got {self.primary_peer!r}")
         for name in self.primary:
             if name not in METHODS or METHODS[name].budget_setting is None:
                 raise ValueError(
@@ -237,6 +289,20 @@ class MethodsConfig:
     def all_factors(self) -> tuple[int | tuple[int, int], ...]:
         """The exploratory factors, then the primary ones not among them."""
         return tuple(dict.fromkeys((*self.factors, *self.primary_factors)))
+
+    def budget_at(self, factor: int | tuple[int, int]) -> float:
+        """The primary budget at ``factor``: ``primary_budgets``' entry, else ``primary_budget``.
+
+        Example:
+            >>> m = MethodsConfig(primary_factors=(2, 4), primary_budgets=(0.25, 0.05))
+            >>> m.budget_at(4), m.budget_at((2, 2)), MethodsConfig().budget_at(8)
+            (0.05, 0.25, 1.0)
+        """
+        wanted = check_factor(factor)
+        for f, budget in zip(self.primary_factors, self.primary_budgets):
+            if check_factor(f) == wanted:
+                return budget
+        return self.primary_budget
 
     @property
     def names(self) -> tuple[str, ...]:

@@ -5,6 +5,11 @@ process can read recordings through: synthetic gestures are generated once and c
 ``.npy`` files (and so are their low-resolution ground-truth renders); DVS128 Gesture and
 N-MNIST are read from their own files through :class:`evdown_torch.data.sources.TonicSource`
 and :class:`evdown_torch.data.sources.NMNISTSource`, the package's one way of opening each.
+
+With ``data.folds`` (real data) the dataset's train and test recordings are pooled and dealt
+into stratified folds, once per repeat; ``StudyData(..., fold=(r, f))`` then reads fold ``f``
+of repeat ``r`` as its test split and the other folds as its training split
+(:func:`fold_assignment`).
 """
 
 from __future__ import annotations
@@ -12,7 +17,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
@@ -25,7 +30,7 @@ from evdown_torch.evaluation.config import DataConfig
 if TYPE_CHECKING:
     from evdown_torch.synthetic import SyntheticGestures
 
-__all__ = ["StudyData", "check_available", "window"]
+__all__ = ["StudyData", "check_available", "fold_assignment", "window"]
 
 SPLITS = ("train", "test")
 
@@ -44,10 +49,22 @@ class StudyData:
     Attributes:
         config: the ``[data]`` table.
         cache_root: the cache directory (a string, so that the source pickles small).
+        fold: ``(repeat, fold)`` of the cross-validation (``data.folds``), ``None`` for the
+            dataset's own split.
     """
 
     config: DataConfig
     cache_root: str
+    fold: tuple[int, int] | None = None
+
+    def __post_init__(self) -> None:
+        if (self.fold is None) != (not self.config.folds):
+            raise ValueError(
+                f"StudyData needs a fold exactly when data.folds is set (data.folds = "
+                f"{self.config.folds}, fold = {self.fold})")
+        if self.fold is not None and self.fold not in self.config.fold_units:
+            raise ValueError(f"fold {self.fold} is not a (repeat, fold) of data.repeats = "
+                             f"{self.config.repeats} and data.folds = {self.config.folds}")
 
     @property
     def cache(self) -> Cache:
@@ -81,6 +98,9 @@ class StudyData:
             return (f"synthetic gestures (seed {c.seed}), {c.sensor_size[0]}x{c.sensor_size[1]}, "
                     f"{c.duration_us / 1e6:g} s")
         crop = f"first {c.duration_us / 1e6:g} s" if c.duration_us else "whole recordings"
+        if c.folds:
+            crop += (f"; Train and Test pooled, {c.repeats} x {c.folds}-fold stratified "
+                     "cross-validation")
         if c.dataset == "nmnist":
             return f"N-MNIST ({Path(c.root).expanduser()}), {crop}"
         return f"DVS128 Gesture ({Path(c.root).expanduser() / 'DVSGesture'}), {crop}"
@@ -90,7 +110,25 @@ class StudyData:
         wanted = self.config.train_samples if split == "train" else self.config.test_samples
         if self.synthetic:
             return wanted
+        if self.fold is not None:
+            return len(self._fold_split(split))
         return len(_indices(self.config, split == "train"))
+
+    @property
+    def pooled_size(self) -> int:
+        """The recordings of both splits together (what ``data.folds`` deals into folds)."""
+        return len(_pooled(self.config))
+
+    @property
+    def test_positions(self) -> tuple[int, ...]:
+        """Positions in the pooled recordings of this fold's test recordings, in order."""
+        if self.fold is None:
+            raise ValueError("test_positions needs a fold (data.folds >= 2)")
+        return self._fold_split("test")
+
+    def _fold_split(self, split: str) -> tuple[int, ...]:
+        train, test = _fold_splits(self.config, *cast(tuple[int, int], self.fold))
+        return train if split == "train" else test
 
     def key(self, split: str) -> dict[str, Any]:
         """The settings that determine the recordings of ``split`` (index by index)."""
@@ -99,9 +137,13 @@ class StudyData:
             return {"dataset": "synthetic", "generator": code_fingerprint("synthetic"),
                     "sensor": list(c.sensor_size), "duration_us": c.duration_us,
                     "seed": c.seed, "split": split}
-        return {"dataset": c.dataset, "root": str(Path(c.root).expanduser().resolve()),
-                "duration_us": c.duration_us, "seed": c.seed, "split": split,
-                "samples": c.train_samples if split == "train" else c.test_samples}
+        key = {"dataset": c.dataset, "root": str(Path(c.root).expanduser().resolve()),
+               "duration_us": c.duration_us, "seed": c.seed, "split": split,
+               "samples": c.train_samples if split == "train" else c.test_samples}
+        if self.fold is not None:
+            key["cross_validation"] = [c.train_samples, c.test_samples, c.folds, *self.fold]
+            key["samples"] = None
+        return key
 
     def label(self, split: str, index: int) -> int:
         """The class of recording ``index`` of ``split``."""
@@ -143,8 +185,12 @@ class StudyData:
             self.ensure(split, index)
             return (Cache.load_array(self._recording_path(split, index, (1, 1))),
                     self.label(split, index))
-        dataset = _opened(self.config.dataset, self.config.root, split == "train")
-        events, label = dataset.load(_indices(self.config, split == "train")[index])
+        train = split == "train"
+        if self.fold is not None:
+            train, index = _pooled(self.config)[self._fold_split(split)[index]]
+        else:
+            index = _indices(self.config, train)[index]
+        events, label = _opened(self.config.dataset, self.config.root, train).load(index)
         if self.config.duration_us and len(events):
             events = events[events["t"] < events["t"].min() + self.config.duration_us]
         return events, int(label)
@@ -172,6 +218,63 @@ def _indices(config: DataConfig, train: bool) -> tuple[int, ...]:
     wanted = config.train_samples if train else config.test_samples
     order = torch.randperm(len(dataset), generator=torch.Generator().manual_seed(config.seed))
     return tuple(sorted(order[: wanted or len(dataset)].tolist()))
+
+
+@functools.cache
+def _pooled(config: DataConfig) -> tuple[tuple[bool, int], ...]:
+    """``(from the train split, index there)`` of every recording of both splits."""
+    return tuple((train, i) for train in (True, False) for i in _indices(config, train))
+
+
+def fold_assignment(labels: list[int], folds: int, seed: int) -> tuple[list[int], list[int]]:
+    """Deal recordings into ``folds`` stratified folds.
+
+    A seeded permutation orders the recordings; each class's recordings, in that order, are
+    dealt round-robin onto the folds, each class starting where the previous one stopped, so
+    that every fold holds each class within one recording of its share and the folds' sizes
+    differ by at most one.
+
+    Args:
+        labels: the class of each recording.
+        folds: the number of folds (>= 2).
+        seed: seeds the permutation (one per repeat).
+
+    Returns:
+        ``(order, fold_of)``: the permutation (recording indices) and the fold of each
+        recording.
+
+    Example:
+        >>> order, fold_of = fold_assignment([0, 0, 0, 1, 1, 1], 3, seed=0)
+        >>> sorted(order), sorted(fold_of)
+        ([0, 1, 2, 3, 4, 5], [0, 0, 1, 1, 2, 2])
+        >>> [sorted(fold_of[i] for i in range(6) if i // 3 == y) for y in (0, 1)]
+        [[0, 1, 2], [0, 1, 2]]
+    """
+    order = torch.randperm(len(labels), generator=torch.Generator().manual_seed(seed)).tolist()
+    fold_of = [0] * len(labels)
+    start = 0
+    for label in sorted(set(labels)):
+        members = [i for i in order if labels[i] == label]
+        for j, i in enumerate(members):
+            fold_of[i] = (start + j) % folds
+        start += len(members)
+    return order, fold_of
+
+
+@functools.cache
+def _fold_splits(config: DataConfig, repeat: int, fold: int
+                 ) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Pooled positions of fold ``fold`` of ``repeat``'s training and test splits.
+
+    The training split keeps the repeat's shuffled order (so that its first recordings, the
+    calibration and validation ones, are a random mix of classes); the test split is sorted.
+    """
+    labels = [cast(NMNISTSource, _opened(config.dataset, config.root, train)).labels[i]
+              for train, i in _pooled(config)]
+    order, fold_of = fold_assignment(labels, config.folds, config.seed * 1009 + repeat)
+    train = tuple(i for i in order if fold_of[i] != fold)
+    test = tuple(i for i in range(len(labels)) if fold_of[i] == fold)
+    return train, test
 
 
 def check_available(config: DataConfig) -> None:

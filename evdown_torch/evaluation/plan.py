@@ -90,11 +90,14 @@ def plan(config: EvaluationConfig) -> list[Planned]:
         planned.append(Planned(cell, role, seeds))
 
     for factor in (pair(f) for f in methods.primary_factors):
-        b = methods.primary_budget
+        b = methods.budget_at(factor)
         for name in methods.primary:
             add(Cell(name, factor, b, settings(name)), PRIMARY, primary_seeds)
         if methods.primary:
             add(Cell(CONTROL, factor, b), CONTROL_ROLE, control_seeds)
+        if methods.primary_peer:
+            peer = methods.primary_peer
+            add(Cell(peer, factor, b, settings(peer)), CONTROL_ROLE, control_seeds)
         if methods.sanity:
             add(Cell("downsample", factor, None, settings("downsample")), SANITY, primary_seeds)
     for factor in (pair(f) for f in methods.factors):
@@ -113,7 +116,7 @@ def plan(config: EvaluationConfig) -> list[Planned]:
                 add(Cell(CONTROL, factor, b), EXPLORATORY, explore)
         if methods.live_delay:
             for name in ESTIMATORS:
-                add(Cell(name, factor, methods.primary_budget,
+                add(Cell(name, factor, methods.budget_at(factor),
                          settings(name, max_delay=methods.live_delay)), EXPLORATORY, explore)
     factors = list(dict.fromkeys(pair(f) for f in methods.all_factors))
     planned.sort(key=lambda p: (factors.index(p.cell.factor), _ORDER[p.role]))
@@ -142,7 +145,7 @@ def selection_cells(config: EvaluationConfig, planned: list[Planned]
     for f in dict.fromkeys(p.cell.factor for p in planned):
         cells = [p.cell for p in planned if p.cell.factor == f]
         controls = [c for c in cells if c.method == CONTROL]
-        preferred = [c for c in controls if c.budget == config.methods.primary_budget]
+        preferred = [c for c in controls if c.budget == config.methods.budget_at(f)]
         selection[f] = (preferred or controls or cells)[0]
     return selection
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from evdown_torch.evaluation.analysis import replicated
 from evdown_torch.evaluation.cells import BASELINE, CONTROL
 from evdown_torch.evaluation.config import EvaluationConfig
+from evdown_torch.evaluation.figure import pareto_front, plot_tradeoff
 from evdown_torch.evaluation.plan import CONTROL_ROLE, PRIMARY, SANITY, pair
 from evdown_torch.evaluation.statistics import dunnett_seeds
 from evdown_torch.evaluation.study import CellResult, EvaluationResult
@@ -32,10 +33,12 @@ SMOKE_TEST_EPOCHS = 5
 
 CSV_COLUMNS = (
     "method", "role", "factor_x", "factor_y", "budget", "setting", "width", "height", "seeds",
-    "learning_rate", "accuracy", "ci_low", "ci_high", "accuracies", "events_per_recording",
+    "learning_rate", "accuracy", "ci_low", "ci_high", "accuracies", "fold_accuracies",
+    "events_per_recording",
     "events_per_second", "reduction", "rate_vs_camera", "consistency", "control_consistency",
     "difference_vs_control", "difference_low", "difference_high", "p_value", "p_holm",
-    "significant", "equivalence_p", "detectable_difference", "half_a", "half_b", "replicated",
+    "significant", "equivalence_p", "detectable_difference", "difference_vs_peer",
+    "p_holm_vs_peer", "half_a", "half_b", "replicated",
     "delay", "density", "entropy", "macs_per_recording", "synops_per_recording",
     "cpu_us_per_recording", "throughput_events_per_s", "train_seconds",
 )
@@ -59,6 +62,25 @@ def _control(result: EvaluationResult, c: CellResult) -> CellResult | None:
         if other.method == CONTROL and other.factor == c.factor and other.budget == c.budget:
             return other
     return None
+
+
+def _peer(result: EvaluationResult, c: CellResult) -> CellResult | None:
+    peer = result.config.methods.primary_peer
+    return next((o for o in result.cells if o.method == peer and o.factor == c.factor
+                 and o.budget == c.budget), None)
+
+
+def noninferiority_lines(result: EvaluationResult) -> str:
+    """The non-inferiority test of ``methods.noninferiority``, one line per primary factor."""
+    m = result.config.methods
+    if not result.noninferiority:
+        return ""
+    tested, reference = m.noninferiority
+    return f"**Non-inferiority** of {tested} to {reference} (margin {m.noninferiority_margin:g}" \
+        ", one-sided, Holm over the factors):\n\n" + "".join(
+            f"- x{f[0]}: difference {k.difference:+.3f} {_ci(*k.interval)}, p {k.p_value:.2g} "
+            f"(Holm {k.p_holm:.2g}): {'non-inferior' if k.significant else 'not shown'}\n"
+            for f, k in result.noninferiority.items()) + "\n"
 
 
 def _number(value: float | None, fmt: str) -> str:
@@ -86,7 +108,7 @@ def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
     rows = []
     for c in result.cells:
         control = _control(result, c)
-        k = c.comparison
+        k, peer = c.comparison, c.peer_comparison
         halves = k.halves if k is not None else ()
         rows.append({
             "method": c.cell.name, "role": c.role, "factor_x": str(c.factor[0]),
@@ -97,6 +119,8 @@ def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
             "accuracy": f"{c.accuracy:.4f}", "ci_low": f"{c.interval[0]:.4f}",
             "ci_high": f"{c.interval[1]:.4f}",
             "accuracies": ";".join(f"{a:.4f}" for a in c.accuracies),
+            "fold_accuracies": ";".join(f"{r}:{f}:{s}={a:.4f}@{lr:g}"
+                                        for r, f, s, a, lr in c.units),
             "events_per_recording": f"{c.events_per_recording:.1f}",
             "events_per_second": f"{c.events_per_second:.1f}",
             "reduction": f"{c.reduction:.4f}",
@@ -112,6 +136,8 @@ def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
             else str(k.significant).lower(),
             "equivalence_p": _number(k.equivalence_p if k else None, ".4g"),
             "detectable_difference": _number(k.detectable if k else None, ".4f"),
+            "difference_vs_peer": _number(peer.difference if peer else None, ".4f"),
+            "p_holm_vs_peer": _number(peer.p_holm if peer else None, ".4g"),
             "half_a": f"{halves[0].difference:.4f}" if halves else "",
             "half_b": f"{halves[1].difference:.4f}" if halves else "",
             "replicated": str(replicated(k)).lower() if c.role == PRIMARY and k else "",
@@ -139,14 +165,29 @@ def question(config: EvaluationConfig) -> str:
                  else "the input's event count")
     factors = ", ".join(f"x{pair(f)[0]}" for f in m.primary_factors)
     control = t.control_seeds or dunnett_seeds(t.primary_seeds, len(m.primary))
+    budgets = (f"a budget of {m.primary_budget:g}" if not m.primary_budgets else "budgets of "
+               + ", ".join(f"{b:g} (x{pair(f)[0]})"
+                           for f, b in zip(m.primary_factors, m.primary_budgets)))
+    peers = 2 if m.primary_peer else 1
+    peer = f" and than {m.primary_peer} at the same budget" if m.primary_peer else ""
+    d = config.data
+    unit = (f"the {d.repeats} x {d.folds} train/test splits of repeated stratified "
+            "cross-validation are the unit (seeds averaged within each), paired, tested with "
+            "Nadeau and Bengio's corrected resampled t" if d.folds else
+            "seeds are the unit of replication (hierarchical bootstrap, seeds outer, test "
+            f"recordings inner, {config.statistics.resamples:,} resamples)")
+    tested = ""
+    if m.noninferiority:
+        tested = (f" Beside it: is {m.noninferiority[0]} non-inferior to {m.noninferiority[1]} "
+                  f"within {m.noninferiority_margin:g} accuracy at each primary factor?")
     return (
-        f"At a budget of {m.primary_budget:g} x {reference}, at factors {factors}, does each "
+        f"At {budgets} x {reference}, at factors {factors}, does each "
         f"of {', '.join(m.primary)} keep more accuracy than random thinning of Downsample to "
-        f"the same budget? {len(m.primary) * len(m.primary_factors)} one-sided comparisons, "
-        f"Holm-corrected within this family at alpha = {config.statistics.alpha:g}; "
-        f"{t.primary_seeds} training seeds per method cell, {control} on the shared control; "
-        "seeds are the unit of replication (hierarchical bootstrap, seeds outer, test "
-        f"recordings inner, {config.statistics.resamples:,} resamples)."
+        f"the same budget{peer}? {len(m.primary) * len(m.primary_factors) * peers} one-sided "
+        f"comparisons, Holm-corrected within this family at alpha = "
+        f"{config.statistics.alpha:g}; {t.primary_seeds} training seeds per method cell, "
+        f"{control} on the shared control{' and the peer' if peers == 2 else ''}; "
+        f"{unit}.{tested}"
     )
 
 
@@ -155,14 +196,15 @@ def primary_table(result: EvaluationResult) -> str:
     lines = ["| method | factor | accuracy | control | difference [95% CI] | p (Holm) | "
              "half A | half B | replicated | detectable at 80 % |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    for c in result.primary():
-        k, control = c.comparison, _control(result, c)
+    for c, k, control in [(c, c.comparison, _control(result, c)) for c in result.primary()] + [
+            (c, c.peer_comparison, _peer(result, c)) for c in result.primary()]:
         if k is None or control is None:
             continue
         a, b = (f"{h.difference:+.3f} {_ci(*h.interval)}" for h in k.halves) if k.halves \
             else ("–", "–")
         lines.append(
-            f"| {c.method} | {_factor(c)} | {c.accuracy:.3f} | {control.accuracy:.3f} "
+            f"| {c.method} | {_factor(c)} | {c.accuracy:.3f} | {control.method} "
+            f"{control.accuracy:.3f} "
             f"| {k.difference:+.3f} {_ci(*k.interval)} | {k.p_value:.2g} ({k.p_holm:.2g})"
             f"{' *' if k.significant else ''} | {a} | {b} "
             f"| {'yes' if replicated(k) else 'no'} | {k.detectable:.3f} |")
@@ -336,7 +378,7 @@ def _markdown(result: EvaluationResult) -> str:
         f"# evdown evaluate: {config.name}\n\n"
         + smoke_test_line(result)
         + f"**Primary question.** {question(config)}\n\n"
-        + primary_table(result)
+        + primary_table(result) + "\n" + noninferiority_lines(result)
         + "\nhalf A / half B: the seeds at even / odd positions of each cell (no extra "
         "training); replicated: significant after Holm, interval above zero and the same sign "
         "in both halves; detectable at 80 %: the smallest true gap this design detects with "
@@ -370,85 +412,6 @@ def _markdown(result: EvaluationResult) -> str:
     )
 
 
-def pareto_front(points: list[tuple[float, float]]) -> list[int]:
-    """Indices of the Pareto points ``(events, accuracy)``, in order of events.
-
-    A point is kept when no other beats it with fewer or as many events and higher accuracy.
-
-    Example:
-        >>> pareto_front([(10, 0.5), (20, 0.4), (30, 0.9), (5, 0.2)])
-        [3, 0, 2]
-    """
-    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
-    front, best = [], -math.inf
-    for i in order:
-        if points[i][1] > best:
-            front.append(i)
-            best = points[i][1]
-    return front
-
-
-def _plot(result: EvaluationResult, path: Path) -> bool:
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-        from matplotlib.ticker import NullFormatter
-    except ModuleNotFoundError:
-        return False
-    factors = list(dict.fromkeys(c.factor for c in result.cells if c.method != BASELINE))
-    figure = Figure(figsize=(4.2 * len(factors) + 2.5, 7.5), layout="constrained")
-    FigureCanvasAgg(figure)
-    axes = figure.subplots(2, len(factors), squeeze=False, sharey="row")
-    methods = list(dict.fromkeys(c.cell.name for c in result.cells
-                                 if c.method not in (BASELINE, CONTROL)))
-    colours = {name: f"C{i % 10}" for i, name in enumerate(methods)}
-    colours[CONTROL] = "black"
-    baseline = next((c for c in result.cells if c.method == BASELINE), None)
-    for column, factor in enumerate(factors):
-        here = [c for c in result.cells if c.factor == factor]
-        top, bottom = axes[0][column], axes[1][column]
-        for name in [*methods, CONTROL]:
-            line = sorted((c for c in here if c.cell.name == name),
-                          key=lambda c: c.events_per_second)
-            if not line:
-                continue
-            style = dict(color=colours[name], marker="o" if name != CONTROL else "s",
-                         linestyle="--" if name == CONTROL else "-", markersize=5, capsize=2)
-            x = [c.events_per_second for c in line]
-            top.errorbar(x, [c.accuracy for c in line],
-                         yerr=[[c.accuracy - c.interval[0] for c in line],
-                               [c.interval[1] - c.accuracy for c in line]], **style)
-            if all(c.consistency is not None for c in line):
-                bottom.plot(x, [c.consistency for c in line], **{k: v for k, v in style.items()
-                                                                   if k != "capsize"})
-        front = pareto_front([(c.events_per_second, c.accuracy) for c in here])
-        top.plot([here[i].events_per_second for i in front], [here[i].accuracy for i in front],
-                 color="gold", linewidth=6, alpha=0.35, zorder=0, drawstyle="steps-post")
-        if baseline is not None:
-            top.axhline(baseline.accuracy, color="grey", linestyle=":", linewidth=1)
-        top.set_title(f"factor {factor[0] if factor[0] == factor[1] else factor}")
-        for ax in (top, bottom):
-            ax.set_xscale("log")
-            ax.xaxis.set_minor_formatter(NullFormatter())
-            ax.grid(True, which="both", alpha=0.3)
-        bottom.set_xlabel("output events per second")
-    axes[0][0].set_ylabel("test accuracy (95% CI)")
-    axes[1][0].set_ylabel("optical consistency with the camera")
-    handles = [axes[0][0].plot([], [], color=colours[n], marker="o", label=n)[0] for n in methods]
-    handles.append(axes[0][0].plot([], [], color="black", marker="s", linestyle="--",
-                                   label="control (thinned Downsample)")[0])
-    handles.append(axes[0][0].plot([], [], color="gold", linewidth=6, alpha=0.35,
-                                   label="Pareto front")[0])
-    if baseline is not None:
-        handles.append(axes[0][0].plot([], [], color="grey", linestyle=":",
-                                       label=f"{BASELINE} ({baseline.accuracy:.3f})")[0])
-    figure.legend(handles=handles, loc="outside right center", frameon=False)
-    figure.suptitle(f"evdown evaluate: {result.config.name} ({result.description})",
-                    fontsize=10)
-    figure.savefig(path, dpi=110)
-    return True
-
-
 def write_report(
     result: EvaluationResult, directory: str | Path, log: Log | None = None
 ) -> dict[str, Path]:
@@ -472,7 +435,7 @@ def write_report(
         writer.writerows(_csv_rows(result))
     paths["markdown"].write_text(_markdown(result), encoding="utf-8")
     plot = directory / "tradeoff.png"
-    if _plot(result, plot):
+    if plot_tradeoff(result, plot):
         paths["plot"] = plot
     elif log is not None:
         log("matplotlib is not installed: skipped tradeoff.png "

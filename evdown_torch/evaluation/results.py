@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from evdown_torch.evaluation.analysis import Comparison
@@ -49,6 +49,11 @@ class CellResult:
         train_seconds: mean training time per seed.
         comparison: against the control at the same factor and budget (for the sanity
             row, the control against it); ``None`` where there is none.
+        peer_comparison: a primary cell against ``methods.primary_peer`` at the same factor
+            and budget (within the primary family); ``None`` otherwise.
+        units: with ``data.folds``: ``(repeat, fold, seed, accuracy, learning_rate)`` of each
+            training run (``correct`` then holds one row per ``(repeat, seed)`` over every
+            pooled recording); ``()`` otherwise.
     """
 
     cell: Cell
@@ -76,6 +81,8 @@ class CellResult:
     calibration: dict[str, Any] | None
     train_seconds: float
     comparison: Comparison | None = None
+    peer_comparison: Comparison | None = None
+    units: tuple[tuple[int, int, int, float, float], ...] = ()
 
     @property
     def method(self) -> str:
@@ -152,6 +159,9 @@ class EvaluationResult:
         ranks: under ``torchrun``, how each rank went; empty for one process.
         gathered_through: under ``torchrun``, how the results reached rank 0 (``"the shared
             cache folder"`` or ``"the process group"``); empty for one process.
+        noninferiority: per primary factor, ``methods.noninferiority``'s tested method
+            against its reference at the primary budget: ``significant`` where it is
+            non-inferior within ``methods.noninferiority_margin`` (Holm over the factors).
     """
 
     config: EvaluationConfig
@@ -166,6 +176,7 @@ class EvaluationResult:
     device: str
     ranks: tuple[RankRun, ...] = ()
     gathered_through: str = ""
+    noninferiority: dict[tuple[int, int], Comparison] = field(default_factory=dict)
 
     def primary(self) -> list[CellResult]:
         """The primary family's method cells, in order."""

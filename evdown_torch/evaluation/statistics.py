@@ -12,13 +12,15 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from statistics import NormalDist
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 __all__ = [
-    "detectable_difference", "dunnett_seeds", "hierarchical_means", "holm", "interval_of",
-    "one_sided_p", "tost",
+    "CorrectedT", "corrected_resampled_t", "detectable_difference", "dunnett_seeds",
+    "hierarchical_means", "holm", "interval_of", "one_sided_p", "student_t_cdf",
+    "student_t_quantile", "tost",
 ]
 
 
@@ -200,3 +202,118 @@ def detectable_difference(standard_error: float, *, alpha: float, tests: int = 1
         raise ValueError(f"standard_error must be non-negative, got {standard_error!r}")
     normal = NormalDist()
     return (normal.inv_cdf(1 - alpha / tests) + normal.inv_cdf(power)) * standard_error
+
+
+def _beta_fraction(a: float, b: float, x: float) -> float:
+    """The continued fraction of the incomplete beta function (modified Lentz)."""
+    tiny = 1e-300
+    c, d = 1.0, 1.0 - (a + b) * x / (a + 1)
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, 500):
+        for aa in (m * (b - m) * x / ((a - 1 + 2 * m) * (a + 2 * m)),
+                   -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 1 + 2 * m))):
+            d = 1.0 + aa * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + aa / c
+            c = c if abs(c) > tiny else tiny
+            h *= d * c
+        if abs(d * c - 1.0) < 1e-15:
+            break
+    return h
+
+
+def _regularised_beta(a: float, b: float, x: float, y: float) -> float:
+    """``I_x(a, b)``, with ``y = 1 - x`` given exactly (no cancellation near ``x = 1``)."""
+    if x <= 0:
+        return 0.0
+    if y <= 0:
+        return 1.0
+    front = math.exp(a * math.log(x) + b * math.log(y)
+                     + math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b))
+    if x < (a + 1) / (a + b + 2):
+        return front * _beta_fraction(a, b, x) / a
+    return 1.0 - front * _beta_fraction(b, a, y) / b
+
+
+def student_t_cdf(x: float, df: float) -> float:
+    """``P(T <= x)`` for Student's t with ``df`` degrees of freedom.
+
+    Example:
+        >>> student_t_cdf(0.0, 3), round(student_t_cdf(1.0, 1), 6)  # Cauchy: 1/2 + atan(1)/pi
+        (0.5, 0.75)
+    """
+    if not df > 0:
+        raise ValueError(f"df must be positive, got {df!r}")
+    if math.isinf(x):
+        return 1.0 if x > 0 else 0.0
+    tail = 0.5 * _regularised_beta(df / 2, 0.5, df / (df + x * x), x * x / (df + x * x))
+    return 1.0 - tail if x > 0 else tail
+
+
+def student_t_quantile(p: float, df: float) -> float:
+    """The ``x`` with ``student_t_cdf(x, df) == p`` (bisection, to 1e-12).
+
+    Example:
+        >>> round(student_t_quantile(0.75, 1), 9)  # Cauchy: tan(pi / 4)
+        1.0
+    """
+    if not 0 < p < 1:
+        raise ValueError(f"p must lie in (0, 1), got {p!r}")
+    low, high = -1.0, 1.0
+    while student_t_cdf(low, df) > p:
+        low *= 2
+    while student_t_cdf(high, df) < p:
+        high *= 2
+    while high - low > 1e-12 * max(1.0, abs(low)):
+        middle = (low + high) / 2
+        low, high = (middle, high) if student_t_cdf(middle, df) < p else (low, middle)
+    return (low + high) / 2
+
+
+class CorrectedT(NamedTuple):
+    """A mean difference over resampled train/test splits and its corrected spread.
+
+    Attributes:
+        difference: the mean of the per-split differences.
+        standard_error: ``sqrt((1 / J + n_test / n_train) * s^2)``.
+        df: degrees of freedom, ``J - 1``.
+    """
+
+    difference: float
+    standard_error: float
+    df: int
+
+
+def corrected_resampled_t(differences: Tensor, *, test_over_train: float) -> CorrectedT:
+    """The corrected resampled t statistic of Nadeau and Bengio (2003).
+
+    ``J`` paired differences (one per train/test split: with repeated k-fold cross-validation,
+    one per repeat and fold, each the mean over the split's seeds) come from overlapping
+    training sets, so their sample variance ``s^2`` understates the variance of their mean;
+    the correction inflates ``s^2 / J`` to ``(1 / J + n_test / n_train) s^2`` and the
+    statistic ``difference / standard_error`` is referred to Student's t with ``J - 1``
+    degrees of freedom (Bouckaert and Frank 2004 for repeated k-fold).
+
+    Args:
+        differences: ``[J]`` per-split differences (float), ``J >= 2``.
+        test_over_train: ``n_test / n_train`` of a split (``1 / (k - 1)`` for k folds).
+
+    Returns:
+        The :class:`CorrectedT`.
+
+    Example:
+        >>> import torch
+        >>> t = corrected_resampled_t(torch.tensor([0.02, 0.04, 0.0, 0.06]), test_over_train=0.25)
+        >>> round(t.difference, 4), round(t.standard_error, 6), t.df
+        (0.03, 0.018257, 3)
+    """
+    if not isinstance(differences, Tensor) or differences.ndim != 1 or differences.numel() < 2:
+        raise ValueError("differences must be a 1-D tensor of at least 2 splits, got "
+                         f"{getattr(differences, 'shape', differences)!r}")
+    if not test_over_train > 0:
+        raise ValueError(f"test_over_train must be positive, got {test_over_train!r}")
+    d = differences.to(torch.float64)
+    j = d.numel()
+    variance = float(d.var(unbiased=True))
+    return CorrectedT(float(d.mean()), math.sqrt((1 / j + test_over_train) * variance), j - 1)

@@ -17,11 +17,16 @@ reading what an earlier run cached:
 6. time each transform on one idle thread, in this process, after the workers are gone;
 7. compare (:mod:`.analysis`): the primary family one-sided with Holm's correction and its
    two halves of seeds, the sanity check, the exploratory intervals and equivalence tests.
+
+With ``data.folds`` (repeated stratified k-fold cross-validation of the pooled recordings)
+stages 2-5 run once per ``(repeat, fold)``, each fold's training recordings standing for the
+training split (calibration, the learning rate's validation split) and its test fold for the
+test split; every method shares the folds and the training seeds, and :func:`.folds.pool_folds`
+merges each cell's folds before the comparisons.
 """
 
 from __future__ import annotations
 
-import math
 import multiprocessing
 import socket
 import statistics
@@ -29,27 +34,24 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, cast
 
 import torch
-from torch import Tensor
 from tqdm import tqdm
 
 from evdown_torch.distributed import all_gather, barrier, broadcast, local_rank, rank_and_world
 from evdown_torch.evaluation import cells as jobs
 from evdown_torch.evaluation import classifier
-from evdown_torch.evaluation.analysis import Comparison, compare, sanity_check
+from evdown_torch.evaluation.analysis import Comparison
 from evdown_torch.evaluation.cache import Cache
-from evdown_torch.evaluation.cells import BASELINE, CONTROL, Cell
+from evdown_torch.evaluation.cells import Cell
 from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.data import StudyData, check_available
+from evdown_torch.evaluation.folds import pool_folds
+from evdown_torch.evaluation.measure import Filled, measure_cells
 from evdown_torch.evaluation.plan import (
-    EXPLORATORY,
-    PRIMARY,
-    SANITY,
     Planned,
-    delay_of,
     pair,
     plan,
     selection_cells,
@@ -67,7 +69,7 @@ from evdown_torch.evaluation.ranks import (
     training_seconds,
 )
 from evdown_torch.evaluation.results import CellResult, EvaluationResult, RankRun
-from evdown_torch.evaluation.statistics import hierarchical_means, interval_of
+from evdown_torch.evaluation.verdicts import compare_cells
 
 __all__ = ["CellResult", "Comparison", "EvaluationResult", "RankRun", "run_evaluation"]
 
@@ -188,7 +190,9 @@ def run_evaluation(
     record = claim_cache(store, config, ranks)
     if world > 1:
         progress(ranks.describe())
-    source = StudyData(config.data, str(store.root))
+    sources = [StudyData(config.data, str(store.root), unit if config.data.folds else None)
+               for unit in config.data.fold_units]
+    source = sources[0]
     training = config.training
     threads = torch.get_num_threads()
     if training.num_threads:
@@ -199,10 +203,18 @@ def run_evaluation(
             training.workers, mp_context=multiprocessing.get_context("spawn"),
             initializer=_worker_init, initargs=(training.num_threads,))
     try:
-        filled = _fill(config, source, pool, ranks, device, progress)
+        every_fold = []
+        for fold_source in sources:
+            if fold_source.fold is not None:
+                progress(f"repeat {fold_source.fold[0]}, fold {fold_source.fold[1]}: "
+                         f"{fold_source.size('train')} training, {fold_source.size('test')} "
+                         "test recordings")
+            every_fold.append(_fill(config, fold_source, pool, ranks, device, progress))
     finally:
         pool.shutdown()
-    mine = RankRun(rank, socket.gethostname(), str(device), ranks.jobs, filled.generated,
+    filled = every_fold[0]
+    generated = sum(f.generated for f in every_fold)
+    mine = RankRun(rank, socket.gethostname(), str(device), ranks.jobs, generated,
                    time.perf_counter() - progress.start, _cpu_seconds() - cpu_start)
     every = all_gather(mine)
     result = None
@@ -213,12 +225,17 @@ def run_evaluation(
                                               config.measures.throughput_recordings)
                       for p in filled.planned}
             progress("timed every transform on one thread")
-            results = _measure(config, source, filled, speeds)
+            # timed on the first fold's cells (each fold calibrates its own settings)
+            per_fold = [measure_cells(config, s, f, {p.cell: speeds[q.cell] for p, q in
+                                                zip(f.planned, filled.planned)})
+                        for s, f in zip(sources, every_fold)]
+            results = (pool_folds(per_fold, sources, config) if config.data.folds
+                       else per_fold[0])
     finally:
         torch.set_num_threads(threads)
         store.close()
     if rank == 0:
-        results, sanity = _compare(results, config)
+        results, sanity, noninferior = compare_cells(results, config)
         every[0] = replace(mine, wall_seconds=time.perf_counter() - progress.start,
                            cpu_seconds=_cpu_seconds() - cpu_start)
         wall, cpu = every[0].wall_seconds, sum(r.cpu_seconds for r in every)
@@ -228,20 +245,10 @@ def run_evaluation(
         result = EvaluationResult(
             config, source.description(), tuple(results), filled.rates, sanity, wall, cpu,
             training.workers, generated, str(device) if world == 1 else device.type,
-            tuple(every) if world > 1 else (), ranks.gathered_through)
+            tuple(every) if world > 1 else (), ranks.gathered_through, noninferior)
     result = broadcast(result)
     release(record)
     return cast(EvaluationResult, result)
-
-
-@dataclass
-class _Filled:
-    planned: list[Planned]
-    stats: dict
-    predictions: dict
-    found: dict
-    rates: dict
-    generated: int
 
 
 def _map(pool: Any, ranks: Ranks, progress: _Progress, what: str, fn: Callable,
@@ -265,7 +272,7 @@ def _map(pool: Any, ranks: Ranks, progress: _Progress, what: str, fn: Callable,
 
 
 def _fill(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ranks,
-          device: torch.device, progress: _Progress) -> _Filled:
+          device: torch.device, progress: _Progress) -> Filled:
     chunks = {s: _chunks(range(source.size(s))) for s in ("train", "test")}
     for split, parts in chunks.items():
         if not parts:
@@ -347,7 +354,7 @@ def _fill(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ranks,
         accuracies = [sum(r["correct"]) / len(r["correct"]) for r in predictions[p.cell].values()]
         progress(f"{p.cell.label} ({p.role}): accuracy {statistics.fmean(accuracies):.3f} over "
                  f"{len(accuracies)} seed(s)")
-    return _Filled(planned, stats, predictions, found, rates, generated)
+    return Filled(planned, stats, predictions, found, rates, generated)
 
 
 def _choose_rates(config: EvaluationConfig, source: StudyData, trainer: Any, ranks: Ranks,
@@ -414,92 +421,3 @@ def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ra
         cells[i], found[cell] = replace(planned[i], cell=cell), search
     progress(f"calibrated {len(todo)} budgeted cells on {samples} training recordings")
     return cells, found
-
-
-def _measure(config: EvaluationConfig, source: StudyData, filled: _Filled, speeds: dict
-             ) -> list[CellResult]:
-    sensor = source.sensor_size
-    st = config.statistics
-    results = []
-    for p in filled.planned:
-        cell = p.cell
-        test = filled.stats[cell]["test"]
-        runs = filled.predictions[cell]
-        seeds = tuple(sorted(runs))
-        correct = tuple(tuple(runs[s]["correct"]) for s in seeds)
-        w, h, _ = cell.output_size(sensor)
-        model = classifier.model_for(config, (w, h), source.num_classes)
-        n = len(test["events_out"])
-        out_total, in_total = sum(test["events_out"]), sum(test["events_in"])
-        fan_out = (model.stem_channels if model.stem is not None else model.channels[0] * 9)
-        camera = None
-        if source.has_ground_truth:
-            # over the test recordings compared with the camera (the first ones)
-            seen = sum(test["events_out"][:len(test["camera_events"])])
-            camera = 1.0 if cell.method == BASELINE else (
-                seen / sum(test["camera_events"]) if sum(test["camera_events"]) else math.inf)
-        speed = speeds[cell]
-        results.append(CellResult(
-            cell=cell, role=p.role, output_size=(w, h), seeds=seeds, correct=correct,
-            predicted=tuple(tuple(runs[s]["predicted"]) for s in seeds),
-            labels=tuple(runs[seeds[0]]["labels"]),
-            learning_rate=filled.rates[cell.factor][0],
-            accuracy=statistics.fmean(statistics.fmean(r) for r in correct),
-            interval=interval_of(hierarchical_means([torch.tensor(correct)],
-                                                    resamples=st.resamples,
-                                                    seed=st.seed)[:, 0],
-                                 confidence=st.confidence),
-            events_per_recording=out_total / n,
-            events_per_second=out_total / max(sum(test["duration"]) * 1e-6, 1e-9),
-            reduction=in_total / out_total if out_total else math.inf,
-            rate_vs_camera=camera,
-            consistency=statistics.fmean(test["consistency"]) if test["consistency"] else None,
-            density=statistics.fmean(test["density"]),
-            entropy=statistics.fmean(test["entropy"]),
-            throughput=None if speed is None else speed[0],
-            cpu_us_per_recording=None if speed is None else speed[1],
-            delay=delay_of(cell),
-            macs_per_recording=model.macs_per_step(h, w) * config.data.time_bins,
-            synops_per_recording=out_total / n * fan_out,
-            calibration=filled.found.get(cell),
-            train_seconds=statistics.fmean(r["seconds"] for r in runs.values()),
-        ))
-    return results
-
-
-def _compare(results: list[CellResult], config: EvaluationConfig
-             ) -> tuple[list[CellResult], dict[tuple[int, int], Comparison]]:
-    """The study's comparisons.
-
-    The primary family against its control (one-sided, Holm within the family), the sanity
-    check per factor, and every other budgeted cell against the control at its factor and
-    budget (exploratory: interval and TOST only).
-    """
-    st, margin = config.statistics, config.methods.equivalence_margin
-    options: dict[str, Any] = dict(resamples=st.resamples, seed=st.seed, confidence=st.confidence,
-                   alpha=st.alpha, margin=margin)
-    controls: dict[tuple, CellResult] = {}
-    for r in results:
-        if r.method == CONTROL and (r.factor, r.budget) not in controls:
-            controls[(r.factor, r.budget)] = r
-
-    def matrix(r: CellResult) -> Tensor:
-        return torch.tensor(r.correct, dtype=torch.bool)
-
-    out = list(results)
-    family = [i for i, r in enumerate(results) if r.role == PRIMARY
-              and (r.factor, r.budget) in controls]
-    others = [i for i, r in enumerate(results) if r.role == EXPLORATORY and r.budget is not None
-              and r.method != CONTROL and (r.factor, r.budget) in controls]
-    for indices, primary in ((family, True), (others, False)):
-        pairs = [(matrix(results[i]), matrix(controls[(results[i].factor, results[i].budget)]))
-                 for i in indices]
-        for i, k in zip(indices, compare(pairs, primary=primary, **options)):
-            out[i] = replace(out[i], comparison=k)
-    sanity = {}
-    for i, r in enumerate(results):
-        control = controls.get((r.factor, config.methods.primary_budget))
-        if r.role == SANITY and control is not None:
-            sanity[r.factor] = sanity_check(matrix(r), matrix(control), **options)
-            out[i] = replace(out[i], comparison=sanity[r.factor])
-    return out, sanity

@@ -1,0 +1,125 @@
+"""The study's comparisons, cell against reference, once every cell is measured.
+
+On the dataset's own train/test split (no ``data.folds``) a comparison resamples each cell's
+``[seeds, recordings]`` correctness (:func:`~evdown_torch.evaluation.analysis.compare`); under
+cross-validation it takes each cell's accuracy per ``(repeat, fold)``, its seeds averaged, and
+applies the corrected resampled t-test to the paired differences
+(:func:`~evdown_torch.evaluation.analysis.compare_splits`). Either way every cell is compared
+on the same test recordings, with the same training seeds, as its reference.
+"""
+
+from __future__ import annotations
+
+import statistics
+from dataclasses import replace
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from evdown_torch.evaluation.analysis import (
+    Comparison,
+    compare,
+    compare_splits,
+    noninferiority,
+    sanity_check,
+)
+from evdown_torch.evaluation.cells import CONTROL
+from evdown_torch.evaluation.config import EvaluationConfig
+from evdown_torch.evaluation.plan import EXPLORATORY, PRIMARY, SANITY
+from evdown_torch.evaluation.results import CellResult
+
+__all__ = ["compare_cells", "split_accuracies"]
+
+
+def split_accuracies(cell: CellResult, config: EvaluationConfig) -> Tensor:
+    """``[J]`` accuracy of ``cell`` per ``(repeat, fold)``, its seeds averaged.
+
+    In ``config.data.fold_units`` order, from ``cell.units``.
+
+    Raises:
+        ValueError: if the cell lacks a fold of the configuration.
+    """
+    per_split: dict[tuple[int, int], list[float]] = {}
+    for repeat, fold, _, accuracy, _ in cell.units:
+        per_split.setdefault((repeat, fold), []).append(accuracy)
+    missing = [u for u in config.data.fold_units if u not in per_split]
+    if missing:
+        raise ValueError(f"{cell.cell.label} lacks the (repeat, fold) unit(s) {missing}")
+    return torch.tensor([statistics.fmean(per_split[u]) for u in config.data.fold_units],
+                        dtype=torch.float64)
+
+
+def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
+        list[CellResult], dict[tuple[int, int], Comparison], dict[tuple[int, int], Comparison]]:
+    """The study's comparisons.
+
+    The primary family: each primary method against the control and, with
+    ``methods.primary_peer``, against that peer, at each primary factor and its budget
+    (one-sided, Holm within the whole family); the sanity check per factor; every other
+    budgeted cell against the control at its factor and budget (exploratory: interval and
+    TOST only); and ``methods.noninferiority`` per primary factor.
+
+    Returns:
+        ``(results, sanity, noninferiority)``: the cells with their ``comparison`` (and
+        ``peer_comparison``) filled, the sanity check per factor, the non-inferiority test per
+        primary factor.
+    """
+    st, m = config.statistics, config.methods
+    folds = config.data.folds
+    options: dict[str, Any] = dict(confidence=st.confidence, alpha=st.alpha,
+                                   margin=m.equivalence_margin)
+
+    def data(r: CellResult) -> Tensor:
+        if folds:
+            return split_accuracies(r, config)
+        return torch.tensor(r.correct, dtype=torch.bool)
+
+    def run(pairs: list[tuple[Tensor, Tensor]], primary: bool) -> list[Comparison]:
+        if folds:
+            return compare_splits(pairs, primary=primary, test_over_train=1 / (folds - 1),
+                                  **options)
+        return compare(pairs, primary=primary, resamples=st.resamples, seed=st.seed,
+                       **options)
+
+    def first(method: str) -> dict[tuple, CellResult]:
+        found: dict[tuple, CellResult] = {}
+        for r in results:
+            if r.method == method and (r.factor, r.budget) not in found:
+                found[(r.factor, r.budget)] = r
+        return found
+
+    controls = first(CONTROL)
+    peers = first(m.primary_peer) if m.primary_peer else {}
+    out = list(results)
+    family = [(i, references, which) for i, r in enumerate(results) if r.role == PRIMARY
+              for references, which in ((controls, "comparison"), (peers, "peer_comparison"))
+              if (r.factor, r.budget) in references]
+    others = [(i, controls, "comparison") for i, r in enumerate(results)
+              if r.role == EXPLORATORY and r.budget is not None and r.method != CONTROL
+              and (r.factor, r.budget) in controls]
+    for group, primary in ((family, True), (others, False)):
+        pairs = [(data(results[i]), data(refs[(results[i].factor, results[i].budget)]))
+                 for i, refs, _ in group]
+        for (i, _, which), k in zip(group, run(pairs, primary)):
+            out[i] = (replace(out[i], comparison=k) if which == "comparison"
+                      else replace(out[i], peer_comparison=k))
+    sanity = {}
+    for i, r in enumerate(results):
+        control = controls.get((r.factor, m.budget_at(r.factor)))
+        if r.role == SANITY and control is not None:
+            if folds:
+                (sanity[r.factor],) = run([(data(control), data(r))], True)
+            else:
+                sanity[r.factor] = sanity_check(data(r), data(control), resamples=st.resamples,
+                                                seed=st.seed, **options)
+            out[i] = replace(out[i], comparison=sanity[r.factor])
+    verdicts: dict[tuple[int, int], Comparison] = {}
+    if m.noninferiority:
+        tested, reference = (first(name) for name in m.noninferiority)
+        keys = [key for key in tested if key in reference and key[1] == m.budget_at(key[0])]
+        found = run([(data(tested[key]), data(reference[key])) for key in keys], False)
+        checked = noninferiority(found, margin=m.noninferiority_margin, alpha=st.alpha,
+                                 splits=len(config.data.fold_units) if folds else None)
+        verdicts = {key[0]: k for key, k in zip(keys, checked)}
+    return out, sanity, verdicts
