@@ -35,11 +35,12 @@ class Streaming:
     one), :meth:`stream` / :meth:`stream_end` (the steps of a :class:`Session`),
     :meth:`__call__`, :meth:`batch` and :meth:`session`. The concatenation of every chunk's
     output and the end's equals the transform applied to the whole stream
-    (docs/semantics.md, "Processing a stream in consecutive chunks"). A transform that
-    cannot stream (a ``session`` override saying why) has no session.
+    (docs/semantics.md, "Processing a stream in consecutive chunks"). A transform whose
+    method cannot stream (its bundle's ``no_stream`` says why), or a ``session`` override
+    refusing some settings, has no session.
 
-    A class that is not abstract (``abstract=True`` in its class statement) and names no
-    ``method`` or no ``settings`` is refused when it is defined.
+    A class that names no ``method`` or no ``settings`` is refused when it is defined, but
+    for bases and compositions, which say ``abstract=True`` in their class statement.
     """
 
     sensor_size: tuple[int, int, int] | None
