@@ -1,12 +1,13 @@
-"""The study's inference: the primary family, its replication, the sanity checks, the rest.
+"""The study's inference: the primary family, the sanity checks, the rest.
 
 Seeds are the unit of replication on a fixed train/test split: every comparison resamples
 each cell's training seeds (outer level) and the shared test recordings (inner level) with
 :func:`~evdown_torch.evaluation.statistics.hierarchical_means`. The *primary family* (each
 primary method against the thinning control at the primary factors and budget) is tested
-one-sided, Holm-corrected within the family only; its two halves of the seeds are reported
-beside the pooled verdict. Every other comparison is exploratory: a difference and its
-interval, an equivalence test (TOST), never a star.
+one-sided, Holm-corrected within the family only; where both cells trained on the same
+seeds the seeds are resampled as pairs. Replication is another run on other data (another
+``data.seed``), not a split of one run's seeds. Every other comparison is exploratory: a
+difference and its interval, an equivalence test (TOST), never a star.
 
 Under cross-validation (``data.folds``) the unit is the train/test split, a ``(repeat, fold)``
 (its seeds averaged): :func:`compare_splits` applies Nadeau and Bengio's corrected resampled
@@ -16,6 +17,7 @@ per-split differences, with the same family, Holm correction and TOST.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from statistics import NormalDist
 from typing import cast
@@ -35,22 +37,8 @@ from evdown_torch.evaluation.statistics import (
 )
 
 __all__ = [
-    "Comparison", "Half", "compare", "compare_splits", "halves", "noninferiority", "replicated",
-    "sanity_check",
+    "Comparison", "compare", "compare_splits", "noninferiority", "sanity_check",
 ]
-
-
-@dataclass(frozen=True)
-class Half:
-    """One half of the seeds of a comparison (seeds at even or odd positions of each cell).
-
-    Attributes:
-        difference: accuracy difference on this half.
-        interval: its two-sided bootstrap interval.
-    """
-
-    difference: float
-    interval: tuple[float, float]
 
 
 @dataclass(frozen=True)
@@ -70,7 +58,8 @@ class Comparison:
         equivalence_p: TOST p-value for ``|difference| < margin``.
         detectable: the smallest true difference this design detects with 80 % probability
             (one-sided, at Holm's strictest step for the primary family).
-        halves: the two halves of the seeds (primary family only), else ``()``.
+        paired: whether the seeds were resampled as pairs (both cells trained on the same
+            seeds), or each cell's independently.
     """
 
     difference: float
@@ -81,18 +70,12 @@ class Comparison:
     significant: bool | None
     equivalence_p: float
     detectable: float
-    halves: tuple[Half, ...] = ()
+    paired: bool = False
 
 
-def halves(correct: Tensor) -> tuple[Tensor, Tensor]:
-    """The seeds at even and at odd positions of a ``[S, N]`` matrix (``S >= 2``)."""
-    if correct.shape[0] < 2:
-        raise ValueError(f"halves need at least 2 seeds, got {correct.shape[0]}")
-    return correct[0::2], correct[1::2]
-
-
-def _difference(a: Tensor, b: Tensor, resamples: int, seed: int) -> tuple[float, Tensor]:
-    means = hierarchical_means([a, b], resamples=resamples, seed=seed)
+def _difference(a: Tensor, b: Tensor, resamples: int, seed: int, paired: bool
+                ) -> tuple[float, Tensor]:
+    means = hierarchical_means([a, b], resamples=resamples, seed=seed, paired=paired)
     observed = float(a.double().mean() - b.double().mean())
     return observed, means[:, 0] - means[:, 1]
 
@@ -106,34 +89,35 @@ def compare(
     confidence: float,
     alpha: float,
     margin: float,
+    paired: Sequence[bool] | None = None,
 ) -> list[Comparison]:
     """Compare each ``(cell, reference)`` pair of ``[S, N]`` correctness matrices.
 
-    With ``primary`` the pairs form one family: each gets a one-sided p-value, Holm's
-    correction over the family, and the two halves of its seeds (``resamples // 5`` each).
-    Otherwise each gets its difference, interval and TOST only.
+    With ``primary`` the pairs form one family: each gets a one-sided p-value and Holm's
+    correction over the family. Otherwise each gets its difference, interval and TOST only.
+    A pair marked in ``paired`` trained both cells on the same seeds, row for row: its seeds
+    are resampled as pairs (:func:`hierarchical_means` with ``paired``), which keeps the
+    correlation a seed gives both cells (the same training draw, initial weights and batch
+    order); the others resample each cell's seeds independently.
 
     Example:
         >>> import torch
         >>> g = torch.Generator().manual_seed(0)
         >>> better = torch.rand(10, 200, generator=g) < 0.9
-        >>> worse = torch.rand(18, 200, generator=g) < 0.7
+        >>> worse = torch.rand(10, 200, generator=g) < 0.7
         >>> (k,) = compare([(better, worse)], primary=True, resamples=5000, seed=0,
-        ...                confidence=0.95, alpha=0.05, margin=0.03)
-        >>> round(k.difference, 2), k.significant, len(k.halves)
-        (0.18, True, 2)
+        ...                confidence=0.95, alpha=0.05, margin=0.03, paired=[True])
+        >>> round(k.difference, 2), k.significant, k.paired
+        (0.18, True, True)
     """
+    if paired is None:
+        paired = [False] * len(pairs)
+    if len(paired) != len(pairs):
+        raise ValueError(f"paired must have one flag per pair ({len(pairs)}), got {len(paired)}")
     out = []
-    for i, (a, b) in enumerate(pairs):
-        observed, diffs = _difference(a, b, resamples, seed + i)
+    for i, ((a, b), both) in enumerate(zip(pairs, paired)):
+        observed, diffs = _difference(a, b, resamples, seed + i, both)
         se = float(diffs.std())
-        parts: tuple[Half, ...] = ()
-        if primary and a.shape[0] >= 2 and b.shape[0] >= 2:
-            parts = tuple(
-                Half(d, interval_of(s, confidence=confidence))
-                for d, s in (_difference(x, y, max(resamples // 5, 1), seed + 1000 + 2 * i + j)
-                             for j, (x, y) in enumerate(zip(halves(a), halves(b))))
-            )
         out.append(Comparison(
             difference=observed,
             interval=interval_of(diffs, confidence=confidence),
@@ -144,7 +128,7 @@ def compare(
             equivalence_p=tost(diffs, margin),
             detectable=detectable_difference(se, alpha=alpha,
                                              tests=len(pairs) if primary else 1),
-            halves=parts,
+            paired=both,
         ))
     if primary and out:
         adjusted = holm([cast(float, k.p_value) for k in out])  # primary: all have one
@@ -152,25 +136,16 @@ def compare(
     return out
 
 
-def replicated(comparison: Comparison) -> bool:
-    """A claim the README may make.
-
-    The pooled verdict is significant (its interval excludes zero) and the difference has the
-    same sign in both halves of the seeds.
-    """
-    return bool(comparison.significant) and comparison.interval[0] > 0 and all(
-        h.difference > 0 for h in comparison.halves) and len(comparison.halves) == 2
-
-
 def sanity_check(superset: Tensor, subset: Tensor, *, resamples: int, seed: int,
-                 confidence: float, alpha: float, margin: float) -> Comparison:
+                 confidence: float, alpha: float, margin: float, paired: bool = False
+                 ) -> Comparison:
     """Check (a): a superset of events must not score significantly below a random subset.
 
     Tests ``H1: subset > superset`` one-sided, as a family of one; the check fails where
-    that is significant.
+    that is significant. ``paired`` as in :func:`compare`.
     """
     (k,) = compare([(subset, superset)], primary=True, resamples=resamples, seed=seed,
-                   confidence=confidence, alpha=alpha, margin=margin)
+                   confidence=confidence, alpha=alpha, margin=margin, paired=[paired])
     return k
 
 
@@ -196,7 +171,8 @@ def compare_splits(
     interval is ``d +- t(df, (1 + confidence) / 2) se``, the one-sided p-value
     ``P(T >= d / se)``, TOST the larger of ``P(T >= (d + margin) / se)`` and
     ``P(T <= (d - margin) / se)``, the detectable difference
-    ``(t(df, 1 - alpha / m) + t(df, 0.8)) se``; no halves (the splits are the replication).
+    ``(t(df, 1 - alpha / m) + t(df, 0.8)) se``. Every method is tested on the same splits and
+    seeds, so every comparison is paired.
 
     Example:
         >>> import torch
@@ -225,6 +201,7 @@ def compare_splits(
             equivalence_p=max(_t_p(d, se, df, -margin), _t_p(-d, se, df, -margin)),
             detectable=(student_t_quantile(1 - alpha / tests, df)
                         + student_t_quantile(0.8, df)) * se,
+            paired=True,
         ))
     if primary and out:
         adjusted = holm([cast(float, k.p_value) for k in out])
@@ -252,5 +229,5 @@ def noninferiority(comparisons: list[Comparison], *, margin: float, alpha: float
         else:
             p_values.append(1 - NormalDist().cdf((k.difference + margin) / k.standard_error))
     adjusted = holm(p_values) if p_values else []
-    return [replace(k, p_value=p, p_holm=q, significant=q < alpha, halves=())
+    return [replace(k, p_value=p, p_holm=q, significant=q < alpha)
             for k, p, q in zip(comparisons, p_values, adjusted)]

@@ -164,9 +164,12 @@ def generate_job(source: StudyData, split: str, indices: list[int],
     return generated, counts
 
 
-def calibrate_job(source: StudyData, cell: Cell, target_count: float, samples: int
-                  ) -> tuple[Cell, dict[str, Any]]:
-    """Calibrate ``cell``'s budget setting on the first ``samples`` training recordings.
+def calibrate_job(source: StudyData, cell: Cell, target_count: float, samples: int,
+                  split: str = "train") -> tuple[Cell, dict[str, Any]]:
+    """Calibrate ``cell``'s budget setting on the first ``samples`` recordings of ``split``.
+
+    ``split`` is ``"train"`` or the held-out ``"calibration"`` split
+    (:attr:`StudyData.calibration_split`).
 
     The search starts from the cell's configured value of the setting (the method's default
     when not configured) and targets ``target_count`` output events over those recordings.
@@ -177,12 +180,12 @@ def calibrate_job(source: StudyData, cell: Cell, target_count: float, samples: i
     sensor = source.sensor_size
     transform = cast(Downscaler, cell.transform(sensor))  # a budgeted cell's is a Downscaler
     setting = cast(str, type(transform).budget_setting)
-    key = {"data": source.key("train"), "samples": samples, "cell": cell.key(),
+    key = {"data": source.key(split), "samples": samples, "cell": cell.key(),
            "target": target_count, "code": code_fingerprint(*_TRANSFORM_CODE)}
     cache = source.cache
     path = cache.path("calibrations", key, ".json")
     if not path.is_file():
-        recordings = [source.recording("train", i)[0] for i in range(samples)]
+        recordings = [source.recording(split, i)[0] for i in range(samples)]
         found = calibration(transform, recordings, BudgetTarget.count(target_count))
         cache.save_json(path, {"value": found.value, "count": found.count,
                                "target": found.target, "evaluations": found.evaluations})

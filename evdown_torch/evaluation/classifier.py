@@ -17,29 +17,41 @@ from torch.utils.data import DataLoader, TensorDataset
 from evdown_torch.evaluation.cache import Cache, code_fingerprint
 from evdown_torch.evaluation.cells import TIME_SCALE, Cell, frames_key
 from evdown_torch.evaluation.config import EvaluationConfig
-from evdown_torch.evaluation.data import StudyData
+from evdown_torch.evaluation.data import POOLED, StudyData
 from evdown_torch.models.classifier import SpikingClassifier, stem_stride_for
 from evdown_torch.models.training import predict_classifier, train_classifier
 
 __all__ = ["count_scale", "draw_training_set", "frames_of", "model_for", "train_job"]
 
 
-def frames_of(source: StudyData, cell: Cell, split: str, chunks: list[list[int]],
+def frames_of(source: StudyData, cell: Cell, split: str, chunks: dict[str, list[list[int]]],
               config: EvaluationConfig, draw: int = 0) -> tuple[Tensor, Tensor]:
     """A cell's classifier input and labels of ``split`` (after :func:`downscale_job`).
+
+    ``chunks`` maps each split whose frames were made to its chunks of recordings: ``"train"``
+    and ``"test"``, or under cross-validation ``"pooled"`` (every fold's frames made once),
+    from which ``split``'s rows are taken by :meth:`StudyData.positions`.
 
     Returns:
         ``[n, T, C, H, W]`` float16 input (``C`` = ``data.frame_channels``: the counts
         encoded by ``training.encoding``, then the mean times in ``[-1, 1]``) and ``[n]``
         labels.
     """
+    stored = POOLED if POOLED in chunks else split
     parts = [Cache.load_tensors(source.cache.path(
-        "frames", frames_key(source, cell, split, c, config, draw), ".pt")) for c in chunks]
-    x = _encode(torch.cat([p["frames"] for p in parts]), config.training.encoding)
+        "frames", frames_key(source, cell, stored, c, config, draw), ".pt"))
+        for c in chunks[stored]]
+    frames = torch.cat([p["frames"] for p in parts])
+    labels = torch.cat([p["labels"] for p in parts])
+    rows = None if stored == split else torch.tensor(source.positions(split), dtype=torch.int64)
+    if rows is not None:
+        frames, labels = frames[rows], labels[rows]
+    x = _encode(frames, config.training.encoding)
     if config.data.mean_time:
-        times = torch.cat([p["times"] for p in parts]).to(torch.float16) / TIME_SCALE
+        times = torch.cat([p["times"] for p in parts])
+        times = (times if rows is None else times[rows]).to(torch.float16) / TIME_SCALE
         x = torch.cat([x.to(torch.float16), times], dim=2)
-    return x, torch.cat([p["labels"] for p in parts])
+    return x, labels
 
 
 def model_for(config: EvaluationConfig, size: tuple[int, int], num_classes: int
@@ -148,8 +160,11 @@ def train_job(source: StudyData, cell: Cell, chunks: dict[str, list[list[int]]],
     training = config.training
     draw = seed if cell.random else 0
     splits = ("train",) if validation else ("train", "test")
-    frames_keys = {s: [frames_key(source, cell, s, c, config, draw) for c in chunks[s]]
-                   for s in splits}
+    frames_keys: dict[str, Any] = {
+        s: [frames_key(source, cell, s, c, config, draw) for c in chunks[s]]
+        for s in (chunks if POOLED in chunks else splits)}
+    if POOLED in chunks:
+        frames_keys["fold"] = source.fold
     held_out = config.data.validation_samples if validation else 0
     key = {"frames": frames_keys, "model": config.model.__dict__, "epochs": training.epochs,
            "batch_size": training.batch_size, "learning_rate": learning_rate,
@@ -161,13 +176,13 @@ def train_job(source: StudyData, cell: Cell, chunks: dict[str, list[list[int]]],
     path = cache.path("predictions", key, ".json")
     if path.is_file():
         return Cache.load_json(path)
-    pool_x, pool_y = frames_of(source, cell, "train", chunks["train"], config, draw)
+    pool_x, pool_y = frames_of(source, cell, "train", chunks, config, draw)
     rows = draw_training_set(pool_y, config.data.train_per_seed, seed, exclude=held_out)
     train_x, train_y = pool_x[rows], pool_y[rows]
     if validation:
         test_x, test_y = pool_x[:held_out], pool_y[:held_out]
     else:
-        test_x, test_y = frames_of(source, cell, "test", chunks["test"], config, draw)
+        test_x, test_y = frames_of(source, cell, "test", chunks, config, draw)
     del pool_x
     if training.normalise:
         scale = count_scale(train_x)

@@ -1,6 +1,6 @@
 """``evdown evaluate``: the study's command line (see docs/evaluation.md).
 
-``evdown evaluate --config FILE [--output DIR] [--no-cache]`` runs
+``evdown evaluate --config FILE [--set TABLE.KEY=VALUE ...] [--output DIR] [--no-cache]`` runs
 :func:`~evdown_torch.evaluation.study.run_evaluation` on a TOML configuration
 (:mod:`evdown_torch.evaluation.config`) and writes ``results.csv``, ``report.md`` and
 ``tradeoff.png``. :func:`add_command` registers it on the ``evdown`` parser. Under
@@ -28,7 +28,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
     with process_group():  # one rank of a torchrun launch joins the others
         try:
-            config = load_config(args.config)
+            config = load_config(args.config, args.set or ())
         except (OSError, RuntimeError) as error:
             raise CommandError(str(error)) from None
         output = Path(args.output or config.output.directory)
@@ -70,6 +70,10 @@ def add_command(commands: Subparsers) -> None:
     )
     evaluate.add_argument("--config", required=True, metavar="FILE",
                           help="TOML configuration, e.g. configs/quick.toml")
+    evaluate.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE",
+                          help="replace one setting of the configuration, the value written "
+                          "as in TOML (repeatable), e.g. --set data.seed=1 to replicate a "
+                          "study on other data")
     evaluate.add_argument("--output", metavar="DIR",
                           help="output directory (default: the config's [output] directory)")
     evaluate.add_argument("--no-cache", action="store_true",

@@ -17,6 +17,8 @@ default. Keys left out take the defaults shown.
     train_samples = 264        # synthetic: number of samples; real data: at most (0 = all)
     test_samples = 264         # as train_samples, for the test split
     calibration_samples = 22   # the first training recordings, on which budgets are calibrated
+    calibration = "training"   # "held_out" (nmnist): calibrate once, on recordings of Train
+                               # that are not among train_samples (never in a test fold)
     train_per_seed = 0         # recordings each seed draws from the training pool (0: all)
     validation_samples = 0     # the first training recordings, held out to pick the rate
     seed = 0                   # which samples (synthetic scenes, subset of a real dataset)
@@ -37,6 +39,7 @@ default. Keys left out take the defaults shown.
     primary_budget = 1.0       # ... at this budget (one-sided tests, Holm within the family)
     primary_budgets = []       # ... or one budget per primary factor, in order
     primary_peer = ""          # a budgeted method each primary method also faces ("density")
+    peers = []                 # budgeted methods at each primary factor and budget, exploratory
     sanity = true              # Downsample at its own rate against its thinning, per factor
     live_delay = 0             # > 0: also LinearEstimation/CubicEstimation with this max_delay
     equivalence_margin = 0.03  # TOST margin of the "no difference" verdicts
@@ -92,6 +95,7 @@ default. Keys left out take the defaults shown.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -124,6 +128,7 @@ __all__ = [
 DATASETS = ("synthetic", "dvsgesture", "nmnist")
 REFERENCES = ("camera", "input")
 ENCODINGS = ("counts", "log", "binary")
+CALIBRATIONS = ("training", "held_out")
 DVS_GESTURE_SENSOR = (128, 128, 2)
 
 #: Classes of each dataset (11 gestures: synthetic ones follow DVS128 Gesture's; 10 digits).
@@ -142,6 +147,7 @@ class DataConfig:
     train_samples: int = 264
     test_samples: int = 264
     calibration_samples: int = 22
+    calibration: str = "training"
     train_per_seed: int = 0
     validation_samples: int = 0
     seed: int = 0
@@ -167,6 +173,16 @@ class DataConfig:
         check_positive_int("data.time_bins", self.time_bins)
         check_non_negative_int("data.seed", self.seed)
         check_positive_int("data.calibration_samples", self.calibration_samples)
+        check_choice("data.calibration", self.calibration, CALIBRATIONS)
+        if self.calibration == "held_out" and self.dataset != "nmnist":
+            raise ValueError(
+                'data.calibration = "held_out" takes recordings of N-MNIST\'s Train that the '
+                f"study does not use; the {self.dataset} dataset calibrates on its training "
+                'recordings (data.calibration = "training")')
+        if self.calibration == "held_out" and self.train_samples == 0:
+            raise ValueError(
+                'data.calibration = "held_out" needs recordings of Train left out of the study: '
+                "set data.train_samples below the folder's Train recordings (0 takes them all)")
         check_non_negative_int("data.train_per_seed", self.train_per_seed)
         check_non_negative_int("data.validation_samples", self.validation_samples)
         if self.dataset == "synthetic" and self.validation_samples >= self.train_samples:
@@ -223,6 +239,7 @@ class MethodsConfig:
     primary_budget: float = 1.0
     primary_budgets: tuple[float, ...] = ()
     primary_peer: str = ""
+    peers: tuple[str, ...] = ()
     sanity: bool = True
     live_delay: int = 0
     equivalence_margin: float = 0.03
@@ -262,6 +279,14 @@ class MethodsConfig:
             raise ValueError(
                 f"methods.primary_peer must name a method with a budget setting that is not "
                 f"itself primary, beside methods.primary; got {self.primary_peer!r}")
+        for name in self.peers:
+            if name not in METHODS or METHODS[name].budget_setting is None:
+                raise ValueError(
+                    f"methods.peers names {name!r}, which is not a method with a budget "
+                    f"setting; those are "
+                    f"{[n for n, m in METHODS.items() if m.budget_setting is not None]}")
+        if self.peers and not self.primary_factors:
+            raise ValueError("methods.peers needs methods.primary_factors, got []")
         for name in self.primary:
             if name not in METHODS or METHODS[name].budget_setting is None:
                 raise ValueError(
@@ -528,23 +553,55 @@ def parse_config(document: dict[str, Any], *, name: str = "evaluation") -> Evalu
     return EvaluationConfig(**sections, settings=settings, name=name)
 
 
-def load_config(path: str | Path) -> EvaluationConfig:
-    """Read and validate a TOML configuration file.
+def load_config(path: str | Path, overrides: Sequence[str] = ()) -> EvaluationConfig:
+    """Read and validate a TOML configuration file, with ``overrides`` applied.
 
     Args:
         path: the ``.toml`` file.
+        overrides: ``"table.key=value"`` settings that replace (or add) a key of the file,
+            the value written as in TOML (``"data.seed=1"``, ``'output.directory="x"'``).
 
     Returns:
-        The :class:`EvaluationConfig`, named after the file's stem.
+        The :class:`EvaluationConfig`, named after the file's stem (and the overrides).
 
     Raises:
         FileNotFoundError: if the file does not exist.
-        ValueError, TypeError: as :func:`parse_config`, with the file named in the message.
+        ValueError, TypeError: as :func:`parse_config`, with the file named in the message;
+            for an override that is not ``table.key=value`` with a TOML value.
+
+    Example:
+        >>> import pathlib, tempfile
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "study.toml"
+        >>> _ = path.write_text(chr(10).join(["[data]", "seed = 0"]))
+        >>> config = load_config(path, ["data.seed=1"])
+        >>> config.data.seed, config.name
+        (1, 'study (data.seed=1)')
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"config file {str(path)!r} does not exist")
     try:
-        return parse_config(toml_loads(path.read_text(encoding="utf-8")), name=path.stem)
+        document = toml_loads(path.read_text(encoding="utf-8"))
+        for override in overrides:
+            _override(document, override)
+        name = path.stem + (f" ({', '.join(overrides)})" if overrides else "")
+        return parse_config(document, name=name)
     except (ValueError, TypeError) as error:
         raise type(error)(f"{path}: {error}") from None
+
+
+def _override(document: dict[str, Any], override: str) -> None:
+    """Apply one ``table.key=value`` override to a parsed ``document``, in place."""
+    where, sep, text = override.partition("=")
+    table, dot, key = where.strip().partition(".")
+    if not sep or not dot or not table or not key or "." in key:
+        raise ValueError(f"an override is table.key=value (e.g. data.seed=1), got {override!r}")
+    try:
+        value = toml_loads(f"value = {text.strip()}")["value"]
+    except ValueError:
+        raise ValueError(f"the value of {where.strip()} is not a TOML value (a string needs "
+                         f"quotes), got {text.strip()!r}") from None
+    section = document.setdefault(table, {})
+    if not isinstance(section, dict):
+        raise ValueError(f"{table} is not a table of the config, so {override!r} cannot set it")
+    section[key] = value

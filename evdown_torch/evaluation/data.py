@@ -9,7 +9,11 @@ and :class:`evdown_torch.data.sources.NMNISTSource`, the package's one way of op
 With ``data.folds`` (real data) the dataset's train and test recordings are pooled and dealt
 into stratified folds, once per repeat; ``StudyData(..., fold=(r, f))`` then reads fold ``f``
 of repeat ``r`` as its test split and the other folds as its training split
-(:func:`fold_assignment`).
+(:func:`fold_assignment`); the split ``"pooled"`` reads every pooled recording, the same for
+every fold, so that a cell's frames are made once for all folds (:meth:`StudyData.positions`
+maps a fold's splits onto it). With ``data.calibration = "held_out"`` (N-MNIST) a split
+``"calibration"``, holds ``data.calibration_samples`` recordings of the folder's Train that
+the study does not otherwise use: the same for every fold, and never in a test fold.
 """
 
 from __future__ import annotations
@@ -30,9 +34,13 @@ from evdown_torch.evaluation.config import DataConfig
 if TYPE_CHECKING:
     from evdown_torch.synthetic import SyntheticGestures
 
-__all__ = ["StudyData", "check_available", "fold_assignment", "window"]
+__all__ = ["CALIBRATION", "POOLED", "StudyData", "check_available", "fold_assignment", "window"]
 
 SPLITS = ("train", "test")
+#: The split budgets are calibrated on: the held-out one, or the first training recordings.
+CALIBRATION = "calibration"
+#: Every recording pooled by ``data.folds``, in pooled order (the same for every fold).
+POOLED = "pooled"
 
 
 def window(events: np.ndarray) -> tuple[int, int]:
@@ -105,8 +113,17 @@ class StudyData:
             return f"N-MNIST ({Path(c.root).expanduser()}), {crop}"
         return f"DVS128 Gesture ({Path(c.root).expanduser() / 'DVSGesture'}), {crop}"
 
+    @property
+    def calibration_split(self) -> str:
+        """The split budgets are calibrated on: ``"calibration"`` (held out) or ``"train"``."""
+        return CALIBRATION if self.config.calibration == "held_out" else "train"
+
     def size(self, split: str) -> int:
         """The number of recordings of ``split``."""
+        if split == CALIBRATION:
+            return len(_held_out(self.config))
+        if split == POOLED:
+            return self.pooled_size
         wanted = self.config.train_samples if split == "train" else self.config.test_samples
         if self.synthetic:
             return wanted
@@ -122,9 +139,19 @@ class StudyData:
     @property
     def test_positions(self) -> tuple[int, ...]:
         """Positions in the pooled recordings of this fold's test recordings, in order."""
+        return self.positions("test")
+
+    def positions(self, split: str) -> tuple[int, ...]:
+        """Positions in the pooled recordings of this fold's ``split``, in its order.
+
+        Recording ``i`` of ``split`` is recording ``positions(split)[i]`` of ``"pooled"``.
+
+        Raises:
+            ValueError: without a fold.
+        """
         if self.fold is None:
-            raise ValueError("test_positions needs a fold (data.folds >= 2)")
-        return self._fold_split("test")
+            raise ValueError("positions need a fold (data.folds >= 2)")
+        return self._fold_split(split)
 
     def _fold_split(self, split: str) -> tuple[int, ...]:
         train, test = _fold_splits(self.config, *cast(tuple[int, int], self.fold))
@@ -140,7 +167,11 @@ class StudyData:
         key = {"dataset": c.dataset, "root": str(Path(c.root).expanduser().resolve()),
                "duration_us": c.duration_us, "seed": c.seed, "split": split,
                "samples": c.train_samples if split == "train" else c.test_samples}
-        if self.fold is not None:
+        if split == CALIBRATION:  # the same in every fold
+            key["samples"] = [c.train_samples, c.calibration_samples]
+        elif split == POOLED:  # the same in every fold
+            key["samples"] = [c.train_samples, c.test_samples]
+        elif self.fold is not None:
             key["cross_validation"] = [c.train_samples, c.test_samples, c.folds, *self.fold]
             key["samples"] = None
         return key
@@ -185,8 +216,12 @@ class StudyData:
             self.ensure(split, index)
             return (Cache.load_array(self._recording_path(split, index, (1, 1))),
                     self.label(split, index))
-        train = split == "train"
-        if self.fold is not None:
+        train = split in ("train", CALIBRATION)
+        if split == CALIBRATION:
+            index = _held_out(self.config)[index]
+        elif split == POOLED:
+            train, index = _pooled(self.config)[index]
+        elif self.fold is not None:
             train, index = _pooled(self.config)[self._fold_split(split)[index]]
         else:
             index = _indices(self.config, train)[index]
@@ -218,6 +253,28 @@ def _indices(config: DataConfig, train: bool) -> tuple[int, ...]:
     wanted = config.train_samples if train else config.test_samples
     order = torch.randperm(len(dataset), generator=torch.Generator().manual_seed(config.seed))
     return tuple(sorted(order[: wanted or len(dataset)].tolist()))
+
+
+@functools.cache
+def _held_out(config: DataConfig) -> tuple[int, ...]:
+    """Indices in the folder's Train of the held-out calibration recordings.
+
+    ``data.calibration_samples`` of the Train recordings that :func:`_indices` did not take,
+    in an order seeded by ``data.seed`` (so a mix of classes).
+
+    Raises:
+        ValueError: if fewer remain.
+    """
+    dataset = _opened(config.dataset, config.root, True)
+    used = set(_indices(config, True))
+    rest = [i for i in range(len(dataset)) if i not in used]
+    if len(rest) < config.calibration_samples:
+        raise ValueError(
+            f"data.calibration = \"held_out\" needs {config.calibration_samples} recordings of "
+            f"Train outside the study's {len(used)}, but {config.root!r} has {len(dataset)} "
+            "in Train: lower data.train_samples or data.calibration_samples")
+    order = torch.randperm(len(rest), generator=torch.Generator().manual_seed(config.seed + 1))
+    return tuple(rest[i] for i in order[: config.calibration_samples].tolist())
 
 
 @functools.cache
@@ -284,7 +341,7 @@ def check_available(config: DataConfig) -> None:
         FileNotFoundError: for DVS128 Gesture absent from ``root`` (the message says where to
             put it).
         ValueError: for an N-MNIST folder that is absent or incomplete (the message names
-            what is missing).
+            what is missing), or too small for ``data.calibration = "held_out"``.
         RuntimeError: if tonic is missing.
     """
     if config.dataset == "synthetic":
@@ -299,6 +356,8 @@ def check_available(config: DataConfig) -> None:
     if config.dataset == "nmnist":
         for split in SPLITS:
             NMNISTSource(config.root, split=split)
+        if config.calibration == "held_out":
+            _held_out(config)
         return
     cls = tonic.datasets.DVSGesture
     location = Path(config.root).expanduser() / cls.__name__

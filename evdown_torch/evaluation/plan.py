@@ -7,9 +7,9 @@ shared control (``training.control_seeds``, by default Dunnett's ``ceil(sqrt(k) 
 *sanity* rows run Downsample at its own rate on the primary seeds, to test that a superset of
 events does not score below its random subset (the control). Everything else is
 *exploratory*: the grid of ``[methods] include x factors x budgets`` with its controls (and
-each budgeted method at its own settings with ``native``), the estimators with ``max_delay =
-live_delay``, Tonic's ``EventDownsampling`` with ``tonic_peer``, and the full-resolution row,
-on ``training.seeds``.
+each budgeted method at its own settings with ``native``), ``peers`` at each primary factor
+and budget, the estimators with ``max_delay = live_delay``, Tonic's ``EventDownsampling`` with
+``tonic_peer``, and the full-resolution row, on ``training.seeds``.
 """
 
 from __future__ import annotations
@@ -100,6 +100,8 @@ def plan(config: EvaluationConfig) -> list[Planned]:
             add(Cell(peer, factor, b, settings(peer)), CONTROL_ROLE, control_seeds)
         if methods.sanity:
             add(Cell("downsample", factor, None, settings("downsample")), SANITY, primary_seeds)
+        for name in methods.peers:
+            add(Cell(name, factor, b, settings(name)), EXPLORATORY, explore)
     for factor in (pair(f) for f in methods.factors):
         for name in methods.names:
             if METHODS[name].budget_setting is None or not methods.budgets:

@@ -7,7 +7,6 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
-from evdown_torch.evaluation.analysis import replicated
 from evdown_torch.evaluation.cells import BASELINE, CONTROL
 from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.figure import pareto_front, plot_tradeoff
@@ -38,7 +37,7 @@ CSV_COLUMNS = (
     "events_per_second", "reduction", "rate_vs_camera", "consistency", "control_consistency",
     "difference_vs_control", "difference_low", "difference_high", "p_value", "p_holm",
     "significant", "equivalence_p", "detectable_difference", "difference_vs_peer",
-    "p_holm_vs_peer", "half_a", "half_b", "replicated",
+    "p_holm_vs_peer", "paired",
     "delay", "density", "entropy", "macs_per_recording", "synops_per_recording",
     "cpu_us_per_recording", "throughput_events_per_s", "train_seconds",
 )
@@ -109,7 +108,6 @@ def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
     for c in result.cells:
         control = _control(result, c)
         k, peer = c.comparison, c.peer_comparison
-        halves = k.halves if k is not None else ()
         rows.append({
             "method": c.cell.name, "role": c.role, "factor_x": str(c.factor[0]),
             "factor_y": str(c.factor[1]),
@@ -138,9 +136,7 @@ def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
             "detectable_difference": _number(k.detectable if k else None, ".4f"),
             "difference_vs_peer": _number(peer.difference if peer else None, ".4f"),
             "p_holm_vs_peer": _number(peer.p_holm if peer else None, ".4g"),
-            "half_a": f"{halves[0].difference:.4f}" if halves else "",
-            "half_b": f"{halves[1].difference:.4f}" if halves else "",
-            "replicated": str(replicated(k)).lower() if c.role == PRIMARY and k else "",
+            "paired": "" if k is None else str(k.paired).lower(),
             "delay": c.delay,
             "density": f"{c.density:.6g}", "entropy": f"{c.entropy:.6g}",
             "macs_per_recording": str(c.macs_per_recording),
@@ -192,22 +188,21 @@ def question(config: EvaluationConfig) -> str:
 
 
 def primary_table(result: EvaluationResult) -> str:
-    """The primary family: pooled verdict, the two halves of the seeds, and the power."""
-    lines = ["| method | factor | accuracy | control | difference [95% CI] | p (Holm) | "
-             "half A | half B | replicated | detectable at 80 % |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    """The primary family: each verdict, its interval, how the seeds were paired, the power."""
+    lines = ["| method | factor | accuracy | reference | difference [95% CI] | p (Holm) | "
+             "seeds | detectable at 80 % |",
+             "|---|---|---|---|---|---|---|---|"]
     for c, k, control in [(c, c.comparison, _control(result, c)) for c in result.primary()] + [
             (c, c.peer_comparison, _peer(result, c)) for c in result.primary()]:
         if k is None or control is None:
             continue
-        a, b = (f"{h.difference:+.3f} {_ci(*h.interval)}" for h in k.halves) if k.halves \
-            else ("–", "–")
+        seeds = (f"paired ({len(c.seeds)})" if k.paired
+                 else f"{len(c.seeds)} vs {len(control.seeds)}")
         lines.append(
             f"| {c.method} | {_factor(c)} | {c.accuracy:.3f} | {control.method} "
             f"{control.accuracy:.3f} "
             f"| {k.difference:+.3f} {_ci(*k.interval)} | {k.p_value:.2g} ({k.p_holm:.2g})"
-            f"{' *' if k.significant else ''} | {a} | {b} "
-            f"| {'yes' if replicated(k) else 'no'} | {k.detectable:.3f} |")
+            f"{' *' if k.significant else ''} | {seeds} | {k.detectable:.3f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -379,16 +374,20 @@ def _markdown(result: EvaluationResult) -> str:
         + smoke_test_line(result)
         + f"**Primary question.** {question(config)}\n\n"
         + primary_table(result) + "\n" + noninferiority_lines(result)
-        + "\nhalf A / half B: the seeds at even / odd positions of each cell (no extra "
-        "training); replicated: significant after Holm, interval above zero and the same sign "
-        "in both halves; detectable at 80 %: the smallest true gap this design detects with "
-        "probability 0.8 (normal approximation at Holm's strictest step).\n\n"
+        + "\nseeds: paired where both cells trained on the same seeds (resampled as pairs), "
+        "else each cell's count; * significant after Holm. A claim replicates only if it holds "
+        "on another run on other data (another data.seed); detectable at 80 %: the smallest "
+        "true gap this design detects with probability 0.8 at Holm's strictest step ("
+        + ("Student's t on the splits' degrees of freedom" if config.data.folds
+           else "normal approximation") + ").\n\n"
         "**Sanity checks of the classifier.**\n\n" + sanity_lines(result)
         + f"\n**Data.** {result.description}; {config.data.time_bins} time bins per recording"
         f"{', with mean-time channels' if config.data.mean_time else ''}. Training: {per_seed}. "
-        f"Budgets: multiples of {reference}, calibrated on the first "
-        f"{config.data.calibration_samples} training recordings. "
-        f"Classifier: SpikingClassifier(channels={list(m.channels)}, grid={m.grid}, "
+        f"Budgets: multiples of {reference}, calibrated on "
+        + (f"{config.data.calibration_samples} recordings of Train held out of the study "
+           "(once, for every fold). " if config.data.calibration == "held_out" else
+           f"the first {config.data.calibration_samples} training recordings. ")
+        + f"Classifier: SpikingClassifier(channels={list(m.channels)}, grid={m.grid}, "
         f"stem_channels={m.stem_channels}, pool_size={m.pool_size}), "
         f"{_plural(t.epochs, 'epoch')}, "
         f"batch {t.batch_size}, {t.encoding} input, trained on {result.device}.\n\n"

@@ -70,7 +70,8 @@ def _resample_counts(size: int, resamples: int, generator: torch.Generator) -> T
 
 
 def hierarchical_means(
-    cells: Sequence[Tensor], *, resamples: int = 50_000, seed: int = 0, chunk: int = 2_000
+    cells: Sequence[Tensor], *, resamples: int = 50_000, seed: int = 0, chunk: int = 2_000,
+    paired: bool = False,
 ) -> Tensor:
     """Bootstrap means of several cells tested on the same recordings, seeds as the unit.
 
@@ -78,14 +79,18 @@ def hierarchical_means(
     has (with replacement: the outer level, the unit of replication), and one draw of the
     ``N`` test recordings shared by all cells (the inner level: the cells were tested on the
     same recordings, so the draw keeps that pairing). A cell's resampled accuracy is the mean
-    of its correctness over the drawn seeds and recordings.
+    of its correctness over the drawn seeds and recordings. With ``paired`` the cells trained
+    on the same seeds (row ``s`` of every cell is seed ``s``): one draw of seeds is shared
+    by all cells, as the draw of recordings is, so a seed's effect on every cell (its training
+    draw, initial weights, batch order) stays paired.
 
     Args:
-        cells: ``[S_i, N]`` correctness of each cell (bool or 0/1); ``S_i`` may differ, ``N``
-            may not.
+        cells: ``[S_i, N]`` correctness of each cell (bool or 0/1); ``S_i`` may differ
+            (not with ``paired``), ``N`` may not.
         resamples: number of resamples.
         seed: seed of the draws.
         chunk: resamples computed at once (memory ``~ chunk * N * 8`` bytes per cell).
+        paired: resample the seeds jointly (every cell's row ``s`` is the same seed).
 
     Returns:
         ``[resamples, len(cells)]`` float64 resampled accuracies.
@@ -105,6 +110,9 @@ def hierarchical_means(
         if m.shape[1] != n:
             raise ValueError(f"every cell must be tested on the same {n} recordings, "
                              f"cells[{i}] has {m.shape[1]}")
+    if paired and len({m.shape[0] for m in matrices}) > 1:
+        raise ValueError("paired cells must have the same seeds, got "
+                         f"{[m.shape[0] for m in matrices]} seeds")
     resamples = int(resamples)
     if resamples < 1:
         raise ValueError(f"resamples must be a positive integer, got {resamples!r}")
@@ -113,8 +121,9 @@ def hierarchical_means(
     for lo in range(0, resamples, chunk):
         r = min(chunk, resamples - lo)
         recordings = _resample_counts(n, r, g)  # [r, N]
+        shared = _resample_counts(matrices[0].shape[0], r, g) if paired else None
         for j, m in enumerate(matrices):
-            seeds = _resample_counts(m.shape[0], r, g)  # [r, S]
+            seeds = shared if shared is not None else _resample_counts(m.shape[0], r, g)
             out[lo:lo + r, j] = ((seeds @ m) * recordings).sum(1) / (m.shape[0] * n)
     return out
 

@@ -47,7 +47,7 @@ from evdown_torch.evaluation.analysis import Comparison
 from evdown_torch.evaluation.cache import Cache
 from evdown_torch.evaluation.cells import Cell
 from evdown_torch.evaluation.config import EvaluationConfig
-from evdown_torch.evaluation.data import StudyData, check_available
+from evdown_torch.evaluation.data import POOLED, StudyData, check_available
 from evdown_torch.evaluation.folds import pool_folds
 from evdown_torch.evaluation.measure import Filled, measure_cells
 from evdown_torch.evaluation.plan import (
@@ -273,11 +273,15 @@ def _map(pool: Any, ranks: Ranks, progress: _Progress, what: str, fn: Callable,
 
 def _fill(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ranks,
           device: torch.device, progress: _Progress) -> Filled:
-    chunks = {s: _chunks(range(source.size(s))) for s in ("train", "test")}
-    for split, parts in chunks.items():
-        if not parts:
+    for split in ("train", "test"):
+        if not source.size(split):
             raise ValueError(f"the {split} split has no recordings")
-    calibration_samples = min(config.data.calibration_samples, source.size("train"))
+    # the splits whose frames are made: under cross-validation every pooled recording once,
+    # shared by the folds (a fold's splits are rows of it), else the train and test splits
+    framed = (POOLED,) if source.fold is not None else ("train", "test")
+    chunks = {s: _chunks(range(source.size(s))) for s in framed}
+    calibrate_on = source.calibration_split
+    calibration_samples = min(config.data.calibration_samples, source.size(calibrate_on))
     generated = 0
     by = " by rank 0" if ranks.world > 1 else ""  # whose generation the log counts
     factors = [pair(f) for f in config.methods.all_factors]
@@ -308,7 +312,7 @@ def _fill(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ranks,
         progress(f"low-resolution camera renders at x{', x'.join(str(f[0]) for f in camera)} "
                  f"({made} generated{by})")
     planned, found = _calibrate(config, source, pool, ranks, plan(config), camera,
-                                calibration_samples, progress)
+                                calibrate_on, calibration_samples, progress)
     selection = selection_cells(config, planned)
     group = cell_groups(config, ranks, planned, selection, source.size("train"),
                         source.size("test"))
@@ -319,7 +323,7 @@ def _fill(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ranks,
     for p in planned:
         for draw in (p.seeds if p.cell.random else (0,)):
             by_factor.setdefault((p.cell.factor, group[p.cell]), []).append((p.cell, draw))
-    work = [(units, s, part, g) for (_, g), units in by_factor.items() for s in ("train", "test")
+    work = [(units, s, part, g) for (_, g), units in by_factor.items() for s in framed
             for part in chunks[s]]
     out = _map(pool, ranks, progress, "downscaling", jobs.downscale_job, [source] * len(work),
                [w[0] for w in work], [w[1] for w in work], [w[2] for w in work],
@@ -327,13 +331,16 @@ def _fill(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ranks,
                costs=[downscale_seconds(config, [c for c, _ in w[0]], len(w[2])) for w in work],
                where=[w[3] for w in work]).results
     stats: dict[Cell, dict[str, dict[str, list[float]]]] = {
-        p.cell: {"train": {}, "test": {}} for p in planned}
+        p.cell: {s: {} for s in framed} for p in planned}
     for (units, split, _, _), parts in zip(work, out):
         first = jobs.measured_draws(units)
         for (cell, draw), part in zip(units, parts):
             if draw == first[cell]:
                 for k, values in part.items():
                     stats[cell][split].setdefault(k, []).extend(values)
+    if source.fold is not None:
+        stats = {cell: {s: _rows_of(by_split[POOLED], source.positions(s), source.pooled_size)
+                        for s in ("train", "test")} for cell, by_split in stats.items()}
     progress(f"downscaled every recording for {len(planned)} cells "
              f"({sum(len(u) for u in by_factor.values())} with the control's draws)")
     trainer = pool if device.type == "cpu" else _Inline()
@@ -355,6 +362,22 @@ def _fill(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ranks,
         progress(f"{p.cell.label} ({p.role}): accuracy {statistics.fmean(accuracies):.3f} over "
                  f"{len(accuracies)} seed(s)")
     return Filled(planned, stats, predictions, found, rates, generated)
+
+
+def _rows_of(measures: dict[str, list[float]], rows: Sequence[int], pooled: int
+             ) -> dict[str, list[float]]:
+    """Per-recording ``measures`` of the ``pooled`` recordings, taken at ``rows`` (a fold's split).
+
+    Measures kept for no recording (an empty list) stay empty.
+
+    Raises:
+        RuntimeError: for a measure kept for some recordings only (it cannot be split).
+    """
+    partial = [k for k, values in measures.items() if values and len(values) != pooled]
+    if partial:
+        raise RuntimeError(f"the measures {partial} cover some of the {pooled} pooled "
+                           "recordings only, so a fold's share of them is unknown")
+    return {k: [values[i] for i in rows] if values else [] for k, values in measures.items()}
 
 
 def _choose_rates(config: EvaluationConfig, source: StudyData, trainer: Any, ranks: Ranks,
@@ -400,24 +423,31 @@ def _choose_rates(config: EvaluationConfig, source: StudyData, trainer: Any, ran
 
 
 def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ranks,
-               planned: list[Planned], camera: dict[tuple[int, int], int], samples: int,
-               progress: _Progress) -> tuple[list[Planned], dict[Cell, dict[str, Any]]]:
-    """Calibrate every budgeted cell on the first ``samples`` training recordings."""
+               planned: list[Planned], camera: dict[tuple[int, int], int], split: str,
+               samples: int, progress: _Progress
+               ) -> tuple[list[Planned], dict[Cell, dict[str, Any]]]:
+    """Calibrate every budgeted cell on the first ``samples`` recordings of ``split``.
+
+    ``split`` is ``"train"`` or the held-out ``"calibration"`` split (the same in every fold,
+    so the folds after the first read the calibrations from the cache).
+    """
     todo = [i for i, p in enumerate(planned) if p.cell.budget is not None]
     if not todo:
         return planned, {}
     if config.methods.budget_reference == "input":
-        inputs = sum(len(source.recording("train", i)[0]) for i in range(samples))
+        inputs = sum(len(source.recording(split, i)[0]) for i in range(samples))
     targets = [cast(float, planned[i].cell.budget)
                * (camera[planned[i].cell.factor] if config.methods.budget_reference == "camera"
                   else inputs)
                for i in todo]
     out = _map(pool, ranks, progress, "calibration", jobs.calibrate_job, [source] * len(todo),
                [planned[i].cell for i in todo], targets, [samples] * len(todo),
+               [split] * len(todo),
                costs=[downscale_seconds(config, [planned[i].cell], samples) for i in todo]
                ).results
     cells, found = list(planned), {}
     for i, (cell, search) in zip(todo, out):
         cells[i], found[cell] = replace(planned[i], cell=cell), search
-    progress(f"calibrated {len(todo)} budgeted cells on {samples} training recordings")
+    where = "held-out" if split != "train" else "training"
+    progress(f"calibrated {len(todo)} budgeted cells on {samples} {where} recordings")
     return cells, found

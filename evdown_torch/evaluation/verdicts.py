@@ -5,7 +5,8 @@ On the dataset's own train/test split (no ``data.folds``) a comparison resamples
 cross-validation it takes each cell's accuracy per ``(repeat, fold)``, its seeds averaged, and
 applies the corrected resampled t-test to the paired differences
 (:func:`~evdown_torch.evaluation.analysis.compare_splits`). Either way every cell is compared
-on the same test recordings, with the same training seeds, as its reference.
+on the same test recordings as its reference; where both trained on the same seeds (every
+cell under cross-validation) the seeds are paired too.
 """
 
 from __future__ import annotations
@@ -75,12 +76,13 @@ def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
             return split_accuracies(r, config)
         return torch.tensor(r.correct, dtype=torch.bool)
 
-    def run(pairs: list[tuple[Tensor, Tensor]], primary: bool) -> list[Comparison]:
+    def run(cells: list[tuple[CellResult, CellResult]], primary: bool) -> list[Comparison]:
+        pairs = [(data(a), data(b)) for a, b in cells]
         if folds:
             return compare_splits(pairs, primary=primary, test_over_train=1 / (folds - 1),
                                   **options)
         return compare(pairs, primary=primary, resamples=st.resamples, seed=st.seed,
-                       **options)
+                       paired=[a.seeds == b.seeds for a, b in cells], **options)
 
     def first(method: str) -> dict[tuple, CellResult]:
         found: dict[tuple, CellResult] = {}
@@ -99,7 +101,7 @@ def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
               if r.role == EXPLORATORY and r.budget is not None and r.method != CONTROL
               and (r.factor, r.budget) in controls]
     for group, primary in ((family, True), (others, False)):
-        pairs = [(data(results[i]), data(refs[(results[i].factor, results[i].budget)]))
+        pairs = [(results[i], refs[(results[i].factor, results[i].budget)])
                  for i, refs, _ in group]
         for (i, _, which), k in zip(group, run(pairs, primary)):
             out[i] = (replace(out[i], comparison=k) if which == "comparison"
@@ -109,16 +111,17 @@ def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
         control = controls.get((r.factor, m.budget_at(r.factor)))
         if r.role == SANITY and control is not None:
             if folds:
-                (sanity[r.factor],) = run([(data(control), data(r))], True)
+                (sanity[r.factor],) = run([(control, r)], True)
             else:
                 sanity[r.factor] = sanity_check(data(r), data(control), resamples=st.resamples,
-                                                seed=st.seed, **options)
+                                                seed=st.seed, paired=r.seeds == control.seeds,
+                                                **options)
             out[i] = replace(out[i], comparison=sanity[r.factor])
     verdicts: dict[tuple[int, int], Comparison] = {}
     if m.noninferiority:
         tested, reference = (first(name) for name in m.noninferiority)
         keys = [key for key in tested if key in reference and key[1] == m.budget_at(key[0])]
-        found = run([(data(tested[key]), data(reference[key])) for key in keys], False)
+        found = run([(tested[key], reference[key]) for key in keys], False)
         checked = noninferiority(found, margin=m.noninferiority_margin, alpha=st.alpha,
                                  splits=len(config.data.fold_units) if folds else None)
         verdicts = {key[0]: k for key, k in zip(keys, checked)}

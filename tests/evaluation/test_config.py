@@ -141,3 +141,29 @@ def test_file_errors_name_the_file(tmp_path):
     unknown.write_text("[training]\nepochs = 2\nepoch = 3\n")
     with pytest.raises(ValueError, match="unknown.toml: unknown key training.epoch;"):
         load_config(unknown)
+
+
+def test_overrides_replace_one_setting_and_name_the_run(tmp_path):
+    path = tmp_path / "study.toml"
+    path.write_text('[data]\nseed = 0\ntrain_samples = 30\n[output]\ndirectory = "a"\n')
+    config = load_config(path, ["data.seed=1", 'output.directory="b"', "training.epochs=2"])
+    assert (config.data.seed, config.output.directory, config.training.epochs) == (1, "b", 2)
+    assert config.data.train_samples == 30  # the rest of the file stays
+    assert config.name == 'study (data.seed=1, output.directory="b", training.epochs=2)'
+    assert load_config(path).name == "study"
+    for bad, message in (("seed=1", "table.key=value"), ("data.seed", "table.key=value"),
+                         ("data.seed=one", "not a TOML value"),
+                         ("data.a.b=1", "table.key=value"),
+                         ("data.nope=1", "nope")):
+        with pytest.raises(ValueError, match=message) as error:
+            load_config(path, [bad])
+        assert str(path) in str(error.value)
+
+
+def test_cli_set_reaches_the_config(tmp_path, capsys):
+    from evdown_torch.cli import main
+
+    path = tmp_path / "study.toml"
+    path.write_text("[data]\nseed = 0\n")
+    assert main(["evaluate", "--config", str(path), "--set", "data.seed=x"]) == 2
+    assert "not a TOML value" in capsys.readouterr().err

@@ -12,6 +12,7 @@ import pytest
 
 from evdown_torch.evaluation import run_evaluation, write_report
 from evdown_torch.evaluation.config import load_config, parse_config
+from evdown_torch.evaluation import data
 from evdown_torch.evaluation.data import StudyData, fold_assignment
 from tests.conftest import SHARED_DATA
 
@@ -88,6 +89,54 @@ def test_each_repeat_tests_every_recording_once_on_folds_it_did_not_train_on(tmp
         StudyData(config.data, str(tmp_path))
 
 
+@pytest.mark.parametrize(("data", "message"), [
+    ({"calibration": "held_out", "train_samples": 0}, "needs recordings of Train left out"),
+    ({"calibration": "held_out", "dataset": "synthetic", "folds": 0, "repeats": 1},
+     "calibrates on its training"),
+    ({"calibration": "first"}, "data.calibration must be one of"),
+])
+def test_bad_calibration_settings_are_refused(tmp_path, data, message):
+    with pytest.raises(ValueError, match=message):
+        _config(tmp_path, **data)
+
+
+def test_held_out_calibration_recordings_are_outside_every_fold(tmp_path):
+    pytest.importorskip("tonic")
+    if not REAL.is_dir():
+        pytest.skip(f"{REAL} is absent")
+    config = _config(tmp_path, calibration="held_out")
+    sources = [StudyData(config.data, str(tmp_path), unit) for unit in config.data.fold_units]
+    held = sources[0]
+    assert held.calibration_split == "calibration" and held.size("calibration") == 6
+    in_study = {data._pooled(config.data)[p] for p in range(held.pooled_size)}
+    taken = {(True, i) for i in data._held_out(config.data)}
+    assert len(taken) == 6 and not taken & in_study  # never a training or test recording
+    assert all(s.key("calibration") == held.key("calibration") for s in sources)  # one for all
+    assert held.key("calibration") != held.key("train")
+    first = [held.recording("calibration", i)[1] for i in range(6)]
+    assert len(set(first)) > 1  # a mix of classes
+    too_many = _config(tmp_path, calibration="held_out", calibration_samples=977)
+    with pytest.raises(ValueError, match="needs 977 recordings of Train outside"):
+        data.check_available(too_many.data)
+
+
+def test_held_out_calibration_runs_once_for_every_fold(tmp_path):
+    pytest.importorskip("tonic")
+    if not REAL.is_dir():
+        pytest.skip(f"{REAL} is absent")
+    config = _config(tmp_path / "cache", calibration="held_out")
+    messages: list[str] = []
+    result = run_evaluation(config, log=messages.append)
+    budgeted = [c for c in result.cells if c.calibration is not None]
+    assert budgeted and all(c.calibration["target"] > 0 for c in budgeted)
+    calibrations = list((tmp_path / "cache").rglob("calibrations/*.json"))
+    assert len(calibrations) == len(budgeted)  # not one per fold
+    assert sum("6 held-out recordings" in m for m in messages) == 6  # every fold reads them
+    # each cell's frames are made once, over the 36 pooled recordings (2 chunks), for all folds
+    units = sum(len(c.seeds) if c.method == "control" else 1 for c in result.cells)
+    assert len(list((tmp_path / "cache").rglob("frames/*.pt"))) == units * 2
+
+
 def test_cross_validated_study_end_to_end(tmp_path):
     pytest.importorskip("tonic")
     if not REAL.is_dir():
@@ -145,7 +194,7 @@ def test_primary_family_against_control_and_peer_with_the_corrected_t(tmp_path):
             assert k.difference == pytest.approx(mean, abs=1e-12)
             assert k.standard_error == pytest.approx(
                 math.sqrt((1 / 6 + 1 / 2) * variance), abs=1e-12)
-            assert k.halves == ()
+            assert k.paired
             p_values.append(k.p_value)
     adjusted = sorted(k.p_holm for c in family for k in (c.comparison, c.peer_comparison))
     # Holm over the whole family of 4: the smallest p-value is multiplied by 4

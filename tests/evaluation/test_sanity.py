@@ -89,3 +89,26 @@ def test_tonic_peer_row_is_tonics_event_downsampling():
     assert out.num_events == len(expected) > 0
     for name, column in zip("xytp", out):
         assert np.array_equal(column.numpy(), expected[name].astype(column.numpy().dtype))
+
+
+def test_peers_join_each_primary_factor_at_its_budget_as_exploratory_rows():
+    from evdown_torch.evaluation.config import parse_config
+    from evdown_torch.evaluation.plan import plan
+
+    config = parse_config({"methods": {
+        "include": ["event_count"], "factors": [4], "budgets": [0.5],
+        "primary": ["event_count"], "primary_factors": [4, 8], "primary_budget": 1.0,
+        "peers": ["density", "poisson"], "sanity": False, "full_resolution": False},
+        "training": {"primary_seeds": 3, "control_seeds": 3, "seeds": [0, 1]}})
+    rows = [(p.cell.label, p.role, p.seeds) for p in plan(config)]
+    assert ("density x4 @ 1", "exploratory", (0, 1)) in rows
+    assert ("poisson x8 @ 1", "exploratory", (0, 1)) in rows
+    assert not any(label.startswith(("density", "poisson")) and "@ 0.5" in label
+                   for label, _, _ in rows)
+    for bad, message in ((["downsample"], "not a method with a budget"),
+                         (["nope"], "not a method with a budget")):
+        with pytest.raises(ValueError, match=message):
+            parse_config({"methods": {"primary": ["event_count"], "primary_factors": [4],
+                                      "peers": bad}})
+    with pytest.raises(ValueError, match="methods.peers needs methods.primary_factors"):
+        parse_config({"methods": {"peers": ["density"]}})

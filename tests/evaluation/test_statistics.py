@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from evdown_torch.evaluation.analysis import compare, halves, replicated, sanity_check
+from evdown_torch.evaluation.analysis import compare, sanity_check
 from evdown_torch.evaluation.statistics import (
     detectable_difference,
     dunnett_seeds,
@@ -102,7 +102,7 @@ def _cell(rng, seeds, recordings, accuracy_of_seed):
     return torch.rand(seeds, recordings, generator=rng, dtype=torch.float64) < rates
 
 
-def test_compare_primary_family_halves_and_replication():
+def test_compare_primary_family():
     rng = torch.Generator().manual_seed(5)
     control = _cell(rng, 18, 264, [0.75] * 18)
     better = _cell(rng, 10, 264, [0.88] * 10)
@@ -111,24 +111,42 @@ def test_compare_primary_family_halves_and_replication():
                                resamples=20_000, seed=0, confidence=0.95, alpha=0.05, margin=0.06)
     assert k_better.difference == pytest.approx(float(better.double().mean()
                                                       - control.double().mean()))
-    assert k_better.significant and replicated(k_better)
+    assert k_better.significant and not k_better.paired
     assert k_better.p_holm == pytest.approx(min(1.0, 2 * k_better.p_value)) or \
         k_better.p_holm >= k_better.p_value
-    assert len(k_better.halves) == 2 and all(h.difference > 0 for h in k_better.halves)
-    assert not k_same.significant and not replicated(k_same)
+    assert not k_same.significant
     assert k_same.equivalence_p < 0.05  # equal rates: equivalent within the design's 0.06
-    # exploratory comparisons carry no p-value and no halves
+    # exploratory comparisons carry no p-value
     (k,) = compare([(better, control)], primary=False, resamples=2000, seed=0, confidence=0.95,
                    alpha=0.05, margin=0.03)
-    assert k.p_value is None and k.significant is None and k.halves == ()
+    assert k.p_value is None and k.significant is None
+    with pytest.raises(ValueError, match="one flag per pair"):
+        compare([(better, control)], primary=False, resamples=10, seed=0, confidence=0.95,
+                alpha=0.05, margin=0.03, paired=[True, False])
 
 
-def test_halves_split_seeds_by_position():
-    x = torch.arange(10).unsqueeze(1)
-    a, b = halves(x)
-    assert a.flatten().tolist() == [0, 2, 4, 6, 8] and b.flatten().tolist() == [1, 3, 5, 7, 9]
-    with pytest.raises(ValueError, match="at least 2 seeds"):
-        halves(x[:1])
+def test_paired_seeds_share_one_draw_and_narrow_a_correlated_difference():
+    # seed s shifts both cells alike (its training draw, weights, order): strongly correlated
+    rng = torch.Generator().manual_seed(8)
+    per_seed = [0.55 + 0.04 * s for s in range(10)]
+    a = _cell(rng, 10, 400, [p + 0.03 for p in per_seed])
+    b = _cell(rng, 10, 400, per_seed)
+    means = hierarchical_means([a, a], resamples=300, seed=1, paired=True)
+    assert torch.equal(means[:, 0], means[:, 1])  # one draw of seeds and of recordings
+    assert not torch.equal(*hierarchical_means([a, a], resamples=300, seed=1).unbind(1))
+    # by hand: resampling seeds as pairs removes the seeds' shared spread from the difference
+    paired = hierarchical_means([a, b], resamples=4000, seed=2, paired=True)
+    apart = hierarchical_means([a, b], resamples=4000, seed=2)
+    spread_paired = float((paired[:, 0] - paired[:, 1]).std())
+    spread_apart = float((apart[:, 0] - apart[:, 1]).std())
+    seed_sd = float(torch.tensor(per_seed).std()) / math.sqrt(10)  # each cell's seed term
+    assert spread_apart == pytest.approx(math.hypot(seed_sd, seed_sd), rel=0.35)
+    assert spread_paired < 0.6 * spread_apart
+    with pytest.raises(ValueError, match="paired cells must have the same seeds"):
+        hierarchical_means([a, b[:9]], paired=True)
+    (k,) = compare([(a, b)], primary=True, resamples=4000, seed=0, confidence=0.95,
+                   alpha=0.05, margin=0.03, paired=[True])
+    assert k.paired and k.standard_error == pytest.approx(spread_paired, rel=0.1)
 
 
 def test_sanity_check_flags_a_superset_that_scores_lower():
