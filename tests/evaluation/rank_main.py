@@ -31,8 +31,8 @@ from evdown_torch.evaluation import config as config_module
 def _private_cache(rank: int) -> None:
     load = config_module.load_config
 
-    def private(path):
-        config = load(path)
+    def private(path, overrides=()):
+        config = load(path, overrides)
         cache = str(Path(config.output.cache) / f"rank-{rank}")
         return dataclasses.replace(config, output=dataclasses.replace(config.output, cache=cache))
 
