@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch import Events, PhotocurrentPooling, eager_kernels, max_output_events
+from evdown_torch import Events, PhotocurrentPooling, eager_kernels
 from evdown_torch.transforms.functional.photocurrent.events_mode import (
     PhotocurrentState,
     photocurrent_events,
@@ -23,8 +23,10 @@ from tests.helpers import (
     DVS_DTYPE,
     FLOAT_DTYPE,
     assert_identical,
+    assert_output_limit_on_both_paths,
     assert_sessions_on_both_paths,
     both_paths,
+    near_their_limit,
     photocurrent_events_reference,
     random_stream,
     rows,
@@ -86,12 +88,7 @@ def test_the_compiled_loop_runs_and_the_eager_kernel_does_not(monkeypatch, rng,
 @pytest.mark.parametrize("dtype", [np.int64, np.float32, np.float64])
 def test_timestamp_dtypes_near_their_limits(dtype, rng):
     arr = random_stream(rng, 800, SENSOR, t_max=50, sort=False)
-    if dtype == np.int64:
-        t = arr["t"] + (2**63 - 60)  # up to 2**63 - 11
-    else:
-        t = arr["t"].astype(dtype) * dtype(0.25) + dtype(1e6)
-    data = torch.tensor(np.stack([arr["x"], arr["y"], t, np.where(arr["p"], 1, -1)], 1)
-                        .astype(dtype))
+    data = near_their_limit(arr, dtype)
     transform = PhotocurrentPooling(SENSOR, factor=(3, 2), contrast=0.2, threshold=0.05)
     compiled, eager = both_paths(lambda: transform(data))
     assert_identical(compiled, eager)
@@ -162,20 +159,8 @@ def test_many_crossings_per_event_grow_the_output(rng, compiled_calls):
 def test_the_output_limit_raises_the_same_error_and_keeps_the_session(limit, rng):
     arr = random_stream(rng, 300, (8, 8, 2), t_max=50)
     transform = PhotocurrentPooling((8, 8, 2), factor=1, contrast=1.0, threshold=0.05)
-    messages = []
-    for path in ("compiled", "eager"):
-        with eager_kernels(path == "eager"):
-            session = transform.session()
-            session(arr[:10])
-            state = [column.clone() for column in session.state[:2]]
-            with max_output_events(limit), pytest.raises(ValueError) as error:
-                session(arr[10:])
-            messages.append(str(error.value))
-            assert_identical(list(session.state[:2]), state)
-            with max_output_events(6000):
-                assert len(session(arr[10:])) == 20 * 290
-    assert messages[0] == messages[1]
-    assert "more than the limit" in messages[0]
+    message = assert_output_limit_on_both_paths(transform, arr, limit, 20 * 290)
+    assert "more than the limit" in message
 
 
 def _hot_pixel(rng, n_on, sensor, n_rest, *, fall=False):

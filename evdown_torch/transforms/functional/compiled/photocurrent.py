@@ -38,6 +38,9 @@ from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.regions import (
     columns_of,
+    crossing_columns,
+    crossing_tensors,
+    grown_columns,
     outside_error,
     region_tables,
 )
@@ -156,10 +159,11 @@ def _photocurrent_loop(
     n = x.shape[0]
     capacity = out_source.shape[0]
     low_mark = 1 << (bits - DROP_BITS)
+    padded = period > height  # stacked recordings with rows between them
     for i in range(start, n):
         xi = x[i]
         yi = y[i]
-        if xi < 0 or xi >= width or yi < 0 or yi >= rows or yi % period >= height:
+        if xi < 0 or xi >= width or yi < 0 or yi >= rows or (padded and yi % period >= height):
             return _OUTSIDE, i, k, 0
         rx = column[xi]
         ry = row[yi]
@@ -254,12 +258,6 @@ def _intensities(contrast: float, per_region: int) -> tuple[np.ndarray, int, int
     return table, lo, highest, bits, scale
 
 
-def _outputs(capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Empty output columns ``(x, y, source, on)`` for ``capacity`` events."""
-    return (np.empty(capacity, np.int64), np.empty(capacity, np.int64),
-            np.empty(capacity, np.int64), np.empty(capacity, np.bool_))
-
-
 def photocurrent_step(
     events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int],
     contrast: float, threshold: float, state: PhotocurrentState,
@@ -296,7 +294,7 @@ def photocurrent_step(
     limit = output_limit()
     room = -1 if limit is None else limit
     capacity = 2 * n + 16 if limit is None else min(2 * n + 16, limit + 1)
-    out = _outputs(capacity)
+    out = crossing_columns(capacity)
     i, k, resume = 0, 0, False
     while True:
         status, i, k, needed = _photocurrent_loop(
@@ -311,13 +309,7 @@ def photocurrent_step(
             return None
         capacity = max(2 * capacity, needed) if limit is None else max(
             min(2 * capacity, limit), needed)
-        grown = _outputs(capacity)
-        for old, new in zip(out, grown, strict=True):
-            new[:k] = old[:k]
-        out, resume = grown, True
-    columns = tuple(torch.from_numpy(column[:k]) for column in out)
-    if k < capacity // 2:  # do not keep a mostly empty buffer alive
-        columns = tuple(column.clone() for column in columns)
-    out_x, out_y, source, on = columns
+        out, resume = grown_columns(out, k, capacity), True
+    out_x, out_y, source, on = crossing_tensors(out, k)
     output = Events(out_x, out_y, events.t.index_select(0, source), on)
     return output, PhotocurrentState(level, reference, events.t[-1].clone())
