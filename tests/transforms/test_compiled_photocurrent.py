@@ -3,6 +3,7 @@ float64 reference."""
 
 from __future__ import annotations
 
+import decimal
 import importlib
 import math
 
@@ -15,6 +16,7 @@ from evdown_torch.transforms.functional.photocurrent.events_mode import (
     PhotocurrentState,
     photocurrent_events,
 )
+from evdown_torch.transforms.functional.reference import SNAP
 from evdown_torch.transforms.functional.photocurrent.method import (
     photocurrent_events_init,
     photocurrent_events_step,
@@ -220,6 +222,64 @@ def test_an_event_near_a_snap_bound_is_left_to_the_eager_kernel(compiled_calls):
     compiled, eager = both_paths(lambda: transform(arr))
     assert_identical(compiled, eager)
     assert compiled_calls == [False]
+
+
+@pytest.mark.parametrize("delta", [-1.5e-9, -5e-10, 5e-10, 1.5e-9])
+@pytest.mark.parametrize("factor", [1, (2, 1)])
+def test_events_just_inside_and_just_past_a_level_bound(delta, factor, compiled_calls):
+    # theta = c / (1 + delta): a region's u reaches 1 + delta and -(1 + delta), within a few
+    # SNAP (1e-9) of the bounds 1 - SNAP and -1 + SNAP that move q; only delta = -1.5e-9
+    # stays inside them (q never moves). Every u lies 5e-10 or more from a snap bound, clear
+    # of the two paths' doubt (2e-10 here): the loop decides every call.
+    if factor == 1:  # u = (1 + delta) L at pixel 0: L = 1, 0, -1, 0
+        xs, ons, moves = [0, 0, 0, 0], [True, False, False, True], [(1, True), (2, False),
+                                                                     (3, False), (4, True)]
+    else:  # u = log((e^(c L0) + e^(c L1)) / 2) / theta: about 0.53, 1 + delta, 0.53, 0, ...
+        xs, ons = [0, 1, 1, 0, 0, 1], [True, True, False, False, False, False]
+        moves = [(2, True), (4, False), (6, False)]  # ..., -0.47, -(1 + delta)
+    arr = np.zeros(len(xs), dtype=DVS_DTYPE)
+    arr["x"], arr["t"], arr["p"] = xs, np.arange(1, len(xs) + 1), ons
+    transform = PhotocurrentPooling((2, 1, 2), factor=factor, contrast=0.5,
+                                    threshold=0.5 / (1 + delta))
+    out = _check(transform, arr, compiled_calls)
+    assert [(t, on) for _, _, t, on in rows(out)] == ([] if delta < -1e-9 else moves)
+
+
+def _exact_u(total: int, anchor: int, log_n: float, contrast: float, threshold: float,
+             bits: int) -> decimal.Decimal:
+    """``u`` of a region's sum ``total`` in fixed point (``2**bits``) against ``anchor``,
+    to 40 digits."""
+    d = decimal.Decimal
+    with decimal.localcontext(decimal.Context(prec=40)):
+        log_v = (d(total) / d(2) ** bits).ln()
+        return (d(contrast) * anchor - d(log_n) + log_v) / d(threshold)
+
+
+@pytest.mark.parametrize(("anchor", "q", "n_r", "contrast", "threshold"), [
+    (0, 0, 1, 0.5, 0.5), (3, 0, 16, 0.2, 0.3), (-40, -30, 12, 0.2, 0.3), (7, 3, 1156, 1.5, 2.0),
+    (2_000, 199_990, 16, 0.01, 1e-4), (-500, -166, 9, 0.2, 0.6), (900, 361, 4, 0.4, 1.0),
+])
+def test_stay_bounds_hold_u_inside_the_bounds_that_move_q(anchor, q, n_r, contrast,
+                                                          threshold):
+    # The sums strictly between low and high keep q for both paths: their exact u lies inside
+    # q +- (1 - SNAP) by the slack (both error bounds, in log units over theta), and the bounds
+    # give away little more than that (the sums just outside come within 1e-9 log units).
+    bits = COMPILED._intensities(contrast, n_r)[3]
+    slack = COMPILED._stay_slack(n_r, bits, threshold)
+    low, high = np.empty(1, np.int64), np.empty(1, np.int64)
+    COMPILED._stay_bounds(0, np.array([anchor]), np.array([q]), np.array([math.log(n_r)]),
+                          contrast, threshold, bits, slack, low, high)
+    lowest, highest = 1 << (bits - COMPILED.DROP_BITS), n_r << (bits + COMPILED.HEADROOM_BITS)
+    assert lowest <= low[0] + 1 < high[0] - 1 <= highest  # the region's sums can reach both
+
+    def u(total):
+        return _exact_u(int(total), anchor, math.log(n_r), contrast, threshold, bits)
+
+    inside = decimal.Decimal(slack / threshold)
+    tight = decimal.Decimal(slack / threshold + 1e-9 / threshold)
+    top, bottom = q + 1 - decimal.Decimal(SNAP), q - 1 + decimal.Decimal(SNAP)
+    assert u(high[0] - 1) < top - inside and u(high[0]) > top - tight
+    assert u(low[0] + 1) > bottom + inside and u(low[0]) < bottom + tight
 
 
 def test_the_doubt_test_against_hand_computed_values():

@@ -14,14 +14,23 @@ or better (``3e-14`` at ``n_r = 16``). Then ``u = (c * a
 - log(n_r) + log(S / 2**bits)) / theta`` goes through the snap of
 :func:`~..photocurrent.levels.snap` and the reference rule.
 
+Most events keep their region's reference index ``q``: the rule moves it only once ``u``
+reaches ``q + 1 - SNAP`` or ``q - 1 + SNAP``. So each region also keeps the two sums at
+those bounds, brought inside them by more than both paths' error bounds
+(:func:`_stay_bounds`, an ``exp`` each time the region's anchor or ``q`` changes), and an
+event whose sum stays strictly between them is done with two integer comparisons: no
+logarithm, no doubt test. Any other event takes ``u`` as above.
+
 The eager kernel (:mod:`..photocurrent.events_mode`) sums in other ways (its two-word sums
 hold each sum to ``1e-10 * theta``, :func:`~..photocurrent.sums.two_word_scale`), so the two
 ``u`` differ by a few of those units; they decide every event alike unless its ``u`` lies
 within their two error bounds of a snap bound (``k - SNAP`` or ``k + SNAP``). The loop checks
-every event against both bounds (as :func:`~..photocurrent.one_word.one_word_moves` checks its
-own): an event in doubt, after anchoring its region afresh, hands the whole call to the eager
-kernel, as does an output past :func:`~evdown_torch.checks.output_limit` (whose error the eager
-kernel raises). So both paths give the same events and the same state, bit for bit.
+every event that takes ``u`` against both bounds (as
+:func:`~..photocurrent.one_word.one_word_moves` checks its own; an event kept between the stay
+bounds needs none, both paths' ``u`` lying strictly between the snap bounds that would move
+``q``): an event in doubt, after anchoring its region afresh, hands the whole call to the
+eager kernel, as does an output past :func:`~evdown_torch.checks.output_limit` (whose error
+the eager kernel raises). So both paths give the same events and the same state, bit for bit.
 """
 
 from __future__ import annotations
@@ -135,18 +144,48 @@ def _u_and_doubt(
 
 
 @compiled_loop
+def _stay_bounds(
+    r: int, anchor: np.ndarray, reference: np.ndarray, log_pixels: np.ndarray,
+    contrast: float, threshold: float, bits: int, slack: float, low: np.ndarray,
+    high: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """The sums ``low[r] < S < high[r]`` of region ``r`` that keep its ``q``, beyond doubt.
+
+    ``q`` stays while ``q - 1 + SNAP < u < q + 1 - SNAP``; at such sums, taken ``slack``
+    (log units) inside those bounds, the exact ``u`` lies inside them by more than both
+    paths' error bounds, so both paths keep ``q`` and emit nothing.
+    """
+    q = reference[r]
+    ca = contrast * anchor[r]
+    log_n = log_pixels[r]
+    # A few ulps of every term of both paths' u and of these exponents (more than
+    # _u_and_doubt's margin allows for them).
+    terms = threshold * (abs(q) + 2.0) + abs(ca) + 2 * log_n + 100.0
+    spare = slack + 64 * EPS * terms
+    # u(S) = (c a - log(n_r) + log(S / 2**bits)) / theta: log(S / 2**bits) at q +- (1 - SNAP).
+    top = threshold * (q + 1 - SNAP) - ca + log_n - spare
+    bottom = threshold * (q - 1 + SNAP) - ca + log_n + spare
+    ceiling = 2.0**62  # above every sum
+    high[r] = int(min(math.floor(math.ldexp(math.exp(min(top, 64.0)), bits)), ceiling))
+    low[r] = int(min(math.ceil(math.ldexp(math.exp(min(bottom, 64.0)), bits)), ceiling))
+
+
+@compiled_loop
 def _photocurrent_loop(
     x: np.ndarray, y: np.ndarray, p: np.ndarray, column: np.ndarray, row: np.ndarray,
     width: int, rows: int, period: int, height: int, out_w: int, fx: int, fy: int,
     pixels: np.ndarray, log_pixels: np.ndarray, level: np.ndarray, reference: np.ndarray,
-    anchor: np.ndarray, total: np.ndarray, ready: np.ndarray, table: np.ndarray, lo: int,
-    highest: int, contrast: float, threshold: float, bits: int, scale: float, start: int,
-    resume: bool, k: int, room: int, out_x: np.ndarray, out_y: np.ndarray,
-    out_source: np.ndarray, out_on: np.ndarray,
+    anchor: np.ndarray, total: np.ndarray, ready: np.ndarray, low: np.ndarray,
+    high: np.ndarray, table: np.ndarray, lo: int, highest: int, contrast: float,
+    threshold: float, bits: int, scale: float, slack: float, start: int, resume: bool, k: int,
+    room: int, out_x: np.ndarray, out_y: np.ndarray, out_source: np.ndarray,
+    out_on: np.ndarray,
 ) -> tuple[int, int, int, int]:  # pragma: no cover - compiled
     """The reference rule after each time-sorted event ``start, start + 1, ...``.
 
     Writes each crossing's region ``(rx, ry)``, source event and polarity at ``k, k + 1, ...``.
+    An event whose region's sum stays between ``low`` and ``high`` (:func:`_stay_bounds`)
+    keeps the region's ``q``: no logarithm, no doubt test.
     ``resume``: event ``start`` has already moved its pixel and region sum (a call that
     stopped there for room). ``room``: most crossings in all (-1: no limit).
 
@@ -173,22 +212,21 @@ def _photocurrent_loop(
             before = level[pixel]
             after = before + (1 if p[i] else -1)
             level[pixel] = after
-            if not ready[r]:
+            a = anchor[r]
+            again = not ready[r] or after - a > highest
+            if not again:
+                s = total[r] + (_intensity(after - a, table, lo, contrast, scale)
+                                - _intensity(before - a, table, lo, contrast, scale))
+                total[r] = s
+                again = s < low_mark
+            if again:  # first touched, climbing past the headroom, or fallen below it
                 _anchor_region(r, level, width, out_w, fx, fy, rows, period, height, table,
                                lo, contrast, scale, anchor, total)
                 ready[r] = True
-            else:
-                a = anchor[r]
-                if after - a > highest:
-                    _anchor_region(r, level, width, out_w, fx, fy, rows, period, height, table,
-                                   lo, contrast, scale, anchor, total)
-                else:
-                    s = total[r] + (_intensity(after - a, table, lo, contrast, scale)
-                                    - _intensity(before - a, table, lo, contrast, scale))
-                    total[r] = s
-                    if s < low_mark:
-                        _anchor_region(r, level, width, out_w, fx, fy, rows, period, height,
-                                       table, lo, contrast, scale, anchor, total)
+                _stay_bounds(r, anchor, reference, log_pixels, contrast, threshold, bits,
+                             slack, low, high)
+            if low[r] < total[r] < high[r]:
+                continue  # q stays: no u needed
         u, doubt = _u_and_doubt(anchor[r], total[r], log_pixels[r], pixels[r], contrast,
                                 threshold, bits)
         if doubt:  # anchored afresh, the sum holds the most bits it can
@@ -196,6 +234,8 @@ def _photocurrent_loop(
                            contrast, scale, anchor, total)
             u, doubt = _u_and_doubt(anchor[r], total[r], log_pixels[r], pixels[r], contrast,
                                     threshold, bits)
+            _stay_bounds(r, anchor, reference, log_pixels, contrast, threshold, bits, slack,
+                         low, high)
             if doubt:
                 return _DOUBT, i, k, 0
         # The snap: floor(u), and whether u is on a level.
@@ -221,6 +261,8 @@ def _photocurrent_loop(
             out_on[k] = d > 0
             k += 1
         reference[r] = q_new
+        _stay_bounds(r, anchor, reference, log_pixels, contrast, threshold, bits, slack, low,
+                     high)
     return _DONE, n, k, 0
 
 
@@ -258,6 +300,22 @@ def _intensities(contrast: float, per_region: int) -> tuple[np.ndarray, int, int
     return table, lo, highest, bits, scale
 
 
+def _stay_slack(per_region: int, bits: int, threshold: float) -> float:
+    """Log units between a sum that keeps ``q`` (:func:`_stay_bounds`) and a bound's.
+
+    Twice both paths' error bounds on a region's sum, relative to it (as
+    :func:`_u_and_doubt`'s margin): the loop's at its smallest sum (``2**(bits - DROP_BITS)``,
+    below which a region is anchored again) and the eager kernel's. Infinite where the
+    smallest sum cannot hold the loop's rounding: no sum keeps ``q`` untested.
+    """
+    smallest = 1 << (bits - DROP_BITS)
+    if smallest <= 2 * per_region:
+        return math.inf
+    loop = 0.5 * per_region / (smallest - per_region) + 128 * EPS
+    eager = max(EAGER_TOLERANCE * threshold, 24 * EPS)
+    return 2 * 1.01 * (loop + eager)
+
+
 def photocurrent_step(
     events: Events, sensor_size: tuple[int, int, int], factor: tuple[int, int],
     contrast: float, threshold: float, state: PhotocurrentState,
@@ -290,6 +348,8 @@ def photocurrent_step(
     anchor = np.empty(regions, np.int64)
     total = np.empty(regions, np.int64)
     ready = np.zeros(regions, np.bool_)
+    low, high = np.empty(regions, np.int64), np.empty(regions, np.int64)
+    slack = _stay_slack(fx * fy, bits, threshold)
     x, y, p = columns_of(events.x, events.y, events.p)
     limit = output_limit()
     room = -1 if limit is None else limit
@@ -299,8 +359,9 @@ def photocurrent_step(
     while True:
         status, i, k, needed = _photocurrent_loop(
             x, y, p, column, row, width, rows, period, height, out_w, fx, fy, pixels,
-            log_pixels, levels, references, anchor, total, ready, table, lo, highest,
-            float(contrast), float(threshold), bits, scale, i, resume, k, room, *out)
+            log_pixels, levels, references, anchor, total, ready, low, high, table, lo,
+            highest, float(contrast), float(threshold), bits, scale, slack, i, resume, k, room,
+            *out)
         if status == _DONE:
             break
         if status == _OUTSIDE:
