@@ -16,11 +16,11 @@ from evdown_torch.transforms.functional.photocurrent.events_mode import (
     PhotocurrentState,
     photocurrent_events,
 )
-from evdown_torch.transforms.functional.reference import SNAP
 from evdown_torch.transforms.functional.photocurrent.method import (
     photocurrent_events_init,
     photocurrent_events_step,
 )
+from evdown_torch.transforms.functional.reference import SNAP
 from tests.helpers import (
     DVS_DTYPE,
     FLOAT_DTYPE,
