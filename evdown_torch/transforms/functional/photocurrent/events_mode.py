@@ -232,10 +232,10 @@ def photocurrent_sorted(
     pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
     ``transforms.functional.batch``). Returns ``(output, state)``.
 
-    On the CPU the compiled loop of :mod:`~evdown_torch.transforms.functional.compiled.photocurrent`
-    (the same events and state) decides the call, unless the eager kernels are forced
-    (:func:`~evdown_torch.transforms.functional.compiled.use_compiled`) or the loop leaves
-    the call to this kernel (an event too near a snap bound, an output past the limit).
+    On the CPU the compiled loop of ``transforms.functional.compiled.photocurrent`` (the same
+    events and state) decides the call, unless the eager kernels are forced
+    (:func:`~evdown_torch.eager_kernels`, ``EVDOWN_EAGER``) or the loop leaves the call to
+    this kernel (an event too near a snap bound, an output past the limit).
     """
     check_contrast_range(contrast, threshold)
     if state is None:
