@@ -63,6 +63,13 @@ def kernels(request) -> Iterator[str]:
 
 
 @pytest.fixture
+def eager() -> Iterator[None]:
+    """The eager kernels, forced for the test (one that watches their internal steps)."""
+    with eager_kernels():
+        yield
+
+
+@pytest.fixture
 def rng() -> np.random.Generator:
     """A fresh, seeded NumPy generator for each test."""
     return np.random.default_rng(12345)

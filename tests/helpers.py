@@ -25,6 +25,7 @@ from evdown_torch import (
     RateLimiter,
     TemporalFunnelling,
     eager_kernels,
+    max_output_events,
 )
 from evdown_torch.events import DVS_DTYPE, Events
 from evdown_torch.models import SpikingPooling
@@ -227,6 +228,37 @@ def assert_sessions_on_both_paths(transform, arr: np.ndarray, whole: np.ndarray,
                 parts.append(session(chunk))
         parts.append(session.flush())
         assert_identical(np.concatenate(parts), whole)
+
+
+def near_their_limit(arr: np.ndarray, dtype) -> torch.Tensor:
+    """``arr`` (``t`` below 60) as an ``(N, 4)`` tensor of ``dtype`` with timestamps near
+    that type's limits: int64 up to ``2**63 - 11``, floats ``t / 4 + 1e6``."""
+    if dtype == np.int64:
+        t = arr["t"] + (2**63 - 60)
+    else:
+        t = arr["t"].astype(dtype) * dtype(0.25) + dtype(1e6)
+    return torch.tensor(np.stack([arr["x"], arr["y"], t, np.where(arr["p"], 1, -1)], 1)
+                        .astype(dtype))
+
+
+def assert_output_limit_on_both_paths(transform, arr: np.ndarray, limit: int, total: int) -> str:
+    """On each path, a session over ``arr[:10]`` then ``arr[10:]`` (``total`` events) under
+    ``max_output_events(limit)`` raises the same error, keeps its state, and then gives the
+    ``total`` events under a larger limit: the error's message."""
+    messages = []
+    for path in ("compiled", "eager"):
+        with eager_kernels(path == "eager"):
+            session = transform.session()
+            session(arr[:10])
+            state = [column.clone() for column in session.state[:2]]
+            with max_output_events(limit), pytest.raises(ValueError) as error:
+                session(arr[10:])
+            messages.append(str(error.value))
+            assert_identical(list(session.state[:2]), state)
+            with max_output_events(total + 200):
+                assert len(session(arr[10:])) == total
+    assert messages[0] == messages[1]
+    return messages[0]
 
 
 # --- the DVS reference rule, one level at a time --------------------------------------------

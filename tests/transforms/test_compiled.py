@@ -155,7 +155,7 @@ print(json.dumps(out))
 """
 
 #: The methods with a compiled loop.
-COMPILED_METHODS = ["downsample", "funnelling", "event_count"]
+COMPILED_METHODS = ["downsample", "funnelling", "event_count", "photocurrent"]
 
 
 @pytest.mark.slow

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch import EventCount, Events, eager_kernels, max_output_events
+from evdown_torch import EventCount, Events, eager_kernels
 from evdown_torch.transforms.functional.event_count import (
     EventCountState,
     event_count,
@@ -19,9 +19,11 @@ from tests.helpers import (
     DVS_DTYPE,
     FLOAT_DTYPE,
     assert_identical,
+    assert_output_limit_on_both_paths,
     assert_sessions_on_both_paths,
     both_paths,
     event_count_reference,
+    near_their_limit,
     random_stream,
     rows,
     spy,
@@ -61,12 +63,7 @@ def test_the_compiled_loop_runs_and_the_eager_kernel_does_not(monkeypatch, rng):
 @pytest.mark.parametrize("dtype", [np.int64, np.float32, np.float64])
 def test_timestamp_dtypes_near_their_limits(dtype, rng):
     arr = random_stream(rng, 800, SENSOR, t_max=50, sort=False)
-    if dtype == np.int64:
-        t = arr["t"] + (2**63 - 60)  # up to 2**63 - 11
-    else:
-        t = arr["t"].astype(dtype) * dtype(0.25) + dtype(1e6)
-    data = torch.tensor(np.stack([arr["x"], arr["y"], t, np.where(arr["p"], 1, -1)], 1)
-                        .astype(dtype))
+    data = near_their_limit(arr, dtype)
     transform = EventCount(SENSOR, factor=(3, 2), threshold=0.25)
     compiled, eager = both_paths(lambda: transform(data))
     assert_identical(compiled, eager)
@@ -133,20 +130,8 @@ def test_many_crossings_per_event_grow_the_output(rng):
 def test_the_output_limit_raises_the_same_error_and_keeps_the_session(limit, rng):
     arr = random_stream(rng, 300, (8, 8, 2), t_max=50)
     transform = EventCount((8, 8, 2), factor=1, threshold=0.05)  # 20 crossings per event
-    messages = []
-    for path in ("compiled", "eager"):
-        with eager_kernels(path == "eager"):
-            session = transform.session()
-            session(arr[:10])
-            state = [column.clone() for column in session.state[:2]]
-            with max_output_events(limit), pytest.raises(ValueError) as error:
-                session(arr[10:])
-            messages.append(str(error.value))
-            assert_identical(list(session.state[:2]), state)
-            with max_output_events(6000):
-                assert len(session(arr[10:])) == 20 * 290
-    assert messages[0] == messages[1]
-    assert "at least 5,800 events, more than the limit" in messages[0]
+    message = assert_output_limit_on_both_paths(transform, arr, limit, 20 * 290)
+    assert "at least 5,800 events, more than the limit" in message
 
 
 def test_an_event_outside_the_sensor_is_an_error_not_a_crash():

@@ -101,6 +101,7 @@ def _spy_pieces(kernel, monkeypatch) -> list:
     return held
 
 
+@pytest.mark.usefixtures("eager")  # its internal steps
 def test_a_climbing_region_is_decided_in_its_piece(rng, monkeypatch):
     # 600 ON at pixel (0, 0) (c = 0.25: 150 log units) among random events elsewhere: the
     # one-word sums decide every other region, and the two-word sums the hot one in the same
@@ -122,6 +123,7 @@ def test_a_climbing_region_is_decided_in_its_piece(rng, monkeypatch):
     assert sorted(rows(out)) == sorted(expected)
 
 
+@pytest.mark.usefixtures("eager")  # its internal steps
 @pytest.mark.parametrize("dense_values", [0, None])
 def test_a_falling_region_is_held_back_alone(dense_values, rng, monkeypatch):
     # 600 ON then 600 OFF at pixel (0, 0) (c = 0.25): after the climb, the region falls 150
@@ -469,6 +471,7 @@ def test_events_mode_matches_reference_on_wider_sensors(sensor, factor, threshol
     assert rows(pool(arr)) == expected
 
 
+@pytest.mark.usefixtures("eager")  # its internal steps
 def test_levels_spanning_more_than_the_table(monkeypatch):
     # 70,000 ON at one pixel of a 2x1 region (c * L reaches 7): a piece's levels span more
     # than TABLE_SIZE, so the intensities are computed per event instead of looked up.
@@ -488,6 +491,7 @@ def test_levels_spanning_more_than_the_table(monkeypatch):
     assert out == expected
 
 
+@pytest.mark.usefixtures("eager")  # its internal steps
 def test_region_far_below_its_anchor_is_reanchored(monkeypatch, rng):
     # Every pixel of a 2x2 region falls 130 levels (c = 0.5: a photocurrent e^-65 of its
     # anchor's) within one piece: the fixed-point sums lose their precision there, so the

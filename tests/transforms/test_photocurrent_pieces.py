@@ -21,8 +21,9 @@ from tests.helpers import DVS_DTYPE, photocurrent_events_reference, random_strea
 
 
 @pytest.fixture(autouse=True)
-def one_word_for_every_piece(monkeypatch):
-    """Short test streams take the one-word sums too (the kernel keeps them to long pieces)."""
+def one_word_for_every_piece(monkeypatch, eager):
+    """Short test streams take the one-word sums too (the kernel keeps them to long pieces);
+    the eager kernel runs (the compiled loop has no pieces: test_compiled_photocurrent.py)."""
     monkeypatch.setattr(kernel, "ONE_WORD_MIN_EVENTS", 2)
 
 

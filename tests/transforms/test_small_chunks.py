@@ -52,12 +52,3 @@ def test_a_one_event_chunk_builds_no_index_of_every_region(monkeypatch, rng):
     monkeypatch.undo()
     assert sizes and max(sizes) < 64 * 64  # per-event work only, after the first chunk
     assert np.array_equal(np.concatenate(warm + rest + [session.flush()]), down(events))
-
-
-@pytest.fixture
-def eager():
-    """The eager kernels, forced for the test."""
-    from evdown_torch import eager_kernels
-
-    with eager_kernels():
-        yield

@@ -21,6 +21,9 @@ from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.regions import (
     columns_of,
+    crossing_columns,
+    crossing_tensors,
+    grown_columns,
     outside_error,
     power_of_two_shifts,
     region_tables,
@@ -148,7 +151,7 @@ def _run(
     level_sum, reference = old_sum.clone(), old_reference.clone()
     x, y, p = columns_of(events.x, events.y, events.p)
     sums, levels = level_sum.numpy(), reference.numpy()
-    out = _outputs(capacity)
+    out = crossing_columns(capacity)
     i, k = 0, 0
     while True:
         i, k = _event_count_loop(x, y, p, column, row, shift_x, shift_y, out_w, ends, block,
@@ -163,28 +166,9 @@ def _run(
         if i == n:
             break
         capacity = 2 * capacity if room is None else min(2 * capacity, room + most)
-        out = _grown(out, k, capacity)
-    columns = tuple(torch.from_numpy(column[:k]) for column in out)
-    if k < capacity // 2:  # do not keep a mostly empty buffer alive
-        columns = tuple(column.clone() for column in columns)
-    out_x, out_y, source, on = columns
+        out = grown_columns(out, k, capacity)
+    out_x, out_y, source, on = crossing_tensors(out, k)
     return out_x, out_y, source, on, (level_sum, reference)
-
-
-def _outputs(capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Empty output columns ``(x, y, source, on)`` for ``capacity`` events."""
-    return (np.empty(capacity, np.int64), np.empty(capacity, np.int64),
-            np.empty(capacity, np.int64), np.empty(capacity, np.bool_))
-
-
-def _grown(
-    out: tuple[np.ndarray, ...], k: int, capacity: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``out``'s first ``k`` events in new columns of ``capacity`` events."""
-    grown = _outputs(capacity)
-    for old, new in zip(out, grown):
-        new[:k] = old[:k]
-    return grown
 
 
 def event_count_step(

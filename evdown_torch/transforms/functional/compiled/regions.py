@@ -1,4 +1,7 @@
-"""What the compiled loops share: region lookup tables and the check of an event's pixel.
+"""What the compiled loops share: region tables, the pixel check, the crossings' columns.
+
+The loops that emit level crossings (EventCount's, PhotocurrentPooling's) write them into
+:func:`crossing_columns`, grown by :func:`grown_columns`, returned by :func:`crossing_tensors`.
 
 A loop finds an event's region by two table lookups (``column[x]``, ``row[y]``) instead of
 two integer divisions per event, and checks the pixel against the tables' extent, so a
@@ -10,9 +13,11 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+import torch
 from torch import Tensor
 
-__all__ = ["columns_of", "outside_error", "power_of_two_shifts", "region_tables"]
+__all__ = ["columns_of", "crossing_columns", "crossing_tensors", "grown_columns", "outside_error",
+           "power_of_two_shifts", "region_tables"]
 
 
 @functools.lru_cache(maxsize=64)
@@ -59,3 +64,33 @@ def outside_error(
         f"event {index} at (x={int(x[index])}, y={int(y[index])}) lies outside the sensor "
         f"of {len(column)} x {len(row)} pixels"
     )
+
+
+def crossing_columns(capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Empty output columns ``(x, y, source event, on)`` for ``capacity`` crossings."""
+    return (np.empty(capacity, np.int64), np.empty(capacity, np.int64),
+            np.empty(capacity, np.int64), np.empty(capacity, np.bool_))
+
+
+def grown_columns(
+    out: tuple[np.ndarray, ...], k: int, capacity: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``out``'s first ``k`` crossings in new columns of ``capacity`` crossings."""
+    grown = crossing_columns(capacity)
+    for old, new in zip(out, grown, strict=True):
+        new[:k] = old[:k]
+    return grown
+
+
+def crossing_tensors(
+    out: tuple[np.ndarray, ...], k: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The first ``k`` crossings of ``out`` as tensors ``(x, y, source event, on)``.
+
+    Views of the columns, or copies where most of them is empty (no mostly empty buffer is
+    kept alive).
+    """
+    x, y, source, on = (torch.from_numpy(column[:k]) for column in out)
+    if k < out[0].shape[0] // 2:
+        return x.clone(), y.clone(), source.clone(), on.clone()
+    return x, y, source, on

@@ -56,6 +56,7 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import check_state_memory, output_size
 from evdown_torch.events import Events, polarity_sign, sort_by_time
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.photocurrent.levels import (
     check_contrast_range,
     check_level_range,
@@ -230,6 +231,11 @@ def photocurrent_sorted(
     ``recordings``: ``B``, for a batch of recordings stacked vertically (recording ``b``'s
     pixel ``(x, y)`` given as ``(x, y + b * Ho * fy)``, see
     ``transforms.functional.batch``). Returns ``(output, state)``.
+
+    On the CPU the compiled loop of ``transforms.functional.compiled.photocurrent`` (the same
+    events and state) decides the call, unless the eager kernels are forced
+    (:func:`~evdown_torch.eager_kernels`, ``EVDOWN_EAGER``) or the loop leaves the call to
+    this kernel (an event too near a snap bound, an output past the limit).
     """
     check_contrast_range(contrast, threshold)
     if state is None:
@@ -246,6 +252,13 @@ def photocurrent_sorted(
         level_bound = int(state.level.abs().max())
     level_bound += n
     check_level_range(level_bound, contrast, threshold)
+    if use_compiled(events.t):  # the compiled loop, unless it leaves the call to this kernel
+        from evdown_torch.transforms.functional.compiled import photocurrent as compiled
+
+        result = compiled.photocurrent_step(events, sensor_size, factor, contrast, threshold,
+                                            state)
+        if result is not None:
+            return result
     outputs = []
     # Pieces of about 16 events per pixel: re-anchoring then costs little (at most the
     # sensor's pixels per piece) and a small sensor's pieces stay in the CPU's caches.
