@@ -24,7 +24,7 @@ from torch.utils.data import DataLoader, TensorDataset
 from evdown_torch import Downsample
 from evdown_torch.data.sources import NMNISTSource
 from evdown_torch.evaluation.classifier import count_scale
-from evdown_torch.evaluation.config import load_config
+from evdown_torch.evaluation.config import EvaluationConfig, load_config
 from evdown_torch.evaluation.data import _indices  # the study's own draw of Train
 from evdown_torch.events import to_events
 from evdown_torch.frames import to_frames
@@ -35,7 +35,7 @@ from evdown_torch.models.training import predict_classifier, train_classifier
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "nmnist.toml"
 
 
-def held_out(config, count: int, seed: int) -> list[int]:
+def held_out(config: EvaluationConfig, count: int, seed: int) -> list[int]:
     """``count`` indices of the folder's Train that the study does not use."""
     used = set(_indices(config.data, True))
     source = NMNISTSource(config.data.root, split="train")
@@ -44,7 +44,8 @@ def held_out(config, count: int, seed: int) -> list[int]:
     return [rest[i] for i in order[:count].tolist()]
 
 
-def frames(source: NMNISTSource, indices: list[int], factor: int, bins: int):
+def frames(source: NMNISTSource, indices: list[int], factor: int, bins: int
+           ) -> tuple[torch.Tensor, torch.Tensor]:
     """``[n, bins, 2, H, W]`` log counts of Downsample at ``factor``, and the labels."""
     transform = Downsample(NMNIST_SENSOR, factor) if factor > 1 else None
     out_size = transform.output_sensor_size if transform is not None else NMNIST_SENSOR
@@ -98,7 +99,8 @@ def main() -> None:
                         TensorDataset(x[test], y[test]), batch_size=16))
                     accuracy = float((predicted == labels).double().mean())
                     print(f"x{factor} bins={bins} epochs={epochs} rate={rate:g} "
-                          f"batch={args.batch}: accuracy {accuracy:.3f} ({seconds:.1f} s training)", flush=True)
+                          f"batch={args.batch}: accuracy {accuracy:.3f} "
+                          f"({seconds:.1f} s training)", flush=True)
 
 
 if __name__ == "__main__":
