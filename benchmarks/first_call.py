@@ -24,14 +24,20 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 STEPS = ["import numba", "EventCount", "Downsample", "EventFunnelling", "TemporalFunnelling",
-         "floor"]
+         "LIFPooling", "floor"]
 
 
 def one_process() -> dict[str, float]:
     """The first calls of this process, in seconds (run in a fresh process)."""
     import numpy as np
 
-    from evdown_torch import Downsample, EventCount, EventFunnelling, TemporalFunnelling
+    from evdown_torch import (
+        Downsample,
+        EventCount,
+        EventFunnelling,
+        LIFPooling,
+        TemporalFunnelling,
+    )
     from evdown_torch.bench.floor import RegionFloor
     from evdown_torch.events import DVS_DTYPE
     from evdown_torch.transforms.functional.compiled import numba_available
@@ -48,6 +54,8 @@ def one_process() -> dict[str, float]:
              "Downsample": Downsample((16, 16, 2), 4),
              "EventFunnelling": EventFunnelling((16, 16, 2), 4),
              "TemporalFunnelling": TemporalFunnelling(dt=5),
+             # steps of 2 us: regions with several cells, so the compiled rounds run
+             "LIFPooling": LIFPooling((16, 16, 2), 4, dt=2, tau=10.0),
              "floor": RegionFloor((16, 16, 2), 4).session()}
     for name, call in calls.items():
         start = time.perf_counter()
