@@ -4,7 +4,8 @@ The eager kernel (:func:`~evdown_torch.transforms.functional.lif.rounds.membrane
 updates the ``r``-th cell of every region at once, a fixed few tensor operations per round;
 this loop runs the same rounds, lane by lane, with the same float32 operations in the same
 order (a product, a sum, a difference: each rounded once, as torch rounds them), reading the
-same decays ``beta ** g`` (computed once by torch for every cell). A round in which a neuron
+same decays ``beta ** g`` (computed once for every cell by
+:mod:`~evdown_torch.transforms.functional.lif.powers`). A round in which a neuron
 goes on firing through more than one empty step (reset "subtract") is left to the eager round,
 whose firing chain (:meth:`~evdown_torch.transforms.functional.lif.chains.Leak.fire_through`)
 runs in torch; the loop then continues after it. Both paths give the same membranes, bit for

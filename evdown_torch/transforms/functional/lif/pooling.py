@@ -43,8 +43,10 @@ with it, computing every gap exactly as one call does.
 
 Exactness. The update at a cell is snntorch's float32 arithmetic, in its order, so runs of
 consecutive active steps, and gaps of one step, are bit-identical to the module. Over a longer
-gap the decay ``beta ** g`` is one float32 power where stepping rounds ``g`` products
-(identical when ``beta`` is 0, 1 or a power of two), and a chain longer than
+gap the decay ``beta ** g`` is one float32 power (the exact power rounded once, whatever
+the cell's place among the call's cells: :mod:`~evdown_torch.transforms.functional.lif.powers`)
+where stepping rounds ``g`` products (identical when ``beta`` is 0, 1 or a power of two), and
+a chain longer than
 :data:`~evdown_torch.transforms.functional.lif.chains.EXACT_CHAIN_STEPS` is one float64
 evaluation rounded once; a spike can differ only where
 a membrane lies within float32 rounding of the threshold.

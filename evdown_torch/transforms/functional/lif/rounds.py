@@ -55,7 +55,6 @@ def membranes_by_rounds(
     device = current.device
     f32 = torch.float32
     n_cells, n_regions = current.shape[0], region_first.shape[0]
-    beta32 = leak.beta32
     count_sorted, region_of_lane = stable_sort_small(rounds - cells_per_region, rounds + 1)
     lane_of_region = torch.empty_like(region_of_lane)
     lane_of_region.index_copy_(0, region_of_lane, torch.arange(n_regions, device=device))
@@ -75,10 +74,9 @@ def membranes_by_rounds(
     current_in_rounds = torch.empty_like(current).index_copy_(0, slot, current)
     # A membrane at or below threshold only decays through a gap: beta ** g, rounded once
     # (exactly snntorch's product for g <= 1); after one step of a firing chain, beta ** (g - 1).
-    gap32 = gap_in_rounds.to(f32)
-    decay_in_rounds = torch.pow(beta32, gap32)
-    decay_after_one = torch.pow(beta32, gap32.sub_(1).clamp_(min=0))
-    del gap32
+    # Each a function of g alone, not of the cell's place among the call's cells (lif/powers).
+    decay_in_rounds = leak.powers.float32(gap_in_rounds)
+    decay_after_one = leak.powers.float32((gap_in_rounds - 1).clamp_(min=0))
     silent_in_rounds = gap_in_rounds > 0
     chain_in_rounds = torch.zeros(n_cells, 2, dtype=torch.int64, device=device)
 
