@@ -24,7 +24,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 STEPS = ["import numba", "EventCount", "Downsample", "EventFunnelling", "TemporalFunnelling",
-         "PhotocurrentPooling", "floor"]
+         "PhotocurrentPooling", "LIFPooling", "floor"]
 
 
 def one_process() -> dict[str, float]:
@@ -35,6 +35,7 @@ def one_process() -> dict[str, float]:
         Downsample,
         EventCount,
         EventFunnelling,
+        LIFPooling,
         PhotocurrentPooling,
         TemporalFunnelling,
     )
@@ -55,6 +56,8 @@ def one_process() -> dict[str, float]:
              "EventFunnelling": EventFunnelling((16, 16, 2), 4),
              "TemporalFunnelling": TemporalFunnelling(dt=5),
              "PhotocurrentPooling": PhotocurrentPooling((16, 16, 2), 4),
+             # steps of 2 us: regions with several cells, so the compiled rounds run
+             "LIFPooling": LIFPooling((16, 16, 2), 4, dt=2, tau=10.0),
              "floor": RegionFloor((16, 16, 2), 4).session()}
     for name, call in calls.items():
         start = time.perf_counter()

@@ -85,9 +85,10 @@ def nmnist():
 
 
 @pytest.fixture
-def lif_closed_form_answers(monkeypatch) -> list[bool]:
+def lif_closed_form_answers(monkeypatch) -> Iterator[list[bool]]:
     """The closed form tried on every call (not only those of ``MIN_ROUNDS`` rounds or more);
-    the list records, per call, whether it answered (``False``: left to the rounds)."""
+    the list records, per call, whether it answered (``False``: left to the rounds). The test
+    runs on the eager path, whose choice the closed form is (the compiled rounds cost less)."""
     calls: list[bool] = []
 
     def recording(*args, **kwargs):
@@ -97,7 +98,8 @@ def lif_closed_form_answers(monkeypatch) -> list[bool]:
 
     monkeypatch.setattr(lif_kernel, "MIN_ROUNDS", 1)
     monkeypatch.setattr(lif_kernel, "certain_spikes", recording)
-    return calls
+    with eager_kernels():
+        yield calls
 
 
 @pytest.fixture(autouse=True)

@@ -212,6 +212,18 @@ def assert_identical(a, b) -> None:
     assert a.tobytes() == b.tobytes()
 
 
+def near_their_limits(arr: np.ndarray, dtype, t_max: int) -> torch.Tensor:
+    """``arr`` (times below ``t_max``) as an ``(N, 4)`` tensor ``[x, y, t, p = +-1]`` of
+    ``dtype``: int64 times moved up to just below ``2**63`` (from ``2**63 - t_max - 10``),
+    float times quartered and moved to ``1e6`` (a few units in the last place of float32)."""
+    if dtype == np.int64:
+        t = arr["t"] + (2**63 - t_max - 10)
+    else:
+        t = arr["t"].astype(dtype) * dtype(0.25) + dtype(1e6)
+    return torch.tensor(np.stack([arr["x"], arr["y"], t, np.where(arr["p"], 1, -1)], 1)
+                        .astype(dtype))
+
+
 #: Cuts of a 1,500-event stream into empty chunks, one-event chunks and long ones.
 ODD_CUTS = [0, 0, 1, 2, 2, 3, 40, 41, 700, 1100, 1101, 1499]
 
@@ -228,17 +240,6 @@ def assert_sessions_on_both_paths(transform, arr: np.ndarray, whole: np.ndarray,
                 parts.append(session(chunk))
         parts.append(session.flush())
         assert_identical(np.concatenate(parts), whole)
-
-
-def near_their_limit(arr: np.ndarray, dtype) -> torch.Tensor:
-    """``arr`` (``t`` below 60) as an ``(N, 4)`` tensor of ``dtype`` with timestamps near
-    that type's limits: int64 up to ``2**63 - 11``, floats ``t / 4 + 1e6``."""
-    if dtype == np.int64:
-        t = arr["t"] + (2**63 - 60)
-    else:
-        t = arr["t"].astype(dtype) * dtype(0.25) + dtype(1e6)
-    return torch.tensor(np.stack([arr["x"], arr["y"], t, np.where(arr["p"], 1, -1)], 1)
-                        .astype(dtype))
 
 
 def assert_output_limit_on_both_paths(transform, arr: np.ndarray, limit: int, total: int) -> str:
@@ -259,6 +260,17 @@ def assert_output_limit_on_both_paths(transform, arr: np.ndarray, limit: int, to
                 assert len(session(arr[10:])) == total
     assert messages[0] == messages[1]
     return messages[0]
+def assert_batches_on_both_paths(transform, rng, sensor, t_max: int, check) -> None:
+    """``transform.batch`` of sorted recordings and of unsorted ones (empty and one-event
+    recordings among them) is the same on both paths, and ``check(recording, output)`` holds
+    for each recording."""
+    recordings = [random_stream(rng, n, sensor, t_max=t_max) for n in (50, 0, 300, 1, 120)]
+    unsorted = [random_stream(rng, n, sensor, t_max=t_max, sort=False) for n in (80, 0, 200)]
+    for batch in (recordings, unsorted):
+        compiled, eager = both_paths(lambda batch=batch: transform.batch(batch))
+        assert_identical(compiled, eager)
+        for recording, out in zip(batch, compiled, strict=True):
+            check(recording, out)
 
 
 # --- the DVS reference rule, one level at a time --------------------------------------------

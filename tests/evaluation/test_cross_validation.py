@@ -10,9 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from evdown_torch.evaluation import run_evaluation, write_report
+from evdown_torch.evaluation import data, run_evaluation, write_report
 from evdown_torch.evaluation.config import load_config, parse_config
-from evdown_torch.evaluation import data
 from evdown_torch.evaluation.data import StudyData, fold_assignment
 from tests.conftest import SHARED_DATA
 

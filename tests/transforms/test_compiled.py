@@ -148,14 +148,17 @@ from tests.helpers import random_stream
 
 arr = random_stream(np.random.default_rng(7), 2000, (12, 9, 2), t_max=400)
 out = {"path": evdown_torch.kernel_path()}
-for name in sys.argv[1:]:
-    result = make_method(name, (12, 9, 2), (3, 2))(arr)
+settings = json.loads(sys.argv[1])
+for name in sys.argv[2:]:
+    result = make_method(name, (12, 9, 2), (3, 2), **settings.get(name, {}))(arr)
     out[name] = [list(map(int, row)) for row in result.tolist()]
 print(json.dumps(out))
 """
 
-#: The methods with a compiled loop.
-COMPILED_METHODS = ["downsample", "funnelling", "event_count", "photocurrent"]
+#: The methods with a compiled loop, and settings that make each run it (LIF pooling: steps
+#: of 10 us, so that regions have many cells).
+COMPILED_METHODS = ["downsample", "funnelling", "event_count", "photocurrent", "lif"]
+COLD_SETTINGS = {"lif": {"dt": 10, "tau": 40.0}}
 
 
 @pytest.mark.slow
@@ -165,14 +168,16 @@ def test_a_fresh_process_with_a_cold_cache_gives_the_same_events(with_numba, tmp
     env.pop(EAGER_VARIABLE, None)
     runs = []
     for _ in range(2):  # cold, then from the cache the first run wrote
-        done = subprocess.run([sys.executable, "-c", COLD_SCRIPT, *COMPILED_METHODS],
+        done = subprocess.run([sys.executable, "-c", COLD_SCRIPT, json.dumps(COLD_SETTINGS),
+                               *COMPILED_METHODS],
                               capture_output=True, text=True, cwd=ROOT, env=env, check=True)
         runs.append(json.loads(done.stdout))
     assert list((tmp_path / "cache").rglob("*.nbi"))  # the loops were cached there
     arr = random_stream(np.random.default_rng(7), 2000, (12, 9, 2), t_max=400)
     with eager_kernels():
         eager = {name: [list(map(int, row)) for row in
-                        make_method(name, (12, 9, 2), (3, 2))(arr).tolist()]
+                        make_method(name, (12, 9, 2), (3, 2),
+                                    **COLD_SETTINGS.get(name, {}))(arr).tolist()]
                  for name in COMPILED_METHODS}
     for run in runs:
         assert run.pop("path") == "compiled"

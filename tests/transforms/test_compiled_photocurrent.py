@@ -28,7 +28,7 @@ from tests.helpers import (
     assert_output_limit_on_both_paths,
     assert_sessions_on_both_paths,
     both_paths,
-    near_their_limit,
+    near_their_limits,
     photocurrent_events_reference,
     random_stream,
     rows,
@@ -90,7 +90,7 @@ def test_the_compiled_loop_runs_and_the_eager_kernel_does_not(monkeypatch, rng,
 @pytest.mark.parametrize("dtype", [np.int64, np.float32, np.float64])
 def test_timestamp_dtypes_near_their_limits(dtype, rng):
     arr = random_stream(rng, 800, SENSOR, t_max=50, sort=False)
-    data = near_their_limit(arr, dtype)
+    data = near_their_limits(arr, dtype, 50)
     transform = PhotocurrentPooling(SENSOR, factor=(3, 2), contrast=0.2, threshold=0.05)
     compiled, eager = both_paths(lambda: transform(data))
     assert_identical(compiled, eager)

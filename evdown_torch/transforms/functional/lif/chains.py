@@ -14,6 +14,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from evdown_torch.transforms.functional.lif.powers import powers_of
 from evdown_torch.transforms.functional.lif.steps import MAX_STEPS
 
 __all__ = ["EXACT_CHAIN_STEPS", "CellSpikes", "Leak"]
@@ -47,6 +48,8 @@ class Leak:
     """A neuron without input, for one ``(beta, threshold, reset)``: decay and firing chains.
 
     Membranes are float32 as in snntorch; the closed forms run in float64 on exact copies.
+    Every power ``beta ** j`` is :attr:`powers`' (a function of ``j`` alone, not of where
+    ``j`` lies: :mod:`~evdown_torch.transforms.functional.lif.powers`).
     """
 
     def __init__(self, beta: Tensor, threshold: Tensor, reset: str) -> None:
@@ -55,19 +58,23 @@ class Leak:
         b = self.beta
         self.log_beta = math.log(b) if 0.0 < b < 1.0 else 0.0
         self.offset = self.threshold / (1.0 - b) if b < 1.0 else math.inf  # A, module docstring
+        self.powers = powers_of(b, beta.device)
 
     def decay(self, u: Tensor, steps: Tensor) -> Tensor:
-        """``u`` after ``steps`` steps of pure decay: ``u * beta ** steps`` (float32 power)."""
-        return u * torch.pow(self.beta32, steps.to(u.dtype))
+        """``u`` after int64 ``steps`` steps of pure decay: ``u * beta ** steps`` (float32)."""
+        return u * self.powers.float32(steps)
 
     def chain(self, u: Tensor, j: Tensor) -> Tensor:
-        """Membrane ``j`` steps after ``u`` (float64), firing (and resetting) at every one."""
+        """Membrane ``j`` steps after ``u``, firing (and resetting) at every one.
+
+        Float64 ``u`` and ``j`` (whole numbers, at least 0).
+        """
         b, theta = self.beta, self.threshold
         if self.reset == "none":
-            return u * torch.pow(b, j) if b < 1.0 else u
+            return u * self.powers.float64(j) if b < 1.0 else u
         if b == 1.0:
             return u - j * theta
-        return torch.pow(b, j) * (u + self.offset) - self.offset  # b = 0: -theta for j >= 1
+        return self.powers.float64(j) * (u + self.offset) - self.offset  # b = 0: -theta, j >= 1
 
     def run(self, u: Tensor) -> Tensor:
         """Number of ``j >= 1`` at which the chain from ``u > threshold`` stays above it.
@@ -130,7 +137,7 @@ class Leak:
             alive = alive & (gap > j + 1)
         steps = torch.stack(took_step).sum(0)
         count = torch.stack(fired).sum(0)
-        w = v * torch.pow(self.beta32, (gap - steps).to(v.dtype))  # ended chains only decay
+        w = self.decay(v, gap - steps)  # ended chains only decay
         still = v > self.threshold32  # above threshold only where the gap ended the chain
         if bool(alive.any()):  # chains longer than EXACT_CHAIN_STEPS: closed form
             lanes = alive.nonzero(as_tuple=True)
@@ -138,7 +145,7 @@ class Leak:
             v64 = v[lanes].to(torch.float64)
             run = self.run(v64)
             chained = torch.minimum(left, run + 1.0)  # steps of the firing chain, then decay
-            w[lanes] = (torch.pow(self.beta, left - chained) * self.chain(v64, chained)).to(u.dtype)
+            w[lanes] = (self.powers.float64(left - chained) * self.chain(v64, chained)).to(u.dtype)
             still[lanes] = run >= left
             count[lanes] += torch.minimum(run, left).to(torch.int64)
         return count, w, still

@@ -43,8 +43,10 @@ with it, computing every gap exactly as one call does.
 
 Exactness. The update at a cell is snntorch's float32 arithmetic, in its order, so runs of
 consecutive active steps, and gaps of one step, are bit-identical to the module. Over a longer
-gap the decay ``beta ** g`` is one float32 power where stepping rounds ``g`` products
-(identical when ``beta`` is 0, 1 or a power of two), and a chain longer than
+gap the decay ``beta ** g`` is one float32 power (the exact power rounded once, whatever
+the cell's place among the call's cells: :mod:`~evdown_torch.transforms.functional.lif.powers`)
+where stepping rounds ``g`` products (identical when ``beta`` is 0, 1 or a power of two), and
+a chain longer than
 :data:`~evdown_torch.transforms.functional.lif.chains.EXACT_CHAIN_STEPS` is one float64
 evaluation rounded once; a spike can differ only where
 a membrane lies within float32 rounding of the threshold.
@@ -74,6 +76,7 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import check_output_count, output_size
 from evdown_torch.events import Events, sort_by_time
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.lif.chains import Leak
 from evdown_torch.transforms.functional.lif.closed_form import MIN_ROUNDS, certain_spikes
 from evdown_torch.transforms.functional.lif.keys import (
@@ -411,11 +414,12 @@ def lif_spikes(
     gap_after.index_copy_(0, region_last, last_step - cell_step.index_select(0, region_last))
 
     # The membranes: in closed form where that is certain to give the rounds' spikes (calls
-    # whose new state is not needed), else by rounds.
+    # whose new state is not needed), else by rounds (a compiled loop on the CPU: cheaper than
+    # the closed form, the same spikes).
     rounds = int(cells_per_region.max())
     region_index = run_index(new_region)
     certain = None
-    if not keep_state and rounds >= MIN_ROUNDS:
+    if not keep_state and rounds >= MIN_ROUNDS and not use_compiled(current):
         certain = certain_spikes(cell_step, current, region_first, region_index,
                                  cells_per_region, gap_after, rounds=rounds, leak=leak)
     if certain is not None:

@@ -4,15 +4,21 @@ Used by :func:`.pooling.lif_spikes` (see its module docstring):
 round ``r`` updates the ``r``-th cell of every region that has one. Lanes are regions by
 decreasing number of cells, so the lanes of a round are a prefix of the previous round's and
 every update is a slice; a round costs a fixed few tensor operations, and there are as many
-rounds as the busiest region has cells.
+rounds as the busiest region has cells. On the CPU the rounds run in a compiled loop
+(:mod:`evdown_torch.transforms.functional.compiled.lif`, the same float32 operations lane by
+lane) unless the eager kernels are forced; only a round with a longer firing chain is this
+module's there.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from evdown_torch._tensors import divide, stable_sort_small, where_true
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak
 
 __all__ = ["membranes_by_rounds", "spikes_and_runs"]
@@ -49,7 +55,6 @@ def membranes_by_rounds(
     device = current.device
     f32 = torch.float32
     n_cells, n_regions = current.shape[0], region_first.shape[0]
-    beta32, threshold32, reset_mechanism = leak.beta32, leak.threshold32, leak.reset
     count_sorted, region_of_lane = stable_sort_small(rounds - cells_per_region, rounds + 1)
     lane_of_region = torch.empty_like(region_of_lane)
     lane_of_region.index_copy_(0, region_of_lane, torch.arange(n_regions, device=device))
@@ -69,10 +74,9 @@ def membranes_by_rounds(
     current_in_rounds = torch.empty_like(current).index_copy_(0, slot, current)
     # A membrane at or below threshold only decays through a gap: beta ** g, rounded once
     # (exactly snntorch's product for g <= 1); after one step of a firing chain, beta ** (g - 1).
-    gap32 = gap_in_rounds.to(f32)
-    decay_in_rounds = torch.pow(beta32, gap32)
-    decay_after_one = torch.pow(beta32, gap32.sub_(1).clamp_(min=0))
-    del gap32
+    # Each a function of g alone, not of the cell's place among the call's cells (lif/powers).
+    decay_in_rounds = leak.powers.float32(gap_in_rounds)
+    decay_after_one = leak.powers.float32((gap_in_rounds - 1).clamp_(min=0))
     silent_in_rounds = gap_in_rounds > 0
     chain_in_rounds = torch.zeros(n_cells, 2, dtype=torch.int64, device=device)
 
@@ -81,38 +85,79 @@ def membranes_by_rounds(
     mem_in_rounds = torch.empty(n_cells, 2, dtype=f32, device=device)
     bounds = round_start.tolist()
     mem_in_rounds[: bounds[1]] = current_in_rounds[: bounds[1]]  # from zero: beta * 0 + I
-    for r in range(1, rounds):
-        a, b = bounds[r], bounds[r + 1]
-        u = mem_in_rounds[bounds[r - 1] : bounds[r - 1] + b - a]
-        fired = u > threshold32  # the reset signal of the next step, unless a gap follows
-        w = u * decay_in_rounds[a:b]
-        reset = None  # R = 1 where a neuron fired in the step just before this cell
-        if reset_mechanism == "zero":  # reset at the next step, then silent: W = 0 either way
-            w.masked_fill_(fired, 0.0)
-        elif reset_mechanism == "subtract" and bool(fired.any()):
-            silent = silent_in_rounds[a:b]
-            moving = fired & silent  # fired, then empty steps: one step of the chain, U - theta
-            chain = beta32 * u - threshold32  # (+ a zero current: exact)
-            w = torch.where(moving, chain * decay_after_one[a:b], w)
-            fired &= ~silent
-            longer = moving & (chain > threshold32)
-            if bool(longer.any()):  # still firing after one empty step: the chain goes on
-                longer = where_true(longer.view(-1))  # (neurons of lanes, flattened)
-                lane = divide(longer, 2)
-                count, chained, still = leak.fire_through(
-                    u.reshape(-1).index_select(0, longer),
-                    gap_in_rounds.index_select(0, lane.add_(a)).squeeze(1),
-                    torch.ones(longer.shape, dtype=torch.bool, device=device))
-                w.view(-1).index_copy_(0, longer, chained)
-                fired.view(-1).index_copy_(0, longer, still)
-                chain_in_rounds[a:b].view(-1).index_copy_(0, longer, count)
-            reset = fired
-        out = torch.mul(beta32, w, out=mem_in_rounds[a:b])
-        out += current_in_rounds[a:b]
-        if reset is not None:
-            torch.where(reset, out - threshold32, out, out=out)
+    rounds_in = _Rounds(mem_in_rounds, current_in_rounds, decay_in_rounds, decay_after_one,
+                        silent_in_rounds, gap_in_rounds, chain_in_rounds, bounds)
+    compiled = use_compiled(current)
+    r = 1
+    while r < rounds:
+        if compiled:  # the rounds up to one with a longer firing chain, in a compiled loop
+            from evdown_torch.transforms.functional.compiled import lif
+
+            r = lif.rounds_until_chain(rounds_in, r, leak)
+            if r == rounds:
+                break
+        _round(rounds_in, r, leak)
+        r += 1
     # back to cell order
     return mem_in_rounds.index_select(0, slot), chain_in_rounds.index_select(0, slot)
+
+
+class _Rounds(NamedTuple):
+    """The cells in round order (round ``r``: rows ``bounds[r] .. bounds[r + 1] - 1``).
+
+    ``membrane``, ``current``: ``(n, 2)`` float32; ``decay``, ``decay_after_one``: ``(n, 1)``
+    float32 ``beta ** g`` and ``beta ** (g - 1)`` of the gap ``g`` before each cell
+    (``gap``, ``(n, 1)`` int64; ``silent``: ``g > 0``); ``chain``: ``(n, 2)`` int64 spikes
+    fired in the gap. ``membrane`` and ``chain`` are written round by round.
+    """
+
+    membrane: Tensor
+    current: Tensor
+    decay: Tensor
+    decay_after_one: Tensor
+    silent: Tensor
+    gap: Tensor
+    chain: Tensor
+    bounds: list[int]
+
+
+def _round(rounds: _Rounds, r: int, leak: Leak) -> None:
+    """Round ``r >= 1``: snntorch's update at the ``r``-th cell of every region that has one.
+
+    The compiled loop (:func:`~evdown_torch.transforms.functional.compiled.lif.
+    rounds_until_chain`) does the same arithmetic, element by element.
+    """
+    beta32, threshold32, reset_mechanism = leak.beta32, leak.threshold32, leak.reset
+    bounds = rounds.bounds
+    a, b = bounds[r], bounds[r + 1]
+    u = rounds.membrane[bounds[r - 1] : bounds[r - 1] + b - a]
+    fired = u > threshold32  # the reset signal of the next step, unless a gap follows
+    w = u * rounds.decay[a:b]
+    reset = None  # R = 1 where a neuron fired in the step just before this cell
+    if reset_mechanism == "zero":  # reset at the next step, then silent: W = 0 either way
+        w.masked_fill_(fired, 0.0)
+    elif reset_mechanism == "subtract" and bool(fired.any()):
+        silent = rounds.silent[a:b]
+        moving = fired & silent  # fired, then empty steps: one step of the chain, U - theta
+        chain = beta32 * u - threshold32  # (+ a zero current: exact)
+        w = torch.where(moving, chain * rounds.decay_after_one[a:b], w)
+        fired &= ~silent
+        longer = moving & (chain > threshold32)
+        if bool(longer.any()):  # still firing after one empty step: the chain goes on
+            longer = where_true(longer.view(-1))  # (neurons of lanes, flattened)
+            lane = divide(longer, 2)
+            count, chained, still = leak.fire_through(
+                u.reshape(-1).index_select(0, longer),
+                rounds.gap.index_select(0, lane.add_(a)).squeeze(1),
+                torch.ones(longer.shape, dtype=torch.bool, device=u.device))
+            w.view(-1).index_copy_(0, longer, chained)
+            fired.view(-1).index_copy_(0, longer, still)
+            rounds.chain[a:b].view(-1).index_copy_(0, longer, count)
+        reset = fired
+    out = torch.mul(beta32, w, out=rounds.membrane[a:b])
+    out += rounds.current[a:b]
+    if reset is not None:
+        torch.where(reset, out - threshold32, out, out=out)
 
 
 def spikes_and_runs(

@@ -1,0 +1,174 @@
+"""LIFPooling's compiled rounds against the eager rounds and the module on dense frames."""
+
+from __future__ import annotations
+
+import importlib
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from evdown_torch import Events, LIFPooling, eager_kernels
+from evdown_torch.transforms.functional.lif.pooling import lif_pooling
+from evdown_torch.transforms.functional.lif.settings import LIFSettings
+from tests.helpers import (
+    FLOAT_DTYPE,
+    LIF_SETTINGS,
+    as_tuples,
+    assert_batches_on_both_paths,
+    assert_identical,
+    assert_sessions_on_both_paths,
+    both_paths,
+    bursty_stream,
+    lif_dense_reference,
+    near_their_limits,
+    random_stream,
+    spy,
+)
+
+pytest.importorskip("numba")
+
+SENSOR = (10, 7, 2)
+FACTORS = [1, 2, (2, 3), (3, 1), (4, 3)]  # (3, 1), (4, 3): not dividing 10 x 7
+ROUNDS = importlib.import_module("evdown_torch.transforms.functional.lif.rounds")
+COMPILED = importlib.import_module("evdown_torch.transforms.functional.compiled.lif")
+
+
+@pytest.mark.parametrize("factor", FACTORS)
+@pytest.mark.parametrize("settings", LIF_SETTINGS)
+def test_compiled_equals_eager_and_the_module(settings, factor, rng):
+    arr = random_stream(rng, 900, SENSOR, t_max=600, sort=False)
+    transform = LIFPooling(SENSOR, factor=factor, dt=4, **settings)
+    compiled, eager = both_paths(lambda: transform(arr))
+    assert_identical(compiled, eager)
+    assert sorted(as_tuples(compiled)) == lif_dense_reference(arr, transform)
+
+
+@pytest.mark.parametrize("settings", LIF_SETTINGS)
+def test_bursts_with_firing_chains_through_long_silences(settings, rng):
+    arr = bursty_stream(rng, 40, SENSOR, gap_max=300)
+    transform = LIFPooling(SENSOR, factor=(3, 2), dt=3, **settings)
+    compiled, eager = both_paths(lambda: transform(arr))
+    assert_identical(compiled, eager)
+    assert sorted(as_tuples(compiled)) == lif_dense_reference(arr, transform)
+
+
+def test_the_compiled_rounds_run_and_the_eager_rounds_only_for_longer_chains(monkeypatch, rng):
+    loops = spy(monkeypatch, COMPILED, "rounds_until_chain")
+    eager_rounds = spy(monkeypatch, ROUNDS, "_round")
+    arr = random_stream(rng, 400, SENSOR, t_max=20)  # 10 steps: eager takes the rounds
+    transform = LIFPooling(SENSOR, factor=2, dt=2, tau=8.0, weight=0.3)
+    with eager_kernels(False):  # the compiled path, even where EVDOWN_EAGER=1
+        transform(arr)
+    assert len(loops) > 0 and len(eager_rounds) == 0
+    with eager_kernels():
+        transform(arr)
+    assert len(eager_rounds) > 0
+    # A neuron firing on through several empty steps: that round is the eager one's, and
+    # the loop goes on after it.
+    loops.clear()
+    eager_rounds.clear()
+    strong = LIFPooling(SENSOR, factor=2, dt=1, tau=40.0, weight=3.0)
+    chain = np.zeros(8, dtype=arr.dtype)
+    chain["t"] = [0, 0, 0, 0, 50, 51, 52, 200]
+    chain["p"] = True
+    chain["x"][-1] = 9  # another region: the stream ends at 200
+    compiled, eager = both_paths(lambda: strong(chain))
+    assert_identical(compiled, eager)
+    assert len(loops) >= 2 and len(eager_rounds) >= 1
+    assert sorted(as_tuples(compiled)) == lif_dense_reference(chain, strong)
+
+
+def test_the_decays_are_the_eager_ones_wherever_a_cell_lies():
+    """torch's float32 power rounds ``0.999 ** 168`` one unit apart in its vectorised loop and
+    in its scalar tail, and the threshold lies between the two membranes: both paths read the
+    same decays (lif/powers), so they give the same spikes in every region."""
+    beta, gap, weight = 0.999, 168, 0.3
+    b32 = torch.tensor(beta, dtype=torch.float32)
+    membrane = torch.tensor(3.0, dtype=torch.float32) * torch.tensor(weight, dtype=torch.float32)
+    current = torch.tensor(2.0, dtype=torch.float32) * torch.tensor(weight, dtype=torch.float32)
+    decays = {float(torch.pow(b32, torch.full((64,), float(gap)))[0]),
+              float(torch.pow(b32, torch.tensor([float(gap)]))[0])}
+    # the threshold at the lower membrane: only the larger decay (if any) makes it fire
+    threshold = min(float(b32 * (membrane * torch.tensor(d, dtype=torch.float32)) + current)
+                    for d in decays)
+    regions = 40
+    x = [r for r in range(regions) for _ in range(5)]
+    t = [0, 0, 0, gap + 1, gap + 1] * regions
+    events = Events.from_columns(x, [0] * len(x), t, [1] * len(x))
+    settings = LIFSettings(dt=1, beta=beta, threshold=threshold, weight=weight)
+    compiled, eager = both_paths(lambda: lif_pooling(events, settings, sensor_size=(regions, 1, 2),
+                                                     factor=(1, 1)))
+    assert_identical(compiled, eager)
+
+
+@pytest.mark.parametrize("dtype", [np.int64, np.float32, np.float64])
+def test_timestamp_dtypes_near_their_limits(dtype, rng):
+    arr = random_stream(rng, 800, SENSOR, t_max=200, sort=False)
+    data = near_their_limits(arr, dtype, 200)  # int64 up to 2**63 - 11
+    transform = LIFPooling(SENSOR, factor=(3, 2), dt=3 if dtype == np.int64 else 0.75,
+                           tau=20.0, weight=0.4, mutual_inhibition=0.1)
+    compiled, eager = both_paths(lambda: transform(data))
+    assert_identical(compiled, eager)
+    assert compiled.dtype == data.dtype and len(compiled) > 0
+    if dtype == np.int64:
+        assert int(compiled[:, 2].min()) >= 2**63 - 210
+
+
+def test_float64_microseconds_of_a_wall_clock(rng):
+    arr = random_stream(rng, 700, SENSOR, t_max=4000, dtype=FLOAT_DTYPE, sort=False)
+    arr["t"] = arr["t"] * 0.1 + 1.7e15  # spaced by a few ulps of the clock
+    transform = LIFPooling(SENSOR, factor=2, dt=2.5, tau=20.0, weight=0.5)
+    compiled, eager = both_paths(lambda: transform(arr))
+    assert_identical(compiled, eager)
+    assert len(compiled) > 0
+
+
+@pytest.mark.parametrize("settings", LIF_SETTINGS)
+def test_sessions_in_odd_chunks_and_moving_between_paths(settings, rng):
+    arr = bursty_stream(rng, 150, SENSOR, gap_max=200)[:1500]
+    assert len(arr) == 1500  # every cut of ODD_CUTS falls inside the stream
+    transform = LIFPooling(SENSOR, factor=(4, 3), dt=2.5, **settings)
+    whole, _ = both_paths(lambda: transform(arr))
+    assert_sessions_on_both_paths(transform, arr, whole)
+
+
+def test_batches_sorted_stacked_and_with_empty_recordings(rng):
+    transform = LIFPooling(SENSOR, factor=(3, 2), dt=3, tau=25.0, weight=0.6)
+
+    def check(recording, out):
+        expected = lif_dense_reference(recording, transform) if len(recording) else []
+        assert sorted(as_tuples(out)) == expected
+
+    assert_batches_on_both_paths(transform, rng, SENSOR, 300, check)
+
+
+def test_beta_one_and_zero_without_leak_or_memory(rng):
+    arr = random_stream(rng, 600, SENSOR, t_max=500)
+    for tau in (math.inf, 1e-9):
+        transform = LIFPooling(SENSOR, factor=(2, 3), dt=5, tau=tau, weight=0.4)
+        compiled, eager = both_paths(lambda transform=transform: transform(arr))
+        assert_identical(compiled, eager)
+
+
+@pytest.mark.parametrize("settings", LIF_SETTINGS)
+def test_the_state_is_the_same_bit_for_bit(settings, rng):
+    """The membranes after a step: float32 rounded as the eager rounds round them (a fused or
+    float64 update would differ in the last place long before it changed a spike)."""
+    arr = random_stream(rng, 3000, SENSOR, t_max=900)
+    events = Events.from_columns(arr["x"], arr["y"], arr["t"], arr["p"])
+    pooling = LIFPooling(SENSOR, factor=(3, 2), dt=2, **settings)
+    method, step_settings = pooling.method, pooling.settings
+
+    def step():
+        state = method.init_state(step_settings, events)
+        return method.step(events, state, step_settings)
+
+    (out_compiled, compiled), (out_eager, eager) = both_paths(step)
+    assert_identical(out_compiled, out_eager)
+    assert_identical(tuple(compiled.neurons), tuple(eager.neurons))
+    assert bool((compiled.neurons.last_step >= 0).any())
+    assert (compiled.decided, int(compiled.t_start), int(compiled.last_t)) == (
+        eager.decided, int(eager.t_start), int(eager.last_t))
+    assert_identical(compiled.pending, eager.pending)
