@@ -181,7 +181,8 @@ def question(config: EvaluationConfig) -> str:
         f"of {', '.join(m.primary)} keep more accuracy than random thinning of Downsample to "
         f"the same budget{peer}? {len(m.primary) * len(m.primary_factors) * peers} one-sided "
         f"comparisons, Holm-corrected within this family at alpha = "
-        f"{config.statistics.alpha:g}; {t.primary_seeds} training seeds per method cell, "
+        f"{config.statistics.alpha:g}; {_plural(t.primary_seeds, 'training seed')} per method "
+        "cell, "
         f"{control} on the shared control{' and the peer' if peers == 2 else ''}; "
         f"{unit}.{tested}"
     )

@@ -245,3 +245,18 @@ def test_the_tiny_nmnist_config_end_to_end(tmp_path, monkeypatch):
     assert all(len(c.labels) == 24 for c in result.cells)
     paths = write_report(result, tmp_path / "out")
     assert "corrected resampled t" in paths["markdown"].read_text()
+    # without a camera, the figure's second row is accuracy against CPU time per recording
+    matplotlib = pytest.importorskip("matplotlib")
+    from evdown_torch.evaluation.figure import plot_tradeoff
+
+    drawn = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig",
+                        lambda figure, *args, **kwargs: drawn.append(figure))
+    assert plot_tradeoff(result, tmp_path / "figure.png")
+    axes = drawn[0].axes
+    assert axes[0].get_xlabel() == "output events per second"
+    assert axes[-1].get_xlabel().startswith("CPU microseconds per recording")
+    timed = [c for c in result.cells if c.cpu_us_per_recording]
+    assert timed and sum(len(line.get_xdata()) for line in axes[-1].lines) >= len(timed)
+    labels = [t.get_text() for t in drawn[0].legends[0].get_texts()]
+    assert any(label.startswith("event_count (delay 0)") for label in labels)
