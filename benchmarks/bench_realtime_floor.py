@@ -23,6 +23,11 @@ themselves must get cheaper. The parts are measured by wrapping the functions wh
 kernels look them up, so the wrapped names are part of this script's contract with the
 package (a test runs it on a tiny replay).
 
+The parts are those of the eager torch kernels, so every replay here runs under
+:func:`evdown_torch.eager_kernels` (EventCount's too, so that the ratios compare eager with
+eager); the compiled loops' speed is measured by ``evdown bench --realtime`` against its own
+floor.
+
 Run: ``python benchmarks/bench_realtime_floor.py [--events 13000000] [--chunks 50] [--runs 3]``
 (the defaults are the full replay's recording and timed chunks; about a minute).
 """
@@ -41,6 +46,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from evdown_torch import eager_kernels
 from evdown_torch.bench.inputs import gesture_stream
 from evdown_torch.bench.realtime import (
     REALTIME_METHODS,
@@ -124,15 +130,16 @@ def replay(method: str, stream: np.ndarray, bounds: np.ndarray, chunks: int) -> 
     """Chunk 0 warms up; chunks ``1 .. chunks`` are timed (the stream's last is never)."""
     name, settings = REALTIME_METHODS[method]
     session = make_method(name, SENSOR, 4, **settings).session()
-    session(stream[bounds[0]:bounds[1]])
     spent: dict[str, float] = {}
     times = []
     last = min(chunks, len(bounds) - 3)
-    with measured(FLOOR.get(method, ()), spent):
-        for k in range(1, last + 1):
-            start = time.thread_time()
-            session(stream[bounds[k]:bounds[k + 1]])
-            times.append(time.thread_time() - start)
+    with eager_kernels():
+        session(stream[bounds[0]:bounds[1]])
+        with measured(FLOOR.get(method, ()), spent):
+            for k in range(1, last + 1):
+                start = time.thread_time()
+                session(stream[bounds[k]:bounds[k + 1]])
+                times.append(time.thread_time() - start)
     return Replay(method, times, spent)
 
 

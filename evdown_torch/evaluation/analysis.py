@@ -108,7 +108,7 @@ def compare(
         >>> (k,) = compare([(better, worse)], primary=True, resamples=5000, seed=0,
         ...                confidence=0.95, alpha=0.05, margin=0.03, paired=[True])
         >>> round(k.difference, 2), k.significant, k.paired
-        (0.18, True, True)
+        (0.17, True, True)
     """
     if paired is None:
         paired = [False] * len(pairs)
