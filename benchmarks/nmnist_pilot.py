@@ -25,7 +25,7 @@ from evdown_torch import Downsample
 from evdown_torch.data.sources import NMNISTSource
 from evdown_torch.evaluation.classifier import count_scale
 from evdown_torch.evaluation.config import EvaluationConfig, load_config
-from evdown_torch.evaluation.data import _indices  # the study's own draw of Train
+from evdown_torch.evaluation.data import outside_study
 from evdown_torch.events import to_events
 from evdown_torch.frames import to_frames
 from evdown_torch.io import NMNIST_SENSOR
@@ -37,9 +37,7 @@ CONFIG = Path(__file__).resolve().parents[1] / "configs" / "nmnist.toml"
 
 def held_out(config: EvaluationConfig, count: int, seed: int) -> list[int]:
     """``count`` indices of the folder's Train that the study does not use."""
-    used = set(_indices(config.data, True))
-    source = NMNISTSource(config.data.root, split="train")
-    rest = [i for i in range(len(source)) if i not in used]
+    rest = outside_study(config.data)
     order = torch.randperm(len(rest), generator=torch.Generator().manual_seed(seed))
     return [rest[i] for i in order[:count].tolist()]
 

@@ -34,7 +34,8 @@ from evdown_torch.evaluation.config import DataConfig
 if TYPE_CHECKING:
     from evdown_torch.synthetic import SyntheticGestures
 
-__all__ = ["CALIBRATION", "POOLED", "StudyData", "check_available", "fold_assignment", "window"]
+__all__ = ["CALIBRATION", "POOLED", "StudyData", "check_available", "fold_assignment",
+           "outside_study", "window"]
 
 SPLITS = ("train", "test")
 #: The split budgets are calibrated on: the held-out one, or the first training recordings.
@@ -255,6 +256,12 @@ def _indices(config: DataConfig, train: bool) -> tuple[int, ...]:
     return tuple(sorted(order[: wanted or len(dataset)].tolist()))
 
 
+def outside_study(config: DataConfig) -> list[int]:
+    """Indices, in order, of the folder's Train recordings the study does not draw."""
+    used = set(_indices(config, True))
+    return [i for i in range(len(_opened(config.dataset, config.root, True))) if i not in used]
+
+
 @functools.cache
 def _held_out(config: DataConfig) -> tuple[int, ...]:
     """Indices in the folder's Train of the held-out calibration recordings.
@@ -265,13 +272,12 @@ def _held_out(config: DataConfig) -> tuple[int, ...]:
     Raises:
         ValueError: if fewer remain.
     """
-    dataset = _opened(config.dataset, config.root, True)
-    used = set(_indices(config, True))
-    rest = [i for i in range(len(dataset)) if i not in used]
+    rest = outside_study(config)
     if len(rest) < config.calibration_samples:
+        used = len(_indices(config, True))
         raise ValueError(
             f"data.calibration = \"held_out\" needs {config.calibration_samples} recordings of "
-            f"Train outside the study's {len(used)}, but {config.root!r} has {len(dataset)} "
+            f"Train outside the study's {used}, but {config.root!r} has {used + len(rest)} "
             "in Train: lower data.train_samples or data.calibration_samples")
     order = torch.randperm(len(rest), generator=torch.Generator().manual_seed(config.seed + 1))
     return tuple(rest[i] for i in order[: config.calibration_samples].tolist())
