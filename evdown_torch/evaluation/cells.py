@@ -9,7 +9,7 @@ its inputs from the cache and stores what it made there, so that a second run re
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, cast
 
 import numpy as np
@@ -54,12 +54,21 @@ class Cell:
             count, or the input's), or ``None`` for a method run at its own settings.
         settings: the transform's settings, the calibrated budget setting included, as
             sorted ``(name, value)`` pairs.
+        matches: for a control without a budget, the method (a peer run at its own rate,
+            :data:`TONIC`) whose output count on the calibration recordings its thinning is
+            calibrated to; ``None`` otherwise.
     """
 
     method: str
     factor: tuple[int, int]
     budget: float | None = None
     settings: tuple[tuple[str, Any], ...] = ()
+    matches: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.matches is not None and (self.method != CONTROL or self.budget is not None):
+            raise ValueError(f"only a control without a budget matches another method's "
+                             f"output, got {self.method!r} at budget {self.budget!r}")
 
     def transform(self, sensor_size: tuple[int, int, int], draw: int = 0
                   ) -> Downscaler | TonicPeer | None:
@@ -87,8 +96,9 @@ class Cell:
 
     def key(self) -> dict[str, Any]:
         """The cell's settings as a cache key (JSON-ready)."""
-        return {"method": self.method, "factor": list(self.factor), "budget": self.budget,
-                "settings": [[k, v] for k, v in self.settings]}
+        key = {"method": self.method, "factor": list(self.factor), "budget": self.budget,
+               "settings": [[k, v] for k, v in self.settings]}
+        return key if self.matches is None else {**key, "matches": self.matches}
 
     @property
     def label(self) -> str:
@@ -101,14 +111,21 @@ class Cell:
 
     @property
     def name(self) -> str:
-        """The method, with its delay where one is set (``max_delay`` read as microseconds)."""
+        """The method, with its delay where one is set (``max_delay`` read as microseconds).
+
+        Example:
+            >>> Cell(CONTROL, (4, 4), matches=TONIC).name
+            'control (matched to tonic integrator)'
+        """
+        if self.matches is not None:
+            return f"{self.method} (matched to {self.matches})"
         delay = dict(self.settings).get("max_delay")
         return self.method if delay is None else f"{self.method} (max_delay {delay / 1000:g} ms)"
 
     def with_settings(self, **values: Any) -> Cell:
         """The same cell with ``values`` added to (or replacing) its settings."""
         merged = {**dict(self.settings), **values}
-        return Cell(self.method, self.factor, self.budget, tuple(sorted(merged.items())))
+        return replace(self, settings=tuple(sorted(merged.items())))
 
 
 class TonicPeer:
@@ -191,6 +208,24 @@ def calibrate_job(source: StudyData, cell: Cell, target_count: float, samples: i
                                "target": found.target, "evaluations": found.evaluations})
     result = Cache.load_json(path)
     return cell.with_settings(**{setting: result["value"]}), result
+
+
+def output_count_job(source: StudyData, cell: Cell, samples: int, split: str = "train"
+                     ) -> int:
+    """How many events ``cell`` outputs over the first ``samples`` recordings of ``split``.
+
+    The target a control matched to ``cell`` (:attr:`Cell.matches`) is calibrated to; cached.
+    """
+    key = {"data": source.key(split), "samples": samples, "cell": cell.key(),
+           "code": code_fingerprint(*_TRANSFORM_CODE, "evaluation/cells.py")}
+    path = source.cache.path("output_counts", key, ".json")
+    if not path.is_file():
+        transform = cast(TonicPeer | Downscaler, cell.transform(source.sensor_size))
+        count = sum(transform.kernel(to_events(source.recording(split, i)[0],
+                                               source.sensor_size)[0]).num_events
+                    for i in range(samples))
+        source.cache.save_json(path, {"count": count})
+    return int(Cache.load_json(path)["count"])
 
 
 def frames_key(source: StudyData, cell: Cell, split: str, indices: list[int],

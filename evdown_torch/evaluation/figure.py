@@ -60,8 +60,8 @@ def plot_tradeoff(result: EvaluationResult, path: Path) -> bool:
     figure = Figure(figsize=(4.2 * len(factors) + 2.5, 7.5), layout="constrained")
     FigureCanvasAgg(figure)
     axes = figure.subplots(2, len(factors), squeeze=False, sharey="row")
-    methods = list(dict.fromkeys(c.cell.name for c in result.cells
-                                 if c.method not in (BASELINE, CONTROL)))
+    methods = list(dict.fromkeys(c.cell.name for c in result.cells  # a matched control too
+                                 if c.cell.name not in (BASELINE, CONTROL)))
     colours = {name: f"C{i % 10}" for i, name in enumerate(methods)}
     colours[CONTROL] = "black"
     baseline = next((c for c in result.cells if c.method == BASELINE), None)

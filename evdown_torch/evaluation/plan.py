@@ -9,7 +9,9 @@ events does not score below its random subset (the control). Everything else is
 *exploratory*: the grid of ``[methods] include x factors x budgets`` with its controls (and
 each budgeted method at its own settings with ``native``), ``peers`` at each primary factor
 and budget, the estimators with ``max_delay = live_delay``, Tonic's ``EventDownsampling`` with
-``tonic_peer``, and the full-resolution row, on ``training.seeds``.
+``tonic_peer`` (at its own rate, beside a control thinned to its output count: see
+:attr:`~evdown_torch.evaluation.cells.Cell.matches`), and the full-resolution row, on
+``training.seeds``.
 """
 
 from __future__ import annotations
@@ -113,6 +115,7 @@ def plan(config: EvaluationConfig) -> list[Planned]:
                 add(Cell(name, factor, None, settings(name)), EXPLORATORY, explore)
         if methods.tonic_peer:
             add(Cell(TONIC, factor), EXPLORATORY, explore)
+            add(Cell(CONTROL, factor, matches=TONIC), EXPLORATORY, explore)
         if methods.control:
             for b in methods.budgets:
                 add(Cell(CONTROL, factor, b), EXPLORATORY, explore)

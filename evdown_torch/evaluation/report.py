@@ -57,8 +57,11 @@ def _factor(c: CellResult) -> str:
 
 
 def _control(result: EvaluationResult, c: CellResult) -> CellResult | None:
+    """The control ``c`` is compared with: at its factor and budget, or matched to it."""
     for other in result.cells:
-        if other.method == CONTROL and other.factor == c.factor and other.budget == c.budget:
+        if other.method == CONTROL and other.factor == c.factor and (
+                other.cell.matches == c.method if other.cell.matches is not None
+                else other.budget == c.budget):
             return other
     return None
 
@@ -227,6 +230,8 @@ def markdown_table(result: EvaluationResult) -> str:
         versus = "–" if k is None else f"{k.difference:+.3f} {_ci(*k.interval)}"
         if c.role == SANITY and k is not None:
             versus = f"control {versus}"
+        elif k is not None and control is not None and control.cell.matches is not None:
+            versus = f"matched control {versus}"
         equivalent = "–" if k is None else (
             f"{'yes' if k.equivalence_p < alpha else 'no'} ({k.equivalence_p:.2g})")
         consistency = _number(c.consistency, ".3f")

@@ -432,7 +432,8 @@ def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ra
     so the folds after the first read the calibrations from the cache).
     """
     todo = [i for i, p in enumerate(planned) if p.cell.budget is not None]
-    if not todo:
+    matched = [i for i, p in enumerate(planned) if p.cell.matches is not None]
+    if not todo and not matched:
         return planned, {}
     if config.methods.budget_reference == "input":
         inputs = sum(len(source.recording(split, i)[0]) for i in range(samples))
@@ -440,6 +441,13 @@ def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ra
                * (camera[planned[i].cell.factor] if config.methods.budget_reference == "camera"
                   else inputs)
                for i in todo]
+    # a matched control's target: its peer's output count on the same recordings
+    peers = [Cell(cast(str, planned[i].cell.matches), planned[i].cell.factor) for i in matched]
+    targets += [float(n) for n in _map(
+        pool, ranks, progress, "matched counts", jobs.output_count_job, [source] * len(peers),
+        peers, [samples] * len(peers), [split] * len(peers),
+        costs=[downscale_seconds(config, [peer], samples) for peer in peers]).results]
+    todo += matched
     out = _map(pool, ranks, progress, "calibration", jobs.calibrate_job, [source] * len(todo),
                [planned[i].cell for i in todo], targets, [samples] * len(todo),
                [split] * len(todo),
@@ -449,5 +457,6 @@ def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ra
     for i, (cell, search) in zip(todo, out):
         cells[i], found[cell] = replace(planned[i], cell=cell), search
     where = "held-out" if split != "train" else "training"
-    progress(f"calibrated {len(todo)} budgeted cells on {samples} {where} recordings")
+    progress(f"calibrated {len(todo)} budgeted or matched cells on {samples} {where} "
+             "recordings")
     return cells, found

@@ -58,8 +58,9 @@ def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
     The primary family: each primary method against the control and, with
     ``methods.primary_peer``, against that peer, at each primary factor and its budget
     (one-sided, Holm within the whole family); the sanity check per factor; every other
-    budgeted cell against the control at its factor and budget (exploratory: interval and
-    TOST only); and ``methods.noninferiority`` per primary factor.
+    budgeted cell against the control at its factor and budget, and a peer run at its own rate
+    (Tonic's ``EventDownsampling``) against the control matched to its output count
+    (exploratory: interval and TOST only); and ``methods.noninferiority`` per primary factor.
 
     Returns:
         ``(results, sanity, noninferiority)``: the cells with their ``comparison`` (and
@@ -87,23 +88,27 @@ def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
     def first(method: str) -> dict[tuple, CellResult]:
         found: dict[tuple, CellResult] = {}
         for r in results:
-            if r.method == method and (r.factor, r.budget) not in found:
+            if r.method == method and r.cell.matches is None and (r.factor, r.budget) not in found:
                 found[(r.factor, r.budget)] = r
         return found
 
     controls = first(CONTROL)
+    matched = {(r.cell.matches, r.factor): r for r in results if r.cell.matches is not None}
     peers = first(m.primary_peer) if m.primary_peer else {}
     out = list(results)
-    family = [(i, references, which) for i, r in enumerate(results) if r.role == PRIMARY
+    # (cell's index, its reference, which comparison it fills)
+    family = [(i, references[(r.factor, r.budget)], which) for i, r in enumerate(results)
+              if r.role == PRIMARY
               for references, which in ((controls, "comparison"), (peers, "peer_comparison"))
               if (r.factor, r.budget) in references]
-    others = [(i, controls, "comparison") for i, r in enumerate(results)
+    others = [(i, controls[(r.factor, r.budget)], "comparison") for i, r in enumerate(results)
               if r.role == EXPLORATORY and r.budget is not None and r.method != CONTROL
               and (r.factor, r.budget) in controls]
+    others += [(i, matched[(r.method, r.factor)], "comparison") for i, r in enumerate(results)
+               if (r.method, r.factor) in matched]
     for group, primary in ((family, True), (others, False)):
-        pairs = [(results[i], refs[(results[i].factor, results[i].budget)])
-                 for i, refs, _ in group]
-        for (i, _, which), k in zip(group, run(pairs, primary)):
+        found = run([(results[i], reference) for i, reference, _ in group], primary)
+        for (i, _, which), k in zip(group, found):
             out[i] = (replace(out[i], comparison=k) if which == "comparison"
                       else replace(out[i], peer_comparison=k))
     sanity = {}

@@ -222,7 +222,7 @@ def test_the_nmnist_configs_state_the_question_and_load(name):
     m = config.methods
     assert config.data.folds == 5 or name == "nmnist_tiny.toml"
     assert m.budget_at(2) == 0.25 and m.budget_at(4) == 0.05
-    assert m.primary_peer == "density"
+    assert m.primary_peer == "density" and m.tonic_peer
     if name != "nmnist_tiny.toml":
         assert m.primary == ("event_count", "linear", "cubic")
         assert m.noninferiority == ("event_count", "cubic") and len(m.budgets) >= 4
@@ -244,7 +244,11 @@ def test_the_tiny_nmnist_config_end_to_end(tmp_path, monkeypatch):
     assert all(c.peer_comparison is not None for c in result.primary())
     assert all(len(c.labels) == 24 for c in result.cells)
     paths = write_report(result, tmp_path / "out")
-    assert "corrected resampled t" in paths["markdown"].read_text()
+    report = paths["markdown"].read_text()
+    assert "corrected resampled t" in report
+    # Tonic's peer, at its own rate, against the control thinned to its output count
+    assert "| tonic integrator | exploratory | 4 |" in report
+    assert "| matched control " in report.split("| tonic integrator |")[1].splitlines()[0]
     # without a camera, the figure's second row is accuracy against CPU time per recording
     matplotlib = pytest.importorskip("matplotlib")
     from evdown_torch.evaluation.figure import plot_tradeoff

@@ -58,7 +58,8 @@ def test_d_seed_draws_leave_the_validation_recordings_out():
     assert torch.equal(draw_training_set(labels, 0, 0, exclude=33), torch.arange(33, 198))
 
 
-def test_plan_adds_native_outputs_and_the_tonic_peer():
+def test_plan_adds_native_outputs_and_the_tonic_peer_with_its_matched_control():
+    from evdown_torch.evaluation.cells import CONTROL, TONIC, Cell
     from evdown_torch.evaluation.config import parse_config
     from evdown_torch.evaluation.plan import delay_of, plan
 
@@ -67,7 +68,12 @@ def test_plan_adds_native_outputs_and_the_tonic_peer():
                                        "full_resolution": False}})
     labels = [(p.cell.label, delay_of(p.cell)) for p in plan(config)]
     assert labels == [("event_count x4 @ 1", "0"), ("event_count x4", "0"),
-                      ("tonic integrator x4", "1 ms"), ("control x4 @ 1", "0")]
+                      ("tonic integrator x4", "1 ms"),
+                      ("control (matched to tonic integrator) x4", "0"), ("control x4 @ 1", "0")]
+    with pytest.raises(ValueError, match="only a control without a budget"):
+        Cell(CONTROL, (4, 4), 0.5, matches=TONIC)
+    with pytest.raises(ValueError, match="only a control without a budget"):
+        Cell("event_count", (4, 4), matches=TONIC)
 
 
 def test_tonic_peer_row_is_tonics_event_downsampling():
