@@ -12,14 +12,12 @@ import pytest
 import torch
 
 from evdown_torch import Events, PhotocurrentPooling, eager_kernels
-from evdown_torch.transforms.functional.photocurrent.events_mode import (
-    PhotocurrentState,
-    photocurrent_events,
-)
+from evdown_torch.transforms.functional.photocurrent.events_mode import photocurrent_events
 from evdown_torch.transforms.functional.photocurrent.method import (
     photocurrent_events_init,
     photocurrent_events_step,
 )
+from evdown_torch.transforms.functional.photocurrent.settings import PhotocurrentState
 from evdown_torch.transforms.functional.reference import SNAP
 from tests.helpers import (
     DVS_DTYPE,

@@ -21,8 +21,7 @@ import numpy as np
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 
 if TYPE_CHECKING:
-    from evdown_torch.transforms.functional.lif.chains import Leak
-    from evdown_torch.transforms.functional.lif.rounds import _Rounds
+    from evdown_torch.transforms.functional.lif.chains import Leak, Rounds
 
 __all__ = ["rounds_until_chain"]
 
@@ -77,7 +76,7 @@ def _rounds_loop(
     return stop
 
 
-def rounds_until_chain(rounds: _Rounds, start: int, leak: Leak) -> int:
+def rounds_until_chain(rounds: Rounds, start: int, leak: Leak) -> int:
     """The eager rounds from ``start`` on, compiled, up to one with a longer firing chain.
 
     Args:

@@ -53,7 +53,7 @@ from evdown_torch.transforms.functional.compiled.regions import (
     outside_error,
     region_tables,
 )
-from evdown_torch.transforms.functional.photocurrent.events_mode import PhotocurrentState
+from evdown_torch.transforms.functional.photocurrent.settings import PhotocurrentState
 from evdown_torch.transforms.functional.photocurrent.sums import EPS
 from evdown_torch.transforms.functional.reference import SNAP
 

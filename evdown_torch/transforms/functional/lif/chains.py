@@ -17,11 +17,30 @@ from torch import Tensor
 from evdown_torch.transforms.functional.lif.powers import powers_of
 from evdown_torch.transforms.functional.lif.steps import MAX_STEPS
 
-__all__ = ["EXACT_CHAIN_STEPS", "CellSpikes", "Leak"]
+__all__ = ["EXACT_CHAIN_STEPS", "CellSpikes", "Leak", "Rounds"]
 
 #: Steps of a firing chain computed with snntorch's float32 arithmetic, one at a time, before
 #: the closed form takes over (a chain rarely lasts longer unless ``beta`` is about 1).
 EXACT_CHAIN_STEPS = 8
+
+
+class Rounds(NamedTuple):
+    """The cells in round order (round ``r``: rows ``bounds[r] .. bounds[r + 1] - 1``).
+
+    ``membrane``, ``current``: ``(n, 2)`` float32; ``decay``, ``decay_after_one``: ``(n, 1)``
+    float32 ``beta ** g`` and ``beta ** (g - 1)`` of the gap ``g`` before each cell
+    (``gap``, ``(n, 1)`` int64; ``silent``: ``g > 0``); ``chain``: ``(n, 2)`` int64 spikes
+    fired in the gap. ``membrane`` and ``chain`` are written round by round.
+    """
+
+    membrane: Tensor
+    current: Tensor
+    decay: Tensor
+    decay_after_one: Tensor
+    silent: Tensor
+    gap: Tensor
+    chain: Tensor
+    bounds: list[int]
 
 
 class CellSpikes(NamedTuple):

@@ -12,14 +12,12 @@ module's there.
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import torch
 from torch import Tensor
 
 from evdown_torch._tensors import divide, stable_sort_small, where_true
 from evdown_torch.transforms.functional.compiled import use_compiled
-from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak
+from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak, Rounds
 
 __all__ = ["membranes_by_rounds", "spikes_and_runs"]
 
@@ -85,7 +83,7 @@ def membranes_by_rounds(
     mem_in_rounds = torch.empty(n_cells, 2, dtype=f32, device=device)
     bounds = round_start.tolist()
     mem_in_rounds[: bounds[1]] = current_in_rounds[: bounds[1]]  # from zero: beta * 0 + I
-    rounds_in = _Rounds(mem_in_rounds, current_in_rounds, decay_in_rounds, decay_after_one,
+    rounds_in = Rounds(mem_in_rounds, current_in_rounds, decay_in_rounds, decay_after_one,
                         silent_in_rounds, gap_in_rounds, chain_in_rounds, bounds)
     compiled = use_compiled(current)
     r = 1
@@ -102,26 +100,7 @@ def membranes_by_rounds(
     return mem_in_rounds.index_select(0, slot), chain_in_rounds.index_select(0, slot)
 
 
-class _Rounds(NamedTuple):
-    """The cells in round order (round ``r``: rows ``bounds[r] .. bounds[r + 1] - 1``).
-
-    ``membrane``, ``current``: ``(n, 2)`` float32; ``decay``, ``decay_after_one``: ``(n, 1)``
-    float32 ``beta ** g`` and ``beta ** (g - 1)`` of the gap ``g`` before each cell
-    (``gap``, ``(n, 1)`` int64; ``silent``: ``g > 0``); ``chain``: ``(n, 2)`` int64 spikes
-    fired in the gap. ``membrane`` and ``chain`` are written round by round.
-    """
-
-    membrane: Tensor
-    current: Tensor
-    decay: Tensor
-    decay_after_one: Tensor
-    silent: Tensor
-    gap: Tensor
-    chain: Tensor
-    bounds: list[int]
-
-
-def _round(rounds: _Rounds, r: int, leak: Leak) -> None:
+def _round(rounds: Rounds, r: int, leak: Leak) -> None:
     """Round ``r >= 1``: snntorch's update at the ``r``-th cell of every region that has one.
 
     The compiled loop (:func:`~evdown_torch.transforms.functional.compiled.lif.

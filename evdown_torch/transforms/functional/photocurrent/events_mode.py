@@ -66,6 +66,7 @@ from evdown_torch.transforms.functional.photocurrent.levels import (
     snap,
 )
 from evdown_torch.transforms.functional.photocurrent.one_word import TooBright, one_word_moves
+from evdown_torch.transforms.functional.photocurrent.settings import PhotocurrentState
 from evdown_torch.transforms.functional.photocurrent.sums import grouped_levels, running_sums
 from evdown_torch.transforms.functional.reference import (
     moves_to_solve,
@@ -83,20 +84,6 @@ ONE_WORD_MIN_EVENTS = 1 << 14
 #: decides in one dense round (a row of its region's levels per event, no anchor, nothing
 #: held back again) rather than on the two-word sums: 8 MB of int64 levels.
 DENSE_VALUES = 1 << 18
-
-
-class PhotocurrentState(NamedTuple):
-    """State of a photocurrent pooling stream between chunks (events mode).
-
-    Attributes:
-        level: ``(H * W,)`` int64 level of every input pixel (ON +1, OFF -1), index ``y * W + x``.
-        reference: ``(Ho * Wo,)`` int64 reference index ``q`` of every output region.
-        last_t: ``()`` tensor, the latest timestamp seen (``None`` before any event).
-    """
-
-    level: Tensor
-    reference: Tensor
-    last_t: Tensor | None
 
 
 def initial_state(

@@ -13,7 +13,6 @@ from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked
 from evdown_torch.transforms.functional.photocurrent.events_mode import (
-    PhotocurrentState,
     initial_state,
     photocurrent_events,
     photocurrent_sorted,
@@ -23,7 +22,10 @@ from evdown_torch.transforms.functional.photocurrent.frames_mode import (
     frames_stream,
     fresh_frames_state,
 )
-from evdown_torch.transforms.functional.photocurrent.settings import PhotocurrentSettings
+from evdown_torch.transforms.functional.photocurrent.settings import (
+    PhotocurrentSettings,
+    PhotocurrentState,
+)
 from evdown_torch.transforms.functional.protocol import Method
 
 __all__ = [

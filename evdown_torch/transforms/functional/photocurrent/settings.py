@@ -1,4 +1,4 @@
-"""PhotocurrentPooling's settings, checked once, and the frames mode's clock.
+"""PhotocurrentPooling's settings, checked once; the events mode's state; the frames' clock.
 
 :class:`PhotocurrentSettings` is what both modes' kernels take
 (:mod:`.events_mode` for the events mode, :mod:`.frames_mode` for the frames mode,
@@ -25,7 +25,21 @@ from evdown_torch.checks import (
 from evdown_torch.transforms.functional.photocurrent.levels import check_contrast_range
 from evdown_torch.transforms.functional.settings import RegionSettings
 
-__all__ = ["FrameClock", "PhotocurrentSettings"]
+__all__ = ["FrameClock", "PhotocurrentSettings", "PhotocurrentState"]
+
+
+class PhotocurrentState(NamedTuple):
+    """State of a photocurrent pooling stream between chunks (events mode).
+
+    Attributes:
+        level: ``(H * W,)`` int64 level of every input pixel (ON +1, OFF -1), index ``y * W + x``.
+        reference: ``(Ho * Wo,)`` int64 reference index ``q`` of every output region.
+        last_t: ``()`` tensor, the latest timestamp seen (``None`` before any event).
+    """
+
+    level: Tensor
+    reference: Tensor
+    last_t: Tensor | None
 
 
 class FrameClock(NamedTuple):
