@@ -331,3 +331,37 @@ def test_seeds_without_zero_measure_the_controls_first_draw(tmp_path):
     test = [source.recording("test", i)[0] for i in range(6)]
     assert control.events_per_recording == pytest.approx(np.mean([len(thinned(r)) for r in test]))
     assert 0 <= control.consistency <= 1 and result.cells[0].comparison is not None
+
+
+def test_robustness_rows_train_a_stronger_classifier_on_the_same_frames(tmp_path):
+    from evdown_torch.evaluation.config import RobustnessConfig
+
+    config = _tiny(tmp_path, seeds=(0, 1))
+    config = dataclasses.replace(
+        config, methods=dataclasses.replace(config.methods, include=("event_count",),
+                                            budgets=(), live_delay=0, full_resolution=False),
+        robustness=RobustnessConfig(methods=("event_count",), factor=2, channels=(8, 8)))
+    result = run_evaluation(config, log=None)
+    rows = {c.cell.name: c for c in result.cells if c.budget is not None}
+    wide = " (classifier channels 8-8)"
+    method, control = rows["event_count" + wide], rows[CONTROL + wide]
+    plain, plain_control = rows["event_count"], rows[CONTROL]  # the primary family's
+    assert method.role == control.role == "exploratory" and method.seeds == (0, 1)
+    assert (method.budget, method.factor) == (plain.budget, plain.factor) == (1.0, (2, 2))
+    # the same frames and calibration as the study's own cells ...
+    assert method.calibration == plain.calibration
+    assert method.events_per_recording == plain.events_per_recording
+    assert control.events_per_recording == plain_control.events_per_recording
+    # ... through a wider classifier: [8, 8] blocks cost more than tiny.toml's [4, 4]
+    assert method.macs_per_recording > 2 * plain.macs_per_recording
+    # compared with the control trained the same way, not with the study's control
+    assert method.comparison.difference == pytest.approx(method.accuracy - control.accuracy)
+    assert plain.comparison.difference == pytest.approx(plain.accuracy - plain_control.accuracy)
+
+
+def test_robustness_names_primary_methods_and_a_stronger_classifier():
+    with pytest.raises(ValueError, match="robustness.methods must be primary methods"):
+        parse_config({"methods": {"primary": ["event_count"], "primary_factors": [4]},
+                      "robustness": {"methods": ["linear"], "channels": [8]}})
+    with pytest.raises(ValueError, match="needs a stronger classifier"):
+        parse_config({"robustness": {"methods": ["event_count"]}})

@@ -57,6 +57,10 @@ class Cell:
         matches: for a control without a budget, the method (a peer run at its own rate,
             :data:`TONIC`) whose output count on the calibration recordings its thinning is
             calibrated to; ``None`` otherwise.
+        classifier: settings that replace the study's classifier for this row (``channels``,
+            ``epochs``: :class:`~evdown_torch.evaluation.config.RobustnessConfig`) as
+            ``(name, value)`` pairs; the cell's frames and calibration are those of the cell
+            without them (:meth:`key` leaves them out).
     """
 
     method: str
@@ -64,6 +68,7 @@ class Cell:
     budget: float | None = None
     settings: tuple[tuple[str, Any], ...] = ()
     matches: str | None = None
+    classifier: tuple[tuple[str, Any], ...] = ()
 
     def __post_init__(self) -> None:
         if self.matches is not None and (self.method != CONTROL or self.budget is not None):
@@ -95,7 +100,10 @@ class Cell:
         return output_size(sensor_size, self.factor)
 
     def key(self) -> dict[str, Any]:
-        """The cell's settings as a cache key (JSON-ready)."""
+        """The cell's settings as a cache key of its frames and calibration (JSON-ready).
+
+        Without :attr:`classifier`: a row trained with another classifier shares its frames.
+        """
         key = {"method": self.method, "factor": list(self.factor), "budget": self.budget,
                "settings": [[k, v] for k, v in self.settings]}
         return key if self.matches is None else {**key, "matches": self.matches}
@@ -116,11 +124,18 @@ class Cell:
         Example:
             >>> Cell(CONTROL, (4, 4), matches=TONIC).name
             'control (matched to tonic integrator)'
+            >>> Cell("event_count", (4, 4), 1.0, classifier=(("channels", (32, 64)),)).name
+            'event_count (classifier channels 32-64)'
         """
         if self.matches is not None:
             return f"{self.method} (matched to {self.matches})"
         delay = dict(self.settings).get("max_delay")
-        return self.method if delay is None else f"{self.method} (max_delay {delay / 1000:g} ms)"
+        name = self.method if delay is None else f"{self.method} (max_delay {delay / 1000:g} ms)"
+        if self.classifier:
+            name += " (classifier " + ", ".join(
+                f"{k} {'-'.join(map(str, v)) if isinstance(v, tuple) else v}"
+                for k, v in self.classifier) + ")"
+        return name
 
     def with_settings(self, **values: Any) -> Cell:
         """The same cell with ``values`` added to (or replacing) its settings."""
@@ -286,7 +301,9 @@ def downscale_job(source: StudyData, units: list[tuple[Cell, int]], split: str,
              for c, d in units]
     # a unit is done once its measures are stored (after its frames): a run killed between
     # the two redoes it
-    todo = [j for j, path in enumerate(paths) if not path.with_suffix(".json").is_file()]
+    # (units that share frames, the same cell under another classifier, are made once)
+    todo = [j for j, path in enumerate(paths)
+            if not path.with_suffix(".json").is_file() and path not in paths[:j]]
     if todo:
         sensor = source.sensor_size
         inputs = []

@@ -8,6 +8,7 @@ own draw of training recordings (:func:`draw_training_set`), with inputs normali
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import torch
@@ -21,7 +22,9 @@ from evdown_torch.evaluation.data import POOLED, StudyData
 from evdown_torch.models.classifier import SpikingClassifier, stem_stride_for
 from evdown_torch.models.training import predict_classifier, train_classifier
 
-__all__ = ["count_scale", "draw_training_set", "frames_of", "model_for", "train_job"]
+__all__ = [
+    "count_scale", "draw_training_set", "frames_of", "model_for", "train_job", "trained_with",
+]
 
 
 def frames_of(source: StudyData, cell: Cell, split: str, chunks: dict[str, list[list[int]]],
@@ -52,6 +55,25 @@ def frames_of(source: StudyData, cell: Cell, split: str, chunks: dict[str, list[
         times = (times if rows is None else times[rows]).to(torch.float16) / TIME_SCALE
         x = torch.cat([x.to(torch.float16), times], dim=2)
     return x, labels
+
+
+def trained_with(config: EvaluationConfig, cell: Cell) -> EvaluationConfig:
+    """``config`` as ``cell`` trains under it: its :attr:`~.cells.Cell.classifier` in place.
+
+    Example:
+        >>> from evdown_torch.evaluation.config import parse_config
+        >>> config = parse_config({"model": {"channels": [8]}, "training": {"epochs": 3}})
+        >>> wide = trained_with(config, Cell("event_count", (4, 4), 1.0,
+        ...                                  classifier=(("channels", (16, 32)),)))
+        >>> wide.model.channels, wide.training.epochs, config.model.channels
+        ((16, 32), 3, (8,))
+    """
+    if not cell.classifier:
+        return config
+    given = dict(cell.classifier)
+    return replace(config, model=replace(config.model, channels=given.get(
+        "channels", config.model.channels)), training=replace(config.training, epochs=given.get(
+            "epochs", config.training.epochs)))
 
 
 def model_for(config: EvaluationConfig, size: tuple[int, int], num_classes: int
@@ -157,6 +179,7 @@ def train_job(source: StudyData, cell: Cell, chunks: dict[str, list[list[int]]],
         ``{"correct": [bool per test recording], "predicted": [int per test recording],
         "labels": [int per test recording], "seconds": training time}`` (cached).
     """
+    config = trained_with(config, cell)
     training = config.training
     draw = seed if cell.random else 0
     splits = ("train",) if validation else ("train", "test")

@@ -1,6 +1,6 @@
 """Configuration of ``evdown evaluate``: TOML files mapped onto typed dataclasses.
 
-A config file has up to eight tables; every key maps to a field below, so an unknown key, a
+A config file has up to nine tables; every key maps to a field below, so an unknown key, a
 value of the wrong type or a missing file is an error that names the problem, never a silent
 default. Keys left out take the defaults shown.
 
@@ -91,6 +91,12 @@ default. Keys left out take the defaults shown.
     [output]
     directory = "results"      # relative to the working directory
     cache = "results/cache"    # recordings, renders, frames and predictions, keyed by settings
+
+    [robustness]               # the primary comparison again with a stronger classifier
+    methods = []               # primary methods, each beside the control, exploratory
+    factor = 4                 # a primary factor, at its primary budget
+    channels = []              # the classifier's blocks for these rows ([]: model.channels)
+    epochs = 0                 # their epochs (0: training.epochs)
 """
 
 from __future__ import annotations
@@ -119,6 +125,7 @@ __all__ = [
     "MeasuresConfig",
     "ModelConfig",
     "OutputConfig",
+    "RobustnessConfig",
     "StatisticsConfig",
     "TrainingConfig",
     "load_config",
@@ -451,6 +458,37 @@ class OutputConfig:
 
 
 @dataclass(frozen=True)
+class RobustnessConfig:
+    """The primary comparison again with a stronger classifier (table ``[robustness]``).
+
+    Each of ``methods`` (primary methods) and the thinning control at ``factor`` (a primary
+    factor) and its primary budget, on the same frames and seeds as the exploratory cells,
+    trained with ``channels`` and ``epochs`` instead of ``model.channels`` and
+    ``training.epochs``: does the gain hold for a classifier that learns more?
+    """
+
+    methods: tuple[str, ...] = ()
+    factor: int | tuple[int, int] = 4
+    channels: tuple[int, ...] = ()
+    epochs: int = 0
+
+    def __post_init__(self) -> None:
+        check_factor(self.factor)
+        for c in self.channels:
+            check_positive_int("robustness.channels", c)
+        check_non_negative_int("robustness.epochs", self.epochs)
+        if self.methods and not self.channels and not self.epochs:
+            raise ValueError("robustness.methods needs a stronger classifier: set "
+                             "robustness.channels or robustness.epochs")
+
+    @property
+    def classifier(self) -> tuple[tuple[str, Any], ...]:
+        """The rows' classifier settings, as a cell's ``classifier`` pairs."""
+        return tuple((name, value) for name, value in (("channels", self.channels),
+                                                       ("epochs", self.epochs)) if value)
+
+
+@dataclass(frozen=True)
 class EvaluationConfig:
     """A whole ``evdown evaluate`` configuration.
 
@@ -462,6 +500,7 @@ class EvaluationConfig:
         statistics: the ``[statistics]`` table.
         measures: the ``[measures]`` table.
         output: the ``[output]`` table.
+        robustness: the ``[robustness]`` table.
         settings: method name -> that method's settings (keyword arguments of
             :func:`~evdown_torch.transforms.registry.make_method`).
         name: a label for the report (the config file's stem).
@@ -475,6 +514,7 @@ class EvaluationConfig:
     statistics: StatisticsConfig = field(default_factory=StatisticsConfig)
     measures: MeasuresConfig = field(default_factory=MeasuresConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    robustness: RobustnessConfig = field(default_factory=RobustnessConfig)
     name: str = "evaluation"
 
     def __post_init__(self) -> None:
@@ -490,6 +530,12 @@ class EvaluationConfig:
                 check_factor(factor, sensor)
             except ValueError as error:
                 raise ValueError(f"methods.factors: {error}") from None
+        r = self.robustness
+        if r.methods and (not set(r.methods) <= set(self.methods.primary) or check_factor(
+                r.factor) not in [check_factor(f) for f in self.methods.primary_factors]):
+            raise ValueError(
+                f"robustness.methods must be primary methods and robustness.factor a primary "
+                f"factor; got {list(r.methods)} at {r.factor!r}")
         for method, settings in self.settings.items():
             if method not in METHODS:
                 raise ValueError(
@@ -515,6 +561,7 @@ _SECTIONS = {
     "statistics": StatisticsConfig,
     "measures": MeasuresConfig,
     "output": OutputConfig,
+    "robustness": RobustnessConfig,
 }
 
 

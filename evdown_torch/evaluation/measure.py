@@ -44,7 +44,8 @@ def measure_cells(config: EvaluationConfig, source: StudyData, filled: Filled, s
         seeds = tuple(sorted(runs))
         correct = tuple(tuple(runs[s]["correct"]) for s in seeds)
         w, h, _ = cell.output_size(sensor)
-        model = classifier.model_for(config, (w, h), source.num_classes)
+        model = classifier.model_for(classifier.trained_with(config, cell), (w, h),
+                                     source.num_classes)
         n = len(test["events_out"])
         out_total, in_total = sum(test["events_out"]), sum(test["events_in"])
         fan_out = (model.stem_channels if model.stem is not None else model.channels[0] * 9)

@@ -10,7 +10,8 @@ events does not score below its random subset (the control). Everything else is
 each budgeted method at its own settings with ``native``), ``peers`` at each primary factor
 and budget, the estimators with ``max_delay = live_delay``, Tonic's ``EventDownsampling`` with
 ``tonic_peer`` (at its own rate, beside a control thinned to its output count: see
-:attr:`~evdown_torch.evaluation.cells.Cell.matches`), and the full-resolution row, on
+:attr:`~evdown_torch.evaluation.cells.Cell.matches`), the ``[robustness]`` rows (primary methods
+and their control with a stronger classifier) and the full-resolution row, on
 ``training.seeds``.
 """
 
@@ -123,6 +124,14 @@ def plan(config: EvaluationConfig) -> list[Planned]:
             for name in ESTIMATORS:
                 add(Cell(name, factor, methods.budget_at(factor),
                          settings(name, max_delay=methods.live_delay)), EXPLORATORY, explore)
+    robust = config.robustness
+    if robust.methods:
+        factor = pair(robust.factor)
+        b = methods.budget_at(factor)
+        for name in robust.methods:
+            add(Cell(name, factor, b, settings(name), classifier=robust.classifier),
+                EXPLORATORY, explore)
+        add(Cell(CONTROL, factor, b, classifier=robust.classifier), EXPLORATORY, explore)
     factors = list(dict.fromkeys(pair(f) for f in methods.all_factors))
     planned.sort(key=lambda p: (factors.index(p.cell.factor), _ORDER[p.role]))
     if methods.full_resolution:
@@ -149,7 +158,8 @@ def selection_cells(config: EvaluationConfig, planned: list[Planned]
     selection = {}
     for f in dict.fromkeys(p.cell.factor for p in planned):
         cells = [p.cell for p in planned if p.cell.factor == f]
-        controls = [c for c in cells if c.method == CONTROL]
+        controls = [c for c in cells if c.method == CONTROL and not c.classifier
+                    and c.matches is None]
         preferred = [c for c in controls if c.budget == config.methods.budget_at(f)]
         selection[f] = (preferred or controls or cells)[0]
     return selection

@@ -45,7 +45,7 @@ from evdown_torch.distributed import (
 )
 from evdown_torch.evaluation.cache import Cache
 from evdown_torch.evaluation.cells import BASELINE, CONTROL, TONIC, Cell
-from evdown_torch.evaluation.classifier import model_for
+from evdown_torch.evaluation.classifier import model_for, trained_with
 from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.plan import Planned
 
@@ -114,6 +114,7 @@ def training_seconds(config: EvaluationConfig, cell: Cell, train: int, test: int
         >>> round(training_seconds(config, Cell("event_count", (4, 4), 1.0), 132, 264), 1)
         3.6
     """
+    config = trained_with(config, cell)
     w, h, _ = cell.output_size(config.data.full_sensor_size)
     macs = model_for(config, (w, h), 11).macs_per_step(h, w) * config.data.time_bins
     return macs * (3 * train * config.training.epochs + test) / MACS_PER_SECOND

@@ -61,7 +61,7 @@ def _control(result: EvaluationResult, c: CellResult) -> CellResult | None:
     for other in result.cells:
         if other.method == CONTROL and other.factor == c.factor and (
                 other.cell.matches == c.method if other.cell.matches is not None
-                else other.budget == c.budget):
+                else other.budget == c.budget and other.cell.classifier == c.cell.classifier):
             return other
     return None
 
@@ -69,7 +69,7 @@ def _control(result: EvaluationResult, c: CellResult) -> CellResult | None:
 def _peer(result: EvaluationResult, c: CellResult) -> CellResult | None:
     peer = result.config.methods.primary_peer
     return next((o for o in result.cells if o.method == peer and o.factor == c.factor
-                 and o.budget == c.budget), None)
+                 and o.budget == c.budget and o.cell.classifier == c.cell.classifier), None)
 
 
 def noninferiority_lines(result: EvaluationResult) -> str:

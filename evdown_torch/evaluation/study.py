@@ -448,13 +448,18 @@ def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ra
         peers, [samples] * len(peers), [split] * len(peers),
         costs=[downscale_seconds(config, [peer], samples) for peer in peers]).results]
     todo += matched
-    out = _map(pool, ranks, progress, "calibration", jobs.calibrate_job, [source] * len(todo),
-               [planned[i].cell for i in todo], targets, [samples] * len(todo),
-               [split] * len(todo),
-               costs=[downscale_seconds(config, [planned[i].cell], samples) for i in todo]
-               ).results
+    # a cell trained with another classifier (robustness) has the same calibration: once
+    searches = list(dict.fromkeys(
+        (replace(planned[i].cell, classifier=()), target) for i, target in zip(todo, targets)))
+    out = dict(zip(searches, _map(
+        pool, ranks, progress, "calibration", jobs.calibrate_job, [source] * len(searches),
+        [c for c, _ in searches], [t for _, t in searches], [samples] * len(searches),
+        [split] * len(searches),
+        costs=[downscale_seconds(config, [c], samples) for c, _ in searches]).results))
     cells, found = list(planned), {}
-    for i, (cell, search) in zip(todo, out):
+    for i, target in zip(todo, targets):
+        cell, search = out[(replace(planned[i].cell, classifier=()), target)]
+        cell = replace(cell, classifier=planned[i].cell.classifier)
         cells[i], found[cell] = replace(planned[i], cell=cell), search
     where = "held-out" if split != "train" else "training"
     progress(f"calibrated {len(todo)} budgeted or matched cells on {samples} {where} "

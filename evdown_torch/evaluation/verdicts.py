@@ -85,11 +85,14 @@ def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
         return compare(pairs, primary=primary, resamples=st.resamples, seed=st.seed,
                        paired=[a.seeds == b.seeds for a, b in cells], **options)
 
+    def at(r: CellResult) -> tuple:  # where a cell stands: factor, budget, classifier
+        return r.factor, r.budget, r.cell.classifier
+
     def first(method: str) -> dict[tuple, CellResult]:
         found: dict[tuple, CellResult] = {}
         for r in results:
-            if r.method == method and r.cell.matches is None and (r.factor, r.budget) not in found:
-                found[(r.factor, r.budget)] = r
+            if r.method == method and r.cell.matches is None and at(r) not in found:
+                found[at(r)] = r
         return found
 
     controls = first(CONTROL)
@@ -97,13 +100,13 @@ def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
     peers = first(m.primary_peer) if m.primary_peer else {}
     out = list(results)
     # (cell's index, its reference, which comparison it fills)
-    family = [(i, references[(r.factor, r.budget)], which) for i, r in enumerate(results)
+    family = [(i, references[at(r)], which) for i, r in enumerate(results)
               if r.role == PRIMARY
               for references, which in ((controls, "comparison"), (peers, "peer_comparison"))
-              if (r.factor, r.budget) in references]
-    others = [(i, controls[(r.factor, r.budget)], "comparison") for i, r in enumerate(results)
+              if at(r) in references]
+    others = [(i, controls[at(r)], "comparison") for i, r in enumerate(results)
               if r.role == EXPLORATORY and r.budget is not None and r.method != CONTROL
-              and (r.factor, r.budget) in controls]
+              and at(r) in controls]
     others += [(i, matched[(r.method, r.factor)], "comparison") for i, r in enumerate(results)
                if (r.method, r.factor) in matched]
     for group, primary in ((family, True), (others, False)):
@@ -113,7 +116,7 @@ def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
                       else replace(out[i], peer_comparison=k))
     sanity = {}
     for i, r in enumerate(results):
-        control = controls.get((r.factor, m.budget_at(r.factor)))
+        control = controls.get((r.factor, m.budget_at(r.factor), ()))
         if r.role == SANITY and control is not None:
             if folds:
                 (sanity[r.factor],) = run([(control, r)], True)
@@ -125,7 +128,8 @@ def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
     verdicts: dict[tuple[int, int], Comparison] = {}
     if m.noninferiority:
         tested, reference = (first(name) for name in m.noninferiority)
-        keys = [key for key in tested if key in reference and key[1] == m.budget_at(key[0])]
+        keys = [key for key in tested if key in reference and key[1] == m.budget_at(key[0])
+                and not key[2]]  # the study's own classifier
         found = run([(tested[key], reference[key]) for key in keys], False)
         checked = noninferiority(found, margin=m.noninferiority_margin, alpha=st.alpha,
                                  splits=len(config.data.fold_units) if folds else None)
