@@ -43,6 +43,8 @@ class Streaming:
     for bases and compositions, which say ``abstract=True`` in their class statement.
     """
 
+    #: Every transform is a frozen dataclass whose fields are its settings as given.
+    __dataclass_fields__: ClassVar[dict[str, Any]]
     sensor_size: tuple[int, int, int] | None
     #: The method's kernels, or ``None`` for an abstract base or a composition such as
     #: :class:`Chain`.
@@ -50,6 +52,10 @@ class Streaming:
     #: The method's name in the registry (``transforms.registry.METHODS``), the command line
     #: and the study's configs; empty for a transform outside the registry.
     name: ClassVar[str] = ""
+    #: Fields kept as given, and fields that stay ``None`` when left out, rather than taking
+    #: the settings' normalised values and defaults (the copy-back of ``__post_init__``).
+    as_given: ClassVar[tuple[str, ...]] = ()
+    none_stays_none: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, abstract: bool = False, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -59,6 +65,18 @@ class Streaming:
             raise TypeError(f"{cls.__name__} names no method: set `method = <its bundle>`")
         if cls.settings is Streaming.settings:
             raise TypeError(f"{cls.__name__} has no settings: define its `settings` property")
+
+    def __post_init__(self) -> None:
+        """Check every setting once (:attr:`settings`); fields take its normalised values.
+
+        A list ``sensor_size`` becomes a tuple; :attr:`as_given` fields, and a ``None`` in
+        :attr:`none_stays_none`, stay as given.
+        """
+        settings = self.settings
+        for name in (field.name for field in fields(self) if hasattr(settings, field.name)):
+            if name not in self.as_given and not (name in self.none_stays_none
+                                                  and getattr(self, name) is None):
+                object.__setattr__(self, name, getattr(settings, name))
 
     @property
     def settings(self) -> Any:
@@ -344,20 +362,10 @@ class Downscaler(Streaming, abstract=True):
     #: The one setting that sets the output's event budget (see ``transforms.calibrate``);
     #: ``None`` for methods whose output count is fixed by the input.
     budget_setting: ClassVar[str | None] = None
-    #: Fields that stay ``None`` when left out, whatever default the settings fill in.
-    none_stays_none: ClassVar[tuple[str, ...]] = ()
+    as_given = ("factor",)
 
     sensor_size: tuple[int, int, int]
     factor: int | tuple[int, int] = 2
-
-    def __post_init__(self) -> None:
-        settings = self.settings  # checks every setting, once
-        for field in fields(self):  # the normalised values back (the factor stays as given)
-            if field.name == "factor" or (field.name in self.none_stays_none
-                                           and getattr(self, field.name) is None):
-                continue
-            if hasattr(settings, field.name):
-                object.__setattr__(self, field.name, getattr(settings, field.name))
 
     def region_geometry(self) -> tuple[tuple[int, int, int], tuple[int, int]]:
         """The checked ``(sensor_size, (fx, fy))`` every region method's settings start with."""

@@ -56,10 +56,6 @@ class RateLimiter(Streaming):
     method = RATE_LIMIT
     name = "rate_limit"
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "sensor_size", self.settings.sensor_size)
-        object.__setattr__(self, "max_events", self.settings.max_events)
-
     @cached_property
     def settings(self) -> RateLimitSettings:
         """The checked settings the kernels take (built once, in ``__post_init__``)."""

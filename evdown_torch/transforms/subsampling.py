@@ -39,15 +39,16 @@ class DensitySubsampling(Downscaler):
         seed: non-negative integer mixed into every draw.
 
     Example:
+        A burst of 100 events at one pixel, and 16 lone events 1 ms apart along row 12: at
+        ``s = 0.05`` nearly all the burst is kept and nearly none of the lone events.
+
         >>> import torch
-        >>> g = torch.Generator().manual_seed(0)
-        >>> ev = torch.stack([torch.randint(0, 16, (2000,), generator=g),
-        ...                   torch.randint(0, 16, (2000,), generator=g), torch.arange(2000) * 50,
-        ...                   torch.randint(0, 2, (2000,), generator=g)], 1)
-        >>> sub = DensitySubsampling((16, 16, 2), factor=2, s=0.05)
-        >>> out = sub(ev)
-        >>> 0 < len(out) < 2000, bool(out.equal(sub(ev))), int(out[:, 0].max()) < 8
-        (True, True, True)
+        >>> burst = [[5, 5, t, 1] for t in range(0, 200, 2)]
+        >>> lone = [[x, 12, 1000 * x, 1] for x in range(16)]
+        >>> sub = DensitySubsampling((16, 16, 2), factor=2, tau=1000, s=0.05)
+        >>> out = sub(torch.tensor(burst + lone))
+        >>> int((out[:, 1] == 2).sum()), int((out[:, 1] == 6).sum())  # burst, lone (y // 2)
+        (93, 1)
     """
 
     budget_setting = "s"
@@ -85,14 +86,16 @@ class PoissonSubsampling(Downscaler):
         seed: non-negative integer mixed into every draw.
 
     Example:
+        At ``alpha = 0.25`` at most a quarter of 400 events are kept, and a session fed the
+        stream in two chunks keeps the same ones:
+
         >>> import torch
-        >>> g = torch.Generator().manual_seed(0)
-        >>> ev = torch.stack([torch.randint(0, 16, (2000,), generator=g),
-        ...                   torch.randint(0, 16, (2000,), generator=g), torch.arange(2000) * 50,
-        ...                   torch.randint(0, 2, (2000,), generator=g)], 1)
-        >>> out = PoissonSubsampling((16, 16, 2), factor=2, alpha=0.1)(ev)
-        >>> 0 < len(out) <= 200
-        True
+        >>> ev = torch.tensor([[t % 4, 0, t * 100, 1] for t in range(400)])
+        >>> sub = PoissonSubsampling((4, 1, 2), factor=1, window=1000, alpha=0.25)
+        >>> out = sub(ev)
+        >>> session = sub.session()
+        >>> len(out) <= 100, bool(torch.cat([session(ev[:150]), session(ev[150:])]).equal(out))
+        (True, True)
     """
 
     budget_setting = "alpha"

@@ -45,9 +45,6 @@ class TemporalFunnelling(Streaming):
     method = TEMPORAL_FUNNELLING
     name = "temporal"
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "sensor_size", self.settings.sensor_size)
-
     @cached_property
     def settings(self) -> TemporalSettings:
         """The checked settings the kernels take (built once, in ``__post_init__``)."""

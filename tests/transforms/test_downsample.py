@@ -218,3 +218,14 @@ def test_funnelling_output_never_shares_memory_with_the_input():
         for a, b in zip(out, ev):
             assert torch.equal(a, b)
             assert a.data_ptr() != b.data_ptr()
+
+
+def test_to_regions_keeps_the_given_order_in_new_tensors():
+    from evdown_torch.transforms.functional.downsample import to_regions
+
+    ev = Events.from_columns([5, 0, 9], [6, 1, 0], [30, 10, 20], [1, 0, 1])  # not time-sorted
+    out = to_regions(ev, (3, 2))
+    assert list(zip(*(column.tolist() for column in out))) == [
+        (1, 3, 30, True), (0, 0, 10, False), (3, 0, 20, True)]
+    for a, b in zip(out, ev):
+        assert a.data_ptr() != b.data_ptr()

@@ -46,7 +46,6 @@ from evdown_torch._tensors import (
     changes,
     chunk_bounds,
     last_of_runs,
-    region_of,
     run_index,
     searchsorted_ascending,
     stable_sort_small,
@@ -60,6 +59,7 @@ from evdown_torch.checks import (
     check_time_constant,
 )
 from evdown_torch.events import Events, sort_by_time
+from evdown_torch.transforms.functional.downsample import to_regions
 from evdown_torch.transforms.functional.draws import event_uniforms
 from evdown_torch.transforms.functional.protocol import Method, step_in_pieces
 from evdown_torch.transforms.functional.settings import RegionSettings
@@ -295,7 +295,7 @@ def event_density(
         ...                                     k=1).tolist()]
         [1.0, 1.3679]
     """
-    settings = DensitySettings(sensor_size, 1, tau, k)  # type: ignore[arg-type]
+    settings = DensitySettings(sensor_size, (1, 1), tau, k)  # the density needs no factor
     events = sort_by_time(events)
     if events.num_events == 0:
         return torch.empty(0, dtype=torch.float64, device=events.device)
@@ -337,8 +337,7 @@ def _kept(events: Events, density: Tensor, settings: DensitySettings, seen: int,
     index = torch.arange(seen, seen + events.num_events, device=events.device)
     draws = event_uniforms(events, settings.seed, index=index, origin=origin)
     kept = events.select(draws < density.mul_(settings.s))
-    x, y = region_of(kept, settings.factor)
-    return Events(x, y, kept.t.clone(), kept.p.clone())
+    return to_regions(kept, settings.factor)
 
 
 def _step_sorted(
@@ -355,10 +354,10 @@ def density_step(
 ) -> tuple[Events, DensityState]:
     """DensitySubsampling's ``step``: one time-sorted chunk, every event decided by it.
 
-    A long chunk goes through in pieces (:func:`.protocol.step_in_pieces`), as a
-    session would feed it.
+    Each pixel's decayed count and last time carry over in the state; a long chunk goes
+    through in pieces (:func:`.protocol.step_in_pieces`), as a session would feed it.
     """
-    return step_in_pieces(events, state, lambda piece, s: _step_sorted(piece, s, settings))
+    return step_in_pieces(events, state, settings, _step_sorted)
 
 
 def density_whole(events: Events, settings: DensitySettings) -> Events:

@@ -18,6 +18,7 @@ __all__ = [
     "downsample_stacked",
     "downsample_step",
     "downsample_whole",
+    "to_regions",
 ]
 
 #: How Downsample's output gets under the output limit: it keeps every event it is given.
@@ -40,7 +41,20 @@ def downsample(events: Events, *, factor: tuple[int, int]) -> Events:
         >>> out.x.tolist(), out.y.tolist(), out.t.tolist()
         ([1, 2, 0], [0, 1, 0], [10, 20, 30])
     """
-    events = sort_by_time(events)
+    return to_regions(sort_by_time(events), factor)
+
+
+def to_regions(events: Events, factor: tuple[int, int]) -> Events:
+    """Every event moved to its region ``(x // fx, y // fy)``, in the given order.
+
+    What Downsample does to events in time order, and what every method that keeps input
+    events (the subsamplers, Tonic's filters) does to those it keeps. Every column of the
+    result is a new tensor.
+
+    Example:
+        >>> to_regions(Events.from_columns([0, 3], [5, 1], [7, 2], [1, 0]), (2, 2)).x.tolist()
+        [0, 1]
+    """
     x, y = region_of(events, factor)
     return Events(x, y, events.t.clone(), events.p.clone())
 
@@ -63,8 +77,7 @@ def downsample_step(
         from evdown_torch.transforms.functional.compiled import downsample as compiled
 
         return compiled.downsample_step(events, settings), None
-    x, y = region_of(events, settings.factor)
-    return Events(x, y, events.t.clone(), events.p.clone()), None
+    return to_regions(events, settings.factor), None
 
 
 def downsample_whole(events: Events, settings: RegionSettings) -> Events:
@@ -84,8 +97,7 @@ def downsample_stacked(batch: EventBatch, settings: RegionSettings) -> EventBatc
     events = batch.events
     if sorted_within(events.t, batch.lengths):
         check_output_count(events.num_events, fewer=KEEPS_EVERY_EVENT)
-        x, y = region_of(events, settings.factor)
-        return EventBatch(Events(x, y, events.t.clone(), events.p.clone()), batch.lengths)
+        return EventBatch(to_regions(events, settings.factor), batch.lengths)
 
     def kernel(stacked: Stacked) -> Events:
         return downsample_whole(stacked.events, settings)

@@ -19,6 +19,7 @@ from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.batch import Stacked, run_stacked, sorted_within
 from evdown_torch.transforms.functional.compiled import use_compiled
+from evdown_torch.transforms.functional.downsample import to_regions
 from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings
 
@@ -240,9 +241,7 @@ def funnelling_sorted(
         if out is not None:
             return out
     if events.num_events == 0:
-        fx, fy = factor
-        return Events(divide(events.x, fx), divide(events.y, fy), events.t.clone(),
-                      events.p.clone())
+        return to_regions(events, factor)
     x, y, repeat = _repeats(events, factor, seen=seen, size=size)
     return _kept(events, x, y, repeat)
 

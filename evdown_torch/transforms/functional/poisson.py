@@ -40,12 +40,12 @@ from torch import Tensor
 
 from evdown_torch._tensors import (
     divide,
-    region_of,
     searchsorted_ascending,
     take,
 )
 from evdown_torch.checks import check_non_negative_int, check_positive_float
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.downsample import to_regions
 from evdown_torch.transforms.functional.draws import event_uniforms
 from evdown_torch.transforms.functional.protocol import Method, run_protocol, step_in_pieces
 from evdown_torch.transforms.functional.settings import RegionSettings
@@ -275,13 +275,12 @@ def _step_sorted(
     draws = event_uniforms(events, settings.seed, index=index, origin=state.origin)
     keep = _capped(draws < probability, state.seen, state.kept, settings.alpha_fraction)
     kept = events.select(keep)
-    x, y = region_of(kept, settings.factor)
     # The entries of the last window and the one before it carry over.
     entry_window = take(distinct, divide(search, planes))
     recent = entry_window >= window[-1] - 1
     new_state = PoissonState(state.origin, state.seen + n, state.kept + kept.num_events,
                              entry_window[recent], (search % planes)[recent], total[recent])
-    return Events(x, y, kept.t.clone(), kept.p.clone()), new_state
+    return to_regions(kept, settings.factor), new_state
 
 
 def poisson_init(settings: PoissonSettings, events: Events) -> PoissonState:
@@ -295,10 +294,10 @@ def poisson_step(
 ) -> tuple[Events, PoissonState]:
     """PoissonSubsampling's ``step``: one time-sorted chunk, every event decided by it.
 
-    A long chunk goes through in pieces (:func:`.protocol.step_in_pieces`), as a
-    session would feed it.
+    The counts of the last two windows and the cap's tallies carry over in the state; a long
+    chunk goes through in pieces (:func:`.protocol.step_in_pieces`).
     """
-    return step_in_pieces(events, state, lambda piece, s: _step_sorted(piece, s, settings))
+    return step_in_pieces(events, state, settings, _step_sorted)
 
 
 def poisson_subsampling(

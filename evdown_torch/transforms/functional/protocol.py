@@ -112,7 +112,7 @@ def run_protocol(method: Method[S, Any], settings: S, events: Events) -> Events:
 
 
 def step_in_pieces(
-    events: Events, state: St, step: Callable[[Events, St], tuple[Events, St]]
+    events: Events, state: St, settings: S, step: Callable[[Events, St, S], tuple[Events, St]]
 ) -> tuple[Events, St]:
     """``step`` over the pieces of ``chunk_bounds`` of a time-sorted chunk, state carried.
 
@@ -122,6 +122,6 @@ def step_in_pieces(
     outputs = []
     bounds = chunk_bounds(events.t)
     for start, stop in zip(bounds[:-1], bounds[1:]):
-        out, state = step(events.part(start, stop), state)
+        out, state = step(events.part(start, stop), state, settings)
         outputs.append(out)
     return (outputs[0] if len(outputs) == 1 else Events.cat(outputs)), state

@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from evdown_torch._tensors import region_of
 from evdown_torch.checks import check_positive_float
 from evdown_torch.events import Events, sort_by_time
+from evdown_torch.transforms.functional.downsample import to_regions
 from evdown_torch.transforms.functional.protocol import Method
 from evdown_torch.transforms.functional.settings import RegionSettings
 
@@ -68,8 +68,7 @@ def _through_tonic(events: Events, run: Any, factor: tuple[int, int]) -> Events:
     kept = run(records)
     index = np.asarray(kept["i"] if len(kept) else np.empty(0), dtype=np.int64)
     chosen = events.select(torch.from_numpy(np.sort(index)).to(events.device))
-    x, y = region_of(chosen, factor)
-    return Events(x, y, chosen.t.clone(), chosen.p.clone())
+    return to_regions(chosen, factor)
 
 
 @dataclass(frozen=True)
