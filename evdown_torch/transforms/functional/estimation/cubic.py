@@ -5,16 +5,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import CHUNK_EVENTS, run_index, segmented_cumsum, take, where_true
-from evdown_torch.transforms.functional.estimation.knots import (
-    Knots,
-    level_changes,
-    piece_time,
-    region_pixels,
-)
+from evdown_torch._tensors import CHUNK_EVENTS, run_index, take, where_true
+from evdown_torch.transforms.functional.estimation.knots import Knots, piece_time, region_pixels
 from evdown_torch.transforms.functional.estimation.solver import (
     CurveCrossings,
     RegionJob,
+    breakpoint_levels,
     resume_moves,
 )
 from evdown_torch.transforms.functional.reference import level_index, level_value, move_crossings
@@ -355,10 +351,7 @@ def cubic_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     nb = knots.bp_t.shape[0]
     bp_first = knots.bp_first
     bp_first_at = where_true(bp_first)
-    whole = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
-        0, knots.breakpoint, level_changes(knots)
-    )
-    whole = segmented_cumsum(whole, bp_first_at, run_index(bp_first))
+    whole = breakpoint_levels(knots, bp_first_at, run_index(bp_first))
     part, derivative = _mid_segment_sums(knots, slope, width, rise)
     derivative.scatter_add_(0, knots.breakpoint, slope)
     del slope, width, rise

@@ -7,23 +7,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import (
-    differences,
-    last_of_runs,
-    run_index,
-    segmented_cumsum,
-    take,
-    where_true,
-)
-from evdown_torch.transforms.functional.estimation.knots import (
-    Knots,
-    level_changes,
-    piece_time,
-    region_pixels,
-)
+from evdown_torch._tensors import differences, last_of_runs, run_index, take, where_true
+from evdown_torch.transforms.functional.estimation.knots import Knots, piece_time, region_pixels
 from evdown_torch.transforms.functional.estimation.solver import (
     CurveCrossings,
     RegionJob,
+    breakpoint_levels,
     resume_moves,
 )
 from evdown_torch.transforms.functional.reference import level_index, level_value, move_crossings
@@ -184,10 +173,7 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     high = high_f.to(torch.int64)
     del high_f, slope, knot_scale
 
-    # Per breakpoint: level change (exact), slope-sum change (fixed point + rest), knot count.
-    level_bp = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
-        0, bp, level_changes(knots)
-    )
+    # Per breakpoint: slope-sum change (fixed point + rest), knot count.
     high_bp = torch.zeros(nb, dtype=torch.int64, device=device).index_add_(
         0, bp, differences(high, first_at)
     )
@@ -196,13 +182,13 @@ def linear_regions(knots: Knots, job: RegionJob) -> CurveCrossings:
     )
     count = torch.bincount(bp, minlength=nb)
     del high, low, first_at, bp
-    whole = segmented_cumsum(level_bp, bp_first_at, region)  # exact integer part of n_r * M_r
+    whole = breakpoint_levels(knots, bp_first_at, region)  # exact integer part of n_r * M_r
     # Each region's high parts add up to exactly 0 (every pixel's slope returns to 0 at its
     # last knot), so their plain cumulative sum restarts exactly at each region.
     slope_sum = torch.cumsum(high_bp, 0).to(torch.float64).div_(take(scale, region))
     rows = segment_rows(bp_first_at, nb, region)  # for both float sums
     slope_sum += rows_cumsum(low_bp, rows)
-    del level_bp, high_bp, low_bp
+    del high_bp, low_bp
     # No pixel strictly inside a segment (all active pixels have a knot): remainder exactly 0.
     idle = count == take(take(count, bp_first_at), region)
     del count

@@ -4,6 +4,7 @@ The driver (:mod:`.driver`) hands each chunk of regions' :class:`~.knots.Knots` 
 :class:`RegionJob` to the curve's solver (:func:`.linear.linear_regions` or
 :func:`.cubic.cubic_regions`), which returns its :class:`CurveCrossings`; in a bounded-delay
 session (:mod:`.stream`) the job carries a :class:`Resume`, which :func:`resume_moves` applies.
+Both solvers start from :func:`breakpoint_levels`, the exact part of the regions' curves.
 """
 
 from __future__ import annotations
@@ -15,10 +16,17 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import run_index, take, where_true
-from evdown_torch.transforms.functional.estimation.knots import Knots
+from evdown_torch._tensors import run_index, segmented_cumsum, take, where_true
+from evdown_torch.transforms.functional.estimation.knots import Knots, level_changes
 
-__all__ = ["CurveCrossings", "RegionJob", "RegionSolver", "Resume", "resume_moves"]
+__all__ = [
+    "CurveCrossings",
+    "RegionJob",
+    "RegionSolver",
+    "Resume",
+    "breakpoint_levels",
+    "resume_moves",
+]
 
 
 class Resume(NamedTuple):
@@ -89,6 +97,26 @@ def resume_moves(
     floor_u[at] = take(floor_u, source)
     on_level[at] = take(on_level, source)
     return floor_u, on_level, q_start
+
+
+def breakpoint_levels(knots: Knots, bp_first_at: Tensor, region: Tensor) -> Tensor:
+    """``(B,)`` int64 exact integer part of ``n_r * M_r`` at every breakpoint.
+
+    The sum of the levels of the latest knots of the region's pixels: each knot's level change
+    (:func:`~.knots.level_changes`) added at its breakpoint, summed along the region's
+    breakpoints. What the curves add between knots (the pixels strictly inside a segment) is
+    each solver's own.
+
+    Args:
+        knots: one chunk of regions' :class:`Knots`.
+        bp_first_at: ``(R,)`` int64 first breakpoint of each region (``where_true`` of
+            ``knots.bp_first``).
+        region: ``(B,)`` int64 rank of each breakpoint's region in the chunk
+            (``run_index`` of ``knots.bp_first``).
+    """
+    changes = torch.zeros(knots.bp_t.shape[0], dtype=torch.int64, device=knots.t.device)
+    changes.index_add_(0, knots.breakpoint, level_changes(knots))
+    return segmented_cumsum(changes, bp_first_at, region)
 
 
 class RegionJob(NamedTuple):
