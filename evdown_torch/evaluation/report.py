@@ -13,6 +13,7 @@ from evdown_torch.evaluation.figure import pareto_front, plot_tradeoff
 from evdown_torch.evaluation.plan import CONTROL_ROLE, PRIMARY, SANITY, pair
 from evdown_torch.evaluation.statistics import dunnett_seeds
 from evdown_torch.evaluation.study import CellResult, EvaluationResult
+from evdown_torch.evaluation.verdicts import control_of
 from evdown_torch.transforms.registry import METHODS
 
 __all__ = [
@@ -54,16 +55,6 @@ def _setting(c: CellResult) -> str:
 def _factor(c: CellResult) -> str:
     f = c.factor
     return str(f[0]) if f[0] == f[1] else f"{f[0]}x{f[1]}"
-
-
-def _control(result: EvaluationResult, c: CellResult) -> CellResult | None:
-    """The control ``c`` is compared with: at its factor and budget, or matched to it."""
-    for other in result.cells:
-        if other.method == CONTROL and other.factor == c.factor and (
-                other.cell.matches == c.method if other.cell.matches is not None
-                else other.budget == c.budget and other.cell.classifier == c.cell.classifier):
-            return other
-    return None
 
 
 def _peer(result: EvaluationResult, c: CellResult) -> CellResult | None:
@@ -109,7 +100,7 @@ def _plural(count: int, noun: str) -> str:
 def _csv_rows(result: EvaluationResult) -> list[dict[str, str]]:
     rows = []
     for c in result.cells:
-        control = _control(result, c)
+        control = control_of(result.cells, c)
         k, peer = c.comparison, c.peer_comparison
         rows.append({
             "method": c.cell.name, "role": c.role, "factor_x": str(c.factor[0]),
@@ -196,8 +187,9 @@ def primary_table(result: EvaluationResult) -> str:
     lines = ["| method | factor | accuracy | reference | difference [95% CI] | p (Holm) | "
              "seeds | detectable at 80 % |",
              "|---|---|---|---|---|---|---|---|"]
-    for c, k, control in [(c, c.comparison, _control(result, c)) for c in result.primary()] + [
-            (c, c.peer_comparison, _peer(result, c)) for c in result.primary()]:
+    primary = result.primary()
+    for c, k, control in [(c, c.comparison, control_of(result.cells, c)) for c in primary] + [
+            (c, c.peer_comparison, _peer(result, c)) for c in primary]:
         if k is None or control is None:
             continue
         seeds = (f"paired ({len(c.seeds)})" if k.paired
@@ -225,7 +217,7 @@ def markdown_table(result: EvaluationResult) -> str:
     margin = result.config.methods.equivalence_margin
     alpha = result.config.statistics.alpha
     for c in result.cells:
-        control = _control(result, c)
+        control = control_of(result.cells, c)
         k = c.comparison
         versus = "–" if k is None else f"{k.difference:+.3f} {_ci(*k.interval)}"
         if c.role == SANITY and k is not None:

@@ -449,16 +449,16 @@ def _calibrate(config: EvaluationConfig, source: StudyData, pool: Any, ranks: Ra
         costs=[downscale_seconds(config, [peer], samples) for peer in peers]).results]
     todo += matched
     # a cell trained with another classifier (robustness) has the same calibration: once
-    searches = list(dict.fromkeys(
-        (replace(planned[i].cell, classifier=()), target) for i, target in zip(todo, targets)))
+    bases = [(replace(planned[i].cell, classifier=()), target) for i, target in zip(todo, targets)]
+    searches = list(dict.fromkeys(bases))
     out = dict(zip(searches, _map(
         pool, ranks, progress, "calibration", jobs.calibrate_job, [source] * len(searches),
         [c for c, _ in searches], [t for _, t in searches], [samples] * len(searches),
         [split] * len(searches),
         costs=[downscale_seconds(config, [c], samples) for c, _ in searches]).results))
     cells, found = list(planned), {}
-    for i, target in zip(todo, targets):
-        cell, search = out[(replace(planned[i].cell, classifier=()), target)]
+    for i, base in zip(todo, bases):
+        cell, search = out[base]
         cell = replace(cell, classifier=planned[i].cell.classifier)
         cells[i], found[cell] = replace(planned[i], cell=cell), search
     where = "held-out" if split != "train" else "training"

@@ -12,6 +12,7 @@ cell under cross-validation) the seeds are paired too.
 from __future__ import annotations
 
 import statistics
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -30,7 +31,7 @@ from evdown_torch.evaluation.config import EvaluationConfig
 from evdown_torch.evaluation.plan import EXPLORATORY, PRIMARY, SANITY
 from evdown_torch.evaluation.results import CellResult
 
-__all__ = ["compare_cells", "split_accuracies"]
+__all__ = ["compare_cells", "control_of", "split_accuracies"]
 
 
 def split_accuracies(cell: CellResult, config: EvaluationConfig) -> Tensor:
@@ -49,6 +50,26 @@ def split_accuracies(cell: CellResult, config: EvaluationConfig) -> Tensor:
         raise ValueError(f"{cell.cell.label} lacks the (repeat, fold) unit(s) {missing}")
     return torch.tensor([statistics.fmean(per_split[u]) for u in config.data.fold_units],
                         dtype=torch.float64)
+
+
+def _standing(cell: CellResult) -> tuple:
+    """Where a cell stands: its factor, budget and classifier."""
+    return cell.factor, cell.budget, cell.cell.classifier
+
+
+def control_of(cells: Sequence[CellResult], cell: CellResult) -> CellResult | None:
+    """The control ``cell`` is compared with: the first of ``cells`` that fits.
+
+    The control matched to ``cell``'s method at its factor
+    (:attr:`~evdown_torch.evaluation.cells.Cell.matches`), else a control at its factor,
+    budget and classifier (a control is its own); ``None`` if there is none.
+    """
+    for other in cells:
+        if other.method == CONTROL and other.factor == cell.factor and (
+                other.cell.matches == cell.method if other.cell.matches is not None
+                else _standing(other) == _standing(cell)):
+            return other
+    return None
 
 
 def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
@@ -85,30 +106,24 @@ def compare_cells(results: list[CellResult], config: EvaluationConfig) -> tuple[
         return compare(pairs, primary=primary, resamples=st.resamples, seed=st.seed,
                        paired=[a.seeds == b.seeds for a, b in cells], **options)
 
-    def at(r: CellResult) -> tuple:  # where a cell stands: factor, budget, classifier
-        return r.factor, r.budget, r.cell.classifier
-
     def first(method: str) -> dict[tuple, CellResult]:
         found: dict[tuple, CellResult] = {}
         for r in results:
-            if r.method == method and r.cell.matches is None and at(r) not in found:
-                found[at(r)] = r
+            if r.method == method and r.cell.matches is None and _standing(r) not in found:
+                found[_standing(r)] = r
         return found
 
     controls = first(CONTROL)
-    matched = {(r.cell.matches, r.factor): r for r in results if r.cell.matches is not None}
     peers = first(m.primary_peer) if m.primary_peer else {}
     out = list(results)
     # (cell's index, its reference, which comparison it fills)
-    family = [(i, references[at(r)], which) for i, r in enumerate(results)
+    family = [(i, references[_standing(r)], which) for i, r in enumerate(results)
               if r.role == PRIMARY
               for references, which in ((controls, "comparison"), (peers, "peer_comparison"))
-              if at(r) in references]
-    others = [(i, controls[at(r)], "comparison") for i, r in enumerate(results)
-              if r.role == EXPLORATORY and r.budget is not None and r.method != CONTROL
-              and at(r) in controls]
-    others += [(i, matched[(r.method, r.factor)], "comparison") for i, r in enumerate(results)
-               if (r.method, r.factor) in matched]
+              if _standing(r) in references]
+    others = [(i, control, "comparison") for i, r in enumerate(results)
+              if r.role == EXPLORATORY and r.method != CONTROL
+              and (control := control_of(results, r)) is not None]
     for group, primary in ((family, True), (others, False)):
         found = run([(results[i], reference) for i, reference, _ in group], primary)
         for (i, _, which), k in zip(group, found):
