@@ -34,7 +34,8 @@ import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, NamedTuple, cast
+from types import ModuleType
+from typing import TYPE_CHECKING, Literal, NamedTuple, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -43,6 +44,9 @@ from torch import Tensor
 
 from evdown_torch._tensors import time_order, where_true
 from evdown_torch.checks import check_has_values, swapped_sensor_hint
+
+if TYPE_CHECKING:
+    from evdown_torch.transforms.functional.compiled.columns import ColumnFacts
 
 __all__ = [
     "DVS_DTYPE",
@@ -267,16 +271,25 @@ def _check_integral(name: str, column: Tensor) -> None:
         raise ValueError(f"event coordinate {name} must hold whole numbers")
 
 
-def _validate(events: Events, sensor_size: tuple[int, int, int] | None) -> None:
-    """Check timestamps are finite and coordinates lie inside the sensor."""
+def _validate(
+    events: Events, sensor_size: tuple[int, int, int] | None, facts: ColumnFacts | None = None
+) -> None:
+    """Check timestamps are finite and coordinates lie inside the sensor.
+
+    ``facts``: what the compiled reading of a structured array learnt of the same columns
+    (:func:`_from_structured`), which spares the passes that would learn it again.
+    """
     if events.num_events == 0:
         return
-    if events.t.is_floating_point() and not bool(torch.isfinite(events.t).all()):
+    finite = facts.t_finite if facts is not None else not events.t.is_floating_point() or bool(
+        torch.isfinite(events.t).all())
+    if not finite:
         raise ValueError("event timestamps t must be finite, got NaN or infinite values")
     if sensor_size is None:
         return
     w, h, _ = sensor_size
-    ranges = [(int(lo), int(hi)) for lo, hi in (torch.aminmax(events.x), torch.aminmax(events.y))]
+    ranges = [facts.x_range, facts.y_range] if facts is not None else [
+        (int(lo), int(hi)) for lo, hi in (torch.aminmax(events.x), torch.aminmax(events.y))]
     for name, (lo, hi), size in zip("xy", ranges, (w, h)):
         if lo < 0 or hi >= size:
             hint = "" if lo < 0 else swapped_sensor_hint((ranges[0][1] + 1, ranges[1][1] + 1),
@@ -287,7 +300,22 @@ def _validate(events: Events, sensor_size: tuple[int, int, int] | None) -> None:
             )
 
 
-def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat]:
+def _column_loops(dtype: np.dtype | None) -> ModuleType | None:
+    """The compiled reading and writing of structured arrays of ``dtype``, where they run.
+
+    On the CPU path of :func:`~evdown_torch.kernel_path` (Numba installed, eager kernels not
+    forced) and for fields the loops take; ``None`` elsewhere (NumPy's copies run).
+    """
+    from evdown_torch.transforms.functional.compiled import kernel_path
+
+    if dtype is None or kernel_path("cpu") != "compiled":
+        return None
+    from evdown_torch.transforms.functional.compiled import columns
+
+    return columns if columns.compiled_fields(dtype) else None
+
+
+def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat, ColumnFacts | None]:
     names = data.dtype.names or ()
     missing = [f for f in FIELDS if f not in names]
     if missing:
@@ -312,6 +340,16 @@ def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat]:
     if not (kinds["p"] == np.bool_ or np.issubdtype(kinds["p"], np.number)):
         raise TypeError(f"event field p must be bool, integer or float, got {kinds['p']}")
     t_dtype = np.float64 if np.issubdtype(kinds["t"], np.floating) else np.int64
+    loops = _column_loops(data.dtype)
+    if loops is not None:  # one compiled pass: the columns and what the checks need
+        (x, y, t_values, p), facts = loops.read_columns(data, t_dtype)
+        t = torch.from_numpy(t_values)
+        _warn_if_time_lost_precision(t, kinds["t"].name)
+        encoding = _polarity_encoding_of(facts) if kinds["p"] != np.bool_ else "bool"
+        if encoding is None:  # the checks' own error, from the values
+            encoding = _polarity_encoding(torch.from_numpy(np.array(data["p"])))
+        events = Events(torch.from_numpy(x), torch.from_numpy(y), t, torch.from_numpy(p))
+        return events, EventFormat("numpy", data.dtype, encoding, torch.device("cpu")), facts
     t = torch.from_numpy(np.array(data["t"], dtype=t_dtype))  # always a copy
     _warn_if_time_lost_precision(t, kinds["t"].name)
     p_raw = torch.from_numpy(np.array(data["p"]))
@@ -323,7 +361,14 @@ def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat]:
         t,
         p,
     )
-    return events, EventFormat("numpy", data.dtype, encoding, torch.device("cpu"))
+    return events, EventFormat("numpy", data.dtype, encoding, torch.device("cpu")), None
+
+
+def _polarity_encoding_of(facts: ColumnFacts) -> Literal["binary", "signed"] | None:
+    """:func:`_polarity_encoding` of a numeric field from its facts; ``None`` for bad values."""
+    if facts.p_negative:
+        return "signed" if facts.p_signed else None
+    return "binary" if facts.p_binary else None
 
 
 def _from_tensor(data: Tensor) -> tuple[Events, EventFormat]:
@@ -417,10 +462,11 @@ def to_events(
         >>> events.x.tolist(), events.t.tolist(), fmt.kind
         ([1], [5], 'numpy')
     """
+    facts = None
     if isinstance(data, Events):
         events, fmt = _from_events(data)
     elif isinstance(data, np.ndarray) and data.dtype.names is not None:
-        events, fmt = _from_structured(data)
+        events, fmt, facts = _from_structured(data)
     elif isinstance(data, Tensor):
         events, fmt = _from_tensor(data)
     elif isinstance(data, np.ndarray):
@@ -430,8 +476,13 @@ def to_events(
             "events must be a Tonic structured array, a torch.Tensor or NumPy array of shape "
             f"(N, 4) or evdown_torch.Events, got {type(data).__name__}"
         )
-    _validate(events, sensor_size)
+    _validate(events, sensor_size, facts)
     return events, fmt
+
+
+#: :func:`~evdown_torch.transforms.functional.compiled.columns.write_columns`'s code of each
+#: polarity encoding.
+_POLARITY_CODES = {"bool": 0, "binary": 1, "signed": 2}
 
 
 def from_events(events: Events, fmt: EventFormat) -> EventsLike:
@@ -446,6 +497,12 @@ def from_events(events: Events, fmt: EventFormat) -> EventsLike:
     """
     if fmt.kind == "events":
         return events
+    loops = _column_loops(cast(np.dtype, fmt.dtype)) if fmt.kind == "numpy" else None
+    if loops is not None:  # one compiled pass
+        out = np.empty(events.num_events, dtype=cast(np.dtype, fmt.dtype))
+        loops.write_columns(*(column.cpu().numpy() for column in events),
+                            _POLARITY_CODES[fmt.polarity], out)
+        return out
     if fmt.polarity == "bool":
         p = events.p
     elif fmt.polarity == "binary":
@@ -461,7 +518,7 @@ def from_events(events: Events, fmt: EventFormat) -> EventsLike:
         for i, column in enumerate((events.x, events.y, events.t, p)):
             table[:, i] = column.cpu().numpy()
         return table
-    out: np.ndarray = np.empty(events.num_events, dtype=cast(np.dtype, fmt.dtype))
+    out = np.empty(events.num_events, dtype=cast(np.dtype, fmt.dtype))
     for name, column in zip(FIELDS, (events.x, events.y, events.t, p)):
         out[name] = column.cpu().numpy()
     return out
