@@ -80,6 +80,37 @@ def test_the_compiled_rounds_run_and_the_eager_rounds_only_for_longer_chains(mon
     assert sorted(as_tuples(compiled)) == lif_dense_reference(chain, strong)
 
 
+@pytest.mark.parametrize(("weight", "gap", "loop_only"), [
+    (0.7, 50, True),  # 2.8 fires, then 0.975 * 2.8 - 1 = 1.73 fires, 0.69: one chain spike
+    (1.2, 50, True),  # 4.8, then 3.68, 2.59, 1.53 fire, 0.49: three chain spikes
+    (0.7, 1100, False),  # decays over 2 ** 10 steps or more after its chain: the eager round
+    (3.0, 50, False),  # fires on past EXACT_CHAIN_STEPS: the closed form's, the eager round
+])
+def test_short_firing_chains_stay_in_the_compiled_loop(monkeypatch, weight, gap, loop_only):
+    loops = spy(monkeypatch, COMPILED, "rounds_until_chain")
+    eager_rounds = spy(monkeypatch, ROUNDS, "_round")
+    strong = LIFPooling(SENSOR, factor=2, dt=1, tau=40.0, weight=weight)  # beta 0.9753
+    chain = np.zeros(8, dtype=random_stream(np.random.default_rng(0), 1, SENSOR).dtype)
+    chain["t"] = [0, 0, 0, 0, gap, gap + 1, gap + 2, gap + 150]
+    chain["p"] = True
+    chain["x"][-1] = 9  # another region: the stream ends after the last cell
+    compiled, eager = both_paths(lambda: strong(chain))
+    assert_identical(compiled, eager)
+    assert sorted(as_tuples(compiled)) == lif_dense_reference(chain, strong)
+    with eager_kernels(False):
+        eager_rounds.clear()
+        loops.clear()
+        strong(chain)
+    assert len(loops) >= 1
+    assert (len(eager_rounds) == 0) == loop_only
+    # the spike of the cell at t = 0 and those of its chain (above), each at its step's end
+    in_gap = [t for t, x in zip(compiled["t"].tolist(), compiled["x"].tolist(), strict=True)
+              if 0 < t <= gap and x == 0]
+    spikes = {0.7: 2, 1.2: 4}.get(weight) if gap < 1000 else None
+    if spikes is not None:
+        assert len(in_gap) == spikes
+
+
 def test_the_decays_are_the_eager_ones_wherever_a_cell_lies():
     """torch's float32 power rounds ``0.999 ** 168`` one unit apart in its vectorised loop and
     in its scalar tail, and the threshold lies between the two membranes: both paths read the

@@ -57,6 +57,14 @@ class Powers:
         self._low_lo = torch.tensor(low_lo, dtype=torch.float64, device=device)
         self._low32 = _to_float32(self._low_hi, self._low_lo)
 
+    @property
+    def small_float32(self) -> Tensor:
+        """``(2 ** LOW_BITS,)`` float32 ``beta ** l`` for every ``l < 2 ** LOW_BITS``.
+
+        What :meth:`float32` reads for such exponents (shared: never write to it).
+        """
+        return self._low32
+
     def float32(self, exponent: Tensor) -> Tensor:
         """``beta ** exponent`` rounded once to float32.
 

@@ -6,8 +6,9 @@ decreasing number of cells, so the lanes of a round are a prefix of the previous
 every update is a slice; a round costs a fixed few tensor operations, and there are as many
 rounds as the busiest region has cells. On the CPU the rounds run in a compiled loop
 (:mod:`evdown_torch.transforms.functional.compiled.lif`, the same float32 operations lane by
-lane) unless the eager kernels are forced; only a round with a longer firing chain is this
-module's there.
+lane, firing chains included) unless the eager kernels are forced; only a round with a chain
+longer than ``EXACT_CHAIN_STEPS`` steps, or decaying over ``2 ** LOW_BITS`` steps after one, is
+this module's there.
 """
 
 from __future__ import annotations
@@ -88,7 +89,7 @@ def membranes_by_rounds(
     compiled = use_compiled(current)
     r = 1
     while r < rounds:
-        if compiled:  # the rounds up to one with a longer firing chain, in a compiled loop
+        if compiled:  # the rounds up to one whose firing chain it cannot follow, compiled
             from evdown_torch.transforms.functional.compiled import lif
 
             r = lif.rounds_until_chain(rounds_in, r, leak)
