@@ -434,7 +434,8 @@ def _from_events(data: Events) -> tuple[Events, EventFormat]:
 
 
 def to_events(
-    data: EventsLike, sensor_size: tuple[int, int, int] | None = None
+    data: EventsLike, sensor_size: tuple[int, int, int] | None = None, *,
+    in_time_order: bool = False,
 ) -> tuple[Events, EventFormat]:
     """Validate events of any accepted kind and convert them to :class:`Events`.
 
@@ -445,6 +446,8 @@ def to_events(
         data: a Tonic structured array, an ``(N, 4)`` tensor or NumPy array ``(x, y, t, p)``,
             or Events.
         sensor_size: ``(W, H, P)``; when given, coordinates must lie inside it.
+        in_time_order: return the events in stable time order (``sort_by_time``; a
+            structured array read by the compiled loop says on the way whether it already is).
 
     Returns:
         The events and the :class:`EventFormat` that :func:`from_events` needs.
@@ -477,6 +480,8 @@ def to_events(
             f"(N, 4) or evdown_torch.Events, got {type(data).__name__}"
         )
     _validate(events, sensor_size, facts)
+    if in_time_order and not (facts is not None and facts.t_sorted):
+        events = sort_by_time(events)
     return events, fmt
 
 

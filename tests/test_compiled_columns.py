@@ -86,11 +86,45 @@ def test_the_facts_are_the_hand_computed_ones():
         [1, -1, 1, -1]
     (x, y, t, p), facts = read_columns(data, np.float64)
     assert facts.x_range == (-2, 7) and facts.y_range == (1, 9)
-    assert not facts.t_finite
+    assert not facts.t_finite and not facts.t_sorted  # inf before 2
     assert facts.p_negative and facts.p_signed and not facts.p_binary
     assert x.tolist() == [3, -2, 7, 0] and p.tolist() == [True, False, True, False]
     _, empty = read_columns(data[:0], np.float64)
     assert empty.x_range == (0, -1) and empty.t_finite and not empty.p_negative
+    assert empty.t_sorted
+    data["t"] = [0, 1, 1, 2]
+    assert read_columns(data, np.float64)[1].t_sorted
+    data["t"] = [0, 1, 2, 1]
+    assert not read_columns(data, np.float64)[1].t_sorted
+
+
+@pytest.mark.parametrize("eager", [True, False])
+def test_in_time_order_sorts_stably_only_what_is_not_sorted(rng, eager):
+    data = _array(rng, "<i2", "<i8", "?", "bool", n=500)
+    data["t"] //= 1000  # many ties: a stable sort keeps their input order
+    shuffled = data[rng.permutation(500)]
+    with eager_kernels(eager):
+        events, _ = to_events(shuffled, (40, 30, 2), in_time_order=True)
+        kept, _ = to_events(data, (40, 30, 2), in_time_order=True)
+    order = np.argsort(shuffled["t"], kind="stable")
+    assert events.t.tolist() == shuffled["t"][order].tolist()
+    assert events.x.tolist() == shuffled["x"][order].tolist()
+    assert kept.x.tolist() == data["x"].tolist()
+
+
+def test_a_session_fed_unsorted_chunks_gives_the_whole_streams_events(rng):
+    from evdown_torch import EventCount
+
+    data = _array(rng, "<i2", "<i8", "<i1", "binary", n=3000)
+    data["t"] = np.arange(3000) * 7  # no ties: one time order, whatever the chunk's order
+    transform = EventCount((40, 30, 2), 2, threshold=0.5)
+    whole = transform(data)
+    for eager in (True, False):
+        with eager_kernels(eager):
+            session = transform.session()
+            parts = [session(data[cut:cut + 1000][::-1]) for cut in range(0, 3000, 1000)]
+            parts.append(session.flush())
+        assert np.concatenate(parts).tobytes() == whole.tobytes()
 
 
 def test_results_of_a_kernel_come_back_alike(rng):

@@ -16,7 +16,6 @@ from evdown_torch.events import (
     Events,
     EventsLike,
     from_events,
-    sort_by_time,
     to_events,
 )
 from evdown_torch.threads import OneCallAtATime
@@ -291,7 +290,7 @@ class Session:
             return self._next(chunk)
 
     def _next(self, chunk: EventsLike) -> EventsLike:
-        events, fmt = to_events(chunk, self.transform.sensor_size)
+        events, fmt = to_events(chunk, self.transform.sensor_size, in_time_order=True)
         if self._device is not None:
             if events.device != self._device:
                 raise ValueError(
@@ -304,7 +303,6 @@ class Session:
         if events.num_events == 0:
             self._fmt = fmt
             return from_events(Events.empty(events.t.dtype, events.device), fmt)
-        events = sort_by_time(events)
         first = events.t[0].item()
         if self.last_t is not None and first < self.last_t:
             raise ValueError(

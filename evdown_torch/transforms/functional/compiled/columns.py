@@ -55,6 +55,7 @@ class ColumnFacts(NamedTuple):
         x_range: ``(min, max)`` of ``x`` as int64 (``(0, -1)`` without events).
         y_range: ``(min, max)`` of ``y``.
         t_finite: every ``t`` is finite (always so for integer ``t``).
+        t_sorted: ``t`` is non-decreasing (in stable time order already).
         p_negative: some ``p`` is negative (numeric ``p``).
         p_binary: every ``p`` is 0 or 1 (numeric ``p``).
         p_signed: every ``p`` is -1 or +1 (numeric ``p``).
@@ -63,6 +64,7 @@ class ColumnFacts(NamedTuple):
     x_range: tuple[int, int]
     y_range: tuple[int, int]
     t_finite: bool
+    t_sorted: bool
     p_negative: bool
     p_binary: bool
     p_signed: bool
@@ -72,12 +74,12 @@ class ColumnFacts(NamedTuple):
 def _read_loop(
     x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, numeric_p: bool,
     out_x: np.ndarray, out_y: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
-) -> tuple[int, int, int, int, bool, bool, bool, bool]:  # pragma: no cover - compiled
+) -> tuple[int, int, int, int, bool, bool, bool, bool, bool]:  # pragma: no cover
     """Each field cast to its column's dtype (as ``astype``); the :class:`ColumnFacts`."""
     x_lo, x_hi, y_lo, y_hi = 0, -1, 0, -1
     if x.shape[0]:
         x_lo, x_hi, y_lo, y_hi = np.int64(x[0]), np.int64(x[0]), np.int64(y[0]), np.int64(y[0])
-    finite, negative, binary, signed = True, False, True, True
+    finite, ordered, negative, binary, signed = True, True, False, True, True
     for i in range(x.shape[0]):
         out_x[i] = x[i]
         out_y[i] = y[i]
@@ -87,6 +89,8 @@ def _read_loop(
         y_lo, y_hi = min(y_lo, yi), max(y_hi, yi)
         if not np.isfinite(out_t[i]):
             finite = False
+        if i and not out_t[i] >= out_t[i - 1]:
+            ordered = False
         pi = p[i]
         if numeric_p:
             negative = negative or pi < 0
@@ -95,7 +99,7 @@ def _read_loop(
             out_p[i] = pi > 0
         else:
             out_p[i] = pi
-    return x_lo, x_hi, y_lo, y_hi, finite, negative, binary, signed
+    return x_lo, x_hi, y_lo, y_hi, finite, ordered, negative, binary, signed
 
 
 def read_columns(
@@ -118,9 +122,9 @@ def read_columns(
                np.empty(n, np.bool_))
     p = data["p"]
     facts = _read_loop(data["x"], data["y"], data["t"], p, p.dtype != np.bool_, *columns)
-    x_lo, x_hi, y_lo, y_hi, finite, negative, binary, signed = facts
-    return columns, ColumnFacts((int(x_lo), int(x_hi)), (int(y_lo), int(y_hi)), bool(finite),
-                                bool(negative), bool(binary), bool(signed))
+    x_lo, x_hi, y_lo, y_hi, *flags = facts
+    return columns, ColumnFacts((int(x_lo), int(x_hi)), (int(y_lo), int(y_hi)),
+                                *(bool(flag) for flag in flags))
 
 
 @compiled_loop
