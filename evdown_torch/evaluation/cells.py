@@ -58,7 +58,7 @@ class Cell:
             :data:`TONIC`) whose output count on the calibration recordings its thinning is
             calibrated to; ``None`` otherwise.
         classifier: settings that replace the study's classifier for this row (``channels``,
-            ``epochs``: :class:`~evdown_torch.evaluation.config.RobustnessConfig`) as
+            ``epochs``: :class:`~evdown_torch.evaluation.config_tables.RobustnessConfig`) as
             ``(name, value)`` pairs; the cell's frames and calibration are those of the cell
             without them (:meth:`key` leaves them out).
     """
