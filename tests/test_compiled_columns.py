@@ -12,10 +12,10 @@ import warnings
 
 import numpy as np
 import pytest
-import torch
 
 from evdown_torch import eager_kernels
 from evdown_torch.events import TimestampPrecisionWarning, from_events, to_events
+from tests.helpers import assert_identical, both_paths
 
 pytest.importorskip("numba")
 
@@ -42,20 +42,6 @@ def _array(rng, x_dtype, t_dtype, p_dtype, encoding, n=300, order=("t", "x", "p"
     return data
 
 
-def _both_paths(data, sensor_size=(40, 30, 2)):
-    with eager_kernels():
-        eager = to_events(data, sensor_size)
-    with eager_kernels(False):
-        compiled = to_events(data, sensor_size)
-    return eager, compiled
-
-
-def _same_events(a, b):
-    for column_a, column_b in zip(a, b, strict=True):
-        assert column_a.dtype == column_b.dtype
-        assert torch.equal(column_a, column_b)
-
-
 #: Each dtype of each field beside the others' usual ones (each combination compiles anew).
 CASES = sorted({*((x, "<i8", P_KINDS[0]) for x in X_DTYPES),
                 *(("<i2", t, P_KINDS[0]) for t in T_DTYPES),
@@ -68,8 +54,8 @@ def test_every_field_dtype_reads_and_writes_as_numpy_does(rng, x_dtype, t_dtype,
     p_dtype, encoding = p_kind
     data = _array(rng, x_dtype, t_dtype, p_dtype, encoding)
     assert compiled_fields(data.dtype)
-    (events_e, fmt_e), (events_c, fmt_c) = _both_paths(data)
-    _same_events(events_e, events_c)
+    (events_c, fmt_c), (events_e, fmt_e) = both_paths(lambda: to_events(data, (40, 30, 2)))
+    assert_identical(events_c, events_e)
     assert fmt_e == fmt_c
     assert fmt_c.polarity == encoding
     with eager_kernels():
@@ -133,10 +119,9 @@ def test_results_of_a_kernel_come_back_alike(rng):
     data = _array(rng, "<i2", "<i8", "<i1", "signed", n=2000)
     for transform in (EventCount((40, 30, 2), 4, threshold=0.5),
                       LinearEstimation((40, 30, 2), 4, threshold=0.5)):
-        with eager_kernels():
-            eager = transform(data)
-        compiled = transform(data)  # compiled loops (Numba is installed here)
-        assert compiled.dtype == data.dtype and compiled.tobytes() == eager.tobytes()
+        compiled, eager = both_paths(lambda transform=transform: transform(data))
+        assert_identical(compiled, eager)
+        assert compiled.dtype == data.dtype
         assert set(np.unique(compiled["p"]).tolist()) <= {-1, 1}
 
 
@@ -181,8 +166,8 @@ def test_fields_numba_cannot_read_take_numpys_copies(rng, dtype):
     data = np.zeros(50, dtype)
     data["x"], data["y"] = rng.integers(0, 40, 50), rng.integers(0, 30, 50)
     data["t"], data["p"] = np.arange(50), rng.random(50) < 0.5
-    (events_e, fmt_e), (events_c, fmt_c) = _both_paths(data)
-    _same_events(events_e, events_c)
+    (events_c, fmt_c), (events_e, _) = both_paths(lambda: to_events(data, (40, 30, 2)))
+    assert_identical(events_c, events_e)
     assert from_events(events_c, fmt_c).tobytes() == data.tobytes()
 
 
