@@ -16,6 +16,7 @@ from torch import Tensor
 
 from evdown_torch._tensors import divide, take, where_true
 from evdown_torch.events import Events, polarity_sign, sort_by_time
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.estimation.cubic import cubic_regions
 from evdown_torch.transforms.functional.estimation.delay import hold_knots
 from evdown_torch.transforms.functional.estimation.knots import (
@@ -138,6 +139,18 @@ def estimate_window(
     sensor_size, factor, solver = settings.sensor_size, settings.factor, SOLVERS[settings.curve]
     fraction = capped_threshold(threshold_fraction(settings.threshold), bound)
     out_w, out_h, _ = settings.output_sensor_size
+    if settings.curve == "linear" and use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled.linear import linear_window
+
+        region, t, on, q = linear_window(
+            events.x, events.y, events.t, polarity_sign(events.p) if change is None else change,
+            t_start=t_start, t_end=t_end, sensor_size=sensor_size, factor=factor,
+            out_size=(out_w, out_h), fraction=fraction,
+            resume_cut=None if resume is None else resume.cut,
+            resume_q=None if resume is None else resume.q, next_cut=next_cut,
+            chunk_events=REGION_CHUNK_EVENTS,
+        )
+        return emit(region, t, on, out_w), q
     q = None if resume is None else resume.q.clone()
     outputs = []
     emitted = 0

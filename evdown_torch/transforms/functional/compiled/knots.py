@@ -1,0 +1,186 @@
+"""The estimators' compiled window machinery: regions, knots, breakpoints, rule, times.
+
+What :mod:`~..estimation.knots` and :mod:`~..reference` do with sorts and scatters over a
+whole chunk of regions, these loops do one region at a time, in the same order and with
+the same arithmetic, for a curve's compiled solver (:mod:`.linear`):
+
+* :func:`group_by_region`: a stable counting sort of a window's events by output region;
+* :func:`region_knots`: one region's breakpoints (``t_start``, each distinct event time,
+  ``t_end``) and its pixels' knots in pixel order (one per distinct time at the level after
+  its events, a front knot ``(t_start, 0)`` and a back knot ``(t_end, last level)`` where
+  needed), as :func:`~..estimation.knots.pixel_knots` builds them;
+* :func:`reference_walk`: the reference rule's ``q`` after each breakpoint, the clamp
+  recurrence that :func:`~..reference.reference_index` solves in closed form;
+* :func:`integer_piece_time`, :func:`float_piece_time`:
+  :func:`~..estimation.knots.piece_time` for one crossing;
+* :func:`chunk_ends_before`: where the eager driver's chunks of regions end, so that the
+  output limit is checked where it checks it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, RELATIVE_ERROR
+
+__all__ = ["chunk_ends_before", "float_piece_time", "group_by_region", "integer_piece_time",
+           "reference_walk", "region_knots"]
+
+#: ``0.5 + HALF_TOLERANCE`` as the eager piece_time adds it (one Python float).
+_HALF = 0.5 + HALF_TOLERANCE
+
+
+@compiled_loop
+def group_by_region(
+    x: np.ndarray, y: np.ndarray, fx: int, fy: int, out_w: int, rows: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
+    """The events by region, stably: ``(local, first_of, order, outside)``.
+
+    ``local[i]``: event ``i``'s place in its region, ``(y % fy) * fx + x % fx``;
+    ``order``: the events in region order (time order inside a region, as given);
+    ``first_of[r]``: where region ``r``'s events start in ``order`` (``R + 1`` entries);
+    ``outside``: the first event outside the ``out_w * fx`` by ``rows * fy`` pixels, or -1
+    (nothing else is then computed).
+    """
+    n = x.shape[0]
+    region = np.empty(n, np.int64)
+    local = np.empty(n, np.int64)
+    n_regions = 0
+    for i in range(n):
+        if x[i] < 0 or x[i] >= out_w * fx or y[i] < 0 or y[i] >= rows * fy:
+            return local, np.zeros(1, np.int64), region, i
+        rx = x[i] // fx
+        ry = y[i] // fy
+        region[i] = ry * out_w + rx
+        local[i] = (y[i] - ry * fy) * fx + x[i] - rx * fx
+        n_regions = max(n_regions, region[i] + 1)
+    first_of = np.zeros(n_regions + 1, np.int64)
+    for i in range(n):
+        first_of[region[i] + 1] += 1
+    for r in range(n_regions):
+        first_of[r + 1] += first_of[r]
+    order = np.empty(n, np.int64)
+    fill = first_of[:-1].copy()
+    for i in range(n):
+        order[fill[region[i]]] = i
+        fill[region[i]] += 1
+    return local, first_of, order, -1
+
+
+@compiled_loop
+def region_knots(
+    order: np.ndarray, local: np.ndarray, t: np.ndarray, change: np.ndarray, lo: int, hi: int,
+    t_start: float, t_end: float, per_region: int, bp_t: np.ndarray, event_bp: np.ndarray,
+    by_pixel: np.ndarray, pixel_count: np.ndarray, k_t: np.ndarray, k_level: np.ndarray,
+    k_bp: np.ndarray, k_first: np.ndarray,
+) -> tuple[int, int]:  # pragma: no cover - compiled
+    """The breakpoints and knots of the region whose events are ``order[lo:hi]``.
+
+    Writes the region's ``nbp`` breakpoint times into ``bp_t`` and its ``nk`` knots, in pixel
+    order, into ``k_t`` (time), ``k_level`` (level), ``k_bp`` (breakpoint index) and
+    ``k_first`` (a pixel's first knot); ``event_bp``, ``by_pixel`` and ``pixel_count``
+    (``per_region + 1``) are scratch. Returns ``(nbp, nk)``.
+    """
+    nbp = 0
+    if t[order[lo]] > t_start:
+        bp_t[0] = t_start
+        nbp = 1
+    for j in range(lo, hi):
+        tj = t[order[j]]
+        if j == lo or tj != t[order[j - 1]]:
+            bp_t[nbp] = tj
+            nbp += 1
+        event_bp[j - lo] = nbp - 1
+    if t[order[hi - 1]] < t_end:
+        bp_t[nbp] = t_end
+        nbp += 1
+    # The region's events by pixel (stable: time order inside a pixel).
+    pixel_count[:] = 0
+    for j in range(lo, hi):
+        pixel_count[local[order[j]] + 1] += 1
+    for p in range(per_region):
+        pixel_count[p + 1] += pixel_count[p]
+    for j in range(lo, hi):
+        p = local[order[j]]
+        by_pixel[pixel_count[p]] = j
+        pixel_count[p] += 1
+    # One knot per (pixel, t), after all its events; a front and a back knot where needed.
+    nk = 0
+    j = 0
+    m = hi - lo
+    level = 0
+    while j < m:
+        p = local[order[by_pixel[j]]]
+        level = 0
+        pixel_first = nk
+        while j < m and local[order[by_pixel[j]]] == p:
+            e = by_pixel[j]
+            level += change[order[e]]
+            te = t[order[e]]
+            j += 1
+            if j < m and local[order[by_pixel[j]]] == p and t[order[by_pixel[j]]] == te:
+                continue
+            if nk == pixel_first and te > t_start:
+                k_t[nk], k_level[nk], k_bp[nk], k_first[nk] = t_start, 0, 0, True
+                nk += 1
+            k_t[nk], k_level[nk], k_bp[nk] = te, level, event_bp[e - lo]
+            k_first[nk] = nk == pixel_first
+            nk += 1
+        if k_t[nk - 1] < t_end:
+            k_t[nk], k_level[nk], k_bp[nk], k_first[nk] = t_end, level, nbp - 1, False
+            nk += 1
+    return nbp, nk
+
+
+@compiled_loop
+def reference_walk(floor_u: np.ndarray, on_level: np.ndarray, nbp: int, q_start: int,
+                   q_after: np.ndarray) -> int:  # pragma: no cover - compiled
+    """The reference index after each of ``nbp`` moves into ``q_after``; the levels crossed.
+
+    On a level ``q`` is that level; strictly inside cell ``(m, m + 1)`` it is ``q`` clamped
+    to ``[m, m + 1]``.
+    """
+    q = q_start
+    crossed = 0
+    for i in range(nbp):
+        m = floor_u[i]
+        before = q
+        q = m if on_level[i] else min(max(q, m), m + 1)
+        crossed += abs(q - before)
+        q_after[i] = q
+    return crossed
+
+
+@compiled_loop
+def integer_piece_time(t0: int, t1: int, s: float) -> int:  # pragma: no cover - compiled
+    """The integer time at position ``s`` of ``[t0, t1]``, rounded half up from ``t0``.
+
+    As :func:`~..estimation.knots.piece_time` computes it, with its tolerances.
+    """
+    span = float(t1 - t0)
+    offset = s * span
+    offset += _HALF
+    offset += RELATIVE_ERROR * span
+    return t0 + np.int64(min(np.floor(offset), span))
+
+
+@compiled_loop
+def float_piece_time(t0: float, t1: float, s: float) -> float:  # pragma: no cover - compiled
+    """The float time at normalised position ``s`` of the piece ``[t0, t1]``."""
+    if s >= 1.0:
+        return t1
+    return min(t0 + s * (t1 - t0), t1)
+
+
+@compiled_loop
+def chunk_ends_before(lo: int, previous_start: int, last: bool, n: int,
+                      chunk_events: int) -> bool:  # pragma: no cover - compiled
+    """Whether the eager driver's chunk of regions ends before a region starting at ``lo``.
+
+    Its chunks end before the first region that starts at or after each multiple of
+    ``chunk_events`` below ``n`` (the last region for a multiple past every start);
+    ``previous_start``: where the region before starts.
+    """
+    bound = n - 1 if last else lo
+    return bound // chunk_events > previous_start // chunk_events
