@@ -1,4 +1,4 @@
-"""LinearEstimation's compiled window against the eager driver and the exact reference."""
+"""The estimators' compiled window against the eager driver and the slow references."""
 
 from __future__ import annotations
 
@@ -8,10 +8,22 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch import Events, LinearEstimation, eager_kernels, max_output_events
+from evdown_torch import (
+    CubicEstimation,
+    Events,
+    LinearEstimation,
+    eager_kernels,
+    max_output_events,
+)
+from evdown_torch.transforms.functional.compiled import cubic as compiled_cubic
+from evdown_torch.transforms.functional.compiled import estimation as compiled_estimation
 from evdown_torch.transforms.functional.estimation import driver
-from evdown_torch.transforms.functional.estimation.method import linear_estimation
+from evdown_torch.transforms.functional.estimation.method import (
+    cubic_estimation,
+    linear_estimation,
+)
 from tests.helpers import (
+    ESTIMATORS,
     FLOAT_DTYPE,
     assert_batches_on_both_paths,
     assert_identical,
@@ -21,6 +33,7 @@ from tests.helpers import (
     exact_linear_reference,
     near_their_limits,
     random_stream,
+    reference,
     spy,
     unique_pixel_times,
 )
@@ -32,12 +45,13 @@ FACTORS = [1, 2, 3, (2, 3), (3, 1), (4, 3), (10, 7)]  # (3, 1), (4, 3): not divi
 THRESHOLDS = [0.05, 0.123457, 0.3, 1.0, 2.5, 100.0]
 
 
+@pytest.mark.parametrize("cls", ESTIMATORS)
 @pytest.mark.parametrize("factor", FACTORS)
 @pytest.mark.parametrize("threshold", THRESHOLDS)
 @pytest.mark.parametrize("max_delay", [None, 4])
-def test_compiled_equals_eager(factor, threshold, max_delay, rng):
+def test_compiled_equals_eager(cls, factor, threshold, max_delay, rng):
     arr = random_stream(rng, 900, SENSOR, t_max=250, sort=False)
-    transform = LinearEstimation(SENSOR, factor=factor, threshold=threshold, max_delay=max_delay)
+    transform = cls(SENSOR, factor=factor, threshold=threshold, max_delay=max_delay)
     compiled, eager = both_paths(lambda: transform(arr))
     assert_identical(compiled, eager)
 
@@ -50,10 +64,19 @@ def test_compiled_matches_the_exact_reference(factor, rng):
     assert_matches_reference(out, exact_linear_reference(arr, SENSOR, factor, 0.3), True)
 
 
+@pytest.mark.parametrize("factor", [(1, 1), (2, 2), (4, 3)])
+def test_compiled_cubic_matches_scipys_pchip(factor, rng):
+    pytest.importorskip("scipy")
+    arr = unique_pixel_times(random_stream(rng, 300, SENSOR, t_max=2000))
+    with eager_kernels(False):
+        out = CubicEstimation(SENSOR, factor=factor, threshold=0.3)(arr)
+    assert_matches_reference(out, reference(arr, SENSOR, factor, 0.3, "cubic"), True)
+
+
 def test_the_compiled_window_runs_and_the_eager_solver_does_not(monkeypatch, rng):
     compiled_module = importlib.import_module("evdown_torch.transforms.functional.compiled."
-                                              "linear")
-    compiled_calls = spy(monkeypatch, compiled_module, "_linear_loop")
+                                              "estimation")
+    compiled_calls = spy(monkeypatch, compiled_module, "_window_loop")
     eager_calls = spy(monkeypatch, driver, "pixel_knots")
     arr = random_stream(rng, 100, SENSOR)
     LinearEstimation(SENSOR, factor=2, threshold=0.5)(arr)
@@ -63,39 +86,43 @@ def test_the_compiled_window_runs_and_the_eager_solver_does_not(monkeypatch, rng
     assert (len(compiled_calls), len(eager_calls)) == (1, 1)
 
 
+@pytest.mark.parametrize("cls", ESTIMATORS)
 @pytest.mark.parametrize("dtype", [np.int64, np.float32, np.float64])
 @pytest.mark.parametrize("max_delay", [None, 3])
-def test_timestamp_dtypes_near_their_limits(dtype, max_delay, rng):
+def test_timestamp_dtypes_near_their_limits(cls, dtype, max_delay, rng):
     arr = random_stream(rng, 800, SENSOR, t_max=50, sort=False)
     data = near_their_limits(arr, dtype, 50)  # int64 up to 2**63 - 11
-    transform = LinearEstimation(SENSOR, factor=(3, 2), threshold=0.25, max_delay=max_delay)
+    transform = cls(SENSOR, factor=(3, 2), threshold=0.25, max_delay=max_delay)
     compiled, eager = both_paths(lambda: transform(data))
     assert_identical(compiled, eager)
     assert len(compiled) > 0
 
 
-def test_float64_timestamps_in_seconds(rng):
+@pytest.mark.parametrize("cls", ESTIMATORS)
+def test_float64_timestamps_in_seconds(cls, rng):
     arr = random_stream(rng, 600, SENSOR, t_max=200, dtype=FLOAT_DTYPE, sort=False)
     arr["t"] = arr["t"] * 1e-6 + 1.7e9  # seconds since 1970: pieces of a few ulps
     for max_delay in (None, 3e-6):
-        transform = LinearEstimation(SENSOR, factor=2, threshold=0.3, max_delay=max_delay)
+        transform = cls(SENSOR, factor=2, threshold=0.3, max_delay=max_delay)
         compiled, eager = both_paths(lambda transform=transform: transform(arr))
         assert_identical(compiled, eager)
 
 
+@pytest.mark.parametrize("cls", ESTIMATORS)
 @pytest.mark.parametrize("threshold", [0.05, 0.3, 2.5])
 @pytest.mark.parametrize("max_delay", [1, 7, 10**6])
-def test_sessions_in_odd_chunks_and_moving_between_paths(threshold, max_delay, rng):
+def test_sessions_in_odd_chunks_and_moving_between_paths(cls, threshold, max_delay, rng):
     arr = random_stream(rng, 1500, SENSOR, t_max=600)
-    transform = LinearEstimation(SENSOR, factor=(3, 2), threshold=threshold,
-                                 max_delay=max_delay)
+    transform = cls(SENSOR, factor=(3, 2), threshold=threshold, max_delay=max_delay)
     whole, eager_whole = both_paths(lambda: transform(arr))
     assert_identical(whole, eager_whole)
     assert_sessions_on_both_paths(transform, arr, whole)
 
 
-def test_batches_sorted_stacked_and_with_empty_recordings(rng):
-    transform = LinearEstimation(SENSOR, factor=(3, 2), threshold=0.2)
+@pytest.mark.parametrize("cls", ESTIMATORS)
+@pytest.mark.parametrize("max_delay", [None, 5])
+def test_batches_sorted_stacked_and_with_empty_recordings(cls, max_delay, rng):
+    transform = cls(SENSOR, factor=(3, 2), threshold=0.2, max_delay=max_delay)
 
     def check(recording, out):  # each recording as if alone, on the eager path
         with eager_kernels():
@@ -108,26 +135,62 @@ def test_one_event_and_a_stream_at_one_time():
     one = Events.from_columns([3], [2], [7], [True])  # the region's mean +1/4: one ON
     cancelled = Events.from_columns([0, 1, 1, 0], [0, 0, 0, 1], [5, 5, 5, 5],
                                     [True, True, False, False])  # levels +1, 0, -1: mean 0
-    for events, times in ((one, [7]), (cancelled, [])):
-        compiled, eager = both_paths(lambda events=events: linear_estimation(
-            events, sensor_size=SENSOR, factor=(2, 2), threshold=0.25))
-        assert_identical(compiled, eager)
-        assert compiled.t.tolist() == times
+    for kernel in (linear_estimation, cubic_estimation):
+        for events, times in ((one, [7]), (cancelled, [])):
+            compiled, eager = both_paths(lambda events=events, kernel=kernel: kernel(
+                events, sensor_size=SENSOR, factor=(2, 2), threshold=0.25))
+            assert_identical(compiled, eager)
+            assert compiled.t.tolist() == times
 
 
-def test_hand_computed_ramp():
+def test_hand_computed_ramps():
     # Two pixels of one region: the mean rises 0 -> 1/2 -> 1 over [0, 10] (levels 0.25 apart).
     events = Events.from_columns([0, 1], [0, 0], [0, 10], [1, 1])
     with eager_kernels(False):
         out = linear_estimation(events, sensor_size=(2, 1, 2), factor=(2, 1), threshold=0.25)
     assert out.t.tolist() == [0, 0, 5, 10] and out.p.tolist() == [True] * 4
+    # Cubic: the docstring example of cubic_estimation, whose curve reaches the region's third
+    # level at t = 6.18 (rounded to 6) where the polyline reaches it at 10.
+    events = Events.from_columns([0, 1, 0], [0, 0, 0], [0, 10, 20], [1, 1, 0])
+    with eager_kernels(False):
+        out = cubic_estimation(events, sensor_size=(2, 1, 2), factor=(2, 1), threshold=0.25)
+    assert out.t.tolist() == [0, 0, 6, 20] and out.p.tolist() == [True, True, True, False]
 
 
+def test_the_cubic_loop_rounds_its_multiply_adds_as_torch_does(monkeypatch, rng):
+    # Float timestamps keep every crossing's float time: rounding the pieces' multiply-adds
+    # otherwise than torch's addcmul moves some of them.
+    arr = random_stream(rng, 20000, (34, 34, 2), t_max=300000, dtype=FLOAT_DTYPE)
+    arr["t"] = arr["t"] * 1.37e-3
+    transform = CubicEstimation((34, 34, 2), factor=(3, 2), threshold=0.1)
+    compiled, eager = both_paths(lambda: transform(arr))
+    assert_identical(compiled, eager)
+    fused = compiled_cubic.addcmul_is_fused()
+    assert fused is not None  # every CPU this runs on: one rounding or two, as torch does
+    monkeypatch.setattr(compiled_estimation, "addcmul_is_fused", lambda: not fused)
+    with eager_kernels(False):
+        other = transform(arr)
+    assert len(other) != len(eager) or (other["t"] != eager["t"]).any()
+
+
+def test_without_torchs_rounding_known_the_cubic_method_stays_eager(monkeypatch, rng):
+    monkeypatch.setattr(compiled_cubic, "addcmul_is_fused", lambda: None)
+    loops = spy(monkeypatch, compiled_estimation, "_window_loop")
+    arr = random_stream(rng, 200, SENSOR, t_max=100)
+    with eager_kernels(False):
+        CubicEstimation(SENSOR, factor=2, threshold=0.3)(arr)
+        assert not loops
+        LinearEstimation(SENSOR, factor=2, threshold=0.3)(arr)
+    assert len(loops) == 1
+
+
+@pytest.mark.parametrize("cls", ESTIMATORS)
 @pytest.mark.parametrize("limit", [1, 37, 500])
-def test_the_output_limit_raises_the_same_error_in_small_region_chunks(limit, monkeypatch, rng):
+def test_the_output_limit_raises_the_same_error_in_small_region_chunks(cls, limit, monkeypatch,
+                                                                       rng):
     monkeypatch.setattr(driver, "REGION_CHUNK_EVENTS", 64)  # many chunks, as on a big window
     arr = random_stream(rng, 700, SENSOR, t_max=300)
-    transform = LinearEstimation(SENSOR, factor=1, threshold=0.05)
+    transform = cls(SENSOR, factor=1, threshold=0.05)
     messages = []
     for eager in (False, True):
         with eager_kernels(eager), max_output_events(limit), pytest.raises(ValueError) as error:
@@ -139,18 +202,19 @@ def test_the_output_limit_raises_the_same_error_in_small_region_chunks(limit, mo
 
 
 def test_an_event_outside_the_sensor_is_an_error_not_a_crash():
-    for x in (12, -3):
+    for x, kernel in ((12, linear_estimation), (-3, cubic_estimation)):
         events = Events.from_columns([0, x], [0, 1], [1, 2], [True, True])
         with eager_kernels(False), pytest.raises(ValueError, match=r"event 1 at \(x=.*lies "
                                                                       "outside the sensor"):
-            linear_estimation(events, sensor_size=SENSOR, factor=(3, 2), threshold=0.5)
+            kernel(events, sensor_size=SENSOR, factor=(3, 2), threshold=0.5)
 
 
-def test_the_input_is_not_written(rng):
+@pytest.mark.parametrize("kernel", [linear_estimation, cubic_estimation])
+def test_the_input_is_not_written(kernel, rng):
     arr = random_stream(rng, 400, SENSOR, t_max=100)
     events = Events.from_columns(*(torch.as_tensor(arr[c].astype(np.int64))
                                    for c in ("x", "y", "t")), torch.as_tensor(arr["p"]))
     before = [column.clone() for column in events]
     with eager_kernels(False):
-        linear_estimation(events, sensor_size=SENSOR, factor=2, threshold=0.1, max_delay=5)
+        kernel(events, sensor_size=SENSOR, factor=2, threshold=0.1, max_delay=5)
     assert_identical(list(events), before)

@@ -13,14 +13,15 @@ import pytest
 import torch
 
 import evdown_torch.transforms.functional.estimation.cubic as cubic_module
-from evdown_torch import CubicEstimation
+from evdown_torch import CubicEstimation, eager_kernels
 from tests.helpers import random_stream
 
 SENSOR = (20, 12, 2)
 
 
 def captured_sums_inputs(arr, monkeypatch, **settings) -> list[tuple]:
-    """The arguments of every ``_mid_segment_sums`` call of one CubicEstimation call."""
+    """The arguments of every ``_mid_segment_sums`` call of one CubicEstimation call (on the
+    eager path, whose solver this is)."""
     calls = []
     real = cubic_module._mid_segment_sums
 
@@ -29,7 +30,8 @@ def captured_sums_inputs(arr, monkeypatch, **settings) -> list[tuple]:
         return real(*args)
 
     monkeypatch.setattr(cubic_module, "_mid_segment_sums", spy)
-    CubicEstimation(SENSOR, factor=(3, 2), threshold=0.2, **settings)(arr)
+    with eager_kernels():
+        CubicEstimation(SENSOR, factor=(3, 2), threshold=0.2, **settings)(arr)
     monkeypatch.setattr(cubic_module, "_mid_segment_sums", real)
     return calls
 

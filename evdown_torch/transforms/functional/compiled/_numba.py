@@ -1,4 +1,4 @@
-"""The one module that imports Numba: the decorator every compiled loop takes.
+"""The one module that imports Numba: the decorator every compiled loop takes, and ``fma``.
 
 Imported by the loop modules only, which the kernels import on their first compiled call
 (:func:`~evdown_torch.transforms.functional.compiled.use_compiled`).
@@ -10,8 +10,10 @@ from collections.abc import Callable
 from typing import Any
 
 import numba
+from numba.core import types
+from numba.extending import intrinsic
 
-__all__ = ["compiled_loop"]
+__all__ = ["compiled_loop", "fma"]
 
 
 def compiled_loop(function: Callable[..., Any]) -> Any:
@@ -21,3 +23,22 @@ def compiled_loop(function: Callable[..., Any]) -> Any:
     positive integers only, so NumPy's error model (no zero-division check) changes nothing.
     """
     return numba.njit(cache=True, nogil=True, error_model="numpy")(function)
+
+
+@intrinsic
+def _fma(typingctx: Any, a: Any, b: Any, c: Any) -> Any:  # pragma: no cover - compiled
+    """``a * b + c`` rounded once (LLVM's ``fma``), for float64, inside a compiled loop.
+
+    What ``torch.addcmul(c, a, b)`` computes where torch's CPU kernels fuse it (see
+    :func:`~.cubic.addcmul_is_fused`); Numba itself never fuses ``a * b + c``.
+    """
+    signature = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+        return builder.fma(*args)
+
+    return signature, codegen
+
+
+#: ``fma(a, b, c)``: ``a * b + c`` rounded once, callable inside a compiled loop only.
+fma: Any = _fma

@@ -34,38 +34,50 @@ _HALF = 0.5 + HALF_TOLERANCE
 @compiled_loop
 def group_by_region(
     x: np.ndarray, y: np.ndarray, fx: int, fy: int, out_w: int, rows: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
-    """The events by region, stably: ``(local, first_of, order, outside)``.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
+    """The events by region, stably: ``(local, regions, first_of, order, outside)``.
 
     ``local[i]``: event ``i``'s place in its region, ``(y % fy) * fx + x % fx``;
     ``order``: the events in region order (time order inside a region, as given);
-    ``first_of[r]``: where region ``r``'s events start in ``order`` (``R + 1`` entries);
-    ``outside``: the first event outside the ``out_w * fx`` by ``rows * fy`` pixels, or -1
-    (nothing else is then computed).
+    ``regions``: the ``R`` regions with events, ascending; ``first_of[k]``: where region
+    ``regions[k]``'s events start in ``order`` (``R + 1`` entries); ``outside``: the first
+    event outside the ``out_w * fx`` by ``rows * fy`` pixels, or -1 (nothing else is then
+    computed). A counting sort where the region ids span a few times the events, else a
+    stable merge sort: the cost follows the events, not the sensor's area.
     """
     n = x.shape[0]
     region = np.empty(n, np.int64)
     local = np.empty(n, np.int64)
-    n_regions = 0
+    span = 0
     for i in range(n):
         if x[i] < 0 or x[i] >= out_w * fx or y[i] < 0 or y[i] >= rows * fy:
-            return local, np.zeros(1, np.int64), region, i
+            return local, region[:0], np.zeros(1, np.int64), region, i
         rx = x[i] // fx
         ry = y[i] // fy
         region[i] = ry * out_w + rx
         local[i] = (y[i] - ry * fy) * fx + x[i] - rx * fx
-        n_regions = max(n_regions, region[i] + 1)
-    first_of = np.zeros(n_regions + 1, np.int64)
-    for i in range(n):
-        first_of[region[i] + 1] += 1
-    for r in range(n_regions):
-        first_of[r + 1] += first_of[r]
-    order = np.empty(n, np.int64)
-    fill = first_of[:-1].copy()
-    for i in range(n):
-        order[fill[region[i]]] = i
-        fill[region[i]] += 1
-    return local, first_of, order, -1
+        span = max(span, region[i] + 1)
+    if span > 4 * n + 1024:
+        order = np.argsort(region, kind="mergesort")
+    else:
+        count = np.zeros(span + 1, np.int64)
+        for i in range(n):
+            count[region[i] + 1] += 1
+        for r in range(span):
+            count[r + 1] += count[r]
+        order = np.empty(n, np.int64)
+        for i in range(n):
+            order[count[region[i]]] = i
+            count[region[i]] += 1
+    regions = np.empty(n, np.int64)
+    first_of = np.empty(n + 1, np.int64)
+    k = 0
+    for j in range(n):
+        if j == 0 or region[order[j]] != region[order[j - 1]]:
+            regions[k], first_of[k] = region[order[j]], j
+            k += 1
+    first_of[k] = n
+    return local, regions[:k], first_of[:k + 1], order, -1
 
 
 @compiled_loop
@@ -95,16 +107,22 @@ def region_knots(
     if t[order[hi - 1]] < t_end:
         bp_t[nbp] = t_end
         nbp += 1
-    # The region's events by pixel (stable: time order inside a pixel).
-    pixel_count[:] = 0
-    for j in range(lo, hi):
-        pixel_count[local[order[j]] + 1] += 1
-    for p in range(per_region):
-        pixel_count[p + 1] += pixel_count[p]
-    for j in range(lo, hi):
-        p = local[order[j]]
-        by_pixel[pixel_count[p]] = j
-        pixel_count[p] += 1
+    # The region's events by pixel (stable: time order inside a pixel); a counting sort
+    # unless the region has far fewer events than pixels.
+    if per_region > 4 * (hi - lo) + 64:
+        by_local = np.argsort(local[order[lo:hi]], kind="mergesort")
+        for j in range(hi - lo):
+            by_pixel[j] = lo + by_local[j]
+    else:
+        pixel_count[:] = 0
+        for j in range(lo, hi):
+            pixel_count[local[order[j]] + 1] += 1
+        for p in range(per_region):
+            pixel_count[p + 1] += pixel_count[p]
+        for j in range(lo, hi):
+            p = local[order[j]]
+            by_pixel[pixel_count[p]] = j
+            pixel_count[p] += 1
     # One knot per (pixel, t), after all its events; a front and a back knot where needed.
     nk = 0
     j = 0

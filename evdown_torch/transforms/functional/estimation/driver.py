@@ -139,16 +139,17 @@ def estimate_window(
     sensor_size, factor, solver = settings.sensor_size, settings.factor, SOLVERS[settings.curve]
     fraction = capped_threshold(threshold_fraction(settings.threshold), bound)
     out_w, out_h, _ = settings.output_sensor_size
-    if settings.curve == "linear" and use_compiled(events.t):
-        from evdown_torch.transforms.functional.compiled.linear import linear_window
+    if use_compiled(events.t) and compiled_curve(settings.curve):
+        from evdown_torch.transforms.functional.compiled.estimation import estimation_window
 
-        region, t, on, q = linear_window(
+        region, t, on, q = estimation_window(
             events.x, events.y, events.t, polarity_sign(events.p) if change is None else change,
             t_start=t_start, t_end=t_end, sensor_size=sensor_size, factor=factor,
             out_size=(out_w, out_h), fraction=fraction,
             resume_cut=None if resume is None else resume.cut,
             resume_q=None if resume is None else resume.q, next_cut=next_cut,
-            chunk_events=REGION_CHUNK_EVENTS,
+            chunk_events=REGION_CHUNK_EVENTS, cubic=settings.curve == "cubic",
+            front_at_rest=front_at_rest,
         )
         return emit(region, t, on, out_w), q
     q = None if resume is None else resume.q.clone()
@@ -172,3 +173,16 @@ def estimate_window(
     region, t, on = outputs[0] if len(outputs) == 1 else (
         torch.cat(column) for column in zip(*outputs, strict=True))
     return emit(region, t, on, out_w), q
+
+
+def compiled_curve(curve: Curve) -> bool:
+    """Whether the compiled window solves ``curve`` here (call where Numba is available).
+
+    The linear curve always; the cubic one where the loop can round its multiply-adds as
+    this torch's ``addcmul`` does (:func:`~..compiled.cubic.addcmul_is_fused`).
+    """
+    if curve == "linear":
+        return True
+    from evdown_torch.transforms.functional.compiled.cubic import addcmul_is_fused
+
+    return addcmul_is_fused() is not None
