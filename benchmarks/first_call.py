@@ -26,7 +26,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 STEPS = ["import numba", "Tonic array in and out", "EventCount", "Downsample", "EventFunnelling",
-         "TemporalFunnelling", "PhotocurrentPooling", "LIFPooling", "floor"]
+         "TemporalFunnelling", "PhotocurrentPooling", "LIFPooling", "LinearEstimation",
+         "CubicEstimation", "floor"]
 
 
 def one_process() -> dict[str, float]:
@@ -34,10 +35,12 @@ def one_process() -> dict[str, float]:
     import numpy as np
 
     from evdown_torch import (
+        CubicEstimation,
         Downsample,
         EventCount,
         EventFunnelling,
         LIFPooling,
+        LinearEstimation,
         PhotocurrentPooling,
         TemporalFunnelling,
     )
@@ -62,6 +65,9 @@ def one_process() -> dict[str, float]:
         "PhotocurrentPooling": PhotocurrentPooling((16, 16, 2), 4),
         # steps of 2 us: regions with several cells, so the compiled rounds run
         "LIFPooling": LIFPooling((16, 16, 2), 4, dt=2, tau=10.0),
+        # the estimators share one window loop: the first call compiles it for both curves
+        "LinearEstimation": LinearEstimation((16, 16, 2), 4, threshold=0.25),
+        "CubicEstimation": CubicEstimation((16, 16, 2), 4, threshold=0.25),
         "floor": RegionFloor((16, 16, 2), 4).session(),
     }
     for name, call in calls.items():

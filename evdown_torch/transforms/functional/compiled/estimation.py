@@ -83,8 +83,9 @@ def _grown(column: np.ndarray, kept: int, capacity: int) -> np.ndarray:  # pragm
 
 @compiled_loop
 def _window_loop(
-    x: np.ndarray, y: np.ndarray, t: np.ndarray, change: np.ndarray,
-    start_of: np.ndarray, end_of: np.ndarray, fx: int, fy: int, out_w: int, out_h: int,
+    x: np.ndarray, y: np.ndarray, t: np.ndarray, change: np.ndarray, column: np.ndarray,
+    row: np.ndarray, start_of: np.ndarray, end_of: np.ndarray, fx: int, fy: int, out_w: int,
+    out_h: int,
     width: int, height: int, a: int, b: int, level_scale: float, divides: bool,
     integer_time: bool, cubic: bool, front_at_rest: bool, fused: bool, q: np.ndarray,
     has_cut: bool, cut: np.ndarray, has_next: bool, next_cut: np.ndarray, limit: int,
@@ -98,26 +99,30 @@ def _window_loop(
     """
     n = t.shape[0]
     per_region = fx * fy
-    local, regions, first_of, order, outside = group_by_region(x, y, fx, fy, out_w,
-                                                               start_of.shape[0] * out_h)
+    regions, first_of, local, t, change, outside = group_by_region(x, y, t, change, column, row,
+                                                                   fx, fy, out_w)
     if outside >= 0:
         return np.empty(0, np.int64), np.empty(0, t.dtype), np.empty(0, np.bool_), -2 - outside
-    # Scratch for one region: at most its events, plus a front and a back knot per pixel;
-    # breakpoints, and up to three monotone moves per breakpoint.
-    event_bp, by_pixel = np.empty(n, np.int64), np.empty(n, np.int64)
-    pixel_count = np.zeros(min(per_region, 4 * n + 64) + 1, np.int64)  # see region_knots
-    k_t, k_level = np.empty(3 * n, t.dtype), np.empty(3 * n, np.int64)
-    k_bp, k_first = np.empty(3 * n, np.int64), np.empty(3 * n, np.bool_)
-    slope, k_width, k_rise = (np.empty(3 * n, np.float64), np.empty(3 * n, np.float64),
-                              np.empty(3 * n, np.float64))
-    bp_t = np.empty(n + 2, t.dtype)
-    high_bp, count_bp, whole = (np.empty(n + 2, np.int64), np.empty(n + 2, np.int64),
-                                np.empty(n + 2, np.int64))
-    low_bp, part, derivative = (np.empty(n + 2, np.float64), np.empty(n + 2, np.float64),
-                                np.empty(n + 2, np.float64))
-    c1, c2, c3 = (np.empty(n + 2, np.float64), np.empty(n + 2, np.float64),
-                  np.empty(n + 2, np.float64))
-    moves = 3 * (n + 2) if cubic else n + 2
+    # Scratch for one region, sized by the largest (small arrays, reused while in cache): at
+    # most its events plus a front and a back knot per pixel; its breakpoints, and up to
+    # three monotone moves per breakpoint.
+    m = 0
+    for k in range(regions.shape[0]):
+        m = max(m, first_of[k + 1] - first_of[k])
+    event_bp, by_pixel = np.empty(m, np.int64), np.empty(m, np.int64)
+    pixel_count = np.zeros(min(per_region, 4 * m + 64) + 1, np.int64)  # see region_knots
+    k_t, k_level = np.empty(3 * m, t.dtype), np.empty(3 * m, np.int64)
+    k_bp, k_first = np.empty(3 * m, np.int64), np.empty(3 * m, np.bool_)
+    slope, k_width, k_rise = (np.empty(3 * m, np.float64), np.empty(3 * m, np.float64),
+                              np.empty(3 * m, np.float64))
+    bp_t = np.empty(m + 2, t.dtype)
+    high_bp, count_bp, whole = (np.empty(m + 2, np.int64), np.empty(m + 2, np.int64),
+                                np.empty(m + 2, np.int64))
+    low_bp, part, derivative = (np.empty(m + 2, np.float64), np.empty(m + 2, np.float64),
+                                np.empty(m + 2, np.float64))
+    c1, c2, c3 = (np.empty(m + 2, np.float64), np.empty(m + 2, np.float64),
+                  np.empty(m + 2, np.float64))
+    moves = 3 * (m + 2) if cubic else m + 2
     move_bp, move_whole = np.empty(moves, np.int64), np.empty(moves, np.int64)
     move_s, move_part = np.empty(moves, np.float64), np.empty(moves, np.float64)
     floor_u, q_after = np.empty(moves, np.int64), np.empty(moves, np.int64)
@@ -141,9 +146,9 @@ def _window_loop(
                 return out_region[:0], out_t[:0], out_on[:0], total
             origin = start_of[rec]
         previous_start = lo
-        nbp, nk = region_knots(order, local, t, change, lo, hi, start_of[rec], end_of[rec],
-                               per_region, bp_t, event_bp, by_pixel, pixel_count, k_t, k_level,
-                               k_bp, k_first)
+        nbp, nk = region_knots(local, t, change, lo, hi, start_of[rec], end_of[rec], per_region,
+                               bp_t, event_bp, by_pixel, pixel_count, k_t, k_level, k_bp,
+                               k_first)
         rx, ry = r % out_w, (r // out_w) % out_h
         pixels = min(width - rx * fx, fx) * min(height - ry * fy, fy)
         if cubic:
@@ -277,13 +282,13 @@ def estimation_window(
     after = np.zeros(1, t.dtype) if next_cut is None else next_cut.reshape(1).numpy()
     limit = output_limit()
     fused = bool(addcmul_is_fused()) if cubic else False
+    column, row = region_tables(factor, out_size[0], start_of.shape[0] * out_size[1])
     region, out_t, on, over = _window_loop(
-        x, y, t, change_np, start_of, end_of, fx, fy, out_size[0], out_size[1], width, height,
+        x, y, t, change_np, column, row, start_of, end_of, fx, fy, out_size[0], out_size[1], width, height,
         a, b, b / (fx * fy * a), divides, not t_dtype.is_floating_point, cubic, front_at_rest,
         fused, q, has_cut, cut, has_next, after, -1 if limit is None else limit, chunk_events,
     )
     if over <= -2:
-        column, row = region_tables(factor, out_size[0], start_of.shape[0] * out_size[1])
         raise outside_error(-2 - over, x, y, column, row)
     if over >= 0:
         check_output_count(over)

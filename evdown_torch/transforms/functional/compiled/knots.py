@@ -33,111 +33,116 @@ _HALF = 0.5 + HALF_TOLERANCE
 
 @compiled_loop
 def group_by_region(
-    x: np.ndarray, y: np.ndarray, fx: int, fy: int, out_w: int, rows: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
-    """The events by region, stably: ``(local, regions, first_of, order, outside)``.
+    x: np.ndarray, y: np.ndarray, t: np.ndarray, change: np.ndarray, column: np.ndarray,
+    row: np.ndarray, fx: int, fy: int, out_w: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover
+    """The events by region, stably: ``(regions, first_of, local, t, change, outside)``.
 
-    ``local[i]``: event ``i``'s place in its region, ``(y % fy) * fx + x % fx``;
-    ``order``: the events in region order (time order inside a region, as given);
     ``regions``: the ``R`` regions with events, ascending; ``first_of[k]``: where region
-    ``regions[k]``'s events start in ``order`` (``R + 1`` entries); ``outside``: the first
-    event outside the ``out_w * fx`` by ``rows * fy`` pixels, or -1 (nothing else is then
-    computed). A counting sort where the region ids span a few times the events, else a
-    stable merge sort: the cost follows the events, not the sensor's area.
+    ``regions[k]``'s events start (``R + 1`` entries) in the returned columns, which hold the
+    events in region order (time order inside a region, as given): ``local``, each one's
+    place in its region, ``(y % fy) * fx + x % fx``, its time and its level change. A
+    region's column and row are read from the tables ``column[x]``, ``row[y]``;
+    ``outside``: the first event outside them, or -1 (nothing else is then computed). A
+    counting sort where the region ids span a few times the events, else a stable merge
+    sort: the cost follows the events, not the sensor's area.
     """
     n = x.shape[0]
     region = np.empty(n, np.int64)
-    local = np.empty(n, np.int64)
     span = 0
     for i in range(n):
-        if x[i] < 0 or x[i] >= out_w * fx or y[i] < 0 or y[i] >= rows * fy:
-            return local, region[:0], np.zeros(1, np.int64), region, i
-        rx = x[i] // fx
-        ry = y[i] // fy
-        region[i] = ry * out_w + rx
-        local[i] = (y[i] - ry * fy) * fx + x[i] - rx * fx
+        if x[i] < 0 or x[i] >= column.shape[0] or y[i] < 0 or y[i] >= row.shape[0]:
+            return region[:0], np.zeros(1, np.int64), region, t, change, i
+        region[i] = row[y[i]] * out_w + column[x[i]]
         span = max(span, region[i] + 1)
-    if span > 4 * n + 1024:
-        order = np.argsort(region, kind="mergesort")
-    else:
-        count = np.zeros(span + 1, np.int64)
-        for i in range(n):
-            count[region[i] + 1] += 1
-        for r in range(span):
-            count[r + 1] += count[r]
-        order = np.empty(n, np.int64)
-        for i in range(n):
-            order[count[region[i]]] = i
-            count[region[i]] += 1
+    local, by_t, by_change = np.empty(n, np.int64), np.empty(n, t.dtype), np.empty(n, np.int64)
     regions = np.empty(n, np.int64)
     first_of = np.empty(n + 1, np.int64)
     k = 0
-    for j in range(n):
-        if j == 0 or region[order[j]] != region[order[j - 1]]:
-            regions[k], first_of[k] = region[order[j]], j
-            k += 1
+    if span > 4 * n + 1024:  # gathered in merge-sort order
+        order = np.argsort(region, kind="mergesort")
+        for j in range(n):
+            i = order[j]
+            if j == 0 or region[i] != regions[k - 1]:
+                regions[k], first_of[k] = region[i], j
+                k += 1
+            local[j] = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
+            by_t[j], by_change[j] = t[i], change[i]
+    else:  # scattered in one pass: each region's place advances through its own run
+        place = np.zeros(span + 1, np.int64)
+        for i in range(n):
+            place[region[i] + 1] += 1
+        for r in range(span):
+            if place[r + 1]:
+                regions[k], first_of[k] = r, place[r]
+                k += 1
+            place[r + 1] += place[r]
+        for i in range(n):
+            j = place[region[i]]
+            place[region[i]] = j + 1
+            local[j] = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
+            by_t[j], by_change[j] = t[i], change[i]
     first_of[k] = n
-    return local, regions[:k], first_of[:k + 1], order, -1
+    return regions[:k], first_of[:k + 1], local, by_t, by_change, -1
 
 
 @compiled_loop
 def region_knots(
-    order: np.ndarray, local: np.ndarray, t: np.ndarray, change: np.ndarray, lo: int, hi: int,
+    local: np.ndarray, t: np.ndarray, change: np.ndarray, lo: int, hi: int,
     t_start: float, t_end: float, per_region: int, bp_t: np.ndarray, event_bp: np.ndarray,
     by_pixel: np.ndarray, pixel_count: np.ndarray, k_t: np.ndarray, k_level: np.ndarray,
     k_bp: np.ndarray, k_first: np.ndarray,
 ) -> tuple[int, int]:  # pragma: no cover - compiled
-    """The breakpoints and knots of the region whose events are ``order[lo:hi]``.
+    """The breakpoints and knots of the region whose events are ``[lo, hi)`` of the columns.
 
+    The columns are :func:`group_by_region`'s (region order, time order inside a region).
     Writes the region's ``nbp`` breakpoint times into ``bp_t`` and its ``nk`` knots, in pixel
     order, into ``k_t`` (time), ``k_level`` (level), ``k_bp`` (breakpoint index) and
-    ``k_first`` (a pixel's first knot); ``event_bp``, ``by_pixel`` and ``pixel_count``
-    (``per_region + 1``) are scratch. Returns ``(nbp, nk)``.
+    ``k_first`` (a pixel's first knot); ``event_bp``, ``by_pixel`` and ``pixel_count`` are
+    scratch. Returns ``(nbp, nk)``.
     """
     nbp = 0
-    if t[order[lo]] > t_start:
+    if t[lo] > t_start:
         bp_t[0] = t_start
         nbp = 1
     for j in range(lo, hi):
-        tj = t[order[j]]
-        if j == lo or tj != t[order[j - 1]]:
-            bp_t[nbp] = tj
+        if j == lo or t[j] != t[j - 1]:
+            bp_t[nbp] = t[j]
             nbp += 1
         event_bp[j - lo] = nbp - 1
-    if t[order[hi - 1]] < t_end:
+    if t[hi - 1] < t_end:
         bp_t[nbp] = t_end
         nbp += 1
     # The region's events by pixel (stable: time order inside a pixel); a counting sort
     # unless the region has far fewer events than pixels.
     if per_region > 4 * (hi - lo) + 64:
-        by_local = np.argsort(local[order[lo:hi]], kind="mergesort")
+        by_local = np.argsort(local[lo:hi], kind="mergesort")
         for j in range(hi - lo):
             by_pixel[j] = lo + by_local[j]
     else:
-        pixel_count[:] = 0
+        pixel_count[:per_region + 1] = 0
         for j in range(lo, hi):
-            pixel_count[local[order[j]] + 1] += 1
+            pixel_count[local[j] + 1] += 1
         for p in range(per_region):
             pixel_count[p + 1] += pixel_count[p]
         for j in range(lo, hi):
-            p = local[order[j]]
-            by_pixel[pixel_count[p]] = j
-            pixel_count[p] += 1
+            by_pixel[pixel_count[local[j]]] = j
+            pixel_count[local[j]] += 1
     # One knot per (pixel, t), after all its events; a front and a back knot where needed.
     nk = 0
     j = 0
     m = hi - lo
     level = 0
     while j < m:
-        p = local[order[by_pixel[j]]]
+        p = local[by_pixel[j]]
         level = 0
         pixel_first = nk
-        while j < m and local[order[by_pixel[j]]] == p:
+        while j < m and local[by_pixel[j]] == p:
             e = by_pixel[j]
-            level += change[order[e]]
-            te = t[order[e]]
+            level += change[e]
+            te = t[e]
             j += 1
-            if j < m and local[order[by_pixel[j]]] == p and t[order[by_pixel[j]]] == te:
+            if j < m and local[by_pixel[j]] == p and t[by_pixel[j]] == te:
                 continue
             if nk == pixel_first and te > t_start:
                 k_t[nk], k_level[nk], k_bp[nk], k_first[nk] = t_start, 0, 0, True
