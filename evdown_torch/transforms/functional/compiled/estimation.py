@@ -284,9 +284,10 @@ def estimation_window(
     fused = bool(addcmul_is_fused()) if cubic else False
     column, row = region_tables(factor, out_size[0], start_of.shape[0] * out_size[1])
     region, out_t, on, over = _window_loop(
-        x, y, t, change_np, column, row, start_of, end_of, fx, fy, out_size[0], out_size[1], width, height,
-        a, b, b / (fx * fy * a), divides, not t_dtype.is_floating_point, cubic, front_at_rest,
-        fused, q, has_cut, cut, has_next, after, -1 if limit is None else limit, chunk_events,
+        x, y, t, change_np, column, row, start_of, end_of, fx, fy, out_size[0], out_size[1],
+        width, height, a, b, b / (fx * fy * a), divides, not t_dtype.is_floating_point, cubic,
+        front_at_rest, fused, q, has_cut, cut, has_next, after, -1 if limit is None else limit,
+        chunk_events,
     )
     if over <= -2:
         raise outside_error(-2 - over, x, y, column, row)

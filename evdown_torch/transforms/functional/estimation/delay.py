@@ -24,6 +24,7 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import MAX_EXACT_SPAN
 from evdown_torch.events import Events, polarity_sign
+from evdown_torch.transforms.functional.compiled import use_compiled
 
 __all__ = [
     "SMALL_WINDOW",
@@ -95,13 +96,19 @@ def hold_knots(
         events = events.select(by_time)
         t_start = t_start if t_start.ndim == 0 else take(t_start, by_time)
     change = polarity_sign(events.p)
-    held = held_knots(events, max_delay=max_delay, t_start=t_start)
+    if use_compiled(events.t):  # the same tensors (compiled.estimation_window)
+        from evdown_torch.transforms.functional.compiled import estimation_window as compiled
+
+        held_of, merge = compiled.held_knots, compiled.merge_by_time
+    else:
+        held_of, merge = held_knots, merge_by_time
+    held = held_of(events, max_delay=max_delay, t_start=t_start)
     m = held.num_events
     if m == 0:
         return events, change
     # Merged in time order, a held knot before the real events of its time.
-    return merge_by_time([(held, torch.zeros(m, dtype=change.dtype, device=change.device)),
-                          (events, change)])
+    return merge([(held, torch.zeros(m, dtype=change.dtype, device=change.device)),
+                  (events, change)])
 
 
 def held_knots(events: Events, *, max_delay: float, t_start: Tensor) -> Events:

@@ -27,6 +27,7 @@ knots before the new horizon (:func:`_recent`), without grouping the whole windo
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple, cast
 
 import torch
@@ -46,6 +47,7 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import check_state_memory, output_size
 from evdown_torch.events import Events, polarity_sign
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.estimation import delay
 from evdown_torch.transforms.functional.estimation.delay import (
     effective_delay,
@@ -159,6 +161,47 @@ def _recent(
     return events, torch.cat([take(carried, at), take(head_change, passed), change[cut:]])
 
 
+def next_knots(
+    window: Events, change: Tensor, *, before: Tensor, keep: int, width: int
+) -> tuple[Events, Tensor]:
+    """The knot events of the next state, kept of a time-sorted window, in stable time order.
+
+    Each pixel's knots at or after ``before`` and its last ``keep`` before it, the first kept
+    carrying the pixel's whole level (:func:`_trim`, after :func:`_recent` prunes what it
+    would drop); ``width``: the sensor's ``W``.
+    """
+    if window.num_events == 0:
+        return window, change
+    pixels = (int(window.y.max()) + 1) * width
+    # No knot of the window is earlier than its first: that floor folds nothing, as t_start.
+    recent, recent_change = _recent(window, change, before=before, keep=keep, pixels=pixels,
+                                    width=width, t_start=window.t[0])
+    kept, kept_change = _trim(recent, recent_change, before=before, keep=keep, width=width)
+    by_time = torch.sort(kept.t, stable=True).indices
+    return kept.select(by_time), take(kept_change, by_time)
+
+
+class _Upkeep(NamedTuple):
+    """The window's upkeep of a session step: the eager functions, or their compiled twins."""
+
+    held_knots: Callable[..., Events]
+    merge_by_time: Callable[[list[tuple[Events, Tensor]]], tuple[Events, Tensor]]
+    next_knots: Callable[..., tuple[Events, Tensor]]
+
+
+def _upkeep(t: Tensor) -> _Upkeep:
+    """The upkeep a step with timestamps ``t`` takes: compiled or eager.
+
+    Compiled on the CPU where allowed (:mod:`..compiled.estimation_window`, the same
+    tensors), else eager.
+    """
+    if use_compiled(t):
+        from evdown_torch.transforms.functional.compiled import estimation_window as compiled
+
+        return _Upkeep(compiled.held_knots, compiled.merge_by_time, compiled.next_knots)
+    return _Upkeep(held_knots, merge_by_time, next_knots)
+
+
 def estimation_init(settings: EstimationSettings, events: Events) -> WindowState:
     """The estimators' ``init_state`` (bounded delay).
 
@@ -218,8 +261,9 @@ def estimation_step(
         state = estimation_init(settings, events)
     tau = events.t[-1]
     check_span(state.t_start, tau)  # before any time arithmetic
+    upkeep = _upkeep(events.t)
     pixel = events.y * width + events.x
-    held = held_knots(events, max_delay=max_delay, t_start=take(state.pixel_t, pixel))
+    held = upkeep.held_knots(events, max_delay=max_delay, t_start=take(state.pixel_t, pixel))
     pixel_t = state.pixel_t.clone()
     pixel_t.scatter_reduce_(0, pixel, events.t, "amax")
     # Nothing is earlier than t_start: a horizon before it (a delay longer than the stream so
@@ -240,7 +284,7 @@ def estimation_step(
         touched[take(old_region, where_true(state.knots.t >= cut))] = True
     in_window = take(touched, old_region)
     old = where_true(in_window)
-    window, window_change = merge_by_time([
+    window, window_change = upkeep.merge_by_time([
         (state.knots.select(old), take(state.change, old)),
         (held, torch.zeros(held.num_events, dtype=torch.int64, device=device)),
         (events, polarity_sign(events.p, torch.int64)),
@@ -254,14 +298,11 @@ def estimation_step(
     decided = out.t < next_cut
     if cut is not None:
         decided &= out.t >= cut
-    recent, recent_change = _recent(window, window_change, before=next_cut, keep=settings.lag,
-                                  pixels=pixel_t.shape[0], width=width, t_start=state.t_start)
-    kept, kept_change = _trim(recent, recent_change, before=next_cut, keep=settings.lag,
-                            width=width)
-    by_time = torch.sort(kept.t, stable=True).indices
+    kept, kept_change = upkeep.next_knots(window, window_change, before=next_cut,
+                                          keep=settings.lag, width=width)
     outside = where_true(~in_window)
-    knots, change = merge_by_time([(state.knots.select(outside), take(state.change, outside)),
-                          (kept.select(by_time), take(kept_change, by_time))])
+    knots, change = upkeep.merge_by_time([
+        (state.knots.select(outside), take(state.change, outside)), (kept, kept_change)])
     q = cast(Tensor, q)  # estimate_window returns q with a resume
     new_state = WindowState(state.t_start, tau, horizon, knots, change, pixel_t, q)
     return out.select(where_true(decided)), new_state
