@@ -64,7 +64,7 @@ def add_command(commands: Subparsers) -> None:
         "thinning control, and write results.csv, report.md and tradeoff.png. The "
         "configuration (TOML, e.g. configs/quick.toml) names the dataset, methods, factors, "
         "training and output folder; recordings, frames and predictions are cached, so a "
-        "rerun resumes. configs/quick.toml takes about 6 minutes on an idle 2-core machine, "
+        "rerun resumes. configs/quick.toml takes about 11 minutes on an idle 2-core machine, "
         "with a progress bar per stage. Under torchrun the ranks (on one machine or many) "
         "share the jobs and rank 0 writes the report.",
     )
