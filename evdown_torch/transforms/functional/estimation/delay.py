@@ -9,6 +9,7 @@ an event that changes no level, so the knot and breakpoint machinery of :mod:`.k
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -24,7 +25,6 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import MAX_EXACT_SPAN
 from evdown_torch.events import Events, polarity_sign
-from evdown_torch.transforms.functional.compiled import use_compiled
 
 __all__ = [
     "SMALL_WINDOW",
@@ -65,7 +65,8 @@ def effective_delay(max_delay: float, t: Tensor) -> int | float:
 
 
 def hold_knots(
-    events: Events, *, max_delay: float, t_start: Tensor
+    events: Events, *, max_delay: float, t_start: Tensor,
+    upkeep: tuple[Callable[..., Events], Callable[..., tuple[Events, Tensor]]] | None = None,
 ) -> tuple[Events, Tensor]:
     """The stream with the held knots of a bounded delay added, and each event's level change.
 
@@ -80,6 +81,8 @@ def hold_knots(
             of its own stream (a batch of recordings, see :func:`.driver.estimate`) or the
             time of its pixel's last knot before these events (a streaming session's next
             chunk).
+        upkeep: the ``(held_knots, merge_by_time)`` to use (the compiled twins give the same
+            tensors), or ``None`` for this module's.
 
     Returns:
         ``(events, change)``: ``N + M`` events in stable time order (a held knot before the
@@ -96,12 +99,7 @@ def hold_knots(
         events = events.select(by_time)
         t_start = t_start if t_start.ndim == 0 else take(t_start, by_time)
     change = polarity_sign(events.p)
-    if use_compiled(events.t):  # the same tensors (compiled.estimation_window)
-        from evdown_torch.transforms.functional.compiled import estimation_window as compiled
-
-        held_of, merge = compiled.held_knots, compiled.merge_by_time
-    else:
-        held_of, merge = held_knots, merge_by_time
+    held_of, merge = upkeep if upkeep is not None else (held_knots, merge_by_time)
     held = held_of(events, max_delay=max_delay, t_start=t_start)
     m = held.num_events
     if m == 0:

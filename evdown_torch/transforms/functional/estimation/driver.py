@@ -88,7 +88,13 @@ def estimate(
         if recording_spans is not None:  # each event's own recording's t_start
             rows = settings.output_sensor_size[1] * settings.factor[1]
             start = take(t_start, divide(events.y, rows))
-        events, change = hold_knots(events, max_delay=settings.max_delay, t_start=start)
+        upkeep = None
+        if use_compiled(events.t):  # the same tensors
+            from evdown_torch.transforms.functional.compiled import estimation_window as compiled
+
+            upkeep = compiled.held_knots, compiled.merge_by_time
+        events, change = hold_knots(events, max_delay=settings.max_delay, t_start=start,
+                                    upkeep=upkeep)
     out, _ = estimate_window(events, change=change, t_start=t_start, t_end=t_end, settings=settings,
                              front_at_rest=settings.max_delay is not None)
     return out
