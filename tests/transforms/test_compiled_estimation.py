@@ -218,3 +218,26 @@ def test_the_input_is_not_written(kernel, rng):
     with eager_kernels(False):
         kernel(events, sensor_size=SENSOR, factor=2, threshold=0.1, max_delay=5)
     assert_identical(list(events), before)
+
+
+@pytest.mark.parametrize("curve", ["linear", "cubic"])
+def test_a_level_change_too_wide_to_pack_is_left_to_the_eager_driver(curve, monkeypatch):
+    # A session's first knot of a pixel carries its whole level: 2**31 does not fit the 32
+    # bits the loop packs a change in, so the window takes the eager driver (the same events).
+    from evdown_torch.transforms.functional.estimation.settings import EstimationSettings
+
+    settings = EstimationSettings((4, 4, 2), (2, 2), 2.0**27, max_delay=3, curve=curve)
+    events = Events.from_columns([0, 1, 0], [0, 0, 1], [0, 4, 9], [True, False, True])
+    change = torch.tensor([2**31, -5, 1])
+
+    def window():
+        return driver.estimate_window(events, change=change, t_start=events.t[0],
+                                      t_end=events.t[-1], settings=settings)
+
+    eager_solves = spy(monkeypatch, driver, "pixel_knots")
+    compiled, eager = both_paths(window)
+    assert_identical(compiled[0], eager[0])
+    assert len(eager_solves) == 2  # both paths solved it eagerly
+    # The region's mean jumps to 2**31 / 4 = 4 levels of 2**27 at t = 0; the rest moves it
+    # by far less than a level.
+    assert compiled[0].t.tolist() == [0, 0, 0, 0] and compiled[0].p.all()

@@ -36,6 +36,7 @@ from evdown_torch.transforms.functional.compiled.cubic import (
     solve,
 )
 from evdown_torch.transforms.functional.compiled.knots import (
+    TOO_WIDE,
     chunk_ends_before,
     float_piece_time,
     group_by_region,
@@ -81,6 +82,11 @@ def _grown(column: np.ndarray, kept: int, capacity: int) -> np.ndarray:  # pragm
     return grown
 
 
+#: :func:`_window_loop`'s ``over`` for a window it leaves to the eager driver: a level change
+#: (a pixel's whole level, carried by a session's first knot of it) of 2**31 or more.
+TOO_WIDE_CALL = -(1 << 62)
+
+
 @compiled_loop
 def _window_loop(
     x: np.ndarray, y: np.ndarray, t: np.ndarray, change: np.ndarray, column: np.ndarray,
@@ -94,15 +100,17 @@ def _window_loop(
     """The crossings of every region of a window, in region order; ``q`` moved to ``next_cut``.
 
     Returns ``(region, t, on, over)``: ``over`` is -1, or the count the eager driver would
-    report when the output exceeds ``limit`` (the crossings are then not all written), or
-    ``-2 - i`` for an event ``i`` outside the sensor (nothing done).
+    report when the output exceeds ``limit`` (the crossings are then not all written),
+    ``-2 - i`` for an event ``i`` outside the sensor, or :data:`TOO_WIDE_CALL` for a level
+    change of 2**31 or more (nothing done for either).
     """
     n = t.shape[0]
     per_region = fx * fy
-    regions, first_of, local, t, change, outside = group_by_region(x, y, t, change, column, row,
-                                                                   fx, fy, out_w)
-    if outside >= 0:
-        return np.empty(0, np.int64), np.empty(0, t.dtype), np.empty(0, np.bool_), -2 - outside
+    regions, first_of, packed, t, outside = group_by_region(x, y, t, change, column, row, fx,
+                                                            fy, out_w)
+    if outside != -1:  # an event outside the sensor, or a change too wide to pack
+        code = TOO_WIDE_CALL if outside == TOO_WIDE else -2 - outside
+        return np.empty(0, np.int64), np.empty(0, t.dtype), np.empty(0, np.bool_), code
     # Scratch for one region, sized by the largest (small arrays, reused while in cache): at
     # most its events plus a front and a back knot per pixel; its breakpoints, and up to
     # three monotone moves per breakpoint.
@@ -146,7 +154,7 @@ def _window_loop(
                 return out_region[:0], out_t[:0], out_on[:0], total
             origin = start_of[rec]
         previous_start = lo
-        nbp, nk = region_knots(local, t, change, lo, hi, start_of[rec], end_of[rec], per_region,
+        nbp, nk = region_knots(packed, t, lo, hi, start_of[rec], end_of[rec], per_region,
                                bp_t, event_bp, by_pixel, pixel_count, k_t, k_level, k_bp,
                                k_first)
         rx, ry = r % out_w, (r // out_w) % out_h
@@ -235,7 +243,7 @@ def estimation_window(
     factor: tuple[int, int], out_size: tuple[int, int], fraction: Fraction,
     resume_cut: Tensor | None, resume_q: Tensor | None, next_cut: Tensor | None,
     chunk_events: int, cubic: bool, front_at_rest: bool,
-) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None] | None:
     """The crossings of a window, as the eager driver's chunks of regions find them.
 
     Args:
@@ -261,7 +269,9 @@ def estimation_window(
     Returns:
         ``(region, t, on, q)``: the crossings' ``(C,)`` int64 regions, times (the events'
         dtype) and polarities in region order, and with ``next_cut`` the ``(Wo * Ho,)``
-        int64 reference index after each region's last breakpoint earlier than it.
+        int64 reference index after each region's last breakpoint earlier than it; ``None``
+        for a window with a level change of 2**31 or more (a pixel's whole level, carried by
+        a session's first knot of it), which the loop does not pack: the eager driver's.
 
     Raises:
         OutputLimitError: as the eager driver raises it, with the same count.
@@ -289,6 +299,8 @@ def estimation_window(
         front_at_rest, fused, q, has_cut, cut, has_next, after, -1 if limit is None else limit,
         chunk_events,
     )
+    if over == TOO_WIDE_CALL:
+        return None
     if over <= -2:
         raise outside_error(-2 - over, x, y, column, row)
     if over >= 0:

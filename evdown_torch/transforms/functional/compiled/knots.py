@@ -24,38 +24,49 @@ import numpy as np
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, RELATIVE_ERROR
 
-__all__ = ["chunk_ends_before", "float_piece_time", "group_by_region", "integer_piece_time",
-           "reference_walk", "region_knots"]
+__all__ = ["TOO_WIDE", "chunk_ends_before", "float_piece_time", "group_by_region",
+           "integer_piece_time", "reference_walk", "region_knots", "unpack_change", "unpack_local"]
 
 #: ``0.5 + HALF_TOLERANCE`` as the eager piece_time adds it (one Python float).
 _HALF = 0.5 + HALF_TOLERANCE
+
+
+#: :func:`group_by_region`'s ``outside`` when a level change or a region's pixel count does not
+#: fit the 32 bits it packs them in.
+TOO_WIDE = -2
 
 
 @compiled_loop
 def group_by_region(
     x: np.ndarray, y: np.ndarray, t: np.ndarray, change: np.ndarray, column: np.ndarray,
     row: np.ndarray, fx: int, fy: int, out_w: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover
-    """The events by region, stably: ``(regions, first_of, local, t, change, outside)``.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
+    """The events by region, stably: ``(regions, first_of, packed, t, outside)``.
 
     ``regions``: the ``R`` regions with events, ascending; ``first_of[k]``: where region
     ``regions[k]``'s events start (``R + 1`` entries) in the returned columns, which hold the
-    events in region order (time order inside a region, as given): ``local``, each one's
-    place in its region, ``(y % fy) * fx + x % fx``, its time and its level change. A
-    region's column and row are read from the tables ``column[x]``, ``row[y]``;
-    ``outside``: the first event outside them, or -1 (nothing else is then computed). A
+    events in region order (time order inside a region, as given): ``packed``, each one's
+    place in its region (``(y % fy) * fx + x % fx``, :func:`unpack_local`) and its level
+    change (:func:`unpack_change`) in one int64 (one column to scatter instead of two), and
+    its time. A region's column and row are read from the tables ``column[x]``, ``row[y]``;
+    ``outside``: the first event outside them, :data:`TOO_WIDE` where a change or the
+    region's pixel count does not fit 32 bits, or -1 (nothing else is computed but for -1). A
     counting sort where the region ids span a few times the events, else a stable merge
     sort: the cost follows the events, not the sensor's area.
     """
     n = x.shape[0]
     region = np.empty(n, np.int64)
     span = 0
+    widest = fx * fy
     for i in range(n):
         if x[i] < 0 or x[i] >= column.shape[0] or y[i] < 0 or y[i] >= row.shape[0]:
-            return region[:0], np.zeros(1, np.int64), region, t, change, i
+            return region[:0], np.zeros(1, np.int64), region, t, i
         region[i] = row[y[i]] * out_w + column[x[i]]
         span = max(span, region[i] + 1)
-    local, by_t, by_change = np.empty(n, np.int64), np.empty(n, t.dtype), np.empty(n, np.int64)
+        widest = max(widest, abs(change[i]) + 1)
+    if widest >= 1 << 31:
+        return region[:0], np.zeros(1, np.int64), region, t, TOO_WIDE
+    packed, by_t = np.empty(n, np.int64), np.empty(n, t.dtype)
     regions = np.empty(n, np.int64)
     first_of = np.empty(n + 1, np.int64)
     k = 0
@@ -66,8 +77,8 @@ def group_by_region(
             if j == 0 or region[i] != regions[k - 1]:
                 regions[k], first_of[k] = region[i], j
                 k += 1
-            local[j] = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
-            by_t[j], by_change[j] = t[i], change[i]
+            local = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
+            packed[j], by_t[j] = (local << 32) | (change[i] & 0xFFFFFFFF), t[i]
     else:  # scattered in one pass: each region's place advances through its own run
         place = np.zeros(span + 1, np.int64)
         for i in range(n):
@@ -80,22 +91,35 @@ def group_by_region(
         for i in range(n):
             j = place[region[i]]
             place[region[i]] = j + 1
-            local[j] = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
-            by_t[j], by_change[j] = t[i], change[i]
+            local = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
+            packed[j], by_t[j] = (local << 32) | (change[i] & 0xFFFFFFFF), t[i]
     first_of[k] = n
-    return regions[:k], first_of[:k + 1], local, by_t, by_change, -1
+    return regions[:k], first_of[:k + 1], packed, by_t, -1
+
+
+@compiled_loop
+def unpack_local(packed: int) -> int:  # pragma: no cover - compiled
+    """An event's place in its region, from :func:`group_by_region`'s ``packed``."""
+    return packed >> 32
+
+
+@compiled_loop
+def unpack_change(packed: int) -> int:  # pragma: no cover - compiled
+    """An event's level change (its sign-extended low 32 bits), from ``packed``."""
+    return (packed << 32) >> 32
 
 
 @compiled_loop
 def region_knots(
-    local: np.ndarray, t: np.ndarray, change: np.ndarray, lo: int, hi: int,
+    packed: np.ndarray, t: np.ndarray, lo: int, hi: int,
     t_start: float, t_end: float, per_region: int, bp_t: np.ndarray, event_bp: np.ndarray,
     by_pixel: np.ndarray, pixel_count: np.ndarray, k_t: np.ndarray, k_level: np.ndarray,
     k_bp: np.ndarray, k_first: np.ndarray,
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """The breakpoints and knots of the region whose events are ``[lo, hi)`` of the columns.
 
-    The columns are :func:`group_by_region`'s (region order, time order inside a region).
+    The columns ``packed`` and ``t`` are :func:`group_by_region`'s (region order, time
+    order inside a region).
     Writes the region's ``nbp`` breakpoint times into ``bp_t`` and its ``nk`` knots, in pixel
     order, into ``k_t`` (time), ``k_level`` (level), ``k_bp`` (breakpoint index) and
     ``k_first`` (a pixel's first knot); ``event_bp``, ``by_pixel`` and ``pixel_count`` are
@@ -116,33 +140,34 @@ def region_knots(
     # The region's events by pixel (stable: time order inside a pixel); a counting sort
     # unless the region has far fewer events than pixels.
     if per_region > 4 * (hi - lo) + 64:
-        by_local = np.argsort(local[lo:hi], kind="mergesort")
+        by_local = np.argsort(packed[lo:hi] >> 32, kind="mergesort")
         for j in range(hi - lo):
             by_pixel[j] = lo + by_local[j]
     else:
         pixel_count[:per_region + 1] = 0
         for j in range(lo, hi):
-            pixel_count[local[j] + 1] += 1
+            pixel_count[unpack_local(packed[j]) + 1] += 1
         for p in range(per_region):
             pixel_count[p + 1] += pixel_count[p]
         for j in range(lo, hi):
-            by_pixel[pixel_count[local[j]]] = j
-            pixel_count[local[j]] += 1
+            p = unpack_local(packed[j])
+            by_pixel[pixel_count[p]] = j
+            pixel_count[p] += 1
     # One knot per (pixel, t), after all its events; a front and a back knot where needed.
     nk = 0
     j = 0
     m = hi - lo
     level = 0
     while j < m:
-        p = local[by_pixel[j]]
+        p = unpack_local(packed[by_pixel[j]])
         level = 0
         pixel_first = nk
-        while j < m and local[by_pixel[j]] == p:
+        while j < m and unpack_local(packed[by_pixel[j]]) == p:
             e = by_pixel[j]
-            level += change[e]
+            level += unpack_change(packed[e])
             te = t[e]
             j += 1
-            if j < m and local[by_pixel[j]] == p and t[by_pixel[j]] == te:
+            if j < m and unpack_local(packed[by_pixel[j]]) == p and t[by_pixel[j]] == te:
                 continue
             if nk == pixel_first and te > t_start:
                 k_t[nk], k_level[nk], k_bp[nk], k_first[nk] = t_start, 0, 0, True

@@ -148,7 +148,7 @@ def estimate_window(
     if use_compiled(events.t) and compiled_curve(settings.curve):
         from evdown_torch.transforms.functional.compiled.estimation import estimation_window
 
-        region, t, on, q = estimation_window(
+        found = estimation_window(
             events.x, events.y, events.t, polarity_sign(events.p) if change is None else change,
             t_start=t_start, t_end=t_end, sensor_size=sensor_size, factor=factor,
             out_size=(out_w, out_h), fraction=fraction,
@@ -157,7 +157,9 @@ def estimate_window(
             chunk_events=REGION_CHUNK_EVENTS, cubic=settings.curve == "cubic",
             front_at_rest=front_at_rest,
         )
-        return emit(region, t, on, out_w), q
+        if found is not None:  # else a level change too wide for the loop: the eager path
+            region, t, on, q = found
+            return emit(region, t, on, out_w), q
     q = None if resume is None else resume.q.clone()
     outputs = []
     emitted = 0
