@@ -11,6 +11,8 @@ regions' :class:`~evdown_torch.transforms.functional.estimation.knots.Knots` to 
 
 from __future__ import annotations
 
+from types import ModuleType
+
 import torch
 from torch import Tensor
 
@@ -34,7 +36,7 @@ from evdown_torch.transforms.functional.estimation.solver import (
 )
 from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
 
-__all__ = ["SOLVERS", "estimate", "estimate_window"]
+__all__ = ["SOLVERS", "compiled_curve", "compiled_upkeep", "estimate", "estimate_window"]
 
 #: The solver of each curve (``EstimationSettings.curve``): the one table of them.
 SOLVERS: dict[Curve, RegionSolver] = {"linear": linear_regions, "cubic": cubic_regions}
@@ -88,11 +90,8 @@ def estimate(
         if recording_spans is not None:  # each event's own recording's t_start
             rows = settings.output_sensor_size[1] * settings.factor[1]
             start = take(t_start, divide(events.y, rows))
-        upkeep = None
-        if use_compiled(events.t):  # the same tensors
-            from evdown_torch.transforms.functional.compiled import estimation_window as compiled
-
-            upkeep = compiled.held_knots, compiled.merge_by_time
+        compiled = compiled_upkeep(events.t)
+        upkeep = None if compiled is None else (compiled.held_knots, compiled.merge_by_time)
         events, change = hold_knots(events, max_delay=settings.max_delay, t_start=start,
                                     upkeep=upkeep)
     out, _ = estimate_window(events, change=change, t_start=t_start, t_end=t_end, settings=settings,
@@ -194,3 +193,19 @@ def compiled_curve(curve: Curve) -> bool:
     from evdown_torch.transforms.functional.compiled.cubic import addcmul_is_fused
 
     return addcmul_is_fused() is not None
+
+
+def compiled_upkeep(t: Tensor) -> ModuleType | None:
+    """The compiled twins of a bounded delay's upkeep where timestamps ``t`` take them.
+
+    ``None`` where they do not (:func:`~..compiled.use_compiled`).
+
+    :mod:`~..compiled.estimation_window`: ``held_knots``, ``merge_by_time`` and
+    ``next_knots``, the same tensors as the eager functions. The one choice of both callers:
+    :func:`estimate` (its held knots) and a session's step (``stream._upkeep``).
+    """
+    if not use_compiled(t):
+        return None
+    from evdown_torch.transforms.functional.compiled import estimation_window
+
+    return estimation_window

@@ -27,6 +27,7 @@ knots before the new horizon (:func:`_recent`), without grouping the whole windo
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import NamedTuple, cast
 
@@ -47,14 +48,13 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import check_state_memory, output_size
 from evdown_torch.events import Events, polarity_sign
-from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.estimation import delay
 from evdown_torch.transforms.functional.estimation.delay import (
     effective_delay,
     held_knots,
     merge_by_time,
 )
-from evdown_torch.transforms.functional.estimation.driver import estimate_window
+from evdown_torch.transforms.functional.estimation.driver import compiled_upkeep, estimate_window
 from evdown_torch.transforms.functional.estimation.knots import (
     check_span,
 )
@@ -162,44 +162,46 @@ def _recent(
 
 
 def next_knots(
-    window: Events, change: Tensor, *, before: Tensor, keep: int, width: int
+    window: Events, change: Tensor, *, before: Tensor, keep: int, width: int, pixels: int,
+    t_start: Tensor,
 ) -> tuple[Events, Tensor]:
     """The knot events of the next state, kept of a time-sorted window, in stable time order.
 
     Each pixel's knots at or after ``before`` and its last ``keep`` before it, the first kept
     carrying the pixel's whole level (:func:`_trim`, after :func:`_recent` prunes what it
-    would drop); ``width``: the sensor's ``W``.
+    would drop); ``width``: the sensor's ``W``; ``pixels``: its ``W * H``; ``t_start``: the
+    stream's first timestamp.
     """
-    if window.num_events == 0:
-        return window, change
-    pixels = (int(window.y.max()) + 1) * width
-    # No knot of the window is earlier than its first: that floor folds nothing, as t_start.
     recent, recent_change = _recent(window, change, before=before, keep=keep, pixels=pixels,
-                                    width=width, t_start=window.t[0])
+                                    width=width, t_start=t_start)
     kept, kept_change = _trim(recent, recent_change, before=before, keep=keep, width=width)
     by_time = torch.sort(kept.t, stable=True).indices
     return kept.select(by_time), take(kept_change, by_time)
 
 
 class _Upkeep(NamedTuple):
-    """The window's upkeep of a session step: the eager functions, or their compiled twins."""
+    """The window's upkeep of a session step: the eager functions, or their compiled twins.
+
+    ``next_knots`` takes ``(window, change, *, before, keep, width)``.
+    """
 
     held_knots: Callable[..., Events]
     merge_by_time: Callable[[list[tuple[Events, Tensor]]], tuple[Events, Tensor]]
     next_knots: Callable[..., tuple[Events, Tensor]]
 
 
-def _upkeep(t: Tensor) -> _Upkeep:
+def _upkeep(t: Tensor, *, pixels: int, t_start: Tensor) -> _Upkeep:
     """The upkeep a step with timestamps ``t`` takes: compiled or eager.
 
-    Compiled on the CPU where allowed (:mod:`..compiled.estimation_window`, the same
-    tensors), else eager.
+    Compiled where :func:`~.driver.compiled_upkeep` says so (the same tensors), else eager,
+    with the sensor's ``pixels`` and the stream's ``t_start`` that the eager
+    :func:`next_knots` reads.
     """
-    if use_compiled(t):
-        from evdown_torch.transforms.functional.compiled import estimation_window as compiled
-
+    compiled = compiled_upkeep(t)
+    if compiled is not None:
         return _Upkeep(compiled.held_knots, compiled.merge_by_time, compiled.next_knots)
-    return _Upkeep(held_knots, merge_by_time, next_knots)
+    return _Upkeep(held_knots, merge_by_time,
+                   functools.partial(next_knots, pixels=pixels, t_start=t_start))
 
 
 def estimation_init(settings: EstimationSettings, events: Events) -> WindowState:
@@ -261,7 +263,7 @@ def estimation_step(
         state = estimation_init(settings, events)
     tau = events.t[-1]
     check_span(state.t_start, tau)  # before any time arithmetic
-    upkeep = _upkeep(events.t)
+    upkeep = _upkeep(events.t, pixels=state.pixel_t.shape[0], t_start=state.t_start)
     pixel = events.y * width + events.x
     held = upkeep.held_knots(events, max_delay=max_delay, t_start=take(state.pixel_t, pixel))
     pixel_t = state.pixel_t.clone()
