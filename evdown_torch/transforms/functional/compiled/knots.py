@@ -157,7 +157,6 @@ def region_knots(
     nk = 0
     j = 0
     m = hi - lo
-    level = 0
     while j < m:
         p = unpack_local(packed[by_pixel[j]])
         level = 0
