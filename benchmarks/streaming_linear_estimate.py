@@ -1,0 +1,307 @@
+"""What a streaming LinearEstimation loop would cost in the live replay: an estimate for a design.
+
+Issue 38's goals 1 and 2 ask LinearEstimation with ``max_delay`` to keep up with the live
+replay (the synthetic gesture recording retimed to 25 M events/s, 10 ms chunks, factor 4, one
+thread), at 0.08 of the floor's rate or more. The package's compiled session solves a *window*
+of knot events each chunk with the batch driver's arithmetic (every float as the eager kernel
+computes it) and keeps the knot events the future needs: it groups and sorts every chunk's
+events by region and by pixel, and it reaches about 0.04 of the floor (docs/benchmarks.md).
+This script measures, on the same chunks and in the same run as the package's session and
+the floor, a design that needs neither a window nor a sort: two passes over each chunk.
+
+* **Ramps.** The contract's polyline of a pixel is a sum of ramps: an event of change ``c`` at
+  a pixel whose previous knot time is ``t0`` adds the ramp of rise ``c`` over ``[h, t]``,
+  ``h = max(t0, t - D)`` (``D``'s held knot; events at one time add ramps over the same
+  interval, which sum to the merged knot's). A ramp's end comes at its event's time, so the
+  ends arrive in time order (a ring); its start is either ``t - D`` (or ``t_start``), which
+  also arrives in time order (a second ring), or the pixel's previous knot, whose end is
+  still ahead of the horizon: the start's slope change is added to that end's. Per pixel, the
+  loop keeps its last two knot times and their ends' places in the ring.
+* **Sweep.** The slope changes before the horizon ``tau - D``, a merge of the two rings in
+  time order; each output region keeps its value, slope, pending jump and reference index,
+  and is advanced to a change's time when one comes (the reference rule on the piece, then
+  the change), and to the horizon at the end.
+
+The arithmetic is fixed point, the same whatever the chunks: each ramp's slope is
+``round(c * 2**K / (t - h))`` units of ``2**-K`` levels per microsecond (a table over the
+lengths up to ``D``: no division an event) and the ramp ends exactly at ``c * 2**K`` (a jump
+of at most half a unit per microsecond of ramp), so a region's value is an exact integer at
+every integer time and the level tests and rounded crossing times are integer operations.
+That is not the package's arithmetic: the curve is within ``len * 2**-(K + 1)`` levels per
+active ramp of the exact polyline (``K = 32``, ramps up to ``D = 1 ms``: about ``1e-7``
+levels), so an event can move by a tick where the exact crossing lies on a half tick (the
+contract rounds halves up; a curve a little off falls either side). The script counts the
+events in one output and not the other, and pairs them one tick apart.
+
+So the figures price a design; they are no implementation (integer timestamps only, no batch
+path, no eager twin, no overflow checks, no exact rule at half ticks).
+
+Run: ``python benchmarks/streaming_linear_estimate.py [--events 13000000] [--chunks 50]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from collections import Counter
+
+import numpy as np
+import torch
+
+from evdown_torch.bench.floor import RegionFloor
+from evdown_torch.bench.inputs import gesture_stream
+from evdown_torch.bench.realtime import (
+    REALTIME_MAX_DELAY_US,
+    REALTIME_RATE,
+    chunk_bounds_us,
+    retime,
+)
+from evdown_torch.transforms.registry import make_method
+
+try:
+    import numba
+except ImportError:  # pragma: no cover - depends on the machine
+    numba = None
+
+SENSOR = (128, 128, 2)
+FACTOR = 4
+THRESHOLD = (1, 4)  # 0.25 as a / b
+K = 32
+
+
+def compile_loops() -> dict:
+    """The loop's two passes, compiled (Numba's ``njit``)."""
+    if numba is None:
+        raise RuntimeError("the compiled loops need numba (pip install numba)")
+
+    @numba.njit(nogil=True)
+    def ramps(xs, ys, ts, ps, width, column, row, out_w, delay, slopes, t_start, pixels, ends, e_t,
+              e_region, e_slope, e_jump, starts, s_t, s_region, s_slope,
+              mask):  # pragma: no cover - compiled
+        """Each event's ramp: its end, and its start as a change of its own or added to one.
+
+        A ramp ends at its event's time ``t``: the ends come in time order (ring ``e_*``).
+        It starts at ``h = max(t0, t - D)``: at ``t - D`` (or ``t_start``) when the pixel was
+        idle for ``D``, which also comes in time order (ring ``s_*``); else at the pixel's
+        previous knot ``t0``, whose end is still ahead of the horizon: its slope change is
+        added to that end's. An event at its pixel's last knot time adds to that knot's ramp.
+
+        ``slopes``: ``round(2**K / length)`` for each ramp length up to ``D`` (a table: no
+        division an event). ``pixels``: ``(W * H, 4)``, each pixel's last knot time, the one
+        before, and their ends' places in the ring (-1: none).
+
+        Returns the rings' new tails ``(ends, starts)``.
+        """
+        one = np.int64(1) << K
+        for i in range(xs.shape[0]):
+            x, y, t = np.int64(xs[i]), np.int64(ys[i]), ts[i]
+            c = 1 if ps[i] else -1
+            pixel = y * width + x
+            r = row[y] * out_w + column[x]
+            if t > pixels[pixel, 0] or pixels[pixel, 2] < 0:  # a new knot: a new end
+                pixels[pixel, 1], pixels[pixel, 3] = pixels[pixel, 0], pixels[pixel, 2]
+                pixels[pixel, 0], pixels[pixel, 2] = t, ends
+                e_t[ends & mask], e_region[ends & mask] = t, r
+                e_slope[ends & mask], e_jump[ends & mask] = 0, 0
+                ends += 1
+            t0 = pixels[pixel, 1]
+            h = max(t0, t - delay)
+            length = t - h  # 0 for a first event at t_start: a jump, no ramp
+            slope = c * slopes[length]  # round(2**K / length), 0 for a jump
+            end = pixels[pixel, 2] & mask
+            e_slope[end] -= slope
+            e_jump[end] += c * one - slope * length
+            if t0 > t - delay and pixels[pixel, 3] >= 0:
+                e_slope[pixels[pixel, 3] & mask] += slope
+            elif slope != 0:
+                s_t[starts & mask], s_region[starts & mask] = max(t - delay, t_start), r
+                s_slope[starts & mask] = slope
+                starts += 1
+        return ends, starts
+
+    @numba.njit(nogil=True)
+    def sweep(head_e, tail_e, e_t, e_region, e_slope, e_jump, head_s, tail_s, s_t, s_region,
+              s_slope, mask, horizon, value, slope_sum, since, pending, q, level, b, out_r,
+              out_t, out_on):  # pragma: no cover - compiled
+        """The slope changes before the horizon, in time order (a merge of the two rings).
+
+        Each region is advanced lazily: to a change's time when one comes (its pending jump
+        at its own time, then its ramp), and to the horizon at the end. One loop body, no
+        call inside: a compiled call taking arrays counts their references each time, which
+        made this loop ten times slower. Returns the rings' new heads and the outputs' count.
+        """
+        n_out = 0
+        regions = value.shape[0]
+        final = 0  # after the rings: each region in turn, to the horizon
+        next_end = e_t[head_e & mask] if head_e < tail_e else horizon
+        next_start = s_t[head_s & mask] if head_s < tail_s else horizon
+        while final < regions:
+            if next_end < horizon or next_start < horizon:
+                if next_end <= next_start:
+                    k = head_e & mask
+                    t, r, d_slope, d_jump = next_end, e_region[k], e_slope[k], e_jump[k]
+                    head_e += 1
+                    next_end = e_t[head_e & mask] if head_e < tail_e else horizon
+                else:
+                    k = head_s & mask
+                    t, r, d_slope, d_jump = next_start, s_region[k], s_slope[k], 0
+                    head_s += 1
+                    next_start = s_t[head_s & mask] if head_s < tail_s else horizon
+            else:
+                t, r, d_slope, d_jump = horizon, final, 0, 0
+                final += 1
+            t_now = since[r]
+            if t > t_now:
+                v, qr, sl, jump = value[r], q[r], slope_sum[r], pending[r]
+                for piece in range(2):  # the jump at t_now, then the ramp to t
+                    if piece == 0:
+                        if jump == 0:
+                            continue
+                        v1 = v + jump
+                    else:
+                        if sl == 0:
+                            break
+                        v1 = v + sl * (t - t_now)
+                    scaled = b * v1
+                    d = 1 if scaled >= (qr + 1) * level else -1 if scaled <= (qr - 1) * level else 0
+                    while d != 0 and d * scaled >= d * (qr + d) * level:
+                        qr += d
+                        out_t[n_out] = t_now
+                        if piece == 1:  # the rounded crossing time, floor(t + 1/2)
+                            num, den = qr * level - b * v, b * sl
+                            out_t[n_out] += (2 * num + den) // (2 * den)
+                        out_r[n_out], out_on[n_out] = r, d > 0
+                        n_out += 1
+                    v = v1
+                value[r], since[r], q[r], pending[r] = v, t, qr, 0
+            slope_sum[r] += d_slope
+            pending[r] += d_jump
+        return head_e, head_s, n_out
+
+    return {"ramps": ramps, "sweep": sweep}
+
+
+class StreamingLinear:
+    """The design as a session: ``__call__(chunk)`` returns the decided events, sorted."""
+
+    def __init__(self, loops: dict, t_start: int, max_events: int) -> None:
+        self.loops = loops
+        width, height, _ = SENSOR
+        self.out_w, out_h = width // FACTOR, height // FACTOR
+        regions = self.out_w * out_h
+        self.column = np.arange(width, dtype=np.int64) // FACTOR
+        self.row = np.arange(height, dtype=np.int64) // FACTOR
+        self.t_start = t_start
+        length = np.arange(REALTIME_MAX_DELAY_US + 1, dtype=np.int64)
+        self.slopes = ((1 << K) + length // 2) // np.maximum(length, 1)
+        self.slopes[0] = 0
+        self.pixels = np.full((width * height, 4), t_start, np.int64)
+        self.pixels[:, 2:] = -1
+        size = 1 << int(4 * max_events).bit_length()  # a chunk's changes and those ahead
+        self.mask = size - 1
+        self.ends = [np.zeros(size, np.int64) for _ in range(4)]
+        self.starts = [np.zeros(size, np.int64) for _ in range(3)]
+        self.head_e = self.tail_e = self.head_s = self.tail_s = 0
+        self.regions = [np.zeros(regions, np.int64), np.zeros(regions, np.int64),
+                        np.full(regions, t_start, np.int64), np.zeros(regions, np.int64),
+                        np.zeros(regions, np.int64)]  # value, slope, since, pending jump, q
+        self.out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.bool_))
+        self.horizon = t_start
+        a, b = THRESHOLD
+        self.b, self.level = b, a * FACTOR * FACTOR * (1 << K)
+
+    def __call__(self, chunk: np.ndarray) -> np.ndarray:
+        t = chunk["t"]
+        self.tail_e, self.tail_s = self.loops["ramps"](
+            chunk["x"], chunk["y"], t, chunk["p"], SENSOR[0], self.column, self.row, self.out_w,
+            REALTIME_MAX_DELAY_US, self.slopes, self.t_start, self.pixels, self.tail_e, *self.ends,
+            self.tail_s, *self.starts, self.mask)
+        self.horizon = max(self.horizon, int(t[-1]) - REALTIME_MAX_DELAY_US)
+        self.head_e, self.head_s, n_out = self.loops["sweep"](
+            self.head_e, self.tail_e, *self.ends, self.head_s, self.tail_s, *self.starts,
+            self.mask, self.horizon, *self.regions, self.level, self.b, *self.out)
+        out_r, out_t, out_on = (column[:n_out] for column in self.out)
+        order = np.argsort(out_t, kind="stable")
+        result = np.empty(n_out, chunk.dtype)
+        result["x"], result["y"] = out_r[order] % self.out_w, out_r[order] // self.out_w
+        result["t"], result["p"] = out_t[order], out_on[order]
+        return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--events", type=int, default=13_000_000)
+    parser.add_argument("--chunks", type=int, default=50, help="timed 10 ms chunks")
+    args = parser.parse_args(argv)
+    if numba is None:
+        print("this estimate needs numba (pip install 'evdown_torch[compiled]')",
+              file=sys.stderr)
+        return 2
+    torch.set_num_threads(1)
+    stream, _ = retime(gesture_stream(args.events, sensor_size=SENSOR), REALTIME_RATE)
+    bounds = chunk_bounds_us(stream["t"], 10_000)
+    last = min(args.chunks, len(bounds) - 3)
+    if last < 1:
+        parser.error("the replay needs at least three 10 ms chunks: give more --events")
+    chunks = [stream[int(bounds[k]):int(bounds[k + 1])] for k in range(last + 1)]
+    a, b = THRESHOLD
+    sessions = {
+        "floor": RegionFloor(SENSOR, FACTOR).session(),
+        "package": make_method("linear", SENSOR, FACTOR, threshold=a / b,
+                               max_delay=REALTIME_MAX_DELAY_US).session(),
+        "design": StreamingLinear(compile_loops(), int(stream["t"][0]),
+                                  max(len(c) for c in chunks)),
+    }
+    seconds: dict[str, list[float]] = {name: [] for name in sessions}
+    outputs: dict[str, list[np.ndarray]] = {name: [] for name in sessions}
+    for k, chunk in enumerate(chunks):  # chunk 0 warms up (and compiles)
+        for name, session in sessions.items():
+            start = time.perf_counter()
+            made = session(chunk)
+            if k:
+                seconds[name].append(time.perf_counter() - start)
+            outputs[name].append(made)
+    n_events = int(bounds[last + 1] - bounds[1])
+    floor_total = sum(seconds["floor"])
+    floor_p99 = float(np.quantile(seconds["floor"], 0.99))
+    print(f"{last} chunks of 10 ms, {n_events:,} events (25 M/s on average), "
+          f"max_delay {REALTIME_MAX_DELAY_US} us, threshold {a / b}; wall time, one thread\n")
+    print("| session | median chunk (ms) | p99 chunk (ms) | ns per event | x floor (p99s, as "
+          "the replay) | x floor (total times) | output events |")
+    print("|---|---|---|---|---|---|---|")
+    for name, times in seconds.items():
+        p99 = float(np.quantile(times, 0.99))
+        made = sum(len(o) for o in outputs[name])
+        print(f"| {name} | {1e3 * statistics.median(times):.2f} | {1e3 * p99:.2f} "
+              f"| {1e9 * sum(times) / n_events:.1f} | {floor_p99 / p99:.4f} "
+              f"| {floor_total / sum(times):.4f} | {made:,} |")
+    horizon = min(int(np.concatenate(outputs[n])["t"].max()) for n in ("package", "design"))
+
+    def keys(name: str, before: int) -> Counter:
+        out = np.concatenate(outputs[name])
+        out = out[out["t"] < before]
+        return Counter(zip(out["x"].tolist(), out["y"].tolist(), out["t"].tolist(),
+                           out["p"].tolist(), strict=True))
+
+    # Events before the cut; their partners a tick away may lie on it.
+    package, design = keys("package", horizon - 1), keys("design", horizon - 1)
+    only_package, only_design = package - design, design - package
+    spare = keys("design", horizon) - keys("package", horizon)
+    paired = 0
+    for (x, y, t, p), count in only_package.items():
+        for shifted in ((x, y, t - 1, p), (x, y, t + 1, p)):
+            matched = min(count, spare[shifted])
+            spare[shifted] -= matched
+            count -= matched
+            paired += matched
+    print(f"\nbefore t = {horizon - 1}: package {sum(package.values()):,} events, design "
+          f"{sum(design.values()):,}; in one and not the other: "
+          f"{sum(only_package.values()):,} and {sum(only_design.values()):,}, of which "
+          f"{paired:,} pairs one tick apart")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,55 @@
+"""The streaming linear design's estimate (benchmarks/streaming_linear_estimate.py)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from benchmarks import streaming_linear_estimate as estimate
+from evdown_torch.events import DVS_DTYPE
+
+
+def test_without_numba_it_says_so(monkeypatch, capsys):
+    monkeypatch.setattr(estimate, "numba", None)
+    assert estimate.main(["--events", "700000"]) == 2
+    assert "needs numba" in capsys.readouterr().err
+
+
+def test_the_design_hand_computed():
+    # Region (0, 0) has 16 pixels and threshold 1/4: a level every 4 in the sum of levels S.
+    # Six of its pixels go ON at 2000, each ramping over [2000 - D, 2000] = [1000, 2000]
+    # (D = 1 ms, idle since t_start = 0): S = 6 (t - 1000) / 1000 reaches 4 at 1666.67,
+    # rounded to 1667. They go OFF at 2600, ramping back over [2000, 2600]: S falls to 0 at
+    # 2600, the level below q = 1 (S = 4 again on the way is no event: the full threshold).
+    # Pixel (5, 5) (region (1, 1)) sets t_start with a jump at 0 to S = 1 and ends the
+    # chunk at 4000 (S = 2 at 4000): no level. The horizon is 4000 - D = 3000.
+    pytest.importorskip("numba")
+    ev = np.zeros(14, dtype=DVS_DTYPE)
+    ev["x"] = [5] + [0, 1, 2, 3, 0, 1] * 2 + [5]
+    ev["y"] = [5] + [0, 0, 0, 0, 1, 1] * 2 + [5]
+    ev["t"] = [0] + [2000] * 6 + [2600] * 6 + [4000]
+    ev["p"] = [True] + [True] * 6 + [False] * 6 + [True]
+    session = estimate.StreamingLinear(estimate.compile_loops(), 0, len(ev))
+    out = session(ev)
+    assert out["x"].tolist() == [0, 0] and out["y"].tolist() == [0, 0]
+    assert out["t"].tolist() == [1667, 2600] and out["p"].tolist() == [True, False]
+    assert session.horizon == 3000
+
+
+def test_on_a_tiny_replay_it_makes_the_package_events_but_a_few(capsys):
+    # The design's fixed point may move an event on a half tick by one tick, or miss a touch
+    # of a level: never more than a few in 10,000 (docs/benchmarks.md, sixth session).
+    pytest.importorskip("numba")
+    assert estimate.main(["--events", "700000", "--chunks", "1"]) == 0
+    text = capsys.readouterr().out
+    found = re.search(r"package ([\d,]+) events, design ([\d,]+); in one and not the other: "
+                      r"([\d,]+) and ([\d,]+), of which ([\d,]+) pairs", text)
+    assert found is not None, text
+    package, design, only_package, only_design, pairs = (
+        int(group.replace(",", "")) for group in found.groups())
+    assert package > 1000
+    assert abs(package - design) <= package // 10_000 + 1
+    assert only_package - pairs <= package // 10_000 + 1
+    assert only_design - pairs <= package // 10_000 + 1
