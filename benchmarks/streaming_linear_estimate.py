@@ -30,11 +30,15 @@ every integer time and the level tests and rounded crossing times are integer op
 That is not the package's arithmetic: the curve is within ``len * 2**-(K + 1)`` levels per
 active ramp of the exact polyline (``K = 32``, ramps up to ``D = 1 ms``: about ``1e-7``
 levels), so an event can move by a tick where the exact crossing lies on a half tick (the
-contract rounds halves up; a curve a little off falls either side). The script counts the
-events in one output and not the other, and pairs them one tick apart.
+contract rounds halves up; a curve a little off falls either side), or miss a touch of a
+level. The script counts the events in one output and not the other, and pairs them one tick
+apart. It also records the *doubts*, where the integers cannot tell (a value within their
+error bound of a level, a crossing within it of a half tick: ``sweep``), which an exact
+design would decide in exact arithmetic, and checks that every differing event lies within
+a doubt's reach.
 
 So the figures price a design; they are no implementation (integer timestamps only, no batch
-path, no eager twin, no overflow checks, no exact rule at half ticks).
+path, no eager twin, no overflow checks, doubts recorded but not decided).
 
 Run: ``python benchmarks/streaming_linear_estimate.py [--events 13000000] [--chunks 50]``.
 """
@@ -78,7 +82,7 @@ def compile_loops() -> dict:
 
     @numba.njit(nogil=True)
     def ramps(xs, ys, ts, ps, width, column, row, out_w, delay, slopes, t_start, pixels, ends, e_t,
-              e_region, e_slope, e_jump, starts, s_t, s_region, s_slope,
+              e_region, e_slope, e_jump, e_active, starts, s_t, s_region, s_slope, s_active,
               mask):  # pragma: no cover - compiled
         """Each event's ramp: its end, and its start as a change of its own or added to one.
 
@@ -90,7 +94,8 @@ def compile_loops() -> dict:
 
         ``slopes``: ``round(2**K / length)`` for each ramp length up to ``D`` (a table: no
         division an event). ``pixels``: ``(W * H, 4)``, each pixel's last knot time, the one
-        before, and their ends' places in the ring (-1: none).
+        before, and their ends' places in the ring (-1: none). ``e_active``, ``s_active``: the
+        change of the region's count of active ramps (for the doubt's bound).
 
         Returns the rings' new tails ``(ends, starts)``.
         """
@@ -104,7 +109,7 @@ def compile_loops() -> dict:
                 pixels[pixel, 1], pixels[pixel, 3] = pixels[pixel, 0], pixels[pixel, 2]
                 pixels[pixel, 0], pixels[pixel, 2] = t, ends
                 e_t[ends & mask], e_region[ends & mask] = t, r
-                e_slope[ends & mask], e_jump[ends & mask] = 0, 0
+                e_slope[ends & mask], e_jump[ends & mask], e_active[ends & mask] = 0, 0, 0
                 ends += 1
             t0 = pixels[pixel, 1]
             h = max(t0, t - delay)
@@ -113,24 +118,36 @@ def compile_loops() -> dict:
             end = pixels[pixel, 2] & mask
             e_slope[end] -= slope
             e_jump[end] += c * one - slope * length
+            if length:
+                e_active[end] -= 1
             if t0 > t - delay and pixels[pixel, 3] >= 0:
                 e_slope[pixels[pixel, 3] & mask] += slope
+                e_active[pixels[pixel, 3] & mask] += 1
             elif slope != 0:
                 s_t[starts & mask], s_region[starts & mask] = max(t - delay, t_start), r
-                s_slope[starts & mask] = slope
+                s_slope[starts & mask], s_active[starts & mask] = slope, 1
                 starts += 1
         return ends, starts
 
     @numba.njit(nogil=True)
-    def sweep(head_e, tail_e, e_t, e_region, e_slope, e_jump, head_s, tail_s, s_t, s_region,
-              s_slope, mask, horizon, value, slope_sum, since, pending, q, level, b, out_r,
-              out_t, out_on):  # pragma: no cover - compiled
+    def sweep(head_e, tail_e, e_t, e_region, e_slope, e_jump, e_active, head_s, tail_s, s_t,
+              s_region, s_slope, s_active, mask, horizon, value, slope_sum, since, pending, q,
+              active, delay, level, b, out_r, out_t, out_on, doubt_r, doubt_t,
+              n_doubt):  # pragma: no cover - compiled
         """The slope changes before the horizon, in time order (a merge of the two rings).
 
         Each region is advanced lazily: to a change's time when one comes (its pending jump
         at its own time, then its ramp), and to the horizon at the end. One loop body, no
         call inside: a compiled call taking arrays counts their references each time, which
-        made this loop ten times slower. Returns the rings' new heads and the outputs' count.
+        made this loop ten times slower.
+
+        *Doubts*: with ``A`` ramps active in a region, its integer value is within ``E = A * D
+        / 2`` units of the exact one and its slope within ``A / 2`` units a microsecond. A
+        value within ``E`` of a level, and a crossing whose time lies within
+        ``E / (|slope| - A / 2)`` of a half tick, could go the other way in exact arithmetic:
+        they are recorded (region and time), where an exact rule would decide them.
+
+        Returns the rings' new heads, the outputs' count and the doubts' count.
         """
         n_out = 0
         regions = value.shape[0]
@@ -142,19 +159,22 @@ def compile_loops() -> dict:
                 if next_end <= next_start:
                     k = head_e & mask
                     t, r, d_slope, d_jump = next_end, e_region[k], e_slope[k], e_jump[k]
+                    d_active = e_active[k]
                     head_e += 1
                     next_end = e_t[head_e & mask] if head_e < tail_e else horizon
                 else:
                     k = head_s & mask
                     t, r, d_slope, d_jump = next_start, s_region[k], s_slope[k], 0
+                    d_active = s_active[k]
                     head_s += 1
                     next_start = s_t[head_s & mask] if head_s < tail_s else horizon
             else:
-                t, r, d_slope, d_jump = horizon, final, 0, 0
+                t, r, d_slope, d_jump, d_active = horizon, final, 0, 0, 0
                 final += 1
             t_now = since[r]
             if t > t_now:
                 v, qr, sl, jump = value[r], q[r], slope_sum[r], pending[r]
+                bound = b * (active[r] * delay // 2 + 1)  # b * E, with a unit to spare
                 for piece in range(2):  # the jump at t_now, then the ramp to t
                     if piece == 0:
                         if jump == 0:
@@ -174,11 +194,22 @@ def compile_loops() -> dict:
                             out_t[n_out] += (2 * num + den) // (2 * den)
                         out_r[n_out], out_on[n_out] = r, d > 0
                         n_out += 1
+                        if piece == 1 and active[r] > 0:
+                            spare = abs(sl) - active[r] / 2
+                            half = abs((num / den) % 1.0 - 0.5)
+                            if spare <= 0 or half <= (bound / b) / spare:
+                                doubt_r[n_doubt], doubt_t[n_doubt] = r, out_t[n_out - 1]
+                                n_doubt += 1
+                    near = scaled % level
+                    if active[r] > 0 and min(near, level - near) <= bound:
+                        doubt_r[n_doubt], doubt_t[n_doubt] = r, t if piece == 1 else t_now
+                        n_doubt += 1
                     v = v1
                 value[r], since[r], q[r], pending[r] = v, t, qr, 0
             slope_sum[r] += d_slope
             pending[r] += d_jump
-        return head_e, head_s, n_out
+            active[r] += d_active
+        return head_e, head_s, n_out, n_doubt
 
     return {"ramps": ramps, "sweep": sweep}
 
@@ -201,13 +232,16 @@ class StreamingLinear:
         self.pixels[:, 2:] = -1
         size = 1 << int(4 * max_events).bit_length()  # a chunk's changes and those ahead
         self.mask = size - 1
-        self.ends = [np.zeros(size, np.int64) for _ in range(4)]
-        self.starts = [np.zeros(size, np.int64) for _ in range(3)]
+        self.ends = [np.zeros(size, np.int64) for _ in range(5)]
+        self.starts = [np.zeros(size, np.int64) for _ in range(4)]
         self.head_e = self.tail_e = self.head_s = self.tail_s = 0
         self.regions = [np.zeros(regions, np.int64), np.zeros(regions, np.int64),
                         np.full(regions, t_start, np.int64), np.zeros(regions, np.int64),
-                        np.zeros(regions, np.int64)]  # value, slope, since, pending jump, q
+                        np.zeros(regions, np.int64), np.zeros(regions, np.int64)]
+        # value, slope, since, pending jump, q, active ramps
         self.out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.bool_))
+        self.doubt = (np.empty(size, np.int64), np.empty(size, np.int64))
+        self.doubts: list[tuple[np.ndarray, np.ndarray]] = []  # (region, time) of each chunk
         self.horizon = t_start
         a, b = THRESHOLD
         self.b, self.level = b, a * FACTOR * FACTOR * (1 << K)
@@ -219,9 +253,11 @@ class StreamingLinear:
             REALTIME_MAX_DELAY_US, self.slopes, self.t_start, self.pixels, self.tail_e, *self.ends,
             self.tail_s, *self.starts, self.mask)
         self.horizon = max(self.horizon, int(t[-1]) - REALTIME_MAX_DELAY_US)
-        self.head_e, self.head_s, n_out = self.loops["sweep"](
+        self.head_e, self.head_s, n_out, n_doubt = self.loops["sweep"](
             self.head_e, self.tail_e, *self.ends, self.head_s, self.tail_s, *self.starts,
-            self.mask, self.horizon, *self.regions, self.level, self.b, *self.out)
+            self.mask, self.horizon, *self.regions, REALTIME_MAX_DELAY_US, self.level, self.b,
+            *self.out, *self.doubt, 0)
+        self.doubts.append((self.doubt[0][:n_doubt].copy(), self.doubt[1][:n_doubt].copy()))
         out_r, out_t, out_on = (column[:n_out] for column in self.out)
         order = np.argsort(out_t, kind="stable")
         result = np.empty(n_out, chunk.dtype)
@@ -300,6 +336,21 @@ def main(argv: list[str] | None = None) -> int:
           f"{sum(design.values()):,}; in one and not the other: "
           f"{sum(only_package.values()):,} and {sum(only_design.values()):,}, of which "
           f"{paired:,} pairs one tick apart")
+    doubt_region = np.concatenate([r for r, _ in sessions["design"].doubts])
+    doubt_t = np.concatenate([t for _, t in sessions["design"].doubts])
+    by_region = {int(r): np.sort(doubt_t[doubt_region == r]) for r in np.unique(doubt_region)}
+    out_w = SENSOR[0] // FACTOR
+    # A differing event is within a doubt's reach when its region had a doubt in the 2 ms up
+    # to it (a touch moves q, hence the region's next crossings) or a tick after it.
+    reached = 0
+    for (x, y, t, _), count in (only_package + only_design).items():
+        times = by_region.get(y * out_w + x, np.zeros(0, np.int64))
+        at = np.searchsorted(times, t + 2, side="right")
+        reached += count * int(at > 0 and times[at - 1] >= t - 2000)
+    print(f"doubts (the design's integers within their error bound of a level or of a half "
+          f"tick): {len(doubt_t):,}, {1e6 * len(doubt_t) / n_events:.1f} per million input "
+          f"events; differing events within a doubt's reach: {reached:,} of "
+          f"{sum(only_package.values()) + sum(only_design.values()):,}")
     return 0
 
 
