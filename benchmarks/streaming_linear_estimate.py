@@ -45,23 +45,15 @@ Run: ``python benchmarks/streaming_linear_estimate.py [--events 13000000] [--chu
 
 from __future__ import annotations
 
-import argparse
 import statistics
-import sys
 import time
 from collections import Counter
 
 import numpy as np
-import torch
 
+from evdown_torch.bench.estimates import estimate_replay
 from evdown_torch.bench.floor import RegionFloor
-from evdown_torch.bench.inputs import gesture_stream
-from evdown_torch.bench.realtime import (
-    REALTIME_MAX_DELAY_US,
-    REALTIME_RATE,
-    chunk_bounds_us,
-    retime,
-)
+from evdown_torch.bench.realtime import REALTIME_MAX_DELAY_US
 from evdown_torch.transforms.registry import make_method
 
 try:
@@ -267,20 +259,10 @@ class StreamingLinear:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--events", type=int, default=13_000_000)
-    parser.add_argument("--chunks", type=int, default=50, help="timed 10 ms chunks")
-    args = parser.parse_args(argv)
-    if numba is None:
-        print("this estimate needs numba (pip install 'evdown_torch[compiled]')",
-              file=sys.stderr)
+    replay = estimate_replay(argv, __doc__, compiled=numba is not None, sensor_size=SENSOR)
+    if replay is None:
         return 2
-    torch.set_num_threads(1)
-    stream, _ = retime(gesture_stream(args.events, sensor_size=SENSOR), REALTIME_RATE)
-    bounds = chunk_bounds_us(stream["t"], 10_000)
-    last = min(args.chunks, len(bounds) - 3)
-    if last < 1:
-        parser.error("the replay needs at least three 10 ms chunks: give more --events")
+    stream, bounds, last = replay
     chunks = [stream[int(bounds[k]):int(bounds[k + 1])] for k in range(last + 1)]
     a, b = THRESHOLD
     sessions = {

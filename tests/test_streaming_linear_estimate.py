@@ -79,3 +79,9 @@ def test_on_a_tiny_replay_it_makes_the_package_events_but_a_few(capsys):
     assert abs(package - design) <= package // 10_000 + 1
     assert only_package - pairs <= package // 10_000 + 1
     assert only_design - pairs <= package // 10_000 + 1
+
+
+def test_a_replay_too_short_for_three_chunks_is_refused(capsys):
+    with pytest.raises(SystemExit):
+        estimate.main(["--events", "1000"])
+    assert "at least three 10 ms chunks" in capsys.readouterr().err
