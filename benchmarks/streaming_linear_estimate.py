@@ -37,8 +37,13 @@ error bound of a level, a crossing within it of a half tick: ``sweep``), which a
 design would decide in exact arithmetic, and checks that every differing event lies within
 a doubt's reach.
 
-So the figures price a design; they are no implementation (integer timestamps only, no batch
-path, no eager twin, no overflow checks, doubts recorded but not decided).
+Its eager twin, :func:`design_whole`, takes the whole stream at once in vectorised torch (the
+ramps from a sort by pixel, the changes summed per region and time, integer cumulative sums,
+the package's reference rule over the moves); the script checks that it gives the session's
+events, chunk boundaries notwithstanding.
+
+So the figures price a design; they are no implementation (integer timestamps only, no
+overflow checks, doubts recorded but not decided, the twin unoptimised).
 
 Run: ``python benchmarks/streaming_linear_estimate.py [--events 13000000] [--chunks 50]``.
 """
@@ -50,10 +55,13 @@ import time
 from collections import Counter
 
 import numpy as np
+import torch
 
+from evdown_torch._tensors import take, where_true
 from evdown_torch.bench.estimates import estimate_replay
 from evdown_torch.bench.floor import RegionFloor
 from evdown_torch.bench.realtime import REALTIME_MAX_DELAY_US
+from evdown_torch.transforms.functional.reference import move_crossings
 from evdown_torch.transforms.registry import make_method
 
 try:
@@ -258,6 +266,103 @@ class StreamingLinear:
         return result
 
 
+def design_whole(events: np.ndarray, before: int) -> np.ndarray:
+    """The design's events earlier than ``before``, the whole stream at once: its eager twin.
+
+    Vectorised torch, no loop over events or regions: each event's ramp (its pixel's previous
+    knot from a stable sort by pixel), the slope changes and jumps summed per region and time
+    (one sort), the region's slope and value at each breakpoint as integer cumulative sums,
+    then the package's reference rule over the moves (each breakpoint's ramp, then its jump,
+    :func:`~evdown_torch.transforms.functional.reference.move_crossings`) and the loop's
+    rounded crossing times. Integers throughout, so it must give the loop's session's events,
+    whatever the chunks.
+
+    Args:
+        events: a time-sorted Tonic structured array (``t`` integer microseconds).
+        before: the cut (the session's last horizon).
+
+    Returns:
+        The events earlier than ``before``, sorted by ``t`` (stable), of the input's dtype.
+    """
+    width = SENSOR[0]
+    out_w = width // FACTOR
+    a, b = THRESHOLD
+    level = a * FACTOR * FACTOR * (1 << K)
+    one, delay = 1 << K, REALTIME_MAX_DELAY_US
+    x = torch.from_numpy(events["x"].astype(np.int64))
+    y = torch.from_numpy(events["y"].astype(np.int64))
+    t = torch.from_numpy(events["t"].astype(np.int64))
+    c = torch.from_numpy(np.where(events["p"], 1, -1).astype(np.int64))
+    t_start = int(t[0])
+    pixel, order = torch.sort(y * width + x, stable=True)  # time order inside a pixel
+    t, c, x, y = t[order], c[order], x[order], y[order]
+    first_of_pixel = torch.ones_like(pixel, dtype=torch.bool)
+    first_of_pixel[1:] = pixel[1:] != pixel[:-1]
+    new_knot = first_of_pixel.clone()
+    new_knot[1:] |= t[1:] != t[:-1]
+    previous = torch.where(first_of_pixel, t_start, torch.roll(t, 1))  # read at new knots
+    knot_start = where_true(new_knot)
+    t0 = take(take(previous, knot_start), torch.cumsum(new_knot, 0) - 1)
+    h = torch.maximum(t0, t - delay)
+    length = t - h
+    slope = c * torch.where(length > 0, (one + length // 2) // length.clamp(min=1), 0)
+    region = (y // FACTOR) * out_w + x // FACTOR
+    ramp = where_true(length > 0)
+    at = torch.cat([take(h, ramp), t])
+    where = torch.cat([take(region, ramp), region])
+    d_slope = torch.cat([take(slope, ramp), -slope])
+    d_jump = torch.cat([torch.zeros_like(ramp), c * one - slope * length])
+    # Per (region, time): one breakpoint, its slope change and jump.
+    span = int(t.max()) - t_start + 1
+    key, by_key = torch.sort(where * span + (at - t_start), stable=True)
+    new_point = torch.ones_like(key, dtype=torch.bool)
+    new_point[1:] = key[1:] != key[:-1]
+    point = torch.cumsum(new_point, 0) - 1
+    n_points = int(point[-1]) + 1
+    slope_change = torch.zeros(n_points, dtype=torch.int64).index_add_(0, point, d_slope[by_key])
+    jump = torch.zeros(n_points, dtype=torch.int64).index_add_(0, point, d_jump[by_key])
+    first_point = where_true(new_point)
+    point_t = t_start + take(key, first_point) % span
+    point_region = take(key, first_point) // span
+    first = torch.ones(n_points, dtype=torch.bool)
+    first[1:] = point_region[1:] != point_region[:-1]
+    run = torch.cumsum(first, 0) - 1
+    starts = where_true(first)
+
+    def region_cumsum(values: torch.Tensor) -> torch.Tensor:
+        total = torch.cumsum(values, 0)
+        return total - take(take(total - values, starts), run)
+
+    slope_after = region_cumsum(slope_change)
+    slope_before = torch.where(first, 0, torch.roll(slope_after, 1))
+    gap = torch.where(first, 0, point_t - torch.roll(point_t, 1))
+    value = region_cumsum(slope_before * gap + jump)  # after the point's jumps
+    value_before_jump = value - jump
+    start_value = torch.where(first, 0, torch.roll(value, 1))  # the ramp's start
+    # Moves: each point's ramp, then its jump.
+    move_value = torch.stack([value_before_jump, value], 1).reshape(-1)
+    move_first = torch.stack([first, torch.zeros_like(first)], 1).reshape(-1)
+    scaled = b * move_value
+    floor_u = torch.div(scaled, level, rounding_mode="floor")
+    cross = move_crossings(floor_u, scaled - floor_u * level == 0, move_first)
+    k, is_jump = cross.move // 2, cross.move % 2 == 1
+    sl = take(slope_before, k)
+    num = cross.level * level - b * take(start_value, k)
+    den = b * sl
+    on_ramp = torch.div(2 * num + den, torch.where(is_jump, 1, 2 * den), rounding_mode="floor")
+    t_prev = take(torch.where(first, point_t, torch.roll(point_t, 1)), k)
+    out_t = torch.where(is_jump, take(point_t, k), t_prev + on_ramp)
+    out_region = take(point_region, k)
+    keep = where_true(out_t < before)
+    out_t, out_region, on = take(out_t, keep), take(out_region, keep), take(cross.on, keep)
+    out_t, order = torch.sort(out_t, stable=True)
+    result = np.empty(out_t.shape[0], events.dtype)
+    region_sorted = take(out_region, order).numpy()
+    result["x"], result["y"] = region_sorted % out_w, region_sorted // out_w
+    result["t"], result["p"] = out_t.numpy(), take(on, order).numpy()
+    return result
+
+
 def main(argv: list[str] | None = None) -> int:
     replay = estimate_replay(argv, __doc__, compiled=numba is not None, sensor_size=SENSOR)
     if replay is None:
@@ -333,6 +438,18 @@ def main(argv: list[str] | None = None) -> int:
           f"tick): {len(doubt_t):,}, {1e6 * len(doubt_t) / n_events:.1f} per million input "
           f"events; differing events within a doubt's reach: {reached:,} of "
           f"{sum(only_package.values()) + sum(only_design.values()):,}")
+    # The eager twin on everything the session read, at once, against the session's chunks.
+    cut = sessions["design"].horizon
+    start = time.perf_counter()
+    whole = design_whole(stream[: int(bounds[last + 1])], cut)
+    seconds_whole = time.perf_counter() - start
+    chunked = np.concatenate(outputs["design"])
+    chunked = np.sort(chunked[chunked["t"] < cut], order=["t", "x", "y", "p"])
+    same = np.array_equal(chunked, np.sort(whole, order=["t", "x", "y", "p"]))
+    print(f"eager twin, the {int(bounds[last + 1]):,} events at once (torch, one thread): "
+          f"{len(whole):,} events before t = {cut}, {'the same as' if same else 'NOT the same as'}"
+          f" the session's in {last + 1} chunks; {seconds_whole:.1f} s "
+          f"({1e9 * seconds_whole / int(bounds[last + 1]):.0f} ns per input event)")
     return 0
 
 

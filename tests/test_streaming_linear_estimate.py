@@ -36,6 +36,10 @@ def test_the_design_hand_computed():
     assert out["x"].tolist() == [0, 0] and out["y"].tolist() == [0, 0]
     assert out["t"].tolist() == [1667, 2600] and out["p"].tolist() == [True, False]
     assert session.horizon == 3000
+    # The eager twin, the whole stream at once, gives the same events.
+    whole = estimate.design_whole(ev, 3000)
+    assert whole["t"].tolist() == [1667, 2600] and whole["p"].tolist() == [True, False]
+    assert whole["x"].tolist() == [0, 0] and whole["y"].tolist() == [0, 0]
     # One doubt: S reaches the level 0 at 2600, the ramps' end, where the integers are a hair
     # off until the ends' jumps correct them; 1667 is far from a half tick.
     (regions, times), = session.doubts
@@ -79,6 +83,8 @@ def test_on_a_tiny_replay_it_makes_the_package_events_but_a_few(capsys):
     assert abs(package - design) <= package // 10_000 + 1
     assert only_package - pairs <= package // 10_000 + 1
     assert only_design - pairs <= package // 10_000 + 1
+    # Integers throughout: the eager twin on the whole stream is the session in its chunks.
+    assert re.search(r"events before t = \d+, the same as the session's in \d+ chunks", text)
 
 
 def test_a_replay_too_short_for_three_chunks_is_refused(capsys):
