@@ -51,8 +51,8 @@ def _event_count_loop(
     ``(rx, ry)``, source event and polarity at ``k, k + 1, ...``; stops before an event that
     could overflow the outputs (``most`` crossings at most per event). ``count_only``: counts
     the crossings, writes nothing, never stops. ``upper`` and ``lower``: each region's
-    ``(q + 1) * a * n_r`` and ``(q - 1) * a * n_r`` , kept with ``q``, so an
-    event that crosses nothing (most) costs two comparisons.
+    ``(q + 1) * a * n_r`` and ``(q - 1) * a * n_r``, kept with ``q``, so an event that
+    crosses nothing (most) costs two comparisons.
 
     Returns:
         ``(next event, crossings so far)``; ``(-1 - i, k)`` for an event ``i`` outside the
