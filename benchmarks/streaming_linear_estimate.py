@@ -57,7 +57,7 @@ from collections import Counter
 import numpy as np
 import torch
 
-from evdown_torch._tensors import take, where_true
+from evdown_torch._tensors import changes, run_index, segmented_cumsum, take, where_true
 from evdown_torch.bench.estimates import estimate_replay
 from evdown_torch.bench.floor import RegionFloor
 from evdown_torch.bench.realtime import REALTIME_MAX_DELAY_US
@@ -296,13 +296,10 @@ def design_whole(events: np.ndarray, before: int) -> np.ndarray:
     t_start = int(t[0])
     pixel, order = torch.sort(y * width + x, stable=True)  # time order inside a pixel
     t, c, x, y = t[order], c[order], x[order], y[order]
-    first_of_pixel = torch.ones_like(pixel, dtype=torch.bool)
-    first_of_pixel[1:] = pixel[1:] != pixel[:-1]
-    new_knot = first_of_pixel.clone()
-    new_knot[1:] |= t[1:] != t[:-1]
+    first_of_pixel = changes(pixel)
+    new_knot = first_of_pixel | changes(t)
     previous = torch.where(first_of_pixel, t_start, torch.roll(t, 1))  # read at new knots
-    knot_start = where_true(new_knot)
-    t0 = take(take(previous, knot_start), torch.cumsum(new_knot, 0) - 1)
+    t0 = take(take(previous, where_true(new_knot)), run_index(new_knot))
     h = torch.maximum(t0, t - delay)
     length = t - h
     slope = c * torch.where(length > 0, (one + length // 2) // length.clamp(min=1), 0)
@@ -315,28 +312,20 @@ def design_whole(events: np.ndarray, before: int) -> np.ndarray:
     # Per (region, time): one breakpoint, its slope change and jump.
     span = int(t.max()) - t_start + 1
     key, by_key = torch.sort(where * span + (at - t_start), stable=True)
-    new_point = torch.ones_like(key, dtype=torch.bool)
-    new_point[1:] = key[1:] != key[:-1]
-    point = torch.cumsum(new_point, 0) - 1
+    new_point = changes(key)
+    point = run_index(new_point)
     n_points = int(point[-1]) + 1
     slope_change = torch.zeros(n_points, dtype=torch.int64).index_add_(0, point, d_slope[by_key])
     jump = torch.zeros(n_points, dtype=torch.int64).index_add_(0, point, d_jump[by_key])
     first_point = where_true(new_point)
     point_t = t_start + take(key, first_point) % span
     point_region = take(key, first_point) // span
-    first = torch.ones(n_points, dtype=torch.bool)
-    first[1:] = point_region[1:] != point_region[:-1]
-    run = torch.cumsum(first, 0) - 1
-    starts = where_true(first)
-
-    def region_cumsum(values: torch.Tensor) -> torch.Tensor:
-        total = torch.cumsum(values, 0)
-        return total - take(take(total - values, starts), run)
-
-    slope_after = region_cumsum(slope_change)
+    first = changes(point_region)
+    starts, run = where_true(first), run_index(first)
+    slope_after = segmented_cumsum(slope_change, starts, run)
     slope_before = torch.where(first, 0, torch.roll(slope_after, 1))
     gap = torch.where(first, 0, point_t - torch.roll(point_t, 1))
-    value = region_cumsum(slope_before * gap + jump)  # after the point's jumps
+    value = segmented_cumsum(slope_before * gap + jump, starts, run)  # after the jumps
     value_before_jump = value - jump
     start_value = torch.where(first, 0, torch.roll(value, 1))  # the ramp's start
     # Moves: each point's ramp, then its jump.
