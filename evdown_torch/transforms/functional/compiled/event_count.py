@@ -38,9 +38,9 @@ __all__ = ["event_count_batch", "event_count_step"]
 def _event_count_loop(
     x: np.ndarray, y: np.ndarray, p: np.ndarray, column: np.ndarray, row: np.ndarray,
     shift_x: int, shift_y: int, out_w: int, ends: np.ndarray, block: int,
-    level_step: np.ndarray, b: int, level_sum: np.ndarray, reference: np.ndarray,
-    upper: np.ndarray, lower: np.ndarray, start: int, k: int, most: int, out_x: np.ndarray,
-    out_y: np.ndarray, out_source: np.ndarray, out_on: np.ndarray, count_only: bool,
+    level_step: np.ndarray, b: int, level_sum: np.ndarray, reference: np.ndarray, start: int,
+    k: int, most: int, out_x: np.ndarray, out_y: np.ndarray, out_source: np.ndarray,
+    out_on: np.ndarray, count_only: bool,
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """The reference rule after each event ``start, start + 1, ...`` (time-sorted).
 
@@ -50,9 +50,7 @@ def _event_count_loop(
     (each recording's end, the last ``N``) holds ``i``. Writes each crossing's region
     ``(rx, ry)``, source event and polarity at ``k, k + 1, ...``; stops before an event that
     could overflow the outputs (``most`` crossings at most per event). ``count_only``: counts
-    the crossings, writes nothing, never stops. ``upper`` and ``lower``: each region's
-    ``(q + 1) * a * n_r`` and ``(q - 1) * a * n_r``, kept with ``q``, so an event that
-    crosses nothing (most) costs two comparisons.
+    the crossings, writes nothing, never stops.
 
     Returns:
         ``(next event, crossings so far)``; ``(-1 - i, k)`` for an event ``i`` outside the
@@ -89,11 +87,11 @@ def _event_count_loop(
             s = level_sum[r] + (1 if p[j] else -1)
             level_sum[r] = s
             scaled = s * b
+            step = level_step[r]
+            q = reference[r]
             # The direction of the move's crossings, if any: +1 (ON), -1 (OFF), 0.
-            d = 1 if scaled >= upper[r] else -1 if scaled <= lower[r] else 0
+            d = 1 if scaled >= (q + 1) * step else -1 if scaled <= (q - 1) * step else 0
             if d:
-                step = level_step[r]
-                q = reference[r]
                 while d * scaled >= d * (q + d) * step:
                     q += d
                     if not count_only:
@@ -103,8 +101,6 @@ def _event_count_loop(
                         out_on[k] = d > 0
                     k += 1
                 reference[r] = q
-                upper[r] = (q + 1) * step
-                lower[r] = (q - 1) * step
         i = stop
     return n, k
 
@@ -155,19 +151,17 @@ def _run(
     level_sum, reference = old_sum.clone(), old_reference.clone()
     x, y, p = columns_of(events.x, events.y, events.p)
     sums, levels = level_sum.numpy(), reference.numpy()
-    upper, lower = (levels + 1) * level_step, (levels - 1) * level_step
     out = crossing_columns(capacity)
     i, k = 0, 0
     while True:
         i, k = _event_count_loop(x, y, p, column, row, shift_x, shift_y, out_w, ends, block,
-                                 level_step, b, sums, levels, upper, lower, i, k, most, *out,
-                                 False)
+                                 level_step, b, sums, levels, i, k, most, *out, False)
         if i < 0:
             raise outside_error(-1 - i, x, y, column, row)
         if room is not None and k > room:  # count the rest, for the error's message
             _, total = _event_count_loop(x, y, p, column, row, shift_x, shift_y, out_w, ends,
-                                         block, level_step, b, sums, levels, upper, lower, i, k,
-                                         most, *out, True)
+                                         block, level_step, b, sums, levels, i, k, most, *out,
+                                         True)
             check_output_count(total)
         if i == n:
             break
