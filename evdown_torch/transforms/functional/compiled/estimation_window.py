@@ -67,6 +67,23 @@ def _slots(pixel: np.ndarray, bound: int) -> tuple[np.ndarray, int]:  # pragma: 
 
 
 @compiled_loop
+def _pixel_ids(x: np.ndarray, y: np.ndarray,
+               width: int) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
+    """``(N,)`` int64 pixel id ``y * width + x`` of each event, and one past the largest.
+
+    The bound is -1 where an id is negative (a negative coordinate, or an overflow).
+    """
+    pixel = np.empty(x.shape[0], dtype=np.int64)
+    bound = 0
+    for i in range(x.shape[0]):
+        pixel[i] = y[i] * width + x[i]
+        if pixel[i] < 0:
+            return pixel, -1
+        bound = max(bound, pixel[i] + 1)
+    return pixel, bound
+
+
+@compiled_loop
 def _order_ties(t: np.ndarray, key: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """``(M,)`` int64 stable order by ``key`` inside each run of equal ``t`` (``t`` ascending)."""
     n = t.shape[0]
@@ -114,13 +131,9 @@ def _held_loop(
         if x[i] < 0 or y[i] < 0:
             return -1, np.empty(0, np.int64), np.empty(0, np.int64), t[:0].copy()
         width = max(width, x[i] + 1)
-    pixel = np.empty(n, dtype=np.int64)
-    bound = 0
-    for i in range(n):
-        pixel[i] = y[i] * width + x[i]
-        if pixel[i] < 0:  # (overflow)
-            return -1, np.empty(0, np.int64), np.empty(0, np.int64), t[:0].copy()
-        bound = max(bound, pixel[i] + 1)
+    pixel, bound = _pixel_ids(x, y, width)
+    if bound < 0:  # (overflow)
+        return -1, np.empty(0, np.int64), np.empty(0, np.int64), t[:0].copy()
     slot, count = _slots(pixel, bound)
     last = np.empty(count, dtype=t.dtype)
     seen = np.zeros(count, dtype=np.bool_)
@@ -175,14 +188,10 @@ def _next_loop(
         negative pixel id.
     """
     n = t.shape[0]
-    pixel = np.empty(n, dtype=np.int64)
-    bound = 0
-    for i in range(n):
-        pixel[i] = y[i] * width + x[i]
-        if pixel[i] < 0:
-            none = np.empty(0, np.int64)
-            return -1, none, none, t[:0].copy(), np.empty(0, np.bool_), none
-        bound = max(bound, pixel[i] + 1)
+    pixel, bound = _pixel_ids(x, y, width)
+    if bound < 0:
+        none = np.empty(0, np.int64)
+        return -1, none, none, t[:0].copy(), np.empty(0, np.bool_), none
     slot, count = _slots(pixel, bound)
     cut = np.searchsorted(t, before)  # events before it: t < before
     knots = np.zeros(count, dtype=np.int64)  # a pixel's knot times before cut, from its last

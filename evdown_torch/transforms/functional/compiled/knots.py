@@ -25,7 +25,8 @@ from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, RELATIVE_ERROR
 
 __all__ = ["TOO_WIDE", "chunk_ends_before", "float_piece_time", "group_by_region",
-           "integer_piece_time", "reference_walk", "region_knots", "unpack_change", "unpack_local"]
+           "integer_piece_time", "pack", "reference_walk", "region_knots", "unpack_change",
+           "unpack_local"]
 
 #: ``0.5 + HALF_TOLERANCE`` as the eager piece_time adds it (one Python float).
 _HALF = 0.5 + HALF_TOLERANCE
@@ -47,9 +48,9 @@ def group_by_region(
     ``regions[k]``'s events start (``R + 1`` entries) in the returned columns, which hold the
     events in region order (time order inside a region, as given): ``packed``, each one's
     place in its region (``(y % fy) * fx + x % fx``, :func:`unpack_local`) and its level
-    change (:func:`unpack_change`) in one int64 (one column to scatter instead of two), and
-    its time. A region's column and row are read from the tables ``column[x]``, ``row[y]``;
-    ``outside``: the first event outside them, :data:`TOO_WIDE` where a change or the
+    change (:func:`unpack_change`) in one int64 (:func:`pack`; one column to scatter instead
+    of two), and its time. A region's column and row are read from the tables ``column[x]``,
+    ``row[y]``; ``outside``: the first event outside them, :data:`TOO_WIDE` where a change or the
     region's pixel count does not fit 32 bits, or -1 (nothing else is computed but for -1). A
     counting sort where the region ids span a few times the events, else a stable merge
     sort: the cost follows the events, not the sensor's area.
@@ -78,7 +79,7 @@ def group_by_region(
                 regions[k], first_of[k] = region[i], j
                 k += 1
             local = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
-            packed[j], by_t[j] = (local << 32) | (change[i] & 0xFFFFFFFF), t[i]
+            packed[j], by_t[j] = pack(local, change[i]), t[i]
     else:  # scattered in one pass: each region's place advances through its own run
         place = np.zeros(span + 1, np.int64)
         for i in range(n):
@@ -92,9 +93,15 @@ def group_by_region(
             j = place[region[i]]
             place[region[i]] = j + 1
             local = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
-            packed[j], by_t[j] = (local << 32) | (change[i] & 0xFFFFFFFF), t[i]
+            packed[j], by_t[j] = pack(local, change[i]), t[i]
     first_of[k] = n
     return regions[:k], first_of[:k + 1], packed, by_t, -1
+
+
+@compiled_loop
+def pack(local: int, change: int) -> int:  # pragma: no cover - compiled
+    """An event's place in its region (high 32 bits) and level change (low 32 bits)."""
+    return (local << 32) | (change & 0xFFFFFFFF)
 
 
 @compiled_loop
