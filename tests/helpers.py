@@ -228,6 +228,17 @@ def near_their_limits(arr: np.ndarray, dtype, t_max: int) -> torch.Tensor:
 ODD_CUTS = [0, 0, 1, 2, 2, 3, 40, 41, 700, 1100, 1101, 1499]
 
 
+def assert_compiled_then_eager(monkeypatch, compiled: tuple, eager: tuple, call) -> None:
+    """``call()`` runs ``compiled`` (a ``(module, name)``) once and not ``eager``, and under
+    ``eager_kernels()`` runs ``eager`` once and not ``compiled`` again."""
+    compiled_calls, eager_calls = spy(monkeypatch, *compiled), spy(monkeypatch, *eager)
+    call()
+    assert (len(compiled_calls), len(eager_calls)) == (1, 0)
+    with eager_kernels():
+        call()
+    assert (len(compiled_calls), len(eager_calls)) == (1, 1)
+
+
 def assert_sessions_on_both_paths(transform, arr: np.ndarray, whole: np.ndarray,
                                   cuts=ODD_CUTS) -> None:
     """``transform``'s session over ``arr`` cut at ``cuts`` equals ``whole`` bit for bit, with

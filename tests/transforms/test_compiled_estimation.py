@@ -26,6 +26,7 @@ from tests.helpers import (
     ESTIMATORS,
     FLOAT_DTYPE,
     assert_batches_on_both_paths,
+    assert_compiled_then_eager,
     assert_identical,
     assert_matches_reference,
     assert_sessions_on_both_paths,
@@ -76,14 +77,10 @@ def test_compiled_cubic_matches_scipys_pchip(factor, rng):
 def test_the_compiled_window_runs_and_the_eager_solver_does_not(monkeypatch, rng):
     compiled_module = importlib.import_module("evdown_torch.transforms.functional.compiled."
                                               "estimation")
-    compiled_calls = spy(monkeypatch, compiled_module, "_window_loop")
-    eager_calls = spy(monkeypatch, driver, "pixel_knots")
     arr = random_stream(rng, 100, SENSOR)
-    LinearEstimation(SENSOR, factor=2, threshold=0.5)(arr)
-    assert (len(compiled_calls), len(eager_calls)) == (1, 0)
-    with eager_kernels():
-        LinearEstimation(SENSOR, factor=2, threshold=0.5)(arr)
-    assert (len(compiled_calls), len(eager_calls)) == (1, 1)
+    assert_compiled_then_eager(monkeypatch, (compiled_module, "_window_loop"),
+                               (driver, "pixel_knots"),
+                               lambda: LinearEstimation(SENSOR, factor=2, threshold=0.5)(arr))
 
 
 @pytest.mark.parametrize("cls", ESTIMATORS)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch import EventCount, Events, eager_kernels
+from evdown_torch import EventCount, Events
 from evdown_torch.transforms.functional.event_count import (
     EventCountState,
     event_count,
@@ -19,6 +19,7 @@ from tests.helpers import (
     DVS_DTYPE,
     FLOAT_DTYPE,
     assert_batches_on_both_paths,
+    assert_compiled_then_eager,
     assert_identical,
     assert_output_limit_on_both_paths,
     assert_sessions_on_both_paths,
@@ -27,7 +28,6 @@ from tests.helpers import (
     near_their_limits,
     random_stream,
     rows,
-    spy,
 )
 
 pytest.importorskip("numba")
@@ -51,14 +51,10 @@ def test_the_compiled_loop_runs_and_the_eager_kernel_does_not(monkeypatch, rng):
     compiled_module = importlib.import_module("evdown_torch.transforms.functional.compiled."
                                               "event_count")
     eager_module = importlib.import_module("evdown_torch.transforms.functional.event_count")
-    compiled_calls = spy(monkeypatch, compiled_module, "event_count_step")
-    eager_calls = spy(monkeypatch, eager_module, "_event_count_sorted")
     arr = random_stream(rng, 100, SENSOR)
-    EventCount(SENSOR, factor=2, threshold=0.5)(arr)
-    assert (len(compiled_calls), len(eager_calls)) == (1, 0)
-    with eager_kernels():
-        EventCount(SENSOR, factor=2, threshold=0.5)(arr)
-    assert (len(compiled_calls), len(eager_calls)) == (1, 1)
+    assert_compiled_then_eager(monkeypatch, (compiled_module, "event_count_step"),
+                               (eager_module, "_event_count_sorted"),
+                               lambda: EventCount(SENSOR, factor=2, threshold=0.5)(arr))
 
 
 @pytest.mark.parametrize("dtype", [np.int64, np.float32, np.float64])
