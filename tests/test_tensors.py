@@ -14,6 +14,7 @@ from evdown_torch._tensors import (
     runs_of,
     searchsorted_ascending,
     stable_sort_small,
+    time_order,
     where_true,
 )
 
@@ -105,3 +106,24 @@ def test_divide_floors_like_python(dtype, numpy_on_cpu, rng, device, monkeypatch
     assert got.tolist() == [int(v) // int(d) for v, d in zip(values, divisors, strict=True)]
     out = torch.empty_like(column)
     assert divide(column, 7, out=out) is out and out.tolist() == [int(v) // 7 for v in values]
+
+
+@pytest.mark.parametrize("numpy_on_cpu", [True, False])
+@pytest.mark.parametrize("dtype", [torch.int64, torch.float64, torch.float32])
+@pytest.mark.parametrize("n", [0, 1, 100, 5000])
+def test_time_order_is_none_exactly_for_a_sorted_stream(n, dtype, numpy_on_cpu, rng,
+                                                          monkeypatch):
+    # NumPy's comparison on CPU streams from NUMPY_MIN_ELEMENTS on, torch's otherwise: the
+    # same answer, a stable order for an unsorted stream (ties, one step back, a NaN).
+    monkeypatch.setattr(_tensors, "NUMPY_ON_CPU", numpy_on_cpu)
+    t = torch.sort(torch.as_tensor(rng.integers(0, max(n // 4, 1), n)).to(dtype)).values
+    assert time_order(t) is None
+    if n < 2:
+        return
+    broken = t.clone()
+    broken[n // 2] = broken[n // 2 - 1] - 1
+    assert torch.equal(time_order(broken), torch.sort(broken, stable=True).indices)
+    if dtype.is_floating_point:
+        with_nan = t.clone()
+        with_nan[n // 2] = float("nan")
+        assert time_order(with_nan) is not None
