@@ -1,0 +1,223 @@
+"""The streaming LinearEstimation design's eager twin: the whole stream at once, in torch.
+
+:func:`design_whole` gives the events of :class:`~benchmarks.streaming_linear_loops.\
+StreamingLinear` (the compiled loops, chunk by chunk) from vectorised torch, with no loop over
+events, regions or moves: the same fixed-point integers, and the same doubts decided on the
+pixels' segments (:class:`PixelSegments`, :func:`exact_levels`) in the same float operations,
+so the two must agree event for event whatever the chunks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from benchmarks.streaming_linear_loops import (
+    _HALF,
+    FACTOR,
+    SENSOR,
+    THRESHOLD,
+    K,
+    region_members,
+)
+from evdown_torch._tensors import changes, run_index, segmented_cumsum, take, where_true
+from evdown_torch.bench.realtime import REALTIME_MAX_DELAY_US
+from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, RELATIVE_ERROR
+from evdown_torch.transforms.functional.reference import SNAP, move_crossings
+
+
+class PixelSegments:
+    """Each pixel's knots, to evaluate regions' sums of levels as the loop's ``exact_at`` does.
+
+    Args:
+        pixel: ``(N,)`` int64 pixel (``y * W + x``) of each event, ascending (stable).
+        t: ``(N,)`` int64 time of each event (ascending inside a pixel).
+        c: ``(N,)`` int64 change of each event (+1 or -1).
+        h: ``(N,)`` int64 start of each event's ramp (its knot's held or previous knot).
+        t_start: the stream's first time.
+    """
+
+    def __init__(self, pixel: Tensor, t: Tensor, c: Tensor, h: Tensor, t_start: int) -> None:
+        new_knot = changes(pixel) | changes(t)
+        first_at = where_true(new_knot)
+        self.pixel, self.t, self.h = take(pixel, first_at), take(t, first_at), take(h, first_at)
+        self.rise = torch.zeros(first_at.shape[0], dtype=torch.int64).index_add_(
+            0, run_index(new_knot), c)
+        first_of_pixel = changes(self.pixel)
+        # Each pixel's level after each of its knots.
+        self.level = segmented_cumsum(self.rise, where_true(first_of_pixel),
+                                      run_index(first_of_pixel))
+        self.t_start, self.span = t_start, int(t.max()) - t_start + 2
+        self.key = self.pixel * self.span + (self.t - t_start)
+        self.members = torch.from_numpy(region_members())
+
+    def at(self, region: Tensor, x2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The sums at ``(region, x2 / 2)``: ``(whole, rest, slope)`` as ``exact_at``.
+
+        The members' terms are added one position at a time, in the loop's order, so the
+        float remainders and slopes are the loop's bit for bit.
+        """
+        n = self.key.shape[0]
+        whole = torch.zeros(region.shape[0], dtype=torch.int64)
+        rest = torch.zeros(region.shape[0], dtype=torch.float64)
+        slope = torch.zeros(region.shape[0], dtype=torch.float64)
+        for position in range(self.members.shape[1]):  # the region's pixels, not events
+            pixel = take(self.members[:, position], region)
+            # The pixel's first knot after x (its segment's end) and the one before.
+            after = torch.searchsorted(self.key, pixel * self.span
+                                       + torch.div(x2, 2, rounding_mode="floor") - self.t_start,
+                                       right=True)
+            ahead = after.clamp(max=n - 1)
+            has_next = (after < n) & (take(self.pixel, ahead) == pixel)
+            behind = (after - 1).clamp(min=0)
+            has_last = (after > 0) & (take(self.pixel, behind) == pixel)
+            whole += torch.where(has_last, take(self.level, behind), 0)
+            start, end, rise = take(self.h, ahead), take(self.t, ahead), take(self.rise, ahead)
+            ramping = has_next & (2 * start <= x2) & (rise != 0)
+            span = (end - start).clamp(min=1)
+            num, den = rise * (x2 - 2 * start), 2 * span
+            part = torch.div(num, den, rounding_mode="floor")
+            whole += torch.where(ramping, part, 0)
+            rest += torch.where(ramping, (num - part * den).double() / den.double(), 0.0)
+            slope += torch.where(ramping, rise.double() / span.double(), 0.0)
+        return whole, rest, slope
+
+
+def exact_levels(whole: Tensor, rest: Tensor, a: int, b: int) -> tuple[Tensor, Tensor]:
+    """``floor(u)`` and ``u is on a level`` from the segments' sums, as the loop decides.
+
+    The package's rule (:func:`~evdown_torch.transforms.functional.reference.level_index`):
+    an integer sum is tested exactly, any other is on a level within ``SNAP``.
+    """
+    pixels = FACTOR * FACTOR
+    u = (whole.double() + rest) * (b / (pixels * a))
+    nearest = torch.floor(u + 0.5)
+    on = (u - nearest).abs() <= SNAP
+    floor_u = torch.where(on, nearest, torch.floor(u)).to(torch.int64)
+    integer = rest == 0.0
+    exact_floor = torch.div(whole * b, pixels * a, rounding_mode="floor")
+    floor_u = torch.where(integer, exact_floor, floor_u)
+    on = torch.where(integer, exact_floor * (pixels * a) == whole * b, on)
+    return floor_u, on
+
+
+def design_whole(events: np.ndarray, before: int) -> np.ndarray:
+    """The design's events earlier than ``before``, the whole stream at once: its eager twin.
+
+    Vectorised torch, no loop over events or regions: each event's ramp (its pixel's previous
+    knot from a stable sort by pixel), the slope changes and jumps summed per region and time
+    (one sort), the region's slope and value at each breakpoint as integer cumulative sums,
+    then the package's reference rule over the moves (each breakpoint's ramp, then its jump,
+    :func:`~evdown_torch.transforms.functional.reference.move_crossings`) and the loop's
+    rounded crossing times. Integers throughout, so it must give the loop's session's events,
+    whatever the chunks.
+
+    Args:
+        events: a time-sorted Tonic structured array (``t`` integer microseconds).
+        before: the cut (the session's last horizon).
+
+    Returns:
+        The events earlier than ``before``, sorted by ``t`` (stable), of the input's dtype.
+    """
+    width = SENSOR[0]
+    out_w = width // FACTOR
+    a, b = THRESHOLD
+    level = a * FACTOR * FACTOR * (1 << K)
+    one, delay = 1 << K, REALTIME_MAX_DELAY_US
+    x = torch.from_numpy(events["x"].astype(np.int64))
+    y = torch.from_numpy(events["y"].astype(np.int64))
+    t = torch.from_numpy(events["t"].astype(np.int64))
+    c = torch.from_numpy(np.where(events["p"], 1, -1).astype(np.int64))
+    t_start = int(t[0])
+    pixel, order = torch.sort(y * width + x, stable=True)  # time order inside a pixel
+    t, c, x, y = t[order], c[order], x[order], y[order]
+    first_of_pixel = changes(pixel)
+    new_knot = first_of_pixel | changes(t)
+    previous = torch.where(first_of_pixel, t_start, torch.roll(t, 1))  # read at new knots
+    t0 = take(take(previous, where_true(new_knot)), run_index(new_knot))
+    h = torch.maximum(t0, t - delay)
+    length = t - h
+    slope = c * torch.where(length > 0, (one + length // 2) // length.clamp(min=1), 0)
+    region = (y // FACTOR) * out_w + x // FACTOR
+    ramp = where_true(length > 0)
+    at = torch.cat([take(h, ramp), t])
+    where = torch.cat([take(region, ramp), region])
+    d_slope = torch.cat([take(slope, ramp), -slope])
+    d_jump = torch.cat([torch.zeros_like(ramp), c * one - slope * length])
+    # Per (region, time): one breakpoint, its slope change and jump.
+    span = int(t.max()) - t_start + 1
+    key, by_key = torch.sort(where * span + (at - t_start), stable=True)
+    new_point = changes(key)
+    point = run_index(new_point)
+    n_points = int(point[-1]) + 1
+    slope_change = torch.zeros(n_points, dtype=torch.int64).index_add_(0, point, d_slope[by_key])
+    jump = torch.zeros(n_points, dtype=torch.int64).index_add_(0, point, d_jump[by_key])
+    first_point = where_true(new_point)
+    point_t = t_start + take(key, first_point) % span
+    point_region = take(key, first_point) // span
+    first = changes(point_region)
+    starts, run = where_true(first), run_index(first)
+    slope_after = segmented_cumsum(slope_change, starts, run)
+    slope_before = torch.where(first, 0, torch.roll(slope_after, 1))
+    gap = torch.where(first, 0, point_t - torch.roll(point_t, 1))
+    value = segmented_cumsum(slope_before * gap + jump, starts, run)  # after the jumps
+    value_before_jump = value - jump
+    start_value = torch.where(first, 0, torch.roll(value, 1))  # the ramp's start
+    # Moves: each point's ramp, then its jump, decided as the loop decides them: in integers
+    # unless within their error bound of a level (then on the pixels' segments).
+    d_active = torch.cat([torch.ones_like(ramp), -(length > 0).to(torch.int64)])
+    active = segmented_cumsum(torch.zeros(n_points, dtype=torch.int64).index_add_(
+        0, point, d_active[by_key]), starts, run)  # after each point
+    active_before = torch.where(first, 0, torch.roll(active, 1))
+    move_value = torch.stack([value_before_jump, value], 1).reshape(-1)
+    move_first = torch.stack([first, torch.zeros_like(first)], 1).reshape(-1)
+    move_active = torch.stack([active_before, active], 1).reshape(-1)
+    move_t = torch.repeat_interleave(point_t, 2)
+    move_region = torch.repeat_interleave(point_region, 2)
+    scaled = b * move_value
+    floor_u = torch.div(scaled, level, rounding_mode="floor")
+    off = scaled - floor_u * level
+    on_level = off == 0
+    near = b * (move_active * delay // 2 + 1) + (int(SNAP * level) + 2)
+    doubt = where_true((move_active > 0) & (torch.minimum(off, level - off) <= near))
+    exact = PixelSegments(pixel, t, c, h, t_start)
+    whole, rest, _ = exact.at(take(move_region, doubt), 2 * take(move_t, doubt))
+    exact_floor, exact_on = exact_levels(whole, rest, a, b)
+    floor_u.index_copy_(0, doubt, exact_floor)
+    on_level.index_copy_(0, doubt, exact_on)
+    cross = move_crossings(floor_u, on_level, move_first)
+    k, is_jump = cross.move // 2, cross.move % 2 == 1
+    sl = take(slope_before, k)
+    num = cross.level * level - b * take(start_value, k)
+    den = b * sl
+    on_ramp = torch.div(2 * num + den, torch.where(is_jump, 1, 2 * den), rounding_mode="floor")
+    t_prev = take(torch.where(first, point_t, torch.roll(point_t, 1)), k)
+    piece = take(point_t, k) - t_prev
+    # A crossing within the integers' error bound of a half tick: on the pixels' segments.
+    n_active = take(active_before, k)
+    spare = sl.abs() - n_active / 2
+    half = ((num / den) % 1.0 - 0.5).abs()
+    tolerance = HALF_TOLERANCE + RELATIVE_ERROR * piece + 1e-9
+    at_end = is_jump | (take(on_level, cross.move) & (cross.level == take(floor_u, cross.move)))
+    near_half = where_true(~at_end & ((spare <= 0) | (half <= (n_active * delay // 2 + 1) / spare
+                                                       + tolerance)))
+    whole, rest, slope = exact.at(take(take(point_region, k), near_half),
+                                   2 * take(t_prev, near_half))
+    target = (take(cross.level, near_half) * (FACTOR * FACTOR * a)).to(torch.float64) / b
+    flat = slope == 0.0  # a flat piece: at the move's end, as the loop
+    ratio = ((target - whole) - rest) / torch.where(flat, 1.0, slope)
+    near_piece = take(piece, near_half)
+    on_ramp.index_copy_(0, near_half, torch.where(flat, near_piece, torch.floor(
+        ratio + _HALF + RELATIVE_ERROR * near_piece).to(torch.int64)))
+    on_ramp = torch.minimum(on_ramp.clamp(min=0), piece)
+    out_t = torch.where(at_end, take(point_t, k), t_prev + on_ramp)
+    out_region = take(point_region, k)
+    keep = where_true(out_t < before)
+    out_t, out_region, on = take(out_t, keep), take(out_region, keep), take(cross.on, keep)
+    out_t, order = torch.sort(out_t, stable=True)
+    result = np.empty(out_t.shape[0], events.dtype)
+    region_sorted = take(out_region, order).numpy()
+    result["x"], result["y"] = region_sorted % out_w, region_sorted // out_w
+    result["t"], result["p"] = out_t.numpy(), take(on, order).numpy()
+    return result
