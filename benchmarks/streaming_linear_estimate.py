@@ -14,12 +14,12 @@ time-ordered rings (its end; its start at ``t - D`` unless it starts at the pixe
 knot), and a merge of the rings advances each output region lazily, in fixed-point integers
 (exact at every integer time, within ``A * D / 2`` units of the exact polyline with ``A``
 ramps active). Where those integers cannot decide what the package decides (a value near a
-level, a crossing near a half tick: a *doubt*), the sweep evaluates the region's pixels'
-current segments and applies the package's rules to that value.
+level, a crossing near a half tick: a *doubt*), the sweep applies the package's rules to its
+value less the error it tracks (each ramp's slope rounding is known).
 
 The script times the design beside the package's session and the floor, counts the events in
 one output and not the other (pairing those one tick apart), and the doubts decided on the
-segments. Its eager twin (:func:`~benchmarks.streaming_linear_twin.design_whole`, vectorised
+corrected value. Its eager twin (:func:`~benchmarks.streaming_linear_twin.design_whole`, vectorised
 torch, the whole stream at once) must give the session's events whatever the chunks.
 
 So the figures price a design; they are no implementation (integer timestamps, the replay's
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{sum(only_package.values()):,} and {sum(only_design.values()):,}, of which "
           f"{paired:,} pairs one tick apart")
     counts = sessions["design"].counts
-    print(f"doubts decided on the pixels' segments (the integers within their error bound of "
+    print(f"doubts decided on the corrected value (the integers within their error bound of "
           f"a level, of a half tick): {int(counts[0]):,} and {int(counts[1]):,}, "
           f"{1e6 * int(counts.sum()) / n_events:.1f} per million input events")
     for (x, y, t, p), count in sorted((only_package + only_design).items())[:10]:

@@ -2,9 +2,12 @@
 
 :func:`design_whole` gives the events of :class:`~benchmarks.streaming_linear_loops.\
 StreamingLinear` (the compiled loops, chunk by chunk) from vectorised torch, with no loop over
-events, regions or moves: the same fixed-point integers, and the same doubts decided on the
-pixels' segments (:class:`PixelSegments`, :func:`exact_levels`) in the same float operations,
-so the two must agree event for event whatever the chunks.
+events, regions or moves: the same fixed-point integers and the same doubts, decided by the
+same rules on a value found another way: the region's pixels' segments evaluated at the
+doubt's time (exact integer parts, a float remainder: :class:`PixelSegments`,
+:func:`exact_levels`), where the loop corrects its integers by the error it tracks. Both are
+within float error of the exact value, so the two agree event for event whatever the chunks,
+except where an exact value lies within that error of the edge of the package's tolerances.
 """
 
 from __future__ import annotations
@@ -19,7 +22,6 @@ from benchmarks.streaming_linear_loops import (
     SENSOR,
     THRESHOLD,
     K,
-    region_members,
 )
 from evdown_torch._tensors import changes, run_index, segmented_cumsum, take, where_true
 from evdown_torch.bench.realtime import REALTIME_MAX_DELAY_US
@@ -27,8 +29,16 @@ from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, 
 from evdown_torch.transforms.functional.reference import SNAP, move_crossings
 
 
+def region_members() -> np.ndarray:
+    """``(regions, FACTOR**2)`` int64: each output region's pixels (``y * W + x``), ascending."""
+    width, height, _ = SENSOR
+    pixel_y, pixel_x = np.divmod(np.arange(width * height), width)
+    region = (pixel_y // FACTOR) * (width // FACTOR) + pixel_x // FACTOR
+    return np.argsort(region, kind="stable").reshape(-1, FACTOR * FACTOR)
+
+
 class PixelSegments:
-    """Each pixel's knots, to evaluate regions' sums of levels as the loop's ``exact_at`` does.
+    """Each pixel's knots, to evaluate regions' sums of levels at given times.
 
     Args:
         pixel: ``(N,)`` int64 pixel (``y * W + x``) of each event, ascending (stable).
@@ -53,10 +63,10 @@ class PixelSegments:
         self.members = torch.from_numpy(region_members())
 
     def at(self, region: Tensor, x2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The sums at ``(region, x2 / 2)``: ``(whole, rest, slope)`` as ``exact_at``.
+        """The sums at ``(region, x2 / 2)``: ``(whole, rest, slope)``.
 
-        The members' terms are added one position at a time, in the loop's order, so the
-        float remainders and slopes are the loop's bit for bit.
+        ``whole`` is the exact integer part, ``rest`` the remainder (float64, 0.0 exactly where
+        the sum is an integer), ``slope`` the sum's slope (levels per tick) from ``x2 / 2`` on.
         """
         n = self.key.shape[0]
         whole = torch.zeros(region.shape[0], dtype=torch.int64)
@@ -85,7 +95,7 @@ class PixelSegments:
 
 
 def exact_levels(whole: Tensor, rest: Tensor, a: int, b: int) -> tuple[Tensor, Tensor]:
-    """``floor(u)`` and ``u is on a level`` from the segments' sums, as the loop decides.
+    """``floor(u)`` and ``u is on a level`` from the segments' sums, by the package's rules.
 
     The package's rule (:func:`~evdown_torch.transforms.functional.reference.level_index`):
     an integer sum is tested exactly, any other is on a level within ``SNAP``.
@@ -165,7 +175,7 @@ def design_whole(events: np.ndarray, before: int) -> np.ndarray:
     value_before_jump = value - jump
     start_value = torch.where(first, 0, torch.roll(value, 1))  # the ramp's start
     # Moves: each point's ramp, then its jump, decided as the loop decides them: in integers
-    # unless within their error bound of a level (then on the pixels' segments).
+    # unless within their error bound of a level (then on the pixels' segments' values).
     d_active = torch.cat([torch.ones_like(ramp), -(length > 0).to(torch.int64)])
     active = segmented_cumsum(torch.zeros(n_points, dtype=torch.int64).index_add_(
         0, point, d_active[by_key]), starts, run)  # after each point

@@ -71,8 +71,8 @@ def test_the_design_hand_computed():
     assert whole["t"].tolist() == [1667, 2600] and whole["p"].tolist() == [True, False]
     assert whole["x"].tolist() == [0, 0] and whole["y"].tolist() == [0, 0]
     # S reaches the level 0 at 2600, the ramps' end, where the integers are a hair off until
-    # the ends' jumps correct them: decided on the pixels' segments. 1667 is far from a half
-    # tick.
+    # the ends' jumps correct them: decided on the corrected value (the twin: on the pixels'
+    # segments). 1667 is far from a half tick.
     assert session.counts[0] >= 1 and session.counts[1] == 0
     assert _rows(_package(ev, 3000)) == _rows(out)
 
@@ -81,7 +81,7 @@ def test_a_crossing_on_a_half_tick_rounds_up():
     # Eight pixels of region (0, 0) go ON at 1000 (ramps over [0, 1000]: S = 4 at 500, 8 at
     # 1000) and again at 1999 (ramps over [1000, 1999]: S = 12 at 1499.5 exactly, 16 at
     # 1999). Rounded half up, 1499.5 is 1500; the fixed point's slope round(2**32 / 999)
-    # puts it a hair below, so the crossing is decided on the pixels' segments.
+    # puts it a hair below, so the crossing is decided on the corrected value.
     pytest.importorskip("numba")
     pixels = [(x, y) for y in (0, 1) for x in range(4)]
     ev = np.zeros(18, dtype=DVS_DTYPE)
@@ -131,7 +131,7 @@ def _random_stream(seed: int, n: int = 400) -> np.ndarray:
 
 @pytest.mark.parametrize("seeds", [range(0, 20), range(20, 40)])
 def test_random_streams_give_the_package_events_in_any_chunks(seeds):
-    # The fixed point alone (no decision on the segments) differs from the package on 42 of
+    # The fixed point alone (no decision on a corrected value) differs from the package on 42 of
     # the first 300 seeds; this design on none. Each stream also goes through the session in
     # three chunks cut at random, empty ones included.
     pytest.importorskip("numba")
