@@ -40,6 +40,8 @@ those tolerances.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from evdown_torch.bench.realtime import REALTIME_MAX_DELAY_US
@@ -64,9 +66,9 @@ def compile_loops() -> dict:
         raise RuntimeError("the compiled loops need numba (pip install numba)")
 
     @numba.njit(nogil=True)
-    def ramps(xs, ys, ts, ps, width, column, row, out_w, delay, slopes, deltas, t_start, pixels,
-              ends, e_t, e_region, e_slope, e_jump, e_active, e_delta, starts, s_t, s_region,
-              s_slope, s_delta, mask):  # pragma: no cover - compiled
+    def ramps(xs, ys, ts, ps, width, column, row, out_w, delay, one, slopes, deltas, t_start,
+              pixels, ends, e_t, e_region, e_slope, e_jump, e_active, e_delta, starts, s_t,
+              s_region, s_slope, s_delta, mask):  # pragma: no cover - compiled
         """Each event's ramp: its end, and its start as a change of its own or added to one.
 
         A ramp ends at its event's time ``t``: the ends come in time order (ring ``e_*``).
@@ -84,7 +86,6 @@ def compile_loops() -> dict:
 
         Returns the rings' new tails ``(ends, starts)``.
         """
-        one = np.int64(1) << K
         for i in range(xs.shape[0]):
             x, y, t = np.int64(xs[i]), np.int64(ys[i]), ts[i]
             c = 1 if ps[i] else -1
@@ -123,7 +124,7 @@ def compile_loops() -> dict:
     @numba.njit(nogil=True)
     def sweep(head_e, tail_e, e_t, e_region, e_slope, e_jump, e_active, e_delta, head_s, tail_s,
               s_t, s_region, s_slope, s_delta, mask, horizon, value, slope_sum, since, pending,
-              q, active, error, error_slope, t_start, delay, level, b, out_r, out_t, out_on,
+              q, active, error, error_slope, t_start, delay, levels, b, out_r, out_t, out_on,
               counts):  # pragma: no cover - compiled
         """The slope changes before the horizon, in time order (a merge of the two rings).
 
@@ -133,13 +134,14 @@ def compile_loops() -> dict:
         slope roundings times their elapsed times, exactly 0 for a ramp at its end once its
         jump is in) and the error's slope (``error_slope``: the sum of the roundings). A
         doubt (see the module) is decided on ``value - error`` by the package's rules.
-        ``counts``: the doubts decided this way, at a level and at a half tick, added to.
+        ``levels``: each region's level spacing in units (``a * n_r * 2**K``, threshold
+        ``a / b``, ``n_r`` pixels). ``counts``: the doubts decided this way, at a level and at
+        a half tick, added to.
 
         Returns the rings' new heads and the outputs' count.
         """
         n_out = 0
         regions = value.shape[0]
-        snap_units = SNAP * level
         final = 0  # after the rings: each region in turn, to the horizon
         next_end = e_t[head_e & mask] if head_e < tail_e else horizon
         next_start = s_t[head_s & mask] if head_s < tail_s else horizon
@@ -163,9 +165,9 @@ def compile_loops() -> dict:
             t_now = since[r]
             if t > t_now:
                 v, qr, sl, jump, n_active = value[r], q[r], slope_sum[r], pending[r], active[r]
-                err, err_slope = error[r], error_slope[r]
+                err, err_slope, level = error[r], error_slope[r], levels[r]
                 bound = n_active * delay // 2 + 1  # E, with a unit to spare
-                near_level = b * bound + np.int64(snap_units) + 2
+                near_level = b * bound + np.int64(SNAP * level) + 2
                 for piece in range(2):  # the jump at t_now, then the ramp to t
                     if piece == 0:
                         if jump == 0:
@@ -194,6 +196,8 @@ def compile_loops() -> dict:
                     while qr != q_new:
                         d = 1 if q_new > qr else -1
                         qr += d
+                        if n_out == out_t.shape[0]:
+                            raise ValueError("the output buffer is too small")
                         out_t[n_out], out_r[n_out], out_on[n_out] = t_end, r, d > 0
                         n_out += 1
                         if piece == 0 or (on and qr == q_new):
@@ -225,6 +229,67 @@ def compile_loops() -> dict:
     return {"ramps": ramps, "sweep": sweep}
 
 
+#: A region's sum of levels must stay within ``n_r * 2**LEVEL_BITS`` (the integers' headroom).
+LEVEL_BITS = 20
+
+
+@dataclass(frozen=True)
+class Settings:
+    """The design's geometry and integers, for the loops and the eager twin alike.
+
+    Build it with :meth:`of`. Attributes: ``width`` (``W``), ``out_w``; ``column``, ``row``
+    (``(W,)``, ``(H,)`` int64, each pixel column's and row's region); ``pixels`` (``(R,)``
+    int64 ``n_r``); ``a``, ``b`` (the threshold ``a / b``); ``delay`` (``D``, us); ``k``
+    (the fixed point's bits: 32, or less where ``b * n_r * 2**(k + LEVEL_BITS)`` would not
+    fit in 62 bits); ``one`` (``2**k``); ``levels`` (``(R,)`` int64 ``a * n_r * 2**k``);
+    ``slopes`` (``(D + 1,)`` int64 ``round(2**k / length)``, 0 at 0) and ``deltas``
+    (float64 ``slopes - 2**k / length``, their rounding).
+    """
+
+    width: int
+    out_w: int
+    column: np.ndarray
+    row: np.ndarray
+    pixels: np.ndarray
+    a: int
+    b: int
+    delay: int
+    k: int
+    one: int
+    levels: np.ndarray
+    slopes: np.ndarray
+    deltas: np.ndarray
+
+    @classmethod
+    def of(cls, sensor_size: tuple[int, int, int] = SENSOR,
+           factor: tuple[int, int] = (FACTOR, FACTOR), threshold: tuple[int, int] = THRESHOLD,
+           delay: int = REALTIME_MAX_DELAY_US) -> Settings:
+        """The settings for a sensor, a factor ``(fx, fy)``, a threshold ``(a, b)`` and ``D``.
+
+        Edge regions of a sensor the factor does not divide are smaller (``n_r``).
+
+        Raises:
+            ValueError: where even ``k = 8`` would not fit.
+        """
+        width, height, _ = sensor_size
+        (fx, fy), (a, b) = factor, threshold
+        column = np.arange(width, dtype=np.int64) // fx
+        row = np.arange(height, dtype=np.int64) // fy
+        pixels = np.outer(np.bincount(row), np.bincount(column)).reshape(-1).astype(np.int64)
+        k = min(K, 62 - LEVEL_BITS - b.bit_length() - int(pixels.max()).bit_length())
+        if k < 8:
+            raise ValueError(f"threshold {a}/{b} with {int(pixels.max())} pixels a region "
+                             "leaves the fixed point under 8 bits")
+        one = 1 << k
+        length = np.arange(delay + 1, dtype=np.int64)
+        slopes = (one + length // 2) // np.maximum(length, 1)
+        slopes[0] = 0
+        deltas = slopes - float(one) / np.maximum(length, 1)
+        deltas[0] = 0.0
+        return cls(width, -(-width // fx), column, row, pixels, a, b, delay, k, one,
+                   (a * pixels) << k, slopes, deltas)
+
+
 class StreamingLinear:
     """The design as a session: ``__call__(chunk)`` returns the decided events, sorted.
 
@@ -234,25 +299,19 @@ class StreamingLinear:
         max_events: the most events a chunk holds; the rings hold four times as many changes
             (the replay's 10 ms chunks against ``D = 1 ms``: room to spare; a session fed
             chunks much shorter than ``D`` needs ``max_events`` of the events within ``D``).
+        settings: :class:`Settings` (the replay's by default).
 
     ``counts``: the doubts decided on the corrected value so far, ``[at a level, at a half
     tick]``.
     """
 
-    def __init__(self, loops: dict, t_start: int, max_events: int) -> None:
+    def __init__(self, loops: dict, t_start: int, max_events: int,
+                 settings: Settings | None = None) -> None:
         self.loops = loops
-        width, height, _ = SENSOR
-        self.out_w, out_h = width // FACTOR, height // FACTOR
-        regions = self.out_w * out_h
-        self.column = np.arange(width, dtype=np.int64) // FACTOR
-        self.row = np.arange(height, dtype=np.int64) // FACTOR
+        self.settings = settings = settings or Settings.of()
+        regions = settings.pixels.shape[0]
         self.t_start = t_start
-        length = np.arange(REALTIME_MAX_DELAY_US + 1, dtype=np.int64)
-        self.slopes = ((1 << K) + length // 2) // np.maximum(length, 1)
-        self.slopes[0] = 0
-        self.deltas = self.slopes - float(1 << K) / np.maximum(length, 1)
-        self.deltas[0] = 0.0
-        self.pixels = np.full((width * height, 4), t_start, np.int64)
+        self.pixels = np.full((settings.width * settings.row.shape[0], 4), t_start, np.int64)
         self.pixels[:, 2:] = -1
         size = 1 << int(4 * max_events).bit_length()  # a chunk's changes and those ahead
         self.mask = size - 1
@@ -269,23 +328,32 @@ class StreamingLinear:
         self.out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.bool_))
         self.counts = np.zeros(2, np.int64)
         self.horizon = t_start
-        self.a, self.b = THRESHOLD
-        self.level = self.a * FACTOR * FACTOR * (1 << K)
 
     def __call__(self, chunk: np.ndarray) -> np.ndarray:
-        t = chunk["t"]
+        t, settings = chunk["t"], self.settings
         self.tail_e, self.tail_s = self.loops["ramps"](
-            chunk["x"], chunk["y"], t, chunk["p"], SENSOR[0], self.column, self.row, self.out_w,
-            REALTIME_MAX_DELAY_US, self.slopes, self.deltas, self.t_start, self.pixels,
-            self.tail_e, *self.ends, self.tail_s, *self.starts, self.mask)
-        self.horizon = max(self.horizon, int(t[-1]) - REALTIME_MAX_DELAY_US)
+            chunk["x"], chunk["y"], t, chunk["p"], settings.width, settings.column, settings.row,
+            settings.out_w, settings.delay, settings.one, settings.slopes, settings.deltas,
+            self.t_start, self.pixels, self.tail_e, *self.ends, self.tail_s, *self.starts,
+            self.mask)
+        if len(t):
+            self.horizon = max(self.horizon, int(t[-1]) - settings.delay)
+        # Each ramp moves its region's level by one pixel level, at most ceil(b / (a * n_r))
+        # thresholds; each piece may add two for a level it touches.
+        pending = self.tail_e - self.head_e + self.tail_s - self.head_s + len(settings.pixels)
+        per_change = -(-settings.b // (settings.a * int(settings.pixels.min()))) + 2
+        if pending * per_change > len(self.out[0]):
+            self.out = (np.empty(pending * per_change, np.int64),
+                        np.empty(pending * per_change, np.int64),
+                        np.empty(pending * per_change, np.bool_))
         self.head_e, self.head_s, n_out = self.loops["sweep"](
             self.head_e, self.tail_e, *self.ends, self.head_s, self.tail_s, *self.starts,
-            self.mask, self.horizon, *self.regions, self.t_start, REALTIME_MAX_DELAY_US,
-            self.level, self.b, *self.out, self.counts)
+            self.mask, self.horizon, *self.regions, self.t_start, settings.delay,
+            settings.levels, settings.b, *self.out, self.counts)
         out_r, out_t, out_on = (column[:n_out] for column in self.out)
         order = np.argsort(out_t, kind="stable")
         result = np.empty(n_out, chunk.dtype)
-        result["x"], result["y"] = out_r[order] % self.out_w, out_r[order] // self.out_w
+        out_w = settings.out_w
+        result["x"], result["y"] = out_r[order] % out_w, out_r[order] // out_w
         result["t"], result["p"] = out_t[order], out_on[order]
         return result

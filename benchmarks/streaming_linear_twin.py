@@ -16,25 +16,26 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from benchmarks.streaming_linear_loops import (
-    _HALF,
-    FACTOR,
-    SENSOR,
-    THRESHOLD,
-    K,
-)
+from benchmarks.streaming_linear_loops import _HALF, Settings
 from evdown_torch._tensors import changes, run_index, segmented_cumsum, take, where_true
-from evdown_torch.bench.realtime import REALTIME_MAX_DELAY_US
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, RELATIVE_ERROR
 from evdown_torch.transforms.functional.reference import SNAP, move_crossings
 
 
-def region_members() -> np.ndarray:
-    """``(regions, FACTOR**2)`` int64: each output region's pixels (``y * W + x``), ascending."""
-    width, height, _ = SENSOR
+def region_members(settings: Settings) -> np.ndarray:
+    """``(R, max n_r)`` int64: each region's pixels (``y * W + x``), ascending, then ``W * H``.
+
+    ``W * H`` (a pixel no event has) pads the smaller edge regions.
+    """
+    width, height = settings.width, settings.row.shape[0]
     pixel_y, pixel_x = np.divmod(np.arange(width * height), width)
-    region = (pixel_y // FACTOR) * (width // FACTOR) + pixel_x // FACTOR
-    return np.argsort(region, kind="stable").reshape(-1, FACTOR * FACTOR)
+    region = settings.row[pixel_y] * settings.out_w + settings.column[pixel_x]
+    order = np.argsort(region, kind="stable")
+    rank = np.arange(width * height) - np.repeat(np.cumsum(settings.pixels) - settings.pixels,
+                                                 settings.pixels)
+    members = np.full((settings.pixels.shape[0], int(settings.pixels.max())), width * height)
+    members[region[order], rank] = order
+    return members
 
 
 class PixelSegments:
@@ -46,12 +47,16 @@ class PixelSegments:
         c: ``(N,)`` int64 change of each event (+1 or -1).
         h: ``(N,)`` int64 start of each event's ramp (its knot's held or previous knot).
         t_start: the stream's first time.
+        settings: the design's.
     """
 
-    def __init__(self, pixel: Tensor, t: Tensor, c: Tensor, h: Tensor, t_start: int) -> None:
+    def __init__(self, pixel: Tensor, t: Tensor, c: Tensor, h: Tensor, t_start: int,
+                 settings: Settings) -> None:
         new_knot = changes(pixel) | changes(t)
         first_at = where_true(new_knot)
-        self.pixel, self.t, self.h = take(pixel, first_at), take(t, first_at), take(h, first_at)
+        # Times from t_start: a clock near the int64 limit leaves no room above it.
+        self.pixel = take(pixel, first_at)
+        self.t, self.h = take(t, first_at) - t_start, take(h, first_at) - t_start
         self.rise = torch.zeros(first_at.shape[0], dtype=torch.int64).index_add_(
             0, run_index(new_knot), c)
         first_of_pixel = changes(self.pixel)
@@ -59,15 +64,16 @@ class PixelSegments:
         self.level = segmented_cumsum(self.rise, where_true(first_of_pixel),
                                       run_index(first_of_pixel))
         self.t_start, self.span = t_start, int(t.max()) - t_start + 2
-        self.key = self.pixel * self.span + (self.t - t_start)
-        self.members = torch.from_numpy(region_members())
+        self.key = self.pixel * self.span + self.t
+        self.members = torch.from_numpy(region_members(settings))
 
-    def at(self, region: Tensor, x2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The sums at ``(region, x2 / 2)``: ``(whole, rest, slope)``.
+    def at(self, region: Tensor, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The sums at ``(region, x)``, ``x`` int64 times: ``(whole, rest, slope)``.
 
         ``whole`` is the exact integer part, ``rest`` the remainder (float64, 0.0 exactly where
-        the sum is an integer), ``slope`` the sum's slope (levels per tick) from ``x2 / 2`` on.
+        the sum is an integer), ``slope`` the sum's slope (levels per tick) from ``x`` on.
         """
+        x = x - self.t_start
         n = self.key.shape[0]
         whole = torch.zeros(region.shape[0], dtype=torch.int64)
         rest = torch.zeros(region.shape[0], dtype=torch.float64)
@@ -75,18 +81,16 @@ class PixelSegments:
         for position in range(self.members.shape[1]):  # the region's pixels, not events
             pixel = take(self.members[:, position], region)
             # The pixel's first knot after x (its segment's end) and the one before.
-            after = torch.searchsorted(self.key, pixel * self.span
-                                       + torch.div(x2, 2, rounding_mode="floor") - self.t_start,
-                                       right=True)
+            after = torch.searchsorted(self.key, pixel * self.span + x, right=True)
             ahead = after.clamp(max=n - 1)
             has_next = (after < n) & (take(self.pixel, ahead) == pixel)
             behind = (after - 1).clamp(min=0)
             has_last = (after > 0) & (take(self.pixel, behind) == pixel)
             whole += torch.where(has_last, take(self.level, behind), 0)
             start, end, rise = take(self.h, ahead), take(self.t, ahead), take(self.rise, ahead)
-            ramping = has_next & (2 * start <= x2) & (rise != 0)
+            ramping = has_next & (start <= x) & (rise != 0)
             span = (end - start).clamp(min=1)
-            num, den = rise * (x2 - 2 * start), 2 * span
+            num, den = rise * (x - start), span
             part = torch.div(num, den, rounding_mode="floor")
             whole += torch.where(ramping, part, 0)
             rest += torch.where(ramping, (num - part * den).double() / den.double(), 0.0)
@@ -94,14 +98,15 @@ class PixelSegments:
         return whole, rest, slope
 
 
-def exact_levels(whole: Tensor, rest: Tensor, a: int, b: int) -> tuple[Tensor, Tensor]:
+def exact_levels(whole: Tensor, rest: Tensor, pixels: Tensor, a: int,
+                 b: int) -> tuple[Tensor, Tensor]:
     """``floor(u)`` and ``u is on a level`` from the segments' sums, by the package's rules.
 
     The package's rule (:func:`~evdown_torch.transforms.functional.reference.level_index`):
-    an integer sum is tested exactly, any other is on a level within ``SNAP``.
+    an integer sum is tested exactly, any other is on a level within ``SNAP``. ``pixels``:
+    each sum's ``n_r``.
     """
-    pixels = FACTOR * FACTOR
-    u = (whole.double() + rest) * (b / (pixels * a))
+    u = (whole.double() + rest) * b / (pixels * a).double()
     nearest = torch.floor(u + 0.5)
     on = (u - nearest).abs() <= SNAP
     floor_u = torch.where(on, nearest, torch.floor(u)).to(torch.int64)
@@ -112,7 +117,8 @@ def exact_levels(whole: Tensor, rest: Tensor, a: int, b: int) -> tuple[Tensor, T
     return floor_u, on
 
 
-def design_whole(events: np.ndarray, before: int) -> np.ndarray:
+def design_whole(events: np.ndarray, before: int,
+                 settings: Settings | None = None) -> np.ndarray:
     """The design's events earlier than ``before``, the whole stream at once: its eager twin.
 
     Vectorised torch, no loop over events or regions: each event's ramp (its pixel's previous
@@ -126,15 +132,15 @@ def design_whole(events: np.ndarray, before: int) -> np.ndarray:
     Args:
         events: a time-sorted Tonic structured array (``t`` integer microseconds).
         before: the cut (the session's last horizon).
+        settings: the design's (the replay's by default).
 
     Returns:
         The events earlier than ``before``, sorted by ``t`` (stable), of the input's dtype.
     """
-    width = SENSOR[0]
-    out_w = width // FACTOR
-    a, b = THRESHOLD
-    level = a * FACTOR * FACTOR * (1 << K)
-    one, delay = 1 << K, REALTIME_MAX_DELAY_US
+    settings = settings or Settings.of()
+    width, out_w, a, b = settings.width, settings.out_w, settings.a, settings.b
+    one, delay = settings.one, settings.delay
+    levels, pixels = torch.from_numpy(settings.levels), torch.from_numpy(settings.pixels)
     x = torch.from_numpy(events["x"].astype(np.int64))
     y = torch.from_numpy(events["y"].astype(np.int64))
     t = torch.from_numpy(events["t"].astype(np.int64))
@@ -149,7 +155,8 @@ def design_whole(events: np.ndarray, before: int) -> np.ndarray:
     h = torch.maximum(t0, t - delay)
     length = t - h
     slope = c * torch.where(length > 0, (one + length // 2) // length.clamp(min=1), 0)
-    region = (y // FACTOR) * out_w + x // FACTOR
+    region = (take(torch.from_numpy(settings.row), y) * out_w
+              + take(torch.from_numpy(settings.column), x))
     ramp = where_true(length > 0)
     at = torch.cat([take(h, ramp), t])
     where = torch.cat([take(region, ramp), region])
@@ -186,40 +193,44 @@ def design_whole(events: np.ndarray, before: int) -> np.ndarray:
     move_t = torch.repeat_interleave(point_t, 2)
     move_region = torch.repeat_interleave(point_region, 2)
     scaled = b * move_value
+    level = take(levels, move_region)
     floor_u = torch.div(scaled, level, rounding_mode="floor")
     off = scaled - floor_u * level
     on_level = off == 0
-    near = b * (move_active * delay // 2 + 1) + (int(SNAP * level) + 2)
+    near = b * (move_active * delay // 2 + 1) + ((SNAP * level).to(torch.int64) + 2)
     doubt = where_true((move_active > 0) & (torch.minimum(off, level - off) <= near))
-    exact = PixelSegments(pixel, t, c, h, t_start)
-    whole, rest, _ = exact.at(take(move_region, doubt), 2 * take(move_t, doubt))
-    exact_floor, exact_on = exact_levels(whole, rest, a, b)
+    exact = PixelSegments(pixel, t, c, h, t_start, settings)
+    whole, rest, _ = exact.at(take(move_region, doubt), take(move_t, doubt))
+    exact_floor, exact_on = exact_levels(whole, rest, take(pixels, take(move_region, doubt)),
+                                         a, b)
     floor_u.index_copy_(0, doubt, exact_floor)
     on_level.index_copy_(0, doubt, exact_on)
     cross = move_crossings(floor_u, on_level, move_first)
     k, is_jump = cross.move // 2, cross.move % 2 == 1
     sl = take(slope_before, k)
-    num = cross.level * level - b * take(start_value, k)
+    crossing_region = take(point_region, k)
+    num = cross.level * take(levels, crossing_region) - b * take(start_value, k)
     den = b * sl
     on_ramp = torch.div(2 * num + den, torch.where(is_jump, 1, 2 * den), rounding_mode="floor")
     t_prev = take(torch.where(first, point_t, torch.roll(point_t, 1)), k)
     piece = take(point_t, k) - t_prev
     # A crossing within the integers' error bound of a half tick: on the pixels' segments.
-    n_active = take(active_before, k)
-    spare = sl.abs() - n_active / 2
-    half = ((num / den) % 1.0 - 0.5).abs()
-    tolerance = HALF_TOLERANCE + RELATIVE_ERROR * piece + 1e-9
+    # (float64 throughout: torch divides integers into its default float32)
+    n_active, piece_f = take(active_before, k).double(), piece.double()
+    spare = sl.abs().double() - n_active / 2
+    half = ((num.double() / den.double()) % 1.0 - 0.5).abs()
+    tolerance = HALF_TOLERANCE + RELATIVE_ERROR * piece_f + 1e-9
     at_end = is_jump | (take(on_level, cross.move) & (cross.level == take(floor_u, cross.move)))
-    near_half = where_true(~at_end & ((spare <= 0) | (half <= (n_active * delay // 2 + 1) / spare
-                                                       + tolerance)))
-    whole, rest, slope = exact.at(take(take(point_region, k), near_half),
-                                   2 * take(t_prev, near_half))
-    target = (take(cross.level, near_half) * (FACTOR * FACTOR * a)).to(torch.float64) / b
+    bound = torch.floor(n_active * delay / 2) + 1  # the loop's E
+    near_half = where_true(~at_end & ((spare <= 0) | (half <= bound / spare + tolerance)))
+    whole, rest, slope = exact.at(take(crossing_region, near_half), take(t_prev, near_half))
+    target = (take(cross.level, near_half) * take(pixels, take(crossing_region, near_half))
+              * a).to(torch.float64) / b
     flat = slope == 0.0  # a flat piece: at the move's end, as the loop
     ratio = ((target - whole) - rest) / torch.where(flat, 1.0, slope)
     near_piece = take(piece, near_half)
     on_ramp.index_copy_(0, near_half, torch.where(flat, near_piece, torch.floor(
-        ratio + _HALF + RELATIVE_ERROR * near_piece).to(torch.int64)))
+        ratio + _HALF + RELATIVE_ERROR * near_piece.double()).to(torch.int64)))
     on_ramp = torch.minimum(on_ramp.clamp(min=0), piece)
     out_t = torch.where(at_end, take(point_t, k), t_prev + on_ramp)
     out_region = take(point_region, k)

@@ -152,6 +152,45 @@ def test_random_streams_give_the_package_events_in_any_chunks(seeds):
         assert _rows(made[made["t"] < before]) == expected, seed
 
 
+@pytest.mark.parametrize("case", range(12))
+def test_other_settings_give_the_package_events(case):
+    # Sensors the factor may not divide (smaller edge regions), non-square factors,
+    # thresholds down to 0.05 and above 1, delays from 1 us, clocks near the int64 limit.
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(1000 + case)
+    width, height = (int(v) for v in rng.integers(3, 12, 2))
+    factor = (min(int(rng.integers(1, 5)), width), min(int(rng.integers(1, 5)), height))
+    threshold = [(1, 20), (1, 4), (3, 10), (1, 2), (1, 1), (3, 2)][case % 6]
+    delay = [1, 7, 100, 1000][case % 4]
+    n = 1000
+    ev = np.zeros(n, DVS_DTYPE)
+    ev["x"], ev["y"] = rng.integers(0, width, n), rng.integers(0, height, n)
+    grid = int(rng.choice([1, 2, 5, 250]))
+    ev["t"] = np.sort(rng.choice(np.arange(0, 20_000, grid), n)) + (2**62 if case % 3 == 0
+                                                                      else 0)
+    ev["p"] = rng.random(n) < 0.5
+    settings = loops.Settings.of((width, height, 2), factor, threshold, delay)
+    compiled = loops.compile_loops()
+    session = loops.StreamingLinear(compiled, int(ev["t"][0]), n, settings)
+    out = session(ev)
+    before = session.horizon
+    method = make_method("linear", (width, height, 2), factor,
+                         threshold=threshold[0] / threshold[1], max_delay=delay)
+    expected = method(ev)
+    expected = _rows(expected[expected["t"] < before])
+    assert len(expected) >= 3  # (dozens to thousands but for thresholds above 1)
+    assert _rows(out[out["t"] < before]) == expected
+    assert _rows(design_whole(ev, before, settings)) == expected
+    chunked = loops.StreamingLinear(compiled, int(ev["t"][0]), n, settings)
+    made = np.concatenate([chunked(ev[:100]), chunked(ev[100:100]), chunked(ev[100:])])
+    assert _rows(made[made["t"] < before]) == expected
+
+
+def test_settings_whose_integers_cannot_hold_are_refused():
+    with pytest.raises(ValueError, match="under 8 bits"):
+        loops.Settings.of((128, 128, 2), (16, 16), (1, 10**9), 1000)
+
+
 def test_on_a_tiny_replay_it_makes_the_package_events(capsys):
     pytest.importorskip("numba")
     assert estimate.main(["--events", "700000", "--chunks", "1"]) == 0
