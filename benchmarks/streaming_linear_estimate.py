@@ -22,9 +22,9 @@ one output and not the other (pairing those one tick apart), and the doubts deci
 corrected value. Its eager twin (:func:`~benchmarks.streaming_linear_twin.design_whole`, vectorised
 torch, the whole stream at once) must give the session's events whatever the chunks.
 
-So the figures price a design; they are no implementation (integer timestamps only, no check
-that a region's levels stay within the integers' headroom (``LEVEL_BITS``), rings sized for
-the chunks given, the twin unoptimised). The script times the replay's settings; the loops and
+So the figures price a design; they are no implementation (integer timestamps only, rings
+sized from the largest chunk, with an error, not a larger ring, when they fill; the twin
+unoptimised). The script times the replay's settings; the loops and
 the twin take any sensor, factor, threshold and ``max_delay`` (``Settings``).
 
 Run: ``python benchmarks/streaming_linear_estimate.py [--events 13000000] [--chunks 50]``.

@@ -68,7 +68,7 @@ def compile_loops() -> dict:
     @numba.njit(nogil=True)
     def ramps(xs, ys, ts, ps, width, column, row, out_w, delay, one, slopes, deltas, t_start,
               pixels, ends, e_t, e_region, e_slope, e_jump, e_active, e_delta, starts, s_t,
-              s_region, s_slope, s_delta, mask):  # pragma: no cover - compiled
+              s_region, s_slope, s_delta, mask, head_e, head_s):  # pragma: no cover - compiled
         """Each event's ramp: its end, and its start as a change of its own or added to one.
 
         A ramp ends at its event's time ``t``: the ends come in time order (ring ``e_*``).
@@ -85,6 +85,9 @@ def compile_loops() -> dict:
         (a start ring entry is one ramp).
 
         Returns the rings' new tails ``(ends, starts)``.
+
+        Raises:
+            ValueError: when a ring is full (its oldest change not yet swept, ``head_*``).
         """
         for i in range(xs.shape[0]):
             x, y, t = np.int64(xs[i]), np.int64(ys[i]), ts[i]
@@ -94,6 +97,8 @@ def compile_loops() -> dict:
             if t > pixels[pixel, 0] or pixels[pixel, 2] < 0:  # a new knot: a new end
                 pixels[pixel, 1], pixels[pixel, 3] = pixels[pixel, 0], pixels[pixel, 2]
                 pixels[pixel, 0], pixels[pixel, 2] = t, ends
+                if ends - head_e > mask:
+                    raise ValueError("the ramps' ends ring is full: give more max_events")
                 k = ends & mask
                 e_t[k], e_region[k] = t, r
                 e_slope[k], e_jump[k], e_active[k], e_delta[k] = 0, 0, 0, 0.0
@@ -115,6 +120,8 @@ def compile_loops() -> dict:
                 e_active[before] += 1
                 e_delta[before] += delta
             elif slope != 0:
+                if starts - head_s > mask:
+                    raise ValueError("the ramps' starts ring is full: give more max_events")
                 k = starts & mask
                 s_t[k], s_region[k] = max(t - delay, t_start), r
                 s_slope[k], s_delta[k] = slope, delta
@@ -125,7 +132,7 @@ def compile_loops() -> dict:
     def sweep(head_e, tail_e, e_t, e_region, e_slope, e_jump, e_active, e_delta, head_s, tail_s,
               s_t, s_region, s_slope, s_delta, mask, horizon, value, slope_sum, since, pending,
               q, active, error, error_slope, t_start, delay, levels, b, out_r, out_t, out_on,
-              counts):  # pragma: no cover - compiled
+              counts, headroom):  # pragma: no cover - compiled
         """The slope changes before the horizon, in time order (a merge of the two rings).
 
         Each region is advanced lazily: to a change's time when one comes (its pending jump
@@ -136,9 +143,13 @@ def compile_loops() -> dict:
         doubt (see the module) is decided on ``value - error`` by the package's rules.
         ``levels``: each region's level spacing in units (``a * n_r * 2**K``, threshold
         ``a / b``, ``n_r`` pixels). ``counts``: the doubts decided this way, at a level and at
-        a half tick, added to.
+        a half tick, added to. ``headroom``: the largest value allowed (``Settings``).
 
         Returns the rings' new heads and the outputs' count.
+
+        Raises:
+            ValueError: when a region's value leaves the headroom, or the outputs' buffer is
+                full.
         """
         n_out = 0
         regions = value.shape[0]
@@ -179,6 +190,8 @@ def compile_loops() -> dict:
                         if sl == 0:
                             break
                         v1, err1, t_end = v + sl * (t - t_now), err + err_slope * (t - t_now), t
+                    if v1 > headroom or v1 < -headroom:
+                        raise ValueError("a region's sum of levels left the integers' headroom")
                     scaled = b * v1
                     if (qr - 1) * level + near_level < scaled < (qr + 1) * level - near_level:
                         v, err = v1, err1  # off levels q - 1 and q + 1 by more than E: q stays
@@ -243,7 +256,8 @@ class Settings:
     (the fixed point's bits: 32, or less where ``b * n_r * 2**(k + LEVEL_BITS)`` would not
     fit in 62 bits); ``one`` (``2**k``); ``levels`` (``(R,)`` int64 ``a * n_r * 2**k``);
     ``slopes`` (``(D + 1,)`` int64 ``round(2**k / length)``, 0 at 0) and ``deltas``
-    (float64 ``slopes - 2**k / length``, their rounding).
+    (float64 ``slopes - 2**k / length``, their rounding); ``headroom`` (the largest value
+    allowed, ``max n_r * 2**(level_bits + k)`` units: beyond it the loops raise).
     """
 
     width: int
@@ -259,14 +273,16 @@ class Settings:
     levels: np.ndarray
     slopes: np.ndarray
     deltas: np.ndarray
+    headroom: int
 
     @classmethod
     def of(cls, sensor_size: tuple[int, int, int] = SENSOR,
            factor: tuple[int, int] = (FACTOR, FACTOR), threshold: tuple[int, int] = THRESHOLD,
-           delay: int = REALTIME_MAX_DELAY_US) -> Settings:
+           delay: int = REALTIME_MAX_DELAY_US, level_bits: int = LEVEL_BITS) -> Settings:
         """The settings for a sensor, a factor ``(fx, fy)``, a threshold ``(a, b)`` and ``D``.
 
-        Edge regions of a sensor the factor does not divide are smaller (``n_r``).
+        Edge regions of a sensor the factor does not divide are smaller (``n_r``). A region's
+        sum of levels may reach ``n_r * 2**level_bits`` in size.
 
         Raises:
             ValueError: where even ``k = 8`` would not fit.
@@ -276,7 +292,7 @@ class Settings:
         column = np.arange(width, dtype=np.int64) // fx
         row = np.arange(height, dtype=np.int64) // fy
         pixels = np.outer(np.bincount(row), np.bincount(column)).reshape(-1).astype(np.int64)
-        k = min(K, 62 - LEVEL_BITS - b.bit_length() - int(pixels.max()).bit_length())
+        k = min(K, 62 - level_bits - b.bit_length() - int(pixels.max()).bit_length())
         if k < 8:
             raise ValueError(f"threshold {a}/{b} with {int(pixels.max())} pixels a region "
                              "leaves the fixed point under 8 bits")
@@ -287,7 +303,7 @@ class Settings:
         deltas = slopes - float(one) / np.maximum(length, 1)
         deltas[0] = 0.0
         return cls(width, -(-width // fx), column, row, pixels, a, b, delay, k, one,
-                   (a * pixels) << k, slopes, deltas)
+                   (a * pixels) << k, slopes, deltas, int(pixels.max()) << (level_bits + k))
 
 
 class StreamingLinear:
@@ -335,7 +351,7 @@ class StreamingLinear:
             chunk["x"], chunk["y"], t, chunk["p"], settings.width, settings.column, settings.row,
             settings.out_w, settings.delay, settings.one, settings.slopes, settings.deltas,
             self.t_start, self.pixels, self.tail_e, *self.ends, self.tail_s, *self.starts,
-            self.mask)
+            self.mask, self.head_e, self.head_s)
         if len(t):
             self.horizon = max(self.horizon, int(t[-1]) - settings.delay)
         # Each ramp moves its region's level by one pixel level, at most ceil(b / (a * n_r))
@@ -349,7 +365,7 @@ class StreamingLinear:
         self.head_e, self.head_s, n_out = self.loops["sweep"](
             self.head_e, self.tail_e, *self.ends, self.head_s, self.tail_s, *self.starts,
             self.mask, self.horizon, *self.regions, self.t_start, settings.delay,
-            settings.levels, settings.b, *self.out, self.counts)
+            settings.levels, settings.b, *self.out, self.counts, settings.headroom)
         out_r, out_t, out_on = (column[:n_out] for column in self.out)
         order = np.argsort(out_t, kind="stable")
         result = np.empty(n_out, chunk.dtype)

@@ -191,6 +191,25 @@ def test_settings_whose_integers_cannot_hold_are_refused():
         loops.Settings.of((128, 128, 2), (16, 16), (1, 10**9), 1000)
 
 
+def test_a_full_ring_or_a_level_beyond_the_headroom_raises():
+    pytest.importorskip("numba")
+    compiled = loops.compile_loops()
+    # 40 events within D of each other, in a session sized for 4 a chunk (rings of 16).
+    ev = _events([(x % 8, 0, 10 * x, True) for x in range(40)])
+    session = loops.StreamingLinear(compiled, 0, 4)
+    with pytest.raises(ValueError, match="ring is full"):
+        session(ev)
+    # One pixel's level climbing to 9 where the headroom is 1 * 2**3 levels (factor 1).
+    settings = loops.Settings.of((4, 4, 2), (1, 1), (1, 1), 1000, level_bits=3)
+    ev = _events([(0, 0, 3000 * k, True) for k in range(12)])
+    session = loops.StreamingLinear(compiled, 0, len(ev), settings)
+    with pytest.raises(ValueError, match="headroom"):
+        session(ev)
+    fine = loops.StreamingLinear(compiled, 0, len(ev), loops.Settings.of(
+        (4, 4, 2), (1, 1), (1, 1), 1000, level_bits=4))
+    assert fine(ev)["t"].tolist() == [3000 * k for k in range(11)]
+
+
 def test_on_a_tiny_replay_it_makes_the_package_events(capsys):
     pytest.importorskip("numba")
     assert estimate.main(["--events", "700000", "--chunks", "1"]) == 0
