@@ -119,7 +119,7 @@ def compile_loops() -> dict:
                 e_slope[before] += slope
                 e_active[before] += 1
                 e_delta[before] += delta
-            elif slope != 0:
+            elif length:  # (a ramp whose slope rounds to 0 still starts: its error, its count)
                 if starts - head_s > mask:
                     raise ValueError("the ramps' starts ring is full: give more max_events")
                 k = starts & mask
@@ -187,8 +187,8 @@ def compile_loops() -> dict:
                         # first events' jumps are the curve's own.
                         v1, err1, t_end = v + jump, err + jump if t_now > t_start else err, t_now
                     else:
-                        if sl == 0:
-                            break
+                        if sl == 0 and err_slope == 0.0:
+                            break  # flat (a fixed slope of 0 over moving ramps is not)
                         v1, err1, t_end = v + sl * (t - t_now), err + err_slope * (t - t_now), t
                     if v1 > headroom or v1 < -headroom:
                         raise ValueError("a region's sum of levels left the integers' headroom")
@@ -217,11 +217,14 @@ def compile_loops() -> dict:
                             continue  # at the move's end
                         span = t - t_now
                         num, den = qr * level - b * v, b * sl
-                        offset = (2 * num + den) // (2 * den)  # floor(num / den + 1/2)
                         spare = abs(sl) - n_active / 2
-                        half = abs((num / den) % 1.0 - 0.5)
-                        tolerance = HALF_TOLERANCE + RELATIVE_ERROR * span + 1e-9
-                        if spare <= 0 or half <= bound / spare + tolerance:
+                        near_half = spare <= 0
+                        if not near_half:
+                            offset = (2 * num + den) // (2 * den)  # floor(num / den + 1/2)
+                            half = abs((num / den) % 1.0 - 0.5)
+                            tolerance = HALF_TOLERANCE + RELATIVE_ERROR * span + 1e-9
+                            near_half = half <= bound / spare + tolerance
+                        if near_half:
                             counts[1] += 1
                             exact_slope = b * (sl - err_slope)
                             if exact_slope == 0.0:  # a flat piece: at the move's end

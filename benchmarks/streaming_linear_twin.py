@@ -211,14 +211,16 @@ def design_whole(events: np.ndarray, before: int,
     crossing_region = take(point_region, k)
     num = cross.level * take(levels, crossing_region) - b * take(start_value, k)
     den = b * sl
-    on_ramp = torch.div(2 * num + den, torch.where(is_jump, 1, 2 * den), rounding_mode="floor")
+    # (a flat fixed slope is decided on the segments below: spare <= 0)
+    on_ramp = torch.div(2 * num + den, torch.where(is_jump | (den == 0), 1, 2 * den),
+                        rounding_mode="floor")
     t_prev = take(torch.where(first, point_t, torch.roll(point_t, 1)), k)
     piece = take(point_t, k) - t_prev
     # A crossing within the integers' error bound of a half tick: on the pixels' segments.
     # (float64 throughout: torch divides integers into its default float32)
     n_active, piece_f = take(active_before, k).double(), piece.double()
     spare = sl.abs().double() - n_active / 2
-    half = ((num.double() / den.double()) % 1.0 - 0.5).abs()
+    half = ((num.double() / torch.where(den == 0, 1, den).double()) % 1.0 - 0.5).abs()
     tolerance = HALF_TOLERANCE + RELATIVE_ERROR * piece_f + 1e-9
     at_end = is_jump | (take(on_level, cross.move) & (cross.level == take(floor_u, cross.move)))
     bound = torch.floor(n_active * delay / 2) + 1  # the loop's E

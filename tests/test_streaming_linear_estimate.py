@@ -186,6 +186,29 @@ def test_other_settings_give_the_package_events(case):
     assert _rows(made[made["t"] < before]) == expected
 
 
+def test_ramps_longer_than_the_fixed_point_unit_give_the_package_events():
+    # level_bits 40 leaves k = 14 bits: a ramp over more than 2**15 us rounds its slope to 0,
+    # its whole rise coming as the end's jump (all of it error, corrected there).
+    pytest.importorskip("numba")
+    settings = loops.Settings.of((8, 8, 2), (4, 4), (1, 4), 100_000, level_bits=40)
+    assert settings.k == 14 and settings.slopes[40_000] == 0
+    rng = np.random.default_rng(7)
+    n = 400
+    ev = np.zeros(n, DVS_DTYPE)
+    ev["x"], ev["y"] = rng.integers(0, 8, n), rng.integers(0, 8, n)
+    ev["t"] = np.sort(rng.choice(np.arange(0, 4_000_000, 250), n, replace=False))
+    ev["p"] = rng.random(n) < 0.5
+    session = loops.StreamingLinear(loops.compile_loops(), int(ev["t"][0]), n, settings)
+    out = session(ev)
+    before = session.horizon
+    method = make_method("linear", (8, 8, 2), 4, threshold=0.25, max_delay=100_000)
+    expected = method(ev)
+    expected = _rows(expected[expected["t"] < before])
+    assert len(expected) > 10
+    assert _rows(out[out["t"] < before]) == expected
+    assert _rows(design_whole(ev, before, settings)) == expected
+
+
 def test_settings_whose_integers_cannot_hold_are_refused():
     with pytest.raises(ValueError, match="under 8 bits"):
         loops.Settings.of((128, 128, 2), (16, 16), (1, 10**9), 1000)
