@@ -50,6 +50,7 @@ from benchmarks.streaming_linear_loops import (  # noqa: E402
     compile_loops,
     numba,
 )
+from benchmarks.streaming_linear_state import ThroughState, compile_state_loops  # noqa: E402
 from benchmarks.streaming_linear_twin import design_whole  # noqa: E402
 from evdown_torch.bench.estimates import estimate_replay  # noqa: E402
 from evdown_torch.bench.floor import RegionFloor  # noqa: E402
@@ -64,12 +65,15 @@ def main(argv: list[str] | None = None) -> int:
     stream, bounds, last = replay
     chunks = [stream[int(bounds[k]):int(bounds[k + 1])] for k in range(last + 1)]
     a, b = THRESHOLD
+    compiled, t_start, most = compile_loops(), int(stream["t"][0]), max(len(c) for c in chunks)
+    design = StreamingLinear(compiled, t_start, most)
     sessions = {
         "floor": RegionFloor(SENSOR, FACTOR).session(),
         "package": make_method("linear", SENSOR, FACTOR, threshold=a / b,
                                max_delay=REALTIME_MAX_DELAY_US).session(),
-        "design": StreamingLinear(compile_loops(), int(stream["t"][0]),
-                                  max(len(c) for c in chunks)),
+        "design": design,
+        "design, the package's state between chunks": ThroughState(
+            compiled, compile_state_loops(), design.settings, t_start, most),
     }
     seconds: dict[str, list[float]] = {name: [] for name in sessions}
     outputs: dict[str, list[np.ndarray]] = {name: [] for name in sessions}
@@ -124,6 +128,13 @@ def main(argv: list[str] | None = None) -> int:
     for (x, y, t, p), count in sorted((only_package + only_design).items())[:10]:
         side = "package" if (x, y, t, p) in only_package else "design"
         print(f"  only in the {side}'s output: x {x}, y {y}, t {t}, p {p} (x{count})")
+    through = np.concatenate(outputs["design, the package's state between chunks"])
+    same_through = np.array_equal(
+        np.sort(through[through["t"] < sessions["design"].horizon], order=["t", "x", "y", "p"]),
+        np.sort(design_out := np.concatenate(outputs["design"]), order=["t", "x", "y", "p"]))
+    print(f"the design through the package's state: {len(through):,} events before the "
+          f"horizon, {'the same as' if same_through else 'NOT the same as'} the design's "
+          f"{len(design_out):,}")
     # The eager twin on everything the session read, at once, against the session's chunks.
     cut = sessions["design"].horizon
     start = time.perf_counter()

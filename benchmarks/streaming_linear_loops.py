@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from evdown_torch.bench.realtime import REALTIME_MAX_DELAY_US
+from evdown_torch.events import DVS_DTYPE
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, RELATIVE_ERROR
 from evdown_torch.transforms.functional.reference import SNAP
 
@@ -80,9 +81,9 @@ def compile_loops() -> dict:
         ``slopes``: ``round(2**K / length)`` for each ramp length up to ``D`` (a table: no
         division an event); ``deltas``: ``slopes - 2**K / length`` (float64), the slope's
         rounding, whose sums the sweep keeps (``e_delta``, ``s_delta``). ``pixels``:
-        ``(W * H, 4)``, each pixel's last knot time, the one before, and their ends' places in
-        the ring (-1: none). ``e_active``: the change of the region's count of active ramps
-        (a start ring entry is one ramp).
+        ``(W * H, 5)``, each pixel's last knot time, the one before, their ends' places in
+        the ring (-1: none) and the pixel's level. ``e_active``: the change of the region's
+        count of active ramps (a start ring entry is one ramp).
 
         Returns the rings' new tails ``(ends, starts)``.
 
@@ -94,6 +95,7 @@ def compile_loops() -> dict:
             c = 1 if ps[i] else -1
             pixel = y * width + x
             r = row[y] * out_w + column[x]
+            pixels[pixel, 4] += c
             if t > pixels[pixel, 0] or pixels[pixel, 2] < 0:  # a new knot: a new end
                 pixels[pixel, 1], pixels[pixel, 3] = pixels[pixel, 0], pixels[pixel, 2]
                 pixels[pixel, 0], pixels[pixel, 2] = t, ends
@@ -131,8 +133,8 @@ def compile_loops() -> dict:
     @numba.njit(nogil=True)
     def sweep(head_e, tail_e, e_t, e_region, e_slope, e_jump, e_active, e_delta, head_s, tail_s,
               s_t, s_region, s_slope, s_delta, mask, horizon, value, slope_sum, since, pending,
-              q, active, error, error_slope, t_start, delay, levels, b, out_r, out_t, out_on,
-              counts, headroom):  # pragma: no cover - compiled
+              q, active, error, error_slope, q_change, t_change, t_start, delay, levels, b,
+              out_r, out_t, out_on, counts, headroom):  # pragma: no cover - compiled
         """The slope changes before the horizon, in time order (a merge of the two rings).
 
         Each region is advanced lazily: to a change's time when one comes (its pending jump
@@ -144,6 +146,10 @@ def compile_loops() -> dict:
         ``levels``: each region's level spacing in units (``a * n_r * 2**K``, threshold
         ``a / b``, ``n_r`` pixels). ``counts``: the doubts decided this way, at a level and at
         a half tick, added to. ``headroom``: the largest value allowed (``Settings``).
+        ``q_change``, ``t_change``: each region's reference index after its last change
+        swept, its jump included, and that change's time (the package's ``q`` after the
+        region's last breakpoint before the horizon, which a
+        :class:`~evdown_torch.transforms.functional.estimation.stream.WindowState` keeps).
 
         Returns the rings' new heads and the outputs' count.
 
@@ -235,7 +241,11 @@ def compile_loops() -> dict:
                                                            + RELATIVE_ERROR * span))
                         out_t[n_out - 1] = t_now + min(max(offset, 0), span)
                     v, err = v1, err1
+                    if piece == 0:  # the jump is at the region's last change
+                        q_change[r] = qr
                 value[r], since[r], q[r], pending[r], error[r] = v, t, qr, 0, err
+            if t < horizon:  # a change (the advance to the horizon is not one)
+                q_change[r], t_change[r] = q[r], t
             slope_sum[r] += d_slope
             pending[r] += d_jump
             active[r] += d_active
@@ -329,27 +339,39 @@ class StreamingLinear:
         self.loops = loops
         self.settings = settings = settings or Settings.of()
         regions = settings.pixels.shape[0]
-        self.t_start = t_start
-        self.pixels = np.full((settings.width * settings.row.shape[0], 4), t_start, np.int64)
-        self.pixels[:, 2:] = -1
+        self.pixels = np.empty((settings.width * settings.row.shape[0], 5), np.int64)
         size = 1 << int(4 * max_events).bit_length()  # a chunk's changes and those ahead
         self.mask = size - 1
         # Written now, not on first use: a page fault in a timed chunk is no loop's cost.
         # ends: t, region, slope, jump, active, delta; starts: t, region, slope, delta.
         self.ends = [np.full(size, 0, np.float64 if k == 5 else np.int64) for k in range(6)]
         self.starts = [np.full(size, 0, np.float64 if k == 3 else np.int64) for k in range(4)]
-        self.head_e = self.tail_e = self.head_s = self.tail_s = 0
-        self.regions = [np.zeros(regions, np.int64), np.zeros(regions, np.int64),
-                        np.full(regions, t_start, np.int64), np.zeros(regions, np.int64),
-                        np.zeros(regions, np.int64), np.zeros(regions, np.int64),
-                        np.zeros(regions, np.float64), np.zeros(regions, np.float64)]
-        # value, slope, since, pending jump, q, active ramps, error, error's slope
+        self.regions = [np.empty(regions, np.float64 if k in (6, 7) else np.int64)
+                        for k in range(10)]
+        # value, slope, since, pending jump, q, active ramps, error, error's slope, q after
+        # the last change and its time
         self.out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.bool_))
         self.counts = np.zeros(2, np.int64)
-        self.horizon = t_start
+        self.reset(t_start)
+
+    def reset(self, t_start: int) -> None:
+        """A new stream from ``t_start`` (the arrays kept: rings, outputs, tables)."""
+        self.t_start = t_start
+        self.pixels[:, :2], self.pixels[:, 2:4], self.pixels[:, 4] = t_start, -1, 0
+        self.head_e = self.tail_e = self.head_s = self.tail_s = 0
+        for k, column in enumerate(self.regions):
+            column[:] = t_start if k in (2, 9) else 0
+        self.horizon = self.t_last = t_start
+        # Found before this time, returned already (a session carrying on from the package's
+        # state: benchmarks.streaming_linear_state.design_session).
+        self.returned_before = t_start
+        self.at_horizon = np.empty(0, DVS_DTYPE)
+        self.recent = tuple(np.empty(0, np.int64) for _ in range(4))
 
     def __call__(self, chunk: np.ndarray) -> np.ndarray:
         t, settings = chunk["t"], self.settings
+        if self.at_horizon.dtype != chunk.dtype:  # the chunks' own dtype (fields by name)
+            self.at_horizon = self.at_horizon.astype(chunk.dtype)
         self.tail_e, self.tail_s = self.loops["ramps"](
             chunk["x"], chunk["y"], t, chunk["p"], settings.width, settings.column, settings.row,
             settings.out_w, settings.delay, settings.one, settings.slopes, settings.deltas,
@@ -375,4 +397,22 @@ class StreamingLinear:
         out_w = settings.out_w
         result["x"], result["y"] = out_r[order] % out_w, out_r[order] // out_w
         result["t"], result["p"] = out_t[order], out_on[order]
-        return result
+        # Crossings at the horizon itself are returned once the horizon passes them, as the
+        # package's session returns them (only events earlier than its horizon are decided).
+        result = np.concatenate([
+            self.at_horizon, result[int(np.searchsorted(result["t"], self.returned_before)):]])
+        at_horizon = int(np.searchsorted(result["t"], self.horizon))
+        returned, self.at_horizon = result[:at_horizon], result[at_horizon:]
+        # The events from D before the horizon on, as ``(x, y, t, change)`` columns: the
+        # knots the package's state keeps are among them
+        # (:func:`benchmarks.streaming_linear_state.window_state` reads them).
+        since = self.horizon - settings.delay
+        at = int(np.searchsorted(self.recent[2], since))
+        new = int(np.searchsorted(t, since))
+        added = (chunk["x"][new:], chunk["y"][new:], t[new:],
+                 np.where(chunk["p"][new:], 1, -1))
+        self.recent = tuple(np.concatenate([old[at:], part]).astype(np.int64)
+                            for old, part in zip(self.recent, added))
+        if len(t):
+            self.t_last = int(t[-1])
+        return returned
