@@ -22,6 +22,12 @@ one output and not the other (pairing those one tick apart), and the doubts deci
 corrected value. Its eager twin (:func:`~benchmarks.streaming_linear_twin.design_whole`, vectorised
 torch, the whole stream at once) must give the session's events whatever the chunks.
 
+A fourth session runs the design with the package's own state between chunks
+(:class:`~benchmarks.streaming_linear_state.ThroughState`: each chunk, the package's
+``WindowState`` made from the design's session and a session made again from it alone), what
+a compiled path sharing one state object with the eager path would pay; its events must be
+the design's.
+
 So the figures price a design; they are no implementation (integer timestamps only, rings
 sized from the largest chunk, with an error, not a larger ring, when they fill; the twin
 unoptimised). The script times the replay's settings; the loops and
