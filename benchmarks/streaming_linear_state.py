@@ -19,7 +19,9 @@ its own, before or after ``F``). When ``t1 - D`` is at or after ``F``, the pixel
 its level from its last knot to ``t1 - D``: the knot before ``F`` is placed at its region's
 last breakpoint before ``F``, which is not earlier than the pixel's own last knot (that knot
 was one of the region's breakpoints), so the region's curve from there on and its last
-breakpoint are the package's.
+breakpoint are the package's. So is a pixel whose first knot at or after ``F`` has no level
+change (a held knot handed over, events that cancel), unless that knot is at the last time:
+the next chunk may still add events to it.
 """
 
 from __future__ import annotations
@@ -52,9 +54,9 @@ def compile_state_loops() -> dict:
         ``xs``..``cs``: the knots at or after ``F - D`` (time-sorted; ``cs`` their level
         changes: the input events', or a handed-over state's, whose first knot of a pixel
         carries its whole level and held knots 0; ``F - D`` is not later than the horizon
-        at the hand-over); ``last_t``: each
-        pixel's last knot time; ``fired``: the pixel has a knot; ``level``: its level now;
-        ``region_t``: each region's last breakpoint before ``F``.
+        at the hand-over); ``last_t``: each pixel's last knot time; ``fired``: the pixel
+        has a knot; ``level``: its level now; ``region_t``: each region's last breakpoint
+        before ``F``.
         """
         pixels = last_t.shape[0]
         first_after = np.full(pixels, -1, np.int64)  # index of the first knot at or after F
@@ -115,8 +117,8 @@ def compile_state_loops() -> dict:
             if at >= 0 and out_t[at] == ts[i]:
                 out_change[at] += c
                 continue
-            # (No held knot between two knots since F: they are at most D apart, since the
-            # last input time is F + D.)
+            # (No held knot between two knots since F: they are at most D apart, the last
+            # input time being at most F + D.)
             out_pixel[k], out_t[k], out_change[k] = pixel, ts[i], c
             previous[pixel] = k
             k += 1
