@@ -40,6 +40,7 @@ those tolerances.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,8 +62,9 @@ K = 32
 _HALF = 0.5 + HALF_TOLERANCE
 
 
+@functools.cache
 def compile_loops() -> dict:
-    """The loop's two passes, compiled (Numba's ``njit``)."""
+    """The loop's two passes, compiled (Numba's ``njit``), once per process."""
     if numba is None:
         raise RuntimeError("the compiled loops need numba (pip install numba)")
 
@@ -411,7 +413,7 @@ class StreamingLinear:
         new = int(np.searchsorted(t, since))
         added = (chunk["x"][new:], chunk["y"][new:], t[new:],
                  np.where(chunk["p"][new:], 1, -1))
-        self.recent = tuple(np.concatenate([old[at:], part]).astype(np.int64)
+        self.recent = tuple(np.concatenate([old[at:], part], dtype=np.int64)
                             for old, part in zip(self.recent, added))
         if len(t):
             self.t_last = int(t[-1])

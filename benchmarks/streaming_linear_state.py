@@ -26,6 +26,8 @@ the next chunk may still add events to it.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -41,8 +43,9 @@ except ImportError:  # pragma: no cover - depends on the machine
 __all__ = ["ThroughState", "compile_state_loops", "design_session", "window_state"]
 
 
+@functools.cache
 def compile_state_loops() -> dict:
-    """The state's two loops, compiled (Numba's ``njit``): ``knots`` and ``seed``."""
+    """The state's two loops, compiled (Numba's ``njit``) once per process: ``knots``, ``seed``."""
     if numba is None:
         raise RuntimeError("the design's state needs numba (pip install numba)")
 
