@@ -1,13 +1,14 @@
 """The streaming LinearEstimation design's eager twin: the whole stream at once, in torch.
 
-:func:`design_whole` gives the events of :class:`~benchmarks.streaming_linear_loops.\
-StreamingLinear` (the compiled loops, chunk by chunk) from vectorised torch, with no loop over
-events, regions or moves: the same fixed-point integers and the same doubts, decided by the
-same rules on a value found another way: the region's pixels' segments evaluated at the
-doubt's time (exact integer parts, a float remainder: :class:`PixelSegments`,
-:func:`exact_levels`), where the loop corrects its integers by the error it tracks. Both are
-within float error of the exact value, so the two agree event for event whatever the chunks,
-except where an exact value lies within that error of the edge of the package's tolerances.
+:func:`design_whole` gives the events of LinearEstimation's compiled ramps
+(:class:`~evdown_torch.transforms.functional.compiled.linear_ramps.RampSession`, chunk by chunk)
+from vectorised torch, with no loop over events, regions or moves: the same fixed-point integers and
+the same doubts, decided by the same rules on a value found another way: the region's pixels'
+segments evaluated at the doubt's time (exact integer parts, a float remainder:
+:class:`PixelSegments`, :func:`exact_levels`), where the loop corrects its integers by the error it
+tracks. Both are within float error of the exact value, so the two agree event for event whatever
+the chunks, except where an exact value lies within that error of the edge of the package's
+tolerances.
 """
 
 from __future__ import annotations
@@ -16,10 +17,55 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from benchmarks.streaming_linear_loops import _HALF, Settings
 from evdown_torch._tensors import changes, run_index, segmented_cumsum, take, where_true
+from evdown_torch.bench.realtime import REALTIME_MAX_DELAY_US
+from evdown_torch.events import DVS_DTYPE
+from evdown_torch.transforms.functional.compiled.linear_ramps import RampSession
+from evdown_torch.transforms.functional.compiled.linear_ramps import RampSettings as Settings
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, RELATIVE_ERROR
 from evdown_torch.transforms.functional.reference import SNAP, move_crossings
+
+#: The live replay's settings (``evdown bench --realtime``): sensor, factor, threshold a / b.
+SENSOR = (128, 128, 2)
+FACTOR = 4
+THRESHOLD = (1, 4)
+_HALF = 0.5 + HALF_TOLERANCE
+
+
+def replay_settings() -> Settings:
+    """The ramps' settings of the live replay (``D`` = ``REALTIME_MAX_DELAY_US``)."""
+    return Settings.of(SENSOR, (FACTOR, FACTOR), THRESHOLD, REALTIME_MAX_DELAY_US)
+
+
+class RampArrays:
+    """The ramps' session on structured arrays (the replay's settings by default).
+
+    ``__call__(chunk)`` returns the decided events as an array of the chunk's dtype.
+    """
+
+    def __init__(self, t_start: int, max_events: int, settings: Settings | None = None,
+                 session: RampSession | None = None) -> None:
+        self.session = session or RampSession(t_start, max_events,
+                                              settings or replay_settings())
+
+    @classmethod
+    def resumed(cls, session: RampSession) -> RampArrays:
+        """The arrays' face of a session made already (e.g. from the package's state)."""
+        return cls(session.t_start, 0, session.settings, session)
+
+    @property
+    def horizon(self) -> int:
+        return self.session.horizon
+
+    @property
+    def counts(self) -> np.ndarray:
+        return self.session.counts
+
+    def __call__(self, chunk: np.ndarray) -> np.ndarray:
+        x, y, t, on = self.session(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
+        out = np.empty(len(t), chunk.dtype if chunk.dtype.names else DVS_DTYPE)
+        out["x"], out["y"], out["t"], out["p"] = x, y, t, on
+        return out
 
 
 def region_members(settings: Settings) -> np.ndarray:
@@ -137,7 +183,7 @@ def design_whole(events: np.ndarray, before: int,
     Returns:
         The events earlier than ``before``, sorted by ``t`` (stable), of the input's dtype.
     """
-    settings = settings or Settings.of()
+    settings = settings or replay_settings()
     width, out_w, a, b = settings.width, settings.out_w, settings.a, settings.b
     one, delay = settings.one, settings.delay
     levels, pixels = torch.from_numpy(settings.levels), torch.from_numpy(settings.pixels)

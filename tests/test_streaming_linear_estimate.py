@@ -1,6 +1,6 @@
 """The streaming linear design's estimate (benchmarks/streaming_linear_estimate.py).
 
-Its loops (benchmarks/streaming_linear_loops.py) and eager twin
+Its loops (evdown_torch/transforms/functional/compiled/linear_ramps.py) and eager twin
 (benchmarks/streaming_linear_twin.py) are checked against the package's LinearEstimation
 with the same ``max_delay``: hand-computed cases and random streams whose ramps often cross
 a level exactly on a half tick or touch it (a fixed point alone misses some of those).
@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from benchmarks import streaming_linear_estimate as estimate
-from benchmarks import streaming_linear_loops as loops
-from benchmarks.streaming_linear_twin import design_whole
+from benchmarks.streaming_linear_twin import FACTOR, SENSOR, THRESHOLD, RampArrays, design_whole
 from evdown_torch.events import DVS_DTYPE
+from evdown_torch.transforms.functional.compiled.linear_ramps import RampSettings
 from evdown_torch.transforms.registry import make_method
 
 
@@ -34,15 +34,15 @@ def _rows(events: np.ndarray) -> list[tuple[int, int, int, bool]]:
 
 
 def _package(events: np.ndarray, before: int) -> np.ndarray:
-    a, b = loops.THRESHOLD
-    method = make_method("linear", loops.SENSOR, loops.FACTOR, threshold=a / b,
+    a, b = THRESHOLD
+    method = make_method("linear", SENSOR, FACTOR, threshold=a / b,
                          max_delay=estimate.REALTIME_MAX_DELAY_US)
     out = method(events)
     return out[out["t"] < before]
 
 
 def test_without_numba_it_says_so(monkeypatch, capsys):
-    monkeypatch.setattr(estimate, "numba", None)
+    monkeypatch.setattr(estimate, "numba_available", lambda: False)
     assert estimate.main(["--events", "700000"]) == 2
     assert "needs numba" in capsys.readouterr().err
 
@@ -61,7 +61,7 @@ def test_the_design_hand_computed():
     ev["y"] = [5] + [0, 0, 0, 0, 1, 1] * 2 + [5]
     ev["t"] = [0] + [2000] * 6 + [2600] * 6 + [4000]
     ev["p"] = [True] + [True] * 6 + [False] * 6 + [True]
-    session = loops.StreamingLinear(loops.compile_loops(), 0, len(ev))
+    session = RampArrays(0, len(ev))
     out = session(ev)
     assert out["x"].tolist() == [0, 0] and out["y"].tolist() == [0, 0]
     assert out["t"].tolist() == [1667, 2600] and out["p"].tolist() == [True, False]
@@ -89,7 +89,7 @@ def test_a_crossing_on_a_half_tick_rounds_up():
     ev["y"] = [5] + [y for _, y in pixels] * 2 + [5]
     ev["t"] = [0] + [1000] * 8 + [1999] * 8 + [4000]
     ev["p"] = True
-    session = loops.StreamingLinear(loops.compile_loops(), 0, len(ev))
+    session = RampArrays(0, len(ev))
     out = session(ev)
     assert out["t"].tolist() == [500, 1000, 1500, 1999]
     assert session.counts[1] >= 1
@@ -111,7 +111,7 @@ def test_a_touch_of_a_level_between_knots_is_an_event():
     ev = _events([(5, 5, 0, True), (5, 5, 5000, True)]
                  + [(x, y, t, True) for x, y in a for t in (1000, 1998)]
                  + [(x, y, t, False) for x, y in b for t in (1499, 1999)])
-    session = loops.StreamingLinear(loops.compile_loops(), 0, len(ev))
+    session = RampArrays(0, len(ev))
     out = session(ev)
     assert _rows(out) == [(0, 0, 1499, True), (0, 0, 1999, False)]
     assert _rows(design_whole(ev, session.horizon)) == _rows(out)
@@ -135,17 +135,16 @@ def test_random_streams_give_the_package_events_in_any_chunks(seeds):
     # the first 300 seeds; this design on none. Each stream also goes through the session in
     # three chunks cut at random, empty ones included.
     pytest.importorskip("numba")
-    compiled = loops.compile_loops()
     for seed in seeds:
         ev = _random_stream(seed)
-        whole_session = loops.StreamingLinear(compiled, int(ev["t"][0]), len(ev))
+        whole_session = RampArrays(int(ev["t"][0]), len(ev))
         out = whole_session(ev)
         before = whole_session.horizon
         expected = _rows(_package(ev, before))
         assert _rows(out[out["t"] < before]) == expected, seed
         assert _rows(design_whole(ev, before)) == expected, seed
         cuts = np.sort(np.random.default_rng(seed).integers(0, len(ev), 2))
-        chunked = loops.StreamingLinear(compiled, int(ev["t"][0]), len(ev))
+        chunked = RampArrays(int(ev["t"][0]), len(ev))
         parts = [chunked(ev[lo:hi]) for lo, hi in zip([0, *cuts], [*cuts, len(ev)])
                  if hi > lo]
         made = np.concatenate(parts)
@@ -169,9 +168,8 @@ def test_other_settings_give_the_package_events(case):
     ev["t"] = np.sort(rng.choice(np.arange(0, 20_000, grid), n)) + (2**62 if case % 3 == 0
                                                                       else 0)
     ev["p"] = rng.random(n) < 0.5
-    settings = loops.Settings.of((width, height, 2), factor, threshold, delay)
-    compiled = loops.compile_loops()
-    session = loops.StreamingLinear(compiled, int(ev["t"][0]), n, settings)
+    settings = RampSettings.of((width, height, 2), factor, threshold, delay)
+    session = RampArrays(int(ev["t"][0]), n, settings)
     out = session(ev)
     before = session.horizon
     method = make_method("linear", (width, height, 2), factor,
@@ -181,7 +179,7 @@ def test_other_settings_give_the_package_events(case):
     assert len(expected) >= 3  # (dozens to thousands but for thresholds above 1)
     assert _rows(out[out["t"] < before]) == expected
     assert _rows(design_whole(ev, before, settings)) == expected
-    chunked = loops.StreamingLinear(compiled, int(ev["t"][0]), n, settings)
+    chunked = RampArrays(int(ev["t"][0]), n, settings)
     made = np.concatenate([chunked(ev[:100]), chunked(ev[100:100]), chunked(ev[100:])])
     assert _rows(made[made["t"] < before]) == expected
 
@@ -190,7 +188,7 @@ def test_ramps_longer_than_the_fixed_point_unit_give_the_package_events():
     # level_bits 40 leaves k = 14 bits: a ramp over more than 2**15 us rounds its slope to 0,
     # its whole rise coming as the end's jump (all of it error, corrected there).
     pytest.importorskip("numba")
-    settings = loops.Settings.of((8, 8, 2), (4, 4), (1, 4), 100_000, level_bits=40)
+    settings = RampSettings.of((8, 8, 2), (4, 4), (1, 4), 100_000, level_bits=40)
     assert settings.k == 14 and settings.slopes[40_000] == 0
     rng = np.random.default_rng(7)
     n = 400
@@ -198,7 +196,7 @@ def test_ramps_longer_than_the_fixed_point_unit_give_the_package_events():
     ev["x"], ev["y"] = rng.integers(0, 8, n), rng.integers(0, 8, n)
     ev["t"] = np.sort(rng.choice(np.arange(0, 4_000_000, 250), n, replace=False))
     ev["p"] = rng.random(n) < 0.5
-    session = loops.StreamingLinear(loops.compile_loops(), int(ev["t"][0]), n, settings)
+    session = RampArrays(int(ev["t"][0]), n, settings)
     out = session(ev)
     before = session.horizon
     method = make_method("linear", (8, 8, 2), 4, threshold=0.25, max_delay=100_000)
@@ -211,24 +209,27 @@ def test_ramps_longer_than_the_fixed_point_unit_give_the_package_events():
 
 def test_settings_whose_integers_cannot_hold_are_refused():
     with pytest.raises(ValueError, match="under 8 bits"):
-        loops.Settings.of((128, 128, 2), (16, 16), (1, 10**9), 1000)
+        RampSettings.of((128, 128, 2), (16, 16), (1, 10**9), 1000)
 
 
-def test_a_full_ring_or_a_level_beyond_the_headroom_raises():
+def test_rings_grow_to_a_chunk_and_a_level_beyond_the_headroom_raises():
     pytest.importorskip("numba")
-    compiled = loops.compile_loops()
-    # 40 events within D of each other, in a session sized for 4 a chunk (rings of 16).
-    ev = _events([(x % 8, 0, 10 * x, True) for x in range(40)])
-    session = loops.StreamingLinear(compiled, 0, 4)
-    with pytest.raises(ValueError, match="ring is full"):
-        session(ev)
+    # 400 events within D of each other, in a session sized for 4 a chunk (rings of 16):
+    # the rings grow to the chunk, unswept entries in place, and give the events of a session
+    # sized for the whole stream.
+    ev = _events([(x % 8, x % 3, 2 * x, x % 5 != 0) for x in range(400)] + [(0, 0, 5000, True)])
+    small, whole = RampArrays(0, 4), RampArrays(0, len(ev))
+    mask = small.session.mask
+    made = np.concatenate([small(ev[:3]), small(ev[3:300]), small(ev[300:])])
+    assert small.session.mask > mask
+    assert _rows(made) == _rows(whole(ev)) and len(made) > 10
     # One pixel's level climbing to 9 where the headroom is 1 * 2**3 levels (factor 1).
-    settings = loops.Settings.of((4, 4, 2), (1, 1), (1, 1), 1000, level_bits=3)
+    settings = RampSettings.of((4, 4, 2), (1, 1), (1, 1), 1000, level_bits=3)
     ev = _events([(0, 0, 3000 * k, True) for k in range(12)])
-    session = loops.StreamingLinear(compiled, 0, len(ev), settings)
+    session = RampArrays(0, len(ev), settings)
     with pytest.raises(ValueError, match="headroom"):
         session(ev)
-    fine = loops.StreamingLinear(compiled, 0, len(ev), loops.Settings.of(
+    fine = RampArrays(0, len(ev), RampSettings.of(
         (4, 4, 2), (1, 1), (1, 1), 1000, level_bits=4))
     assert fine(ev)["t"].tolist() == [3000 * k for k in range(11)]
 
@@ -237,7 +238,7 @@ def test_on_a_tiny_replay_it_makes_the_package_events(capsys):
     pytest.importorskip("numba")
     assert estimate.main(["--events", "700000", "--chunks", "1"]) == 0
     text = capsys.readouterr().out
-    found = re.search(r"package ([\d,]+) events, design ([\d,]+); in one and not the other: "
+    found = re.search(r"package ([\d,]+) events, ramps alone ([\d,]+); in one and not the other: "
                       r"([\d,]+) and ([\d,]+), of which ([\d,]+) pairs", text)
     assert found is not None, text
     package, design, only_package, only_design, pairs = (

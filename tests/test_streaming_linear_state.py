@@ -1,9 +1,9 @@
-"""The streaming linear design and the package's state (benchmarks/streaming_linear_state.py).
+"""LinearEstimation's ramps and the package's state (compiled/linear_ramps_state.py).
 
-A session that moves between the design's loops and the package's bounded-delay session
-(``estimation_step``, eager or compiled upkeep) at any chunk, in either direction and as
-often as it likes, must give the package's events: the whole stream's, once each, with the
-package's ``estimation_finish`` at the end.
+A session that moves between the ramps' loops and the package's bounded-delay session
+(``estimation_step``: through the ramps, the windowed compiled path or the eager one) at any
+chunk, in either direction and as often as it likes, must give the package's events: the
+whole stream's, once each, with the package's ``estimation_finish`` at the end.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks import streaming_linear_loops as loops
+from benchmarks.streaming_linear_twin import RampArrays
 from evdown_torch import eager_kernels
 from evdown_torch.events import DVS_DTYPE, Events
 from evdown_torch.transforms.functional.estimation.settings import EstimationSettings
@@ -22,7 +22,12 @@ from evdown_torch.transforms.functional.estimation.stream import (
 from evdown_torch.transforms.registry import make_method
 
 pytest.importorskip("numba")
-state = pytest.importorskip("benchmarks.streaming_linear_state")
+from evdown_torch.transforms.functional.compiled import linear_stream  # noqa: E402
+from evdown_torch.transforms.functional.compiled.linear_ramps import RampSettings  # noqa: E402
+from evdown_torch.transforms.functional.compiled.linear_ramps_state import (  # noqa: E402
+    ramp_session,
+    window_state,
+)
 
 #: (sensor, factor, threshold a / b, max_delay, time grid, first time): small sensors and
 #: coarse grids make many events share a time (chunks cut between them) and many ramps of
@@ -67,8 +72,7 @@ def _moving_session(case: tuple, ev: np.ndarray, seed: int) -> tuple[list[tuple]
     """The stream in 9 chunks at most, each on the design or the package, drawn at random."""
     sensor, factor, (a, b), delay, _, _ = case
     settings = EstimationSettings(sensor, factor, a / b, max_delay=delay, curve="linear")
-    design_settings = loops.Settings.of(sensor, factor, (a, b), delay)
-    compiled, state_loops = loops.compile_loops(), state.compile_state_loops()
+    design_settings = RampSettings.of(sensor, factor, (a, b), delay)
     rng = np.random.default_rng(seed + 7)
     cuts = np.sort(rng.integers(1, len(ev), 8))
     design, package, made, moves = None, None, [], 0
@@ -79,35 +83,38 @@ def _moving_session(case: tuple, ev: np.ndarray, seed: int) -> tuple[list[tuple]
         if rng.random() < 0.5:
             if design is None:
                 if package is None:
-                    design = loops.StreamingLinear(compiled, int(ev["t"][0]), len(ev),
-                                                   design_settings)
+                    design = RampArrays(int(ev["t"][0]), len(ev), design_settings)
                 else:
-                    design = state.design_session(package, compiled, state_loops,
-                                                  design_settings, len(ev))
+                    design = RampArrays.resumed(ramp_session(package, design_settings,
+                                                             len(ev)))
                     moves += 1
                 package = None
             made += _rows_of_array(design(part))
         else:
             if design is not None:
-                package, design = state.window_state(design, state_loops), None
+                package, design = window_state(design.session), None
                 moves += 1
             out, package = estimation_step(_as_events(part), package, settings)
             made += _rows_of_events(out)
     if design is not None:
-        package = state.window_state(design, state_loops)
+        package = window_state(design.session)
     made += _rows_of_events(estimation_finish(package, settings))
     return made, moves
 
 
-@pytest.mark.parametrize("eager", [False, True], ids=["compiled upkeep", "eager"])
+@pytest.mark.parametrize("path", ["ramps", "windowed", "eager"])
 @pytest.mark.parametrize("case", range(len(CASES)))
-def test_a_session_moving_between_design_and_package_gives_the_package_events(case, eager):
-    # 100 streams a setting and path, about 4 moves each.
+def test_a_session_moving_between_design_and_package_gives_the_package_events(case, path,
+                                                                              monkeypatch):
+    # 100 streams a setting and path, about 4 moves each. The package's step goes through the
+    # ramps itself (its state made from theirs), its windowed compiled path, or the eager one.
     settings = CASES[case]
     sensor, factor, (a, b), delay, _, _ = settings
     method = make_method("linear", sensor, factor, threshold=a / b, max_delay=delay)
+    if path == "windowed":
+        monkeypatch.setattr(linear_stream, "ramps_step", lambda *_: None)
     moves = 0
-    with eager_kernels(eager):
+    with eager_kernels(path == "eager"):
         for seed in range(100):
             ev = _stream(settings, seed)
             made, moved = _moving_session(settings, ev, seed)
@@ -143,13 +150,12 @@ def test_a_pixel_flat_until_the_last_time_keeps_its_region_breakpoint():
     ev = np.zeros(4, DVS_DTYPE)
     ev["x"], ev["t"], ev["p"] = [0, 1, 1, 0], [0, 150, 400, 450], [True, True, True, False]
     sensor, factor, delay = (2, 1, 2), (2, 1), 100
-    design_settings = loops.Settings.of(sensor, factor, (3, 4), delay)
+    design_settings = RampSettings.of(sensor, factor, (3, 4), delay)
     settings = EstimationSettings(sensor, factor, 0.75, max_delay=delay, curve="linear")
-    state_loops = state.compile_state_loops()
     for more in (False, True):
-        session = loops.StreamingLinear(loops.compile_loops(), 0, 8, design_settings)
+        session = RampArrays(0, 8, design_settings)
         assert _rows_of_array(session(ev[:3])) == [(0, 0, 100, True)]
-        package = state.window_state(session, state_loops)
+        package = window_state(session.session)
         assert package.horizon == 300 and package.q.tolist() == [1]
         knots = sorted(zip(package.knots.x.tolist(), package.knots.t.tolist(),
                            package.change.tolist(), strict=True))
@@ -170,40 +176,41 @@ def test_the_state_keeps_q_after_the_jumps_at_t_start():
     ev = np.zeros(3, DVS_DTYPE)
     ev["x"], ev["t"], ev["p"] = [0, 1, 0], [0, 0, 400], True
     sensor, factor, delay = (2, 1, 2), (2, 1), 100
-    design_settings = loops.Settings.of(sensor, factor, (3, 4), delay)
-    session = loops.StreamingLinear(loops.compile_loops(), 0, 8, design_settings)
+    design_settings = RampSettings.of(sensor, factor, (3, 4), delay)
+    session = RampArrays(0, 8, design_settings)
     assert _rows_of_array(session(ev)) == [(0, 0, 0, True)]
-    package = state.window_state(session, state.compile_state_loops())
+    package = window_state(session.session)
     assert package.horizon == 300 and package.q.tolist() == [1]
     settings = EstimationSettings(sensor, factor, 0.75, max_delay=delay, curve="linear")
     assert _rows_of_events(estimation_finish(package, settings)) == [(0, 0, 400, True)]
 
 
-def test_the_design_through_the_package_state_gives_the_design_events():
-    compiled, state_loops = loops.compile_loops(), state.compile_state_loops()
+def test_the_ramps_through_the_package_state_give_the_ramps_events():
+    # Each chunk: the package's state made from the session, and a session made again from
+    # that state alone (arrays reused), as a step on a state whose session is not kept does.
     for seed in range(6):
         ev = _stream(CASES[0], seed)
-        design_settings = loops.Settings.of(CASES[0][0], CASES[0][1], CASES[0][2], 1000)
+        design_settings = RampSettings.of(CASES[0][0], CASES[0][1], CASES[0][2], 1000)
         cuts = np.sort(np.random.default_rng(seed).integers(0, len(ev), 5))
         parts = [ev[lo:hi] for lo, hi in zip([0, *cuts], [*cuts, len(ev)], strict=True)
                  if hi > lo]
-        direct = loops.StreamingLinear(compiled, int(ev["t"][0]), len(ev), design_settings)
-        through = state.ThroughState(compiled, state_loops, design_settings, int(ev["t"][0]),
-                                     len(ev))
+        direct = RampArrays(int(ev["t"][0]), len(ev), design_settings)
+        through = RampArrays(int(ev["t"][0]), len(ev), design_settings)
         for part in parts:
             made, expected = through(part), direct(part)
-            assert sorted(_rows_of_array(made)) == sorted(_rows_of_array(expected)), seed
+            assert _rows_of_array(made) == _rows_of_array(expected), seed
+            through = RampArrays.resumed(ramp_session(window_state(through.session),
+                                                      design_settings, len(ev),
+                                                      reuse=through.session))
 
 
-def test_a_state_the_design_cannot_take_is_refused():
+def test_a_state_the_ramps_cannot_take_is_refused():
     settings = EstimationSettings((4, 2, 2), (2, 2), 0.25, max_delay=1000, curve="linear")
-    design_settings = loops.Settings.of((4, 2, 2), (2, 2), (1, 4), 1000)
+    design_settings = RampSettings.of((4, 2, 2), (2, 2), (1, 4), 1000)
     ev = _as_events(_stream(CASES[0], 0))
     _, package = estimation_step(ev, None, settings)
     floats = package._replace(t_last=package.t_last.double())
     with pytest.raises(ValueError, match="int64 timestamps"):
-        state.design_session(floats, loops.compile_loops(), state.compile_state_loops(),
-                             design_settings, 300)
+        ramp_session(floats, design_settings, 300)
     with pytest.raises(ValueError, match="no chunk"):
-        state.design_session(package._replace(horizon=None), loops.compile_loops(),
-                             state.compile_state_loops(), design_settings, 300)
+        ramp_session(package._replace(horizon=None), design_settings, 300)

@@ -48,6 +48,7 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import check_state_memory, output_size
 from evdown_torch.events import Events, polarity_sign
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.estimation import delay
 from evdown_torch.transforms.functional.estimation.delay import (
     effective_delay,
@@ -60,34 +61,9 @@ from evdown_torch.transforms.functional.estimation.knots import (
 )
 from evdown_torch.transforms.functional.estimation.settings import EstimationSettings
 from evdown_torch.transforms.functional.estimation.solver import Resume
+from evdown_torch.transforms.functional.estimation.window_state import WindowState
 
 __all__ = ["WindowState", "estimation_finish", "estimation_init", "estimation_step"]
-
-
-class WindowState(NamedTuple):
-    """What a bounded-delay estimation stream keeps between chunks.
-
-    Attributes:
-        t_start: ``()`` first timestamp of the stream (the events' ``t`` dtype).
-        t_last: ``()`` last timestamp so far.
-        horizon: output events earlier than this time have been returned (a Python number;
-            ``None`` before the first chunk).
-        knots: the knot events the future needs, one per (pixel, time), in stable time
-            order (see the module docstring).
-        change: ``(K,)`` int64 level change of each knot event (a pixel's first carries its
-            whole level).
-        pixel_t: ``(W * H,)`` time of each pixel's last knot (``t_start`` before its first).
-        q: ``(Wo * Ho,)`` int64 reference index of each output region after its last
-            breakpoint earlier than ``horizon``.
-    """
-
-    t_start: Tensor
-    t_last: Tensor
-    horizon: int | float | None
-    knots: Events
-    change: Tensor
-    pixel_t: Tensor
-    q: Tensor
 
 
 def _regions(events: Events, factor: tuple[int, int], out_width: int) -> Tensor:
@@ -263,6 +239,12 @@ def estimation_step(
         state = estimation_init(settings, events)
     tau = events.t[-1]
     check_span(state.t_start, tau)  # before any time arithmetic
+    if settings.curve == "linear" and t_dtype == torch.int64 and use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled.linear_stream import ramps_step
+
+        stepped = ramps_step(events, state, settings)
+        if stepped is not None:  # else settings the ramps do not take: the window's
+            return stepped
     upkeep = _upkeep(events.t, pixels=state.pixel_t.shape[0], t_start=state.t_start)
     pixel = events.y * width + events.x
     held = upkeep.held_knots(events, max_delay=max_delay, t_start=take(state.pixel_t, pixel))

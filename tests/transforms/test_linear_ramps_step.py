@@ -1,0 +1,187 @@
+"""LinearEstimation's compiled session step through the ramps (compiled/linear_stream.py).
+
+A bounded-delay linear session with int64 timestamps on the CPU steps each chunk through the
+ramps; its outputs, chunk by chunk, must be the eager session's (same events, same order,
+same dtypes), its state the package's (a session moves between the paths at any chunk), and
+the settings the ramps cannot hold must go to the windowed session with the same events.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from evdown_torch import LinearEstimation, eager_kernels, max_output_events
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional.estimation.settings import EstimationSettings
+from evdown_torch.transforms.functional.estimation.stream import (
+    estimation_finish,
+    estimation_step,
+)
+from tests.helpers import assert_identical, random_stream
+
+pytest.importorskip("numba")
+from evdown_torch.transforms.functional.compiled import linear_stream  # noqa: E402
+from evdown_torch.transforms.functional.compiled.linear_ramps import RampSession  # noqa: E402
+
+#: (sensor, factor, threshold, max_delay, time span, first time): factors that do not divide
+#: the sensor, non-square ones, thresholds down to 0.05 and above 1, delays from 1 us, a
+#: clock near the int64 limit.
+CASES = [
+    ((34, 34, 2), (4, 4), 0.25, 1000, 60_000, 0),
+    ((9, 7, 2), (2, 3), 0.05, 7, 3_000, 0),
+    ((9, 7, 2), (3, 2), 1.5, 300, 30_000, 0),
+    ((5, 3, 2), (2, 2), 0.3, 1, 500, 0),
+    ((8, 6, 2), (4, 4), 0.25, 1000, 40_000, 2**62 - 100_000),
+]
+
+
+def _events(arr: np.ndarray) -> Events:
+    return Events.from_columns(arr["x"].astype(np.int64), arr["y"].astype(np.int64),
+                               arr["t"].astype(np.int64), arr["p"])
+
+
+def _stream(case: tuple, seed: int, n: int = 3000) -> np.ndarray:
+    sensor, _, _, _, span, first = case
+    arr = random_stream(np.random.default_rng(seed), n, sensor, t_max=span)
+    arr["t"] += first
+    return arr
+
+
+def _steps(events: Events, bounds: list[int], settings: EstimationSettings, *, eager: bool,
+           ) -> list[Events | None]:
+    state, outputs = None, []
+    with eager_kernels(eager):
+        for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+            out, state = estimation_step(events.part(lo, hi), state, settings)
+            outputs.append(out)
+        outputs.append(estimation_finish(state, settings))
+    return outputs
+
+
+@pytest.fixture
+def ramp_calls(monkeypatch) -> list:
+    """Each chunk the ramps' session reads (its length)."""
+    seen, real = [], RampSession.__call__
+
+    def wrapper(self, x, *args):
+        seen.append(len(x))
+        return real(self, x, *args)
+
+    monkeypatch.setattr(RampSession, "__call__", wrapper)
+    return seen
+
+
+@pytest.mark.parametrize("case", range(len(CASES)))
+def test_ramps_give_the_eager_sessions_events_chunk_by_chunk(case, ramp_calls):
+    sensor, factor, threshold, delay, _, _ = CASES[case]
+    settings = EstimationSettings(sensor, factor, threshold, max_delay=delay, curve="linear")
+    for seed in range(12):
+        events = _events(_stream(CASES[case], seed))
+        rng = np.random.default_rng(seed)
+        cuts = rng.integers(1, events.num_events, 30).tolist()  # ties cut, one-event chunks
+        bounds = sorted({0, events.num_events, *cuts, *(c + 1 for c in cuts[:5])})
+        calls = len(ramp_calls)
+        compiled = _steps(events, bounds, settings, eager=False)
+        assert len(ramp_calls) - calls == len(bounds) - 1  # every chunk through the ramps
+        eager = _steps(events, bounds, settings, eager=True)
+        assert_identical(compiled, eager)
+        assert sum(o.num_events for o in eager if o is not None) > 20
+
+
+def test_a_transform_session_moving_between_paths_gives_the_batch_events(ramp_calls):
+    arr = random_stream(np.random.default_rng(3), 20_000, (34, 34, 2), t_max=200_000)
+    transform = LinearEstimation((34, 34, 2), factor=4, threshold=0.2, max_delay=500)
+    session = transform.session()
+    rng = np.random.default_rng(4)
+    parts = []
+    for chunk in np.array_split(arr, 40):
+        with eager_kernels(bool(rng.random() < 0.4)):
+            parts.append(session(chunk))
+    parts.append(session.flush())
+    assert ramp_calls
+    with eager_kernels(True):
+        expected = transform(arr)
+    np.testing.assert_array_equal(np.concatenate(parts), expected)
+
+
+def test_a_state_stepped_twice_gives_the_same_events_both_times(ramp_calls):
+    # The ramps' session kept beside a state is taken by the first step on it; a second step
+    # on the same state seeds a session from the state's tensors.
+    settings = EstimationSettings((9, 7, 2), (2, 2), 0.3, max_delay=40, curve="linear")
+    events = _events(_stream(CASES[1], 0, 600))
+    _, state = estimation_step(events.part(0, 300), None, settings)
+    first, after_first = estimation_step(events.part(300, 600), state, settings)
+    second, after_second = estimation_step(events.part(300, 600), state, settings)
+    assert_identical(first, second)
+    assert_identical(estimation_finish(after_first, settings),
+                     estimation_finish(after_second, settings))
+    assert len(ramp_calls) == 3
+
+
+@pytest.mark.parametrize(
+    ("change", "taken"),
+    [
+        (dict(threshold=1e8), False),  # levels too wide for the fixed point
+        (dict(threshold=1e6), True),  # no event but the first level's
+        (dict(max_delay=linear_stream.MAX_RAMP_DELAY + 1), False),
+        (dict(max_delay=linear_stream.MAX_RAMP_DELAY), True),
+        (dict(curve="cubic"), False),
+    ],
+)
+def test_settings_the_ramps_cannot_hold_take_the_windowed_session(change, taken, ramp_calls):
+    base = dict(sensor_size=(9, 7, 2), factor=(2, 2), threshold=0.3, max_delay=40,
+                curve="linear")
+    settings = EstimationSettings(**{**base, **change})
+    events = _events(_stream(CASES[1], 1, 500))
+    bounds = [0, 200, 500]
+    compiled = _steps(events, bounds, settings, eager=False)
+    assert bool(ramp_calls) == taken
+    assert_identical(compiled, _steps(events, bounds, settings, eager=True))
+
+
+def test_float_timestamps_and_levels_beyond_the_headroom_take_the_windowed_session(
+        ramp_calls, monkeypatch):
+    settings = EstimationSettings((9, 7, 2), (2, 2), 0.3, max_delay=40, curve="linear")
+    arr = _stream(CASES[1], 2, 500)
+    floats = Events.from_columns(arr["x"].astype(np.int64), arr["y"].astype(np.int64),
+                                 arr["t"].astype(np.float64), arr["p"])
+    _steps(floats, [0, 500], settings, eager=False)
+    assert not ramp_calls
+    # Chunks whose level changes, with the state's, could leave the integers' headroom.
+    monkeypatch.setattr(linear_stream, "LEVEL_BITS", 8)
+    events = _events(arr)
+    bounds = [0, 100, 400, 500]
+    compiled = _steps(events, bounds, settings, eager=False)
+    assert ramp_calls[0] == 100 and 300 not in ramp_calls  # 300 changes: windowed
+    assert_identical(compiled, _steps(events, bounds, settings, eager=True))
+
+
+def test_an_event_outside_the_sensor_is_refused_and_the_state_kept(ramp_calls):
+    settings = EstimationSettings((9, 7, 2), (2, 2), 0.3, max_delay=40, curve="linear")
+    events = _events(_stream(CASES[1], 3, 400))
+    _, state = estimation_step(events.part(0, 200), None, settings)
+    knots = state.knots.t.clone()
+    bad = events.part(200, 400)
+    y = bad.y.clone()
+    y[17] = 7
+    with pytest.raises(ValueError, match=r"event 17 at \(x=\d+, y=7\) lies outside the sensor "
+                                         r"of 9 x 7 pixels"):
+        estimation_step(Events(bad.x, y, bad.t, bad.p), state, settings)
+    assert torch.equal(state.knots.t, knots)
+    out, _ = estimation_step(bad, state, settings)
+    with eager_kernels():
+        expected, _ = estimation_step(bad, state, settings)
+    assert_identical(out, expected)
+
+
+def test_the_output_limit_is_applied_to_a_step():
+    settings = EstimationSettings((9, 7, 2), (1, 1), 0.05, max_delay=40, curve="linear")
+    events = _events(_stream(CASES[1], 4, 400))
+    with eager_kernels(False), max_output_events(10), pytest.raises(ValueError,
+                                                                    match="more than the limit"):
+        estimation_step(events, None, settings)
+    with eager_kernels(False):
+        out, _ = estimation_step(events, None, settings)
+    assert out.num_events > 10
