@@ -22,12 +22,16 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 
 STEPS = ["import numba", "Tonic array in and out", "EventCount", "Downsample", "EventFunnelling",
          "TemporalFunnelling", "PhotocurrentPooling", "LIFPooling", "LinearEstimation",
-         "CubicEstimation", "floor"]
+         "CubicEstimation", "LinearEstimation session (max_delay)", "floor"]
 
 
 def one_process() -> dict[str, float]:
@@ -68,6 +72,9 @@ def one_process() -> dict[str, float]:
         # the estimators share one window loop: the first call compiles it for both curves
         "LinearEstimation": LinearEstimation((16, 16, 2), 4, threshold=0.25),
         "CubicEstimation": CubicEstimation((16, 16, 2), 4, threshold=0.25),
+        # a bounded-delay session: its steps compile the ramps and the state they make
+        "LinearEstimation session (max_delay)": lambda ev: _two_chunks(
+            LinearEstimation((16, 16, 2), 4, threshold=0.25, max_delay=10).session(), ev),
         "floor": RegionFloor((16, 16, 2), 4).session(),
     }
     for name, call in calls.items():
@@ -75,6 +82,11 @@ def one_process() -> dict[str, float]:
         call(ev)
         seconds[name] = time.perf_counter() - start
     return seconds
+
+
+def _two_chunks(session: Callable[[np.ndarray], object], ev: np.ndarray) -> None:
+    session(ev[:50])
+    session(ev[50:])
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,6 +8,8 @@ the settings the ramps cannot hold must go to the windowed session with the same
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 import pytest
 import torch
@@ -17,6 +19,7 @@ from evdown_torch.events import Events
 from evdown_torch.transforms.functional.estimation.settings import EstimationSettings
 from evdown_torch.transforms.functional.estimation.stream import (
     estimation_finish,
+    estimation_init,
     estimation_step,
 )
 from tests.helpers import assert_identical, random_stream
@@ -149,12 +152,19 @@ def test_float_timestamps_and_levels_beyond_the_headroom_take_the_windowed_sessi
                                  arr["t"].astype(np.float64), arr["p"])
     _steps(floats, [0, 500], settings, eager=False)
     assert not ramp_calls
-    # Chunks whose level changes, with the state's, could leave the integers' headroom.
-    monkeypatch.setattr(linear_stream, "LEVEL_BITS", 8)
+    # A region whose level changes, the state's and the chunk's, could leave half the
+    # headroom (here 4 pixels * 2**4 levels): that chunk takes the windowed session, and the
+    # next the ramps again, seeded from the windowed session's state.
+    monkeypatch.setattr(linear_stream, "LEVEL_BITS", 5)
+    rng = np.random.default_rng(5)
+    arr = random_stream(rng, 150, (9, 7, 2), t_max=3000)
+    arr["x"][:] = rng.integers(0, 2, 150)
+    arr["y"][:] = rng.integers(0, 2, 150)  # all in region (0, 0)
+    arr["p"][:] = np.arange(150) % 2 == 0
     events = _events(arr)
-    bounds = [0, 100, 400, 500]
+    bounds = [0, 40, 140, 150]
     compiled = _steps(events, bounds, settings, eager=False)
-    assert ramp_calls[0] == 100 and 300 not in ramp_calls  # 300 changes: windowed
+    assert ramp_calls[0] == 40 and 100 not in ramp_calls and ramp_calls[-1] == 10
     assert_identical(compiled, _steps(events, bounds, settings, eager=True))
 
 
@@ -185,3 +195,24 @@ def test_the_output_limit_is_applied_to_a_step():
     with eager_kernels(False):
         out, _ = estimation_step(events, None, settings)
     assert out.num_events > 10
+
+
+def test_levels_fit_region_by_region(monkeypatch):
+    # Room: 4 pixels * 2**4 = 64 level changes a region (9 x 7 sensor, factor 2: 20 regions).
+    monkeypatch.setattr(linear_stream, "LEVEL_BITS", 5)
+    settings = EstimationSettings((9, 7, 2), (2, 2), 0.3, max_delay=40, curve="linear")
+    ramps = linear_stream.ramp_settings((9, 7, 2), (2, 2), Fraction(3, 10), 40)
+    x, y = np.meshgrid(np.arange(9), np.arange(7))
+    spread_x, spread_y = np.tile(x.ravel(), 4), np.tile(y.ravel(), 4)  # 252, at most 16 each
+    state = estimation_init(settings, _events(_stream(CASES[1], 0, 10)))
+    assert linear_stream._levels_fit(spread_x, spread_y, state, ramps)
+    one_region = np.zeros(64, np.int64)
+    assert not linear_stream._levels_fit(one_region, one_region, state, ramps)
+    assert linear_stream._levels_fit(one_region[:63], one_region[:63], state, ramps)
+    # The state's knots count with their whole levels.
+    ons = Events.from_columns([0, 1, 0, 8], [0, 1, 0, 6], [0, 100, 190, 200], [1, 1, 1, 1])
+    _, state = estimation_step(ons, None, settings)
+    carried = int(state.change[(state.knots.x < 2) & (state.knots.y < 2)].abs().sum())
+    assert carried > 0
+    assert not linear_stream._levels_fit(one_region[: 64 - carried], one_region[: 64 - carried],
+                                         state, ramps)

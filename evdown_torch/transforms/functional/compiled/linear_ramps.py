@@ -323,6 +323,23 @@ class RampSettings:
                    (a * pixels) << k, slopes, deltas, int(pixels.max()) << (level_bits + k))
 
 
+def _by_time_then_region(region: np.ndarray, t: np.ndarray, on: np.ndarray, regions: int,
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The crossings sorted by time, a tie in region order, else in the order found.
+
+    One stable sort of ``(t - t_min) * regions + region`` where it fits in int64 (the sweep
+    finds them nearly in time order, which the stable sort's runs take), else two keys.
+    """
+    if t.shape[0] == 0:
+        return region, t, on
+    low = int(t.min())
+    if int(t.max()) - low < (1 << 62) // regions:
+        order = np.argsort((t - low) * regions + region, kind="stable")
+    else:
+        order = np.lexsort((region, t))
+    return region[order], t[order], on[order]
+
+
 class RampSession:
     """A bounded-delay stream as ramps: ``__call__(chunk)`` returns the decided events.
 
@@ -436,8 +453,7 @@ class RampSession:
         out_r = np.concatenate([held_r, out_r[new]])
         out_t = np.concatenate([held_t, out_t[new]])
         out_on = np.concatenate([held_on, out_on[new]])
-        order = np.lexsort((out_r, out_t))  # by time, a tie in region order, else as found
-        out_r, out_t, out_on = out_r[order], out_t[order], out_on[order]
+        out_r, out_t, out_on = _by_time_then_region(out_r, out_t, out_on, len(settings.pixels))
         cut = int(np.searchsorted(out_t, self.horizon))
         self.at_horizon = (out_r[cut:], out_t[cut:], out_on[cut:])
         out_r, out_t, out_on = out_r[:cut], out_t[:cut], out_on[:cut]
@@ -447,7 +463,7 @@ class RampSession:
         since = self.horizon - settings.delay
         at = int(np.searchsorted(self.recent[2], since))
         first = int(np.searchsorted(t, since))
-        added = (x[first:], y[first:], t[first:], np.where(p[first:], 1, -1))
+        added = (x[first:], y[first:], t[first:], 2 * p[first:].astype(np.int64) - 1)
         self.recent = tuple(np.concatenate([old[at:], part], dtype=np.int64)
                             for old, part in zip(self.recent, added, strict=True))
         if len(t):

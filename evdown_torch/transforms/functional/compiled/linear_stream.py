@@ -101,14 +101,37 @@ def _keep(state: WindowState, session: RampSession) -> None:
                           session)
 
 
+def _levels_fit(x: np.ndarray, y: np.ndarray, state: WindowState, ramps: RampSettings) -> bool:
+    """Whether no region's sum of levels can leave half the ramps' headroom in this chunk.
+
+    A region's sum of levels, and every ramp's part of it, is at most the level changes its
+    pixels carry: the state's knots (each fired pixel's first carries its whole level) and
+    the chunk's events. Half the headroom (``n_r * 2**(LEVEL_BITS - 1)`` levels for the
+    largest ``n_r``) leaves the fixed point's rounding room, and keeps every product of the
+    sweep inside int64. Checked on the totals first, region by region only when they do not
+    fit.
+    """
+    room = int(ramps.pixels.max()) << (LEVEL_BITS - 1)
+    change = state.change.abs().numpy()
+    if x.shape[0] + int(change.sum()) < room:
+        return True
+    regions = ramps.pixels.shape[0]
+    knots = state.knots
+    in_region = np.bincount(ramps.row[y] * ramps.out_w + ramps.column[x], minlength=regions)
+    state_region = (ramps.row[knots.y.to(torch.int64).numpy()] * ramps.out_w
+                    + ramps.column[knots.x.to(torch.int64).numpy()])
+    in_region += np.bincount(state_region, weights=change, minlength=regions).astype(np.int64)
+    return int(in_region.max()) < room
+
+
 def ramps_step(events: Events, state: WindowState, settings: EstimationSettings,
                ) -> tuple[Events, WindowState] | None:
     """One chunk of a linear bounded-delay stream through the ramps, or ``None``.
 
     ``None`` (nothing done) where the ramps do not take the chunk: another curve, timestamps
     other than int64, a delay over :data:`MAX_RAMP_DELAY`, a threshold whose levels do not
-    fit the fixed point, levels that could leave its headroom (the state's and chunk's level
-    changes summing to ``2**LEVEL_BITS`` or more), a clock within ``2 D`` of the int64 limit.
+    fit the fixed point, a region whose level changes (the state's and the chunk's) could leave
+    half its headroom (:func:`_levels_fit`), a clock within ``2 D`` of the int64 limit.
     The caller has checked the chunk as for the windowed step (time order, the span).
 
     Args:
@@ -135,14 +158,15 @@ def ramps_step(events: Events, state: WindowState, settings: EstimationSettings,
     if ramps is None:
         return None
     t_start = int(state.t_start)
-    levels = events.num_events + int(state.change.abs().sum())
-    if levels >= 1 << LEVEL_BITS or t_start < -(1 << 63) + 2 * delay + 1:
+    if t_start < -(1 << 63) + 2 * delay + 1:
         return None
     x, y = events.x.to(torch.int64).numpy(), events.y.to(torch.int64).numpy()
     width, height, _ = settings.sensor_size
     if x.shape[0] and (x.min() < 0 or y.min() < 0 or x.max() >= width or y.max() >= height):
         bad = int(np.flatnonzero((x < 0) | (y < 0) | (x >= width) | (y >= height))[0])
         raise outside_error(bad, x, y, ramps.column, ramps.row)
+    if not _levels_fit(x, y, state, ramps):
+        return None
     first = state.horizon is None
     session = None if first else _taken(state)
     if session is None:
