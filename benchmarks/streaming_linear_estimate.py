@@ -12,8 +12,9 @@ half tick) on its value less the error it tracks. Its state between chunks is th
 ``WindowState``, made from the ramps' session each chunk
 (:mod:`~evdown_torch.transforms.functional.compiled.linear_ramps_state`).
 
-This script times, on the same chunks and in the same run, the floor, the package's session
-and the ramps' session alone (no state made: what the conversion costs), and counts the events
+This script times, on the same chunks and in the same run, the floor, the package's session,
+the package's windowed session (the ramps switched off: what it was before them) and the ramps'
+session alone (no state made: what the conversion costs), and counts the events
 in one output and not the other (pairing those one tick apart) and the doubts decided on the
 corrected value. The eager twin (:func:`~benchmarks.streaming_linear_twin.design_whole`,
 vectorised torch, the whole stream at once) must give the ramps' events whatever the chunks.
@@ -27,7 +28,9 @@ import statistics
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
@@ -47,6 +50,19 @@ from evdown_torch.transforms.functional.compiled import numba_available  # noqa:
 from evdown_torch.transforms.registry import make_method  # noqa: E402
 
 
+class Windowed:
+    """A session whose linear steps take the windowed session (the ramps switched off)."""
+
+    def __init__(self, session: Callable[[np.ndarray], np.ndarray]) -> None:
+        self.session = session
+
+    def __call__(self, chunk: np.ndarray) -> np.ndarray:
+        from evdown_torch.transforms.functional.compiled import linear_stream
+
+        with mock.patch.object(linear_stream, "ramps_step", lambda *_: None):
+            return self.session(chunk)
+
+
 def main(argv: list[str] | None = None) -> int:
     replay = estimate_replay(argv, __doc__, compiled=numba_available(), sensor_size=SENSOR)
     if replay is None:
@@ -59,6 +75,9 @@ def main(argv: list[str] | None = None) -> int:
         "floor": RegionFloor(SENSOR, FACTOR).session(),
         "package": make_method("linear", SENSOR, FACTOR, threshold=a / b,
                                max_delay=REALTIME_MAX_DELAY_US).session(),
+        "package, windowed (ramps off)": Windowed(
+            make_method("linear", SENSOR, FACTOR, threshold=a / b,
+                        max_delay=REALTIME_MAX_DELAY_US).session()),
         "ramps alone": RampArrays(t_start, most),
     }
     seconds: dict[str, list[float]] = {name: [] for name in sessions}
@@ -114,6 +133,12 @@ def main(argv: list[str] | None = None) -> int:
     for (x, y, t, p), count in sorted((only_package + only_design).items())[:10]:
         side = "package" if (x, y, t, p) in only_package else "ramps alone"
         print(f"  only in the {side}'s output: x {x}, y {y}, t {t}, p {p} (x{count})")
+    package_out = np.concatenate(outputs["package"])
+    windowed_out = np.concatenate(outputs["package, windowed (ramps off)"])
+    same_windowed = np.array_equal(package_out, windowed_out)
+    print(f"the package's windowed session: {len(windowed_out):,} events, "
+          f"{'the same as' if same_windowed else 'NOT the same as'} its session through the "
+          f"ramps ({len(package_out):,}), in the same order")
     # The eager twin on everything the session read, at once, against the session's chunks.
     cut = sessions["ramps alone"].horizon
     start = time.perf_counter()

@@ -245,6 +245,8 @@ def test_on_a_tiny_replay_it_makes_the_package_events(capsys):
         int(group.replace(",", "")) for group in found.groups())
     assert package > 1000
     assert (design, only_package, only_design, pairs) == (package, 0, 0, 0)
+    assert re.search(r"windowed session: [\d,]+ events, the same as its session through the "
+                     r"ramps", text)
     # Integers throughout: the eager twin on the whole stream is the session in its chunks.
     assert re.search(r"events before t = \d+, the same as the session's in \d+ chunks", text)
 
