@@ -20,7 +20,7 @@ from torch import Tensor
 from evdown_torch._tensors import changes, run_index, segmented_cumsum, take, where_true
 from evdown_torch.bench.realtime import REALTIME_MAX_DELAY_US
 from evdown_torch.events import DVS_DTYPE
-from evdown_torch.transforms.functional.compiled.linear_ramps import RampSession
+from evdown_torch.transforms.functional.compiled.linear_ramps import _HALF, RampSession
 from evdown_torch.transforms.functional.compiled.linear_ramps import RampSettings as Settings
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, RELATIVE_ERROR
 from evdown_torch.transforms.functional.reference import SNAP, move_crossings
@@ -29,7 +29,6 @@ from evdown_torch.transforms.functional.reference import SNAP, move_crossings
 SENSOR = (128, 128, 2)
 FACTOR = 4
 THRESHOLD = (1, 4)
-_HALF = 0.5 + HALF_TOLERANCE
 
 
 def replay_settings() -> Settings:

@@ -187,7 +187,7 @@ def test_the_state_keeps_q_after_the_jumps_at_t_start():
 
 def test_the_ramps_through_the_package_state_give_the_ramps_events():
     # Each chunk: the package's state made from the session, and a session made again from
-    # that state alone (arrays reused), as a step on a state whose session is not kept does.
+    # that state alone, as a step on a state whose session is not kept does.
     for seed in range(6):
         ev = _stream(CASES[0], seed)
         design_settings = RampSettings.of(CASES[0][0], CASES[0][1], CASES[0][2], 1000)
@@ -200,8 +200,7 @@ def test_the_ramps_through_the_package_state_give_the_ramps_events():
             made, expected = through(part), direct(part)
             assert _rows_of_array(made) == _rows_of_array(expected), seed
             through = RampArrays.resumed(ramp_session(window_state(through.session),
-                                                      design_settings, len(ev),
-                                                      reuse=through.session))
+                                                      design_settings, len(ev)))
 
 
 def test_a_state_the_ramps_cannot_take_is_refused():

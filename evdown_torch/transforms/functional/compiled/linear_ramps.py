@@ -94,7 +94,7 @@ def _ramps(
             pixels[pixel, 1], pixels[pixel, 3] = pixels[pixel, 0], pixels[pixel, 2]
             pixels[pixel, 0], pixels[pixel, 2] = t, ends
             if ends - head_e > mask:
-                raise ValueError("the ramps' ends ring is full: give more max_events")
+                raise ValueError("the ramps' ends ring is full (RampSession.reserve not called)")
             k = ends & mask
             e_t[k], e_region[k] = t, r
             e_slope[k], e_jump[k], e_active[k], e_delta[k] = 0, 0, 0, 0.0
@@ -117,7 +117,7 @@ def _ramps(
             e_delta[before] += delta
         elif length:  # (a ramp whose slope rounds to 0 still starts: its error, its count)
             if starts - head_s > mask:
-                raise ValueError("the ramps' starts ring is full: give more max_events")
+                raise ValueError("the ramps' starts ring is full (RampSession.reserve not called)")
             k = starts & mask
             s_t[k], s_region[k] = max(t - delay, t_start), r
             s_slope[k], s_delta[k] = slope, delta

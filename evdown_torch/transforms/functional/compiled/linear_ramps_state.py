@@ -236,8 +236,7 @@ def window_state(session: RampSession) -> WindowState:
         torch.from_numpy(q_change.copy()))
 
 
-def ramp_session(state: WindowState, settings: RampSettings, max_events: int,
-                 reuse: RampSession | None = None) -> RampSession:
+def ramp_session(state: WindowState, settings: RampSettings, max_events: int) -> RampSession:
     """A ramps' session that carries on from the package's state (after a chunk).
 
     Args:
@@ -247,8 +246,6 @@ def ramp_session(state: WindowState, settings: RampSettings, max_events: int,
         settings: the ramps' :class:`~.linear_ramps.RampSettings`.
         max_events: as for :class:`~.linear_ramps.RampSession` (its rings also hold the
             state's knots).
-        reuse: a session of the same settings whose arrays to take (reset) where its rings
-            are large enough; else new ones.
 
     Returns:
         A session whose chunks give the package's events after the ones returned so far:
@@ -265,12 +262,7 @@ def ramp_session(state: WindowState, settings: RampSettings, max_events: int,
         raise ValueError(f"the ramps take int64 timestamps, got {state.t_last.dtype}")
     t_start, horizon = int(state.t_start), int(state.horizon)
     knots = state.knots
-    size = 4 * max_events + knots.num_events
-    if reuse is not None and reuse.mask + 1 > size:
-        session = reuse
-        session.reset(t_start)
-    else:
-        session = RampSession(t_start, size // 4 + 1, settings)
+    session = RampSession(t_start, max_events + knots.num_events // 4 + 1, settings)
     pixel = (knots.y.to(torch.int64) * settings.width + knots.x).numpy()
     t, change = knots.t.numpy(), state.change.numpy()
     value, slope_sum, since, _, q, active, error, error_slope, q_change, t_change = (

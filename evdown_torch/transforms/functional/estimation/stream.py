@@ -239,11 +239,11 @@ def estimation_step(
         state = estimation_init(settings, events)
     tau = events.t[-1]
     check_span(state.t_start, tau)  # before any time arithmetic
-    if settings.curve == "linear" and t_dtype == torch.int64 and use_compiled(events.t):
+    if use_compiled(events.t):  # (the module imports Numba)
         from evdown_torch.transforms.functional.compiled.linear_stream import ramps_step
 
         stepped = ramps_step(events, state, settings)
-        if stepped is not None:  # else settings the ramps do not take: the window's
+        if stepped is not None:  # else a chunk the ramps do not take: the window's
             return stepped
     upkeep = _upkeep(events.t, pixels=state.pixel_t.shape[0], t_start=state.t_start)
     pixel = events.y * width + events.x

@@ -24,7 +24,7 @@ class WindowState(NamedTuple):
         horizon: output events earlier than this time have been returned (a Python number;
             ``None`` before the first chunk).
         knots: the knot events the future needs, one per (pixel, time), in stable time
-            order (see the module docstring).
+            order (see :mod:`.stream`).
         change: ``(K,)`` int64 level change of each knot event (a pixel's first carries its
             whole level).
         pixel_t: ``(W * H,)`` time of each pixel's last knot (``t_start`` before its first).
