@@ -216,3 +216,32 @@ def test_levels_fit_region_by_region(monkeypatch):
     assert carried > 0
     assert not linear_stream._levels_fit(one_region[: 64 - carried], one_region[: 64 - carried],
                                          state, ramps)
+
+
+@pytest.mark.parametrize("case", [0, 2])
+def test_ramps_sessions_keep_the_flip_and_shift_invariants(case, ramp_calls):
+    # docs/semantics.md: flipping every polarity flips every output's; adding a constant to
+    # every t adds it to every output t, exactly, at any int64 clock. Through the ramps alone.
+    sensor, factor, threshold, delay, _, _ = CASES[case]
+    transform = LinearEstimation(sensor, factor=factor, threshold=threshold, max_delay=delay)
+    arr = _stream(CASES[case], 11)
+
+    def session_of(stream: np.ndarray) -> np.ndarray:
+        session = transform.session()
+        with eager_kernels(False):
+            parts = [session(chunk) for chunk in np.array_split(stream, 9)]
+        return np.concatenate([*parts, session.flush()])
+
+    out = session_of(arr)
+    assert len(ramp_calls) == 9 and len(out) > 20
+    flipped = arr.copy()
+    flipped["p"] = ~flipped["p"]
+    out_flipped = session_of(flipped)
+    np.testing.assert_array_equal(out_flipped[["x", "y", "t"]], out[["x", "y", "t"]])
+    np.testing.assert_array_equal(out_flipped["p"], ~out["p"])
+    for shift in (1_700_000_000_000_000, 2**62 - 10**6 - int(arr["t"].max())):
+        moved = arr.copy()
+        moved["t"] += shift
+        out_moved = session_of(moved)
+        np.testing.assert_array_equal(out_moved["t"] - shift, out["t"])
+        np.testing.assert_array_equal(out_moved[["x", "y", "p"]], out[["x", "y", "p"]])
