@@ -23,6 +23,7 @@ from typing import NamedTuple
 import numpy as np
 
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 
 __all__ = ["ColumnFacts", "compiled_fields", "read_columns", "write_columns"]
 
@@ -123,13 +124,14 @@ def read_columns(
         t_dtype: ``np.int64`` or ``np.float64``, the timestamps' column dtype.
 
     Returns:
-        ``((x, y, t, p), facts)``: new int64 ``x`` and ``y``, ``t`` of ``t_dtype`` and bool
-        ``p`` (``p > 0`` for a numeric field), each equal to NumPy's ``astype`` of the field;
-        the :class:`ColumnFacts`.
+        ``((x, y, t, p), facts)``: int64 ``x`` and ``y``, ``t`` of ``t_dtype`` and bool
+        ``p`` (``p > 0`` for a numeric field), each equal to NumPy's ``astype`` of the field,
+        in this thread's scratch columns (:func:`~.scratch.scratch_column`: memory no
+        other object refers to, often the last call's); the :class:`ColumnFacts`.
     """
     n = data.shape[0]
-    columns = (np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, t_dtype),
-               np.empty(n, np.bool_))
+    columns = (scratch_column("read x", n, np.int64), scratch_column("read y", n, np.int64),
+               scratch_column("read t", n, t_dtype), scratch_column("read p", n, np.bool_))
     p = data["p"]
     facts = _read_loop(data["x"], data["y"], data["t"], p, p.dtype != np.bool_, *columns)
     x_lo, x_hi, y_lo, y_hi, *flags = facts

@@ -8,6 +8,7 @@ import torch
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.regions import columns_of, region_tables
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 from evdown_torch.transforms.functional.settings import RegionSettings
 
 __all__ = ["downsample_step"]
@@ -31,13 +32,20 @@ def _downsample_loop(
 def downsample_step(events: Events, settings: RegionSettings) -> Events:
     """:func:`~..downsample.downsample_step` on the CPU: the same events (new tensors).
 
-    Any coordinates (a batch's stacked rows too): beyond the sensor, a division.
+    Any coordinates (a batch's stacked rows too): beyond the sensor, a division. The
+    output's columns are this thread's scratch columns (:func:`~.scratch.scratch_column`):
+    memory that no other object refers to, the last call's where the caller let it go.
     """
     out_w, out_h, _ = settings.output_sensor_size
     fx, fy = settings.factor
     column, row = region_tables(settings.factor, out_w, out_h)
-    x, y = columns_of(events.x, events.y)
-    out_x, out_y = np.empty_like(x), np.empty_like(y)
+    x, y, t, p = columns_of(events.x, events.y, events.t, events.p)
+    n = x.shape[0]
+    out_x = scratch_column("downsample x", n, x.dtype)
+    out_y = scratch_column("downsample y", n, y.dtype)
+    out_t = scratch_column("downsample t", n, t.dtype)
+    out_p = scratch_column("downsample p", n, p.dtype)
     _downsample_loop(x, y, fx, fy, column, row, out_x, out_y)
-    return Events(torch.from_numpy(out_x), torch.from_numpy(out_y), events.t.clone(),
-                  events.p.clone())
+    out_t[:], out_p[:] = t, p
+    return Events(torch.from_numpy(out_x), torch.from_numpy(out_y), torch.from_numpy(out_t),
+                  torch.from_numpy(out_p))

@@ -28,6 +28,7 @@ from evdown_torch.transforms.functional.compiled.regions import (
     power_of_two_shifts,
     region_tables,
 )
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
 from evdown_torch.transforms.functional.settings import ThresholdSettings
 
@@ -171,6 +172,14 @@ def _run(
     return out_x, out_y, source, on, (level_sum, reference)
 
 
+def _taken(t: Tensor, source: Tensor) -> Tensor:
+    """``t[source]`` in a scratch column (:func:`~.scratch.scratch_column`)."""
+    values = t.numpy()
+    out = scratch_column("event count t", source.shape[0], values.dtype)
+    np.take(values, source.numpy(), out=out, mode="clip")  # (in range: "raise" buffers)
+    return torch.from_numpy(out)
+
+
 def event_count_step(
     events: Events, state: tuple[Tensor, Tensor], settings: ThresholdSettings
 ) -> tuple[Events, tuple[Tensor, Tensor]]:
@@ -178,7 +187,7 @@ def event_count_step(
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device), state
     x, y, source, on, new_state = _run(events, state, settings, None)
-    return Events(x, y, events.t.index_select(0, source), on), new_state
+    return Events(x, y, _taken(events.t, source), on), new_state
 
 
 def event_count_batch(

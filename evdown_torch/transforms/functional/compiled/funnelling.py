@@ -18,6 +18,7 @@ from evdown_torch.transforms.functional.compiled.regions import (
     outside_error,
     region_tables,
 )
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 
 __all__ = ["DENSE_KEYS", "funnelling_batch", "funnelling_sorted"]
 
@@ -88,7 +89,8 @@ def _funnel(
         kept_in[keys[(keys >= 0) & (keys < kept_in.shape[0])]] = 0
     x, y, t, p = columns_of(events.x, events.y, events.t, events.p)
     n = x.shape[0]
-    out_index, out_x, out_y = (np.empty(n, dtype=np.int64) for _ in range(3))
+    out_index, out_x, out_y = (scratch_column(f"funnelling {name}", n, np.int64)
+                               for name in ("index", "x", "y"))
     k = _funnel_loop(x, y, t, p, column, row, width, ends, kept_in, out_index, out_x, out_y)
     if k < 0:
         raise outside_error(-1 - k, x, y, column, row)

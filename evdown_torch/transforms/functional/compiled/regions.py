@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column
+
 __all__ = ["columns_of", "crossing_columns", "crossing_tensors", "grown_columns", "outside_error",
            "power_of_two_shifts", "region_tables"]
 
@@ -67,9 +69,14 @@ def outside_error(
 
 
 def crossing_columns(capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Empty output columns ``(x, y, source event, on)`` for ``capacity`` crossings."""
-    return (np.empty(capacity, np.int64), np.empty(capacity, np.int64),
-            np.empty(capacity, np.int64), np.empty(capacity, np.bool_))
+    """Output columns ``(x, y, source event, on)`` for ``capacity`` crossings, uninitialised.
+
+    This thread's scratch columns (:func:`~.scratch.scratch_column`), often the last call's.
+    """
+    return (scratch_column("crossing x", capacity, np.int64),
+            scratch_column("crossing y", capacity, np.int64),
+            scratch_column("crossing source", capacity, np.int64),
+            scratch_column("crossing on", capacity, np.bool_))
 
 
 def grown_columns(
@@ -88,9 +95,14 @@ def crossing_tensors(
     """The first ``k`` crossings of ``out`` as tensors ``(x, y, source event, on)``.
 
     Views of the columns, or copies where most of them is empty (no mostly empty buffer is
-    kept alive).
+    kept alive), in this thread's scratch columns (:func:`~.scratch.scratch_column`).
     """
-    x, y, source, on = (torch.from_numpy(column[:k]) for column in out)
     if k < out[0].shape[0] // 2:
-        return x.clone(), y.clone(), source.clone(), on.clone()
+        names = ("x", "y", "source", "on")
+        copies = [scratch_column(f"crossing {name} copy", k, column.dtype)
+                  for name, column in zip(names, out, strict=True)]
+        for copy, column in zip(copies, out, strict=True):
+            copy[:] = column[:k]
+        out = tuple(copies)
+    x, y, source, on = (torch.from_numpy(column[:k]) for column in out)
     return x, y, source, on

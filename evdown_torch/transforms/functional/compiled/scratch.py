@@ -1,0 +1,86 @@
+"""Scratch columns that a thread reuses from call to call, when nothing else holds them.
+
+A live session calls the compiled kernels on a chunk every few milliseconds, and each call
+used to take new columns for the chunk's fields (:func:`~.columns.read_columns`) and for the
+crossings found (:func:`~.regions.crossing_columns`). Columns of a few megabytes come from
+the operating system fresh each time, and their first writes fault in zeroed pages: on the
+live replay's chunks (300,000 events) that cost EventCount about a quarter of its chunk
+(docs/benchmarks.md, "Second session of 2026-12-03"). Here each thread keeps the last
+column it took for each *slot* and hands the same memory out again, **only where no other
+object still refers to it** (a view, a tensor made with ``torch.from_numpy``, an ``Events``
+that kept a column, a method's state): CPython's reference count says so, so a column still
+in use is never overwritten, and a new one is taken instead.
+
+Columns over :data:`LARGEST_KEPT` bytes are not kept: a thread holds at most that much per
+slot after its calls. Python builds without the GIL (whose reference counts are not exact
+from another thread) take new columns every time.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+
+import numpy as np
+
+__all__ = ["LARGEST_KEPT", "scratch_column"]
+
+#: The largest column (bytes) a thread keeps for reuse: 8 MiB (a million int64 values).
+LARGEST_KEPT = 8 << 20
+
+#: References to a kept column while no one else holds it: the thread's table, the name
+#: ``kept`` in :func:`scratch_column` and ``sys.getrefcount``'s own argument.
+_UNUSED_REFERENCES = 3
+
+_EXACT_REFERENCES = getattr(sys, "_is_gil_enabled", lambda: True)()
+
+
+class _Kept(threading.local):
+    """Each thread's kept columns, by ``(slot, dtype)``."""
+
+    def __init__(self) -> None:
+        self.columns: dict[tuple[str, np.dtype], np.ndarray] = {}
+
+
+_KEPT = _Kept()
+
+
+def scratch_column(slot: str, n: int, dtype: np.dtype | type) -> np.ndarray:
+    """An uninitialised ``(n,)`` column, the memory of this thread's last one for ``slot``.
+
+    The memory is reused only where nothing else refers to the slot's last column (nor to
+    any view of it); else, and for columns over :data:`LARGEST_KEPT` bytes, the column is
+    new (and a new one replaces the kept one). The caller must not let the column outlive
+    the call unless it hands it on as an object that refers to it (a view, a tensor made
+    with ``torch.from_numpy``): that reference is what keeps the next call from reusing it.
+
+    Args:
+        slot: the column's use (one name per column a call holds at once).
+        n: its length.
+        dtype: its NumPy dtype.
+
+    Returns:
+        A view of ``n`` elements (of a kept column as long or longer).
+
+    Example:
+        >>> a = scratch_column("doctest", 1000, np.int64)
+        >>> b = scratch_column("doctest", 1000, np.int64)  # ``a`` is alive: new memory
+        >>> bool(np.shares_memory(a, b))
+        False
+        >>> address = b.__array_interface__["data"][0]
+        >>> del a, b
+        >>> c = scratch_column("doctest", 800, np.int64)  # ``b``'s, which no one holds now
+        >>> c.__array_interface__["data"][0] == address
+        True
+    """
+    dtype = np.dtype(dtype)
+    if n * dtype.itemsize > LARGEST_KEPT or not _EXACT_REFERENCES:
+        return np.empty(n, dtype)
+    key = (slot, dtype)
+    kept = _KEPT.columns.get(key)
+    if (kept is not None and kept.shape[0] >= n
+            and sys.getrefcount(kept) == _UNUSED_REFERENCES):
+        return kept[:n]
+    kept = np.empty(n, dtype)
+    _KEPT.columns[key] = kept
+    return kept[:n]

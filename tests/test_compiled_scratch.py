@@ -1,0 +1,108 @@
+"""The scratch columns the compiled edge reuses: reused only where nothing else holds them."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from evdown_torch.events import DVS_DTYPE, to_events
+from evdown_torch.transforms.functional.compiled import numba_available
+from evdown_torch.transforms.functional.compiled.scratch import LARGEST_KEPT, scratch_column
+
+
+def _address(column: np.ndarray) -> int:
+    return column.__array_interface__["data"][0]
+
+
+def test_a_column_no_one_holds_is_reused() -> None:
+    first = scratch_column("test reuse", 1000, np.int64)
+    address = _address(first)
+    del first
+    again = scratch_column("test reuse", 600, np.int64)
+    assert _address(again) == address and again.shape == (600,) and again.dtype == np.int64
+    del again
+    # Longer than the kept one: new memory.
+    assert scratch_column("test reuse", 2000, np.int64).shape == (2000,)
+
+
+@pytest.mark.parametrize("holder", ["view", "tensor", "tensor view", "list"])
+def test_a_held_column_is_never_overwritten(holder: str) -> None:
+    column = scratch_column(f"test held {holder}", 100, np.int64)
+    column[:] = np.arange(100)
+    held: object
+    if holder == "view":
+        held = column[10:20]
+    elif holder == "tensor":
+        held = torch.from_numpy(column)
+    elif holder == "tensor view":
+        held = torch.from_numpy(column)[::3]
+    else:
+        held = [column]
+
+    def values() -> np.ndarray:
+        if isinstance(held, torch.Tensor):
+            return held.numpy().copy()
+        return np.array(held[0] if isinstance(held, list) else held)
+
+    expected = values()
+    del column
+    for _ in range(3):  # each call must take other memory while ``held`` lives
+        other = scratch_column(f"test held {holder}", 100, np.int64)
+        other[:] = -1
+    np.testing.assert_array_equal(values(), expected)
+
+
+def test_slots_and_dtypes_do_not_share() -> None:
+    a = scratch_column("test slot a", 50, np.int64)
+    b = scratch_column("test slot b", 50, np.int64)
+    c = scratch_column("test slot a", 50, np.float64)
+    assert not np.shares_memory(a, b) and not np.shares_memory(a, c)
+
+
+def test_large_columns_are_not_kept() -> None:
+    small = scratch_column("test large", 10, np.int64)
+    address = _address(small)
+    del small
+    large = scratch_column("test large", LARGEST_KEPT // 8 + 1, np.int64)
+    assert _address(large) != address  # the small one is not long enough
+    del large
+    # The large one neither replaced the kept one nor is kept itself.
+    assert _address(scratch_column("test large", 10, np.int64)) == address
+
+
+def test_each_thread_keeps_its_own() -> None:
+    mine = scratch_column("test thread", 64, np.int64)
+    address = _address(mine)
+    del mine  # kept by this thread, held by no one
+    theirs: list[int] = []
+    thread = threading.Thread(
+        target=lambda: theirs.append(_address(scratch_column("test thread", 64, np.int64))))
+    thread.start()
+    thread.join()
+    assert theirs[0] != address
+    assert _address(scratch_column("test thread", 64, np.int64)) == address
+
+
+def _chunk(seed: int, n: int = 5000) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    chunk = np.zeros(n, dtype=DVS_DTYPE)
+    chunk["x"] = rng.integers(0, 34, n)
+    chunk["y"] = rng.integers(0, 34, n)
+    chunk["t"] = np.sort(rng.integers(0, 10**6, n))
+    chunk["p"] = rng.integers(0, 2, n).astype(bool)
+    return chunk
+
+
+@pytest.mark.skipif(not numba_available(), reason="the compiled edge needs numba")
+def test_events_read_from_arrays_stay_intact_while_held() -> None:
+    """Events a user keeps from ``to_events`` are not overwritten by later reads."""
+    chunks = [_chunk(seed) for seed in range(6)]
+    kept = [to_events(chunk, (34, 34, 2))[0] for chunk in chunks]
+    for chunk, events in zip(chunks, kept, strict=True):
+        np.testing.assert_array_equal(events.x.numpy(), chunk["x"].astype(np.int64))
+        np.testing.assert_array_equal(events.y.numpy(), chunk["y"].astype(np.int64))
+        np.testing.assert_array_equal(events.t.numpy(), chunk["t"])
+        np.testing.assert_array_equal(events.p.numpy(), chunk["p"])
