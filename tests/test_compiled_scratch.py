@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from evdown_torch.events import DVS_DTYPE, to_events
+from evdown_torch import Downsample, eager_kernels
+from evdown_torch.events import DVS_DTYPE, Events, to_events
 from evdown_torch.transforms.functional.compiled import numba_available
 from evdown_torch.transforms.functional.compiled.scratch import LARGEST_KEPT, scratch_column
+from evdown_torch.transforms.registry import make_method
 
 
 def _address(column: np.ndarray) -> int:
@@ -106,3 +108,49 @@ def test_events_read_from_arrays_stay_intact_while_held() -> None:
         np.testing.assert_array_equal(events.y.numpy(), chunk["y"].astype(np.int64))
         np.testing.assert_array_equal(events.t.numpy(), chunk["t"])
         np.testing.assert_array_equal(events.p.numpy(), chunk["p"])
+
+
+def _event_chunks(seed: int, chunks: int = 6, n: int = 3000) -> list[Events]:
+    """``Events`` chunks of one time-ordered stream on 34 x 34 (returned as ``Events``)."""
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.integers(0, 10**6, chunks * n))
+    x, y = rng.integers(0, 34, chunks * n), rng.integers(0, 34, chunks * n)
+    p = rng.integers(0, 2, chunks * n).astype(bool)
+    part = [slice(k * n, (k + 1) * n) for k in range(chunks)]
+    return [Events.from_columns(x[s], y[s], t[s], p[s]) for s in part]
+
+
+def _columns(events: Events) -> list[np.ndarray]:
+    return [column.numpy().copy() for column in (events.x, events.y, events.t, events.p)]
+
+
+@pytest.mark.skipif(not numba_available(), reason="the compiled kernels need numba")
+def test_downsample_outputs_held_by_the_caller_stay_intact() -> None:
+    # With Events chunks, Downsample's output columns are scratch columns handed to the
+    # caller: each held output must still be its own chunk divided by the factor.
+    chunks = _event_chunks(1)
+    session = Downsample((34, 34, 2), 4).session()
+    held = [session(chunk) for chunk in chunks]
+    for chunk, out in zip(chunks, held, strict=True):
+        assert isinstance(out, Events)
+        x, y, t, p = _columns(chunk)
+        for got, want in zip(_columns(out), (x // 4, y // 4, t, p), strict=True):
+            np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.skipif(not numba_available(), reason="the compiled kernels need numba")
+@pytest.mark.parametrize("method", ["event_count", "funnelling", "photocurrent"])
+def test_outputs_held_by_the_caller_match_the_eager_session(method: str) -> None:
+    # Their outputs (crossings, kept events) come from scratch columns too: held chunk after
+    # chunk, they must equal the eager kernels' session, which takes none.
+    chunks = _event_chunks(2)
+    compiled = make_method(method, (34, 34, 2), 4).session()
+    held = [compiled(chunk) for chunk in chunks]
+    with eager_kernels():
+        eager = make_method(method, (34, 34, 2), 4).session()
+        expected = [eager(chunk) for chunk in chunks]
+    assert sum(out.num_events for out in held if isinstance(out, Events)) > 0
+    for out, want in zip(held, expected, strict=True):
+        assert isinstance(out, Events) and isinstance(want, Events)
+        for got, column in zip(_columns(out), _columns(want), strict=True):
+            np.testing.assert_array_equal(got, column)
