@@ -4,12 +4,13 @@ A live session calls the compiled kernels on a chunk every few milliseconds, and
 used to take new columns for the chunk's fields (:func:`~.columns.read_columns`) and for the
 crossings found (:func:`~.regions.crossing_columns`). Columns of a few megabytes come from
 the operating system fresh each time, and their first writes fault in zeroed pages: on the
-live replay's chunks (300,000 events) that cost EventCount about a quarter of its chunk
-(docs/benchmarks.md, "Second session of 2026-12-03"). Here each thread keeps the last
-column it took for each *slot* and hands the same memory out again, **only where no other
-object still refers to it** (a view, a tensor made with ``torch.from_numpy``, an ``Events``
-that kept a column, a method's state): CPython's reference count says so, so a column still
-in use is never overwritten, and a new one is taken instead.
+live replay's chunks (300,000 events), in a process that had freed no large block before, that
+cost EventCount a quarter to two fifths of its chunk (docs/benchmarks.md, "Second session of
+2026-12-03"). Here each thread keeps the last column it took for each *slot* and hands the
+same memory out again, **only where no other object still refers to it** (a view, a tensor
+made with ``torch.from_numpy``, an ``Events`` that kept a column, a method's state):
+CPython's reference count says so, so a column still in use is never overwritten, and a new
+one is taken instead.
 
 Columns over :data:`LARGEST_KEPT` bytes are not kept: a thread holds at most that much per
 slot after its calls. Python builds without the GIL (whose reference counts are not exact
