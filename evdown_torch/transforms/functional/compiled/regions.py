@@ -94,8 +94,9 @@ def crossing_tensors(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The first ``k`` crossings of ``out`` as tensors ``(x, y, source event, on)``.
 
-    Views of the columns, or copies where most of them is empty (no mostly empty buffer is
-    kept alive), in this thread's scratch columns (:func:`~.scratch.scratch_column`).
+    Views of the columns, or copies where most of them is empty (so that the caller does not
+    keep the mostly empty columns alive), in this thread's scratch columns
+    (:func:`~.scratch.scratch_column`).
     """
     if k < out[0].shape[0] // 2:
         names = ("x", "y", "source", "on")

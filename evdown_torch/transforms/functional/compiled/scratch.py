@@ -50,10 +50,12 @@ def scratch_column(slot: str, n: int, dtype: np.dtype | type) -> np.ndarray:
     """An uninitialised ``(n,)`` column, the memory of this thread's last one for ``slot``.
 
     The memory is reused only where nothing else refers to the slot's last column (nor to
-    any view of it); else, and for columns over :data:`LARGEST_KEPT` bytes, the column is
-    new (and a new one replaces the kept one). The caller must not let the column outlive
-    the call unless it hands it on as an object that refers to it (a view, a tensor made
-    with ``torch.from_numpy``): that reference is what keeps the next call from reusing it.
+    any view of it) and it is long enough; else the column is new, and kept in its place.
+    Columns over :data:`LARGEST_KEPT` bytes are new and not kept. The caller must not let
+    the column outlive the call unless it hands it on as an object that refers to it (a
+    view, a tensor made with ``torch.from_numpy``): that reference is what keeps the next
+    call from reusing it. A column handed on is a view of the kept one, which may be longer
+    (up to :data:`LARGEST_KEPT` bytes stay alive behind it).
 
     Args:
         slot: the column's use (one name per column a call holds at once).
