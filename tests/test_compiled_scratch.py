@@ -9,10 +9,13 @@ import pytest
 import torch
 
 from evdown_torch import Downsample, eager_kernels
-from evdown_torch.events import DVS_DTYPE, Events, to_events
+from evdown_torch.events import Events, to_events
 from evdown_torch.transforms.functional.compiled import numba_available
 from evdown_torch.transforms.functional.compiled.scratch import LARGEST_KEPT, scratch_column
 from evdown_torch.transforms.registry import make_method
+from tests.helpers import random_stream
+
+SENSOR = (34, 34, 2)
 
 
 def _address(column: np.ndarray) -> int:
@@ -88,21 +91,12 @@ def test_each_thread_keeps_its_own() -> None:
     assert _address(scratch_column("test thread", 64, np.int64)) == address
 
 
-def _chunk(seed: int, n: int = 5000) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    chunk = np.zeros(n, dtype=DVS_DTYPE)
-    chunk["x"] = rng.integers(0, 34, n)
-    chunk["y"] = rng.integers(0, 34, n)
-    chunk["t"] = np.sort(rng.integers(0, 10**6, n))
-    chunk["p"] = rng.integers(0, 2, n).astype(bool)
-    return chunk
-
-
 @pytest.mark.skipif(not numba_available(), reason="the compiled edge needs numba")
 def test_events_read_from_arrays_stay_intact_while_held() -> None:
     """Events a user keeps from ``to_events`` are not overwritten by later reads."""
-    chunks = [_chunk(seed) for seed in range(6)]
-    kept = [to_events(chunk, (34, 34, 2))[0] for chunk in chunks]
+    chunks = [random_stream(np.random.default_rng(seed), 5000, SENSOR, t_max=10**6)
+              for seed in range(6)]
+    kept = [to_events(chunk, SENSOR)[0] for chunk in chunks]
     for chunk, events in zip(chunks, kept, strict=True):
         np.testing.assert_array_equal(events.x.numpy(), chunk["x"].astype(np.int64))
         np.testing.assert_array_equal(events.y.numpy(), chunk["y"].astype(np.int64))
@@ -112,12 +106,8 @@ def test_events_read_from_arrays_stay_intact_while_held() -> None:
 
 def _event_chunks(seed: int, chunks: int = 6, n: int = 3000) -> list[Events]:
     """``Events`` chunks of one time-ordered stream on 34 x 34 (returned as ``Events``)."""
-    rng = np.random.default_rng(seed)
-    t = np.sort(rng.integers(0, 10**6, chunks * n))
-    x, y = rng.integers(0, 34, chunks * n), rng.integers(0, 34, chunks * n)
-    p = rng.integers(0, 2, chunks * n).astype(bool)
-    part = [slice(k * n, (k + 1) * n) for k in range(chunks)]
-    return [Events.from_columns(x[s], y[s], t[s], p[s]) for s in part]
+    stream = random_stream(np.random.default_rng(seed), chunks * n, SENSOR, t_max=10**6)
+    return [to_events(stream[k * n:(k + 1) * n])[0] for k in range(chunks)]
 
 
 def _columns(events: Events) -> list[np.ndarray]:
@@ -129,7 +119,7 @@ def test_downsample_outputs_held_by_the_caller_stay_intact() -> None:
     # With Events chunks, Downsample's output columns are scratch columns handed to the
     # caller: each held output must still be its own chunk divided by the factor.
     chunks = _event_chunks(1)
-    session = Downsample((34, 34, 2), 4).session()
+    session = Downsample(SENSOR, 4).session()
     held = [session(chunk) for chunk in chunks]
     for chunk, out in zip(chunks, held, strict=True):
         assert isinstance(out, Events)
@@ -144,10 +134,10 @@ def test_outputs_held_by_the_caller_match_the_eager_session(method: str) -> None
     # Their outputs (crossings, kept events) come from scratch columns too: held chunk after
     # chunk, they must equal the eager kernels' session, which takes none.
     chunks = _event_chunks(2)
-    compiled = make_method(method, (34, 34, 2), 4).session()
+    compiled = make_method(method, SENSOR, 4).session()
     held = [compiled(chunk) for chunk in chunks]
     with eager_kernels():
-        eager = make_method(method, (34, 34, 2), 4).session()
+        eager = make_method(method, SENSOR, 4).session()
         expected = [eager(chunk) for chunk in chunks]
     assert sum(out.num_events for out in held if isinstance(out, Events)) > 0
     for out, want in zip(held, expected, strict=True):
