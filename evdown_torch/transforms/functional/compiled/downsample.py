@@ -8,7 +8,7 @@ import torch
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.regions import columns_of, region_tables
-from evdown_torch.transforms.functional.compiled.scratch import scratch_column
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column, scratch_copy
 from evdown_torch.transforms.functional.settings import RegionSettings
 
 __all__ = ["downsample_step"]
@@ -43,9 +43,7 @@ def downsample_step(events: Events, settings: RegionSettings) -> Events:
     n = x.shape[0]
     out_x = scratch_column("downsample x", n, x.dtype)
     out_y = scratch_column("downsample y", n, y.dtype)
-    out_t = scratch_column("downsample t", n, t.dtype)
-    out_p = scratch_column("downsample p", n, p.dtype)
     _downsample_loop(x, y, fx, fy, column, row, out_x, out_y)
-    out_t[:], out_p[:] = t, p
+    out_t, out_p = scratch_copy("downsample t", t), scratch_copy("downsample p", p)
     return Events(torch.from_numpy(out_x), torch.from_numpy(out_y), torch.from_numpy(out_t),
                   torch.from_numpy(out_p))

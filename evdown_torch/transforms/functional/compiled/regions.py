@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evdown_torch.transforms.functional.compiled.scratch import scratch_column
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column, scratch_copy
 
 __all__ = ["columns_of", "crossing_columns", "crossing_tensors", "grown_columns", "outside_error",
            "power_of_two_shifts", "region_tables"]
@@ -99,11 +99,7 @@ def crossing_tensors(
     (:func:`~.scratch.scratch_column`).
     """
     if k < out[0].shape[0] // 2:
-        names = ("x", "y", "source", "on")
-        copies = [scratch_column(f"crossing {name} copy", k, column.dtype)
-                  for name, column in zip(names, out, strict=True)]
-        for copy, column in zip(copies, out, strict=True):
-            copy[:] = column[:k]
-        out = tuple(copies)
+        out = tuple(scratch_copy(f"crossing {name} copy", column[:k])
+                    for name, column in zip(("x", "y", "source", "on"), out, strict=True))
     x, y, source, on = (torch.from_numpy(column[:k]) for column in out)
     return x, y, source, on

@@ -24,7 +24,7 @@ import threading
 
 import numpy as np
 
-__all__ = ["LARGEST_KEPT", "scratch_column"]
+__all__ = ["LARGEST_KEPT", "scratch_column", "scratch_copy"]
 
 #: The largest column (bytes) a thread keeps for reuse: 8 MiB (a million int64 values).
 LARGEST_KEPT = 8 << 20
@@ -87,3 +87,15 @@ def scratch_column(slot: str, n: int, dtype: np.dtype | type) -> np.ndarray:
     kept = np.empty(n, dtype)
     _KEPT.columns[key] = kept
     return kept[:n]
+
+
+def scratch_copy(slot: str, values: np.ndarray) -> np.ndarray:
+    """A copy of the 1-D ``values`` in the scratch column of ``slot`` (:func:`scratch_column`).
+
+    Example:
+        >>> scratch_copy("doctest copy", np.arange(3)).tolist()
+        [0, 1, 2]
+    """
+    copy = scratch_column(slot, values.shape[0], values.dtype)
+    copy[:] = values
+    return copy
