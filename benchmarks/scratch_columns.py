@@ -29,7 +29,6 @@ import argparse
 import hashlib
 import json
 import os
-import resource
 import statistics
 import subprocess
 import sys
@@ -43,7 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script
 
 from evdown_torch.bench.estimates import estimate_replay  # noqa: E402
-from evdown_torch.bench.realtime import REALTIME_SETTINGS  # noqa: E402
+from evdown_torch.bench.realtime import REALTIME_SETTINGS, minor_faults  # noqa: E402
 from evdown_torch.transforms.functional.compiled import (  # noqa: E402
     numba_available,
     scratch,
@@ -52,10 +51,6 @@ from evdown_torch.transforms.registry import make_method  # noqa: E402
 
 SENSOR = (128, 128, 2)
 FACTOR = 4
-
-
-def _faults() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 
 def run_session(method: str, chunks: list[np.ndarray], laps: int, reuse: bool,
@@ -75,11 +70,11 @@ def run_session(method: str, chunks: list[np.ndarray], laps: int, reuse: bool,
             for k, chunk in enumerate(chunks):
                 shifted = chunk.copy()
                 shifted["t"] += lap * span
-                before, start = _faults(), time.perf_counter()
+                before, start = minor_faults(), time.perf_counter()
                 outputs.append(session(shifted))
                 if lap or k:
                     seconds.append(time.perf_counter() - start)
-                    faults.append(_faults() - before)
+                    faults.append(minor_faults() - before)
     digest = hashlib.sha256(np.concatenate(outputs).tobytes()).hexdigest()
     return seconds, faults, digest
 

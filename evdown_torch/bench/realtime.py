@@ -69,6 +69,7 @@ __all__ = [
     "ReplayResult",
     "allocator_settings",
     "chunk_bounds_us",
+    "minor_faults",
     "realtime_benchmark",
     "realtime_markdown",
     "replay",
@@ -124,7 +125,7 @@ def allocator_settings(environ: Mapping[str, str] | None = None) -> str:
     return ", ".join(named) if named else "glibc defaults (freed memory goes back to the system)"
 
 
-def _minor_faults() -> int:
+def minor_faults() -> int:
     """Minor page faults of this process so far (0 where the platform does not count them)."""
     try:
         import resource
@@ -312,12 +313,12 @@ def replay(
     last = len(bounds) - 1 if max_chunks is None else min(len(bounds) - 1, max_chunks + 1)
     for k in range(last):
         chunk = events[bounds[k]:bounds[k + 1]]
-        faults = _minor_faults()
+        faults = minor_faults()
         start, start_cpu = time.perf_counter(), time.process_time()
         out = session(chunk)
         elapsed, cpu = time.perf_counter() - start, time.process_time() - start_cpu
         if 0 < k < len(bounds) - 2:  # neither the warm-up nor the stream's last chunk
-            result.faults.append(_minor_faults() - faults)
+            result.faults.append(minor_faults() - faults)
             result.seconds.append(elapsed)
             result.cpu_seconds.append(cpu)
             result.chunk_events.append(len(chunk))
