@@ -54,10 +54,11 @@ FACTOR = 4
 
 
 def run_session(method: str, chunks: list[np.ndarray], laps: int, reuse: bool,
-                ) -> tuple[list[float], list[int], str]:
-    """Seconds and minor faults of each chunk but the first, over ``laps`` laps of ``chunks``.
+                ) -> dict[str, float | str]:
+    """One session over ``laps`` laps of ``chunks``, every chunk but the first timed.
 
-    Also a digest of every output event, in order (all held until the end).
+    Returns its median and total seconds, the median minor faults of a chunk and a digest
+    of every output event, in order (all held until the end).
     """
     session = make_method(method, SENSOR, FACTOR, **REALTIME_SETTINGS.get(method, {})).session()
     span = int(chunks[-1]["t"][-1]) - int(chunks[0]["t"][0]) + 1
@@ -75,19 +76,18 @@ def run_session(method: str, chunks: list[np.ndarray], laps: int, reuse: bool,
                 if lap or k:
                     seconds.append(time.perf_counter() - start)
                     faults.append(minor_faults() - before)
-    digest = hashlib.sha256(np.concatenate(outputs).tobytes()).hexdigest()
-    return seconds, faults, digest
+    return {"median": statistics.median(seconds), "total": sum(seconds),
+            "faults": statistics.median(faults),
+            "digest": hashlib.sha256(np.concatenate(outputs).tobytes()).hexdigest()}
 
 
 def _child(path: str, method: str, laps: int, reuse: bool) -> None:
-    """Time one session in this fresh process; print its medians as JSON."""
+    """Time one session in this fresh process; print :func:`run_session`'s JSON."""
     with np.load(path) as saved:
         stream, bounds = saved["stream"], saved["bounds"]
     chunks = [stream[int(bounds[k]):int(bounds[k + 1])] for k in range(len(bounds) - 1)]
     del stream
-    seconds, faults, digest = run_session(method, chunks, laps, reuse)
-    print(json.dumps({"median": statistics.median(seconds), "total": sum(seconds),
-                      "faults": statistics.median(faults), "digest": digest}))
+    print(json.dumps(run_session(method, chunks, laps, reuse)))
 
 
 def _fresh(path: str, method: str, laps: int, reuse: bool) -> dict[str, float | str]:
@@ -139,14 +139,8 @@ def main(argv: list[str] | None = None) -> int:
         for method in own.methods:
             fresh = [(_fresh(path, method, own.laps, True), _fresh(path, method, own.laps, False))
                      for _ in range(own.runs)]
-            warm = []
-            for _ in range(own.runs):
-                kept, kept_faults, kept_digest = run_session(method, chunks, own.laps, True)
-                new, new_faults, new_digest = run_session(method, chunks, own.laps, False)
-                warm.append(({"median": statistics.median(kept), "total": sum(kept),
-                              "faults": statistics.median(kept_faults), "digest": kept_digest},
-                             {"median": statistics.median(new), "total": sum(new),
-                              "faults": statistics.median(new_faults), "digest": new_digest}))
+            warm = [(run_session(method, chunks, own.laps, True),
+                     run_session(method, chunks, own.laps, False)) for _ in range(own.runs)]
             for label, pairs in (("fresh", fresh), ("after the replay's set-up", warm)):
                 print(_row(method, label, pairs))
     return 0
