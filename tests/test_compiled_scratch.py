@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import threading
+from fractions import Fraction
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -10,7 +12,7 @@ import torch
 
 from evdown_torch import Downsample, eager_kernels
 from evdown_torch.events import Events, to_events
-from evdown_torch.transforms.functional.compiled import numba_available
+from evdown_torch.transforms.functional.compiled import numba_available, scratch
 from evdown_torch.transforms.functional.compiled.scratch import LARGEST_KEPT, scratch_column
 from evdown_torch.transforms.registry import make_method
 from tests.helpers import random_stream
@@ -144,3 +146,79 @@ def test_outputs_held_by_the_caller_match_the_eager_session(method: str) -> None
         assert isinstance(out, Events) and isinstance(want, Events)
         for got, column in zip(_columns(out), _columns(want), strict=True):
             np.testing.assert_array_equal(got, column)
+
+
+def _window(seed: int, n: int = 4000) -> tuple[Events, torch.Tensor]:
+    """Knot events of a window on 34 x 34 in time order, and their level changes."""
+    events = to_events(random_stream(np.random.default_rng(seed), n, SENSOR, t_max=10**6))[0]
+    change = torch.where(events.p, 1, -1).to(torch.int64)
+    return events, change
+
+
+def _solve_window(events: Events, change: torch.Tensor,
+                  cubic: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    from evdown_torch.transforms.functional.compiled.estimation import estimation_window
+
+    found = estimation_window(
+        events.x, events.y, events.t, change, t_start=events.t[0], t_end=events.t[-1],
+        sensor_size=SENSOR, factor=(4, 4), out_size=(9, 9), fraction=Fraction(1, 2),
+        resume_cut=None, resume_q=None, next_cut=None, chunk_events=1 << 17, cubic=cubic,
+        front_at_rest=False)
+    assert found is not None
+    region, t, on, _ = found
+    return region, t, on
+
+
+def _kept(slot: str, dtype: type) -> np.ndarray:
+    return scratch._KEPT.columns[(slot, np.dtype(dtype))]
+
+
+@pytest.mark.skipif(not numba_available(), reason="the compiled kernels need numba")
+@pytest.mark.parametrize("cubic", [False, True])
+def test_window_outputs_held_stay_intact_and_equal_fresh_memory(cubic: bool) -> None:
+    # The window loop's grouping and outputs are scratch columns: outputs a caller holds
+    # must survive later windows, and every window must give what it gives in fresh memory.
+    from evdown_torch.transforms.functional.compiled.cubic import addcmul_is_fused
+
+    if cubic and addcmul_is_fused() is None:
+        pytest.skip("this torch's addcmul rounds neither way: no compiled cubic loop")
+    windows = [_window(seed) for seed in range(4)]
+    with mock.patch.object(scratch, "LARGEST_KEPT", -1):  # every column new
+        expected = [[c.clone() for c in _solve_window(*w, cubic)] for w in windows]
+    held = [_solve_window(*w, cubic) for w in windows]
+    assert sum(out[0].shape[0] for out in expected) > 0
+    for got, want in zip(held, expected, strict=True):
+        for column, reference in zip(got, want, strict=True):
+            assert torch.equal(column, reference)
+
+
+@pytest.mark.skipif(not numba_available(), reason="the compiled kernels need numba")
+def test_a_window_reuses_the_last_windows_memory_once_dropped() -> None:
+    events, change = _window(7)
+    _solve_window(events, change, cubic=False)  # outputs dropped at once
+    grouping, outputs = _address(_kept("window 0", np.int64)), _address(_kept("window 4", np.int64))
+    region, _, _ = _solve_window(events, change, cubic=False)
+    assert _address(_kept("window 0", np.int64)) == grouping
+    assert _address(region.numpy()) == outputs
+    held = region.clone()
+    _solve_window(*_window(8), cubic=False)  # ``region`` is held: new outputs' memory
+    assert torch.equal(region, held)
+
+
+@pytest.mark.skipif(not numba_available(), reason="the compiled kernels need numba")
+def test_next_knots_held_stay_intact_and_reuse_the_loop_columns() -> None:
+    from evdown_torch.transforms.functional.compiled.estimation_window import next_knots
+
+    def knots(seed: int) -> tuple[Events, torch.Tensor]:
+        events, change = _window(seed)
+        return next_knots(events, change, before=events.t[events.num_events // 2], keep=2,
+                          width=SENSOR[0])
+
+    first, first_change = knots(1)
+    expected = _columns(first) + [first_change.numpy().copy()]
+    loop_columns = _address(_kept("next knots 0", np.int64))
+    for seed in range(2, 5):
+        knots(seed)
+        assert _address(_kept("next knots 0", np.int64)) == loop_columns  # the same memory
+    for got, want in zip(_columns(first) + [first_change.numpy()], expected, strict=True):
+        np.testing.assert_array_equal(got, want)

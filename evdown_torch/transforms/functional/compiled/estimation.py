@@ -50,6 +50,7 @@ from evdown_torch.transforms.functional.compiled.regions import (
     outside_error,
     region_tables,
 )
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 from evdown_torch.transforms.functional.reference import SNAP
 
 __all__ = ["estimation_window"]
@@ -95,7 +96,8 @@ def _window_loop(
     width: int, height: int, a: int, b: int, level_scale: float, divides: bool,
     integer_time: bool, cubic: bool, front_at_rest: bool, fused: bool, q: np.ndarray,
     has_cut: bool, cut: np.ndarray, has_next: bool, next_cut: np.ndarray, limit: int,
-    chunk_events: int,
+    chunk_events: int, work: tuple[np.ndarray, ...], work_t: tuple[np.ndarray, ...],
+    work_on: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
     """The crossings of every region of a window, in region order; ``q`` moved to ``next_cut``.
 
@@ -103,11 +105,15 @@ def _window_loop(
     report when the output exceeds ``limit`` (the crossings are then not all written),
     ``-2 - i`` for an event ``i`` outside the sensor, or :data:`TOO_WIDE_CALL` for a level
     change of 2**31 or more (nothing done for either).
+
+    ``work`` (five int64 columns), ``work_t`` (two of ``t``'s dtype) and ``work_on`` (bool),
+    each of at least ``max(N, 16) + 1`` elements: the grouping's columns and the outputs,
+    which are views of them unless the crossings outgrow them.
     """
     n = t.shape[0]
     per_region = fx * fy
     regions, first_of, packed, t, outside = group_by_region(x, y, t, change, column, row, fx,
-                                                            fy, out_w)
+                                                            fy, out_w, work[:4], work_t[0])
     if outside != -1:  # an event outside the sensor, or a change too wide to pack
         code = TOO_WIDE_CALL if outside == TOO_WIDE else -2 - outside
         return np.empty(0, np.int64), np.empty(0, t.dtype), np.empty(0, np.bool_), code
@@ -137,9 +143,7 @@ def _window_loop(
     on_level = np.empty(moves, np.bool_)
 
     capacity = max(16, n)
-    out_region = np.empty(capacity, np.int64)
-    out_t = np.empty(capacity, t.dtype)
-    out_on = np.empty(capacity, np.bool_)
+    out_region, out_t, out_on = work[4][:capacity], work_t[1][:capacity], work_on[:capacity]
     written = 0
     total = 0  # crossings counted so far (written while within the limit)
     previous_start = -1
@@ -268,10 +272,12 @@ def estimation_window(
 
     Returns:
         ``(region, t, on, q)``: the crossings' ``(C,)`` int64 regions, times (the events'
-        dtype) and polarities in region order, and with ``next_cut`` the ``(Wo * Ho,)``
-        int64 reference index after each region's last breakpoint earlier than it; ``None``
-        for a window with a level change of 2**31 or more (a pixel's whole level, carried by
-        a session's first knot of it), which the loop does not pack: the eager driver's.
+        dtype) and polarities in region order (views of this thread's scratch columns,
+        :func:`~.scratch.scratch_column`, while the output fits them), and with ``next_cut``
+        the ``(Wo * Ho,)`` int64 reference index after each region's last breakpoint earlier
+        than it; ``None`` for a window with a level change of 2**31 or more (a pixel's whole
+        level, carried by a session's first knot of it), which the loop does not pack: the
+        eager driver's.
 
     Raises:
         OutputLimitError: as the eager driver raises it, with the same count.
@@ -293,11 +299,14 @@ def estimation_window(
     limit = output_limit()
     fused = bool(addcmul_is_fused()) if cubic else False
     column, row = region_tables(factor, out_size[0], start_of.shape[0] * out_size[1])
+    size = max(x.shape[0], 16) + 1
+    work = tuple(scratch_column(f"window {i}", size, np.int64) for i in range(5))
+    work_t = tuple(scratch_column(f"window t {i}", size, t.dtype) for i in range(2))
     region, out_t, on, over = _window_loop(
         x, y, t, change_np, column, row, start_of, end_of, fx, fy, out_size[0], out_size[1],
         width, height, a, b, b / (fx * fy * a), divides, not t_dtype.is_floating_point, cubic,
         front_at_rest, fused, q, has_cut, cut, has_next, after, -1 if limit is None else limit,
-        chunk_events,
+        chunk_events, work, work_t, scratch_column("window on", size, np.bool_),
     )
     if over == TOO_WIDE_CALL:
         return None

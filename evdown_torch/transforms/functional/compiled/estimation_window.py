@@ -30,6 +30,7 @@ from torch import Tensor
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.regions import columns_of
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 from evdown_torch.transforms.functional.estimation import delay
 
 __all__ = ["held_knots", "merge_by_time", "next_knots"]
@@ -43,16 +44,19 @@ _SHORT_RUN = 64
 
 
 @compiled_loop
-def _slots(pixel: np.ndarray, bound: int) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
+def _slots(pixel: np.ndarray, bound: int, slot: np.ndarray,
+           owner: np.ndarray) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
     """``(N,)`` int64 slot of each pixel id in ``[0, bound)`` (in order of first appearance).
+
+    ``slot`` and ``owner``: int64 columns of at least ``N`` elements (``slot``'s first ``N``
+    are returned; ``owner`` is scratch).
 
     Returns:
         ``(slot, number of slots)``. The table of ``bound`` entries is not cleared: a slot
         read from it counts only where the slot's owner is the pixel.
     """
     table = np.empty(bound, dtype=np.int64)
-    owner = np.empty(pixel.shape[0], dtype=np.int64)
-    slot = np.empty(pixel.shape[0], dtype=np.int64)
+    slot = slot[:pixel.shape[0]]
     count = 0
     for i in range(pixel.shape[0]):
         p = pixel[i]
@@ -67,13 +71,14 @@ def _slots(pixel: np.ndarray, bound: int) -> tuple[np.ndarray, int]:  # pragma: 
 
 
 @compiled_loop
-def _pixel_ids(x: np.ndarray, y: np.ndarray,
-               width: int) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
+def _pixel_ids(x: np.ndarray, y: np.ndarray, width: int,
+               pixel: np.ndarray) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
     """``(N,)`` int64 pixel id ``y * width + x`` of each event, and one past the largest.
 
-    The bound is -1 where an id is negative (a negative coordinate, or an overflow).
+    Written into the first ``N`` elements of the int64 column ``pixel``. The bound is -1
+    where an id is negative (a negative coordinate, or an overflow).
     """
-    pixel = np.empty(x.shape[0], dtype=np.int64)
+    pixel = pixel[:x.shape[0]]
     bound = 0
     for i in range(x.shape[0]):
         pixel[i] = y[i] * width + x[i]
@@ -84,11 +89,16 @@ def _pixel_ids(x: np.ndarray, y: np.ndarray,
 
 
 @compiled_loop
-def _order_ties(t: np.ndarray, key: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """``(M,)`` int64 stable order by ``key`` inside each run of equal ``t`` (``t`` ascending)."""
+def _order_ties(t: np.ndarray, key: np.ndarray, order: np.ndarray,
+                keys: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """``(M,)`` int64 stable order by ``key`` inside each run of equal ``t`` (``t`` ascending).
+
+    ``order`` and ``keys``: int64 columns of at least ``M`` elements (``order``'s first
+    ``M`` are returned; ``keys`` is scratch).
+    """
     n = t.shape[0]
-    order = np.empty(n, dtype=np.int64)
-    keys = np.empty_like(key)  # keys[j] = key[order[j]] in the run being sorted
+    order = order[:n]
+    keys = keys[:n]  # keys[j] = key[order[j]] in the run being sorted
     start = 0
     while start < n:
         end = start + 1
@@ -131,10 +141,10 @@ def _held_loop(
         if x[i] < 0 or y[i] < 0:
             return -1, np.empty(0, np.int64), np.empty(0, np.int64), t[:0].copy()
         width = max(width, x[i] + 1)
-    pixel, bound = _pixel_ids(x, y, width)
+    pixel, bound = _pixel_ids(x, y, width, np.empty(n, np.int64))
     if bound < 0:  # (overflow)
         return -1, np.empty(0, np.int64), np.empty(0, np.int64), t[:0].copy()
-    slot, count = _slots(pixel, bound)
+    slot, count = _slots(pixel, bound, np.empty(n, np.int64), np.empty(n, np.int64))
     last = np.empty(count, dtype=t.dtype)
     seen = np.zeros(count, dtype=np.bool_)
     at = np.empty(n, dtype=np.int64)
@@ -155,7 +165,7 @@ def _held_loop(
     held_t, at = held_t[:m], at[:m]
     key = pixel[at]
     if sorted_t:  # time-sorted events: ties (equal held times) ordered by pixel
-        order = _order_ties(held_t, key)
+        order = _order_ties(held_t, key, np.empty(m, np.int64), np.empty(m, np.int64))
     else:  # a stable sort by pixel, then by held time
         by_pixel = np.argsort(key, kind="mergesort")
         order = by_pixel[np.argsort(held_t[by_pixel], kind="mergesort")]
@@ -173,7 +183,7 @@ def _held_loop(
 @compiled_loop
 def _next_loop(
     x: np.ndarray, y: np.ndarray, t: np.ndarray, change: np.ndarray, before: np.generic,
-    keep: int, width: int,
+    keep: int, width: int, work: tuple[np.ndarray, ...], kept: np.ndarray,
 ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
     """The knots :func:`next_knots` keeps of ``N >= 1`` time-sorted events.
 
@@ -185,18 +195,20 @@ def _next_loop(
     Returns:
         ``(status, x, y, t, p, change)`` of the kept knots in order of time, then pixel
         (``x``, ``y`` of the pixel id, ``p`` = ``change > 0``): status 0, or -1 for a
-        negative pixel id.
+        negative pixel id. ``work``: eight int64 columns and ``kept`` a bool one, each of at
+        least ``N`` elements, for the loop's own columns (the caller's scratch columns,
+        :mod:`.scratch`); the knots returned are new arrays.
     """
     n = t.shape[0]
-    pixel, bound = _pixel_ids(x, y, width)
+    pixel, bound = _pixel_ids(x, y, width, work[0])
     if bound < 0:
         none = np.empty(0, np.int64)
         return -1, none, none, t[:0].copy(), np.empty(0, np.bool_), none
-    slot, count = _slots(pixel, bound)
+    slot, count = _slots(pixel, bound, work[1], work[2])
     cut = np.searchsorted(t, before)  # events before it: t < before
     knots = np.zeros(count, dtype=np.int64)  # a pixel's knot times before cut, from its last
     current = np.empty(count, dtype=t.dtype)
-    kept = np.empty(cut, dtype=np.bool_)
+    kept = kept[:cut]
     for i in range(cut - 1, -1, -1):
         s = slot[i]
         if knots[s] == 0 or t[i] != current[s]:
@@ -206,9 +218,7 @@ def _next_loop(
     pending = np.zeros(count, dtype=np.int64)  # changes since the pixel's last kept knot
     last = np.empty(count, dtype=np.int64)  # the pixel's last event in this run of times
     run_of = np.full(count, -1, dtype=np.int64)
-    touched = np.empty(n, dtype=np.int64)
-    out_at = np.empty(n, dtype=np.int64)
-    out_change = np.empty(n, dtype=np.int64)
+    touched, out_at, out_change = work[3], work[4], work[5]
     m = 0
     start = 0
     k = 0
@@ -234,7 +244,7 @@ def _next_loop(
             touched[k] = s
             k += 1
     out_at = out_at[:m]
-    order = _order_ties(t[out_at], pixel[out_at])
+    order = _order_ties(t[out_at], pixel[out_at], work[6], work[7])
     knot_x = np.empty(m, dtype=np.int64)
     knot_y = np.empty(m, dtype=np.int64)
     knot_t = np.empty(m, dtype=t.dtype)
@@ -418,7 +428,10 @@ def next_knots(
     if t_dtype not in TIME_DTYPES:
         raise TypeError(f"next_knots takes int64, float64 or float32 timestamps, got {t_dtype}")
     x, y, t, steps = columns_of(window.x, window.y, window.t, change)
-    status, *out = _next_loop(x, y, t, steps, _scalar(before, t_dtype), keep, width)
+    n = t.shape[0]
+    work = tuple(scratch_column(f"next knots {i}", n, np.int64) for i in range(8))
+    status, *out = _next_loop(x, y, t, steps, _scalar(before, t_dtype), keep, width, work,
+                              scratch_column("next knots kept", n, np.bool_))
     if status < 0:
         raise ValueError("next_knots needs non-negative pixel ids y * width + x")
     knot_x, knot_y, knot_t, knot_p, knot_change = (torch.from_numpy(column) for column in out)

@@ -40,7 +40,8 @@ TOO_WIDE = -2
 @compiled_loop
 def group_by_region(
     x: np.ndarray, y: np.ndarray, t: np.ndarray, change: np.ndarray, column: np.ndarray,
-    row: np.ndarray, fx: int, fy: int, out_w: int,
+    row: np.ndarray, fx: int, fy: int, out_w: int, work: tuple[np.ndarray, ...],
+    by_t: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
     """The events by region, stably: ``(regions, first_of, packed, t, outside)``.
 
@@ -54,9 +55,14 @@ def group_by_region(
     region's pixel count does not fit 32 bits, or -1 (nothing else is computed but for -1). A
     counting sort where the region ids span a few times the events, else a stable merge
     sort: the cost follows the events, not the sensor's area.
+
+    ``work``: four int64 columns and ``by_t`` one of ``t``'s dtype, each of at least
+    ``N + 1`` elements, that the returned columns are views of (the caller's scratch
+    columns, :mod:`.scratch`, so that a window's grouping takes no fresh memory).
     """
     n = x.shape[0]
-    region = np.empty(n, np.int64)
+    region, packed, regions, first_of = work[0][:n], work[1][:n], work[2][:n], work[3][:n + 1]
+    by_t = by_t[:n]
     span = 0
     widest = fx * fy
     for i in range(n):
@@ -67,9 +73,6 @@ def group_by_region(
         widest = max(widest, abs(change[i]) + 1)
     if widest >= 1 << 31:
         return region[:0], np.zeros(1, np.int64), region, t, TOO_WIDE
-    packed, by_t = np.empty(n, np.int64), np.empty(n, t.dtype)
-    regions = np.empty(n, np.int64)
-    first_of = np.empty(n + 1, np.int64)
     k = 0
     if span > 4 * n + 1024:  # gathered in merge-sort order
         order = np.argsort(region, kind="mergesort")
