@@ -1,8 +1,9 @@
 """A method's live session with and without the scratch columns, fresh and after a set-up.
 
-On the compiled CPU path the edge's columns (a chunk's fields read from its Tonic array) and
-the outputs of EventCount, PhotocurrentPooling, Downsample and EventFunnelling come from each
-thread's reused scratch columns
+On the compiled CPU path the edge's columns (a chunk's fields read from its Tonic array), the
+outputs of EventCount, PhotocurrentPooling, Downsample and EventFunnelling, and the columns
+of the estimators' window and next-knots loops (``--methods cubic``) come from each thread's
+reused scratch columns
 (:mod:`evdown_torch.transforms.functional.compiled.scratch`) instead of fresh memory each
 call. This script runs sessions of each method over the live replay's chunks (the synthetic
 gesture recording retimed to 25 M events/s, 10 ms chunks, one thread, the replay's
@@ -20,7 +21,8 @@ chunk (fresh pages touched), the ratio of the total times, and whether every out
 session warms up and is not timed.
 
 Run: ``python benchmarks/scratch_columns.py [--events 13000000] [--chunks 50] [--laps 3]
-[--runs 3] [--methods event_count downsample funnelling photocurrent]``.
+[--runs 3] [--methods event_count downsample funnelling photocurrent cubic]`` (the default:
+the first four).
 """
 
 from __future__ import annotations
