@@ -58,13 +58,13 @@ def _slots(pixel: np.ndarray, bound: int, slot: np.ndarray,
     table = np.empty(bound, dtype=np.int64)
     slot = slot[:pixel.shape[0]]
     count = 0
-    for i in range(pixel.shape[0]):
+    for i in range(pixel.shape[0]):  # (unsigned indices: no test for a negative index)
         p = pixel[i]
-        s = table[p]
-        if s < 0 or s >= count or owner[s] != p:
+        s = table[np.uint64(p)]
+        if s < 0 or s >= count or owner[np.uint64(s)] != p:
             s = count
-            table[p] = s
-            owner[s] = p
+            table[np.uint64(p)] = s
+            owner[np.uint64(s)] = p
             count += 1
         slot[i] = s
     return slot, count
@@ -152,7 +152,7 @@ def _held_loop(
     m = 0
     sorted_t = True
     for i in range(n):
-        s = slot[i]
+        s = np.uint64(slot[i])  # (unsigned: no test for a negative index)
         previous = last[s] if seen[s] else t_start[i if per_event else 0]
         seen[s] = True
         last[s] = t[i]
@@ -209,8 +209,11 @@ def _next_loop(
     knots = np.zeros(count, dtype=np.int64)  # a pixel's knot times before cut, from its last
     current = np.empty(count, dtype=t.dtype)
     kept = kept[:cut]
-    for i in range(cut - 1, -1, -1):
-        s = slot[i]
+    # (Indices are cast to unsigned: each is non-negative, and Numba then adds no test for a
+    # negative index to each read and write.)
+    for back in range(np.uint64(cut)):
+        i = np.uint64(cut) - np.uint64(1) - back
+        s = np.uint64(slot[i])
         if knots[s] == 0 or t[i] != current[s]:
             knots[s] += 1
             current[s] = t[i]
@@ -223,11 +226,11 @@ def _next_loop(
     start = 0
     k = 0
     for i in range(n + 1):
-        if i == n or t[i] != t[start]:  # the run [start, i) of equal times ends
+        if i == n or t[i] != t[np.uint64(start)]:  # the run [start, i) of equal times ends
             for j in range(k):
-                s = touched[j]
+                s = np.uint64(touched[j])
                 e = last[s]
-                if e >= cut or kept[e]:
+                if e >= cut or kept[np.uint64(e)]:
                     out_at[m] = e
                     out_change[m] = pending[s]
                     pending[s] = 0
@@ -236,7 +239,7 @@ def _next_loop(
                 break
             start = i
             k = 0
-        s = slot[i]
+        s = np.uint64(slot[i])
         pending[s] += change[i]
         last[s] = i
         if run_of[s] != start:

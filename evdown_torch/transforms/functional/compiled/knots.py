@@ -84,19 +84,22 @@ def group_by_region(
             local = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
             packed[j], by_t[j] = pack(local, change[i]), t[i]
     else:  # scattered in one pass: each region's place advances through its own run
+        # (Indices read from columns are cast to unsigned: each is non-negative, and Numba
+        # then adds no test for a negative index to each read and write.)
         place = np.zeros(span + 1, np.int64)
         for i in range(n):
-            place[region[i] + 1] += 1
+            place[np.uint64(region[i] + 1)] += 1
         for r in range(span):
             if place[r + 1]:
                 regions[k], first_of[k] = r, place[r]
                 k += 1
             place[r + 1] += place[r]
         for i in range(n):
-            j = place[region[i]]
-            place[region[i]] = j + 1
-            local = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
-            packed[j], by_t[j] = pack(local, change[i]), t[i]
+            r, xi, yi = np.uint64(region[i]), x[i], y[i]
+            j = place[r]
+            place[r] = j + 1
+            local = (yi - row[np.uint64(yi)] * fy) * fx + xi - column[np.uint64(xi)] * fx
+            packed[np.uint64(j)], by_t[np.uint64(j)] = pack(local, change[i]), t[i]
     first_of[k] = n
     return regions[:k], first_of[:k + 1], packed, by_t, -1
 
