@@ -2,6 +2,15 @@
 
 Imported by the loop modules only, which the kernels import on their first compiled call
 (:func:`~evdown_torch.transforms.functional.compiled.use_compiled`).
+
+**Unsigned indices.** Numba lets a signed index count from the end (``a[-1]``), so each read
+or write with a signed index it cannot prove non-negative (one read from a column, computed
+from table values, or a loop variable that does not start at 0) carries a test and a fix-up.
+Where a hot loop's index is non-negative by construction, the loops cast it to ``np.uint64``
+(``a[np.uint64(i)]``, ``range(np.uint64(lo), np.uint64(hi))``), which has neither: 10 to 30 %
+of EventCount's loop, the estimators' sums and LinearEstimation's ramps and sweep
+(docs/benchmarks.md, "Third session of 2026-12-03"). Arithmetic stays in int64: NumPy's rules
+make ``uint64`` mixed with ``int64`` a float64, so a cast is taken only where an index is used.
 """
 
 from __future__ import annotations

@@ -151,8 +151,7 @@ def region_sums(
         c3 = (c1 + c2_end) - 2.0 * rise[k]
         inv_w = 1.0 / width[k]
         start = float(k_t[k] - origin) if integer_time else float(k_t[k])
-        # (An unsigned index: no wraparound test on each read and write, about 10 % of the
-        # window loop on the live replay's windows.)
+        # (An unsigned index: ``_numba``, "Unsigned indices".)
         for j in range(np.uint64(k_bp[k] + 1), np.uint64(k_bp[k + 1])):
             at = float(bp_t[j] - origin) if integer_time else float(bp_t[j])
             s = (at - start) * inv_w

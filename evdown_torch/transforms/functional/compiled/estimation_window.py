@@ -58,7 +58,7 @@ def _slots(pixel: np.ndarray, bound: int, slot: np.ndarray,
     table = np.empty(bound, dtype=np.int64)
     slot = slot[:pixel.shape[0]]
     count = 0
-    for i in range(pixel.shape[0]):  # (unsigned indices: no test for a negative index)
+    for i in range(pixel.shape[0]):  # (unsigned indices: ``_numba``, "Unsigned indices")
         p = pixel[i]
         s = table[np.uint64(p)]
         if s < 0 or s >= count or owner[np.uint64(s)] != p:
@@ -152,7 +152,7 @@ def _held_loop(
     m = 0
     sorted_t = True
     for i in range(n):
-        s = np.uint64(slot[i])  # (unsigned: no test for a negative index)
+        s = np.uint64(slot[i])  # (unsigned: ``_numba``, "Unsigned indices")
         previous = last[s] if seen[s] else t_start[i if per_event else 0]
         seen[s] = True
         last[s] = t[i]
@@ -209,8 +209,7 @@ def _next_loop(
     knots = np.zeros(count, dtype=np.int64)  # a pixel's knot times before cut, from its last
     current = np.empty(count, dtype=t.dtype)
     kept = kept[:cut]
-    # (Indices are cast to unsigned: each is non-negative, and Numba then adds no test for a
-    # negative index to each read and write.)
+    # (Indices are cast to unsigned: ``_numba``, "Unsigned indices".)
     for back in range(np.uint64(cut)):
         i = np.uint64(cut) - np.uint64(1) - back
         s = np.uint64(slot[i])

@@ -58,9 +58,9 @@ def _event_count_loop(
         tables (a coordinate outside the sensor).
     """
     # Two measured choices (about 15 % of the loop on a 1M-event stream): the event index is
-    # unsigned, so Numba adds no wraparound test for a negative index to each read, and each
-    # region's next crossing levels ``(q + 1) * step`` and ``(q - 1) * step`` are kept in
-    # ``high`` and ``low`` (one comparison pair per event, no product).
+    # unsigned (``_numba``, "Unsigned indices"), and each region's next crossing levels
+    # ``(q + 1) * step`` and ``(q - 1) * step`` are kept in ``high`` and ``low`` (one
+    # comparison pair per event, no product).
     n = x.shape[0]
     capacity = out_source.shape[0]
     width = column.shape[0]

@@ -84,8 +84,7 @@ def group_by_region(
             local = (y[i] - row[y[i]] * fy) * fx + x[i] - column[x[i]] * fx
             packed[j], by_t[j] = pack(local, change[i]), t[i]
     else:  # scattered in one pass: each region's place advances through its own run
-        # (Indices read from columns are cast to unsigned: each is non-negative, and Numba
-        # then adds no test for a negative index to each read and write.)
+        # (Indices read from columns are cast to unsigned: ``_numba``, "Unsigned indices".)
         place = np.zeros(span + 1, np.int64)
         for i in range(n):
             place[np.uint64(region[i] + 1)] += 1

@@ -84,8 +84,7 @@ def _ramps(
     Raises:
         ValueError: when a ring is full (its oldest change not yet swept, ``head_*``).
     """
-    # Every index is cast to unsigned (each is non-negative): Numba then adds no test for a
-    # negative index to each read and write, about a quarter of this loop and of the sweep.
+    # Every index is cast to unsigned (each is non-negative: ``_numba``, "Unsigned indices").
     for i in range(xs.shape[0]):
         x, y, t = np.int64(xs[i]), np.int64(ys[i]), ts[i]
         c = 1 if ps[i] else -1
@@ -182,7 +181,7 @@ def _sweep(
         else:
             t, r, d_slope, d_jump, d_active, d_delta = horizon, final, 0, 0, 0, 0.0
             final += 1
-        region = np.uint64(r)  # (unsigned indices: as in _ramps)
+        region = np.uint64(r)  # (an unsigned index, as in _ramps)
         t_now = since[region]
         if t > t_now:
             v, qr, sl = value[region], q[region], slope_sum[region]
