@@ -71,6 +71,7 @@ from evdown_torch._tensors import (
     divide,
     last_of_runs,
     run_index,
+    runs_of,
     stable_sort_small,
     where_true,
 )
@@ -450,9 +451,7 @@ def lif_spikes(
         total, detail=f" ({total - spike_cell.shape[0]:,} of them fired by LIF neurons that stay "
         "above threshold through silent steps)", fewer="a lower weight gives fewer events")
     if run_length.shape[0]:  # the spikes of the runs, one by one
-        run_of_spike = torch.repeat_interleave(
-            torch.arange(run_length.shape[0], device=device), run_length
-        )
+        run_of_spike = runs_of(run_length, total - spike_cell.shape[0])
         first_of_run = torch.cumsum(run_length, 0) - run_length
         within_run = (torch.arange(run_of_spike.shape[0], device=device)
                       - first_of_run[run_of_spike])

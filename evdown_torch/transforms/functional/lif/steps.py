@@ -14,7 +14,7 @@ import math
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import region_xy
+from evdown_torch._tensors import region_xy, runs_of
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 
@@ -79,7 +79,7 @@ def _sorted_steps(t: Tensor, t_start: int, dt: int) -> Tensor | None:
     index = torch.arange(first, last + 1, device=t.device)
     begins = torch.searchsorted(t, index[1:] * dt + t_start)  # each later step's first event
     counts = torch.diff(begins, prepend=begins.new_zeros(1), append=begins.new_full((1,), n))
-    return torch.repeat_interleave(index, counts, output_size=n)
+    return runs_of(counts, n).add_(first)  # each step's index, repeated over its events
 
 
 def _checked_dt(
