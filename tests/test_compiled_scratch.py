@@ -224,3 +224,24 @@ def test_next_knots_held_stay_intact_and_reuse_the_loop_columns() -> None:
         assert _address(_kept("next knots 0", np.int64)) == loop_columns  # the same memory
     for got, want in zip(_columns(first) + [first_change.numpy()], expected, strict=True):
         np.testing.assert_array_equal(got, want)
+
+
+def test_a_thread_keeps_at_most_most_kept_bytes() -> None:
+    before = scratch.kept_bytes()
+    with mock.patch.object(scratch, "MOST_KEPT", before + 3 * 8000):
+        for k in range(3):  # three new slots of 8,000 bytes: kept
+            scratch_column(f"test most kept {k}", 1000, np.int64)
+        assert scratch.kept_bytes() == before + 24_000
+        # A fourth slot would go past the limit: new memory every call, nothing kept.
+        assert scratch_column("test most kept 3", 1000, np.int64).shape == (1000,)
+        assert ("test most kept 3", np.dtype(np.int64)) not in scratch._KEPT.columns
+        assert scratch.kept_bytes() == before + 24_000
+        # A kept slot asked for a longer column than the limit allows keeps its last one.
+        kept = _address(_kept("test most kept 0", np.int64))
+        longer = scratch_column("test most kept 0", 2000, np.int64)
+        assert longer.shape == (2000,) and _address(longer) != kept
+        assert _address(_kept("test most kept 0", np.int64)) == kept
+        assert scratch.kept_bytes() == before + 24_000
+        del longer
+        # Still reused where it is long enough.
+        assert _address(scratch_column("test most kept 0", 500, np.int64)) == kept

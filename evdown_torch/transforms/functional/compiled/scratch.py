@@ -12,9 +12,10 @@ made with ``torch.from_numpy``, an ``Events`` that kept a column, a method's sta
 CPython's reference count says so, so a column still in use is never overwritten, and a new
 one is taken instead.
 
-Columns over :data:`LARGEST_KEPT` bytes are not kept: a thread holds at most that much per
-slot after its calls. Python builds without the GIL (whose reference counts are not exact
-from another thread) take new columns every time.
+Columns over :data:`LARGEST_KEPT` bytes are not kept, nor a column that would take the
+thread's kept columns past :data:`MOST_KEPT` bytes in all: a thread holds at most that much
+after its calls, however many slots its methods use. Python builds without the GIL (whose
+reference counts are not exact from another thread) take new columns every time.
 """
 
 from __future__ import annotations
@@ -24,10 +25,14 @@ import threading
 
 import numpy as np
 
-__all__ = ["LARGEST_KEPT", "scratch_column", "scratch_copy"]
+__all__ = ["LARGEST_KEPT", "MOST_KEPT", "kept_bytes", "scratch_column", "scratch_copy"]
 
 #: The largest column (bytes) a thread keeps for reuse: 8 MiB (a million int64 values).
 LARGEST_KEPT = 8 << 20
+
+#: The most a thread keeps in all its columns (bytes): 160 MiB. A column that would take it
+#: past this is new and not kept (the slot keeps its last column).
+MOST_KEPT = 160 << 20
 
 #: References to a kept column while no one else holds it: the thread's table, the name
 #: ``kept`` in :func:`scratch_column` and ``sys.getrefcount``'s own argument.
@@ -37,10 +42,11 @@ _EXACT_REFERENCES = getattr(sys, "_is_gil_enabled", lambda: True)()
 
 
 class _Kept(threading.local):
-    """Each thread's kept columns, by ``(slot, dtype)``."""
+    """Each thread's kept columns, by ``(slot, dtype)``, and their bytes in all."""
 
     def __init__(self) -> None:
         self.columns: dict[tuple[str, np.dtype], np.ndarray] = {}
+        self.size = 0
 
 
 _KEPT = _Kept()
@@ -55,7 +61,8 @@ def scratch_column(slot: str, n: int, dtype: np.dtype | type) -> np.ndarray:
     the column outlive the call unless it hands it on as an object that refers to it (a
     view, a tensor made with ``torch.from_numpy``): that reference is what keeps the next
     call from reusing it. A column handed on is a view of the kept one, which may be longer
-    (up to :data:`LARGEST_KEPT` bytes stay alive behind it).
+    (up to :data:`LARGEST_KEPT` bytes stay alive behind it). A new column that would take
+    the thread's kept columns past :data:`MOST_KEPT` bytes is not kept.
 
     Args:
         slot: the column's use (one name per column a call holds at once).
@@ -77,16 +84,33 @@ def scratch_column(slot: str, n: int, dtype: np.dtype | type) -> np.ndarray:
         True
     """
     dtype = np.dtype(dtype)
-    if n * dtype.itemsize > LARGEST_KEPT or not _EXACT_REFERENCES:
+    size = n * dtype.itemsize
+    if size > LARGEST_KEPT or not _EXACT_REFERENCES:
         return np.empty(n, dtype)
     key = (slot, dtype)
     kept = _KEPT.columns.get(key)
     if (kept is not None and kept.shape[0] >= n
             and sys.getrefcount(kept) == _UNUSED_REFERENCES):
         return kept[:n]
+    replaced = 0 if kept is None else kept.nbytes
+    if _KEPT.size - replaced + size > MOST_KEPT:
+        return np.empty(n, dtype)  # (the slot keeps its last column)
     kept = np.empty(n, dtype)
     _KEPT.columns[key] = kept
+    _KEPT.size += size - replaced
     return kept[:n]
+
+
+def kept_bytes() -> int:
+    """The bytes this thread keeps in its scratch columns (at most :data:`MOST_KEPT`).
+
+    Example:
+        >>> before = kept_bytes()
+        >>> column = scratch_column("doctest kept bytes", 1000, np.int64)  # a new slot
+        >>> kept_bytes() - before
+        8000
+    """
+    return _KEPT.size
 
 
 def scratch_copy(slot: str, values: np.ndarray) -> np.ndarray:
