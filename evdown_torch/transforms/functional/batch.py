@@ -30,7 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, stable_sort_small, take, where_true
+from evdown_torch._tensors import divide, runs_of, stable_sort_small, take, where_true
 from evdown_torch.checks import output_size
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events
@@ -64,9 +64,7 @@ class Stacked(NamedTuple):
 
 def recording_index(lengths: tuple[int, ...], device: torch.device) -> Tensor:
     """``(N,)`` int64 recording of each event of recordings of ``lengths`` concatenated."""
-    counts = torch.tensor(lengths, dtype=torch.int64, device=device)
-    return torch.repeat_interleave(torch.arange(len(lengths), device=device), counts,
-                                   output_size=sum(lengths))
+    return runs_of(torch.tensor(lengths, dtype=torch.int64, device=device), sum(lengths))
 
 
 def sorted_within(t: Tensor, lengths: tuple[int, ...]) -> bool:

@@ -36,6 +36,7 @@ from evdown_torch._tensors import (
     changes,
     last_of_runs,
     narrow_dtype,
+    runs_of,
     stable_sort_small,
     take,
     where_true,
@@ -297,8 +298,9 @@ def crossings(q_before: Tensor, q_after: Tensor, *, emitted: int = 0) -> Crossin
     changed = where_true(delta != 0)
     delta = take(delta, changed)
     count = delta.abs()
-    check_output_count(emitted + int(count.sum()))
-    pick = torch.repeat_interleave(torch.arange(changed.shape[0], device=delta.device), count)
+    total = int(count.sum())
+    check_output_count(emitted + total)
+    pick = runs_of(count, total)
     offsets = torch.cumsum(count, 0) - count
     within = torch.arange(pick.shape[0], device=delta.device) - take(offsets, pick)
     on = take(delta, pick) > 0
