@@ -107,8 +107,9 @@ def _window_loop(
     change of 2**31 or more (nothing done for either).
 
     ``work`` (five int64 columns), ``work_t`` (two of ``t``'s dtype) and ``work_on`` (bool),
-    each of at least ``max(N, 16) + 1`` elements: the grouping's columns and the outputs,
-    which are views of them unless the crossings outgrow them.
+    each of at least ``N + 1`` elements: the grouping's columns and the outputs (as many
+    crossings as ``work_on`` holds), which are views of them unless the crossings outgrow
+    them.
     """
     n = t.shape[0]
     per_region = fx * fy
@@ -142,8 +143,8 @@ def _window_loop(
     floor_u, q_after = np.empty(moves, np.int64), np.empty(moves, np.int64)
     on_level = np.empty(moves, np.bool_)
 
-    capacity = max(16, n)
-    out_region, out_t, out_on = work[4][:capacity], work_t[1][:capacity], work_on[:capacity]
+    capacity = work_on.shape[0]
+    out_region, out_t, out_on = work[4][:capacity], work_t[1][:capacity], work_on
     written = 0
     total = 0  # crossings counted so far (written while within the limit)
     previous_start = -1
@@ -299,7 +300,7 @@ def estimation_window(
     limit = output_limit()
     fused = bool(addcmul_is_fused()) if cubic else False
     column, row = region_tables(factor, out_size[0], start_of.shape[0] * out_size[1])
-    size = max(x.shape[0], 16) + 1
+    size = max(x.shape[0], 16) + 1  # the grouping's N + 1, and room for 16 crossings at least
     work = tuple(scratch_column(f"window {i}", size, np.int64) for i in range(5))
     work_t = tuple(scratch_column(f"window t {i}", size, t.dtype) for i in range(2))
     region, out_t, on, over = _window_loop(

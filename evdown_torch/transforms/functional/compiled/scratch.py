@@ -42,11 +42,10 @@ _EXACT_REFERENCES = getattr(sys, "_is_gil_enabled", lambda: True)()
 
 
 class _Kept(threading.local):
-    """Each thread's kept columns, by ``(slot, dtype)``, and their bytes in all."""
+    """Each thread's kept columns, by ``(slot, dtype)``."""
 
     def __init__(self) -> None:
         self.columns: dict[tuple[str, np.dtype], np.ndarray] = {}
-        self.size = 0
 
 
 _KEPT = _Kept()
@@ -93,11 +92,10 @@ def scratch_column(slot: str, n: int, dtype: np.dtype | type) -> np.ndarray:
             and sys.getrefcount(kept) == _UNUSED_REFERENCES):
         return kept[:n]
     replaced = 0 if kept is None else kept.nbytes
-    if _KEPT.size - replaced + size > MOST_KEPT:
+    if kept_bytes() - replaced + size > MOST_KEPT:
         return np.empty(n, dtype)  # (the slot keeps its last column)
     kept = np.empty(n, dtype)
     _KEPT.columns[key] = kept
-    _KEPT.size += size - replaced
     return kept[:n]
 
 
@@ -110,7 +108,7 @@ def kept_bytes() -> int:
         >>> kept_bytes() - before
         8000
     """
-    return _KEPT.size
+    return sum(column.nbytes for column in _KEPT.columns.values())
 
 
 def scratch_copy(slot: str, values: np.ndarray) -> np.ndarray:
