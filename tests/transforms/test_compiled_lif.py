@@ -1,4 +1,5 @@
-"""LIFPooling's compiled rounds against the eager rounds and the module on dense frames."""
+"""LIFPooling's compiled loops (cells counted, membranes cell by cell) against the eager
+kernel and the module on dense frames."""
 
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ def test_bursts_with_firing_chains_through_long_silences(settings, rng):
 
 
 def test_the_compiled_rounds_run_and_the_eager_rounds_only_for_longer_chains(monkeypatch, rng):
-    loops = spy(monkeypatch, COMPILED, "rounds_until_chain")
+    loops = spy(monkeypatch, COMPILED, "cells_until_chain")
     eager_rounds = spy(monkeypatch, ROUNDS, "_round")
     arr = random_stream(rng, 400, SENSOR, t_max=20)  # 10 steps: eager takes the rounds
     transform = LIFPooling(SENSOR, factor=2, dt=2, tau=8.0, weight=0.3)
@@ -87,7 +88,7 @@ def test_the_compiled_rounds_run_and_the_eager_rounds_only_for_longer_chains(mon
     (3.0, 50, False),  # fires on past EXACT_CHAIN_STEPS: the closed form's, the eager round
 ])
 def test_short_firing_chains_stay_in_the_compiled_loop(monkeypatch, weight, gap, loop_only):
-    loops = spy(monkeypatch, COMPILED, "rounds_until_chain")
+    loops = spy(monkeypatch, COMPILED, "cells_until_chain")
     eager_rounds = spy(monkeypatch, ROUNDS, "_round")
     strong = LIFPooling(SENSOR, factor=2, dt=1, tau=40.0, weight=weight)  # beta 0.9753
     chain = np.zeros(8, dtype=random_stream(np.random.default_rng(0), 1, SENSOR).dtype)
@@ -203,3 +204,56 @@ def test_the_state_is_the_same_bit_for_bit(settings, rng):
     assert (compiled.decided, int(compiled.t_start), int(compiled.last_t)) == (
         eager.decided, int(eager.t_start), int(eager.last_t))
     assert_identical(compiled.pending, eager.pending)
+
+
+@pytest.mark.parametrize(("factor", "batch"), [((4, 2), 1), ((3, 2), 1), ((3, 2), 3), ((1, 1), 2)])
+def test_counted_cells_equal_the_eager_count(factor, batch, rng):
+    # A live chunk's cells (many events on few keys), counted in pieces (a session's pending
+    # events, then its chunk's): the compiled pass gives the eager keys and counts, with
+    # region shifts (powers of two) or tables, for stacked recordings too.
+    keys = importlib.import_module("evdown_torch.transforms.functional.lif.keys")
+    fx, fy = factor
+    wo, ho = math.ceil(12 / fx), math.ceil(10 / fy)
+    n, low, span = 30_000, 2**33 + 7, 9
+    x, y = rng.integers(0, 12, n), rng.integers(0, 10 * batch, n)
+    steps = torch.from_numpy(np.sort(rng.integers(low, low + span, n)))
+    p = rng.random(n) < 0.4
+    pieces = [(Events.from_columns(x[part], y[part], steps[part], p[part]), steps[part])
+              for part in (slice(0, 1_000), slice(1_000, n))]
+    kwargs = dict(fx=fx, fy=fy, wo=wo, plane=batch * wo * ho, low=low, span=span)
+    compiled, eager = both_paths(lambda: keys.counted_cells(pieces, **kwargs))
+    assert_identical(compiled, eager)
+    cell_key, counts = compiled
+    assert int(counts.sum()) == n and bool((counts.sum(1) > 0).all())
+    # one hand-checked cell: the first event's
+    key = ((int(x[0]) // fx) + (int(y[0]) // fy) * wo) * span + int(steps[0]) - low
+    assert int(counts[int(torch.searchsorted(cell_key, key))].sum()) == int(
+        ((torch.from_numpy(x) // fx + torch.from_numpy(y) // fy * wo) * span
+         + steps - low == key).sum())
+
+
+def test_counted_cells_refuse_a_step_outside_their_span():
+    keys = importlib.import_module("evdown_torch.transforms.functional.lif.keys")
+    events = Events.from_columns([0, 1, 2], [0, 0, 1], [0, 1, 2], [1, 0, 1])
+    steps = torch.tensor([5, 6, 9])
+    with eager_kernels(False), pytest.raises(ValueError, match=r"event 2 .* steps 5\.\.8"):
+        keys.counted_cells([(events, steps)], fx=2, fy=2, wo=2, plane=4, low=5, span=4)
+
+
+def test_long_chains_in_several_regions_each_take_the_eager_round_on_their_cell(monkeypatch):
+    # Chains the loop cannot follow (past EXACT_CHAIN_STEPS) in three regions: each such cell,
+    # wherever it lies among the cells, is the eager round's, on that cell alone, and the
+    # loop goes on after it.
+    eager_rounds = spy(monkeypatch, ROUNDS, "_round")
+    strong = LIFPooling(SENSOR, factor=2, dt=1, tau=40.0, weight=3.0)
+    chain = np.zeros(15, dtype=random_stream(np.random.default_rng(0), 1, SENSOR).dtype)
+    chain["t"] = [0] * 4 + [1] * 4 + [2] * 4 + [50, 60, 200]
+    chain["x"] = [0] * 4 + [2] * 4 + [4] * 4 + [2, 4, 9]
+    chain["p"] = True
+    compiled, eager = both_paths(lambda: strong(chain))
+    assert_identical(compiled, eager)
+    assert sorted(as_tuples(compiled)) == lif_dense_reference(chain, strong)
+    with eager_kernels(False):
+        eager_rounds.clear()
+        strong(chain)
+    assert len(eager_rounds) == 2  # the cells at t = 50 and 60 (cells 2 and 4 of 6)

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from evdown_torch._tensors import changes, divide, run_index, stable_sort_small, where_true
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.compiled import use_compiled
 
 __all__ = ["TABLE_KEYS_PER_SPIKE", "by_step_then_neuron", "counted_cells", "grouped_cells"]
 
@@ -49,6 +50,10 @@ def counted_cells(
         ``(cell_key, counts)``: int64 sorted keys of the cells and their ``(n_cells, 2)``
         int64 counts of OFF and ON events.
     """
+    if use_compiled(pieces[0][1]):  # one compiled pass (the same keys and counts)
+        from evdown_torch.transforms.functional.compiled import lif
+
+        return lif.counted_cells(pieces, fx=fx, fy=fy, wo=wo, plane=plane, low=low, span=span)
     i32 = torch.int32
     keys = []
     for events, steps in pieces:  # (a session's pending events and its new chunk's)

@@ -4,11 +4,11 @@ Used by :func:`.pooling.lif_spikes` (see its module docstring):
 round ``r`` updates the ``r``-th cell of every region that has one. Lanes are regions by
 decreasing number of cells, so the lanes of a round are a prefix of the previous round's and
 every update is a slice; a round costs a fixed few tensor operations, and there are as many
-rounds as the busiest region has cells. On the CPU the rounds run in a compiled loop
-(:mod:`evdown_torch.transforms.functional.compiled.lif`, the same float32 operations lane by
-lane, firing chains included) unless the eager kernels are forced; only a round with a chain
-longer than ``EXACT_CHAIN_STEPS`` steps, or decaying over ``2 ** LOW_BITS`` steps after one, is
-this module's there.
+rounds as the busiest region has cells. On the CPU a compiled loop takes the cells in their
+own order instead, region by region (:mod:`evdown_torch.transforms.functional.compiled.lif`,
+the same float32 operations, firing chains included; no reordering) unless the eager kernels
+are forced; only a cell with a chain longer than ``EXACT_CHAIN_STEPS`` steps, or decaying over
+``2 ** LOW_BITS`` steps after one, is this module's round there (on that cell alone).
 """
 
 from __future__ import annotations
@@ -51,6 +51,8 @@ def membranes_by_rounds(
         and ``(n, 2)`` int64 spikes fired in the gap before the cell by a neuron that went on
         firing after the previous cell (reset "subtract"; the first steps of the gap).
     """
+    if use_compiled(current):
+        return _membranes_cell_by_cell(current, gap_before, region_first, leak)
     device = current.device
     f32 = torch.float32
     n_cells, n_regions = current.shape[0], region_first.shape[0]
@@ -86,19 +88,40 @@ def membranes_by_rounds(
     mem_in_rounds[: bounds[1]] = current_in_rounds[: bounds[1]]  # from zero: beta * 0 + I
     rounds_in = Rounds(mem_in_rounds, current_in_rounds, decay_in_rounds, decay_after_one,
                         silent_in_rounds, gap_in_rounds, chain_in_rounds, bounds)
-    compiled = use_compiled(current)
-    r = 1
-    while r < rounds:
-        if compiled:  # the rounds up to one whose firing chain it cannot follow, compiled
-            from evdown_torch.transforms.functional.compiled import lif
-
-            r = lif.rounds_until_chain(rounds_in, r, leak)
-            if r == rounds:
-                break
+    for r in range(1, rounds):
         _round(rounds_in, r, leak)
-        r += 1
     # back to cell order
     return mem_in_rounds.index_select(0, slot), chain_in_rounds.index_select(0, slot)
+
+
+def _membranes_cell_by_cell(
+    current: Tensor, gap_before: Tensor, region_first: Tensor, leak: Leak
+) -> tuple[Tensor, Tensor]:
+    """:func:`membranes_by_rounds` on the CPU: a compiled loop over the cells in their order.
+
+    The same membranes and chains, bit for bit: each cell's update reads only its region's
+    previous cell, so the cells need no reordering into rounds. A cell whose firing chain the
+    loop cannot follow is :func:`_round`'s, as a round of one lane (its previous cell, then
+    it: rows ``i - 1`` and ``i``, written in place), and the loop goes on after it.
+    """
+    from evdown_torch.transforms.functional.compiled import lif
+
+    n_cells = current.shape[0]
+    gap = gap_before[:, None]
+    first = torch.zeros(n_cells, dtype=torch.bool)
+    first[region_first] = True
+    membrane = torch.empty_like(current)
+    decay = leak.powers.float32(gap)
+    decay_after_one = leak.powers.float32((gap - 1).clamp_(min=0))
+    chain = torch.zeros(n_cells, 2, dtype=torch.int64)
+    columns = (membrane, current, decay, decay_after_one, gap, first, chain)
+    i = lif.cells_until_chain(*columns, start=0, leak=leak)
+    while i < n_cells:  # (i >= 1: a region's first cell has no gap to fire through)
+        rows = slice(i - 1, i + 1)
+        _round(Rounds(membrane[rows], current[rows], decay[rows], decay_after_one[rows],
+                      gap[rows] > 0, gap[rows], chain[rows], [0, 1, 2]), 1, leak)
+        i = lif.cells_until_chain(*columns, start=i + 1, leak=leak)
+    return membrane, chain
 
 
 def _round(rounds: Rounds, r: int, leak: Leak) -> None:
