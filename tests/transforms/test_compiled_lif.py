@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+import evdown_torch
 from evdown_torch import Events, LIFPooling, eager_kernels
 from evdown_torch.transforms.functional.lif.pooling import lif_pooling
 from evdown_torch.transforms.functional.lif.settings import LIFSettings
@@ -257,3 +258,45 @@ def test_long_chains_in_several_regions_each_take_the_eager_round_on_their_cell(
         eager_rounds.clear()
         strong(chain)
     assert len(eager_rounds) == 2  # the cells at t = 50 and 60 (cells 2 and 4 of 6)
+
+
+@pytest.mark.parametrize("table", [True, False])
+@pytest.mark.parametrize("from_step", [0, 23])
+def test_spikes_by_step_equal_the_eager_ones(table, from_step, monkeypatch, rng):
+    # Spikes at cells and runs through the steps after them, some before from_step (dropped),
+    # some runs straddling it (cut): both paths give the spikes of a slow reference, ordered
+    # by step, then neuron, by the table or by the sort.
+    keys = importlib.import_module("evdown_torch.transforms.functional.lif.keys")
+    chains = importlib.import_module("evdown_torch.transforms.functional.lif.chains")
+    if not table:
+        monkeypatch.setattr(keys, "TABLE_KEYS_PER_SPIKE", 0)
+    plane, per_region = 30, 5
+    cell_region = torch.arange(plane).repeat_interleave(per_region)
+    cell_step = torch.tensor([10 * j + r % 3 for r in range(plane) for j in range(per_region)])
+    fired = torch.from_numpy(rng.random((plane * per_region, 2)) < 0.4)
+    spike_cell, spike_polarity = fired.nonzero(as_tuple=True)
+    run_cell = torch.from_numpy(rng.choice(plane * per_region, 40, replace=False))
+    run_polarity = torch.from_numpy(rng.integers(0, 2, 40))
+    run_start = cell_step[run_cell] + 1
+    run_length = torch.from_numpy(rng.integers(0, 9, 40))  # within the 9 steps to the next cell
+    spikes = chains.CellSpikes(spike_cell, spike_polarity, run_cell, run_polarity, run_start,
+                               run_length)
+    want = sorted(
+        [(int(cell_step[c]), int(cell_region[c]) + int(p) * plane)
+         for c, p in zip(spike_cell, spike_polarity, strict=True)]
+        + [(s, int(cell_region[c]) + int(p) * plane)
+           for c, p, s0, n in zip(run_cell, run_polarity, run_start, run_length, strict=True)
+           for s in range(int(s0), int(s0) + int(n))])
+    want = [key for key in want if key[0] >= from_step]
+    tables = spy(monkeypatch, COMPILED, "_by_table")
+    compiled, eager = both_paths(lambda: keys.spikes_by_step(
+        spikes, cell_step, cell_region, plane=plane, from_step=from_step, top_step=50))
+    assert_identical(compiled, eager)
+    assert len(tables) == table  # the compiled path's table, or the sort
+    assert list(zip(compiled[0].tolist(), compiled[1].tolist(), strict=True)) == want
+    assert len(want) > 100
+    with evdown_torch.max_output_events(len(want) - 1):
+        for eager_path in (False, True):
+            with eager_kernels(eager_path), pytest.raises(ValueError, match=f"{len(want):,}"):
+                keys.spikes_by_step(spikes, cell_step, cell_region, plane=plane,
+                                    from_step=from_step, top_step=50)

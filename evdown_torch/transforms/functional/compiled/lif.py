@@ -42,9 +42,9 @@ from evdown_torch.transforms.functional.lif.chains import EXACT_CHAIN_STEPS
 
 if TYPE_CHECKING:
     from evdown_torch.events import Events
-    from evdown_torch.transforms.functional.lif.chains import Leak
+    from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak
 
-__all__ = ["cells_until_chain", "counted_cells"]
+__all__ = ["cells_until_chain", "counted_cells", "spikes_by_step"]
 
 
 @compiled_loop
@@ -253,3 +253,99 @@ def cells_until_chain(
         chain.numpy(), start, np.float32(leak.beta), np.float32(leak.threshold),
         _RESETS[leak.reset], leak.powers.small_float32.numpy(), EXACT_CHAIN_STEPS,
     ))
+
+
+@compiled_loop
+def _spike_total(
+    spike_cell: np.ndarray, run_start: np.ndarray, run_length: np.ndarray,
+    cell_step: np.ndarray, from_step: int,
+) -> tuple[int, int]:  # pragma: no cover - compiled
+    """``(at cells, in all)``: the spikes of steps ``from_step`` on."""
+    at_cells = 0
+    for j in range(spike_cell.shape[0]):
+        at_cells += cell_step[spike_cell[j]] >= from_step
+    total = at_cells
+    for j in range(run_start.shape[0]):
+        total += max(0, run_start[j] + run_length[j] - max(run_start[j], from_step))
+    return at_cells, total
+
+
+@compiled_loop
+def _spike_list(
+    spike_cell: np.ndarray, spike_polarity: np.ndarray, run_cell: np.ndarray,
+    run_polarity: np.ndarray, run_start: np.ndarray, run_length: np.ndarray,
+    cell_step: np.ndarray, cell_region: np.ndarray, plane: int, from_step: int,
+    out_step: np.ndarray, out_neuron: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Every spike of steps ``from_step`` on: its step and neuron, at cells, then by run."""
+    k = 0
+    for j in range(spike_cell.shape[0]):
+        cell = spike_cell[j]
+        if cell_step[cell] >= from_step:
+            out_step[k] = cell_step[cell]
+            out_neuron[k] = cell_region[cell] + spike_polarity[j] * plane
+            k += 1
+    for j in range(run_start.shape[0]):
+        neuron = cell_region[run_cell[j]] + run_polarity[j] * plane
+        for step in range(max(run_start[j], from_step), run_start[j] + run_length[j]):
+            out_step[k] = step
+            out_neuron[k] = neuron
+            k += 1
+
+
+@compiled_loop
+def _by_table(
+    step: np.ndarray, neuron: np.ndarray, neurons: int, low: int, marked: np.ndarray,
+    out_step: np.ndarray, out_neuron: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """The distinct keys ``(step - low) * neurons + neuron`` marked, then read in order."""
+    marked[:] = False
+    for j in range(step.shape[0]):
+        marked[np.uint64((step[j] - low) * neurons + neuron[j])] = True
+    k = 0
+    for key in range(marked.shape[0]):
+        if marked[key]:
+            out_step[k] = key // neurons + low
+            out_neuron[k] = key % neurons
+            k += 1
+
+
+def spikes_by_step(
+    spikes: CellSpikes, cell_step: Tensor, cell_region: Tensor, *, plane: int, from_step: int,
+    top_step: int,
+) -> tuple[Tensor, Tensor]:
+    """:func:`~evdown_torch.transforms.functional.lif.keys.spikes_by_step` on the CPU, compiled.
+
+    The same arguments (CPU tensors), checks and ``(spike_step, neuron)`` (new tensors).
+    Where the keys ``(step, neuron)`` are few next to the spikes
+    (:data:`~evdown_torch.transforms.functional.lif.keys.TABLE_KEYS_PER_SPIKE`), a compiled
+    table orders them; else :func:`~evdown_torch.transforms.functional.lif.keys.
+    by_step_then_neuron`'s sort.
+    """
+    from evdown_torch.transforms.functional.lif.keys import (
+        TABLE_KEYS_PER_SPIKE,
+        by_step_then_neuron,
+        check_spike_count,
+    )
+
+    spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = (
+        columns_of(*spikes))
+    steps, regions = columns_of(cell_step, cell_region)
+    at_cells, total = _spike_total(spike_cell, run_start, run_length, steps, from_step)
+    check_spike_count(total, at_cells)
+    if total == 0:
+        return torch.empty(0, dtype=torch.int64), torch.empty(0, dtype=torch.int64)
+    step = np.empty(total, dtype=np.int64)
+    neuron = np.empty(total, dtype=np.int64)
+    _spike_list(spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length,
+                steps, regions, plane, from_step, step, neuron)
+    neurons = 2 * plane
+    n_keys = (top_step - from_step + 1) * neurons
+    if n_keys > TABLE_KEYS_PER_SPIKE * total:
+        return by_step_then_neuron(torch.from_numpy(step), torch.from_numpy(neuron), neurons,
+                                   from_step, top_step)
+    out_step = np.empty(total, dtype=np.int64)
+    out_neuron = np.empty(total, dtype=np.int64)
+    _by_table(step, neuron, neurons, from_step, scratch_column("lif spike keys", n_keys, np.bool_),
+              out_step, out_neuron)
+    return torch.from_numpy(out_step), torch.from_numpy(out_neuron)

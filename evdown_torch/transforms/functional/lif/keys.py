@@ -14,11 +14,21 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import changes, divide, run_index, stable_sort_small, where_true
+from evdown_torch._tensors import (
+    changes,
+    divide,
+    run_index,
+    runs_of,
+    stable_sort_small,
+    where_true,
+)
+from evdown_torch.checks import check_output_count
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled import use_compiled
+from evdown_torch.transforms.functional.lif.chains import CellSpikes
 
-__all__ = ["TABLE_KEYS_PER_SPIKE", "by_step_then_neuron", "counted_cells", "grouped_cells"]
+__all__ = ["TABLE_KEYS_PER_SPIKE", "by_step_then_neuron", "check_spike_count", "counted_cells",
+           "grouped_cells", "spikes_by_step"]
 
 #: Most ``(step, neuron)`` keys per spike for which the spikes are ordered by a table of every
 #: key rather than by a sort.
@@ -148,3 +158,65 @@ def by_step_then_neuron(
         spike_step, neuron = spike_step[order], neuron[order]
         order = torch.sort(spike_step, stable=True).indices
     return spike_step[order], neuron[order]
+
+
+def check_spike_count(total: int, at_cells: int) -> None:
+    """Refuse ``total`` spikes (``at_cells`` of them at cells) past the output limit in force."""
+    check_output_count(
+        total, detail=f" ({total - at_cells:,} of them fired by LIF neurons that stay "
+        "above threshold through silent steps)", fewer="a lower weight gives fewer events")
+
+
+def spikes_by_step(
+    spikes: CellSpikes, cell_step: Tensor, cell_region: Tensor, *, plane: int, from_step: int,
+    top_step: int,
+) -> tuple[Tensor, Tensor]:
+    """A call's spikes of steps ``from_step .. top_step``, one by one, by step, then neuron.
+
+    The spikes at cells and the runs' spikes (one per step of a run), less those of steps
+    before ``from_step`` (returned by an earlier call: neither built nor counted), counted
+    first (:func:`check_spike_count`), then sorted (:func:`by_step_then_neuron`). On the CPU
+    a compiled loop builds and orders them
+    (:func:`evdown_torch.transforms.functional.compiled.lif.spikes_by_step`): the same spikes.
+
+    Args:
+        spikes: the call's :class:`~.chains.CellSpikes`.
+        cell_step: ``(n,)`` int64 step of every cell.
+        cell_region: ``(n,)`` int64 region of every cell (``0 .. plane - 1``).
+        plane: regions in all; a neuron is ``polarity * plane + region``.
+        from_step: the first step to return.
+        top_step: the last step a spike can lie in.
+
+    Returns:
+        ``(spike_step, neuron)``: int64, sorted by step, then neuron.
+
+    Raises:
+        ValueError: when the spikes exceed the output limit in force.
+    """
+    if use_compiled(cell_step):
+        from evdown_torch.transforms.functional.compiled import lif
+
+        return lif.spikes_by_step(spikes, cell_step, cell_region, plane=plane,
+                                  from_step=from_step, top_step=top_step)
+    spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = spikes
+    spike_step = cell_step.index_select(0, spike_cell)
+    if from_step > 0:  # drop the spikes of steps an earlier call returned
+        keep = spike_step >= from_step
+        spike_cell, spike_polarity = spike_cell[keep], spike_polarity[keep]
+        spike_step = spike_step[keep]
+        run_end = run_start + run_length
+        run_start = run_start.clamp(min=from_step)
+        run_length = (run_end - run_start).clamp_(min=0)
+    total = spike_cell.shape[0] + (int(run_length.sum()) if run_length.shape[0] else 0)
+    check_spike_count(total, spike_cell.shape[0])
+    if run_length.shape[0]:  # the spikes of the runs, one by one
+        run_of_spike = runs_of(run_length, total - spike_cell.shape[0])
+        first_of_run = torch.cumsum(run_length, 0) - run_length
+        within_run = (torch.arange(run_of_spike.shape[0], device=cell_step.device)
+                      - first_of_run[run_of_spike])
+        spike_step = torch.cat([spike_step, run_start[run_of_spike] + within_run])
+        spike_cell = torch.cat([spike_cell, run_cell[run_of_spike]])
+        spike_polarity = torch.cat([spike_polarity, run_polarity[run_of_spike]])
+    neuron = torch.add(cell_region.index_select(0, spike_cell), spike_polarity, alpha=plane)
+    # a neuron fires at most once per step: the keys are distinct
+    return by_step_then_neuron(spike_step, neuron, 2 * plane, from_step, top_step)

@@ -71,19 +71,18 @@ from evdown_torch._tensors import (
     divide,
     last_of_runs,
     run_index,
-    runs_of,
     stable_sort_small,
     where_true,
 )
-from evdown_torch.checks import check_output_count, output_size
+from evdown_torch.checks import output_size
 from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.lif.chains import Leak
 from evdown_torch.transforms.functional.lif.closed_form import MIN_ROUNDS, certain_spikes
 from evdown_torch.transforms.functional.lif.keys import (
-    by_step_then_neuron,
     counted_cells,
     grouped_cells,
+    spikes_by_step,
 )
 from evdown_torch.transforms.functional.lif.rounds import membranes_by_rounds, spikes_and_runs
 from evdown_torch.transforms.functional.lif.settings import (
@@ -435,33 +434,10 @@ def lif_spikes(
         )
         spikes = spikes_and_runs(membrane, chain_before, cell_step, gap_before, gap_after,
                                  region_last, leak=leak)
-    spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = spikes
-    spike_step = cell_step.index_select(0, spike_cell)
     del current, region_index
-
-    if from_step > 0:  # drop the spikes of steps an earlier call returned
-        keep = spike_step >= from_step
-        spike_cell, spike_polarity = spike_cell[keep], spike_polarity[keep]
-        spike_step = spike_step[keep]
-        run_end = run_start + run_length
-        run_start = run_start.clamp(min=from_step)
-        run_length = (run_end - run_start).clamp_(min=0)
-    total = spike_cell.shape[0] + (int(run_length.sum()) if run_length.shape[0] else 0)
-    check_output_count(
-        total, detail=f" ({total - spike_cell.shape[0]:,} of them fired by LIF neurons that stay "
-        "above threshold through silent steps)", fewer="a lower weight gives fewer events")
-    if run_length.shape[0]:  # the spikes of the runs, one by one
-        run_of_spike = runs_of(run_length, total - spike_cell.shape[0])
-        first_of_run = torch.cumsum(run_length, 0) - run_length
-        within_run = (torch.arange(run_of_spike.shape[0], device=device)
-                      - first_of_run[run_of_spike])
-        spike_step = torch.cat([spike_step, run_start[run_of_spike] + within_run])
-        spike_cell = torch.cat([spike_cell, run_cell[run_of_spike]])
-        spike_polarity = torch.cat([spike_polarity, run_polarity[run_of_spike]])
-    neuron = torch.add(cell_region.index_select(0, spike_cell), spike_polarity, alpha=plane)
-    # Output order: by step, then neuron (OFF before ON, then row-major region); a neuron
-    # fires at most once per step.
-    spike_step, neuron = by_step_then_neuron(spike_step, neuron, 2 * plane, from_step, top_step)
+    # Output order: by step, then neuron (OFF before ON, then row-major region).
+    spike_step, neuron = spikes_by_step(spikes, cell_step, cell_region, plane=plane,
+                                        from_step=from_step, top_step=top_step)
     if not keep_state or membrane is None:  # (no membranes: the closed form, no state kept)
         return spike_step, neuron, None
     # The neurons after the last update of every region here.
