@@ -35,6 +35,7 @@ SENSOR = (10, 7, 2)
 FACTORS = [1, 2, (2, 3), (3, 1), (4, 3)]  # (3, 1), (4, 3): not dividing 10 x 7
 ROUNDS = importlib.import_module("evdown_torch.transforms.functional.lif.rounds")
 COMPILED = importlib.import_module("evdown_torch.transforms.functional.compiled.lif")
+CELLS = importlib.import_module("evdown_torch.transforms.functional.compiled.lif_cells")
 
 
 @pytest.mark.parametrize("factor", FACTORS)
@@ -288,7 +289,7 @@ def test_spikes_by_step_equal_the_eager_ones(table, from_step, monkeypatch, rng)
            for c, p, s0, n in zip(run_cell, run_polarity, run_start, run_length, strict=True)
            for s in range(int(s0), int(s0) + int(n))])
     want = [key for key in want if key[0] >= from_step]
-    tables = spy(monkeypatch, COMPILED, "_by_table")
+    tables = spy(monkeypatch, CELLS, "_by_table")
     compiled, eager = both_paths(lambda: keys.spikes_by_step(
         spikes, cell_step, cell_region, plane=plane, from_step=from_step, top_step=50))
     assert_identical(compiled, eager)
@@ -300,3 +301,58 @@ def test_spikes_by_step_equal_the_eager_ones(table, from_step, monkeypatch, rng)
             with eager_kernels(eager_path), pytest.raises(ValueError, match=f"{len(want):,}"):
                 keys.spikes_by_step(spikes, cell_step, cell_region, plane=plane,
                                     from_step=from_step, top_step=50)
+
+
+@pytest.mark.parametrize("settings", LIF_SETTINGS)
+def test_spikes_and_runs_equal_the_eager_ones_in_order(settings, monkeypatch, rng):
+    # The spikes at cells, the runs the membranes' loop found and the tails, for every reset:
+    # the compiled pass and the eager one give the same CellSpikes, element for element.
+    pooling = importlib.import_module("evdown_torch.transforms.functional.lif.pooling")
+    arguments = []
+    real = ROUNDS.spikes_and_runs
+
+    def record(*args, **kwargs):
+        arguments.append((args, kwargs))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pooling, "spikes_and_runs", record)
+    arr = bursty_stream(rng, 60, SENSOR, gap_max=200)
+    with eager_kernels(False):
+        LIFPooling(SENSOR, factor=(3, 2), dt=2, **settings)(arr)
+    (args, kwargs), = arguments
+    compiled, eager = both_paths(lambda: ROUNDS.spikes_and_runs(*args, **kwargs))
+    assert_identical(tuple(compiled), tuple(eager))
+    assert compiled.spike_cell.numel() > 0
+    if settings.get("reset_mechanism") != "zero" and settings["weight"] >= 1:
+        assert compiled.run_cell.numel() > 0  # strong input fires on through empty steps
+
+
+@pytest.mark.parametrize("chains", [True, False])
+def test_state_cells_merged_as_the_eager_merge(chains, rng):
+    # Regions with cells and an earlier update, regions firing on without cells (a state
+    # cell with chains only), regions never updated (none): the compiled merge and the eager
+    # one give the same cells; without any state cell, the cells come back as they were.
+    pooling = importlib.import_module("evdown_torch.transforms.functional.lif.pooling")
+    plane, threshold = 40, 1.0
+    cell_region = torch.from_numpy(np.sort(rng.choice(plane, 60)))
+    cell_step = torch.from_numpy(rng.integers(10, 20, 60))
+    current = torch.from_numpy(rng.random((60, 2), dtype=np.float32))
+    state = pooling.LIFState(torch.from_numpy(rng.random((plane, 2), dtype=np.float32) * 2),
+                             torch.from_numpy(rng.integers(-1, 9, plane)))
+
+    def merge(state=state):
+        return pooling._with_state_cells(cell_region, cell_step, current, state, plane=plane,
+                                         chains=chains, threshold32=torch.tensor(threshold))
+
+    compiled, eager = both_paths(merge)
+    assert_identical(compiled, eager)
+    updated = state.last_step >= 0
+    above = (state.membrane > threshold).any(1) if chains else torch.zeros(plane, dtype=bool)
+    has_cells = torch.zeros(plane, dtype=torch.bool)
+    has_cells[cell_region] = True
+    assert compiled[0].shape[0] == 60 + int(((has_cells | above) & updated).sum())
+    assert bool((torch.diff(compiled[0]) >= 0).all())
+    rest = pooling.initial_state(plane)  # nothing updated before: no state cell
+    compiled, eager = both_paths(lambda: merge(rest))
+    assert_identical(compiled, eager)
+    assert all(a is b for a, b in zip(compiled, (cell_region, cell_step, current), strict=True))

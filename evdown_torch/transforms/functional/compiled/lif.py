@@ -1,8 +1,6 @@
-"""LIF pooling's compiled loops: a live chunk's cells counted, and snntorch's float32 rounds.
+"""LIF pooling's compiled loops: snntorch's float32 update cell by cell, and the cells' spikes.
 
-**Cells.** :func:`counted_cells` counts the events of every ``(region, step)`` key in one
-pass, as :func:`~evdown_torch.transforms.functional.lif.keys.counted_cells` does with a few
-int32 tensor passes and a ``bincount``; the same keys and counts (integers: exact).
+(The integer bookkeeping around them, cells counted and spikes ordered: :mod:`.lif_cells`.)
 
 **Membranes.** The eager kernel
 (:func:`~evdown_torch.transforms.functional.lif.rounds.membranes_by_rounds`) updates the
@@ -20,118 +18,31 @@ steps), then decays by the power of the steps left, read from the same table of 
 which a chain outlasts those steps (the closed form's) or decays over ``2 ** LOW_BITS`` steps
 or more is left to the eager round (run on that cell alone); the loop then continues after
 it. Both paths give the same membranes, bit for bit.
+
+**Spikes.** :func:`spikes_and_runs` finds the spikes at cells, the runs the loop found and
+the neurons that fire on after a region's last cell in one pass, as
+:func:`~evdown_torch.transforms.functional.lif.rounds.spikes_and_runs` does; a tail's length
+is :meth:`~evdown_torch.transforms.functional.lif.chains.Leak.fire_through`'s float32 steps
+(the closed form's past them).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from evdown_torch._tensors import where_true
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
-from evdown_torch.transforms.functional.compiled.regions import (
-    columns_of,
-    power_of_two_shifts,
-    region_tables,
-)
-from evdown_torch.transforms.functional.compiled.scratch import scratch_column
-from evdown_torch.transforms.functional.lif.chains import EXACT_CHAIN_STEPS
+from evdown_torch.transforms.functional.compiled.regions import columns_of
+from evdown_torch.transforms.functional.lif.chains import EXACT_CHAIN_STEPS, CellSpikes
 
 if TYPE_CHECKING:
-    from evdown_torch.events import Events
-    from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak
+    from evdown_torch.transforms.functional.lif.chains import Leak
 
-__all__ = ["cells_until_chain", "counted_cells", "spikes_by_step"]
-
-
-@compiled_loop
-def _count_loop(
-    x: np.ndarray, y: np.ndarray, p: np.ndarray, steps: np.ndarray, column: np.ndarray,
-    row: np.ndarray, shift_x: int, shift_y: int, wo: int, low: int, span: int,
-    counts: np.ndarray,
-) -> int:  # pragma: no cover - compiled
-    """Adds each event to ``counts[2 * key + p]``, ``key = region * span + step - low``.
-
-    The region ``(x >> shift_x) + (y >> shift_y) * wo`` (factors that are powers of two) or,
-    with negative shifts, ``column[x] + row[y] * wo``.
-
-    Returns:
-        -1, or the first event outside the tables or the steps ``low .. low + span - 1`` (it
-        and the events after it are not counted).
-    """
-    width = column.shape[0]
-    height = row.shape[0]
-    for i in range(np.uint64(0), np.uint64(x.shape[0])):
-        xi = x[i]
-        yi = y[i]
-        step = steps[i] - low
-        if xi < 0 or xi >= width or yi < 0 or yi >= height or step < 0 or step >= span:
-            return np.int64(i)
-        if shift_x >= 0:
-            region = (xi >> shift_x) + (yi >> shift_y) * wo
-        else:
-            region = column[xi] + row[yi] * wo
-        counts[np.uint64(2 * (region * span + step) + (1 if p[i] else 0))] += 1
-    return -1
-
-
-@compiled_loop
-def _occupied_loop(
-    counts: np.ndarray, cell_key: np.ndarray, cell_counts: np.ndarray
-) -> int:  # pragma: no cover - compiled
-    """The keys with events, in key order, and their ``(OFF, ON)`` counts; returns how many.
-
-    ``cell_key`` and ``cell_counts`` of length 0: only counts them.
-    """
-    k = 0
-    write = cell_key.shape[0] > 0
-    for key in range(counts.shape[0] // 2):
-        off = counts[2 * key]
-        on = counts[2 * key + 1]
-        if off or on:
-            if write:
-                cell_key[k] = key
-                cell_counts[k, 0] = off
-                cell_counts[k, 1] = on
-            k += 1
-    return k
-
-
-def counted_cells(
-    pieces: Sequence[tuple[Events, Tensor]], *, fx: int, fy: int, wo: int, plane: int,
-    low: int, span: int,
-) -> tuple[Tensor, Tensor]:
-    """:func:`~evdown_torch.transforms.functional.lif.keys.counted_cells` on the CPU, compiled.
-
-    The same arguments (CPU tensors) and the same ``(cell_key, counts)``: int64 sorted keys
-    of the cells and their ``(n_cells, 2)`` int64 OFF and ON counts (new tensors).
-
-    Raises:
-        ValueError: for an event outside the ``plane // wo`` rows of ``wo`` regions, or a
-            step outside ``low .. low + span - 1``.
-    """
-    rows = plane // wo
-    column, row = region_tables((fx, fy), wo, rows)
-    shift_x, shift_y = power_of_two_shifts((fx, fy))
-    counts = scratch_column("lif counts", 2 * plane * span, np.int64)
-    counts.fill(0)
-    for events, steps in pieces:  # (a session's pending events and its new chunk's)
-        x, y, p, step = columns_of(events.x, events.y, events.p, steps)
-        bad = _count_loop(x, y, p, step, column, row, shift_x, shift_y, wo, low, span, counts)
-        if bad >= 0:
-            raise ValueError(
-                f"event {bad} at (x={int(x[bad])}, y={int(y[bad])}, step {int(step[bad])}) "
-                f"lies outside the {wo * fx} x {rows * fy} pixels or steps {low}.."
-                f"{low + span - 1} the cells were counted over")
-    empty = np.empty(0, dtype=np.int64)
-    n_cells = _occupied_loop(counts, empty, empty.reshape(0, 2))
-    cell_key = np.empty(n_cells, dtype=np.int64)
-    cell_counts = np.empty((n_cells, 2), dtype=np.int64)
-    _occupied_loop(counts, cell_key, cell_counts)
-    return torch.from_numpy(cell_key), torch.from_numpy(cell_counts)
+__all__ = ["cells_until_chain", "spikes_and_runs"]
 
 #: The loop's code of each reset mechanism.
 _RESETS = {"subtract": 0, "zero": 1, "none": 2}
@@ -256,96 +167,107 @@ def cells_until_chain(
 
 
 @compiled_loop
-def _spike_total(
-    spike_cell: np.ndarray, run_start: np.ndarray, run_length: np.ndarray,
-    cell_step: np.ndarray, from_step: int,
-) -> tuple[int, int]:  # pragma: no cover - compiled
-    """``(at cells, in all)``: the spikes of steps ``from_step`` on."""
-    at_cells = 0
-    for j in range(spike_cell.shape[0]):
-        at_cells += cell_step[spike_cell[j]] >= from_step
-    total = at_cells
-    for j in range(run_start.shape[0]):
-        total += max(0, run_start[j] + run_length[j] - max(run_start[j], from_step))
-    return at_cells, total
+def _spikes_loop(
+    membrane: np.ndarray, chain_before: np.ndarray, cell_step: np.ndarray,
+    gap_before: np.ndarray, gap_after: np.ndarray, last: np.ndarray, threshold: np.float32,
+    tails: int, out: np.ndarray,
+) -> tuple[int, int, int]:  # pragma: no cover - compiled
+    """The spikes at cells, the runs the rounds found and the tails, neuron by neuron.
 
+    ``tails``: 0 none, 1 after a region's last cell only (``last``), 2 after every cell.
+    ``out``: ``(3, 4, 2 * n)`` int64; each kind (spike, run, tail), in neuron order (cell,
+    then polarity), is written as rows (cell, polarity, first step, length or gap).
 
-@compiled_loop
-def _spike_list(
-    spike_cell: np.ndarray, spike_polarity: np.ndarray, run_cell: np.ndarray,
-    run_polarity: np.ndarray, run_start: np.ndarray, run_length: np.ndarray,
-    cell_step: np.ndarray, cell_region: np.ndarray, plane: int, from_step: int,
-    out_step: np.ndarray, out_neuron: np.ndarray,
-) -> None:  # pragma: no cover - compiled
-    """Every spike of steps ``from_step`` on: its step and neuron, at cells, then by run."""
-    k = 0
-    for j in range(spike_cell.shape[0]):
-        cell = spike_cell[j]
-        if cell_step[cell] >= from_step:
-            out_step[k] = cell_step[cell]
-            out_neuron[k] = cell_region[cell] + spike_polarity[j] * plane
-            k += 1
-    for j in range(run_start.shape[0]):
-        neuron = cell_region[run_cell[j]] + run_polarity[j] * plane
-        for step in range(max(run_start[j], from_step), run_start[j] + run_length[j]):
-            out_step[k] = step
-            out_neuron[k] = neuron
-            k += 1
-
-
-@compiled_loop
-def _by_table(
-    step: np.ndarray, neuron: np.ndarray, neurons: int, low: int, marked: np.ndarray,
-    out_step: np.ndarray, out_neuron: np.ndarray,
-) -> None:  # pragma: no cover - compiled
-    """The distinct keys ``(step - low) * neurons + neuron`` marked, then read in order."""
-    marked[:] = False
-    for j in range(step.shape[0]):
-        marked[np.uint64((step[j] - low) * neurons + neuron[j])] = True
-    k = 0
-    for key in range(marked.shape[0]):
-        if marked[key]:
-            out_step[k] = key // neurons + low
-            out_neuron[k] = key % neurons
-            k += 1
-
-
-def spikes_by_step(
-    spikes: CellSpikes, cell_step: Tensor, cell_region: Tensor, *, plane: int, from_step: int,
-    top_step: int,
-) -> tuple[Tensor, Tensor]:
-    """:func:`~evdown_torch.transforms.functional.lif.keys.spikes_by_step` on the CPU, compiled.
-
-    The same arguments (CPU tensors), checks and ``(spike_step, neuron)`` (new tensors).
-    Where the keys ``(step, neuron)`` are few next to the spikes
-    (:data:`~evdown_torch.transforms.functional.lif.keys.TABLE_KEYS_PER_SPIKE`), a compiled
-    table orders them; else :func:`~evdown_torch.transforms.functional.lif.keys.
-    by_step_then_neuron`'s sort.
+    Returns:
+        How many of each kind.
     """
-    from evdown_torch.transforms.functional.lif.keys import (
-        TABLE_KEYS_PER_SPIKE,
-        by_step_then_neuron,
-        check_spike_count,
-    )
+    spikes, runs, candidates = 0, 0, 0
+    for i in range(membrane.shape[0]):
+        for c in range(2):
+            fired = membrane[i, c] > threshold
+            if fired:
+                out[0, 0, spikes] = i
+                out[0, 1, spikes] = c
+                spikes += 1
+            if chain_before[i, c] > 0:
+                out[1, 0, runs] = i
+                out[1, 1, runs] = c
+                out[1, 2, runs] = cell_step[i] - gap_before[i]
+                out[1, 3, runs] = chain_before[i, c]
+                runs += 1
+            if fired and gap_after[i] > 0 and (tails == 2 or (tails == 1 and last[i])):
+                out[2, 0, candidates] = i
+                out[2, 1, candidates] = c
+                out[2, 2, candidates] = cell_step[i] + 1
+                out[2, 3, candidates] = gap_after[i]
+                candidates += 1
+    return spikes, runs, candidates
 
-    spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = (
-        columns_of(*spikes))
-    steps, regions = columns_of(cell_step, cell_region)
-    at_cells, total = _spike_total(spike_cell, run_start, run_length, steps, from_step)
-    check_spike_count(total, at_cells)
-    if total == 0:
-        return torch.empty(0, dtype=torch.int64), torch.empty(0, dtype=torch.int64)
-    step = np.empty(total, dtype=np.int64)
-    neuron = np.empty(total, dtype=np.int64)
-    _spike_list(spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length,
-                steps, regions, plane, from_step, step, neuron)
-    neurons = 2 * plane
-    n_keys = (top_step - from_step + 1) * neurons
-    if n_keys > TABLE_KEYS_PER_SPIKE * total:
-        return by_step_then_neuron(torch.from_numpy(step), torch.from_numpy(neuron), neurons,
-                                   from_step, top_step)
-    out_step = np.empty(total, dtype=np.int64)
-    out_neuron = np.empty(total, dtype=np.int64)
-    _by_table(step, neuron, neurons, from_step, scratch_column("lif spike keys", n_keys, np.bool_),
-              out_step, out_neuron)
-    return torch.from_numpy(out_step), torch.from_numpy(out_neuron)
+
+@compiled_loop
+def _tail_loop(
+    u: np.ndarray, gap: np.ndarray, beta: np.float32, threshold: np.float32, subtract: bool,
+    exact_steps: int, count: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """The spikes of each neuron that fired (``u > threshold``), then ``gap >= 1`` empty steps.
+
+    :meth:`~..lif.chains.Leak.fire_through`'s float32 steps (resets "subtract" and "none"),
+    at most ``exact_steps`` of them; ``count`` gets -1 for a chain still firing after them
+    (the closed form's).
+
+    Returns:
+        How many chains are left to the closed form.
+    """
+    left = 0
+    for j in range(u.shape[0]):
+        v = u[j]
+        spikes = 0
+        alive = True
+        for step in range(exact_steps):
+            if not alive:
+                break
+            v = beta * v  # + a zero current: exact
+            if subtract:
+                v = v - threshold
+            alive = v > threshold
+            if alive:
+                spikes += 1
+            alive = alive and gap[j] > step + 1
+        count[j] = -1 if alive else spikes
+        left += alive
+    return left
+
+
+def spikes_and_runs(
+    membrane: Tensor, chain_before: Tensor, cell_step: Tensor, gap_before: Tensor,
+    gap_after: Tensor, region_last: Tensor, *, leak: Leak,
+) -> CellSpikes:
+    """:func:`~evdown_torch.transforms.functional.lif.rounds.spikes_and_runs` on the CPU.
+
+    The same arguments (CPU tensors) and the same :class:`~..lif.chains.CellSpikes`, in the
+    same order: one compiled pass finds the spikes at cells, the runs the rounds found and
+    the neurons that fire on after a cell (the tails), whose run lengths
+    :meth:`~..lif.chains.Leak.fire_through` gives, as on the eager path.
+    """
+    n = membrane.shape[0]
+    last = np.zeros(n, dtype=np.bool_)
+    last[region_last.numpy()] = True
+    tails = {"zero": 0, "subtract": 1, "none": 2}[leak.reset]
+    columns = columns_of(membrane, chain_before, cell_step, gap_before, gap_after)
+    out = np.empty((3, 4, 2 * n), dtype=np.int64)
+    counts = _spikes_loop(*columns, last, np.float32(leak.threshold), tails, out)
+    spike, run, tail = (torch.from_numpy(out[kind, :, :count].copy())
+                        for kind, count in enumerate(counts))
+    if tails:  # the tails' lengths: fire_through's float32 steps, else its closed form
+        tail_u, tail_gap = membrane[tail[0], tail[1]], tail[3]
+        tail_length = torch.empty_like(tail_gap)
+        left = _tail_loop(tail_u.numpy(), tail_gap.numpy(), np.float32(leak.beta),
+                          np.float32(leak.threshold), leak.reset == "subtract",
+                          EXACT_CHAIN_STEPS, tail_length.numpy())
+        if left:
+            lanes = where_true(tail_length < 0)
+            closed, _, _ = leak.fire_through(tail_u[lanes], tail_gap[lanes],
+                                             torch.ones(left, dtype=torch.bool))
+            tail_length[lanes] = closed
+        run = torch.cat([run, torch.stack([tail[0], tail[1], tail[2], tail_length])], 1)
+    return CellSpikes(spike[0], spike[1], run[0], run[1], run[2], run[3])

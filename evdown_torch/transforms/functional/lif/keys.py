@@ -61,9 +61,9 @@ def counted_cells(
         int64 counts of OFF and ON events.
     """
     if use_compiled(pieces[0][1]):  # one compiled pass (the same keys and counts)
-        from evdown_torch.transforms.functional.compiled import lif
+        from evdown_torch.transforms.functional.compiled import lif_cells
 
-        return lif.counted_cells(pieces, fx=fx, fy=fy, wo=wo, plane=plane, low=low, span=span)
+        return lif_cells.counted_cells(pieces, fx=fx, fy=fy, wo=wo, plane=plane, low=low, span=span)
     i32 = torch.int32
     keys = []
     for events, steps in pieces:  # (a session's pending events and its new chunk's)
@@ -146,6 +146,10 @@ def by_step_then_neuron(
     """
     n_keys = (top - low + 1) * neurons
     if n_keys <= TABLE_KEYS_PER_SPIKE * spike_step.shape[0]:
+        if use_compiled(spike_step):  # one compiled pass over the table
+            from evdown_torch.transforms.functional.compiled import lif_cells
+
+            return lif_cells.by_table(spike_step, neuron, neurons, low, n_keys)
         marked = torch.zeros(n_keys, dtype=torch.bool, device=spike_step.device)
         marked[(spike_step - low).mul_(neurons).add_(neuron)] = True
         key = where_true(marked)
@@ -176,8 +180,8 @@ def spikes_by_step(
     The spikes at cells and the runs' spikes (one per step of a run), less those of steps
     before ``from_step`` (returned by an earlier call: neither built nor counted), counted
     first (:func:`check_spike_count`), then sorted (:func:`by_step_then_neuron`). On the CPU
-    a compiled loop builds and orders them
-    (:func:`evdown_torch.transforms.functional.compiled.lif.spikes_by_step`): the same spikes.
+    compiled loops count and build them
+    (:mod:`evdown_torch.transforms.functional.compiled.lif_cells`): the same spikes.
 
     Args:
         spikes: the call's :class:`~.chains.CellSpikes`.
@@ -193,11 +197,14 @@ def spikes_by_step(
     Raises:
         ValueError: when the spikes exceed the output limit in force.
     """
-    if use_compiled(cell_step):
-        from evdown_torch.transforms.functional.compiled import lif
+    if use_compiled(cell_step):  # compiled passes: the same spikes
+        from evdown_torch.transforms.functional.compiled import lif_cells
 
-        return lif.spikes_by_step(spikes, cell_step, cell_region, plane=plane,
-                                  from_step=from_step, top_step=top_step)
+        at_cells, total = lif_cells.spike_counts(spikes, cell_step, from_step)
+        check_spike_count(total, at_cells)
+        spike_step, neuron = lif_cells.spike_list(spikes, cell_step, cell_region, plane=plane,
+                                                  from_step=from_step, total=total)
+        return by_step_then_neuron(spike_step, neuron, 2 * plane, from_step, top_step)
     spike_cell, spike_polarity, run_cell, run_polarity, run_start, run_length = spikes
     spike_step = cell_step.index_select(0, spike_cell)
     if from_step > 0:  # drop the spikes of steps an earlier call returned

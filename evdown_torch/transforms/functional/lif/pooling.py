@@ -217,6 +217,11 @@ def _with_state_cells(
     as from an ordinary cell. Regions get one where they have cells, and, when the reset lets a
     neuron fire through empty steps (``chains``), where a neuron is above threshold.
     """
+    if use_compiled(cell_region):  # one compiled merge: the same cells
+        from evdown_torch.transforms.functional.compiled import lif_cells
+
+        return lif_cells.with_state_cells(cell_region, cell_step, current, state, chains=chains,
+                                    threshold=float(threshold32))
     wanted = torch.zeros(plane, dtype=torch.bool, device=cell_region.device)
     wanted[cell_region] = True
     if chains:

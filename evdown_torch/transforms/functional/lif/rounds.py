@@ -128,7 +128,7 @@ def _round(rounds: Rounds, r: int, leak: Leak) -> None:
     """Round ``r >= 1``: snntorch's update at the ``r``-th cell of every region that has one.
 
     The compiled loop (:func:`~evdown_torch.transforms.functional.compiled.lif.
-    rounds_until_chain`) does the same arithmetic, element by element.
+    cells_until_chain`) does the same arithmetic, cell by cell.
     """
     beta32, threshold32, reset_mechanism = leak.beta32, leak.threshold32, leak.reset
     bounds = rounds.bounds
@@ -176,8 +176,15 @@ def spikes_and_runs(
     """The rounds' spikes (:class:`~.chains.CellSpikes`).
 
     Those at the cells, and the runs of spikes of neurons that go on firing through the
-    silent steps after a cell.
+    silent steps after a cell. On the CPU a compiled loop finds them
+    (:func:`evdown_torch.transforms.functional.compiled.lif.spikes_and_runs`; the tails'
+    lengths stay :meth:`~.chains.Leak.fire_through`'s): the same spikes, in the same order.
     """
+    if use_compiled(membrane):
+        from evdown_torch.transforms.functional.compiled import lif
+
+        return lif.spikes_and_runs(membrane, chain_before, cell_step, gap_before, gap_after,
+                                   region_last, leak=leak)
     fired = membrane > leak.threshold32
     spike_cell, spike_polarity = fired.nonzero(as_tuple=True)  # cell-major
     # Runs found in the rounds (reset "subtract", gaps between cells) or here (the tail after a
