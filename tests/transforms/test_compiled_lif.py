@@ -214,6 +214,7 @@ def test_counted_cells_equal_the_eager_count(factor, batch, rng):
     # events, then its chunk's): the compiled pass gives the eager keys and counts, with
     # region shifts (powers of two) or tables, for stacked recordings too.
     keys = importlib.import_module("evdown_torch.transforms.functional.lif.keys")
+    steps_module = importlib.import_module("evdown_torch.transforms.functional.lif.steps")
     fx, fy = factor
     wo, ho = math.ceil(12 / fx), math.ceil(10 / fy)
     n, low, span = 30_000, 2**33 + 7, 9
@@ -225,6 +226,14 @@ def test_counted_cells_equal_the_eager_count(factor, batch, rng):
     kwargs = dict(fx=fx, fy=fy, wo=wo, plane=batch * wo * ho, low=low, span=span)
     compiled, eager = both_paths(lambda: keys.counted_cells(pieces, **kwargs))
     assert_identical(compiled, eager)
+    # the chunk's steps as runs (a live session's): the same cells on both paths
+    chunk_steps = steps[1_000:]
+    first = int(chunk_steps[0])
+    runs = steps_module.StepRuns(first, torch.bincount(chunk_steps - first))
+    assert torch.equal(runs.expand(), chunk_steps)
+    as_runs = [pieces[0], (pieces[1][0], runs)]
+    for path in both_paths(lambda: keys.counted_cells(as_runs, **kwargs)):
+        assert_identical(path, compiled)
     cell_key, counts = compiled
     assert int(counts.sum()) == n and bool((counts.sum(1) > 0).all())
     # one hand-checked cell: the first event's

@@ -48,7 +48,7 @@ def test_searched_steps_equal_division():
         want = torch.div(t - t_start, int(used_dt), rounding_mode="floor")
         assert torch.equal(steps, want)
         assert last == int(want[-1])
-        searched += lif_steps._searchable(t, used_dt) and lif_steps._sorted_steps(
+        searched += lif_steps._searchable(t, used_dt) and lif_steps._step_runs(
             t, int(t_start), int(used_dt)) is not None
     assert searched > 5
 

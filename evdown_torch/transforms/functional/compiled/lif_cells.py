@@ -31,6 +31,7 @@ from evdown_torch.transforms.functional.compiled.regions import (
     region_tables,
 )
 from evdown_torch.transforms.functional.compiled.scratch import scratch_column
+from evdown_torch.transforms.functional.lif.steps import StepRuns, Steps, each_step
 
 if TYPE_CHECKING:
     from evdown_torch.events import Events
@@ -41,12 +42,14 @@ __all__ = ["by_table", "counted_cells", "spike_counts", "spike_list", "with_stat
 
 @compiled_loop
 def _count_loop(
-    x: np.ndarray, y: np.ndarray, p: np.ndarray, steps: np.ndarray, column: np.ndarray,
-    row: np.ndarray, shift_x: int, shift_y: int, wo: int, low: int, span: int,
-    counts: np.ndarray,
+    x: np.ndarray, y: np.ndarray, p: np.ndarray, steps: np.ndarray, first: int,
+    ends: np.ndarray, column: np.ndarray, row: np.ndarray, shift_x: int, shift_y: int,
+    wo: int, low: int, span: int, counts: np.ndarray,
 ) -> int:  # pragma: no cover - compiled
     """Adds each event to ``counts[2 * key + p]``, ``key = region * span + step - low``.
 
+    The step of event ``i`` is ``steps[i]``, or, with ``steps`` empty, ``first + r`` for
+    the events ``ends[r - 1] .. ends[r] - 1`` of run ``r`` (:class:`~..lif.steps.StepRuns`).
     The region ``(x >> shift_x) + (y >> shift_y) * wo`` (factors that are powers of two) or,
     with negative shifts, ``column[x] + row[y] * wo``.
 
@@ -56,17 +59,23 @@ def _count_loop(
     """
     width = column.shape[0]
     height = row.shape[0]
-    for i in range(np.uint64(0), np.uint64(x.shape[0])):
-        xi = x[i]
-        yi = y[i]
-        step = steps[i] - low
-        if xi < 0 or xi >= width or yi < 0 or yi >= height or step < 0 or step >= span:
-            return np.int64(i)
-        if shift_x >= 0:
-            region = (xi >> shift_x) + (yi >> shift_y) * wo
-        else:
-            region = column[xi] + row[yi] * wo
-        counts[np.uint64(2 * (region * span + step) + (1 if p[i] else 0))] += 1
+    each = steps.shape[0] > 0
+    runs = 1 if each else ends.shape[0]
+    start = 0
+    for r in range(runs):
+        stop = x.shape[0] if each else ends[r]
+        for i in range(np.uint64(start), np.uint64(stop)):
+            xi = x[i]
+            yi = y[i]
+            step = (steps[i] if each else first + r) - low
+            if xi < 0 or xi >= width or yi < 0 or yi >= height or step < 0 or step >= span:
+                return np.int64(i)
+            if shift_x >= 0:
+                region = (xi >> shift_x) + (yi >> shift_y) * wo
+            else:
+                region = column[xi] + row[yi] * wo
+            counts[np.uint64(2 * (region * span + step) + (1 if p[i] else 0))] += 1
+        start = stop
     return -1
 
 
@@ -93,7 +102,7 @@ def _occupied_loop(
 
 
 def counted_cells(
-    pieces: Sequence[tuple[Events, Tensor]], *, fx: int, fy: int, wo: int, plane: int,
+    pieces: Sequence[tuple[Events, Steps]], *, fx: int, fy: int, wo: int, plane: int,
     low: int, span: int,
 ) -> tuple[Tensor, Tensor]:
     """:func:`~evdown_torch.transforms.functional.lif.keys.counted_cells` on the CPU, compiled.
@@ -110,12 +119,19 @@ def counted_cells(
     shift_x, shift_y = power_of_two_shifts((fx, fy))
     counts = scratch_column("lif counts", 2 * plane * span, np.int64)
     counts.fill(0)
+    no_runs = np.empty(0, dtype=np.int64)
     for events, steps in pieces:  # (a session's pending events and its new chunk's)
-        x, y, p, step = columns_of(events.x, events.y, events.p, steps)
-        bad = _count_loop(x, y, p, step, column, row, shift_x, shift_y, wo, low, span, counts)
+        x, y, p = columns_of(events.x, events.y, events.p)
+        if isinstance(steps, StepRuns):  # the steps of runs, not of each event
+            each, first, ends = no_runs, steps.first, np.cumsum(steps.counts.numpy())
+        else:
+            each, first, ends = columns_of(steps)[0], 0, no_runs
+        bad = _count_loop(x, y, p, each, first, ends, column, row, shift_x, shift_y, wo, low,
+                          span, counts)
         if bad >= 0:
+            step = int(each_step(steps)[bad])
             raise ValueError(
-                f"event {bad} at (x={int(x[bad])}, y={int(y[bad])}, step {int(step[bad])}) "
+                f"event {bad} at (x={int(x[bad])}, y={int(y[bad])}, step {step}) "
                 f"lies outside the {wo * fx} x {rows * fy} pixels or steps {low}.."
                 f"{low + span - 1} the cells were counted over")
     empty = np.empty(0, dtype=np.int64)
@@ -124,8 +140,6 @@ def counted_cells(
     cell_counts = np.empty((n_cells, 2), dtype=np.int64)
     _occupied_loop(counts, cell_key, cell_counts)
     return torch.from_numpy(cell_key), torch.from_numpy(cell_counts)
-
-#: The loop's code of each reset mechanism.
 
 
 @compiled_loop

@@ -26,6 +26,7 @@ from evdown_torch.checks import check_output_count
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.lif.chains import CellSpikes
+from evdown_torch.transforms.functional.lif.steps import Steps, each_step
 
 __all__ = ["TABLE_KEYS_PER_SPIKE", "by_step_then_neuron", "check_spike_count", "counted_cells",
            "grouped_cells", "spikes_by_step"]
@@ -36,7 +37,7 @@ TABLE_KEYS_PER_SPIKE = 16
 
 
 def counted_cells(
-    pieces: Sequence[tuple[Events, Tensor]], *, fx: int, fy: int, wo: int, plane: int,
+    pieces: Sequence[tuple[Events, Steps]], *, fx: int, fy: int, wo: int, plane: int,
     low: int, span: int,
 ) -> tuple[Tensor, Tensor]:
     """The occupied keys ``region * span + (step - low)`` and their events, by counting.
@@ -48,7 +49,7 @@ def counted_cells(
 
     Args:
         pieces: the events (any order), each with the ``(N,)`` int64 step of every event,
-            ``low .. low + span - 1``.
+            ``low .. low + span - 1`` (or, time-sorted, their :class:`~.steps.StepRuns`).
         fx: region width.
         fy: region height.
         wo: regions per row.
@@ -60,13 +61,14 @@ def counted_cells(
         ``(cell_key, counts)``: int64 sorted keys of the cells and their ``(n_cells, 2)``
         int64 counts of OFF and ON events.
     """
-    if use_compiled(pieces[0][1]):  # one compiled pass (the same keys and counts)
+    if use_compiled(pieces[0][0].x):  # one compiled pass (the same keys and counts)
         from evdown_torch.transforms.functional.compiled import lif_cells
 
         return lif_cells.counted_cells(pieces, fx=fx, fy=fy, wo=wo, plane=plane, low=low, span=span)
     i32 = torch.int32
     keys = []
-    for events, steps in pieces:  # (a session's pending events and its new chunk's)
+    for events, piece_steps in pieces:  # (a session's pending events and its new chunk's)
+        steps = each_step(piece_steps)
         key = events.x.to(i32)  # in place from here: two int32 columns in all
         divide(key, fx, out=key).mul_(2 * span)
         other = events.y.to(i32)

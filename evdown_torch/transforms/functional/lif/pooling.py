@@ -97,7 +97,10 @@ from evdown_torch.transforms.functional.lif.settings import (
 )
 from evdown_torch.transforms.functional.lif.steps import (
     MAX_STEPS,
+    StepRuns,
+    Steps,
     batch_step_indices,
+    each_step,
     spikes_to_events,
     step_end_time,
     step_indices,
@@ -132,7 +135,7 @@ COUNTED_KEYS_PER_EVENT = 1
 
 def _event_cells(
     events: Events | Sequence[Events],
-    steps: Tensor | Sequence[Tensor],
+    steps: Steps | Sequence[Steps],
     *,
     fx: int,
     fy: int,
@@ -171,12 +174,13 @@ def _event_cells(
         events, steps = [events], [cast(Tensor, steps)]
     device = events[0].device
     f32 = torch.float32
-    pieces = [(e, s) for e, s in zip(events, steps, strict=True) if e.num_events]
+    pieces = [(e, s) for e, s in zip(events, cast(Sequence[Steps], steps), strict=True)
+              if e.num_events]
     if not pieces:
         empty = torch.empty(0, dtype=torch.int64, device=device)
         return empty, empty, torch.empty(0, 2, dtype=f32, device=device)
     n = sum(e.num_events for e, _ in pieces)
-    low = min(int(s[0] if ascending else s.min()) for _, s in pieces)
+    low = min(_lowest_step(s, ascending) for _, s in pieces)
     span = top_step - low + 1  # steps per region in the key
     n_keys = plane * span
     cell_region: Tensor | None = None
@@ -184,9 +188,8 @@ def _event_cells(
         cell_step, counts = counted_cells(pieces, fx=fx, fy=fy, wo=wo, plane=plane, low=low,
                                           span=span)
     else:
-        joined, joined_steps = pieces[0] if len(pieces) == 1 else (
-            Events.cat([e for e, _ in pieces]),
-            torch.cat([s for _, s in pieces]))
+        joined = pieces[0][0] if len(pieces) == 1 else Events.cat([e for e, _ in pieces])
+        joined_steps = torch.cat([each_step(s) for _, s in pieces])
         cell_region, cell_step, counts = grouped_cells(
             joined, joined_steps, fx=fx, fy=fy, wo=wo, plane=plane, low=low, span=span,
             table=n_keys <= min(OCCUPANCY_KEYS_PER_EVENT * n, MAX_OCCUPANCY_KEYS))
@@ -198,6 +201,13 @@ def _event_cells(
     if mutual_inhibition != 0:
         current -= counts.flip(1) * torch.tensor(mutual_inhibition, dtype=f32, device=device)
     return cell_region, cell_step, current
+
+
+def _lowest_step(steps: Steps, ascending: bool) -> int:
+    """The earliest step of a piece's (non-empty) steps."""
+    if isinstance(steps, StepRuns):  # its first run with events
+        return steps.first + int(torch.argmax((steps.counts > 0).to(torch.int8)))
+    return int(steps[0] if ascending else steps.min())
 
 
 def _with_state_cells(
@@ -340,7 +350,7 @@ def initial_state(plane: int, device: torch.device | str | None = None) -> LIFSt
 
 def lif_spikes(
     events: Events | Sequence[Events],
-    steps: Tensor | Sequence[Tensor],
+    steps: Steps | Sequence[Steps],
     settings: LIFSettings,
     *,
     state: LIFState | None,
@@ -360,7 +370,8 @@ def lif_spikes(
     Args:
         events: time-sorted events, all in steps after every region's ``state.last_step``
             and at most ``last_step``; or consecutive pieces of them (not joined here).
-        steps: ``(N,)`` int64 step of every event (of every piece).
+        steps: ``(N,)`` int64 step of every event (of every piece), or a piece's
+            :class:`~.steps.StepRuns`.
         settings: the neuron's settings (its ``dt`` is not used: ``steps`` are given).
         state: the neurons before these events (``None``: all at rest).
         last_step: the last step to process: firing chains through the empty steps after a

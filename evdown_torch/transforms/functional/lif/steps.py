@@ -10,6 +10,7 @@ index are refused.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -20,10 +21,14 @@ from evdown_torch.events import Events
 
 __all__ = [
     "MAX_STEPS",
+    "StepRuns",
+    "Steps",
     "batch_step_indices",
+    "each_step",
     "spikes_to_events",
     "step_end_time",
     "step_indices",
+    "step_runs",
 ]
 
 #: Largest number of steps a stream may be cut into (step indices are int64, with headroom).
@@ -38,6 +43,58 @@ SEARCH_MIN_EVENTS = 1 << 14
 SEARCH_MIN_EVENTS_PER_STEP = 256
 
 
+class StepRuns(NamedTuple):
+    """The steps of time-sorted events as runs: ``counts[i]`` events in step ``first + i``.
+
+    What :func:`step_runs` finds by searching, and :func:`step_indices` repeats over each
+    run's events: a live chunk's steps in a few numbers, not one per event.
+
+    Attributes:
+        first: the step of the first run.
+        counts: ``(S,)`` int64 events of each run (``0`` for an empty step), ``S >= 1``.
+
+    Example:
+        >>> runs = StepRuns(4, torch.tensor([2, 0, 3]))
+        >>> runs.expand().tolist(), runs.last, runs.num_events
+        ([4, 4, 6, 6, 6], 6, 5)
+        >>> head, tail = runs.split(5)
+        >>> head.expand().tolist(), tail.expand().tolist()
+        ([4, 4], [6, 6, 6])
+    """
+
+    first: int
+    counts: Tensor
+
+    @property
+    def num_events(self) -> int:
+        """The events of all runs."""
+        return int(self.counts.sum())
+
+    @property
+    def last(self) -> int:
+        """The step of the last run (the last event's, where it has events)."""
+        return self.first + self.counts.shape[0] - 1
+
+    def expand(self) -> Tensor:
+        """The ``(N,)`` int64 step of every event."""
+        return runs_of(self.counts, self.num_events).add_(self.first)
+
+    def split(self, step: int) -> tuple[StepRuns, StepRuns]:
+        """The runs of steps below ``step`` and from ``step`` on (an empty one: no runs)."""
+        cut = min(max(step - self.first, 0), self.counts.shape[0])
+        return (StepRuns(self.first, self.counts[:cut]),
+                StepRuns(self.first + cut, self.counts[cut:]))
+
+
+#: A piece's steps: the ``(N,)`` int64 step of every event, or their :class:`StepRuns`.
+Steps = Tensor | StepRuns
+
+
+def each_step(steps: Steps) -> Tensor:
+    """The ``(N,)`` int64 step of every event (:meth:`StepRuns.expand` of runs)."""
+    return steps.expand() if isinstance(steps, StepRuns) else steps
+
+
 def step_indices(
     t: Tensor, dt: float, t_start: Tensor | None = None
 ) -> tuple[Tensor, int, float]:
@@ -49,28 +106,45 @@ def step_indices(
     Raises:
         ValueError: when the stream's span or its number of steps cannot be represented.
     """
+    steps, last, dt = step_runs(t, dt, t_start)
+    return each_step(steps), last, dt
+
+
+def step_runs(
+    t: Tensor, dt: float, t_start: Tensor | None = None
+) -> tuple[Steps, int, float]:
+    """:func:`step_indices`, with the steps as :class:`StepRuns` where found by searching.
+
+    Many integer times and a whole ``dt`` (a live chunk's): the steps' runs; else the
+    ``(N,)`` int64 step of every event.
+
+    Raises:
+        ValueError: when the stream's span or its number of steps cannot be represented.
+    """
     if t_start is None:
         t_start = t[0]
     dt = _checked_dt(t_start, t[-1], t.is_floating_point(), dt, "the stream spans")
-    steps = _sorted_steps(t, int(t_start), int(dt)) if _searchable(t, dt) else None
-    if steps is None:
-        steps = _steps(t - t_start, dt)
+    found = _step_runs(t, int(t_start), int(dt)) if _searchable(t, dt) else None
+    if found is not None:
+        return found, found.last, dt
+    steps = _steps(t - t_start, dt)
     return steps, int(steps[-1]), dt
 
 
 def _searchable(t: Tensor, dt: float) -> bool:
-    """Whether :func:`_sorted_steps` may step ``t``: integer times, a whole ``dt``, many events."""
+    """Whether :func:`_step_runs` may step ``t``: integer times, a whole ``dt``, many events."""
     return (t.shape[0] >= SEARCH_MIN_EVENTS and not t.is_floating_point()
             and dt.is_integer())
 
 
-def _sorted_steps(t: Tensor, t_start: int, dt: int) -> Tensor | None:
+def _step_runs(t: Tensor, t_start: int, dt: int) -> StepRuns | None:
     """``floor((t - t_start) / dt)`` of sorted int64 ``t`` by searching the steps' first times.
 
     Step ``k`` begins at ``t_start + k * dt`` exactly, so the events of a step are the run
-    between two of those times; the steps are the runs' indices repeated, the same integers
-    as the division at a fraction of its cost. ``None`` where the events are fewer than
-    :data:`SEARCH_MIN_EVENTS_PER_STEP` per step spanned (the division is cheaper there).
+    between two of those times: the runs' lengths (:meth:`StepRuns.expand` repeats each
+    run's index over its events, the same integers as the division at a fraction of its
+    cost). ``None`` where the events are fewer than :data:`SEARCH_MIN_EVENTS_PER_STEP` per
+    step spanned (the division is cheaper there).
     """
     n = t.shape[0]
     first, last = (int(t[0]) - t_start) // dt, (int(t[-1]) - t_start) // dt
@@ -78,8 +152,8 @@ def _sorted_steps(t: Tensor, t_start: int, dt: int) -> Tensor | None:
         return None
     index = torch.arange(first, last + 1, device=t.device)
     begins = torch.searchsorted(t, index[1:] * dt + t_start)  # each later step's first event
-    counts = torch.diff(begins, prepend=begins.new_zeros(1), append=begins.new_full((1,), n))
-    return runs_of(counts, n).add_(first)  # each step's index, repeated over its events
+    return StepRuns(first, torch.diff(begins, prepend=begins.new_zeros(1),
+                                      append=begins.new_full((1,), n)))
 
 
 def _checked_dt(

@@ -50,9 +50,13 @@ from evdown_torch.transforms.functional.lif.pooling import (
 )
 from evdown_torch.transforms.functional.lif.settings import LIFPoolingSettings
 from evdown_torch.transforms.functional.lif.steps import (
+    StepRuns,
+    Steps,
+    each_step,
     spikes_to_events,
     step_end_time,
     step_indices,
+    step_runs,
 )
 from evdown_torch.transforms.functional.protocol import Method
 
@@ -182,8 +186,9 @@ def lif_pooling_step(
     """
     cell, sensor_size, factor = settings.neuron, settings.sensor_size, settings.factor
     # The steps of the new events only (the pending ones' are kept: the same, see
-    # step_indices, whose dt changes only while every event is in step 0).
-    steps, last_step, end_dt = step_indices(events.t, cell.dt, t_start=state.t_start)
+    # step_indices, whose dt changes only while every event is in step 0), as runs where
+    # found by searching (a live chunk's: only the pending rest is stepped event by event).
+    steps, last_step, end_dt = step_runs(events.t, cell.dt, t_start=state.t_start)
     last_t = events.t[-1]
     decided = _last_decided_step(
         last_step, state.decided, t_start=state.t_start, last_t=last_t, dt=cell.dt
@@ -191,22 +196,29 @@ def lif_pooling_step(
     if decided == state.decided:
         return Events.empty(events.t.dtype, events.device), state._replace(
             last_t=last_t, pending=Events.cat([state.pending, events]),
-            pending_steps=torch.cat([state.pending_steps, steps]),
+            pending_steps=torch.cat([state.pending_steps, each_step(steps)]),
         )
     # The events of decided steps: a prefix of the pending ones (usually all), then a prefix
     # of the new ones (none unless every pending one is decided), passed as two pieces.
     k = int(torch.searchsorted(state.pending_steps, decided, right=True))
-    n = int(torch.searchsorted(steps, decided, right=True))
+    decided_steps: Steps
+    rest_of_steps: Steps
+    if isinstance(steps, StepRuns):
+        decided_steps, rest_of_steps = steps.split(decided + 1)
+        n = decided_steps.num_events
+    else:
+        n = int(torch.searchsorted(steps, decided, right=True))
+        decided_steps, rest_of_steps = steps[:n], steps[n:]
     spike_step, neuron, neurons = lif_spikes(
         [state.pending.part(0, k), events.part(0, n)],
-        [state.pending_steps[:k], steps[:n]], cell,
+        [state.pending_steps[:k], decided_steps], cell,
         state=state.neurons, last_step=decided, from_step=state.decided + 1,
         sensor_size=sensor_size, factor=factor,
     )
     t = step_end_time(spike_step, t_start=state.t_start, t_end=last_t, dt=end_dt)
     out = spikes_to_events(spike_step, neuron, t, sensor_size=sensor_size, factor=factor)
     rest = Events.cat([state.pending.part(k), events.part(n)])
-    rest_steps = torch.cat([state.pending_steps[k:], steps[n:]])
+    rest_steps = torch.cat([state.pending_steps[k:], each_step(rest_of_steps)])
     neurons = cast(LIFState, neurons)  # kept: lif_spikes returns the state (keep_state)
     return out, LIFStreamState(state.t_start, last_t, neurons, decided, rest, rest_steps)
 
