@@ -15,6 +15,7 @@ from torch import Tensor
 
 from evdown_torch.checks import check_non_negative_int
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.compiled import use_compiled
 
 __all__ = ["content_digest", "event_uniforms", "mixed_seed", "recording_seed"]
 
@@ -88,7 +89,8 @@ def event_uniforms(
     first timestamp) draws what the whole-stream call draws, different recordings get
     different draws, and shifting the clock changes none. Two independent 32-bit hash chains
     (MurmurHash3's finaliser over 32-bit words, in int64 arithmetic that never overflows)
-    give the 53 bits of each float64.
+    give the 53 bits of each float64. On the CPU a compiled loop computes the same integers
+    (:mod:`evdown_torch.transforms.functional.compiled.draws`).
 
     Args:
         events: ``N`` events.
@@ -115,6 +117,10 @@ def event_uniforms(
     offset = events.t - origin
     if offset.is_floating_point():
         offset = offset.to(torch.float64).view(torch.int64)
+    if use_compiled(index):  # one compiled pass: the same draws
+        from evdown_torch.transforms.functional.compiled import draws
+
+        return draws.event_uniforms(events, key, index, offset)
     words = (index, index >> 32, events.x, (events.y << 1) | events.p.to(torch.int64),
              offset, offset >> 32)
     chains = []
