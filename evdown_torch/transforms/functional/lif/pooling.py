@@ -26,7 +26,11 @@ that follows the events:
   number of cells, so the regions of a round are a prefix and every update is a slice). The
   element work is proportional to the cells; the number of rounds (a fixed cost of a few
   tensor operations each) is the largest number of cells of one region, at most the number
-  of steps that hold events (:mod:`~evdown_torch.transforms.functional.lif.rounds`).
+  of steps that hold events (:mod:`~evdown_torch.transforms.functional.lif.rounds`). On
+  the CPU compiled loops take the cells as they come instead, region by region, with the same
+  float32 arithmetic, and do the counting, merging and ordering around them too
+  (:mod:`~evdown_torch.transforms.functional.compiled.lif`,
+  :mod:`~evdown_torch.transforms.functional.compiled.lif_cells`).
 - **Small calls in closed form.** A call that needs no state back (a recording alone or a
   small batch) and whose cells fit a small table takes
   :mod:`~evdown_torch.transforms.functional.lif.closed_form` instead: the membranes between
@@ -230,8 +234,8 @@ def _with_state_cells(
     if use_compiled(cell_region):  # one compiled merge: the same cells
         from evdown_torch.transforms.functional.compiled import lif_cells
 
-        return lif_cells.with_state_cells(cell_region, cell_step, current, state, chains=chains,
-                                    threshold=float(threshold32))
+        return lif_cells.with_state_cells(cell_region, cell_step, current, state,
+                                          chains=chains, threshold=float(threshold32))
     wanted = torch.zeros(plane, dtype=torch.bool, device=cell_region.device)
     wanted[cell_region] = True
     if chains:
