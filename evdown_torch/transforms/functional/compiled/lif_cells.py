@@ -143,6 +143,18 @@ def counted_cells(
 
 
 @compiled_loop
+def _put_cell(
+    out_region: np.ndarray, out_step: np.ndarray, out_current: np.ndarray, k: int,
+    region: int, step: int, values: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Cell ``k`` of the merged cells: its region, step and ``(OFF, ON)`` current."""
+    out_region[k] = region
+    out_step[k] = step
+    out_current[k, 0] = values[0]
+    out_current[k, 1] = values[1]
+
+
+@compiled_loop
 def _merge_loop(
     cell_region: np.ndarray, cell_step: np.ndarray, current: np.ndarray,
     membrane: np.ndarray, last_step: np.ndarray, chains: bool, threshold: np.float32,
@@ -164,19 +176,13 @@ def _merge_loop(
             i += 1
         wanted = start < i or (chains and (membrane[r, 0] > threshold
                                            or membrane[r, 1] > threshold))
-        if wanted and last_step[r] >= 0:
+        if wanted and last_step[r] >= 0:  # the state cell: its membrane as its current
             if write:
-                out_region[k] = r
-                out_step[k] = last_step[r]
-                out_current[k, 0] = membrane[r, 0]
-                out_current[k, 1] = membrane[r, 1]
+                _put_cell(out_region, out_step, out_current, k, r, last_step[r], membrane[r])
             k += 1
         for j in range(start, i):
             if write:
-                out_region[k] = r
-                out_step[k] = cell_step[j]
-                out_current[k, 0] = current[j, 0]
-                out_current[k, 1] = current[j, 1]
+                _put_cell(out_region, out_step, out_current, k, r, cell_step[j], current[j])
             k += 1
     return k if i == n else -1
 
