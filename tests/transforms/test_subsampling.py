@@ -347,3 +347,30 @@ def test_the_kernels_run_where_the_events_are(device, rng):
         out = transform(torch.tensor(columns, device=device))
         assert out.device.type == device.type
         torch.testing.assert_close(out.cpu(), on_cpu, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("span", [50, 10**5, 2**40])
+def test_distinct_keys_by_marks_are_torch_unique(span, rng):
+    # PoissonSubsampling's distinct keys: by a table of marks (small ranges, negative values
+    # too) or by the sort (a wide range), torch.unique's sorted values and inverse.
+    from evdown_torch.transforms.functional import poisson as poisson_kernel
+
+    values = torch.from_numpy(rng.integers(-span // 2, span // 2, 20_000))
+    distinct, inverse = poisson_kernel._distinct(values)
+    want, want_inverse = torch.unique(values, return_inverse=True)
+    assert torch.equal(distinct, want) and torch.equal(inverse, want_inverse)
+    empty = poisson_kernel._distinct(torch.empty(0, dtype=torch.int64))
+    assert all(part.shape == (0,) and part.dtype == torch.int64 for part in empty)
+
+
+def test_poisson_blur_finds_its_rows_by_table_as_by_search(monkeypatch, rng):
+    # The blur's lookups of its targets: by the table of places or by binary search (a table
+    # refused), the same kept events.
+    from evdown_torch.transforms.functional import poisson as poisson_kernel
+
+    arr = random_stream(rng, 6_000, SENSOR, t_max=3_000)
+    transform = SUBSAMPLERS["poisson"]
+    by_table = transform(arr)
+    monkeypatch.setattr(poisson_kernel, "_places", lambda ordered: (0, None))
+    np.testing.assert_array_equal(transform(arr), by_table)
+    assert 0 < len(by_table) < len(arr)

@@ -17,6 +17,11 @@ How it is computed, without a loop over events or dense per-window maps:
   is separable. **mean B** over the sensor is ``sum_i (1 - exp(-n_i)) * M_i / (W * H)`` over
   the entries ``i``, where ``M_i`` (also separable) is the total weight pixel ``i`` spreads
   over the sensor: its cost is the entries', not the sensor's.
+* **Distinct keys** (the windows, the table's entries, the blur's targets) come from a table
+  of marks over their range where it is small next to them (:data:`MARKS_PER_VALUE`; a
+  chunk's keys span a few windows of the sensor), else from ``torch.unique``'s sort: the same
+  sorted values and inverse either way; the blur's lookups of its targets, likewise, from a
+  table of their places, else by binary search.
 * **The cap** is exact in integers: with ``alpha`` taken as the fraction ``a / b`` nearest it
   (``b <= 10**6``), ``L_e = floor(a * seen_e / b)`` is the most that may be kept after ``e``.
   A candidate is kept iff the count stays within ``L``, so the kept count after ``e`` is
@@ -42,6 +47,7 @@ from evdown_torch._tensors import (
     divide,
     searchsorted_ascending,
     take,
+    where_true,
 )
 from evdown_torch.checks import check_non_negative_int, check_positive_float
 from evdown_torch.events import Events
@@ -152,6 +158,55 @@ def _edge_factors(size: int, device: torch.device) -> tuple[Tensor, Tensor]:
     return norm, spread
 
 
+#: Most marks per value for which :func:`_distinct` marks the values' range in a table rather
+#: than sorting them (``torch.unique``): the live replay's chunks (a few windows of a
+#: 128x128 sensor, 240,000 events) spend 23 ms a chunk in the sorts.
+MARKS_PER_VALUE = 4
+
+
+def _distinct(values: Tensor) -> tuple[Tensor, Tensor]:
+    """``torch.unique(values, return_inverse=True)`` of int64 ``values``: sorted, and each's.
+
+    By a table of marks over ``min .. max`` where it has at most :data:`MARKS_PER_VALUE`
+    entries per value (plus a few thousand), else by the sort.
+
+    Example:
+        >>> _distinct(torch.tensor([7, 3, 7, 5]))
+        (tensor([3, 5, 7]), tensor([2, 0, 2, 1]))
+    """
+    if values.shape[0]:
+        low, high = (int(bound) for bound in torch.aminmax(values))
+        if high - low < MARKS_PER_VALUE * values.shape[0] + 4096:
+            offset = values - low
+            marked = torch.zeros(high - low + 1, dtype=torch.bool, device=values.device)
+            marked[offset] = True
+            rank = torch.cumsum(marked, 0, dtype=torch.int64).sub_(1)
+            return where_true(marked).add_(low), take(rank, offset)
+    distinct, inverse = torch.unique(values, return_inverse=True)
+    return distinct, inverse
+
+
+def _places(ordered: Tensor) -> tuple[int, Tensor | None]:
+    """The places of sorted distinct int64 ``ordered``, by value: ``(low, place)``.
+
+    ``place[v - low]`` is the index of ``v`` in ``ordered`` (-1 for a value between them): a
+    table over their range where it is small next to them (:data:`MARKS_PER_VALUE`);
+    ``(0, None)`` where it is not (search them instead).
+
+    Example:
+        >>> _places(torch.tensor([4, 6, 7]))
+        (4, tensor([ 0, -1,  1,  2]))
+    """
+    if not ordered.shape[0]:
+        return 0, None
+    low, high = int(ordered[0]), int(ordered[-1])
+    if high - low >= MARKS_PER_VALUE * ordered.shape[0] + 4096:
+        return 0, None
+    place = torch.full((high - low + 1,), -1, dtype=torch.int64, device=ordered.device)
+    place[ordered - low] = torch.arange(ordered.shape[0], device=ordered.device)
+    return low, place
+
+
 def _entries(windows: Tensor, keys: Tensor, counts: Tensor, planes: int
              ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The distinct (window, key) entries, sorted, with their summed counts.
@@ -161,12 +216,12 @@ def _entries(windows: Tensor, keys: Tensor, counts: Tensor, planes: int
         entry's ``rank * planes + key`` (``rank``: its window's place among them), each
         entry's count, and each input row's entry.
     """
-    distinct = torch.unique(windows)
+    distinct, _ = _distinct(windows)
     if distinct.shape[0] * planes >= 1 << 62:
         raise ValueError("a chunk spans too many windows for the int64 search keys; feed it "
                          "in shorter chunks")
     rank = torch.searchsorted(distinct, windows)
-    search, inverse = torch.unique(rank * planes + keys, return_inverse=True)
+    search, inverse = _distinct(rank * planes + keys)
     total = torch.zeros(search.shape[0], dtype=torch.int64, device=keys.device)
     total.index_add_(0, inverse, counts)
     return distinct, search, total, inverse
@@ -183,7 +238,7 @@ def _row_blur(search: Tensor, value: Tensor, x: Tensor, width: int) -> tuple[Ten
     inside = ((x + dx >= 0) & (x + dx < width)).reshape(-1)
     target = (search + dx).reshape(-1)[inside]
     spread = (g.unsqueeze(1) * value).reshape(-1)[inside]
-    targets, inverse = torch.unique(target, return_inverse=True)
+    targets, inverse = _distinct(target)
     sums = torch.zeros(targets.shape[0], dtype=torch.float64, device=value.device)
     return targets, sums.index_add_(0, inverse, spread)
 
@@ -231,9 +286,13 @@ def _probabilities(
     base = safe_before * planes + entry_key
     blurred = torch.zeros(search.shape[0], dtype=torch.float64, device=device)
     last = rows.shape[0] - 1
+    low, place = _places(rows)
     for dy, weight in zip(range(-BLUR_RADIUS, BLUR_RADIUS + 1), _blur_weights(), strict=True):
         wanted = base + dy * width
-        at = searchsorted_ascending(rows, wanted).clamp_(max=last)
+        if place is None:
+            at = searchsorted_ascending(rows, wanted).clamp_(max=last)
+        else:  # the row's place where it is one of rows (else a row that is not it)
+            at = take(place, (wanted - low).clamp_(0, place.shape[0] - 1)).clamp_(min=0)
         found = (take(rows, at) == wanted) & (entry_y + dy >= 0) & (entry_y + dy < height)
         blurred.add_(take(row_sums, at).masked_fill_(~found, 0.0), alpha=weight)
     blurred /= take(norm_x, entry_x) * take(norm_y, entry_y)
