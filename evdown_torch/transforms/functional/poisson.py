@@ -179,7 +179,10 @@ def _distinct(values: Tensor) -> tuple[Tensor, Tensor]:
         if high - low < MARKS_PER_VALUE * values.shape[0] + 4096:
             offset = values - low
             marked = torch.zeros(high - low + 1, dtype=torch.bool, device=values.device)
-            marked[offset] = True
+            if marked.device.type == "cpu":  # NumPy's assignment: a few times torch's there
+                marked.numpy()[offset.numpy()] = True
+            else:
+                marked[offset] = True
             rank = torch.cumsum(marked, 0, dtype=torch.int64).sub_(1)
             return where_true(marked).add_(low), take(rank, offset)
     distinct, inverse = torch.unique(values, return_inverse=True)
@@ -235,9 +238,9 @@ def _row_blur(search: Tensor, value: Tensor, x: Tensor, width: int) -> tuple[Ten
     """
     g = torch.tensor(_blur_weights(), dtype=torch.float64, device=value.device)
     dx = torch.arange(-BLUR_RADIUS, BLUR_RADIUS + 1, device=value.device).unsqueeze(1)
-    inside = ((x + dx >= 0) & (x + dx < width)).reshape(-1)
-    target = (search + dx).reshape(-1)[inside]
-    spread = (g.unsqueeze(1) * value).reshape(-1)[inside]
+    inside = where_true(((x + dx >= 0) & (x + dx < width)).reshape(-1))  # (in order)
+    target = take((search + dx).reshape(-1), inside)
+    spread = take((g.unsqueeze(1) * value).reshape(-1), inside)
     targets, inverse = _distinct(target)
     sums = torch.zeros(targets.shape[0], dtype=torch.float64, device=value.device)
     return targets, sums.index_add_(0, inverse, spread)
