@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from scipy.ndimage import gaussian_filter
 
 from evdown_torch import DensitySubsampling, Events, PoissonSubsampling, _tensors
-from evdown_torch.events import sort_by_time, to_events
+from evdown_torch.events import DVS_DTYPE, sort_by_time, to_events
 from evdown_torch.transforms.functional import density as density_kernel
 from evdown_torch.transforms.functional.density import event_density, patch_offsets
 from evdown_torch.transforms.functional.draws import event_uniforms
@@ -374,3 +374,30 @@ def test_poisson_blur_finds_its_rows_by_table_as_by_search(monkeypatch, rng):
     monkeypatch.setattr(poisson_kernel, "_places", lambda ordered: (0, None))
     np.testing.assert_array_equal(transform(arr), by_table)
     assert 0 < len(by_table) < len(arr)
+
+
+@pytest.mark.parametrize("t_dtype", [DVS_DTYPE, FLOAT_DTYPE])
+def test_density_neighbour_sweep_equals_the_search_bit_for_bit(t_dtype, rng):
+    # The compiled sweep finds each neighbour's last event as the eager binary search does:
+    # the same densities and touched pixels, bit for bit, in one pass and continuing a
+    # state (pixels whose last event came in an earlier chunk), with ties and both polarities.
+    from tests.helpers import assert_identical, both_paths
+
+    arr = random_stream(rng, 3_000, SENSOR, t_max=400, dtype=t_dtype)
+    events = sort_by_time(to_events(arr, SENSOR)[0])
+    settings_ = density_kernel.DensitySettings(SENSOR, (1, 1), 40.0, 5)
+    first = events.select(torch.arange(1_200))
+    rest = events.select(torch.arange(1_200, events.num_events))
+    state = density_kernel.density_step(first, density_kernel.density_init(settings_, first),
+                                        settings_)[1]
+    assert state.seen == 1_200
+
+    def densities():
+        return (density_kernel._density_sorted(events, settings_, None),
+                density_kernel._density_sorted(rest, settings_, state))
+
+    compiled, eager = both_paths(densities)
+    assert_identical(compiled, eager)
+    assert bool((compiled[1][0] >= 1.0).all())
+    kept = both_paths(lambda: run_in_chunks(SUBSAMPLERS["density"], arr, [0, 700, 1_900]))
+    assert_identical(*kept)

@@ -59,6 +59,7 @@ from evdown_torch.checks import (
     check_time_constant,
 )
 from evdown_torch.events import Events, sort_by_time
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.downsample import to_regions
 from evdown_torch.transforms.functional.draws import event_uniforms
 from evdown_torch.transforms.functional.protocol import Method, step_in_pieces
@@ -243,14 +244,23 @@ def _density_sorted(
     density = torch.zeros(n, dtype=torch.float64, device=events.device)
     offsets = patch_offsets(settings.k)
     group = max(1, min(len(offsets), LOOKUP_ELEMENTS // n))
+    compiled = use_compiled(key)
+    place = torch.empty_like(order).index_copy_(0, order, torch.arange(n)) if compiled else None
     for begin in range(0, len(offsets), group):
         part = offsets[begin:begin + group]
         shift = torch.tensor([dy * width + dx for dx, dy, _ in part],
                              device=events.device).unsqueeze(1)
         neighbour = key[1:] + shift
         # The neighbour's last event at or before this one in the stream (or the sentinel).
-        at = searchsorted_ascending(search, (search[1:] + shift * n).reshape(-1), right=True)
-        at -= 1
+        if place is not None:  # a compiled sweep in stream order: the same where it exists
+            from evdown_torch.transforms.functional.compiled import density as compiled_density
+
+            at = compiled_density.last_neighbours(key[1:], place, shift.reshape(-1),
+                                                  planes).reshape(-1)
+        else:
+            at = searchsorted_ascending(search, (search[1:] + shift * n).reshape(-1),
+                                        right=True)
+            at -= 1
         found = take(key, at).reshape(neighbour.shape) == neighbour
         elapsed = t[1:] - take(t, at).reshape(neighbour.shape)
         value = take(counts, at).reshape(neighbour.shape) * _decay(elapsed, tau)
