@@ -21,7 +21,8 @@ How it is computed, without a loop over events:
 * **The patch sum** needs, for each event and each pixel of its patch, that pixel's count at
   the event: the pixel's last event up to this one in stream order is found by one binary
   search (``searchsorted`` over the events sorted by pixel, then stream position; keys on the
-  sensor padded by the patch radius, so no lookup needs a bounds test), and its ``S`` decays
+  sensor padded by the patch radius, so no lookup needs a bounds test; on the CPU one compiled
+  sweep in stream order finds the same event, :mod:`..compiled.density`), and its ``S`` decays
   to the event's time. The ``k * k`` neighbours go through in groups whose temporaries stay
   near a million elements, added in a fixed order.
 * **A stream** carries, per pixel and polarity, the decayed count after its last event and
@@ -244,8 +245,9 @@ def _density_sorted(
     density = torch.zeros(n, dtype=torch.float64, device=events.device)
     offsets = patch_offsets(settings.k)
     group = max(1, min(len(offsets), LOOKUP_ELEMENTS // n))
-    compiled = use_compiled(key)
-    place = torch.empty_like(order).index_copy_(0, order, torch.arange(n)) if compiled else None
+    place = None  # each event's place among the grouped ones, in stream order (compiled)
+    if use_compiled(key):
+        place = torch.empty_like(order).index_copy_(0, order, torch.arange(n))
     for begin in range(0, len(offsets), group):
         part = offsets[begin:begin + group]
         shift = torch.tensor([dy * width + dx for dx, dy, _ in part],
