@@ -247,6 +247,8 @@ def _density_sorted(
     group = max(1, min(len(offsets), LOOKUP_ELEMENTS // n))
     place = None  # each event's place among the grouped ones, in stream order (compiled)
     if use_compiled(key):
+        from evdown_torch.transforms.functional.compiled import density as compiled_density
+
         place = torch.empty_like(order).index_copy_(0, order, torch.arange(n))
     for begin in range(0, len(offsets), group):
         part = offsets[begin:begin + group]
@@ -255,8 +257,6 @@ def _density_sorted(
         neighbour = key[1:] + shift
         # The neighbour's last event at or before this one in the stream (or the sentinel).
         if place is not None:  # a compiled sweep in stream order: the same where it exists
-            from evdown_torch.transforms.functional.compiled import density as compiled_density
-
             at = compiled_density.last_neighbours(key[1:], place, shift.reshape(-1),
                                                   planes).reshape(-1)
         else:

@@ -159,16 +159,26 @@ def _edge_factors(size: int, device: torch.device) -> tuple[Tensor, Tensor]:
 
 
 #: Most marks per value for which :func:`_distinct` marks the values' range in a table rather
-#: than sorting them (``torch.unique``): the live replay's chunks (a few windows of a
-#: 128x128 sensor, 240,000 events) spend 23 ms a chunk in the sorts.
+#: than sorting them (``torch.unique``), and :func:`_places` tabulates their places rather
+#: than searching them: the live replay's chunks (a few windows of a 128x128 sensor, 240,000
+#: events) spent 23 ms a chunk in the sorts. A few thousand marks more are always allowed.
 MARKS_PER_VALUE = 4
+MARKS_SLACK = 4096
+
+
+def _marks_fit(low: int, high: int, n: int) -> bool:
+    """Whether a table over ``low .. high`` is small next to ``n`` values.
+
+    At most :data:`MARKS_PER_VALUE` entries per value, and :data:`MARKS_SLACK` more.
+    """
+    return high - low < MARKS_PER_VALUE * n + MARKS_SLACK
 
 
 def _distinct(values: Tensor) -> tuple[Tensor, Tensor]:
     """``torch.unique(values, return_inverse=True)`` of int64 ``values``: sorted, and each's.
 
-    By a table of marks over ``min .. max`` where it has at most :data:`MARKS_PER_VALUE`
-    entries per value (plus a few thousand), else by the sort.
+    By a table of marks over ``min .. max`` where it is small (:func:`_marks_fit`), else by
+    the sort.
 
     Example:
         >>> _distinct(torch.tensor([7, 3, 7, 5]))
@@ -176,7 +186,7 @@ def _distinct(values: Tensor) -> tuple[Tensor, Tensor]:
     """
     if values.shape[0]:
         low, high = (int(bound) for bound in torch.aminmax(values))
-        if high - low < MARKS_PER_VALUE * values.shape[0] + 4096:
+        if _marks_fit(low, high, values.shape[0]):
             offset = values - low
             marked = torch.zeros(high - low + 1, dtype=torch.bool, device=values.device)
             if marked.device.type == "cpu":  # NumPy's assignment: a few times torch's there
@@ -193,8 +203,8 @@ def _places(ordered: Tensor) -> tuple[int, Tensor | None]:
     """The places of sorted distinct int64 ``ordered``, by value: ``(low, place)``.
 
     ``place[v - low]`` is the index of ``v`` in ``ordered`` (-1 for a value between them): a
-    table over their range where it is small next to them (:data:`MARKS_PER_VALUE`);
-    ``(0, None)`` where it is not (search them instead).
+    table over their range where it is small next to them (:func:`_marks_fit`); ``(0, None)``
+    where it is not (search them instead).
 
     Example:
         >>> _places(torch.tensor([4, 6, 7]))
@@ -203,7 +213,7 @@ def _places(ordered: Tensor) -> tuple[int, Tensor | None]:
     if not ordered.shape[0]:
         return 0, None
     low, high = int(ordered[0]), int(ordered[-1])
-    if high - low >= MARKS_PER_VALUE * ordered.shape[0] + 4096:
+    if not _marks_fit(low, high, ordered.shape[0]):
         return 0, None
     place = torch.full((high - low + 1,), -1, dtype=torch.int64, device=ordered.device)
     place[ordered - low] = torch.arange(ordered.shape[0], device=ordered.device)

@@ -434,8 +434,8 @@ def lif_spikes(
     gap_after.index_copy_(0, region_last, last_step - cell_step.index_select(0, region_last))
 
     # The membranes: in closed form where that is certain to give the rounds' spikes (calls
-    # whose new state is not needed), else by rounds (a compiled loop on the CPU: cheaper than
-    # the closed form, the same spikes).
+    # whose new state is not needed), else by rounds (on the CPU, a compiled loop cell by cell:
+    # cheaper than the closed form, the same spikes).
     rounds = int(cells_per_region.max())
     region_index = run_index(new_region)
     certain = None
