@@ -25,6 +25,8 @@ pytest.importorskip("numba")
 from evdown_torch.transforms.functional.compiled import linear_stream  # noqa: E402
 from evdown_torch.transforms.functional.compiled.linear_ramps import RampSettings  # noqa: E402
 from evdown_torch.transforms.functional.compiled.linear_ramps_state import (  # noqa: E402
+    _in_time_order,
+    _stable_order,
     ramp_session,
     window_state,
 )
@@ -213,3 +215,28 @@ def test_a_state_the_ramps_cannot_take_is_refused():
         ramp_session(floats, design_settings, 300)
     with pytest.raises(ValueError, match="no chunk"):
         ramp_session(package._replace(horizon=None), design_settings, 300)
+
+
+@pytest.mark.parametrize("times", [
+    [], [5], [3, 3, 1, 3, 1], [7, 7, 7, 7],
+    [2**63 - 1, -(2**63), 0, -(2**63), 2**63 - 1, 5, 2**62],  # a range past int64's
+    np.random.default_rng(1).integers(-(2**63), 2**63 - 1, 3000),
+    np.random.default_rng(2).integers(0, 30, 3000),  # one digit, many ties
+    np.random.default_rng(3).integers(0, 1 << 23, 3000),  # three digits
+])
+def test_the_state_knots_radix_order_is_the_stable_sort_order(times):
+    t = np.asarray(times, dtype=np.int64)
+    assert np.array_equal(_stable_order(t), np.argsort(t, kind="stable"))
+
+
+@pytest.mark.parametrize("second", [0, 3, 7, 10])
+def test_the_state_knots_come_in_the_stable_order_of_both_parts(second):
+    # Ties inside the first part, across the parts and inside the second (in time order).
+    t = np.array([9, 4, 6, 4, 9, 1, 6, 4, 6, 9], np.int64)
+    t[second:] = np.sort(t[second:])
+    pixel = np.arange(10, dtype=np.int64) * 7 + 3
+    change = np.arange(10, dtype=np.int64) - 4
+    order = np.argsort(t, kind="stable")
+    x, y, t_out, change_out = _in_time_order(pixel, t, change, second, 5)
+    assert np.array_equal(t_out, t[order]) and np.array_equal(change_out, change[order])
+    assert np.array_equal(x, pixel[order] % 5) and np.array_equal(y, pixel[order] // 5)

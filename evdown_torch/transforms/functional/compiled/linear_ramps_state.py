@@ -37,13 +37,83 @@ from evdown_torch.transforms.functional.estimation.window_state import WindowSta
 __all__ = ["ramp_session", "window_state"]
 
 
+#: The bits of one digit of :func:`_stable_order`'s radix sort.
+_DIGIT_BITS = 11
+
+
+@compiled_loop
+def _stable_order(t: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """The stable sort's order of ``t`` (int64): a radix sort of ``t - min(t)``, low digits first.
+
+    One count and one scatter per :data:`_DIGIT_BITS` bits of the range of ``t`` (a few
+    passes), where a comparison sort of the fired pixels' knots, times in no order, costs
+    about 45 ns a knot. The keys are unsigned: any two int64 times are less than ``2**64``
+    apart.
+    """
+    n = t.shape[0]
+    order = np.arange(n)
+    if n < 2:
+        return order
+    key = t.astype(np.uint64) - np.uint64(t.min())  # modulo 2**64: the exact distance
+    span = key.max()
+    spare_order, spare_key = np.empty(n, np.int64), np.empty(n, np.uint64)
+    count = np.empty((1 << _DIGIT_BITS) + 1, np.int64)
+    digit_mask = np.uint64((1 << _DIGIT_BITS) - 1)
+    shift = np.uint64(0)
+    while shift < 64 and (span >> shift) > 0:
+        count[:] = 0
+        for i in range(n):
+            count[((key[i] >> shift) & digit_mask) + np.uint64(1)] += 1
+        for d in range(1, count.shape[0]):
+            count[d] += count[d - 1]
+        for i in range(n):
+            d = (key[i] >> shift) & digit_mask
+            at = count[d]
+            spare_order[at], spare_key[at] = order[i], key[i]
+            count[d] = at + 1
+        order, spare_order = spare_order, order
+        key, spare_key = spare_key, key
+        shift += np.uint64(_DIGIT_BITS)
+    return order
+
+
+@compiled_loop
+def _in_time_order(
+    pixel: np.ndarray, t: np.ndarray, change: np.ndarray, second: int, width: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Knots ``(pixel, t, change)`` as ``(x, y, t, change)``, in the stable sort's order of ``t``.
+
+    The knots from ``second`` on are in time order already: the first part is sorted
+    (:func:`_stable_order`) and merged with them, the first part's first on a tie.
+    """
+    n = t.shape[0]
+    first = _stable_order(t[:second])
+    out_x, out_y = np.empty(n, np.int64), np.empty(n, np.int64)
+    out_t, out_change = np.empty(n, np.int64), np.empty(n, np.int64)
+    i, j = 0, second
+    for m in range(n):
+        if j == n or (i < second and t[first[i]] <= t[j]):
+            at = first[i]
+            i += 1
+        else:
+            at = j
+            j += 1
+        out_x[m], out_y[m] = pixel[at] % width, pixel[at] // width
+        out_t[m], out_change[m] = t[at], change[at]
+    return out_x, out_y, out_t, out_change
+
+
 @compiled_loop
 def _knots(
     xs: np.ndarray, ys: np.ndarray, ts: np.ndarray, cs: np.ndarray, width: int,
     column: np.ndarray, row: np.ndarray, out_w: int, delay: int, t_start: int, horizon: int,
     t_last: int, last_t: np.ndarray, fired: np.ndarray, level: np.ndarray, region_t: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """The state's knots ``(pixel, t, change)``, pixel by pixel (not in time order).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """The state's knots ``(x, y, t, change)`` in stable time order.
+
+    Found pixel by pixel (each fired pixel's knot before ``F``, in pixel order), then the
+    knots since ``F`` in time order, and put in the order of a stable sort of both parts one
+    after the other (:func:`_in_time_order`).
 
     ``xs``..``cs``: the knots at or after ``F - D`` (time-sorted; ``cs`` their level
     changes: the input events', or a handed-over state's, whose first knot of a pixel
@@ -101,6 +171,7 @@ def _knots(
             out_change[k] = before
             out_pixel[k + 1], out_t[k + 1], out_change[k + 1] = pixel, t1 - delay, 0
             k += 2
+    by_pixel = k  # the first part's end
     previous = np.full(pixels, -1, np.int64)  # place of each pixel's last knot since F
     for i in range(n):  # the knots since F
         if ts[i] < horizon:
@@ -116,7 +187,7 @@ def _knots(
         out_pixel[k], out_t[k], out_change[k] = pixel, ts[i], c
         previous[pixel] = k
         k += 1
-    return out_pixel[:k], out_t[:k], out_change[:k]
+    return _in_time_order(out_pixel[:k], out_t[:k], out_change[:k], by_pixel, width)
 
 
 @compiled_loop
@@ -220,13 +291,10 @@ def window_state(session: RampSession) -> WindowState:
     """
     settings, pixels = session.settings, session.pixels
     q_change, region_t = session.regions[8], session.regions[9]
-    pixel, t, change = _knots(
+    x, y, t, change = _knots(
         *session.recent, settings.width, settings.column,
         settings.row, settings.out_w, settings.delay, session.t_start, session.horizon,
         session.t_last, pixels[:, 0], pixels[:, 2] >= 0, pixels[:, 4], region_t)
-    order = np.argsort(t, kind="stable")
-    pixel, t, change = pixel[order], t[order], change[order]
-    x, y = pixel % settings.width, pixel // settings.width
     knots = Events(torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(t),
                    torch.from_numpy(change > 0))
     t_start = torch.tensor(session.t_start, dtype=torch.int64)
