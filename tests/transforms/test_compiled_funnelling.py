@@ -15,8 +15,10 @@ from evdown_torch import (
     EventFunnelling,
     Events,
     TemporalFunnelling,
+    eager_kernels,
 )
 from evdown_torch.transforms.functional.funnelling import drop_repeats, funnelling_sorted
+from evdown_torch.transforms.functional.temporal import bin_start
 from tests.helpers import (
     FLOAT_DTYPE,
     assert_identical,
@@ -34,6 +36,7 @@ pytest.importorskip("numba")
 SENSOR = (10, 7, 2)
 FACTORS = [1, 2, 3, (2, 5), (3, 1), (4, 3), (10, 7)]
 FUNNELLING = importlib.import_module("evdown_torch.transforms.functional.compiled.funnelling")
+TEMPORAL = importlib.import_module("evdown_torch.transforms.functional.compiled.temporal")
 
 
 def _pair(factor):
@@ -155,3 +158,26 @@ def test_an_event_outside_the_given_grid_is_an_error_not_a_crash():
     events = Events.from_columns([0, 9], [0, 1], [1, 2], [True, True])
     with pytest.raises(ValueError, match=r"event 1 at \(x=9, y=1\) lies outside the sensor"):
         funnelling_sorted(events, (2, 2), size=(3, 3))
+
+
+@pytest.mark.parametrize("dt", [1, 3, 1000, 2**62, 2**63 - 1])
+@pytest.mark.parametrize("origin", [-(2**63), -7, 0, 2**62])
+def test_bin_starts_equal_eager_and_python_integers(dt, origin, monkeypatch, rng):
+    # Unsorted times (a division at every change of bin) and sorted ones, up to int64's limit.
+    offsets = [0, 1, 2, 999, 1000, 1001, 5, 2**62, 3, 2**63 - 1 - max(origin, 0)]
+    offsets += rng.integers(0, 5000, 200).tolist()
+    offsets = [o for o in offsets if origin + o <= 2**63 - 1]
+    for order in (offsets, sorted(offsets)):
+        t = torch.tensor([origin + o for o in order], dtype=torch.int64)
+        calls = spy(monkeypatch, TEMPORAL, "_bin_start_loop")
+        compiled, eager = both_paths(lambda t=t: bin_start(t, dt=dt, t_start=origin))
+        assert len(calls) == 1  # the compiled loop ran (once: the eager path has none)
+        assert_identical(compiled, eager)
+        assert compiled.tolist() == [origin + (o // dt) * dt for o in order]
+
+
+def test_bin_starts_refuse_offsets_past_int64_on_both_paths():
+    t = torch.tensor([-5, 2**63 - 1], dtype=torch.int64)  # 2**63 + 4 from the origin
+    for forced in (False, True):
+        with eager_kernels(forced), pytest.raises(ValueError, match="span 2\\*\\*63 or more"):
+            bin_start(t, dt=10, t_start=-5)

@@ -12,6 +12,7 @@ from torch import Tensor
 from evdown_torch._tensors import divide
 from evdown_torch.checks import check_output_count, check_positive_float, check_sensor_size
 from evdown_torch.events import Events, sort_by_time
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.funnelling import drop_repeats, last_instant
 from evdown_torch.transforms.functional.protocol import Method
 
@@ -28,6 +29,18 @@ __all__ = [
 ]
 
 _INT64_MAX = torch.iinfo(torch.int64).max
+
+
+def _whole(dt: int | float) -> bool:
+    return isinstance(dt, numbers.Integral) or float(dt).is_integer()
+
+
+def _span_error(t: Tensor, origin: int) -> ValueError:
+    """int64 ``t`` whose offsets from ``origin`` wrap past ``2**63 - 1``."""
+    return ValueError(
+        f"the timestamps span 2**63 or more time units from {origin} (up to "
+        f"{int(t.max())}): their offsets do not fit in int64"
+    )
 
 
 def bin_index(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
@@ -53,7 +66,7 @@ def bin_index(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
                 "bin length is far too small for the stream's span"
             )
         return index.to(torch.int64)
-    if not (isinstance(dt, numbers.Integral) or float(dt).is_integer()):
+    if not _whole(dt):
         raise ValueError(
             f"dt must be a whole number for integer timestamps (bin starts must stay "
             f"integers), got {dt!r}"
@@ -61,10 +74,7 @@ def bin_index(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
     origin = int(t_start)
     offset = t - origin
     if bool((offset < 0).any()):  # t >= t_start, so only a wrap past 2**63 - 1 is negative
-        raise ValueError(
-            f"the timestamps span 2**63 or more time units from {origin} (up to "
-            f"{int(t.max())}): their offsets do not fit in int64"
-        )
+        raise _span_error(t, origin)
     step = int(dt)
     if step > _INT64_MAX:  # longer than any offset: one bin (torch cannot take the int)
         return torch.zeros_like(t)
@@ -98,6 +108,13 @@ def bin_start(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
     """
     if t.is_floating_point():
         return (torch.floor((t - t_start) / dt) * dt).add_(t_start)
+    if use_compiled(t) and _whole(dt) and int(dt) <= _INT64_MAX:
+        from evdown_torch.transforms.functional.compiled.temporal import bin_starts
+
+        starts = bin_starts(t.numpy(), int(t_start), int(dt))
+        if starts is None:
+            raise _span_error(t, int(t_start))
+        return torch.from_numpy(starts)
     index = bin_index(t, dt=dt, t_start=t_start)
     step = int(dt)
     if step > _INT64_MAX:  # one bin, starting at t_start

@@ -1,0 +1,61 @@
+"""TemporalFunnelling's compiled bin starts: one division a bin, not one an event.
+
+The eager :func:`~..temporal.bin_start` takes the offsets, their floor division by ``dt``,
+a product and a sum: five passes over the events (about 1.1 ms of a 240,000-event chunk of
+the live replay, a quarter of the chain's). Here one pass keeps the bin of the last event and
+divides only when an event leaves it: in time order (a session's chunks, every call of
+:func:`~..temporal.temporal_funnelling`), once a bin. The same integers as the eager kernel.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column
+
+__all__ = ["bin_starts"]
+
+
+@compiled_loop
+def _bin_start_loop(
+    t: np.ndarray, origin: int, step: int, out: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """``out = origin + floor((t - origin) / step) * step``; -1, or the first wrapped offset.
+
+    Returns the first ``i`` whose offset ``t[i] - origin`` wraps past ``2**63 - 1``
+    (negative: ``t >= origin`` holds), else -1. ``low`` is the offset of the last event's
+    bin start (0 before the first event: bin 0's).
+    """
+    low = np.int64(0)
+    for i in range(t.shape[0]):
+        offset = t[i] - origin
+        if offset < 0:
+            return i
+        if offset < low or offset - low >= step:  # (both >= 0: no wrap)
+            low = offset // step * step
+        out[i] = low + origin
+    return -1
+
+
+def bin_starts(t: np.ndarray, origin: int, step: int) -> np.ndarray | None:
+    """Each int64 ``t``'s bin start, bins of ``step`` from ``origin``; ``None`` on a wrap.
+
+    Args:
+        t: ``(N,)`` int64 timestamps ``>= origin``, in any order (time order costs one
+            division a bin).
+        origin: the first bin's start.
+        step: the bin length, ``1 <= step <= 2**63 - 1``.
+
+    Returns:
+        An ``(N,)`` int64 column, this thread's scratch column
+        (:func:`~.scratch.scratch_column`: memory no other object refers to, often the last
+        call's), or ``None`` where an offset ``t - origin`` does not fit in int64 (the caller
+        raises its error).
+
+    Example:
+        >>> bin_starts(np.array([3, 9, 10, 25, 4]), 3, 10).tolist()
+        [3, 3, 3, 23, 3]
+    """
+    out = scratch_column("temporal bin starts", t.shape[0], np.int64)
+    return out if _bin_start_loop(t, origin, step, out) < 0 else None
