@@ -32,7 +32,7 @@ DENSE_KEYS = 1 << 20
 def _funnel_loop(
     x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, column: np.ndarray,
     row: np.ndarray, out_w: int, ends: np.ndarray, kept_in: np.ndarray, out_index: np.ndarray,
-    out_x: np.ndarray, out_y: np.ndarray,
+    out_x: np.ndarray, out_y: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
 ) -> int:  # pragma: no cover - compiled
     """Keep each time-sorted event whose key was not kept in its run.
 
@@ -41,7 +41,8 @@ def _funnel_loop(
     was last kept (-1: never).
 
     Returns:
-        The number ``k`` of kept events, whose index and region are written at ``0 .. k-1``;
+        The number ``k`` of kept events, whose index, region, ``t`` and ``p`` are written at
+        ``0 .. k-1``;
         ``-1 - i`` for an event ``i`` outside the tables.
     """
     width = column.shape[0]
@@ -67,6 +68,8 @@ def _funnel_loop(
             out_index[k] = i
             out_x[k] = rx
             out_y[k] = ry
+            out_t[k] = t[i]
+            out_p[k] = p[i]
             k += 1
     return k
 
@@ -91,12 +94,13 @@ def _funnel(
     n = x.shape[0]
     out_index, out_x, out_y = (scratch_column(f"funnelling {name}", n, np.int64)
                                for name in ("index", "x", "y"))
-    k = _funnel_loop(x, y, t, p, column, row, width, ends, kept_in, out_index, out_x, out_y)
+    out_t = scratch_column("funnelling t", n, t.dtype)
+    out_p = scratch_column("funnelling p", n, p.dtype)
+    k = _funnel_loop(x, y, t, p, column, row, width, ends, kept_in, out_index, out_x, out_y,
+                     out_t, out_p)
     if k < 0:
         raise outside_error(-1 - k, x, y, column, row)
-    kept = torch.from_numpy(out_index[:k])
-    out = Events(torch.from_numpy(out_x[:k]), torch.from_numpy(out_y[:k]),
-                 events.t.index_select(0, kept), events.p.index_select(0, kept))
+    out = Events(*(torch.from_numpy(column[:k]) for column in (out_x, out_y, out_t, out_p)))
     return out, out_index[:k]
 
 
