@@ -298,3 +298,66 @@ def test_an_event_outside_the_sensor_is_an_error_not_a_crash():
             ValueError, match=r"event 1 at \(x=12, y=1\) lies outside the sensor of 10 x 7"):
         photocurrent_events(events, sensor_size=SENSOR, factor=(3, 2), contrast=0.2,
                             threshold=0.2)
+
+
+def _one_pixel_falling_below_the_table(n_off: int) -> np.ndarray:
+    """A 2x1 region: pixel 0 ON once (the anchor), then pixel 1 OFF ``n_off`` times."""
+    arr = np.zeros(n_off + 1, dtype=DVS_DTYPE)
+    arr["t"] = np.arange(n_off + 1)
+    arr["p"][0] = True
+    arr["x"][1:] = 1
+    return arr
+
+
+@DENSE_TIMES
+@pytest.mark.parametrize("contrast, threshold, stream", [
+    (0.2, 0.05, "hot"),  # the table, most events kept between the stay bounds
+    (0.5, 0.3, "falling"),  # pixels falling below the table's lowest level (intensity 0)
+    (20.0, 5.0, "falling"),  # pixels too dark to count
+    (1e-4, 1e-3, "hot"),  # no table: an exp per intensity
+    (0.5, 0.3, "below"),  # one pixel steps below the table, its region never anchored again
+])
+def test_each_region_sum_is_its_pixels_intensities_exactly(contrast, threshold, stream, rng,
+                                                           monkeypatch):
+    # The loop moves a region's sum by each event's change of intensity; after the call each
+    # anchored region's sum must equal its pixels' intensities above its anchor, rounded one
+    # by one (the module's telescoping), whatever path each event took.
+    seen = []
+    real = COMPILED._photocurrent_loop
+
+    def keep_arguments(*args):
+        seen.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(COMPILED, "_photocurrent_loop", keep_arguments)
+    if stream == "below":
+        sensor, factor, arr = (2, 1, 2), (2, 1), _one_pixel_falling_below_the_table(200)
+    else:
+        sensor, factor = (4, 4, 2), (2, 2)
+        arr = _hot_pixel(rng, 600, sensor, 1500, fall=stream == "falling")
+    with eager_kernels(False):
+        PhotocurrentPooling(sensor, factor=factor, contrast=contrast, threshold=threshold)(arr)
+    assert len(seen) == 1  # the compiled loop decided the call
+    args = seen[0]
+    level, anchor, total, ready = args[14], args[16], args[17], args[18]
+    table, lo, scale = args[21], args[22], args[27]
+
+    def intensity(j: int) -> int:
+        if j < lo:
+            return 0
+        return int(table[j - lo]) if len(table) else math.floor(math.exp(contrast * j) * scale
+                                                                 + 0.5)
+
+    width, height, _ = sensor
+    fx, fy = factor
+    out_w = width // fx
+    checked = 0
+    for r in np.flatnonzero(ready):
+        ry, rx = divmod(int(r), out_w)
+        pixels = [y * width + x for y in range(fy * ry, fy * ry + fy)
+                  for x in range(fx * rx, fx * rx + fx)]
+        assert int(total[r]) == sum(intensity(int(level[p]) - int(anchor[r])) for p in pixels)
+        checked += 1
+    assert checked > 0
+    if stream == "below":  # the anchor pixel alone counts; the other is far below the table
+        assert int(level[1]) - int(anchor[0]) < lo and int(total[0]) == intensity(0)

@@ -199,25 +199,36 @@ def _photocurrent_loop(
     capacity = out_source.shape[0]
     low_mark = 1 << (bits - DROP_BITS)
     padded = period > height  # stacked recordings with rows between them
+    has_table = table.shape[0] > 0
     for i in range(start, n):
         xi = x[i]
         yi = y[i]
         if xi < 0 or xi >= width or yi < 0 or yi >= rows or (padded and yi % period >= height):
             return _OUTSIDE, i, k, 0
-        rx = column[xi]
-        ry = row[yi]
+        rx = column[np.uint64(xi)]  # (unsigned indices: ``_numba``, "Unsigned indices")
+        ry = row[np.uint64(yi)]
         r = ry * out_w + rx
+        ru = np.uint64(r)
         if not (resume and i == start):
-            pixel = yi * width + xi
+            pixel = np.uint64(yi * width + xi)
             before = level[pixel]
             after = before + (1 if p[i] else -1)
             level[pixel] = after
-            a = anchor[r]
-            again = not ready[r] or after - a > highest
+            a = anchor[ru]
+            again = not ready[ru] or after - a > highest
             if not again:
-                s = total[r] + (_intensity(after - a, table, lo, contrast, scale)
-                                - _intensity(before - a, table, lo, contrast, scale))
-                total[r] = s
+                # Levels above the anchor's stay within ``highest`` (else anchored again):
+                # from the table where the old level lies in it (the new one, one level
+                # away, is in it or just below it: 0), as _intensity reads them.
+                j_before, j_after = before - a - lo, after - a - lo
+                if has_table and j_before >= 0:
+                    s = total[ru] - table[np.uint64(j_before)]
+                    if j_after >= 0:
+                        s += table[np.uint64(j_after)]
+                else:
+                    s = total[ru] + (_intensity(after - a, table, lo, contrast, scale)
+                                     - _intensity(before - a, table, lo, contrast, scale))
+                total[ru] = s
                 again = s < low_mark
             if again:  # first touched, climbing past the headroom, or fallen below it
                 _anchor_region(r, level, width, out_w, fx, fy, rows, period, height, table,
@@ -225,7 +236,7 @@ def _photocurrent_loop(
                 ready[r] = True
                 _stay_bounds(r, anchor, reference, log_pixels, contrast, threshold, bits,
                              slack, low, high)
-            if low[r] < total[r] < high[r]:
+            if low[ru] < total[ru] < high[ru]:
                 continue  # q stays: no u needed
         u, doubt = _u_and_doubt(anchor[r], total[r], log_pixels[r], pixels[r], contrast,
                                 threshold, bits)
