@@ -58,10 +58,11 @@ def test_downsample_and_funnelling_equal_eager_and_the_reference(factor, rng):
     assert rows(compiled) == funnel_reference(arr, fx, fy)
 
 
+@pytest.mark.parametrize("sensor", [None, (8, 6, 2), (9, 11, 2)])  # the grid found or given
 @pytest.mark.parametrize("dt", [1, 7, 250, 10**9])
-def test_temporal_funnelling_equals_eager_and_the_reference(dt, rng):
+def test_temporal_funnelling_equals_eager_and_the_reference(dt, sensor, rng):
     arr = random_stream(rng, 1500, (8, 6, 2), t_max=2000, sort=False)
-    transform = TemporalFunnelling(dt=dt)
+    transform = TemporalFunnelling(dt=dt, sensor_size=sensor)
     compiled, eager = both_paths(lambda: transform(arr))
     assert_identical(compiled, eager)
     assert rows(compiled) == temporal_reference(arr, dt)
@@ -91,12 +92,14 @@ def test_float64_seconds(rng):
     assert rows(compiled) == temporal_reference(arr, 0.004)
 
 
-@pytest.mark.parametrize("name", ["downsample", "funnelling", "temporal", "temporal_then_funnel"])
+@pytest.mark.parametrize("name", ["downsample", "funnelling", "temporal", "temporal_on_its_sensor",
+                                  "temporal_then_funnel"])
 def test_sessions_in_odd_chunks_and_moving_between_paths(name, rng):
     transform = {
         "downsample": Downsample(SENSOR, factor=(3, 2)),
         "funnelling": EventFunnelling(SENSOR, factor=(3, 2)),
         "temporal": TemporalFunnelling(dt=5),
+        "temporal_on_its_sensor": TemporalFunnelling(dt=5, sensor_size=SENSOR),
         "temporal_then_funnel": Chain(TemporalFunnelling(dt=3),
                                       EventFunnelling(SENSOR, factor=2)),
     }[name]

@@ -70,7 +70,9 @@ def event_funnelling(events: Events, *, factor: tuple[int, int]) -> Events:
     return Events.cat(pieces)
 
 
-def drop_repeats(events: Events, *, seen: Events | None = None) -> Events:
+def drop_repeats(
+    events: Events, *, seen: Events | None = None, size: tuple[int, int] | None = None
+) -> Events:
     """Drop every event equal in ``(x, y, t, p)`` to an earlier one or to one of ``seen``.
 
     The step both funnelling methods stream with: ``seen`` holds the distinct events kept at
@@ -80,6 +82,8 @@ def drop_repeats(events: Events, *, seen: Events | None = None) -> Events:
         events: ``N`` time-sorted events.
         seen: distinct events kept earlier, all at a timestamp ``<=`` the first of ``events``
             (``None``: none).
+        size: the sensor's ``(width, height)`` when known (every coordinate, ``seen``'s
+            included, lies inside it); by default the largest coordinates + 1.
 
     Returns:
         The events of ``events`` that repeat nothing, in their order.
@@ -93,7 +97,7 @@ def drop_repeats(events: Events, *, seen: Events | None = None) -> Events:
     bounds = chunk_bounds(events.t, split_ties=False)
     pieces = [
         funnelling_sorted(events.part(start, stop), (1, 1),
-                      seen=seen if start == 0 else None)
+                          seen=seen if start == 0 else None, size=size)
         for start, stop in zip(bounds[:-1], bounds[1:])
     ]
     return pieces[0] if len(pieces) == 1 else Events.cat(pieces)

@@ -128,6 +128,7 @@ def temporal_funnelling(
     dt: int | float,
     t_start: int | float | None = None,
     seen: Events | None = None,
+    size: tuple[int, int] | None = None,
 ) -> Events:
     """Temporal downscaling (docs/semantics.md, method 8).
 
@@ -142,6 +143,8 @@ def temporal_funnelling(
         t_start: origin of the bins (default: the first timestamp of ``events``); a
             streaming session passes the stream's.
         seen: distinct events already kept in the bin of the first event (streaming).
+        size: the sensor's ``(width, height)`` when known (every coordinate, ``seen``'s
+            included, lies inside it); by default the largest coordinates + 1.
 
     Returns:
         The kept events with binned timestamps, sorted by ``t``.
@@ -158,7 +161,7 @@ def temporal_funnelling(
     if t_start is None:
         t_start = events.t[0].item()
     binned = Events(events.x, events.y, bin_start(events.t, dt=dt, t_start=t_start), events.p)
-    return drop_repeats(binned, seen=seen)
+    return drop_repeats(binned, seen=seen, size=size)
 
 
 @dataclass(frozen=True)
@@ -178,6 +181,11 @@ class TemporalSettings:
         check_positive_float("dt", self.dt)
         if self.sensor_size is not None:
             object.__setattr__(self, "sensor_size", check_sensor_size(self.sensor_size))
+
+    @property
+    def size(self) -> tuple[int, int] | None:
+        """The sensor's ``(W, H)``, which the transform checks every event against, or ``None``."""
+        return None if self.sensor_size is None else self.sensor_size[:2]
 
 
 class TemporalState(NamedTuple):
@@ -211,14 +219,14 @@ def temporal_funnelling_step(
     holds.
     """
     out = temporal_funnelling(events, dt=settings.dt, t_start=state.t_start,
-                              seen=state.last_bin)
+                              seen=state.last_bin, size=settings.size)
     check_output_count(out.num_events, fewer=TEMPORAL_FEWER)  # at most the input: built already
     return out, TemporalState(state.t_start, last_instant(out, state.last_bin))
 
 
 def temporal_funnelling_whole(events: Events, settings: TemporalSettings) -> Events:
     """The whole stream (any order): :func:`temporal_funnelling`."""
-    out = temporal_funnelling(events, dt=settings.dt)
+    out = temporal_funnelling(events, dt=settings.dt, size=settings.size)
     check_output_count(out.num_events, fewer=TEMPORAL_FEWER)  # at most the input: built already
     return out
 
