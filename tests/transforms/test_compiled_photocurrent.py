@@ -266,7 +266,7 @@ def test_stay_bounds_hold_u_inside_the_bounds_that_move_q(anchor, q, n_r, contra
     slack = COMPILED._stay_slack(n_r, bits, threshold)
     low, high = np.empty(1, np.int64), np.empty(1, np.int64)
     COMPILED._stay_bounds(0, np.array([anchor]), np.array([q]), np.array([math.log(n_r)]),
-                          contrast, threshold, bits, slack, low, high)
+                          contrast, threshold, 2.0**bits, slack, low, high)
     lowest, highest = 1 << (bits - COMPILED.DROP_BITS), n_r << (bits + COMPILED.HEADROOM_BITS)
     assert lowest <= low[0] + 1 < high[0] - 1 <= highest  # the region's sums can reach both
 
@@ -283,13 +283,13 @@ def test_stay_bounds_hold_u_inside_the_bounds_that_move_q(anchor, q, n_r, contra
 def test_the_doubt_test_against_hand_computed_values():
     bits = 50
     exact, doubtful = 2**bits, round(2**bits * math.exp(1e-9))  # u = 1, 1 + 1e-9
-    assert COMPILED._u_and_doubt(2, exact, 0.0, 1, 0.5, 1.0, bits) == (1.0, False)
-    u, doubt = COMPILED._u_and_doubt(2, doubtful, 0.0, 1, 0.5, 1.0, bits)
+    assert COMPILED._u_and_doubt(2, exact, 0.0, 1, 0.5, 1.0, 2.0**bits) == (1.0, False)
+    u, doubt = COMPILED._u_and_doubt(2, doubtful, 0.0, 1, 0.5, 1.0, 2.0**bits)
     assert abs(u - (1 + 1e-9)) < 1e-14 and doubt
     # u = 1.4: far from both bounds; at theta = 1e-6 the eager bound exceeds SNAP: in doubt.
     assert not COMPILED._u_and_doubt(0, round(2**bits * math.exp(0.7)), 0.0, 1, 0.5, 0.5,
-                                     bits)[1]
-    assert COMPILED._u_and_doubt(2, exact, 0.0, 1, 1e-6, 2e-6, bits)[1]
+                                     2.0**bits)[1]
+    assert COMPILED._u_and_doubt(2, exact, 0.0, 1, 1e-6, 2e-6, 2.0**bits)[1]
 
 
 def test_an_event_outside_the_sensor_is_an_error_not_a_crash():

@@ -120,13 +120,15 @@ def _anchor_region(
 
 @compiled_loop
 def _u_and_doubt(
-    a: int, s: int, log_n: float, n_r: int, contrast: float, threshold: float, bits: int,
+    a: int, s: int, log_n: float, n_r: int, contrast: float, threshold: float, scale: float,
 ) -> tuple[float, bool]:  # pragma: no cover - compiled
     """``u`` of a region anchored at ``a`` with sum ``s``, and whether it is in doubt.
 
     In doubt: within the loop's error bound plus the eager kernel's of a snap bound.
+    ``scale``: the fixed point's ``2.0**bits`` (dividing by it is exact, and costs no
+    ``pow``).
     """
-    log_v = math.log(s * 2.0**-bits)  # s / 2**bits in [2**-DROP_BITS, n_r * 2**HEADROOM_BITS]
+    log_v = math.log(s / scale)  # in [2**-DROP_BITS, n_r * 2**HEADROOM_BITS]
     ca = contrast * a
     u = (ca - log_n + log_v) / threshold
     # The loop's sum: half a unit per pixel, and a few ulps of each exp(c * j) (|c j| < 64).
@@ -146,14 +148,15 @@ def _u_and_doubt(
 @compiled_loop
 def _stay_bounds(
     r: int, anchor: np.ndarray, reference: np.ndarray, log_pixels: np.ndarray,
-    contrast: float, threshold: float, bits: int, slack: float, low: np.ndarray,
+    contrast: float, threshold: float, scale: float, slack: float, low: np.ndarray,
     high: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """The sums ``low[r] < S < high[r]`` of region ``r`` that keep its ``q``, beyond doubt.
 
     ``q`` stays while ``q - 1 + SNAP < u < q + 1 - SNAP``; at such sums, taken ``slack``
     (log units) inside those bounds, the exact ``u`` lies inside them by more than both
-    paths' error bounds, so both paths keep ``q`` and emit nothing.
+    paths' error bounds, so both paths keep ``q`` and emit nothing. ``scale``: the fixed
+    point's ``2.0**bits`` (a product by it is exact: no ``ldexp`` call).
     """
     q = reference[r]
     ca = contrast * anchor[r]
@@ -166,8 +169,8 @@ def _stay_bounds(
     top = threshold * (q + 1 - SNAP) - ca + log_n - spare
     bottom = threshold * (q - 1 + SNAP) - ca + log_n + spare
     ceiling = 2.0**62  # above every sum
-    high[r] = int(min(math.floor(math.ldexp(math.exp(min(top, 64.0)), bits)), ceiling))
-    low[r] = int(min(math.ceil(math.ldexp(math.exp(min(bottom, 64.0)), bits)), ceiling))
+    high[r] = int(min(math.floor(math.exp(min(top, 64.0)) * scale), ceiling))
+    low[r] = int(min(math.ceil(math.exp(min(bottom, 64.0)) * scale), ceiling))
 
 
 @compiled_loop
@@ -234,18 +237,18 @@ def _photocurrent_loop(
                 _anchor_region(r, level, width, out_w, fx, fy, rows, period, height, table,
                                lo, contrast, scale, anchor, total)
                 ready[r] = True
-                _stay_bounds(r, anchor, reference, log_pixels, contrast, threshold, bits,
+                _stay_bounds(r, anchor, reference, log_pixels, contrast, threshold, scale,
                              slack, low, high)
             if low[ru] < total[ru] < high[ru]:
                 continue  # q stays: no u needed
         u, doubt = _u_and_doubt(anchor[r], total[r], log_pixels[r], pixels[r], contrast,
-                                threshold, bits)
+                                threshold, scale)
         if doubt:  # anchored afresh, the sum holds the most bits it can
             _anchor_region(r, level, width, out_w, fx, fy, rows, period, height, table, lo,
                            contrast, scale, anchor, total)
             u, doubt = _u_and_doubt(anchor[r], total[r], log_pixels[r], pixels[r], contrast,
-                                    threshold, bits)
-            _stay_bounds(r, anchor, reference, log_pixels, contrast, threshold, bits, slack,
+                                    threshold, scale)
+            _stay_bounds(r, anchor, reference, log_pixels, contrast, threshold, scale, slack,
                          low, high)
             if doubt:
                 return _DOUBT, i, k, 0
@@ -272,7 +275,7 @@ def _photocurrent_loop(
             out_on[k] = d > 0
             k += 1
         reference[r] = q_new
-        _stay_bounds(r, anchor, reference, log_pixels, contrast, threshold, bits, slack, low,
+        _stay_bounds(r, anchor, reference, log_pixels, contrast, threshold, scale, slack, low,
                      high)
     return _DONE, n, k, 0
 
