@@ -47,33 +47,46 @@ def _stable_order(t: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
 
     One count and one scatter per :data:`_DIGIT_BITS` bits of the range of ``t`` (a few
     passes), where a comparison sort of the fired pixels' knots, times in no order, costs
-    about 45 ns a knot. The keys are unsigned: any two int64 times are less than ``2**64``
-    apart.
+    about 45 ns a knot. Plain loops over int64 (no array methods, no unsigned keys): they
+    compile in a fraction of a second.
+
+    Raises:
+        ValueError: for times spanning ``2**63`` or more (a state's span less than ``2**53``:
+            :func:`~..estimation.knots.check_span`).
     """
     n = t.shape[0]
-    order = np.arange(n)
-    if n < 2:
-        return order
-    key = t.astype(np.uint64) - np.uint64(t.min())  # modulo 2**64: the exact distance
-    span = key.max()
-    spare_order, spare_key = np.empty(n, np.int64), np.empty(n, np.uint64)
+    order = np.empty(n, np.int64)
+    key = np.empty(n, np.int64)
+    low = t[0] if n else 0
+    high = low
+    for i in range(n):
+        low = min(low, t[i])
+        high = max(high, t[i])
+    span = high - low
+    if span < 0:
+        raise ValueError("knot times spanning 2**63 or more")
+    for i in range(n):
+        order[i] = i
+        key[i] = t[i] - low
+    spare_order, spare_key = np.empty(n, np.int64), np.empty(n, np.int64)
     count = np.empty((1 << _DIGIT_BITS) + 1, np.int64)
-    digit_mask = np.uint64((1 << _DIGIT_BITS) - 1)
-    shift = np.uint64(0)
-    while shift < 64 and (span >> shift) > 0:
-        count[:] = 0
+    mask = (1 << _DIGIT_BITS) - 1
+    shift = 0
+    while shift < 63 and (span >> shift) > 0:
+        for d in range(count.shape[0]):
+            count[d] = 0
         for i in range(n):
-            count[((key[i] >> shift) & digit_mask) + np.uint64(1)] += 1
+            count[((key[i] >> shift) & mask) + 1] += 1
         for d in range(1, count.shape[0]):
             count[d] += count[d - 1]
         for i in range(n):
-            d = (key[i] >> shift) & digit_mask
+            d = (key[i] >> shift) & mask
             at = count[d]
             spare_order[at], spare_key[at] = order[i], key[i]
             count[d] = at + 1
-        order, spare_order = spare_order, order
-        key, spare_key = spare_key, key
-        shift += np.uint64(_DIGIT_BITS)
+        for i in range(n):
+            order[i], key[i] = spare_order[i], spare_key[i]
+        shift += _DIGIT_BITS
     return order
 
 
