@@ -92,6 +92,18 @@ def _has_session(transform: Streaming) -> bool:
     return True
 
 
+def argument_spy(monkeypatch, module, name: str) -> list[tuple]:
+    """Wrap ``module.name`` for the test: the list returned gets each call's arguments."""
+    calls, real = [], getattr(module, name)
+
+    def wrapper(*args):
+        calls.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(module, name, wrapper)
+    return calls
+
+
 def spy(monkeypatch, module, name: str, record=lambda out: out) -> list:
     """Wrap ``module.name`` for the test: the list returned gets ``record(output)`` per call."""
     seen, real = [], getattr(module, name)

@@ -22,6 +22,7 @@ from evdown_torch.transforms.functional.reference import SNAP
 from tests.helpers import (
     DVS_DTYPE,
     FLOAT_DTYPE,
+    argument_spy,
     assert_identical,
     assert_output_limit_on_both_paths,
     assert_sessions_on_both_paths,
@@ -322,14 +323,7 @@ def test_each_region_sum_is_its_pixels_intensities_exactly(contrast, threshold, 
     # The loop moves a region's sum by each event's change of intensity; after the call each
     # anchored region's sum must equal its pixels' intensities above its anchor, rounded one
     # by one (the module's telescoping), whatever path each event took.
-    seen = []
-    real = COMPILED._photocurrent_loop
-
-    def keep_arguments(*args):
-        seen.append(args)
-        return real(*args)
-
-    monkeypatch.setattr(COMPILED, "_photocurrent_loop", keep_arguments)
+    seen = argument_spy(monkeypatch, COMPILED, "_photocurrent_loop")
     if stream == "below":
         sensor, factor, arr = (2, 1, 2), (2, 1), _one_pixel_falling_below_the_table(200)
     else:

@@ -14,7 +14,7 @@ import torch
 
 import evdown_torch.transforms.functional.estimation.cubic as cubic_module
 from evdown_torch import CubicEstimation, eager_kernels
-from tests.helpers import random_stream
+from tests.helpers import argument_spy, random_stream
 
 SENSOR = (20, 12, 2)
 
@@ -22,14 +22,8 @@ SENSOR = (20, 12, 2)
 def captured_sums_inputs(arr, monkeypatch, **settings) -> list[tuple]:
     """The arguments of every ``_mid_segment_sums`` call of one CubicEstimation call (on the
     eager path, whose solver this is)."""
-    calls = []
     real = cubic_module._mid_segment_sums
-
-    def spy(*args):
-        calls.append(args)
-        return real(*args)
-
-    monkeypatch.setattr(cubic_module, "_mid_segment_sums", spy)
+    calls = argument_spy(monkeypatch, cubic_module, "_mid_segment_sums")
     with eager_kernels():
         CubicEstimation(SENSOR, factor=(3, 2), threshold=0.2, **settings)(arr)
     monkeypatch.setattr(cubic_module, "_mid_segment_sums", real)
