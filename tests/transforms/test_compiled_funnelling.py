@@ -184,3 +184,10 @@ def test_bin_starts_refuse_offsets_past_int64_on_both_paths():
     for forced in (False, True):
         with eager_kernels(forced), pytest.raises(ValueError, match="span 2\\*\\*63 or more"):
             bin_start(t, dt=10, t_start=-5)
+
+
+def test_bin_starts_of_other_integer_dtypes_keep_their_dtype_on_both_paths():
+    t = torch.tensor([3, 9, 10, 25, 4], dtype=torch.int32)
+    compiled, eager = both_paths(lambda: bin_start(t, dt=10, t_start=3))
+    assert_identical(compiled, eager)
+    assert compiled.dtype == torch.int32 and compiled.tolist() == [3, 3, 3, 23, 3]

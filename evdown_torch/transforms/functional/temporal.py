@@ -108,7 +108,7 @@ def bin_start(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
     """
     if t.is_floating_point():
         return (torch.floor((t - t_start) / dt) * dt).add_(t_start)
-    if use_compiled(t) and _whole(dt) and int(dt) <= _INT64_MAX:
+    if t.dtype == torch.int64 and use_compiled(t) and _whole(dt) and int(dt) <= _INT64_MAX:
         from evdown_torch.transforms.functional.compiled.temporal import bin_starts
 
         starts = bin_starts(t.numpy(), int(t_start), int(dt))
