@@ -22,7 +22,7 @@ import numba
 from numba.core import types
 from numba.extending import intrinsic
 
-__all__ = ["compiled_loop", "fma"]
+__all__ = ["compiled_loop", "fma", "inlined_helper"]
 
 
 def compiled_loop(function: Callable[..., Any]) -> Any:
@@ -32,6 +32,15 @@ def compiled_loop(function: Callable[..., Any]) -> Any:
     positive integers only, so NumPy's error model (no zero-division check) changes nothing.
     """
     return numba.njit(cache=True, nogil=True, error_model="numpy")(function)
+
+
+def inlined_helper(function: Callable[..., Any]) -> Any:
+    """``function`` compiled as :func:`compiled_loop` compiles it, and inlined into each caller.
+
+    Numba's ``inline="always"``: a small rule that a hot loop applies at every event (and other
+    loops too) keeps its one home without costing a call each time.
+    """
+    return numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(function)
 
 
 @intrinsic

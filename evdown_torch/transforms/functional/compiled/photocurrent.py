@@ -44,7 +44,7 @@ import torch
 from evdown_torch._tensors import region_pixel_count
 from evdown_torch.checks import output_limit
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled._numba import compiled_loop, inlined_helper
 from evdown_torch.transforms.functional.compiled.regions import (
     columns_of,
     crossing_columns,
@@ -76,7 +76,7 @@ _DONE, _GROW, _DOUBT, _OUTSIDE = 0, 1, 2, 3
 _LOWEST = -(2**63)  # below every level
 
 
-@compiled_loop
+@inlined_helper  # (read twice an event by the loop)
 def _intensity(j: int, table: np.ndarray, lo: int, contrast: float,
                scale: float) -> int:  # pragma: no cover - compiled
     """``round(exp(c * j) * scale)``, 0 at ``j < lo``; from ``table`` where it reaches.
@@ -87,7 +87,7 @@ def _intensity(j: int, table: np.ndarray, lo: int, contrast: float,
     if j < lo:
         return 0
     if table.shape[0] > 0:
-        return table[j - lo]
+        return table[np.uint64(j - lo)]  # (j >= lo: unsigned, ``_numba``)
     return int(math.floor(math.exp(contrast * j) * scale + 0.5))
 
 
@@ -202,7 +202,6 @@ def _photocurrent_loop(
     capacity = out_source.shape[0]
     low_mark = 1 << (bits - DROP_BITS)
     padded = period > height  # stacked recordings with rows between them
-    has_table = table.shape[0] > 0
     for i in range(start, n):
         xi = x[i]
         yi = y[i]
@@ -220,17 +219,8 @@ def _photocurrent_loop(
             a = anchor[ru]
             again = not ready[ru] or after - a > highest
             if not again:
-                # Levels above the anchor's stay within ``highest`` (else anchored again):
-                # from the table where the old level lies in it (the new one, one level
-                # away, is in it or just below it: 0), as _intensity reads them.
-                j_before, j_after = before - a - lo, after - a - lo
-                if has_table and j_before >= 0:
-                    s = total[ru] - table[np.uint64(j_before)]
-                    if j_after >= 0:
-                        s += table[np.uint64(j_after)]
-                else:
-                    s = total[ru] + (_intensity(after - a, table, lo, contrast, scale)
-                                     - _intensity(before - a, table, lo, contrast, scale))
+                s = total[ru] + (_intensity(after - a, table, lo, contrast, scale)
+                                 - _intensity(before - a, table, lo, contrast, scale))
                 total[ru] = s
                 again = s < low_mark
             if again:  # first touched, climbing past the headroom, or fallen below it
