@@ -17,6 +17,7 @@ from evdown_torch.transforms import (
     TemporalFunnelling,
 )
 from evdown_torch.transforms.functional.compiled import eager_kernels, kernel_path
+from evdown_torch.transforms.functional.compiled.scratch import release_scratch
 
 __version__ = "0.1.0"
 
@@ -40,6 +41,7 @@ __all__ = [
     "kernel_path",
     "max_output_events",
     "output_limit",
+    "release_scratch",
     "set_max_output_events",
     "to_events",
 ]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import weakref
 from fractions import Fraction
 from unittest import mock
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+import evdown_torch
 from evdown_torch import Downsample, eager_kernels
 from evdown_torch.events import Events, to_events
 from evdown_torch.transforms.functional.compiled import numba_available, scratch
@@ -245,3 +247,61 @@ def test_a_thread_keeps_at_most_most_kept_bytes() -> None:
         del longer
         # Still reused where it is long enough.
         assert _address(scratch_column("test most kept 0", 500, np.int64)) == kept
+
+
+def test_release_scratch_frees_the_threads_columns_and_keeps_held_ones() -> None:
+    # Two kept columns: one that no one holds, one a caller still holds a view of.
+    free = scratch_column("test release free", 1000, np.int64)
+    held = scratch_column("test release held", 1000, np.int64)
+    held[:] = np.arange(1000)
+    view = held[5:10]
+    del free, held
+    free_ref = weakref.ref(_kept("test release free", np.int64))
+    held_ref = weakref.ref(_kept("test release held", np.int64))
+    before = scratch.kept_bytes()
+    assert before >= 16_000
+    assert evdown_torch.release_scratch() == before
+    assert scratch.kept_bytes() == 0 and not scratch._KEPT.columns
+    assert free_ref() is None  # its memory is gone
+    assert held_ref() is not None  # still held through the view: alive and intact
+    assert view.tolist() == [5, 6, 7, 8, 9]
+    # The slot takes a new column; the held one is never handed out again.
+    again = scratch_column("test release held", 1000, np.int64)
+    again[:] = -1
+    assert not np.shares_memory(again, view) and view.tolist() == [5, 6, 7, 8, 9]
+    assert scratch.kept_bytes() == 8000
+    del view
+    assert held_ref() is None
+    assert evdown_torch.release_scratch() == 8000
+
+
+def test_release_scratch_leaves_other_threads_columns() -> None:
+    mine = scratch_column("test release thread", 64, np.int64)
+    address = _address(mine)
+    del mine
+    released: list[int] = []
+
+    def other() -> None:
+        scratch_column("test release other", 32, np.int64)
+        released.append(evdown_torch.release_scratch())
+
+    thread = threading.Thread(target=other)
+    thread.start()
+    thread.join()
+    assert released == [256]  # only the other thread's own column
+    assert _address(scratch_column("test release thread", 64, np.int64)) == address
+
+
+@pytest.mark.skipif(not numba_available(), reason="the compiled kernels need numba")
+def test_outputs_held_across_release_scratch_stay_intact() -> None:
+    chunks = _event_chunks(3)
+    session = Downsample(SENSOR, 4).session()
+    held = []
+    for chunk in chunks:
+        held.append(session(chunk))
+        evdown_torch.release_scratch()  # between every two chunks
+    for chunk, out in zip(chunks, held, strict=True):
+        assert isinstance(out, Events)
+        x, y, t, p = _columns(chunk)
+        for got, want in zip(_columns(out), (x // 4, y // 4, t, p), strict=True):
+            np.testing.assert_array_equal(got, want)

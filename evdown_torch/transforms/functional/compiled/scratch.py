@@ -14,8 +14,9 @@ one is taken instead.
 
 Columns over :data:`LARGEST_KEPT` bytes are not kept, nor a column that would take the
 thread's kept columns past :data:`MOST_KEPT` bytes in all: a thread holds at most that much
-after its calls, however many slots its methods use. Python builds without the GIL (whose
-reference counts are not exact from another thread) take new columns every time.
+after its calls, however many slots its methods use, until it ends or calls
+:func:`release_scratch`. Python builds without the GIL (whose reference counts are not exact
+from another thread) take new columns every time.
 """
 
 from __future__ import annotations
@@ -25,7 +26,14 @@ import threading
 
 import numpy as np
 
-__all__ = ["LARGEST_KEPT", "MOST_KEPT", "kept_bytes", "scratch_column", "scratch_copy"]
+__all__ = [
+    "LARGEST_KEPT",
+    "MOST_KEPT",
+    "kept_bytes",
+    "release_scratch",
+    "scratch_column",
+    "scratch_copy",
+]
 
 #: The largest column (bytes) a thread keeps for reuse: 8 MiB (a million int64 values).
 LARGEST_KEPT = 8 << 20
@@ -109,6 +117,34 @@ def kept_bytes() -> int:
         8000
     """
     return sum(column.nbytes for column in _KEPT.columns.values())
+
+
+def release_scratch() -> int:
+    """Let go of the scratch columns the calling thread keeps for the compiled kernels.
+
+    A thread that ran compiled kernels on the CPU keeps up to ``MOST_KEPT`` bytes
+    (160 MiB) of columns for its next calls, until it ends. A process done with its live
+    session or its preprocessing, that goes on with other work in the same thread, calls this
+    to give that memory back. Nothing in use is touched: a column something still refers to
+    (an output tensor, an ``Events``, a session's state) stays valid and is freed when its last
+    holder lets go; the thread's next compiled call takes new columns. Other threads' columns
+    are theirs to release.
+
+    Returns:
+        The bytes the thread kept (``kept_bytes()`` before the call; the memory of columns
+        still held elsewhere is freed later, when they are).
+
+    Example:
+        >>> import evdown_torch, torch
+        >>> count = evdown_torch.EventCount((4, 4, 2), factor=2, threshold=0.5)
+        >>> out = count(torch.tensor([[0, 0, 10, 1], [1, 1, 20, 1]]))
+        >>> released = evdown_torch.release_scratch()  # what the call kept, if compiled
+        >>> kept_bytes(), out.tolist()  # nothing kept; the output is intact
+        (0, [[0, 0, 20, 1]])
+    """
+    released = kept_bytes()
+    _KEPT.columns.clear()
+    return released
 
 
 def scratch_copy(slot: str, values: np.ndarray) -> np.ndarray:
