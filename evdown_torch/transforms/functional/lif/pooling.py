@@ -437,10 +437,9 @@ def lif_spikes(
     # whose new state is not needed), else by rounds (on the CPU, a compiled loop cell by cell:
     # cheaper than the closed form, the same spikes).
     rounds = int(cells_per_region.max())
-    region_index = run_index(new_region)
     certain = None
     if not keep_state and rounds >= MIN_ROUNDS and not use_compiled(current):
-        certain = certain_spikes(cell_step, current, region_first, region_index,
+        certain = certain_spikes(cell_step, current, region_first, run_index(new_region),
                                  cells_per_region, gap_after, rounds=rounds, leak=leak)
     if certain is not None:
         spikes, membrane = certain, None
@@ -449,12 +448,12 @@ def lif_spikes(
         gap_before[1:] = gap_after[:-1]
         gap_before.index_copy_(0, region_first, cell_step.index_select(0, region_first))  # from 0
         membrane, chain_before = membranes_by_rounds(
-            current, gap_before, region_first, region_index, cells_per_region, rounds=rounds,
+            current, gap_before, region_first, new_region, cells_per_region, rounds=rounds,
             leak=leak,
         )
         spikes = spikes_and_runs(membrane, chain_before, cell_step, gap_before, gap_after,
                                  region_last, leak=leak)
-    del current, region_index
+    del current, new_region
     # Output order: by step, then neuron (OFF before ON, then row-major region).
     spike_step, neuron = spikes_by_step(spikes, cell_step, cell_region, plane=plane,
                                         from_step=from_step, top_step=top_step)

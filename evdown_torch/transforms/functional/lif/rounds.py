@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import divide, stable_sort_small, where_true
+from evdown_torch._tensors import divide, run_index, stable_sort_small, where_true
 from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.lif.chains import CellSpikes, Leak, Rounds
 
@@ -27,7 +27,7 @@ def membranes_by_rounds(
     current: Tensor,
     gap_before: Tensor,
     region_first: Tensor,
-    region_index: Tensor,
+    new_region: Tensor,
     cells_per_region: Tensor,
     *,
     rounds: int,
@@ -41,7 +41,7 @@ def membranes_by_rounds(
         gap_before: ``(n,)`` int64 empty steps before every cell (after the previous cell of
             its region).
         region_first: ``(R,)`` int64 index of every region's first cell.
-        region_index: ``(n,)`` int64 region (``0 .. R - 1``) of every cell.
+        new_region: ``(n,)`` bool, True at every region's first cell (``region_first``).
         cells_per_region: ``(R,)`` int64 number of cells of every region.
         rounds: the largest number of cells of one region.
         leak: the neurons' ``beta``, threshold and reset.
@@ -52,8 +52,9 @@ def membranes_by_rounds(
         firing after the previous cell (reset "subtract"; the first steps of the gap).
     """
     if use_compiled(current):
-        return _membranes_cell_by_cell(current, gap_before, region_first, leak)
+        return _membranes_cell_by_cell(current, gap_before, new_region, leak)
     device = current.device
+    region_index = run_index(new_region)  # region (0 .. R - 1) of every cell
     f32 = torch.float32
     n_cells, n_regions = current.shape[0], region_first.shape[0]
     count_sorted, region_of_lane = stable_sort_small(rounds - cells_per_region, rounds + 1)
@@ -95,7 +96,7 @@ def membranes_by_rounds(
 
 
 def _membranes_cell_by_cell(
-    current: Tensor, gap_before: Tensor, region_first: Tensor, leak: Leak
+    current: Tensor, gap_before: Tensor, first: Tensor, leak: Leak
 ) -> tuple[Tensor, Tensor]:
     """:func:`membranes_by_rounds` on the CPU: a compiled loop over the cells in their order.
 
@@ -108,8 +109,6 @@ def _membranes_cell_by_cell(
 
     n_cells = current.shape[0]
     gap = gap_before[:, None]
-    first = torch.zeros(n_cells, dtype=torch.bool)
-    first[region_first] = True
     membrane = torch.empty_like(current)
     decay = leak.powers.float32(gap)
     decay_after_one = leak.powers.float32((gap - 1).clamp_(min=0))
