@@ -1,20 +1,15 @@
 """Small tensor helpers shared by the whole package (private).
 
 Every helper here exists once: time ordering and chunking of a stream, run starts and ends,
-segmented sums, fast indexing, integer division, small-key stable sorting, and the region
-geometry of a downscaling factor (region of a pixel, coordinates of a region id, pixels in a
-region). The output sensor size itself is :func:`evdown_torch.checks.output_size`.
+segmented sums, distinct values, fast indexing, integer division and small-key stable sorting.
+The region geometry of a downscaling factor is :mod:`evdown_torch._regions`.
 """
 
 from __future__ import annotations
 
-from typing import Protocol
-
 import numpy as np
 import torch
 from torch import Tensor
-
-from evdown_torch.checks import output_size
 
 __all__ = [
     "CHUNK_EVENTS",
@@ -24,15 +19,12 @@ __all__ = [
     "chunk_bounds",
     "continued_cumsum",
     "differences",
+    "distinct_in_range",
     "divide",
     "ends",
     "floor_divide_exact",
     "last_of_runs",
     "narrow_dtype",
-    "pixel_columns",
-    "region_of",
-    "region_pixel_count",
-    "region_xy",
     "run_index",
     "run_max",
     "runs_of",
@@ -44,16 +36,6 @@ __all__ = [
     "time_order",
     "where_true",
 ]
-
-class Pixels(Protocol):
-    """Anything with ``x`` and ``y`` columns (:class:`~evdown_torch.events.Events`)."""
-
-    @property
-    def x(self) -> Tensor: ...  # noqa: D102
-
-    @property
-    def y(self) -> Tensor: ...  # noqa: D102
-
 
 #: Events per chunk when a kernel processes a long stream piece by piece: temporaries of this
 #: length stay small enough (8 MB of int64) to be recycled by the allocator instead of being
@@ -161,6 +143,41 @@ def last_of_runs(first_at: Tensor, n: int) -> Tensor:
     if last.shape[0]:
         last[-1] = n - 1
     return last
+
+
+def distinct_in_range(values: Tensor, low: int, high: int) -> tuple[Tensor, Tensor]:
+    """``torch.unique(values, return_inverse=True)`` of int64 ``values`` in ``low .. high``.
+
+    By a table of one mark a value of the range (its cumulative sum ranks them), not a sort:
+    the cheaper where the range is small next to the values; the caller decides that. The
+    distinct values are read from the table where it is no longer than the values, else put
+    in place by their ranks.
+
+    Returns:
+        ``(distinct, inverse)``: the sorted distinct values, and each value's int64 index in
+        them.
+
+    Example:
+        >>> distinct_in_range(torch.tensor([7, 3, 7, 5]), 3, 7)
+        (tensor([3, 5, 7]), tensor([2, 0, 2, 1]))
+    """
+    offset = values - low
+    marked = torch.zeros(high - low + 1, dtype=torch.bool, device=values.device)
+    if _numpy(offset):  # NumPy's assignment: a few times torch's on the CPU
+        marked.numpy()[offset.numpy()] = True
+    else:
+        marked[offset] = True
+    rank_dtype = torch.int32 if high - low < 1 << 31 else torch.int64  # (half the table)
+    rank = torch.cumsum(marked, 0, dtype=rank_dtype)  # marks up to each value of the range
+    inverse = take(rank, offset).to(torch.int64).sub_(1)
+    if marked.shape[0] <= values.shape[0]:
+        return where_true(marked).add_(low), inverse
+    distinct = torch.empty(int(rank[-1]), dtype=torch.int64, device=values.device)
+    if _numpy(values):
+        distinct.numpy()[inverse.numpy()] = values.numpy()
+    else:
+        distinct[inverse] = values
+    return distinct, inverse
 
 
 def run_index(starts: Tensor) -> Tensor:
@@ -443,73 +460,3 @@ def floor_divide_exact(values: Tensor, divisor: int | Tensor) -> tuple[Tensor, T
     if isinstance(divisor, int) and divisor & (divisor - 1) == 0:
         return quotient, (values & (divisor - 1)) == 0
     return quotient, quotient * divisor == values
-
-
-# --- Region geometry -----------------------------------------------------------------------
-
-
-def region_of(events: Pixels, factor: tuple[int, int]) -> tuple[Tensor, Tensor]:
-    """Region coordinates ``(x // fx, y // fy)`` of every event, as new int64 tensors."""
-    return divide(events.x, factor[0]), divide(events.y, factor[1])
-
-
-def pixel_columns(
-    events: Pixels, factor: tuple[int, int], regions: tuple[Tensor, Tensor] | None = None
-) -> Tensor:
-    """``(N,)`` int64 place of each event's pixel in its region, ``(y % fy) * fx + x % fx``.
-
-    The column of the pixel in its region's row of pixel ids (the photocurrent kernels'
-    ``region_pixel_ids``). ``regions``: the events' :func:`region_of`, when the caller has it.
-
-    Example:
-        >>> from types import SimpleNamespace
-        >>> pixel_columns(SimpleNamespace(x=torch.tensor([0, 3, 2]), y=torch.tensor([1, 0, 3])),
-        ...               (2, 2)).tolist()
-        [2, 1, 2]
-    """
-    fx, fy = factor
-    rx, ry = region_of(events, factor) if regions is None else regions
-    return torch.sub(events.y, ry, alpha=fy).mul_(fx).add_(events.x).sub_(rx, alpha=fx)
-
-
-def region_xy(region: Tensor, out_width: int) -> tuple[Tensor, Tensor]:
-    """Coordinates ``(x, y)`` of int64 ids ``y * out_width + x``: output regions, or pixels.
-
-    ``out_width``: the width of the grid the ids number (the output sensor's for regions,
-    the input sensor's for pixel ids ``y * W + x``).
-
-    Example:
-        >>> x, y = region_xy(torch.tensor([0, 4, 7]), 3)
-        >>> x.tolist(), y.tolist()
-        ([0, 1, 1], [0, 1, 2])
-    """
-    y = divide(region, out_width)
-    return region - y * out_width, y
-
-
-def region_pixel_count(
-    region: Tensor, sensor_size: tuple[int, int, int], factor: tuple[int, int]
-) -> Tensor:
-    """``n_r``: number of sensor pixels in each region (fewer in the last column/row).
-
-    Region ids past ``Ho * Wo`` are those of a batch of recordings stacked vertically
-    (recording ``b``'s region ``r`` is ``b * Ho * Wo + r``): each has the ``n_r`` of ``r``.
-
-    Args:
-        region: int64 region ids ``ry * Wo + rx``.
-        sensor_size: input ``(W, H, P)``.
-        factor: ``(fx, fy)``.
-
-    Returns:
-        int64 tensor of the shape of ``region``.
-
-    Example:
-        >>> region_pixel_count(torch.arange(4), (5, 3, 2), (2, 2)).tolist()  # Wo = 3
-        [4, 4, 2, 2]
-    """
-    w, h, _ = sensor_size
-    fx, fy = factor
-    out_w, out_h, _ = output_size(sensor_size, factor)
-    rx, ry = region_xy(region, out_w)
-    ry = torch.remainder(ry, out_h)
-    return torch.clamp(w - rx * fx, max=fx) * torch.clamp(h - ry * fy, max=fy)

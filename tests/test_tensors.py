@@ -9,6 +9,7 @@ import torch
 from evdown_torch import _tensors
 from evdown_torch._tensors import (
     changes,
+    distinct_in_range,
     divide,
     run_max,
     runs_of,
@@ -127,3 +128,23 @@ def test_time_order_is_none_exactly_for_a_sorted_stream(n, dtype, numpy_on_cpu, 
         with_nan = t.clone()
         with_nan[n // 2] = float("nan")
         assert time_order(with_nan) is not None
+
+
+@pytest.mark.parametrize("numpy_on_cpu", [True, False])
+@pytest.mark.parametrize(("n", "low", "high"), [
+    (0, 0, 0), (1, -3, -3), (50, -10, 10), (5000, 0, 999), (5000, -(1 << 40), -(1 << 40) + 99),
+    (100, 0, 10**6), (2000, -5, 10**5)])  # (the last two: ranges longer than the values)
+def test_distinct_in_range_is_torch_unique(n, low, high, numpy_on_cpu, rng, device, monkeypatch):
+    # The table of marks (NumPy's assignment on the CPU from 1,024 values, torch's else; the
+    # distinct values read from the table or put by their ranks) must give torch.unique's
+    # sorted values and inverse, with the range's ends taken or not.
+    monkeypatch.setattr(_tensors, "NUMPY_ON_CPU", numpy_on_cpu)
+    values = torch.as_tensor(rng.integers(low, high + 1, n), dtype=torch.int64).to(device)
+    if n > 2:
+        values[:2] = torch.tensor([low, high])
+    distinct, inverse = distinct_in_range(values, low, high)
+    want, want_inverse = torch.unique(values, return_inverse=True)
+    assert distinct.dtype == inverse.dtype == torch.int64
+    assert torch.equal(distinct.cpu(), want.cpu())
+    assert torch.equal(inverse.cpu(), want_inverse.cpu())
+    assert torch.equal(distinct[inverse].cpu(), values.cpu())

@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from evdown_torch._tensors import region_of
+from evdown_torch._regions import region_of
 from evdown_torch.arguments import (
     CommandError,
     Subparsers,

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import region_of, region_pixel_count
+from evdown_torch._regions import region_of, region_pixel_count
 from evdown_torch.checks import check_factor, check_positive_int, check_sensor_size, output_size
 from evdown_torch.events import Events, EventsLike, sort_by_time, to_events
 from evdown_torch.plot import _mpl

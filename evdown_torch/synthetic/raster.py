@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import region_xy, stable_sort_small, where_true
+from evdown_torch._regions import region_xy
+from evdown_torch._tensors import stable_sort_small, where_true
 from evdown_torch.checks import check_factor, output_size
 from evdown_torch.synthetic.body_plan import (
     FOREARM,

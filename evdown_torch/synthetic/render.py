@@ -29,7 +29,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import region_xy, where_true
+from evdown_torch._regions import region_xy
+from evdown_torch._tensors import where_true
 from evdown_torch.checks import check_factor, check_positive_int, output_size
 from evdown_torch.events import Events
 from evdown_torch.synthetic.grid import Grid

@@ -7,7 +7,7 @@ output of processing it alone):
 * **Space.** Recording ``b``'s pixel ``(x, y)`` becomes ``(x, y + b * Ho * fy)``: the
   recordings are stacked vertically, each padded to a whole number of region rows, so
   recording ``b`` owns the block of region ids ``[b * Ho * Wo, (b + 1) * Ho * Wo)``.
-  :func:`~evdown_torch._tensors.region_pixel_count` gives those regions the ``n_r`` of their
+  :func:`~evdown_torch._regions.region_pixel_count` gives those regions the ``n_r`` of their
   own recording's regions.
 * **Time.** With integer timestamps each recording is shifted (exactly, in int64) into its own
   window ``[base_b, base_b + span_b]``, the windows one after the other. A batch of recordings

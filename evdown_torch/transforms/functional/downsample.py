@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from evdown_torch._tensors import region_of
+from evdown_torch._regions import region_of
 from evdown_torch.checks import check_output_count
 from evdown_torch.collate import EventBatch
 from evdown_torch.events import Events, sort_by_time

@@ -8,6 +8,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from evdown_torch._regions import region_pixel_count, region_xy
 from evdown_torch._tensors import (
     changes,
     chunk_bounds,
@@ -15,8 +16,6 @@ from evdown_torch._tensors import (
     divide,
     ends,
     floor_divide_exact,
-    region_pixel_count,
-    region_xy,
     stable_sort_small,
     take,
 )

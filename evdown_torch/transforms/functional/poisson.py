@@ -44,6 +44,7 @@ import torch
 from torch import Tensor
 
 from evdown_torch._tensors import (
+    distinct_in_range,
     divide,
     searchsorted_ascending,
     take,
@@ -187,14 +188,7 @@ def _distinct(values: Tensor) -> tuple[Tensor, Tensor]:
     if values.shape[0]:
         low, high = (int(bound) for bound in torch.aminmax(values))
         if _marks_fit(low, high, values.shape[0]):
-            offset = values - low
-            marked = torch.zeros(high - low + 1, dtype=torch.bool, device=values.device)
-            if marked.device.type == "cpu":  # NumPy's assignment: a few times torch's there
-                marked.numpy()[offset.numpy()] = True
-            else:
-                marked[offset] = True
-            rank = torch.cumsum(marked, 0, dtype=torch.int64).sub_(1)
-            return where_true(marked).add_(low), take(rank, offset)
+            return distinct_in_range(values, low, high)
     distinct, inverse = torch.unique(values, return_inverse=True)
     return distinct, inverse
 

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import region_pixel_count
+from evdown_torch._regions import region_pixel_count
 from evdown_torch.checks import check_output_count, output_limit
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop

@@ -41,7 +41,7 @@ import math
 import numpy as np
 import torch
 
-from evdown_torch._tensors import region_pixel_count
+from evdown_torch._regions import region_pixel_count
 from evdown_torch.checks import output_limit
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop, inlined_helper

@@ -14,9 +14,9 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from evdown_torch._regions import region_xy
 from evdown_torch._tensors import (
     changes,
-    region_xy,
     searchsorted_ascending,
     stable_sort_small,
     take,

@@ -34,12 +34,11 @@ from typing import NamedTuple, cast
 import torch
 from torch import Tensor
 
+from evdown_torch._regions import region_of, region_xy
 from evdown_torch._tensors import (
     changes,
     differences,
     ends,
-    region_of,
-    region_xy,
     run_index,
     segmented_cumsum,
     stable_sort_small,

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from evdown_torch._tensors import (
     changes,
+    distinct_in_range,
     divide,
     run_index,
     runs_of,
@@ -96,21 +97,12 @@ def grouped_cells(
     ``None`` except from the stable sort, which gives the cells' steps in place of their keys;
     ``counts`` are the cells' ``(n_cells, 2)`` int64 OFF and ON events.
     """
-    device = events.device
     region = divide(events.x, fx).add_(divide(events.y, fy), alpha=wo)
-    n, n_keys = region.shape[0], plane * span
+    n_keys = plane * span
     cell_region = None
     if table:
         key = region.mul_(span).add_(steps).sub_(low)
-        occupied = torch.zeros(n_keys, dtype=torch.bool, device=device)
-        occupied[key] = True
-        count_dtype = torch.int32 if n < 1 << 30 else torch.int64  # 2 * cells + 1 fits
-        rank = torch.cumsum(occupied, 0, dtype=count_dtype)  # cells up to each key
-        del occupied
-        cell_of_event = rank.index_select(0, key).sub_(1)
-        cell_step = torch.empty(int(rank[-1]), dtype=torch.int64, device=device)
-        cell_step[cell_of_event] = key  # the cells' keys, sorted
-        del rank
+        cell_step, cell_of_event = distinct_in_range(key, 0, n_keys - 1)  # the cells' keys
         polarity = events.p
     elif n_keys < 1 << 62:
         key, order = torch.sort(region.mul_(span).add_(steps).sub_(low))

@@ -15,7 +15,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import region_xy, runs_of
+from evdown_torch._regions import region_xy
+from evdown_torch._tensors import runs_of
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 

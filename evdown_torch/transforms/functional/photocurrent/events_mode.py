@@ -41,14 +41,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from evdown_torch._regions import pixel_columns, region_pixel_count, region_xy
 from evdown_torch._tensors import (
     CHUNK_EVENTS,
     divide,
     ends,
     last_of_runs,
-    pixel_columns,
-    region_pixel_count,
-    region_xy,
     run_index,
     stable_sort_small,
     take,

@@ -24,15 +24,8 @@ from typing import NamedTuple, cast
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import (
-    changes,
-    chunk_bounds,
-    ends,
-    region_of,
-    region_pixel_count,
-    take,
-    where_true,
-)
+from evdown_torch._regions import region_of, region_pixel_count
+from evdown_torch._tensors import changes, chunk_bounds, ends, take, where_true
 from evdown_torch.checks import (
     DEFAULT_TIME_UNIT,
     OutputLimitError,

@@ -14,12 +14,11 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from evdown_torch._regions import pixel_columns, region_xy
 from evdown_torch._tensors import (
     changes,
     continued_cumsum,
     last_of_runs,
-    pixel_columns,
-    region_xy,
     stable_sort_small,
     take,
     where_true,
