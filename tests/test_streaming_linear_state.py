@@ -26,7 +26,6 @@ from evdown_torch.transforms.functional.compiled import linear_stream  # noqa: E
 from evdown_torch.transforms.functional.compiled.linear_ramps import RampSettings  # noqa: E402
 from evdown_torch.transforms.functional.compiled.linear_ramps_state import (  # noqa: E402
     _in_time_order,
-    _stable_order,
     ramp_session,
     window_state,
 )
@@ -217,19 +216,6 @@ def test_a_state_the_ramps_cannot_take_is_refused():
         ramp_session(package._replace(horizon=None), design_settings, 300)
 
 
-@pytest.mark.parametrize("times", [
-    [], [5], [3, 3, 1, 3, 1], [7, 7, 7, 7],
-    [2**63 - 1, 2**63 - 2**62, 2**62 + 5, 2**63 - 1, 2**62],  # near int64's top
-    [-(2**63), -1, -(2**63), 5 - 2**63],  # and its bottom
-    np.random.default_rng(1).integers(-(2**62), 2**62 - 1, 3000),  # six digits
-    np.random.default_rng(2).integers(0, 30, 3000),  # one digit, many ties
-    np.random.default_rng(3).integers(0, 1 << 23, 3000),  # three digits
-])
-def test_the_state_knots_radix_order_is_the_stable_sort_order(times):
-    t = np.asarray(times, dtype=np.int64)
-    assert np.array_equal(_stable_order(t), np.argsort(t, kind="stable"))
-
-
 @pytest.mark.parametrize("second", [0, 3, 7, 10])
 def test_the_state_knots_come_in_the_stable_order_of_both_parts(second):
     # Ties inside the first part, across the parts and inside the second (in time order).
@@ -241,9 +227,3 @@ def test_the_state_knots_come_in_the_stable_order_of_both_parts(second):
     x, y, t_out, change_out = _in_time_order(pixel, t, change, second, 5)
     assert np.array_equal(t_out, t[order]) and np.array_equal(change_out, change[order])
     assert np.array_equal(x, pixel[order] % 5) and np.array_equal(y, pixel[order] // 5)
-
-
-def test_the_state_knots_radix_order_refuses_a_span_past_int64():
-    # A state's knots span less than 2**53 (check_span); a wrapped span is not sorted wrongly.
-    with pytest.raises(ValueError, match="2\\*\\*63 or more"):
-        _stable_order(np.array([-(2**63), 2**63 - 1], dtype=np.int64))

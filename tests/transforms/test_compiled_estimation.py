@@ -57,6 +57,29 @@ def test_compiled_equals_eager(cls, factor, threshold, max_delay, rng):
     assert_identical(compiled, eager)
 
 
+@pytest.mark.parametrize("cls", ESTIMATORS)
+@pytest.mark.parametrize("max_delay", [None, 50])
+def test_compiled_equals_eager_with_regions_and_pixels_sparse_next_to_the_events(cls, max_delay,
+                                                                                 rng):
+    # A wide sensor, a large factor and few events: the window's regions span far more ids
+    # than it has events (grouped by the radix sort, not by counting) and every region has
+    # far fewer events than pixels (its events put in pixel order by the merge sort). Each
+    # region's events fall on a few of its pixels, mostly ON, so that levels are crossed.
+    sensor, regions, per_region = (4096, 2048, 2), 30, 40
+    n = regions * per_region
+    region = np.repeat(rng.choice(256 * 128, regions, replace=False), per_region)
+    arr = random_stream(rng, n, sensor, t_max=10_000, sort=False)
+    arr["x"] = (region % 256) * 16 + rng.integers(0, 4, n)
+    arr["y"] = (region // 256) * 16 + rng.integers(0, 4, n)
+    arr["p"] = rng.random(n) < 0.9
+    assert region.max() + 1 > 4 * n + 1024  # group_by_region's sparse case
+    assert 4 * per_region + 64 < 16 * 16  # region_knots's few-events case
+    transform = cls(sensor, factor=16, threshold=0.05, max_delay=max_delay)
+    compiled, eager = both_paths(lambda: transform(arr))
+    assert_identical(compiled, eager)
+    assert len(compiled) > 0
+
+
 @pytest.mark.parametrize("factor", [(1, 1), (2, 2), (4, 3)])
 def test_compiled_matches_the_exact_reference(factor, rng):
     arr = unique_pixel_times(random_stream(rng, 300, SENSOR, t_max=2000))

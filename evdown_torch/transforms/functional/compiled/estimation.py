@@ -77,9 +77,14 @@ def _level_index(whole: int, part: float, pixels: int, a: int, b: int, scale: fl
 
 @compiled_loop
 def _grown(column: np.ndarray, kept: int, capacity: int) -> np.ndarray:  # pragma: no cover
-    """``column``'s first ``kept`` values in a new array of ``capacity``."""
+    """``column``'s first ``kept`` values in a new array of ``capacity``.
+
+    A loop, not a slice assignment: Numba compiles the slice's shape check with its error
+    message's formatting, about 3 s of the window loop's first compile.
+    """
     grown = np.empty(capacity, column.dtype)
-    grown[:kept] = column[:kept]
+    for i in range(kept):
+        grown[i] = column[i]
     return grown
 
 

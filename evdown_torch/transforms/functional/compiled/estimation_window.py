@@ -31,6 +31,7 @@ from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.regions import columns_of
 from evdown_torch.transforms.functional.compiled.scratch import scratch_column
+from evdown_torch.transforms.functional.compiled.sorting import merge_order
 from evdown_torch.transforms.functional.estimation import delay
 
 __all__ = ["held_knots", "merge_by_time", "next_knots"]
@@ -114,8 +115,10 @@ def _order_ties(t: np.ndarray, key: np.ndarray, order: np.ndarray,
                     k -= 1
                 keys[k] = moved
                 order[k] = j
-        else:
-            order[start:end] = start + np.argsort(key[start:end], kind="mergesort")
+        else:  # (a loop, not a slice assignment: see _grown in .estimation)
+            run = merge_order(key[start:end])
+            for j in range(end - start):
+                order[start + j] = start + run[j]
         start = end
     return order
 
@@ -167,8 +170,8 @@ def _held_loop(
     if sorted_t:  # time-sorted events: ties (equal held times) ordered by pixel
         order = _order_ties(held_t, key, np.empty(m, np.int64), np.empty(m, np.int64))
     else:  # a stable sort by pixel, then by held time
-        by_pixel = np.argsort(key, kind="mergesort")
-        order = by_pixel[np.argsort(held_t[by_pixel], kind="mergesort")]
+        by_pixel = merge_order(key)
+        order = by_pixel[merge_order(held_t[by_pixel])]
     out_x = np.empty(m, dtype=np.int64)
     out_y = np.empty(m, dtype=np.int64)
     out_t = np.empty_like(held_t)

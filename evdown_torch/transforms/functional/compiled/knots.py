@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled.sorting import merge_order, stable_order
 from evdown_torch.transforms.functional.estimation.knots import HALF_TOLERANCE, RELATIVE_ERROR
 
 __all__ = ["TOO_WIDE", "chunk_ends_before", "float_piece_time", "group_by_region",
@@ -53,8 +54,8 @@ def group_by_region(
     of two), and its time. A region's column and row are read from the tables ``column[x]``,
     ``row[y]``; ``outside``: the first event outside them, :data:`TOO_WIDE` where a change or the
     region's pixel count does not fit 32 bits, or -1 (nothing else is computed but for -1). A
-    counting sort where the region ids span a few times the events, else a stable merge
-    sort: the cost follows the events, not the sensor's area.
+    counting sort where the region ids span a few times the events, else a stable radix
+    sort (:func:`~.sorting.stable_order`): the cost follows the events, not the sensor's area.
 
     ``work``: four int64 columns and ``by_t`` one of ``t``'s dtype, each of at least
     ``N + 1`` elements, that the returned columns are views of (the caller's scratch
@@ -74,8 +75,8 @@ def group_by_region(
     if widest >= 1 << 31:
         return region[:0], np.zeros(1, np.int64), region, t, TOO_WIDE
     k = 0
-    if span > 4 * n + 1024:  # gathered in merge-sort order
-        order = np.argsort(region, kind="mergesort")
+    if span > 4 * n + 1024:  # gathered in the stable sort's order (a radix sort)
+        order = stable_order(region)
         for j in range(n):
             i = order[j]
             if j == 0 or region[i] != regions[k - 1]:
@@ -152,7 +153,7 @@ def region_knots(
     # The region's events by pixel (stable: time order inside a pixel); a counting sort
     # unless the region has far fewer events than pixels.
     if per_region > 4 * (hi - lo) + 64:
-        by_local = np.argsort(packed[lo:hi] >> 32, kind="mergesort")
+        by_local = merge_order(packed[lo:hi] >> 32)
         for j in range(hi - lo):
             by_pixel[j] = lo + by_local[j]
     else:

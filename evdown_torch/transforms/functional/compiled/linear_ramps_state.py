@@ -32,62 +32,10 @@ import torch
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.linear_ramps import RampSession, RampSettings
+from evdown_torch.transforms.functional.compiled.sorting import stable_order
 from evdown_torch.transforms.functional.estimation.window_state import WindowState
 
 __all__ = ["ramp_session", "window_state"]
-
-
-#: The bits of one digit of :func:`_stable_order`'s radix sort.
-_DIGIT_BITS = 11
-
-
-@compiled_loop
-def _stable_order(t: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """The stable sort's order of ``t`` (int64): a radix sort of ``t - min(t)``, low digits first.
-
-    One count and one scatter per :data:`_DIGIT_BITS` bits of the range of ``t`` (a few
-    passes), where a comparison sort of the fired pixels' knots, times in no order, costs
-    about 45 ns a knot. Plain loops over int64 (no array methods, no unsigned keys): they
-    compile in a fraction of a second.
-
-    Raises:
-        ValueError: for times spanning ``2**63`` or more (a state's span less than ``2**53``:
-            :func:`~..estimation.knots.check_span`).
-    """
-    n = t.shape[0]
-    order = np.empty(n, np.int64)
-    key = np.empty(n, np.int64)
-    low = t[0] if n else 0
-    high = low
-    for i in range(n):
-        low = min(low, t[i])
-        high = max(high, t[i])
-    span = high - low
-    if span < 0:
-        raise ValueError("knot times spanning 2**63 or more")
-    for i in range(n):
-        order[i] = i
-        key[i] = t[i] - low
-    spare_order, spare_key = np.empty(n, np.int64), np.empty(n, np.int64)
-    count = np.empty((1 << _DIGIT_BITS) + 1, np.int64)
-    mask = (1 << _DIGIT_BITS) - 1
-    shift = 0
-    while shift < 63 and (span >> shift) > 0:
-        for d in range(count.shape[0]):
-            count[d] = 0
-        for i in range(n):
-            count[((key[i] >> shift) & mask) + 1] += 1
-        for d in range(1, count.shape[0]):
-            count[d] += count[d - 1]
-        for i in range(n):
-            d = (key[i] >> shift) & mask
-            at = count[d]
-            spare_order[at], spare_key[at] = order[i], key[i]
-            count[d] = at + 1
-        for i in range(n):
-            order[i], key[i] = spare_order[i], spare_key[i]
-        shift += _DIGIT_BITS
-    return order
 
 
 @compiled_loop
@@ -97,10 +45,10 @@ def _in_time_order(
     """Knots ``(pixel, t, change)`` as ``(x, y, t, change)``, in the stable sort's order of ``t``.
 
     The knots from ``second`` on are in time order already: the first part is sorted
-    (:func:`_stable_order`) and merged with them, the first part's first on a tie.
+    (:func:`~.sorting.stable_order`) and merged with them, the first part's first on a tie.
     """
     n = t.shape[0]
-    first = _stable_order(t[:second])
+    first = stable_order(t[:second])
     out_x, out_y = np.empty(n, np.int64), np.empty(n, np.int64)
     out_t, out_change = np.empty(n, np.int64), np.empty(n, np.int64)
     i, j = 0, second
