@@ -4,12 +4,12 @@ Several loops need a stable order: a LinearEstimation session's state, whose fir
 knots come in no time order (:mod:`.linear_ramps_state`), a window whose regions are sparse
 next to its events (:func:`.knots.group_by_region`), a region whose pixels are many next to
 its events (:func:`.knots.region_knots`), and the held knots of a bounded-delay window
-(:mod:`.estimation_window`). NumPy's stable ``argsort`` gives the
-same order, but Numba's merge sort behind it takes about 2.5 s to compile on a first call with
-a cold cache (docs/benchmarks.md, "Sixth session of 2026-12-03"), and a comparison sort costs
-about 45 ns a key on the state's knots. These plain loops compile in a fraction of a
-second: :func:`stable_order`, a radix sort, for many keys over a wide range;
-:func:`merge_order`, a merge sort, for a few keys (no table to clear).
+(:mod:`.estimation_window`). NumPy's stable ``argsort`` gives the same order, but Numba's merge
+sort behind it takes about 2.5 s to compile on a first call with a cold cache
+(docs/benchmarks.md, "Sixth session of 2026-12-03"), and a comparison sort costs about 45 ns a
+key on the state's knots. These plain loops compile in a fraction of a second:
+:func:`stable_order`, a radix sort, for many int64 keys over a wide range; :func:`merge_order`,
+a merge sort, for a few keys (no table to clear).
 """
 
 from __future__ import annotations
@@ -76,7 +76,7 @@ def merge_order(keys: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
 
     Runs of 1, 2, 4, ... keys merged pairwise, the left run's key first on a tie (so equal
     keys keep their order): about ``log2(N)`` passes, no table, for a few keys. ``keys``:
-    int64, or float64 without NaN (timestamps).
+    integers, or floats without NaN (timestamps).
     """
     n = keys.shape[0]
     order, spare = np.empty(n, np.int64), np.empty(n, np.int64)
