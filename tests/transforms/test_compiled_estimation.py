@@ -101,7 +101,7 @@ def test_the_compiled_window_runs_and_the_eager_solver_does_not(monkeypatch, rng
     compiled_module = importlib.import_module("evdown_torch.transforms.functional.compiled."
                                               "estimation")
     arr = random_stream(rng, 100, SENSOR)
-    assert_compiled_then_eager(monkeypatch, (compiled_module, "_window_loop"),
+    assert_compiled_then_eager(monkeypatch, (compiled_module, "_window_loop_of"),
                                (driver, "pixel_knots"),
                                lambda: LinearEstimation(SENSOR, factor=2, threshold=0.5)(arr))
 
@@ -195,7 +195,7 @@ def test_the_cubic_loop_rounds_its_multiply_adds_as_torch_does(monkeypatch, rng)
 
 def test_without_torchs_rounding_known_the_cubic_method_stays_eager(monkeypatch, rng):
     monkeypatch.setattr(compiled_cubic, "addcmul_is_fused", lambda: None)
-    loops = spy(monkeypatch, compiled_estimation, "_window_loop")
+    loops = spy(monkeypatch, compiled_estimation, "_window_loop_of")
     arr = random_stream(rng, 200, SENSOR, t_max=100)
     with eager_kernels(False):
         CubicEstimation(SENSOR, factor=2, threshold=0.3)(arr)

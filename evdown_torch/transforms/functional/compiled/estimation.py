@@ -20,7 +20,9 @@ so an output over the limit raises the same error with the same count.
 
 from __future__ import annotations
 
+import functools
 from fractions import Fraction
+from typing import Any
 
 import numpy as np
 import torch
@@ -88,152 +90,163 @@ def _grown(column: np.ndarray, kept: int, capacity: int) -> np.ndarray:  # pragm
     return grown
 
 
-#: :func:`_window_loop`'s ``over`` for a window it leaves to the eager driver: a level change
+#: The window loop's ``over`` for a window it leaves to the eager driver: a level change
 #: (a pixel's whole level, carried by a session's first knot of it) of 2**31 or more.
 TOO_WIDE_CALL = -(1 << 62)
 
 
-@compiled_loop
-def _window_loop(
-    x: np.ndarray, y: np.ndarray, t: np.ndarray, change: np.ndarray, column: np.ndarray,
-    row: np.ndarray, start_of: np.ndarray, end_of: np.ndarray, fx: int, fy: int, out_w: int,
-    out_h: int,
-    width: int, height: int, a: int, b: int, level_scale: float, divides: bool,
-    integer_time: bool, cubic: bool, front_at_rest: bool, fused: bool, q: np.ndarray,
-    has_cut: bool, cut: np.ndarray, has_next: bool, next_cut: np.ndarray, limit: int,
-    chunk_events: int, work: tuple[np.ndarray, ...], work_t: tuple[np.ndarray, ...],
-    work_on: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
-    """The crossings of every region of a window, in region order; ``q`` moved to ``next_cut``.
+@functools.cache
+def _window_loop_of(cubic: bool) -> Any:
+    """The window loop of one curve, compiled on its first call (the loop below).
 
-    Returns ``(region, t, on, over)``: ``over`` is -1, or the count the eager driver would
-    report when the output exceeds ``limit`` (the crossings are then not all written),
-    ``-2 - i`` for an event ``i`` outside the sensor, or :data:`TOO_WIDE_CALL` for a level
-    change of 2**31 or more (nothing done for either).
-
-    ``work`` (five int64 columns), ``work_t`` (two of ``t``'s dtype) and ``work_on`` (bool),
-    each of at least ``N + 1`` elements: the grouping's columns and the outputs (as many
-    crossings as ``work_on`` holds), which are views of them unless the crossings outgrow
-    them.
+    ``cubic`` is a constant of the loop's closure: Numba drops the other curve's branches
+    before typing them, so a LinearEstimation's first call compiles none of the cubic
+    pieces (about 2 s of its cold first call, docs/benchmarks.md) and a CubicEstimation's
+    none of the linear ones. Numba's disk cache keys each loop by its closure's values.
     """
-    n = t.shape[0]
-    per_region = fx * fy
-    regions, first_of, packed, t, outside = group_by_region(x, y, t, change, column, row, fx,
-                                                            fy, out_w, work[:4], work_t[0])
-    if outside != -1:  # an event outside the sensor, or a change too wide to pack
-        code = TOO_WIDE_CALL if outside == TOO_WIDE else -2 - outside
-        return np.empty(0, np.int64), np.empty(0, t.dtype), np.empty(0, np.bool_), code
-    # Scratch for one region, sized by the largest (small arrays, reused while in cache): at
-    # most its events plus a front and a back knot per pixel; its breakpoints, and up to
-    # three monotone moves per breakpoint.
-    m = 0
-    for k in range(regions.shape[0]):
-        m = max(m, first_of[k + 1] - first_of[k])
-    event_bp, by_pixel = np.empty(m, np.int64), np.empty(m, np.int64)
-    pixel_count = np.zeros(min(per_region, 4 * m + 64) + 1, np.int64)  # see region_knots
-    k_t, k_level = np.empty(3 * m, t.dtype), np.empty(3 * m, np.int64)
-    k_bp, k_first = np.empty(3 * m, np.int64), np.empty(3 * m, np.bool_)
-    slope, k_width, k_rise = (np.empty(3 * m, np.float64), np.empty(3 * m, np.float64),
-                              np.empty(3 * m, np.float64))
-    bp_t = np.empty(m + 2, t.dtype)
-    high_bp, count_bp, whole = (np.empty(m + 2, np.int64), np.empty(m + 2, np.int64),
-                                np.empty(m + 2, np.int64))
-    low_bp, part, derivative = (np.empty(m + 2, np.float64), np.empty(m + 2, np.float64),
-                                np.empty(m + 2, np.float64))
-    c1, c2, c3 = (np.empty(m + 2, np.float64), np.empty(m + 2, np.float64),
-                  np.empty(m + 2, np.float64))
-    moves = 3 * (m + 2) if cubic else m + 2
-    move_bp, move_whole = np.empty(moves, np.int64), np.empty(moves, np.int64)
-    move_s, move_part = np.empty(moves, np.float64), np.empty(moves, np.float64)
-    floor_u, q_after = np.empty(moves, np.int64), np.empty(moves, np.int64)
-    on_level = np.empty(moves, np.bool_)
 
-    capacity = work_on.shape[0]
-    out_region, out_t, out_on = work[4][:capacity], work_t[1][:capacity], work_on
-    written = 0
-    total = 0  # crossings counted so far (written while within the limit)
-    previous_start = -1
-    origin = start_of[0]  # the eager chunk's first knot time (its cubic sums' origin)
-    n_regions = regions.shape[0]
-    for k in range(n_regions):
-        r, lo, hi = regions[k], first_of[k], first_of[k + 1]
-        rec = r // (out_w * out_h)
-        if previous_start < 0 or chunk_ends_before(lo, previous_start, k == n_regions - 1, n,
-                                                   chunk_events):
-            if limit >= 0 and total > limit:
-                return out_region[:0], out_t[:0], out_on[:0], total
-            origin = start_of[rec]
-        previous_start = lo
-        nbp, nk = region_knots(packed, t, lo, hi, start_of[rec], end_of[rec], per_region,
-                               bp_t, event_bp, by_pixel, pixel_count, k_t, k_level, k_bp,
-                               k_first)
-        rx, ry = r % out_w, (r // out_w) % out_h
-        pixels = min(width - rx * fx, fx) * min(height - ry * fy, fy)
-        if cubic:
-            pchip_slopes(k_t, k_level, k_first, nk, front_at_rest, slope, k_width, k_rise)
-            _breakpoint_levels(k_level, k_bp, k_first, nk, nbp, whole)
-            region_sums(k_t, k_bp, k_first, nk, slope, k_width, k_rise, bp_t, nbp,
-                        integer_time, origin, fused, part, derivative)
-            n_moves = monotone_moves(bp_t, nbp, whole, part, derivative, fused, c1, c2, c3,
-                                     move_bp, move_s, move_whole, move_part)
-        else:
-            linear_sums(k_t, k_level, k_bp, k_first, nk, bp_t, nbp, per_region, slope, high_bp,
-                        low_bp, count_bp, whole, part)
-            n_moves = nbp
-            for i in range(nbp):
-                move_bp[i], move_s[i], move_whole[i], move_part[i] = i, 1.0, whole[i], part[i]
-        for e in range(n_moves):
-            floor_u[e], on_level[e] = _level_index(move_whole[e], move_part[e], pixels, a, b,
-                                                   level_scale, divides)
-        if has_cut:  # a resumed window: the moves before the cut take the cut's value
-            done = 0
-            while done < n_moves and bp_t[move_bp[done]] < cut[0]:
-                done += 1
-            for e in range(done - 1):
-                floor_u[e], on_level[e] = floor_u[done - 1], on_level[done - 1]
-        q_start = q[r] if q.shape[0] else 0
-        crossed = reference_walk(floor_u, on_level, n_moves, q_start, q_after)
-        total += crossed
-        if has_next:  # q after the region's last move ending before the next cut
-            for e in range(n_moves - 1, -1, -1):
-                if bp_t[move_bp[e]] < next_cut[0]:
-                    q[r] = q_after[e]
-                    break
-        if crossed == 0 or (limit >= 0 and total > limit):
-            continue
-        if written + crossed > capacity:
-            capacity = max(2 * capacity, written + crossed)
-            out_region = _grown(out_region, written, capacity)
-            out_t = _grown(out_t, written, capacity)
-            out_on = _grown(out_on, written, capacity)
-        for e in range(n_moves):
-            q_before = q_after[e - 1] if e else q_start
-            delta = q_after[e] - q_before
-            i = move_bp[e]
-            begin = i - 1 if i else i  # the piece ending at i; a jump at the first
-            s_low = move_s[e - 1] if e and move_bp[e - 1] == i else 0.0
-            for step in range(abs(delta)):
-                level = q_before + 1 + step if delta > 0 else q_before - 1 - step
-                s = move_s[e]
-                if i and not (on_level[e] and level == floor_u[e]):
-                    target = float(level * pixels * a) / float(b)
-                    if cubic:
-                        goal = target - float(whole[begin])
-                        goal -= part[begin]
-                        s = solve(c1[i], c2[i], c3[i], goal, s_low, s, delta > 0)
+    def window_loop(
+        x: np.ndarray, y: np.ndarray, t: np.ndarray, change: np.ndarray, column: np.ndarray,
+        row: np.ndarray, start_of: np.ndarray, end_of: np.ndarray, fx: int, fy: int, out_w: int,
+        out_h: int,
+        width: int, height: int, a: int, b: int, level_scale: float, divides: bool,
+        integer_time: bool, front_at_rest: bool, fused: bool, q: np.ndarray,
+        has_cut: bool, cut: np.ndarray, has_next: bool, next_cut: np.ndarray, limit: int,
+        chunk_events: int, work: tuple[np.ndarray, ...], work_t: tuple[np.ndarray, ...],
+        work_on: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
+        """The crossings of every region of a window, in region order; ``q`` moved to ``next_cut``.
+
+        Returns ``(region, t, on, over)``: ``over`` is -1, or the count the eager driver would
+        report when the output exceeds ``limit`` (the crossings are then not all written),
+        ``-2 - i`` for an event ``i`` outside the sensor, or :data:`TOO_WIDE_CALL` for a level
+        change of 2**31 or more (nothing done for either).
+
+        ``work`` (five int64 columns), ``work_t`` (two of ``t``'s dtype) and ``work_on`` (bool),
+        each of at least ``N + 1`` elements: the grouping's columns and the outputs (as many
+        crossings as ``work_on`` holds), which are views of them unless the crossings outgrow
+        them.
+        """
+        n = t.shape[0]
+        per_region = fx * fy
+        regions, first_of, packed, t, outside = group_by_region(x, y, t, change, column, row, fx,
+                                                                fy, out_w, work[:4], work_t[0])
+        if outside != -1:  # an event outside the sensor, or a change too wide to pack
+            code = TOO_WIDE_CALL if outside == TOO_WIDE else -2 - outside
+            return np.empty(0, np.int64), np.empty(0, t.dtype), np.empty(0, np.bool_), code
+        # Scratch for one region, sized by the largest (small arrays, reused while in cache): at
+        # most its events plus a front and a back knot per pixel; its breakpoints, and up to
+        # three monotone moves per breakpoint.
+        m = 0
+        for k in range(regions.shape[0]):
+            m = max(m, first_of[k + 1] - first_of[k])
+        event_bp, by_pixel = np.empty(m, np.int64), np.empty(m, np.int64)
+        pixel_count = np.zeros(min(per_region, 4 * m + 64) + 1, np.int64)  # see region_knots
+        k_t, k_level = np.empty(3 * m, t.dtype), np.empty(3 * m, np.int64)
+        k_bp, k_first = np.empty(3 * m, np.int64), np.empty(3 * m, np.bool_)
+        slope, k_width, k_rise = (np.empty(3 * m, np.float64), np.empty(3 * m, np.float64),
+                                  np.empty(3 * m, np.float64))
+        bp_t = np.empty(m + 2, t.dtype)
+        high_bp, count_bp, whole = (np.empty(m + 2, np.int64), np.empty(m + 2, np.int64),
+                                    np.empty(m + 2, np.int64))
+        low_bp, part, derivative = (np.empty(m + 2, np.float64), np.empty(m + 2, np.float64),
+                                    np.empty(m + 2, np.float64))
+        c1, c2, c3 = (np.empty(m + 2, np.float64), np.empty(m + 2, np.float64),
+                      np.empty(m + 2, np.float64))
+        moves = 3 * (m + 2) if cubic else m + 2
+        move_bp, move_whole = np.empty(moves, np.int64), np.empty(moves, np.int64)
+        move_s, move_part = np.empty(moves, np.float64), np.empty(moves, np.float64)
+        floor_u, q_after = np.empty(moves, np.int64), np.empty(moves, np.int64)
+        on_level = np.empty(moves, np.bool_)
+
+        capacity = work_on.shape[0]
+        out_region, out_t, out_on = work[4][:capacity], work_t[1][:capacity], work_on
+        written = np.int64(0)  # (np.int64: a literal 0 would compile _grown twice)
+        total = 0  # crossings counted so far (written while within the limit)
+        previous_start = np.int64(-1)  # (likewise chunk_ends_before)
+        origin = start_of[0]  # the eager chunk's first knot time (its cubic sums' origin)
+        n_regions = regions.shape[0]
+        for k in range(n_regions):
+            r, lo, hi = regions[k], first_of[k], first_of[k + 1]
+            rec = r // (out_w * out_h)
+            if previous_start < 0 or chunk_ends_before(lo, previous_start, k == n_regions - 1, n,
+                                                       chunk_events):
+                if limit >= 0 and total > limit:
+                    return out_region[:0], out_t[:0], out_on[:0], total
+                origin = start_of[rec]
+            previous_start = lo
+            nbp, nk = region_knots(packed, t, lo, hi, start_of[rec], end_of[rec], per_region,
+                                   bp_t, event_bp, by_pixel, pixel_count, k_t, k_level, k_bp,
+                                   k_first)
+            rx, ry = r % out_w, (r // out_w) % out_h
+            pixels = min(width - rx * fx, fx) * min(height - ry * fy, fy)
+            if cubic:
+                pchip_slopes(k_t, k_level, k_first, nk, front_at_rest, slope, k_width, k_rise)
+                _breakpoint_levels(k_level, k_bp, k_first, nk, nbp, whole)
+                region_sums(k_t, k_bp, k_first, nk, slope, k_width, k_rise, bp_t, nbp,
+                            integer_time, origin, fused, part, derivative)
+                n_moves = monotone_moves(bp_t, nbp, whole, part, derivative, fused, c1, c2, c3,
+                                         move_bp, move_s, move_whole, move_part)
+            else:
+                linear_sums(k_t, k_level, k_bp, k_first, nk, bp_t, nbp, per_region, slope, high_bp,
+                            low_bp, count_bp, whole, part)
+                n_moves = nbp
+                for i in range(nbp):
+                    move_bp[i], move_s[i], move_whole[i], move_part[i] = i, 1.0, whole[i], part[i]
+            for e in range(n_moves):
+                floor_u[e], on_level[e] = _level_index(move_whole[e], move_part[e], pixels, a, b,
+                                                       level_scale, divides)
+            if has_cut:  # a resumed window: the moves before the cut take the cut's value
+                done = 0
+                while done < n_moves and bp_t[move_bp[done]] < cut[0]:
+                    done += 1
+                for e in range(done - 1):
+                    floor_u[e], on_level[e] = floor_u[done - 1], on_level[done - 1]
+            q_start = q[r] if q.shape[0] else 0
+            crossed = reference_walk(floor_u, on_level, n_moves, q_start, q_after)
+            total += crossed
+            if has_next:  # q after the region's last move ending before the next cut
+                for e in range(n_moves - 1, -1, -1):
+                    if bp_t[move_bp[e]] < next_cut[0]:
+                        q[r] = q_after[e]
+                        break
+            if crossed == 0 or (limit >= 0 and total > limit):
+                continue
+            if written + crossed > capacity:
+                capacity = max(2 * capacity, written + crossed)
+                out_region = _grown(out_region, written, capacity)
+                out_t = _grown(out_t, written, capacity)
+                out_on = _grown(out_on, written, capacity)
+            for e in range(n_moves):
+                q_before = q_after[e - 1] if e else q_start
+                delta = q_after[e] - q_before
+                i = move_bp[e]
+                begin = i - 1 if i else i  # the piece ending at i; a jump at the first
+                s_low = move_s[e - 1] if e and move_bp[e - 1] == i else 0.0
+                for step in range(abs(delta)):
+                    level = q_before + 1 + step if delta > 0 else q_before - 1 - step
+                    s = move_s[e]
+                    if i and not (on_level[e] and level == floor_u[e]):
+                        target = float(level * pixels * a) / float(b)
+                        if cubic:
+                            goal = target - float(whole[begin])
+                            goal -= part[begin]
+                            s = solve(c1[i], c2[i], c3[i], goal, s_low, s, delta > 0)
+                        else:
+                            s = linear_position(target, whole[begin], part[begin], whole[i],
+                                                part[i])
+                    if integer_time:
+                        out_t[written] = integer_piece_time(bp_t[begin], bp_t[i], s)
                     else:
-                        s = linear_position(target, whole[begin], part[begin], whole[i],
-                                            part[i])
-                if integer_time:
-                    out_t[written] = integer_piece_time(bp_t[begin], bp_t[i], s)
-                else:
-                    out_t[written] = float_piece_time(bp_t[begin], bp_t[i], s)
-                out_region[written] = r
-                out_on[written] = delta > 0
-                written += 1
-    if limit >= 0 and total > limit:
-        return out_region[:0], out_t[:0], out_on[:0], total
-    return out_region[:written], out_t[:written], out_on[:written], -1
+                        out_t[written] = float_piece_time(bp_t[begin], bp_t[i], s)
+                    out_region[written] = r
+                    out_on[written] = delta > 0
+                    written += 1
+        if limit >= 0 and total > limit:
+            return out_region[:0], out_t[:0], out_on[:0], total
+        return out_region[:written], out_t[:written], out_on[:written], -1
+
+    return compiled_loop(window_loop)
 
 
 @compiled_loop
@@ -308,9 +321,9 @@ def estimation_window(
     size = max(x.shape[0], 16) + 1  # the grouping's N + 1, and room for 16 crossings at least
     work = tuple(scratch_column(f"window {i}", size, np.int64) for i in range(5))
     work_t = tuple(scratch_column(f"window t {i}", size, t.dtype) for i in range(2))
-    region, out_t, on, over = _window_loop(
+    region, out_t, on, over = _window_loop_of(cubic)(
         x, y, t, change_np, column, row, start_of, end_of, fx, fy, out_size[0], out_size[1],
-        width, height, a, b, b / (fx * fy * a), divides, not t_dtype.is_floating_point, cubic,
+        width, height, a, b, b / (fx * fy * a), divides, not t_dtype.is_floating_point,
         front_at_rest, fused, q, has_cut, cut, has_next, after, -1 if limit is None else limit,
         chunk_events, work, work_t, scratch_column("window on", size, np.bool_),
     )
