@@ -155,7 +155,14 @@ def temporal_funnelling(
         >>> out.x.tolist(), out.t.tolist()
         ([0, 1, 0], [5, 5, 15])
     """
-    events = sort_by_time(events)
+    return _funnel_sorted(sort_by_time(events), dt, t_start, seen, size)
+
+
+def _funnel_sorted(
+    events: Events, dt: int | float, t_start: int | float | None, seen: Events | None,
+    size: tuple[int, int] | None,
+) -> Events:
+    """:func:`temporal_funnelling` of events in stable time order (a session's chunk)."""
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device)
     if t_start is None:
@@ -218,8 +225,7 @@ def temporal_funnelling_step(
     The repeats a later chunk can make lie in the latest bin, whose kept events the state
     holds.
     """
-    out = temporal_funnelling(events, dt=settings.dt, t_start=state.t_start,
-                              seen=state.last_bin, size=settings.size)
+    out = _funnel_sorted(events, settings.dt, state.t_start, state.last_bin, settings.size)
     check_output_count(out.num_events, fewer=TEMPORAL_FEWER)  # at most the input: built already
     return out, TemporalState(state.t_start, last_instant(out, state.last_bin))
 
