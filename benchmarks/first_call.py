@@ -8,6 +8,9 @@ replay's floor; before them, a Tonic structured array read and written back (its
 which every method's first call would otherwise pay). Prints one Markdown table of the ranges
 over the runs (``docs/benchmarks.md``, "Compiled CPU kernels").
 
+Also names the package's loops that a run compiled a second time for a constant argument
+(a literal type; expected: none).
+
 Run: ``python benchmarks/first_call.py [--runs 3]`` (needs numba).
 """
 
@@ -22,7 +25,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import numpy as np
@@ -34,8 +37,12 @@ STEPS = ["import numba", "Tonic array in and out", "EventCount", "Downsample", "
          "CubicEstimation", "LinearEstimation session (max_delay)", "floor"]
 
 
-def one_process() -> dict[str, float]:
-    """The first calls of this process, in seconds (run in a fresh process)."""
+def one_process() -> tuple[dict[str, float], list[str]]:
+    """The first calls of this process, in seconds, and the loops compiled twice.
+
+    The second item names the package's loops compiled for a constant argument
+    (:func:`_literal_copies`). Run in a fresh process.
+    """
     import numpy as np
 
     from evdown_torch import (
@@ -69,7 +76,7 @@ def one_process() -> dict[str, float]:
         "PhotocurrentPooling": PhotocurrentPooling((16, 16, 2), 4),
         # steps of 2 us: regions with several cells, so the compiled rounds run
         "LIFPooling": LIFPooling((16, 16, 2), 4, dt=2, tau=10.0),
-        # the estimators share one window loop: the first call compiles it for both curves
+        # each estimator's curve has a window loop of its own (the shared helpers compile once)
         "LinearEstimation": LinearEstimation((16, 16, 2), 4, threshold=0.25),
         "CubicEstimation": CubicEstimation((16, 16, 2), 4, threshold=0.25),
         # a bounded-delay session: its steps compile the ramps and the state they make
@@ -77,11 +84,33 @@ def one_process() -> dict[str, float]:
             LinearEstimation((16, 16, 2), 4, threshold=0.25, max_delay=10).session(), ev),
         "floor": RegionFloor((16, 16, 2), 4).session(),
     }
-    for name, call in calls.items():
-        start = time.perf_counter()
-        call(ev)
-        seconds[name] = time.perf_counter() - start
-    return seconds
+    from numba.core import types
+    from numba.core.event import install_recorder
+
+    with install_recorder("numba:compile") as recorder:
+        for name, call in calls.items():
+            start = time.perf_counter()
+            call(ev)
+            seconds[name] = time.perf_counter() - start
+    return seconds, sorted(_literal_copies(recorder.buffer, types.Literal))
+
+
+def _literal_copies(compiles: list[tuple[float, Any]], literal: type) -> set[str]:
+    """The package's loops compiled for a constant argument (``Literal[int](0)``, ...).
+
+    Numba types a call whose argument is a constant, such as a counter's first value, with
+    that constant's literal type, and compiles a copy of the callee for it beside the one for
+    ``int64``: first-call time for nothing (``np.int64(0)`` gives the counter its type).
+    """
+    found = set()
+    for _, event in compiles:
+        function = getattr(event.data.get("dispatcher"), "py_func", None)
+        args = event.data.get("args") or ()
+        if (event.is_start and function is not None
+                and function.__module__.startswith("evdown_torch")
+                and any(isinstance(arg, literal) for arg in args)):
+            found.add(f"{function.__module__}.{function.__qualname__}")
+    return found
 
 
 def _two_chunks(session: Callable[[np.ndarray], object], ev: np.ndarray) -> None:
@@ -95,9 +124,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--one-process", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.one_process:
-        print(json.dumps(one_process()))
+        seconds, copies = one_process()
+        print(json.dumps({"seconds": seconds, "literal": copies}))
         return 0
     found: dict[str, list[dict[str, float]]] = {"cold": [], "warm": []}
+    compiled_twice: set[str] = set()
     for _ in range(args.runs):
         with tempfile.TemporaryDirectory() as cache:
             env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": str(ROOT)}
@@ -105,7 +136,9 @@ def main(argv: list[str] | None = None) -> int:
             for state in ("cold", "warm"):
                 done = subprocess.run([sys.executable, __file__, "--one-process"], env=env,
                                       capture_output=True, text=True, check=True)
-                found[state].append(json.loads(done.stdout))
+                result = json.loads(done.stdout)
+                found[state].append(result["seconds"])
+                compiled_twice.update(result["literal"])
     print(f"| first call in a process | cold cache ({args.runs} runs) | warm cache |")
     print("|---|---|---|")
     for step in [*STEPS, "all but import numba"]:
@@ -116,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
             cells.append(f"{min(values):.2f}-{max(values):.2f} s")
         print(f"| {step} | {cells[0]} | {cells[1]} |")
     print(f"\nload average: {os.getloadavg()[0]:.1f}")
+    print("loops compiled again for a constant argument: "
+          + (", ".join(sorted(compiled_twice)) if compiled_twice else "none"))
     return 0
 
 

@@ -139,7 +139,7 @@ def _held_loop(
     """
     n = t.shape[0]
     per_event = t_start.shape[0] == n
-    width = 0
+    width = np.int64(0)  # (not a literal 0: one compile of _pixel_ids, not two)
     for i in range(n):
         if x[i] < 0 or y[i] < 0:
             return -1, np.empty(0, np.int64), np.empty(0, np.int64), t[:0].copy()

@@ -168,7 +168,7 @@ def _merge_loop(
     """
     write = out_region.shape[0] > 0
     n = cell_region.shape[0]
-    k = 0
+    k = np.int64(0)  # (not a literal 0: one compile of _put_cell, not two)
     i = 0
     for r in range(last_step.shape[0]):
         start = i

@@ -103,7 +103,7 @@ def _knots(
     out_pixel = np.empty(size, np.int64)
     out_t = np.empty(size, np.int64)
     out_change = np.empty(size, np.int64)
-    k = 0
+    k = np.int64(0)  # (not a literal 0: one compile of _in_time_order, not two)
     for pixel in range(pixels):  # the knot before F, carrying the whole level
         if not fired[pixel]:
             continue
