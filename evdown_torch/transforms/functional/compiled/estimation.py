@@ -101,7 +101,7 @@ def _window_loop_of(cubic: bool) -> Any:
 
     ``cubic`` is a constant of the loop's closure: Numba drops the other curve's branches
     before typing them, so a LinearEstimation's first call compiles none of the cubic
-    pieces (about 2 s of its cold first call, docs/benchmarks.md) and a CubicEstimation's
+    pieces (3 to 4 s of its cold first call, docs/benchmarks.md) and a CubicEstimation's
     none of the linear ones. Numba's disk cache keys each loop by its closure's values.
     """
 
