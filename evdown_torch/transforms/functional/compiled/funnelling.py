@@ -64,7 +64,7 @@ def _funnel_loop(
         ry = row[yi]
         key = (ry * out_w + rx) * 2 + (1 if p[i] else 0)
         # Every event is written at k, and k moves on past a kept one only: no branch on the
-        # key's test, which no predictor guesses (4-25 % of the loop on a live chunk).
+        # key's test, which no predictor guesses (4 to 30 % of the loop on a live chunk).
         kept = kept_in[key] != run
         kept_in[key] = run
         out_index[k] = i
