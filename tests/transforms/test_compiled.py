@@ -156,11 +156,12 @@ print(json.dumps(out))
 """
 
 #: The methods with a compiled loop, and settings that make each run it (LIF pooling: steps
-#: of 10 us, so that regions have many cells). The two estimators share one process: their
-#: window loops are two closures of one function, which Numba's cache must keep apart.
+#: of 10 us, so that regions have many cells; DensitySubsampling: a budget that drops
+#: events). The two estimators share one process: their window loops are two closures of
+#: one function, which Numba's cache must keep apart.
 COMPILED_METHODS = ["downsample", "funnelling", "event_count", "photocurrent", "lif", "linear",
-                    "cubic"]
-COLD_SETTINGS = {"lif": {"dt": 10, "tau": 40.0}}
+                    "cubic", "density"]
+COLD_SETTINGS = {"lif": {"dt": 10, "tau": 40.0}, "density": {"tau": 40.0, "s": 0.2}}
 
 
 @pytest.mark.slow

@@ -75,6 +75,7 @@ __all__ = [
     "density_subsampling",
     "density_whole",
     "event_density",
+    "padded_sensor",
     "patch_offsets",
 ]
 
@@ -152,11 +153,15 @@ def _decay(elapsed: Tensor, tau: float) -> Tensor:
     return torch.exp(elapsed.to(torch.float64).div_(-tau))
 
 
-def _padded(settings: DensitySettings) -> tuple[int, int, int]:
+def padded_sensor(settings: DensitySettings) -> tuple[int, int, int]:
     """``(W + 2r, H + 2r, r)``: the sensor padded by the patch radius ``r`` on every side.
 
     On the padded sensor every patch pixel of an event has a key, so no lookup needs a
     bounds test: the padding never holds an event.
+
+    Example:
+        >>> padded_sensor(DensitySettings((10, 6, 2), (2, 2), k=5))
+        (14, 10, 2)
     """
     width, height, _ = settings.sensor_size
     r = settings.k // 2
@@ -165,7 +170,7 @@ def _padded(settings: DensitySettings) -> tuple[int, int, int]:
 
 def _pixel_keys(events: Events, settings: DensitySettings) -> Tensor:
     """``(N,)`` int64 key of each event's pixel and polarity on the padded sensor."""
-    width, height, r = _padded(settings)
+    width, height, r = padded_sensor(settings)
     return (events.p.to(torch.int64) * height + events.y + r) * width + events.x + r
 
 
@@ -215,7 +220,7 @@ def _density_sorted(
         order, and each touched pixel's key with its decayed count and time after its last
         event (the new state's entries).
     """
-    width, height, _ = _padded(settings)
+    width, height, _ = padded_sensor(settings)
     n = events.num_events
     tau = settings.tau
     planes = 2 * width * height
@@ -325,7 +330,7 @@ def event_density(
 
 def density_init(settings: DensitySettings, events: Events) -> DensityState:
     """DensitySubsampling's ``init_state``: no pixel has a count; the clock starts at ``t[0]``."""
-    width, height, _ = _padded(settings)
+    width, height, _ = padded_sensor(settings)
     zeros = torch.zeros(2 * width * height, dtype=torch.float64, device=events.device)
     return DensityState(zeros, torch.zeros(zeros.shape[0], dtype=events.t.dtype,
                                            device=events.device), 0, events.t[0].item())
@@ -367,8 +372,17 @@ def density_step(
     """DensitySubsampling's ``step``: one time-sorted chunk, every event decided by it.
 
     Each pixel's decayed count and last time carry over in the state; a long chunk goes
-    through in pieces (:func:`.protocol.step_in_pieces`), as a session would feed it.
+    through in pieces (:func:`.protocol.step_in_pieces`), as a session would feed it. On the
+    CPU one compiled loop decides the chunk's events in stream order
+    (:func:`.compiled.density.density_step`: the same events), unless it leaves the chunk to
+    this kernel.
     """
+    if use_compiled(events.t):
+        from evdown_torch.transforms.functional.compiled import density as compiled
+
+        result = compiled.density_step(events, state, settings)
+        if result is not None:
+            return result
     return step_in_pieces(events, state, settings, _step_sorted)
 
 
@@ -377,7 +391,7 @@ def density_whole(events: Events, settings: DensitySettings) -> Events:
     events = sort_by_time(events)
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device)
-    if len(chunk_bounds(events.t)) > 2:
+    if len(chunk_bounds(events.t)) > 2 or use_compiled(events.t):
         return density_step(events, density_init(settings, events), settings)[0]
     density, _ = _density_sorted(events, settings, None)
     return _kept(events, density, settings, 0, events.t[0].item())

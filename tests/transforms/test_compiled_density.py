@@ -1,0 +1,167 @@
+"""DensitySubsampling's compiled loop (transforms/functional/compiled/density.py): the eager
+kernel's events, counts against their definition, moves of the clock's origin, doubt."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from evdown_torch import DensitySubsampling, Events
+from evdown_torch.events import sort_by_time, to_events
+from evdown_torch.transforms.functional import density as density_kernel
+from evdown_torch.transforms.functional.compiled import eager_kernels
+from evdown_torch.transforms.functional.draws import event_uniforms
+from tests.helpers import (
+    DVS_DTYPE,
+    FLOAT_DTYPE,
+    argument_spy,
+    assert_identical,
+    both_paths,
+    random_stream,
+    run_in_chunks,
+)
+
+pytest.importorskip("numba")
+from evdown_torch.transforms.functional.compiled import density as compiled  # noqa: E402
+
+SENSOR = (9, 7, 2)
+
+
+def _events(arr: np.ndarray) -> Events:
+    return sort_by_time(to_events(arr, SENSOR)[0])
+
+
+def _settings(tau: float, k: int, s: float, seed: int = 0) -> density_kernel.DensitySettings:
+    return density_kernel.DensitySettings(SENSOR, (2, 3), tau, k, s, seed)
+
+
+def _steps(events: Events, settings, cuts: list[int]):
+    """The compiled step over ``events`` cut at ``cuts``: outputs and the last state."""
+    state = density_kernel.density_init(settings, events)
+    outputs = []
+    for start, stop in zip([0, *cuts], [*cuts, events.num_events], strict=True):
+        result = compiled.density_step(events.part(start, stop), state, settings)
+        assert result is not None  # no event in doubt, no clock too wide
+        out, state = result
+        outputs.append(out)
+    return Events.cat(outputs), state
+
+
+def count_reference(events: Events, tau: float) -> dict[tuple[int, int, bool], tuple]:
+    """Each pixel's decayed count after its last event, by the definition (a sum)."""
+    by_pixel: dict[tuple[int, int, bool], list] = {}
+    for x, y, t, p in zip(*(c.tolist() for c in events), strict=True):
+        by_pixel.setdefault((x, y, p), []).append(t)
+    return {key: (sum(math.exp(-(times[-1] - ti) / tau) for ti in times), times[-1])
+            for key, times in by_pixel.items()}
+
+
+CASES = [  # (t_max, t as float, tau, k, s)
+    (300, False, 40.0, 3, 0.3),
+    (5_000, False, 150.0, 5, 0.1),
+    (400, True, 30.0, 7, 0.05),
+    (10**6, False, 1.0, 5, 0.4),  # tau tiny against the span: the origin moves often
+    (2_000, False, 2.0, 3, 0.2),  # events within and across 500 tau of each other
+    (300, False, math.inf, 3, 0.02),  # no decay: counts of events
+]
+
+
+@pytest.mark.parametrize(("t_max", "float_t", "tau", "k", "s"), CASES)
+def test_the_counts_after_a_chunk_are_their_definition(t_max, float_t, tau, k, s, rng):
+    arr = random_stream(rng, 600, SENSOR, t_max=t_max, dtype=FLOAT_DTYPE if float_t else DVS_DTYPE)
+    if float_t:
+        arr["t"] = arr["t"] * 0.37
+    events = _events(arr)
+    settings = _settings(tau, k, s)
+    _, state = _steps(events, settings, [250])
+    width, height, r = density_kernel.padded_sensor(settings)
+    expected = count_reference(events, tau)
+    fired = np.flatnonzero(state.decayed.numpy())
+    assert len(fired) == len(expected)
+    for (x, y, p), (count, last) in expected.items():
+        key = (int(p) * height + y + r) * width + x + r
+        assert state.decayed[key].item() == pytest.approx(count, rel=1e-12)
+        assert state.last_t[key].item() == last
+    assert state.last_t.dtype == events.t.dtype and state.seen == events.num_events
+
+
+@pytest.mark.parametrize(("t_max", "float_t", "tau", "k", "s"), CASES)
+def test_every_chunking_keeps_the_eager_kernels_events(t_max, float_t, tau, k, s, rng):
+    arr = random_stream(rng, 1_500, SENSOR, t_max=t_max,
+                        dtype=FLOAT_DTYPE if float_t else DVS_DTYPE)
+    if float_t:
+        arr["t"] = arr["t"] * 0.37
+    transform = DensitySubsampling(SENSOR, (2, 3), tau=tau, k=k, s=s, seed=5)
+    whole = both_paths(lambda: transform(arr))
+    assert_identical(*whole)
+    assert 0 < len(whole[0]) < len(arr)
+    for cuts in ([1, 2, 700, 701], list(range(0, 1_500, 97)), []):
+        assert_identical(*both_paths(lambda cuts=cuts: run_in_chunks(transform, arr, cuts)))
+    # The loop decided those chunks (it left none to the eager kernel).
+    events = _events(arr)
+    out, _ = _steps(events, _settings(tau, k, s, seed=5), [1, 2, 700, 701])
+    assert_identical(out, to_events(whole[0], SENSOR)[0])
+
+
+def test_a_state_moves_between_the_paths(rng):
+    arr = random_stream(rng, 2_000, SENSOR, t_max=3_000)
+    transform = DensitySubsampling(SENSOR, (2, 3), tau=200.0, k=5, s=0.1, seed=2)
+    expected = both_paths(lambda: transform(arr))[1]
+    chunks = np.split(arr, [500, 1_200, 1_600])
+    for first in (False, True):  # compiled then eager, alternating, or the other way round
+        session, parts = transform.session(), []
+        for k, chunk in enumerate(chunks):
+            with eager_kernels((k % 2 == 0) == first):
+                parts.append(session(chunk))
+        parts.append(session.flush())
+        np.testing.assert_array_equal(np.concatenate(parts), expected)
+
+
+def test_a_draw_near_the_density_hands_the_call_to_the_eager_kernel(monkeypatch):
+    """An event alone at its pixel (density 1) whose draw lies 1e-14 below ``s``: both paths
+    keep it in exact arithmetic, but that is within their roundings, so the eager kernel
+    decides the call."""
+    events = Events.from_columns([3, 4], [2, 2], [10, 20], [1, 0])
+    draws = event_uniforms(events, 0, index=torch.arange(2), origin=10)
+    s = draws[1].item() * (1 + 1e-14)
+    settings = _settings(100.0, 3, s)
+    assert compiled.density_step(events, density_kernel.density_init(settings, events),
+                                 settings) is None
+    eager_steps = argument_spy(monkeypatch, density_kernel, "_step_sorted")
+    transform = DensitySubsampling(SENSOR, (2, 3), tau=100.0, k=3, s=s)
+    got = transform(events)
+    assert len(eager_steps) == 1
+    with eager_kernels():
+        assert_identical(got, transform(events))
+    assert 20 in got.t.tolist()
+
+
+def test_an_event_outside_the_sensor_is_refused():
+    events = Events.from_columns([3, 9], [2, 2], [10, 20], [1, 0])  # x = 9 on a 9-wide sensor
+    settings = _settings(100.0, 3, 0.5)
+    with pytest.raises(ValueError, match="x"):
+        compiled.density_step(events, density_kernel.density_init(settings, events), settings)
+
+
+def test_a_clock_near_the_int64_limits():
+    """Timestamps near 2**62 go through the loop; a stream spanning 2**62 goes eagerly."""
+    t = [2**62 + 7 * i for i in range(40)]
+    events = Events.from_columns([i % 9 for i in range(40)], [i % 7 for i in range(40)], t,
+                                 [i % 2 for i in range(40)])
+    transform = DensitySubsampling(SENSOR, (2, 3), tau=20.0, k=5, s=0.3)
+    assert_identical(*both_paths(lambda: transform(events)))
+    settings = _settings(20.0, 5, 0.3)
+    out, state = _steps(events, settings, [13])
+    assert state.last_t.dtype == torch.int64 and int(state.last_t.max()) == t[-1]
+    wide = Events.from_columns([1, 2], [1, 1], [-(2**61), 2**61 + 1], [1, 1])
+    assert compiled.density_step(wide, density_kernel.density_init(settings, wide),
+                                 settings) is None
+    assert_identical(*both_paths(lambda: transform(wide)))
+
+
+def test_the_doubt_bound_grows_with_the_call_and_stays_far_below_one_draw_in_a_million():
+    small, large = compiled._doubt_bound(10, 3, 1.0), compiled._doubt_bound(250_000, 7, 1e4)
+    assert 0 < small < large < 1e-9
