@@ -37,14 +37,18 @@ from torch import Tensor
 
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
-from evdown_torch.transforms.functional.compiled.regions import columns_of, outside_error
+from evdown_torch.transforms.functional.compiled.regions import (
+    columns_of,
+    outside_error,
+    region_tables,
+)
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 from evdown_torch.transforms.functional.density import (
     DensitySettings,
     DensityState,
     padded_sensor,
     patch_offsets,
 )
-from evdown_torch.transforms.functional.downsample import to_regions
 from evdown_torch.transforms.functional.draws import event_uniforms
 
 __all__ = ["SPAN_LIMIT", "density_step", "last_neighbours"]
@@ -132,69 +136,92 @@ def _scaled_counts(decayed: np.ndarray, last_t: np.ndarray, origin: float, tau: 
 @compiled_loop
 def _subsample_loop(
     x: np.ndarray, y: np.ndarray, p: np.ndarray, t: np.ndarray, u: np.ndarray, s: float,
-    tau: float, width: int, height: int, r: int, shifts: np.ndarray, weights: np.ndarray,
+    rate: float, width: int, height: int, r: int, shifts: np.ndarray, weights: np.ndarray,
     scaled: np.ndarray, live: np.ndarray, n_live: int, is_live: np.ndarray,
-    decayed: np.ndarray, last_t: np.ndarray, origin: float, relative: float, keep: np.ndarray,
-) -> int:  # pragma: no cover - compiled
-    """Decide each time-sorted event: ``keep[i] = u[i] < s * density``, in stream order.
+    decayed: np.ndarray, last_t: np.ndarray, origin: float, relative: float,
+    column: np.ndarray, row: np.ndarray, out_x: np.ndarray, out_y: np.ndarray,
+    out_t: np.ndarray, out_p: np.ndarray,
+) -> tuple[int, int]:  # pragma: no cover - compiled
+    """Decide each time-sorted event, in stream order: kept iff ``u[i] < s * density``.
 
-    ``scaled``: each padded pixel's count scaled to ``origin`` (:func:`_scaled_counts`),
-    updated; ``live[:n_live]``: the pixels where it is not 0 (flagged in ``is_live``), the
-    only ones a move of the origin shrinks (each drops out once its count underflows, at
-    most three moves after its last event: a move costs its live pixels, not the sensor);
-    ``decayed`` and ``last_t``: the state's columns, updated at each event's pixel.
-    ``relative``: the relative bound of both paths' roundings (:func:`_doubt_bound`), to
-    which each move of the origin adds its own.
+    ``rate``: ``1 / tau`` (0 for no decay). ``scaled``: each padded pixel's count scaled
+    to ``origin`` (:func:`_scaled_counts`), updated; ``live[:n_live]``: the pixels where it
+    is not 0 (flagged in ``is_live``), the only ones a move of the origin shrinks (each
+    drops out once its count underflows, at most three moves after its last event: a move
+    costs its live pixels, not the sensor); ``decayed`` and ``last_t``: the state's
+    columns, updated at each event's pixel. ``relative``: the relative bound of both paths'
+    roundings (:func:`_doubt_bound`), to which each move of the origin adds its own. The
+    kept events' regions (by the tables ``column`` and ``row``), ``t`` and ``p`` are written
+    at ``0, 1, ...`` of ``out_*``.
 
     Returns:
-        -1 after the last event; ``i >= 0`` for an event in doubt (its draw within the bound
-        of ``s * density``: the call goes to the eager kernel); ``-2 - i`` for an event
-        outside the sensor.
+        ``(status, kept)``: status -1 after the last event; ``i >= 0`` for an event in doubt
+        (its draw within the bound of ``s * density``: the call goes to the eager kernel);
+        ``-2 - i`` for an event outside the sensor.
     """
     wp = width + 2 * r
     hp = height + 2 * r
     moved = 0.0  # the relative rounding the origin's moves add
+    kept = 0
+    m = shifts.shape[0]
     for i in range(t.shape[0]):
         xi = np.int64(x[i])
         yi = np.int64(y[i])
         if xi < 0 or xi >= width or yi < 0 or yi >= height:
-            return -2 - i
+            return -2 - i, kept
         ti = t[i]
-        elapsed = (ti - origin) / tau
+        elapsed = (ti - origin) * rate
         if elapsed > SPAN_LIMIT:  # move the origin to ti; counts that underflow drop out
             shrink = math.exp(-elapsed)
-            kept = 0
-            for m in range(n_live):
-                j = np.uint64(live[m])
-                value = scaled[j] * shrink
-                scaled[j] = value
+            n_kept = 0
+            for j in range(n_live):
+                pixel = np.uint64(live[j])
+                value = scaled[pixel] * shrink
+                scaled[pixel] = value
                 if value > 0:
-                    live[kept] = j
-                    kept += 1
+                    live[n_kept] = pixel
+                    n_kept += 1
                 else:
-                    is_live[j] = False
-            n_live = kept
-            moved += (2 * min(elapsed, 745.0) + 4) * EPS
+                    is_live[pixel] = False
+            n_live = n_kept
+            moved += (3 * min(elapsed, 745.0) + 4) * EPS
             origin = ti
             elapsed = 0.0
         rise = math.exp(elapsed)
-        key = np.uint64(((hp if p[i] else 0) + yi + r) * wp + xi + r)
-        if not is_live[key]:
-            is_live[key] = True
+        fall = 1.0 / rise
+        key = ((hp if p[i] else 0) + yi + r) * wp + xi + r
+        at = np.uint64(key)
+        if not is_live[at]:
+            is_live[at] = True
             live[n_live] = key
             n_live += 1
-        own = scaled[key] + rise
-        scaled[key] = own
-        decayed[key] = own / rise
-        last_t[key] = ti
-        total = 0.0
-        for d in range(shifts.shape[0]):
-            total += weights[d] * scaled[np.uint64(np.int64(key) + shifts[d])]
-        bar = s * (total / rise)
-        keep[i] = u[i] < bar
+        own = scaled[at] + rise
+        scaled[at] = own
+        decayed[at] = own * fall
+        last_t[at] = ti
+        # The patch sum in four chains of additions (each a fixed order), not one: the
+        # additions of one chain wait for each other, those of four overlap.
+        a0, a1, a2, a3 = 0.0, 0.0, 0.0, 0.0
+        d = 0
+        while d + 4 <= m:
+            a0 += weights[d] * scaled[np.uint64(key + shifts[d])]
+            a1 += weights[d + 1] * scaled[np.uint64(key + shifts[d + 1])]
+            a2 += weights[d + 2] * scaled[np.uint64(key + shifts[d + 2])]
+            a3 += weights[d + 3] * scaled[np.uint64(key + shifts[d + 3])]
+            d += 4
+        while d < m:
+            a0 += weights[d] * scaled[np.uint64(key + shifts[d])]
+            d += 1
+        bar = s * (((a0 + a1) + (a2 + a3)) * fall)
         if abs(u[i] - bar) <= bar * (relative + moved) + _LOST:
-            return i
-    return -1
+            return i, kept
+        # Every event is written at ``kept``, which moves on past a kept one only.
+        out_x[kept] = column[np.uint64(xi)]
+        out_y[kept] = row[np.uint64(yi)]
+        out_t[kept] = ti
+        out_p[kept] = p[i]
+        kept += u[i] < bar
+    return -1, kept
 
 
 def _doubt_bound(n: int, k: int, largest_count: float) -> float:
@@ -205,10 +232,11 @@ def _doubt_bound(n: int, k: int, largest_count: float) -> float:
 
     * the loop: a count scaled from the state (``2 * 745 + 4``: a decay's exponent is
       rounded twice, ``exp`` and the product once each; older counts are lost, ``_LOST``),
-      ``exp((t - o) / tau)`` twice (``2 * 500 + 3`` each: its exponent is at most
-      :data:`SPAN_LIMIT`), one addition an event at a pixel (``n``), the patch's ``k * k``
-      additions and products, the division and ``s``; each move of the origin adds its own
-      (in the loop);
+      ``exp((t - o) / tau)`` twice (``3 * 500 + 3`` each: its exponent, at most
+      :data:`SPAN_LIMIT`, is rounded three times, as ``(t - o) * (1 / tau)``; then its
+      inverse), one addition an event at a pixel (``n``), the patch's ``k * k`` additions and
+      products, the products by the inverse and by ``s``; each move of the origin adds its
+      own (in the loop);
     * the eager kernel: its doubling scan, ``(2 L + 2)`` times one plus the terms'
       size-weighted mean age in units of ``tau`` (docs/semantics.md; ``L`` the scan's
       passes, ``ceil(log2 n) + 1`` with the carried count; the mean age is below
@@ -216,7 +244,7 @@ def _doubt_bound(n: int, k: int, largest_count: float) -> float:
       1), each neighbour's decay to the event (``2 * 745 + 4``), its patch sums and ``s``.
     """
     passes = math.ceil(math.log2(n + 1)) + 1
-    loop = (2 * 745 + 4) + 2 * (2 * SPAN_LIMIT + 3) + n + k * k + 8
+    loop = (2 * 745 + 4) + 2 * (3 * SPAN_LIMIT + 3) + n + k * k + 10
     eager = (2 * passes + 2) * (1 + (n + largest_count) / math.e) + (2 * 745 + 4) + k * k + 8
     return 2 * (loop + eager) * EPS
 
@@ -254,17 +282,21 @@ def density_step(events: Events, state: DensityState, settings: DensitySettings,
     index = torch.arange(state.seen, state.seen + n)
     u = event_uniforms(events, settings.seed, index=index, origin=state.origin).numpy()
     largest = float(decayed.max()) if decayed.shape[0] else 0.0
-    keep = np.empty(n, dtype=np.bool_)
+    out_w, out_h, _ = settings.output_sensor_size
+    column, row = region_tables(settings.factor, out_w, out_h)
+    out_x, out_y = (scratch_column(f"density {name}", n, np.int64) for name in ("x", "y"))
+    out_t = scratch_column("density t", n, t.numpy().dtype)
+    out_p = scratch_column("density p", n, np.bool_)
     x, y, p = columns_of(events.x, events.y, events.p)
-    status = _subsample_loop(x, y, p, t.numpy(), u, settings.s, settings.tau, width, height,
-                             r, shifts, weights, scaled, live, n_live, is_live, decayed,
-                             last_t, origin,
-                             _doubt_bound(n, settings.k, largest), keep)
+    status, kept = _subsample_loop(
+        x, y, p, t.numpy(), u, settings.s, 1.0 / settings.tau, width, height, r, shifts, weights,
+        scaled, live, n_live, is_live, decayed, last_t, origin,
+        _doubt_bound(n, settings.k, largest), column, row, out_x, out_y, out_t, out_p)
     if status >= 0:
         return None
     if status < -1:
         raise outside_error(-2 - status, x, y, np.empty(width, np.int8),
                             np.empty(height, np.int8))
-    kept = to_regions(events.select(torch.from_numpy(keep)), settings.factor)
-    return kept, DensityState(torch.from_numpy(decayed), torch.from_numpy(last_t),
-                              state.seen + n, state.origin)
+    output = Events(*(torch.from_numpy(c[:kept]) for c in (out_x, out_y, out_t, out_p)))
+    return output, DensityState(torch.from_numpy(decayed), torch.from_numpy(last_t),
+                                state.seen + n, state.origin)
