@@ -43,7 +43,7 @@ def _steps(events: Events, settings, cuts: list[int]):
     state = density_kernel.density_init(settings, events)
     outputs = []
     for start, stop in zip([0, *cuts], [*cuts, events.num_events], strict=True):
-        result = compiled.density_step(events.part(start, stop), state, settings)
+        result = density_kernel._compiled_step(events.part(start, stop), state, settings)
         assert result is not None  # no event in doubt, no clock too wide
         out, state = result
         outputs.append(out)
@@ -128,7 +128,7 @@ def test_a_draw_near_the_density_hands_the_call_to_the_eager_kernel(monkeypatch)
     draws = event_uniforms(events, 0, index=torch.arange(2), origin=10)
     s = draws[1].item() * (1 + 1e-14)
     settings = _settings(100.0, 3, s)
-    assert compiled.density_step(events, density_kernel.density_init(settings, events),
+    assert density_kernel._compiled_step(events, density_kernel.density_init(settings, events),
                                  settings) is None
     eager_steps = argument_spy(monkeypatch, density_kernel, "_step_sorted")
     transform = DensitySubsampling(SENSOR, (2, 3), tau=100.0, k=3, s=s)
@@ -143,7 +143,8 @@ def test_an_event_outside_the_sensor_is_refused():
     events = Events.from_columns([3, 9], [2, 2], [10, 20], [1, 0])  # x = 9 on a 9-wide sensor
     settings = _settings(100.0, 3, 0.5)
     with pytest.raises(ValueError, match="x"):
-        compiled.density_step(events, density_kernel.density_init(settings, events), settings)
+        density_kernel._compiled_step(events, density_kernel.density_init(settings, events),
+                                      settings)
 
 
 def test_a_clock_near_the_int64_limits():
@@ -157,7 +158,7 @@ def test_a_clock_near_the_int64_limits():
     out, state = _steps(events, settings, [13])
     assert state.last_t.dtype == torch.int64 and int(state.last_t.max()) == t[-1]
     wide = Events.from_columns([1, 2], [1, 1], [-(2**61), 2**61 + 1], [1, 1])
-    assert compiled.density_step(wide, density_kernel.density_init(settings, wide),
+    assert density_kernel._compiled_step(wide, density_kernel.density_init(settings, wide),
                                  settings) is None
     assert_identical(*both_paths(lambda: transform(wide)))
 

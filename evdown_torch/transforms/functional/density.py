@@ -374,16 +374,32 @@ def density_step(
     Each pixel's decayed count and last time carry over in the state; a long chunk goes
     through in pieces (:func:`.protocol.step_in_pieces`), as a session would feed it. On the
     CPU one compiled loop decides the chunk's events in stream order
-    (:func:`.compiled.density.density_step`: the same events), unless it leaves the chunk to
-    this kernel.
+    (:func:`.compiled.density.decide_in_order`: the same events), unless it leaves the chunk
+    to this kernel.
     """
     if use_compiled(events.t):
-        from evdown_torch.transforms.functional.compiled import density as compiled
-
-        result = compiled.density_step(events, state, settings)
+        result = _compiled_step(events, state, settings)
         if result is not None:
             return result
     return step_in_pieces(events, state, settings, _step_sorted)
+
+
+def _compiled_step(events: Events, state: DensityState, settings: DensitySettings
+                   ) -> tuple[Events, DensityState] | None:
+    """:func:`density_step` by the compiled loop, or ``None`` where it leaves the chunk here."""
+    from evdown_torch.transforms.functional.compiled import density as compiled
+
+    n = events.num_events
+    index = torch.arange(state.seen, state.seen + n, device=events.device)
+    draws = event_uniforms(events, settings.seed, index=index, origin=state.origin)
+    result = compiled.decide_in_order(
+        events, state.decayed, state.last_t, draws, sensor_size=settings.sensor_size,
+        factor=settings.factor, tau=settings.tau, s=settings.s,
+        offsets=patch_offsets(settings.k), clock_start=state.origin)
+    if result is None:
+        return None
+    kept, decayed, last_t = result
+    return kept, DensityState(decayed, last_t, state.seen + n, state.origin)
 
 
 def density_whole(events: Events, settings: DensitySettings) -> Events:

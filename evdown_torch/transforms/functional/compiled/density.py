@@ -9,8 +9,8 @@ there: the same event wherever one exists (where none does, the eager search's a
 the neighbour's either, and both paths discard it), so the densities are the same, bit for
 bit. The eager kernel takes it where it runs on the CPU.
 
-A session's step on the CPU (:func:`density_step`) goes further: one loop over the events in
-stream order decides each one, with no ``exp`` per neighbour. Each pixel and polarity keeps
+A session's step on the CPU (:func:`decide_in_order`) goes further: one loop over the events
+in stream order decides each one, with no ``exp`` per neighbour. Each pixel and polarity keeps
 its decayed count *scaled* to a clock origin ``o``: ``A_j = S_j * exp((t_j - o) / tau)``
 (``S_j`` its count after its last event, at ``t_j``). An event at ``t`` adds
 ``exp((t - o) / tau)`` to its pixel's ``A``, and its density is
@@ -43,15 +43,8 @@ from evdown_torch.transforms.functional.compiled.regions import (
     region_tables,
 )
 from evdown_torch.transforms.functional.compiled.scratch import scratch_column
-from evdown_torch.transforms.functional.density import (
-    DensitySettings,
-    DensityState,
-    padded_sensor,
-    patch_offsets,
-)
-from evdown_torch.transforms.functional.draws import event_uniforms
 
-__all__ = ["SPAN_LIMIT", "density_step", "last_neighbours"]
+__all__ = ["SPAN_LIMIT", "decide_in_order", "last_neighbours"]
 
 #: The most ``(t - o) / tau`` the loop lets its clock reach before moving the origin ``o`` to
 #: ``t``: every scaled count stays below ``exp(500)`` times a count (``1e217`` times it).
@@ -249,54 +242,67 @@ def _doubt_bound(n: int, k: int, largest_count: float) -> float:
     return 2 * (loop + eager) * EPS
 
 
-def density_step(events: Events, state: DensityState, settings: DensitySettings,
-                 ) -> tuple[Events, DensityState] | None:
-    """:func:`~..density.density_step` of ``N >= 1`` time-sorted events on the CPU.
+def decide_in_order(
+    events: Events, decayed: Tensor, last_t: Tensor, draws: Tensor, *,
+    sensor_size: tuple[int, int, int], factor: tuple[int, int], tau: float, s: float,
+    offsets: list[tuple[int, int, float]], clock_start: int | float,
+) -> tuple[Events, Tensor, Tensor] | None:
+    """:func:`~..density.density_step`'s decisions of ``N >= 1`` time-sorted events on the CPU.
 
-    The same events as the eager kernel given ``state`` (the kept ones, downsampled), and
-    the new state (the loop's counts: see the module); ``state`` is not written.
+    Args:
+        events: the chunk, time-sorted, on the CPU.
+        decayed: ``(2 * H' * W',)`` float64 the state's counts on the padded sensor
+            (:class:`~..density.DensityState`; not written).
+        last_t: ``(2 * H' * W',)`` the state's times of each pixel's last event (not
+            written).
+        draws: ``(N,)`` float64 each event's draw.
+        sensor_size: ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        tau: the decay time constant (``math.inf``: no decay).
+        s: the budget setting.
+        offsets: the patch's ``(dx, dy, w)`` (:func:`~..density.patch_offsets`).
+        clock_start: the stream's first timestamp.
 
-    ``None`` where the eager kernel must decide the call: an event in doubt, or an integer
-    clock whose differences over the stream could leave int64 (``2**62`` or more since its
-    first timestamp).
+    Returns:
+        ``(kept, decayed, last_t)``: the kept events downsampled (the eager kernel's), and the
+        new state's columns (the loop's counts: see the module); ``None`` where the eager
+        kernel must decide the call: an event in doubt, or an integer clock whose
+        differences over the stream could leave int64 (``2**62`` or more since its start).
 
     Raises:
         ValueError: for an event whose pixel lies outside the sensor.
     """
     n = events.num_events
     t = events.t
-    width, height, _ = settings.sensor_size
-    wp, hp, r = padded_sensor(settings)
-    if t.dtype == torch.int64 and t[-1].item() - int(state.origin) >= 1 << 62:
+    width, height, _ = sensor_size
+    r = max(abs(dx) for dx, _, _ in offsets)
+    wp = width + 2 * r
+    if t.dtype == torch.int64 and t[-1].item() - int(clock_start) >= 1 << 62:
         return None
-    decayed = state.decayed.numpy().copy()
-    last_t = state.last_t.numpy().copy()
-    scaled = np.empty_like(decayed)
-    live = np.empty(decayed.shape[0], dtype=np.int64)
-    is_live = np.empty(decayed.shape[0], dtype=np.bool_)
+    counts = decayed.numpy().copy()
+    times = last_t.numpy().copy()
+    scaled = np.empty_like(counts)
+    live = np.empty(counts.shape[0], dtype=np.int64)
+    is_live = np.empty(counts.shape[0], dtype=np.bool_)
     origin = t.numpy()[0]
-    n_live = _scaled_counts(decayed, last_t, origin, settings.tau, scaled, live, is_live)
-    offsets = patch_offsets(settings.k)
+    n_live = _scaled_counts(counts, times, origin, tau, scaled, live, is_live)
     shifts = np.array([dy * wp + dx for dx, dy, _ in offsets], dtype=np.int64)
     weights = np.array([w for _, _, w in offsets], dtype=np.float64)
-    index = torch.arange(state.seen, state.seen + n)
-    u = event_uniforms(events, settings.seed, index=index, origin=state.origin).numpy()
-    largest = float(decayed.max()) if decayed.shape[0] else 0.0
-    out_w, out_h, _ = settings.output_sensor_size
-    column, row = region_tables(settings.factor, out_w, out_h)
+    largest = float(counts.max()) if counts.shape[0] else 0.0
+    fx, fy = factor
+    column, row = region_tables(factor, -(-width // fx), -(-height // fy))
     out_x, out_y = (scratch_column(f"density {name}", n, np.int64) for name in ("x", "y"))
     out_t = scratch_column("density t", n, t.numpy().dtype)
     out_p = scratch_column("density p", n, np.bool_)
     x, y, p = columns_of(events.x, events.y, events.p)
     status, kept = _subsample_loop(
-        x, y, p, t.numpy(), u, settings.s, 1.0 / settings.tau, width, height, r, shifts, weights,
-        scaled, live, n_live, is_live, decayed, last_t, origin,
-        _doubt_bound(n, settings.k, largest), column, row, out_x, out_y, out_t, out_p)
+        x, y, p, t.numpy(), draws.numpy(), s, 1.0 / tau, width, height, r, shifts, weights,
+        scaled, live, n_live, is_live, counts, times, origin,
+        _doubt_bound(n, 2 * r + 1, largest), column, row, out_x, out_y, out_t, out_p)
     if status >= 0:
         return None
     if status < -1:
         raise outside_error(-2 - status, x, y, np.empty(width, np.int8),
                             np.empty(height, np.int8))
     output = Events(*(torch.from_numpy(c[:kept]) for c in (out_x, out_y, out_t, out_p)))
-    return output, DensityState(torch.from_numpy(decayed), torch.from_numpy(last_t),
-                                state.seen + n, state.origin)
+    return output, torch.from_numpy(counts), torch.from_numpy(times)
