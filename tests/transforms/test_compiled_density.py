@@ -77,7 +77,7 @@ def test_the_counts_after_a_chunk_are_their_definition(t_max, float_t, tau, k, s
     events = _events(arr)
     settings = _settings(tau, k, s)
     _, state = _steps(events, settings, [250])
-    width, height, r = density_kernel.padded_sensor(settings)
+    width, height, r = density_kernel._padded(settings)
     expected = count_reference(events, tau)
     fired = np.flatnonzero(state.decayed.numpy())
     assert len(fired) == len(expected)

@@ -75,7 +75,6 @@ __all__ = [
     "density_subsampling",
     "density_whole",
     "event_density",
-    "padded_sensor",
     "patch_offsets",
 ]
 
@@ -153,15 +152,11 @@ def _decay(elapsed: Tensor, tau: float) -> Tensor:
     return torch.exp(elapsed.to(torch.float64).div_(-tau))
 
 
-def padded_sensor(settings: DensitySettings) -> tuple[int, int, int]:
+def _padded(settings: DensitySettings) -> tuple[int, int, int]:
     """``(W + 2r, H + 2r, r)``: the sensor padded by the patch radius ``r`` on every side.
 
     On the padded sensor every patch pixel of an event has a key, so no lookup needs a
     bounds test: the padding never holds an event.
-
-    Example:
-        >>> padded_sensor(DensitySettings((10, 6, 2), (2, 2), k=5))
-        (14, 10, 2)
     """
     width, height, _ = settings.sensor_size
     r = settings.k // 2
@@ -170,7 +165,7 @@ def padded_sensor(settings: DensitySettings) -> tuple[int, int, int]:
 
 def _pixel_keys(events: Events, settings: DensitySettings) -> Tensor:
     """``(N,)`` int64 key of each event's pixel and polarity on the padded sensor."""
-    width, height, r = padded_sensor(settings)
+    width, height, r = _padded(settings)
     return (events.p.to(torch.int64) * height + events.y + r) * width + events.x + r
 
 
@@ -220,7 +215,7 @@ def _density_sorted(
         order, and each touched pixel's key with its decayed count and time after its last
         event (the new state's entries).
     """
-    width, height, _ = padded_sensor(settings)
+    width, height, _ = _padded(settings)
     n = events.num_events
     tau = settings.tau
     planes = 2 * width * height
@@ -330,7 +325,7 @@ def event_density(
 
 def density_init(settings: DensitySettings, events: Events) -> DensityState:
     """DensitySubsampling's ``init_state``: no pixel has a count; the clock starts at ``t[0]``."""
-    width, height, _ = padded_sensor(settings)
+    width, height, _ = _padded(settings)
     zeros = torch.zeros(2 * width * height, dtype=torch.float64, device=events.device)
     return DensityState(zeros, torch.zeros(zeros.shape[0], dtype=events.t.dtype,
                                            device=events.device), 0, events.t[0].item())
@@ -403,7 +398,11 @@ def _compiled_step(events: Events, state: DensityState, settings: DensitySetting
 
 
 def density_whole(events: Events, settings: DensitySettings) -> Events:
-    """The whole stream (any order); a short one without the per-pixel state."""
+    """The whole stream (any order): one step from a fresh state, or a short one's densities.
+
+    A long stream, or any on the CPU's compiled path, goes through :func:`density_step`; a
+    short one elsewhere without the per-pixel state.
+    """
     events = sort_by_time(events)
     if events.num_events == 0:
         return Events.empty(events.t.dtype, events.device)

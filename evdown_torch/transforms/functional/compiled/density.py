@@ -1,4 +1,4 @@
-"""DensitySubsampling's neighbour lookups compiled: one sweep in stream order per offset group.
+"""DensitySubsampling compiled: a step's decisions in one loop, and the eager kernel's lookups.
 
 :func:`~evdown_torch.transforms.functional.density._density_sorted` needs, for each event and
 each offset of its patch, the neighbour pixel's last event up to this one in stream order; the
