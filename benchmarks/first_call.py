@@ -34,7 +34,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 STEPS = ["import numba", "Tonic array in and out", "EventCount", "Downsample", "EventFunnelling",
          "TemporalFunnelling", "PhotocurrentPooling", "LIFPooling", "LinearEstimation",
-         "CubicEstimation", "LinearEstimation session (max_delay)", "floor"]
+         "CubicEstimation", "LinearEstimation session (max_delay)", "DensitySubsampling",
+         "floor"]
 
 
 def one_process() -> tuple[dict[str, float], list[str]]:
@@ -47,6 +48,7 @@ def one_process() -> tuple[dict[str, float], list[str]]:
 
     from evdown_torch import (
         CubicEstimation,
+        DensitySubsampling,
         Downsample,
         EventCount,
         EventFunnelling,
@@ -82,6 +84,8 @@ def one_process() -> tuple[dict[str, float], list[str]]:
         # a bounded-delay session: its steps compile the ramps and the state they make
         "LinearEstimation session (max_delay)": lambda ev: _two_chunks(
             LinearEstimation((16, 16, 2), 4, threshold=0.25, max_delay=10).session(), ev),
+        # a budget that drops events: its draws and its decision loop
+        "DensitySubsampling": DensitySubsampling((16, 16, 2), 4, tau=20.0, s=0.3),
         "floor": RegionFloor((16, 16, 2), 4).session(),
     }
     from numba.core import types
