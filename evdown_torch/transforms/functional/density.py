@@ -36,6 +36,7 @@ that close to ``s * density``, about one chance in ``10**14`` per event.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -379,6 +380,18 @@ def density_step(
     return step_in_pieces(events, state, settings, _step_sorted)
 
 
+@functools.cache
+def _patch_columns(k: int, padded_width: int) -> tuple[Tensor, Tensor]:
+    """The patch's key offsets on a padded sensor ``padded_width`` keys wide, and its weights.
+
+    ``(k * k,)`` int64 and float64 CPU tensors, in :func:`patch_offsets`' order; shared
+    between calls, never written.
+    """
+    offsets = patch_offsets(k)
+    shifts = torch.tensor([dy * padded_width + dx for dx, dy, _ in offsets])
+    return shifts, torch.tensor([w for _, _, w in offsets], dtype=torch.float64)
+
+
 def _compiled_step(events: Events, state: DensityState, settings: DensitySettings
                    ) -> tuple[Events, DensityState] | None:
     """:func:`density_step` by the compiled loop, or ``None`` where it leaves the chunk here."""
@@ -387,10 +400,12 @@ def _compiled_step(events: Events, state: DensityState, settings: DensitySetting
     n = events.num_events
     index = torch.arange(state.seen, state.seen + n, device=events.device)
     draws = event_uniforms(events, settings.seed, index=index, origin=state.origin)
+    padded_width, _, radius = _padded(settings)
+    shifts, weights = _patch_columns(settings.k, padded_width)
     result = compiled.decide_in_order(
         events, state.decayed, state.last_t, draws, sensor_size=settings.sensor_size,
-        factor=settings.factor, tau=settings.tau, s=settings.s,
-        offsets=patch_offsets(settings.k), clock_start=state.origin)
+        factor=settings.factor, tau=settings.tau, s=settings.s, radius=radius,
+        shifts=shifts, weights=weights, clock_start=state.origin)
     if result is None:
         return None
     kept, decayed, last_t = result

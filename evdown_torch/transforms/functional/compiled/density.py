@@ -245,7 +245,7 @@ def _doubt_bound(n: int, k: int, largest_count: float) -> float:
 def decide_in_order(
     events: Events, decayed: Tensor, last_t: Tensor, draws: Tensor, *,
     sensor_size: tuple[int, int, int], factor: tuple[int, int], tau: float, s: float,
-    offsets: list[tuple[int, int, float]], clock_start: int | float,
+    radius: int, shifts: Tensor, weights: Tensor, clock_start: int | float,
 ) -> tuple[Events, Tensor, Tensor] | None:
     """:func:`~..density.density_step`'s decisions of ``N >= 1`` time-sorted events on the CPU.
 
@@ -260,7 +260,9 @@ def decide_in_order(
         factor: ``(fx, fy)``.
         tau: the decay time constant (``math.inf``: no decay).
         s: the budget setting.
-        offsets: the patch's ``(dx, dy, w)`` (:func:`~..density.patch_offsets`).
+        radius: the patch's radius ``r`` (the state's sensor is padded by it on every side).
+        shifts: ``(k * k,)`` int64 the patch's key offsets on the padded sensor.
+        weights: ``(k * k,)`` float64 their weights (:func:`~..density.patch_offsets`).
         clock_start: the stream's first timestamp.
 
     Returns:
@@ -275,8 +277,6 @@ def decide_in_order(
     n = events.num_events
     t = events.t
     width, height, _ = sensor_size
-    r = max(abs(dx) for dx, _, _ in offsets)
-    wp = width + 2 * r
     if t.dtype == torch.int64 and t[-1].item() - int(clock_start) >= 1 << 62:
         return None
     counts = decayed.numpy().copy()
@@ -286,8 +286,6 @@ def decide_in_order(
     is_live = np.empty(counts.shape[0], dtype=np.bool_)
     origin = t.numpy()[0]
     n_live = _scaled_counts(counts, times, origin, tau, scaled, live, is_live)
-    shifts = np.array([dy * wp + dx for dx, dy, _ in offsets], dtype=np.int64)
-    weights = np.array([w for _, _, w in offsets], dtype=np.float64)
     largest = float(counts.max()) if counts.shape[0] else 0.0
     fx, fy = factor
     column, row = region_tables(factor, -(-width // fx), -(-height // fy))
@@ -296,9 +294,9 @@ def decide_in_order(
     out_p = scratch_column("density p", n, np.bool_)
     x, y, p = columns_of(events.x, events.y, events.p)
     status, kept = _subsample_loop(
-        x, y, p, t.numpy(), draws.numpy(), s, 1.0 / tau, width, height, r, shifts, weights,
-        scaled, live, n_live, is_live, counts, times, origin,
-        _doubt_bound(n, 2 * r + 1, largest), column, row, out_x, out_y, out_t, out_p)
+        x, y, p, t.numpy(), draws.numpy(), s, 1.0 / tau, width, height, radius,
+        shifts.numpy(), weights.numpy(), scaled, live, n_live, is_live, counts, times, origin,
+        _doubt_bound(n, 2 * radius + 1, largest), column, row, out_x, out_y, out_t, out_p)
     if status >= 0:
         return None
     if status < -1:
