@@ -156,12 +156,13 @@ print(json.dumps(out))
 """
 
 #: The methods with a compiled loop, and settings that make each run it (LIF pooling: steps
-#: of 10 us, so that regions have many cells; DensitySubsampling: a budget that drops
-#: events). The two estimators share one process: their window loops are two closures of
-#: one function, which Numba's cache must keep apart.
+#: of 10 us, so that regions have many cells; the subsamplers: budgets that drop events).
+#: The two estimators share one process: their window loops are two closures of one
+#: function, which Numba's cache must keep apart.
 COMPILED_METHODS = ["downsample", "funnelling", "event_count", "photocurrent", "lif", "linear",
-                    "cubic", "density"]
-COLD_SETTINGS = {"lif": {"dt": 10, "tau": 40.0}, "density": {"tau": 40.0, "s": 0.2}}
+                    "cubic", "density", "poisson"]
+COLD_SETTINGS = {"lif": {"dt": 10, "tau": 40.0}, "density": {"tau": 40.0, "s": 0.2},
+                 "poisson": {"window": 40, "alpha": 0.3}}
 
 
 @pytest.mark.slow

@@ -52,6 +52,7 @@ from evdown_torch._tensors import (
 )
 from evdown_torch.checks import check_non_negative_int, check_positive_float
 from evdown_torch.events import Events
+from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.downsample import to_regions
 from evdown_torch.transforms.functional.draws import event_uniforms
 from evdown_torch.transforms.functional.protocol import Method, run_protocol, step_in_pieces
@@ -363,7 +364,36 @@ def poisson_step(
     The counts of the last two windows and the cap's tallies carry over in the state; a long
     chunk goes through in pieces (:func:`.protocol.step_in_pieces`).
     """
+    if use_compiled(events.t):
+        result = _compiled_step(events, state, settings)
+        if result is not None:
+            return result
     return step_in_pieces(events, state, settings, _step_sorted)
+
+
+def _compiled_step(events: Events, state: PoissonState, settings: PoissonSettings
+                   ) -> tuple[Events, PoissonState] | None:
+    """:func:`poisson_step` by the compiled loop, or ``None`` where it leaves the chunk here."""
+    from evdown_torch.transforms.functional.compiled import poisson as compiled
+
+    n = events.num_events
+    fraction = settings.alpha_fraction
+    a, b = fraction.numerator, fraction.denominator
+    if a * (state.seen + n) >= 1 << 62:
+        return None  # (the eager kernel says why)
+    width, height, _ = settings.sensor_size
+    window = bin_index(events.t, dt=settings.window, t_start=state.origin)
+    index = torch.arange(state.seen, state.seen + n, device=events.device)
+    draws = event_uniforms(events, settings.seed, index=index, origin=state.origin)
+    result = compiled.decide_in_order(
+        events, window, draws, state.windows, state.keys, state.counts,
+        sensor_size=settings.sensor_size, factor=settings.factor, alpha=settings.alpha,
+        fraction=(a, b), seen=state.seen, kept=state.kept, blur=_blur_weights(),
+        edges=(*_edge_factors(width, events.device), *_edge_factors(height, events.device)))
+    if result is None:
+        return None
+    kept, kept_count, windows, keys, counts = result
+    return kept, PoissonState(state.origin, state.seen + n, kept_count, windows, keys, counts)
 
 
 def poisson_subsampling(

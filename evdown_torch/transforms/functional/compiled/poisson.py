@@ -1,0 +1,280 @@
+"""PoissonSubsampling's step compiled: one loop over the events, in stream order.
+
+The eager kernel (:mod:`..poisson`) builds a sparse count table of the chunk's windows, blurs
+each previous window's map along rows for all its entries, gathers the columns at every
+entry and applies the cap by a cumulative minimum. This loop keeps the counts of the current
+window and of the one before as dense maps (taken from the state's entries), and when a
+window starts, spreads each of the previous window's entries ``g(dx) * (1 - exp(-n))`` along
+its row (the row blur) and adds up the window's ``mean B``; an event's ``B`` then gathers its
+column's 13 row sums once per pixel and window. The cap runs event by event in integers, as
+the eager kernel's closed form computes it.
+
+The two paths add their sums in other orders, and ``1 - exp(-n)`` may differ by an ulp: the
+loop bounds both paths' roundings of ``P`` (:func:`_doubt_bound`), and an event whose draw lies
+within that bound of its ``P`` hands the call to the eager kernel, so both paths keep the same
+events. The counts and the state are integers: the same on both paths.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from evdown_torch.events import Events
+from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled.regions import (
+    columns_of,
+    outside_error,
+    region_tables,
+)
+from evdown_torch.transforms.functional.compiled.scratch import scratch_column
+
+__all__ = ["decide_in_order"]
+
+#: Relative rounding of one float64 operation.
+EPS = 2.0**-53
+
+
+@compiled_loop
+def _start_window(
+    counts: np.ndarray, entries: np.ndarray, n_entries: int, width: int, height: int,
+    g: np.ndarray, spread_x: np.ndarray, spread_y: np.ndarray, rows: np.ndarray,
+    blurred_from: np.ndarray, n_blurred: int, mass: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """The previous window's row blur and mass, from its entries, the last blur cleared.
+
+    ``counts[entries[:n_entries]]``: the previous window's counts. ``rows`` holds the blur
+    of the entries ``blurred_from[:n_blurred]`` (cleared here, then those become
+    ``entries``): each entry's ``g(dx) * (1 - exp(-n))`` added at ``dx`` columns from it,
+    inside the sensor, in the entries' order. ``mass[p]``: ``sum (1 - exp(-n)) * spread_x *
+    spread_y`` over the polarity's entries. Returns the new ``n_blurred``.
+    """
+    radius = g.shape[0] // 2
+    for m in range(n_blurred):
+        key = blurred_from[m]
+        x = key % width
+        for d in range(g.shape[0]):
+            if 0 <= x + d - radius < width:
+                rows[np.uint64(key + d - radius)] = 0.0
+    mass[0] = 0.0
+    mass[1] = 0.0
+    for m in range(n_entries):
+        key = entries[m]
+        blurred_from[m] = key
+        value = -math.expm1(-np.float64(counts[np.uint64(key)]))
+        x = key % width
+        y = (key // width) % height
+        mass[key // (width * height)] += value * spread_x[x] * spread_y[y]
+        for d in range(g.shape[0]):
+            if 0 <= x + d - radius < width:
+                rows[np.uint64(key + d - radius)] += g[d] * value
+    return n_entries
+
+
+@compiled_loop
+def _poisson_loop(
+    x: np.ndarray, y: np.ndarray, p: np.ndarray, window: np.ndarray, u: np.ndarray,
+    alpha: float, a: int, b: int, limit: int, remainder: int, kept: int, width: int,
+    height: int, g: np.ndarray, norm_x: np.ndarray, norm_y: np.ndarray, spread_x: np.ndarray,
+    spread_y: np.ndarray, current: np.ndarray, previous: np.ndarray, cur_keys: np.ndarray,
+    n_cur: int, prev_keys: np.ndarray, n_prev: int, cur_window: int, prev_present: bool,
+    rows: np.ndarray, blurred_from: np.ndarray, chances: np.ndarray, stamp: np.ndarray,
+    relative: float, column: np.ndarray, row: np.ndarray, out_x: np.ndarray,
+    out_y: np.ndarray, out_index: np.ndarray,
+) -> tuple[int, int, int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, int,
+           int]:  # pragma: no cover - compiled
+    """Decide each time-sorted event: a candidate iff ``u < P``, kept iff the cap allows.
+
+    ``current`` / ``previous``: dense counts of window ``cur_window`` and of the one before
+    (``prev_present``: that window has entries), their keys in ``cur_keys[:n_cur]`` and
+    ``prev_keys[:n_prev]``; swapped as windows start. ``limit``, ``remainder``: ``divmod(a *
+    seen, b)``, moved on an event at a time; ``kept``: the cap's count. ``chances``: each
+    pixel's ``P`` in the window ``stamp - 1``. The kept events' regions and places go to
+    ``out_*``.
+
+    Returns:
+        ``(status, kept events, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
+        cur_window)``: status -1 after the last event, ``i >= 0`` for an event in doubt (the
+        call goes to the eager kernel), ``-2 - i`` for an event outside the sensor; the maps
+        as they end (swapped as windows started).
+    """
+    radius = g.shape[0] // 2
+    area = float(width * height)
+    mass = np.zeros(2)
+    n_blurred = 0
+    started = False
+    bound = 0.0
+    n_out = 0
+    for i in range(window.shape[0]):
+        xi = np.int64(x[i])
+        yi = np.int64(y[i])
+        if xi < 0 or xi >= width or yi < 0 or yi >= height:
+            return (-2 - i, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
+                    cur_window)
+        w = window[i]
+        if w != cur_window:  # a new window: the current one becomes the previous, or none
+            for m in range(n_prev):
+                previous[np.uint64(prev_keys[m])] = 0
+            if w == cur_window + 1:
+                current, previous = previous, current
+                cur_keys, prev_keys = prev_keys, cur_keys
+                n_prev, n_cur = n_cur, 0
+                prev_present = n_prev > 0
+            else:
+                for m in range(n_cur):
+                    current[np.uint64(cur_keys[m])] = 0
+                n_prev, n_cur = 0, 0
+                prev_present = False
+            cur_window = w
+            started = False
+        if not started:  # the previous window's blur and mean, once a window
+            n_blurred = _start_window(previous, prev_keys, n_prev, width, height, g, spread_x,
+                                      spread_y, rows, blurred_from, n_blurred, mass)
+            bound = relative * (n_prev + 64)
+            started = True
+        key = ((1 if p[i] else 0) * height + yi) * width + xi
+        at = np.uint64(key)
+        if stamp[at] != cur_window + 1:  # the pixel's P in this window, once
+            mean = mass[1 if p[i] else 0] / area
+            if prev_present and mean > 0:
+                total = 0.0
+                for d in range(g.shape[0]):
+                    if 0 <= yi + d - radius < height:
+                        total += g[d] * rows[np.uint64(key + (d - radius) * width)]
+                blurred = total / (norm_x[xi] * norm_y[yi])
+                chances[at] = min(alpha * (blurred / mean), 1.0)
+            else:
+                chances[at] = alpha
+            stamp[at] = cur_window + 1
+        chance = chances[at]
+        ui = u[i]
+        if abs(ui - chance) <= chance * bound + 1e-300:
+            return (i, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
+                    cur_window)
+        # the cap: floor(a * seen / b) after this event, one step of a <= b at a time
+        remainder += a
+        if remainder >= b:
+            remainder -= b
+            limit += 1
+        if ui < chance and kept < limit:
+            kept += 1
+            out_x[n_out] = column[np.uint64(xi)]
+            out_y[n_out] = row[np.uint64(yi)]
+            out_index[n_out] = i
+            n_out += 1
+        if current[at] == 0:
+            cur_keys[n_cur] = key
+            n_cur += 1
+        current[at] += 1
+    return (-1, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
+            cur_window)
+
+
+def _doubt_bound() -> float:
+    """Twice both paths' relative roundings of ``P``, per entry of the previous window.
+
+    The loop returns ``relative * (entries + 64)``. Each path: ``1 - exp(-n)`` within an ulp
+    (2), a row sum of at most 13 positive products (14) and its 13 weighted terms gathered
+    (14), the norms' product and the division (2), ``mean B``'s sum over the entries (one
+    addition an entry) and its three products and division (4), the ratio and ``alpha``
+    (2): ``entries + 38`` units of ``EPS``; the same for the other path, twice.
+    """
+    return 4 * EPS
+
+
+def _zeros(slot: str, n: int, dtype: type) -> np.ndarray:
+    """A zeroed scratch column (:func:`~.scratch.scratch_column`): no fresh pages a call."""
+    column = scratch_column(slot, n, dtype)
+    column.fill(0)
+    return column
+
+
+def decide_in_order(
+    events: Events, window: Tensor, draws: Tensor, entry_windows: Tensor, entry_keys: Tensor,
+    entry_counts: Tensor, *, sensor_size: tuple[int, int, int], factor: tuple[int, int],
+    alpha: float, fraction: tuple[int, int], seen: int, kept: int, blur: tuple[float, ...],
+    edges: tuple[Tensor, Tensor, Tensor, Tensor],
+) -> tuple[Events, int, Tensor, Tensor, Tensor] | None:
+    """:func:`~..poisson.poisson_step`'s decisions of ``N >= 1`` time-sorted events on the CPU.
+
+    Args:
+        events: the chunk, time-sorted, on the CPU.
+        window: ``(N,)`` int64 each event's window.
+        draws: ``(N,)`` float64 each event's draw.
+        entry_windows: ``(E,)`` int64 the state's entries' windows.
+        entry_keys: ``(E,)`` int64 their keys ``(p * H + y) * W + x``.
+        entry_counts: ``(E,)`` int64 their counts.
+        sensor_size: ``(W, H, P)``.
+        factor: ``(fx, fy)``.
+        alpha: the budget setting.
+        fraction: ``(a, b)``, the cap's fraction (``a <= b``).
+        seen: the events seen before the chunk.
+        kept: the events kept before the chunk.
+        blur: the 13 weights of the Gaussian.
+        edges: ``(norm_x, spread_x, norm_y, spread_y)`` float64 (the eager kernel's).
+
+    Returns:
+        ``(kept events, kept count, windows, keys, counts)``: the eager kernel's events and
+        the new state's entries (the last window's and the one before, sorted by window,
+        then key); ``None`` where an event is in doubt.
+
+    Raises:
+        ValueError: for an event whose pixel lies outside the sensor.
+    """
+    n = events.num_events
+    width, height, _ = sensor_size
+    planes = 2 * width * height
+    current, previous, stamp = (_zeros(f"poisson {name}", planes, np.int64)
+                                for name in ("current", "previous", "stamp"))
+    rows = _zeros("poisson rows", planes, np.float64)
+    cur_keys, prev_keys, blurred_from = (scratch_column(f"poisson {name}", planes, np.int64)
+                                         for name in ("current keys", "previous keys",
+                                                      "blurred from"))
+    windows = entry_windows.numpy()
+    first = int(window[0])
+    n_cur = n_prev = 0
+    for target, keys, w in ((current, cur_keys, first), (previous, prev_keys, first - 1)):
+        chosen = windows == w
+        found = entry_keys.numpy()[chosen]
+        target[found] = entry_counts.numpy()[chosen]
+        keys[:found.shape[0]] = found
+        if w == first:
+            n_cur = found.shape[0]
+        else:
+            n_prev = found.shape[0]
+    a, b = fraction
+    limit, remainder = divmod(a * seen, b)
+    fx, fy = factor
+    column, row = region_tables(factor, -(-width // fx), -(-height // fy))
+    out_x, out_y, out_index = (scratch_column(f"poisson {name}", n, np.int64)
+                               for name in ("x", "y", "index"))
+    x, y, p = columns_of(events.x, events.y, events.p)
+    norm_x, spread_x, norm_y, spread_y = (edge.numpy() for edge in edges)
+    result = _poisson_loop(
+        x, y, p, window.numpy(), draws.numpy(), alpha, a, b, limit, remainder, kept, width,
+        height, np.array(blur), norm_x, norm_y, spread_x, spread_y, current, previous,
+        cur_keys, n_cur, prev_keys, n_prev, first, n_prev > 0, rows, blurred_from,
+        scratch_column("poisson chances", planes, np.float64), stamp, _doubt_bound(), column,
+        row, out_x, out_y, out_index)
+    status, n_out, kept_after, current, cur_keys, n_cur, previous, prev_keys, n_prev, last = (
+        result)
+    if status >= 0:
+        return None
+    if status < -1:
+        raise outside_error(-2 - status, x, y, np.empty(width, np.int8),
+                            np.empty(height, np.int8))
+    index = torch.from_numpy(out_index[:n_out])
+    output = Events(torch.from_numpy(out_x[:n_out]), torch.from_numpy(out_y[:n_out]),
+                    events.t.index_select(0, index), events.p.index_select(0, index))
+    # The new state: the entries of the last window and of the one before, by window, key.
+    before = np.sort(prev_keys[:n_prev]) if n_prev else prev_keys[:0]
+    after = np.sort(cur_keys[:n_cur])
+    keys = np.concatenate([before, after])
+    counts = np.concatenate([previous[before], current[after]])
+    windows = np.concatenate([np.full(before.shape[0], last - 1, dtype=np.int64),
+                              np.full(after.shape[0], last, dtype=np.int64)])
+    return (output, kept_after, torch.from_numpy(windows), torch.from_numpy(keys),
+            torch.from_numpy(counts))

@@ -1,0 +1,116 @@
+"""PoissonSubsampling's compiled loop (transforms/functional/compiled/poisson.py): the eager
+kernel's events and states, chunk by chunk, and its doubt."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from evdown_torch import Events, PoissonSubsampling
+from evdown_torch.events import sort_by_time, to_events
+from evdown_torch.transforms.functional import poisson as poisson_kernel
+from evdown_torch.transforms.functional.compiled import eager_kernels
+from evdown_torch.transforms.functional.draws import event_uniforms
+from tests.helpers import (
+    DVS_DTYPE,
+    FLOAT_DTYPE,
+    argument_spy,
+    assert_identical,
+    both_paths,
+    random_stream,
+    run_in_chunks,
+)
+
+pytest.importorskip("numba")
+
+SENSOR = (9, 7, 2)
+
+CASES = [  # (t_max, t as float, window, alpha)
+    (300, False, 13, 0.3),
+    (5_000, False, 40, 0.05),
+    (400, True, 7.5, 0.5),
+    (2_000, False, 1_000, 0.2),  # one or two windows
+    (3_000, False, 3, 1.0),  # windows without events between others
+]
+
+
+def _stream(rng, n: int, t_max: int, float_t: bool) -> np.ndarray:
+    arr = random_stream(rng, n, SENSOR, t_max=t_max, dtype=FLOAT_DTYPE if float_t else DVS_DTYPE)
+    if float_t:
+        arr["t"] = arr["t"] * 0.37
+    return arr
+
+
+@pytest.mark.parametrize(("t_max", "float_t", "window", "alpha"), CASES)
+def test_every_chunking_keeps_the_eager_kernels_events(t_max, float_t, window, alpha, rng,
+                                                       monkeypatch):
+    arr = _stream(rng, 1_500, t_max, float_t)
+    transform = PoissonSubsampling(SENSOR, (2, 3), window=window, alpha=alpha, seed=4)
+    steps = []
+    real = poisson_kernel._compiled_step
+    monkeypatch.setattr(poisson_kernel, "_compiled_step",
+                        lambda *args: steps.append(real(*args)) or steps[-1])
+    whole = both_paths(lambda: transform(arr))
+    assert_identical(*whole)
+    assert 0 < len(whole[0]) < len(arr)
+    for cuts in ([1, 2, 700, 701], list(range(0, 1_500, 97)), []):
+        assert_identical(*both_paths(lambda cuts=cuts: run_in_chunks(transform, arr, cuts)))
+    assert steps and all(step is not None for step in steps)  # the loop decided every chunk
+
+
+@pytest.mark.parametrize(("t_max", "float_t", "window", "alpha"), CASES)
+def test_each_step_leaves_the_eager_kernels_state(t_max, float_t, window, alpha, rng):
+    events = sort_by_time(to_events(_stream(rng, 1_200, t_max, float_t), SENSOR)[0])
+    settings = poisson_kernel.PoissonSettings(SENSOR, (2, 3), window, alpha, 4)
+
+    def steps():
+        state = poisson_kernel.poisson_init(settings, events)
+        outputs = []
+        for start, stop in ((0, 1), (1, 400), (400, 401), (401, 1_200)):
+            out, state = poisson_kernel.poisson_step(events.part(start, stop), state, settings)
+            outputs.append((out, torch.tensor([state.seen, state.kept]), state.windows,
+                            state.keys, state.counts))
+        return outputs
+
+    assert_identical(*both_paths(steps))
+
+
+def test_a_state_moves_between_the_paths(rng):
+    arr = random_stream(rng, 2_000, SENSOR, t_max=3_000)
+    transform = PoissonSubsampling(SENSOR, (2, 3), window=50, alpha=0.2, seed=2)
+    expected = both_paths(lambda: transform(arr))[1]
+    chunks = np.split(arr, [500, 1_200, 1_600])
+    for first in (False, True):
+        session, parts = transform.session(), []
+        for k, chunk in enumerate(chunks):
+            with eager_kernels((k % 2 == 0) == first):
+                parts.append(session(chunk))
+        parts.append(session.flush())
+        np.testing.assert_array_equal(np.concatenate(parts), expected)
+
+
+def test_a_draw_near_its_probability_hands_the_call_to_the_eager_kernel(monkeypatch):
+    """In the first window P = alpha: an alpha 1e-14 above the first event's draw is within
+    the paths' roundings, so the eager kernel decides the call."""
+    events = Events.from_columns([3, 4, 5], [2, 2, 2], [10, 20, 30], [1, 0, 1])
+    draws = event_uniforms(events, 0, index=torch.arange(3), origin=10)
+    alpha = draws[0].item() * (1 + 1e-14)
+    assert 1e-6 <= alpha <= 1
+    settings = poisson_kernel.PoissonSettings(SENSOR, (2, 3), 1_000, alpha, 0)
+    assert poisson_kernel._compiled_step(events, poisson_kernel.poisson_init(settings, events),
+                                         settings) is None
+    eager_steps = argument_spy(monkeypatch, poisson_kernel, "_step_sorted")
+    transform = PoissonSubsampling(SENSOR, (2, 3), window=1_000, alpha=alpha)
+    got = transform(events)
+    assert len(eager_steps) == 1
+    with eager_kernels():
+        assert_identical(got, transform(events))
+
+
+def test_an_event_outside_the_sensor_is_refused():
+    events = Events.from_columns([3, 2], [2, 7], [10, 20], [1, 0])  # y = 7 on a 7-high sensor
+    settings = poisson_kernel.PoissonSettings(SENSOR, (2, 3), 13, 0.5, 0)
+    with pytest.raises(ValueError, match="y"):
+        poisson_kernel._compiled_step(events, poisson_kernel.poisson_init(settings, events),
+                                      settings)
