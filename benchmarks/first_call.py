@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 STEPS = ["import numba", "Tonic array in and out", "EventCount", "Downsample", "EventFunnelling",
          "TemporalFunnelling", "PhotocurrentPooling", "LIFPooling", "LinearEstimation",
          "CubicEstimation", "LinearEstimation session (max_delay)", "DensitySubsampling",
-         "floor"]
+         "PoissonSubsampling", "floor"]
 
 
 def one_process() -> tuple[dict[str, float], list[str]]:
@@ -55,6 +55,7 @@ def one_process() -> tuple[dict[str, float], list[str]]:
         LIFPooling,
         LinearEstimation,
         PhotocurrentPooling,
+        PoissonSubsampling,
         TemporalFunnelling,
     )
     from evdown_torch.bench.floor import RegionFloor
@@ -84,8 +85,9 @@ def one_process() -> tuple[dict[str, float], list[str]]:
         # a bounded-delay session: its steps compile the ramps and the state they make
         "LinearEstimation session (max_delay)": lambda ev: _two_chunks(
             LinearEstimation((16, 16, 2), 4, threshold=0.25, max_delay=10).session(), ev),
-        # a budget that drops events: its draws and its decision loop
+        # budgets that drop events: the subsamplers' draws and decision loops
         "DensitySubsampling": DensitySubsampling((16, 16, 2), 4, tau=20.0, s=0.3),
+        "PoissonSubsampling": PoissonSubsampling((16, 16, 2), 4, window=10, alpha=0.3),
         "floor": RegionFloor((16, 16, 2), 4).session(),
     }
     from numba.core import types

@@ -104,7 +104,7 @@ def _poisson_loop(
     radius = g.shape[0] // 2
     area = float(width * height)
     mass = np.zeros(2)
-    n_blurred = 0
+    n_blurred = np.int64(0)  # (not a literal 0: one compile of _start_window, not two)
     started = False
     bound = 0.0
     n_out = 0
