@@ -372,6 +372,19 @@ def temporal_reference(arr: np.ndarray, dt) -> list[tuple]:
 # --- streaming ----------------------------------------------------------------------------
 
 
+def run_switching_paths(transform, arr: np.ndarray, cuts: list[int], *,
+                        eager_first: bool) -> np.ndarray:
+    """Feed ``arr`` split at ``cuts`` to one session whose chunks alternate between the eager
+    and the compiled kernels (eager first, or compiled first), then flush."""
+    pytest.importorskip("numba")
+    session, parts = transform.session(), []
+    for k, chunk in enumerate(np.split(arr, sorted(cuts))):
+        with eager_kernels((k % 2 == 0) == eager_first):
+            parts.append(session(chunk))
+    parts.append(session.flush())
+    return np.concatenate(parts)
+
+
 def run_in_chunks(transform, arr: np.ndarray, cuts: list[int]) -> np.ndarray:
     """Feed ``arr`` split at ``cuts`` (repeated cuts make empty chunks), then flush."""
     session = transform.session()

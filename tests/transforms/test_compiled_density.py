@@ -22,6 +22,7 @@ from tests.helpers import (
     both_paths,
     random_stream,
     run_in_chunks,
+    run_switching_paths,
 )
 
 pytest.importorskip("numba")
@@ -110,14 +111,9 @@ def test_a_state_moves_between_the_paths(rng):
     arr = random_stream(rng, 2_000, SENSOR, t_max=3_000)
     transform = DensitySubsampling(SENSOR, (2, 3), tau=200.0, k=5, s=0.1, seed=2)
     expected = both_paths(lambda: transform(arr))[1]
-    chunks = np.split(arr, [500, 1_200, 1_600])
-    for first in (False, True):  # compiled then eager, alternating, or the other way round
-        session, parts = transform.session(), []
-        for k, chunk in enumerate(chunks):
-            with eager_kernels((k % 2 == 0) == first):
-                parts.append(session(chunk))
-        parts.append(session.flush())
-        np.testing.assert_array_equal(np.concatenate(parts), expected)
+    for eager_first in (False, True):
+        got = run_switching_paths(transform, arr, [500, 1_200, 1_600], eager_first=eager_first)
+        np.testing.assert_array_equal(got, expected)
 
 
 def test_a_draw_near_the_density_hands_the_call_to_the_eager_kernel(monkeypatch):
