@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.regions import (
@@ -287,8 +288,8 @@ def decide_in_order(
     origin = t.numpy()[0]
     n_live = _scaled_counts(counts, times, origin, tau, scaled, live, is_live)
     largest = float(counts.max()) if counts.shape[0] else 0.0
-    fx, fy = factor
-    column, row = region_tables(factor, -(-width // fx), -(-height // fy))
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    column, row = region_tables(factor, out_w, out_h)
     out_x, out_y = (scratch_column(f"density {name}", n, np.int64) for name in ("x", "y"))
     out_t = scratch_column("density t", n, t.numpy().dtype)
     out_p = scratch_column("density p", n, np.bool_)

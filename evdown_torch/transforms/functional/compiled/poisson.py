@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from evdown_torch.checks import output_size
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.regions import (
@@ -80,20 +81,19 @@ def _poisson_loop(
     alpha: float, a: int, b: int, limit: int, remainder: int, kept: int, width: int,
     height: int, g: np.ndarray, norm_x: np.ndarray, norm_y: np.ndarray, spread_x: np.ndarray,
     spread_y: np.ndarray, current: np.ndarray, previous: np.ndarray, cur_keys: np.ndarray,
-    n_cur: int, prev_keys: np.ndarray, n_prev: int, cur_window: int, prev_present: bool,
-    rows: np.ndarray, blurred_from: np.ndarray, chances: np.ndarray, stamp: np.ndarray,
-    relative: float, column: np.ndarray, row: np.ndarray, out_x: np.ndarray,
-    out_y: np.ndarray, out_index: np.ndarray,
+    n_cur: int, prev_keys: np.ndarray, n_prev: int, cur_window: int, rows: np.ndarray,
+    blurred_from: np.ndarray, chances: np.ndarray, stamp: np.ndarray, relative: float,
+    column: np.ndarray, row: np.ndarray, out_x: np.ndarray, out_y: np.ndarray,
+    out_index: np.ndarray,
 ) -> tuple[int, int, int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, int,
            int]:  # pragma: no cover - compiled
     """Decide each time-sorted event: a candidate iff ``u < P``, kept iff the cap allows.
 
-    ``current`` / ``previous``: dense counts of window ``cur_window`` and of the one before
-    (``prev_present``: that window has entries), their keys in ``cur_keys[:n_cur]`` and
-    ``prev_keys[:n_prev]``; swapped as windows start. ``limit``, ``remainder``: ``divmod(a *
-    seen, b)``, moved on an event at a time; ``kept``: the cap's count. ``chances``: each
-    pixel's ``P`` in the window ``stamp - 1``. The kept events' regions and places go to
-    ``out_*``.
+    ``current`` / ``previous``: dense counts of window ``cur_window`` and of the one before,
+    their keys in ``cur_keys[:n_cur]`` and ``prev_keys[:n_prev]``; swapped as windows
+    start. ``limit``, ``remainder``: ``divmod(a * seen, b)``, moved on an event at a time;
+    ``kept``: the cap's count. ``chances``: each pixel's ``P`` in the window ``stamp - 1``.
+    The kept events' regions and places go to ``out_*``.
 
     Returns:
         ``(status, kept events, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
@@ -122,12 +122,10 @@ def _poisson_loop(
                 current, previous = previous, current
                 cur_keys, prev_keys = prev_keys, cur_keys
                 n_prev, n_cur = n_cur, 0
-                prev_present = n_prev > 0
             else:
                 for m in range(n_cur):
                     current[np.uint64(cur_keys[m])] = 0
                 n_prev, n_cur = 0, 0
-                prev_present = False
             cur_window = w
             started = False
         if not started:  # the previous window's blur and mean, once a window
@@ -139,7 +137,7 @@ def _poisson_loop(
         at = np.uint64(key)
         if stamp[at] != cur_window + 1:  # the pixel's P in this window, once
             mean = mass[1 if p[i] else 0] / area
-            if prev_present and mean > 0:
+            if mean > 0:  # (0 where the previous window has no entry)
                 total = 0.0
                 for d in range(g.shape[0]):
                     if 0 <= yi + d - radius < height:
@@ -233,22 +231,21 @@ def decide_in_order(
     cur_keys, prev_keys, blurred_from = (scratch_column(f"poisson {name}", planes, np.int64)
                                          for name in ("current keys", "previous keys",
                                                       "blurred from"))
-    windows = entry_windows.numpy()
     first = int(window[0])
-    n_cur = n_prev = 0
-    for target, keys, w in ((current, cur_keys, first), (previous, prev_keys, first - 1)):
-        chosen = windows == w
+
+    def seeded(counts: np.ndarray, keys: np.ndarray, chosen: np.ndarray) -> int:
+        """The state's entries ``chosen`` put in ``counts``, their keys in ``keys``."""
         found = entry_keys.numpy()[chosen]
-        target[found] = entry_counts.numpy()[chosen]
+        counts[found] = entry_counts.numpy()[chosen]
         keys[:found.shape[0]] = found
-        if w == first:
-            n_cur = found.shape[0]
-        else:
-            n_prev = found.shape[0]
+        return found.shape[0]
+
+    n_cur = seeded(current, cur_keys, entry_windows.numpy() == first)
+    n_prev = seeded(previous, prev_keys, entry_windows.numpy() == first - 1)
     a, b = fraction
     limit, remainder = divmod(a * seen, b)
-    fx, fy = factor
-    column, row = region_tables(factor, -(-width // fx), -(-height // fy))
+    out_w, out_h, _ = output_size(sensor_size, factor)
+    column, row = region_tables(factor, out_w, out_h)
     out_x, out_y, out_index = (scratch_column(f"poisson {name}", n, np.int64)
                                for name in ("x", "y", "index"))
     x, y, p = columns_of(events.x, events.y, events.p)
@@ -256,7 +253,7 @@ def decide_in_order(
     result = _poisson_loop(
         x, y, p, window.numpy(), draws.numpy(), alpha, a, b, limit, remainder, kept, width,
         height, np.array(blur), norm_x, norm_y, spread_x, spread_y, current, previous,
-        cur_keys, n_cur, prev_keys, n_prev, first, n_prev > 0, rows, blurred_from,
+        cur_keys, n_cur, prev_keys, n_prev, first, rows, blurred_from,
         scratch_column("poisson chances", planes, np.float64), stamp, _doubt_bound(), column,
         row, out_x, out_y, out_index)
     status, n_out, kept_after, current, cur_keys, n_cur, previous, prev_keys, n_prev, last = (
@@ -270,7 +267,7 @@ def decide_in_order(
     output = Events(torch.from_numpy(out_x[:n_out]), torch.from_numpy(out_y[:n_out]),
                     events.t.index_select(0, index), events.p.index_select(0, index))
     # The new state: the entries of the last window and of the one before, by window, key.
-    before = np.sort(prev_keys[:n_prev]) if n_prev else prev_keys[:0]
+    before = np.sort(prev_keys[:n_prev])
     after = np.sort(cur_keys[:n_cur])
     keys = np.concatenate([before, after])
     counts = np.concatenate([previous[before], current[after]])
