@@ -305,3 +305,46 @@ def test_outputs_held_across_release_scratch_stay_intact() -> None:
         x, y, t, p = _columns(chunk)
         for got, want in zip(_columns(out), (x // 4, y // 4, t, p), strict=True):
             np.testing.assert_array_equal(got, want)
+
+
+def test_a_kept_map_comes_back_as_the_last_call_left_it() -> None:
+    with scratch.kept_map("test map", 6, np.int64) as first:
+        assert first.tolist() == [0] * 6  # a new map is zeros
+        first[[1, 4]] = [3, 5]
+        address = _address(first)
+    with scratch.kept_map("test map", 6, np.int64) as again:
+        assert _address(again) == address and again.tolist() == [0, 3, 0, 0, 5, 0]
+        # Nested, the slot's map is the outer body's alone: the inner one is new, zeros.
+        with scratch.kept_map("test map", 6, np.int64) as inner:
+            assert not np.shares_memory(inner, again) and not inner.any()
+    # Another length or dtype is another map; the dtype is part of the slot.
+    with scratch.kept_map("test map", 7, np.int64) as longer:
+        assert not longer.any()
+    with scratch.kept_map("test map", 6, np.float64) as floats:
+        assert not floats.any()
+
+
+def test_a_kept_map_whose_body_raised_is_not_handed_out_again() -> None:
+    with scratch.kept_map("test map raised", 4, np.int64) as kept:
+        kept[0] = 9
+    with (pytest.raises(RuntimeError, match="half-way"),
+          scratch.kept_map("test map raised", 4, np.int64) as broken):
+        broken[2] = 1
+        raise RuntimeError("half-way")
+    with scratch.kept_map("test map raised", 4, np.int64) as fresh:
+        assert not np.shares_memory(fresh, broken) and not fresh.any()
+
+
+def test_kept_maps_count_in_the_threads_bytes_and_go_with_release_scratch() -> None:
+    evdown_torch.release_scratch()
+    large = (LARGEST_KEPT // 8) + 1  # kept, unlike a scratch column of this size
+    with scratch.kept_map("test map bytes", large, np.int64):
+        assert scratch.kept_bytes() == 0  # the body's, not the table's, meanwhile
+    assert scratch.kept_bytes() == 8 * large
+    with mock.patch.object(scratch, "MOST_KEPT", 8 * large + 100):
+        with scratch.kept_map("test map other", 20, np.int64):
+            pass  # 160 bytes more would pass the limit: not kept
+        assert scratch.kept_bytes() == 8 * large
+    assert evdown_torch.release_scratch() == 8 * large
+    with scratch.kept_map("test map bytes", large, np.int64) as again:
+        assert not again.any()

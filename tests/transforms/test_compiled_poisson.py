@@ -110,3 +110,64 @@ def test_an_event_outside_the_sensor_is_refused():
     with pytest.raises(ValueError, match="y"):
         poisson_kernel._compiled_step(events, poisson_kernel.poisson_init(settings, events),
                                       settings)
+
+
+def _poisson_maps() -> dict[str, np.ndarray]:
+    from evdown_torch.transforms.functional.compiled import scratch
+
+    return {slot[0]: column for slot, column in scratch._KEPT.columns.items()
+            if slot[0].startswith("map poisson")}
+
+
+def test_the_kept_maps_are_zeros_between_calls_and_sessions_do_not_share_them(rng):
+    """Two sessions whose chunks alternate in one thread share the kept per-pixel maps: each
+    gives what it gives alone (the eager kernel's events), and between calls the counts and
+    the blur are zeros again."""
+    streams = [random_stream(rng, 1_500, SENSOR, t_max=2_000) for _ in range(2)]
+    transforms = [PoissonSubsampling(SENSOR, (2, 3), window=w, alpha=a, seed=s)
+                  for w, a, s in ((40, 0.3, 1), (13, 0.5, 2))]
+    with eager_kernels():
+        alone = [transform(arr) for transform, arr in zip(transforms, streams, strict=True)]
+    sessions = [transform.session() for transform in transforms]
+    outputs: list[list[np.ndarray]] = [[], []]
+    for lo in range(0, 1_500, 250):
+        for k in (0, 1):
+            outputs[k].append(sessions[k](streams[k][lo:lo + 250]))
+            maps = _poisson_maps()
+            for name in ("current", "previous", "rows"):
+                assert not maps[f"map poisson {name}"].any(), name
+            stamp = maps["map poisson stamp"]
+            assert stamp[-1] == stamp.max() > 0  # the last window's number, the largest
+    for k in (0, 1):
+        outputs[k].append(sessions[k].flush())
+        np.testing.assert_array_equal(np.concatenate(outputs[k]), alone[k])
+
+
+def test_a_call_that_stops_early_leaves_the_maps_as_the_next_call_needs(rng, monkeypatch):
+    from evdown_torch.transforms.functional.compiled import poisson as compiled
+
+    arr = random_stream(rng, 600, SENSOR, t_max=400)
+    events = sort_by_time(to_events(arr, SENSOR)[0])
+    settings = poisson_kernel.PoissonSettings(SENSOR, (2, 3), 13, 0.4, 3)
+    state = poisson_kernel.poisson_init(settings, events)
+    _, state = poisson_kernel.poisson_step(events.part(0, 300), state, settings)
+    assert state.keys.numel() > 0  # the next call seeds its maps from these entries
+    with monkeypatch.context() as patched:  # every event in doubt: the loop stops at once
+        patched.setattr(compiled, "_doubt_bound", lambda: 1.0)
+        assert poisson_kernel._compiled_step(events.part(300, 600), state, settings) is None
+    maps = _poisson_maps()
+    for name in ("current", "previous", "rows"):
+        assert not maps[f"map poisson {name}"].any(), name
+    # A refused chunk (y = 7 on a 7-high sensor) loses the maps it held; the next call
+    # takes new ones and still gives the eager kernel's step.
+    outside = Events.from_columns([3, 2], [2, 7], [500, 501], [1, 0])
+    with pytest.raises(ValueError, match="y"):
+        poisson_kernel._compiled_step(outside, state, settings)
+    steps = both_paths(lambda: poisson_kernel.poisson_step(events.part(300, 600), state,
+                                                           settings))
+    assert_identical(steps[0][0], steps[1][0])
+    for got, want in zip(steps[0][1], steps[1][1], strict=True):
+        if isinstance(got, torch.Tensor):
+            assert torch.equal(got, want)
+        else:
+            assert got == want

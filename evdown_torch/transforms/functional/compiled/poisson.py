@@ -25,18 +25,30 @@ from torch import Tensor
 
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled._numba import compiled_loop, inlined_helper
 from evdown_torch.transforms.functional.compiled.regions import (
     columns_of,
     outside_error,
     region_tables,
 )
-from evdown_torch.transforms.functional.compiled.scratch import scratch_column
+from evdown_torch.transforms.functional.compiled.scratch import kept_map, scratch_column
 
 __all__ = ["decide_in_order"]
 
 #: Relative rounding of one float64 operation.
 EPS = 2.0**-53
+
+
+@inlined_helper
+def _clear_blur(rows: np.ndarray, blurred_from: np.ndarray, n_blurred: int, width: int,
+                radius: int) -> None:  # pragma: no cover - compiled
+    """Zeros in ``rows`` where the blur of the entries ``blurred_from[:n_blurred]`` wrote."""
+    for m in range(n_blurred):
+        key = blurred_from[m]
+        x = key % width
+        for d in range(2 * radius + 1):
+            if 0 <= x + d - radius < width:
+                rows[np.uint64(key + d - radius)] = 0.0
 
 
 @compiled_loop
@@ -54,12 +66,7 @@ def _start_window(
     spread_y`` over the polarity's entries. Returns the new ``n_blurred``.
     """
     radius = g.shape[0] // 2
-    for m in range(n_blurred):
-        key = blurred_from[m]
-        x = key % width
-        for d in range(g.shape[0]):
-            if 0 <= x + d - radius < width:
-                rows[np.uint64(key + d - radius)] = 0.0
+    _clear_blur(rows, blurred_from, n_blurred, width, radius)
     mass[0] = 0.0
     mass[1] = 0.0
     for m in range(n_entries):
@@ -76,30 +83,47 @@ def _start_window(
 
 
 @compiled_loop
+def _restore(
+    current: np.ndarray, cur_keys: np.ndarray, n_cur: int, previous: np.ndarray,
+    prev_keys: np.ndarray, n_prev: int, rows: np.ndarray, blurred_from: np.ndarray,
+    n_blurred: int, width: int, radius: int,
+) -> None:  # pragma: no cover - compiled
+    """The maps as the next call takes them (:func:`decide_in_order`): zeros where a call wrote."""
+    for m in range(n_cur):
+        current[np.uint64(cur_keys[m])] = 0
+    for m in range(n_prev):
+        previous[np.uint64(prev_keys[m])] = 0
+    _clear_blur(rows, blurred_from, n_blurred, width, radius)
+
+
+@compiled_loop
 def _poisson_loop(
     x: np.ndarray, y: np.ndarray, p: np.ndarray, window: np.ndarray, u: np.ndarray,
     alpha: float, a: int, b: int, limit: int, remainder: int, kept: int, width: int,
     height: int, g: np.ndarray, norm_x: np.ndarray, norm_y: np.ndarray, spread_x: np.ndarray,
     spread_y: np.ndarray, current: np.ndarray, previous: np.ndarray, cur_keys: np.ndarray,
     n_cur: int, prev_keys: np.ndarray, n_prev: int, cur_window: int, rows: np.ndarray,
-    blurred_from: np.ndarray, chances: np.ndarray, stamp: np.ndarray, relative: float,
-    column: np.ndarray, row: np.ndarray, out_x: np.ndarray, out_y: np.ndarray,
-    out_index: np.ndarray,
-) -> tuple[int, int, int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, int,
+    blurred_from: np.ndarray, chances: np.ndarray, stamp: np.ndarray, epoch: int,
+    relative: float, column: np.ndarray, row: np.ndarray, out_x: np.ndarray,
+    out_y: np.ndarray, out_index: np.ndarray,
+) -> tuple[int, int, int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, int, int, int,
            int]:  # pragma: no cover - compiled
     """Decide each time-sorted event: a candidate iff ``u < P``, kept iff the cap allows.
 
     ``current`` / ``previous``: dense counts of window ``cur_window`` and of the one before,
     their keys in ``cur_keys[:n_cur]`` and ``prev_keys[:n_prev]``; swapped as windows
     start. ``limit``, ``remainder``: ``divmod(a * seen, b)``, moved on an event at a time;
-    ``kept``: the cap's count. ``chances``: each pixel's ``P`` in the window ``stamp - 1``.
+    ``kept``: the cap's count. ``chances``: each pixel's ``P`` in the window it was last
+    computed in, whose number is the pixel's ``stamp``; ``epoch``: the largest number in
+    ``stamp`` (each window of the call takes the next one, so no ``stamp`` is cleared).
     The kept events' regions and places go to ``out_*``.
 
     Returns:
         ``(status, kept events, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
-        cur_window)``: status -1 after the last event, ``i >= 0`` for an event in doubt (the
-        call goes to the eager kernel), ``-2 - i`` for an event outside the sensor; the maps
-        as they end (swapped as windows started).
+        cur_window, n_blurred, epoch)``: status -1 after the last event, ``i >= 0`` for an
+        event in doubt (the call goes to the eager kernel), ``-2 - i`` for an event outside
+        the sensor; the maps as they end (swapped as windows started), the entries whose
+        blur ``rows`` holds (``blurred_from[:n_blurred]``) and the last window's number.
     """
     radius = g.shape[0] // 2
     area = float(width * height)
@@ -113,7 +137,7 @@ def _poisson_loop(
         yi = np.int64(y[i])
         if xi < 0 or xi >= width or yi < 0 or yi >= height:
             return (-2 - i, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
-                    cur_window)
+                    cur_window, n_blurred, epoch)
         w = window[i]
         if w != cur_window:  # a new window: the current one becomes the previous, or none
             for m in range(n_prev):
@@ -132,10 +156,11 @@ def _poisson_loop(
             n_blurred = _start_window(previous, prev_keys, n_prev, width, height, g, spread_x,
                                       spread_y, rows, blurred_from, n_blurred, mass)
             bound = relative * (n_prev + 64)
+            epoch += 1
             started = True
         key = ((1 if p[i] else 0) * height + yi) * width + xi
         at = np.uint64(key)
-        if stamp[at] != cur_window + 1:  # the pixel's P in this window, once
+        if stamp[at] != epoch:  # the pixel's P in this window, once
             mean = mass[1 if p[i] else 0] / area
             if mean > 0:  # (0 where the previous window has no entry)
                 total = 0.0
@@ -146,12 +171,12 @@ def _poisson_loop(
                 chances[at] = min(alpha * (blurred / mean), 1.0)
             else:
                 chances[at] = alpha
-            stamp[at] = cur_window + 1
+            stamp[at] = epoch
         chance = chances[at]
         ui = u[i]
         if abs(ui - chance) <= chance * bound + 1e-300:
             return (i, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
-                    cur_window)
+                    cur_window, n_blurred, epoch)
         # the cap: floor(a * seen / b) after this event, one step of a <= b at a time
         remainder += a
         if remainder >= b:
@@ -168,7 +193,7 @@ def _poisson_loop(
             n_cur += 1
         current[at] += 1
     return (-1, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
-            cur_window)
+            cur_window, n_blurred, epoch)
 
 
 def _doubt_bound() -> float:
@@ -181,13 +206,6 @@ def _doubt_bound() -> float:
     (2): ``entries + 38`` units of ``EPS``; the same for the other path, twice.
     """
     return 4 * EPS
-
-
-def _zeros(slot: str, n: int, dtype: type) -> np.ndarray:
-    """A zeroed scratch column (:func:`~.scratch.scratch_column`): no fresh pages a call."""
-    column = scratch_column(slot, n, dtype)
-    column.fill(0)
-    return column
 
 
 def decide_in_order(
@@ -222,13 +240,35 @@ def decide_in_order(
     Raises:
         ValueError: for an event whose pixel lies outside the sensor.
     """
-    n = events.num_events
     width, height, _ = sensor_size
     planes = 2 * width * height
-    current, previous, stamp = (_zeros(f"poisson {name}", planes, np.int64)
-                                for name in ("current", "previous", "stamp"))
-    rows = _zeros("poisson rows", planes, np.float64)
-    cur_keys, prev_keys, blurred_from = (scratch_column(f"poisson {name}", planes, np.int64)
+    # Per-pixel maps kept from call to call as each call leaves them (a call touches its
+    # chunk's pixels only): the counts and the blur zero outside a call, each pixel's
+    # ``P`` and window number, the last number at the end of ``stamp``.
+    with kept_map("poisson current", planes, np.int64) as current, \
+            kept_map("poisson previous", planes, np.int64) as previous, \
+            kept_map("poisson rows", planes, np.float64) as rows, \
+            kept_map("poisson chances", planes, np.float64) as chances, \
+            kept_map("poisson stamp", planes + 1, np.int64) as stamp:
+        return _decide(events, window, draws, entry_windows, entry_keys, entry_counts,
+                       current, previous, rows, chances, stamp, sensor_size=sensor_size,
+                       factor=factor, alpha=alpha, fraction=fraction, seen=seen, kept=kept,
+                       blur=blur, edges=edges)
+
+
+def _decide(
+    events: Events, window: Tensor, draws: Tensor, entry_windows: Tensor, entry_keys: Tensor,
+    entry_counts: Tensor, current: np.ndarray, previous: np.ndarray, rows: np.ndarray,
+    chances: np.ndarray, stamp: np.ndarray, *, sensor_size: tuple[int, int, int],
+    factor: tuple[int, int], alpha: float, fraction: tuple[int, int], seen: int, kept: int,
+    blur: tuple[float, ...], edges: tuple[Tensor, Tensor, Tensor, Tensor],
+) -> tuple[Events, int, Tensor, Tensor, Tensor] | None:
+    """:func:`decide_in_order` on the maps it took, which it leaves as the next call takes them."""
+    n = events.num_events
+    width, height, _ = sensor_size
+    # A window's entries: the state's of that window, then at most one an event.
+    most = min(2 * width * height, n + entry_keys.shape[0])
+    cur_keys, prev_keys, blurred_from = (scratch_column(f"poisson {name}", most, np.int64)
                                          for name in ("current keys", "previous keys",
                                                       "blurred from"))
     first = int(window[0])
@@ -250,14 +290,20 @@ def decide_in_order(
                                for name in ("x", "y", "index"))
     x, y, p = columns_of(events.x, events.y, events.p)
     norm_x, spread_x, norm_y, spread_y = (edge.numpy() for edge in edges)
+    g = np.array(blur)
     result = _poisson_loop(
         x, y, p, window.numpy(), draws.numpy(), alpha, a, b, limit, remainder, kept, width,
-        height, np.array(blur), norm_x, norm_y, spread_x, spread_y, current, previous,
-        cur_keys, n_cur, prev_keys, n_prev, first, rows, blurred_from,
-        scratch_column("poisson chances", planes, np.float64), stamp, _doubt_bound(), column,
-        row, out_x, out_y, out_index)
-    status, n_out, kept_after, current, cur_keys, n_cur, previous, prev_keys, n_prev, last = (
-        result)
+        height, g, norm_x, norm_y, spread_x, spread_y, current, previous, cur_keys, n_cur,
+        prev_keys, n_prev, first, rows, blurred_from, chances, stamp[:-1], int(stamp[-1]),
+        _doubt_bound(), column, row, out_x, out_y, out_index)
+    (status, n_out, kept_after, current, cur_keys, n_cur, previous, prev_keys, n_prev, last,
+     n_blurred, stamp[-1]) = result
+    # The new state: the entries of the last window and of the one before, by window, key.
+    before = np.sort(prev_keys[:n_prev])
+    after = np.sort(cur_keys[:n_cur])
+    counts = np.concatenate([previous[before], current[after]])
+    _restore(current, cur_keys, n_cur, previous, prev_keys, n_prev, rows, blurred_from,
+             n_blurred, width, g.shape[0] // 2)
     if status >= 0:
         return None
     if status < -1:
@@ -266,11 +312,7 @@ def decide_in_order(
     index = torch.from_numpy(out_index[:n_out])
     output = Events(torch.from_numpy(out_x[:n_out]), torch.from_numpy(out_y[:n_out]),
                     events.t.index_select(0, index), events.p.index_select(0, index))
-    # The new state: the entries of the last window and of the one before, by window, key.
-    before = np.sort(prev_keys[:n_prev])
-    after = np.sort(cur_keys[:n_cur])
     keys = np.concatenate([before, after])
-    counts = np.concatenate([previous[before], current[after]])
     windows = np.concatenate([np.full(before.shape[0], last - 1, dtype=np.int64),
                               np.full(after.shape[0], last, dtype=np.int64)])
     return (output, kept_after, torch.from_numpy(windows), torch.from_numpy(keys),

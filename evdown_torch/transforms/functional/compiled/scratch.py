@@ -21,8 +21,10 @@ from another thread) take new columns every time.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -30,6 +32,7 @@ __all__ = [
     "LARGEST_KEPT",
     "MOST_KEPT",
     "kept_bytes",
+    "kept_map",
     "release_scratch",
     "scratch_column",
     "scratch_copy",
@@ -105,6 +108,46 @@ def scratch_column(slot: str, n: int, dtype: np.dtype | type) -> np.ndarray:
     kept = np.empty(n, dtype)
     _KEPT.columns[key] = kept
     return kept[:n]
+
+
+@contextlib.contextmanager
+def kept_map(slot: str, n: int, dtype: np.dtype | type) -> Iterator[np.ndarray]:
+    """A ``(n,)`` map that this thread keeps from call to call, as the last call left it.
+
+    For a per-pixel map that a loop touches at a chunk's pixels only: taking new memory (or
+    zeroing it) every call would cost the sensor's area a call, not the chunk's events.
+    A new map is zeros; a kept one holds what the last ``with`` body of ``slot`` left in it,
+    so the body restores what its own rule needs (zeros where it wrote, say) before it ends.
+    The map is the body's alone: it leaves the table for the body's time (a nested use of
+    ``slot`` gets a new one), and a body that raises loses it (the next call's is zeros).
+    The body must not let the map or a view of it outlive the ``with``.
+
+    Kept whatever its size, while the thread's kept columns stay within :data:`MOST_KEPT`
+    bytes in all; another ``n`` or dtype takes a new map (the slot keeps the last one).
+    :func:`release_scratch` lets go of the maps too.
+
+    Args:
+        slot: the map's use.
+        n: its length.
+        dtype: its NumPy dtype.
+
+    Example:
+        >>> with kept_map("doctest map", 4, np.int64) as seen:
+        ...     seen[2] = 7  # the body's rule here: leave the count of calls in seen[0]
+        ...     seen[0] += 1
+        >>> with kept_map("doctest map", 4, np.int64) as seen:
+        ...     seen.tolist()
+        [1, 0, 7, 0]
+    """
+    dtype = np.dtype(dtype)
+    key = (f"map {slot}", dtype)
+    kept = _KEPT.columns.pop(key, None)
+    mapped = kept if kept is not None and kept.shape[0] == n else np.zeros(n, dtype)
+    yield mapped
+    if kept_bytes() + mapped.nbytes <= MOST_KEPT:
+        _KEPT.columns[key] = mapped
+    elif kept is not None and kept is not mapped:
+        _KEPT.columns[key] = kept  # (what the slot kept before, unchanged)
 
 
 def kept_bytes() -> int:
