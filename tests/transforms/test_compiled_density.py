@@ -162,3 +162,74 @@ def test_a_clock_near_the_int64_limits():
 def test_the_doubt_bound_grows_with_the_call_and_stays_far_below_one_draw_in_a_million():
     small, large = compiled._doubt_bound(10, 3, 1.0), compiled._doubt_bound(250_000, 7, 1e4)
     assert 0 < small < large < 1e-9
+
+
+LARGE = (60, 40, 2)
+
+
+@pytest.mark.parametrize(("tau", "k"), [(150.0, 5), (1.0, 3), (math.inf, 7)])
+def test_scaling_the_patches_only_gives_the_whole_sensors_steps_bit_for_bit(tau, k, rng,
+                                                                           monkeypatch):
+    """A chunk whose patches cover less than the sensor scales those pixels only: the same
+    events and the same state as scaling every pixel, and the eager kernel's events."""
+    arr = random_stream(rng, 1_200, LARGE, t_max=20_000)
+    events = sort_by_time(to_events(arr, LARGE)[0])
+    settings = density_kernel.DensitySettings(LARGE, (2, 3), tau, k, 0.3, 1)
+    cuts = [3, 40, 41, 300, 900]  # chunks of 1 to 600 events: patches from few to all
+    planes = density_kernel.density_init(settings, events).decayed.shape[0]
+    assert compiled._patches_only(37, k * k, planes)  # the chunks below take both ways
+    assert not compiled._patches_only(600, k * k, planes)
+    results = []
+    for only in (True, False):
+        with monkeypatch.context() as patched:
+            patched.setattr(compiled, "_patches_only", lambda *_, only=only: only)
+            state = density_kernel.density_init(settings, events)
+            outputs = []
+            for start, stop in zip([0, *cuts], [*cuts, events.num_events], strict=True):
+                result = density_kernel._compiled_step(events.part(start, stop), state,
+                                                       settings)
+                assert result is not None
+                outputs.append(result[0])
+                state = result[1]
+            results.append((Events.cat(outputs), state.decayed, state.last_t))
+    assert_identical(results[0][0], results[1][0])
+    assert torch.equal(results[0][1], results[1][1]) and torch.equal(results[0][2],
+                                                                     results[1][2])
+    transform = DensitySubsampling(LARGE, (2, 3), tau=tau, k=k, s=0.3, seed=1)
+    assert_identical(*both_paths(lambda: run_in_chunks(transform, arr, cuts)))
+
+
+def test_sessions_alternating_in_a_thread_do_not_share_their_kept_maps(rng):
+    streams = [random_stream(rng, 1_000, LARGE, t_max=30_000) for _ in range(2)]
+    transforms = [DensitySubsampling(LARGE, (2, 3), tau=tau, k=5, s=0.2, seed=3)
+                  for tau in (2.0, 400.0)]
+    with eager_kernels():
+        alone = [transform(arr) for transform, arr in zip(transforms, streams, strict=True)]
+    sessions = [transform.session() for transform in transforms]
+    outputs: list[list[np.ndarray]] = [[], []]
+    for lo in range(0, 1_000, 50):  # 50-event chunks: the patches only
+        for k in (0, 1):
+            outputs[k].append(sessions[k](streams[k][lo:lo + 50]))
+    for k in (0, 1):
+        outputs[k].append(sessions[k].flush())
+        np.testing.assert_array_equal(np.concatenate(outputs[k]), alone[k])
+
+
+@pytest.mark.parametrize("patches_only", [True, False])
+def test_a_count_from_the_state_shrinks_when_the_origin_moves(patches_only, monkeypatch):
+    """tau = 1: pixel A fires at t = 0 in one chunk; the next chunk starts at t = 0 at its
+    neighbour B, and A fires again at t = 600, after the origin moved (600 > 500 tau). A's
+    count is then 1 + exp(-600), not 2: the count the state carried, scaled to the first
+    origin, shrank at the move."""
+    monkeypatch.setattr(compiled, "_patches_only", lambda *_: patches_only)
+    settings = density_kernel.DensitySettings(LARGE, (2, 3), 1.0, 3, 0.5, 0)
+    first = Events.from_columns([10], [10], [0], [1])
+    state = density_kernel.density_init(settings, first)
+    _, state = density_kernel._compiled_step(first, state, settings)
+    second = Events.from_columns([11, 10], [10, 10], [0, 600], [1, 1])
+    result = density_kernel._compiled_step(second, state, settings)
+    assert result is not None
+    width, height, r = density_kernel._padded(settings)
+    key_a = (height + 10 + r) * width + 10 + r
+    assert result[1].decayed[key_a].item() == pytest.approx(1.0, rel=1e-12)
+    assert result[1].last_t[key_a].item() == 600

@@ -12,7 +12,10 @@ bit. The eager kernel takes it where it runs on the CPU.
 A session's step on the CPU (:func:`decide_in_order`) goes further: one loop over the events
 in stream order decides each one, with no ``exp`` per neighbour. Each pixel and polarity keeps
 its decayed count *scaled* to a clock origin ``o``: ``A_j = S_j * exp((t_j - o) / tau)``
-(``S_j`` its count after its last event, at ``t_j``). An event at ``t`` adds
+(``S_j`` its count after its last event, at ``t_j``; scaled from the state when the call
+starts, for the pixels of its events' patches only where those cover less than the sensor: a
+call on a large sensor scales no more than it reads, though it still copies the state's two
+columns). An event at ``t`` adds
 ``exp((t - o) / tau)`` to its pixel's ``A``, and its density is
 ``sum_j w_j A_j / exp((t - o) / tau)``: one ``exp`` an event. The origin moves to the event's
 time whenever ``(t - o) / tau`` would pass :data:`SPAN_LIMIT` (every ``A`` then shrinks by
@@ -37,13 +40,13 @@ from torch import Tensor
 
 from evdown_torch.checks import output_size
 from evdown_torch.events import Events
-from evdown_torch.transforms.functional.compiled._numba import compiled_loop
+from evdown_torch.transforms.functional.compiled._numba import compiled_loop, inlined_helper
 from evdown_torch.transforms.functional.compiled.regions import (
     columns_of,
     outside_error,
     region_tables,
 )
-from evdown_torch.transforms.functional.compiled.scratch import scratch_column
+from evdown_torch.transforms.functional.compiled.scratch import kept_map, scratch_column
 
 __all__ = ["SPAN_LIMIT", "decide_in_order", "last_neighbours"]
 
@@ -105,33 +108,79 @@ def last_neighbours(key: Tensor, place: Tensor, shifts: Tensor, planes: int) -> 
     return torch.from_numpy(out)
 
 
+@inlined_helper
+def _scaled(count: float, last: float, origin: float, tau: float) -> float:
+    """``count * exp((last - origin) / tau)``: a state's count scaled to the origin.
+
+    ``origin`` is not earlier than ``last`` where there is a count (the stream is
+    time-sorted), so no factor exceeds 1; an integer difference is exact.
+    """
+    return count * math.exp((last - origin) / tau) if count > 0 else 0.0
+
+
 @compiled_loop
 def _scaled_counts(decayed: np.ndarray, last_t: np.ndarray, origin: float, tau: float,
-                   scaled: np.ndarray, live: np.ndarray, is_live: np.ndarray,
+                   scaled: np.ndarray, live: np.ndarray, listed: np.ndarray, call: int,
                    ) -> int:  # pragma: no cover - compiled
-    """``scaled = decayed * exp((last_t - origin) / tau)``; the pixels where it is not 0.
+    """Every pixel's count scaled to ``origin`` (:func:`_scaled`), and the pixels where not 0.
 
-    ``origin`` is not earlier than any ``last_t`` of a pixel with a count (the stream is
-    time-sorted), so no factor exceeds 1; an integer difference is exact. Writes the live
-    pixels' indices to ``live`` and flags them in ``is_live``; returns their number.
+    Writes the live pixels' indices to ``live`` and ``call`` at their ``listed``; returns
+    their number.
     """
     n_live = 0
     for j in range(decayed.shape[0]):
-        count = decayed[j]
-        value = count * math.exp((last_t[j] - origin) / tau) if count > 0 else 0.0
+        value = _scaled(decayed[j], last_t[j], origin, tau)
         scaled[j] = value
-        is_live[j] = value > 0
         if value > 0:
+            listed[j] = call
             live[n_live] = j
             n_live += 1
     return n_live
 
 
 @compiled_loop
+def _scaled_patches(
+    x: np.ndarray, y: np.ndarray, p: np.ndarray, width: int, height: int, r: int,
+    shifts: np.ndarray, decayed: np.ndarray, last_t: np.ndarray, origin: float, tau: float,
+    scaled: np.ndarray, live: np.ndarray, listed: np.ndarray, ready: np.ndarray, call: int,
+) -> tuple[int, float]:  # pragma: no cover - compiled
+    """:func:`_scaled_counts` of the pixels in the events' patches only: the same values.
+
+    For a chunk whose patches cover less than the sensor; the loop reads no other pixel's
+    count. Each pixel scaled gets ``call`` at its ``ready``, and is scaled once. Returns
+    the live pixels' number and the largest count among the patches' (every event's own
+    pixel's among them). Events outside the sensor are skipped (the loop refuses them).
+    """
+    wp = width + 2 * r
+    hp = height + 2 * r
+    n_live = 0
+    largest = 0.0
+    for i in range(x.shape[0]):
+        xi = np.int64(x[i])
+        yi = np.int64(y[i])
+        if xi < 0 or xi >= width or yi < 0 or yi >= height:
+            continue
+        key = ((hp if p[i] else 0) + yi + r) * wp + xi + r
+        for d in range(shifts.shape[0]):
+            at = np.uint64(key + shifts[d])
+            if ready[at] == call:
+                continue
+            ready[at] = call
+            value = _scaled(decayed[at], last_t[at], origin, tau)
+            scaled[at] = value
+            largest = max(largest, decayed[at])
+            if value > 0:
+                listed[at] = call
+                live[n_live] = at
+                n_live += 1
+    return n_live, largest
+
+
+@compiled_loop
 def _subsample_loop(
     x: np.ndarray, y: np.ndarray, p: np.ndarray, t: np.ndarray, u: np.ndarray, s: float,
     rate: float, width: int, height: int, r: int, shifts: np.ndarray, weights: np.ndarray,
-    scaled: np.ndarray, live: np.ndarray, n_live: int, is_live: np.ndarray,
+    scaled: np.ndarray, live: np.ndarray, n_live: int, listed: np.ndarray, call: int,
     decayed: np.ndarray, last_t: np.ndarray, origin: float, relative: float,
     column: np.ndarray, row: np.ndarray, out_x: np.ndarray, out_y: np.ndarray,
     out_t: np.ndarray, out_p: np.ndarray,
@@ -139,8 +188,9 @@ def _subsample_loop(
     """Decide each time-sorted event, in stream order: kept iff ``u[i] < s * density``.
 
     ``rate``: ``1 / tau`` (0 for no decay). ``scaled``: each padded pixel's count scaled
-    to ``origin`` (:func:`_scaled_counts`), updated; ``live[:n_live]``: the pixels where it
-    is not 0 (flagged in ``is_live``), the only ones a move of the origin shrinks (each
+    to ``origin`` (:func:`_scaled_counts`, or :func:`_scaled_patches` for the patches the
+    loop reads), updated; ``live[:n_live]``: the pixels where it is not 0 (``call`` at their
+    ``listed``), the only ones a move of the origin shrinks (each
     drops out once its count underflows, at most three moves after its last event: a move
     costs its live pixels, not the sensor); ``decayed`` and ``last_t``: the state's
     columns, updated at each event's pixel. ``relative``: the relative bound of both paths'
@@ -176,7 +226,7 @@ def _subsample_loop(
                     live[n_kept] = pixel
                     n_kept += 1
                 else:
-                    is_live[pixel] = False
+                    listed[pixel] = 0
             n_live = n_kept
             moved += (3 * min(elapsed, 745.0) + 4) * EPS
             origin = ti
@@ -185,8 +235,8 @@ def _subsample_loop(
         fall = 1.0 / rise
         key = ((hp if p[i] else 0) + yi + r) * wp + xi + r
         at = np.uint64(key)
-        if not is_live[at]:
-            is_live[at] = True
+        if listed[at] != call:
+            listed[at] = call
             live[n_live] = key
             n_live += 1
         own = scaled[at] + rise
@@ -216,6 +266,15 @@ def _subsample_loop(
         out_p[kept] = p[i]
         kept += u[i] < bar
     return -1, kept
+
+
+def _patches_only(n: int, patch: int, planes: int) -> bool:
+    """Whether ``n`` events' patches of ``patch`` pixels cover less than the ``planes``.
+
+    Then only their pixels' counts are scaled (:func:`_scaled_patches`), else every pixel's
+    (:func:`_scaled_counts`, one pass without a check a pixel): the same values either way.
+    """
+    return n * patch < planes
 
 
 def _doubt_bound(n: int, k: int, largest_count: float) -> float:
@@ -282,22 +341,39 @@ def decide_in_order(
         return None
     counts = decayed.numpy().copy()
     times = last_t.numpy().copy()
-    scaled = np.empty_like(counts)
-    live = np.empty(counts.shape[0], dtype=np.int64)
-    is_live = np.empty(counts.shape[0], dtype=np.bool_)
-    origin = t.numpy()[0]
-    n_live = _scaled_counts(counts, times, origin, tau, scaled, live, is_live)
-    largest = float(counts.max()) if counts.shape[0] else 0.0
-    out_w, out_h, _ = output_size(sensor_size, factor)
-    column, row = region_tables(factor, out_w, out_h)
-    out_x, out_y = (scratch_column(f"density {name}", n, np.int64) for name in ("x", "y"))
-    out_t = scratch_column("density t", n, t.numpy().dtype)
-    out_p = scratch_column("density p", n, np.bool_)
-    x, y, p = columns_of(events.x, events.y, events.p)
-    status, kept = _subsample_loop(
-        x, y, p, t.numpy(), draws.numpy(), s, 1.0 / tau, width, height, radius,
-        shifts.numpy(), weights.numpy(), scaled, live, n_live, is_live, counts, times, origin,
-        _doubt_bound(n, 2 * radius + 1, largest), column, row, out_x, out_y, out_t, out_p)
+    planes = counts.shape[0]
+    patch = shifts.shape[0]
+    # Per-pixel maps kept from call to call (taking them new would cost the sensor's area a
+    # call): the scaled counts, and the number of the call that listed a pixel as live
+    # (``listed``, the last call's number at its end) or scaled it (``ready``), so none is
+    # cleared.
+    with kept_map("density scaled", planes, np.float64) as scaled, \
+            kept_map("density listed", planes + 1, np.int64) as listed, \
+            kept_map("density ready", planes, np.int64) as ready:
+        call = int(listed[-1]) + 1
+        listed[-1] = call
+        origin = t.numpy()[0]
+        x, y, p = columns_of(events.x, events.y, events.p)
+        if _patches_only(n, patch, planes):
+            live = scratch_column("density live", n * patch, np.int64)
+            n_live, largest = _scaled_patches(
+                x, y, p, width, height, radius, shifts.numpy(), counts, times, origin, tau,
+                scaled, live, listed[:-1], ready, call)
+        else:
+            live = scratch_column("density live", planes, np.int64)
+            n_live = _scaled_counts(counts, times, origin, tau, scaled, live, listed[:-1],
+                                    call)
+            largest = float(counts.max())
+        out_w, out_h, _ = output_size(sensor_size, factor)
+        column, row = region_tables(factor, out_w, out_h)
+        out_x, out_y = (scratch_column(f"density {name}", n, np.int64) for name in ("x", "y"))
+        out_t = scratch_column("density t", n, t.numpy().dtype)
+        out_p = scratch_column("density p", n, np.bool_)
+        status, kept = _subsample_loop(
+            x, y, p, t.numpy(), draws.numpy(), s, 1.0 / tau, width, height, radius,
+            shifts.numpy(), weights.numpy(), scaled, live, n_live, listed[:-1], call, counts,
+            times, origin, _doubt_bound(n, 2 * radius + 1, largest), column, row, out_x,
+            out_y, out_t, out_p)
     if status >= 0:
         return None
     if status < -1:
