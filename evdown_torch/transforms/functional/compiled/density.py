@@ -109,7 +109,15 @@ def last_neighbours(key: Tensor, place: Tensor, shifts: Tensor, planes: int) -> 
 
 
 @inlined_helper
-def _scaled(count: float, last: float, origin: float, tau: float) -> float:
+def _padded_key(x: int, y: int, on: bool, padded_width: int, padded_height: int,
+                r: int) -> int:  # pragma: no cover - compiled
+    """A pixel's and polarity's key on the sensor padded by ``r`` (``density._pixel_keys``)."""
+    return ((padded_height if on else 0) + y + r) * padded_width + x + r
+
+
+@inlined_helper
+def _scaled(count: float, last: float, origin: float,
+            tau: float) -> float:  # pragma: no cover - compiled
     """``count * exp((last - origin) / tau)``: a state's count scaled to the origin.
 
     ``origin`` is not earlier than ``last`` where there is a count (the stream is
@@ -160,7 +168,7 @@ def _scaled_patches(
         yi = np.int64(y[i])
         if xi < 0 or xi >= width or yi < 0 or yi >= height:
             continue
-        key = ((hp if p[i] else 0) + yi + r) * wp + xi + r
+        key = _padded_key(xi, yi, p[i], wp, hp, r)
         for d in range(shifts.shape[0]):
             at = np.uint64(key + shifts[d])
             if ready[at] == call:
@@ -233,7 +241,7 @@ def _subsample_loop(
             elapsed = 0.0
         rise = math.exp(elapsed)
         fall = 1.0 / rise
-        key = ((hp if p[i] else 0) + yi + r) * wp + xi + r
+        key = _padded_key(xi, yi, p[i], wp, hp, r)
         at = np.uint64(key)
         if listed[at] != call:
             listed[at] = call
