@@ -348,3 +348,22 @@ def test_kept_maps_count_in_the_threads_bytes_and_go_with_release_scratch() -> N
     assert evdown_torch.release_scratch() == 8 * large
     with scratch.kept_map("test map bytes", large, np.int64) as again:
         assert not again.any()
+
+
+def test_each_thread_keeps_its_own_maps() -> None:
+    with scratch.kept_map("test map thread", 3, np.int64) as mine:
+        mine[0] = 1
+    seen: list[list[int]] = []
+
+    def other() -> None:
+        for _ in range(2):
+            with scratch.kept_map("test map thread", 3, np.int64) as theirs:
+                seen.append(theirs.tolist())
+                theirs[1] += 5
+
+    thread = threading.Thread(target=other)
+    thread.start()
+    thread.join()
+    assert seen == [[0, 0, 0], [0, 5, 0]]  # a new map in that thread, kept there
+    with scratch.kept_map("test map thread", 3, np.int64) as again:
+        assert again.tolist() == [1, 0, 0]  # this thread's, untouched
