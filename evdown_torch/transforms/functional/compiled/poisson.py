@@ -7,7 +7,9 @@ window and of the one before as dense maps (taken from the state's entries), and
 window starts, spreads each of the previous window's entries ``g(dx) * (1 - exp(-n))`` along
 its row (the row blur) and adds up the window's ``mean B``; an event's ``B`` then gathers its
 column's 13 row sums once per pixel and window. The cap runs event by event in integers, as
-the eager kernel's closed form computes it.
+the eager kernel's closed form computes it. The dense maps stay with the thread from call to call
+(:func:`~.scratch.kept_map`): each call zeroes what it wrote, and numbers its windows above
+all those before, so a call costs its chunk's pixels, not the sensor's area.
 
 The two paths add their sums in other orders, and ``1 - exp(-n)`` may differ by an ulp: the
 loop bounds both paths' roundings of ``P`` (:func:`_doubt_bound`), and an event whose draw lies
