@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 STEPS = ["import numba", "Tonic array in and out", "EventCount", "Downsample", "EventFunnelling",
          "TemporalFunnelling", "PhotocurrentPooling", "LIFPooling", "LinearEstimation",
          "CubicEstimation", "LinearEstimation session (max_delay)", "DensitySubsampling",
-         "PoissonSubsampling", "floor"]
+         "DensitySubsampling, 640x480 (patches only)", "PoissonSubsampling", "floor"]
 
 
 def one_process() -> tuple[dict[str, float], list[str]]:
@@ -87,6 +87,9 @@ def one_process() -> tuple[dict[str, float], list[str]]:
             LinearEstimation((16, 16, 2), 4, threshold=0.25, max_delay=10).session(), ev),
         # budgets that drop events: the subsamplers' draws and decision loops
         "DensitySubsampling": DensitySubsampling((16, 16, 2), 4, tau=20.0, s=0.3),
+        # a sensor the events' patches cover less of: the counts of the patches only
+        "DensitySubsampling, 640x480 (patches only)": DensitySubsampling(
+            (640, 480, 2), 4, tau=20.0, s=0.3),
         "PoissonSubsampling": PoissonSubsampling((16, 16, 2), 4, window=10, alpha=0.3),
         "floor": RegionFloor((16, 16, 2), 4).session(),
     }
