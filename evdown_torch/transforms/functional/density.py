@@ -63,7 +63,7 @@ from evdown_torch.checks import (
 from evdown_torch.events import Events, sort_by_time
 from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.downsample import to_regions
-from evdown_torch.transforms.functional.draws import event_uniforms
+from evdown_torch.transforms.functional.draws import chunk_uniforms
 from evdown_torch.transforms.functional.protocol import Method, step_in_pieces
 from evdown_torch.transforms.functional.settings import RegionSettings
 
@@ -347,8 +347,7 @@ def _next_state(state: DensityState | None, settings: DensitySettings, events: E
 def _kept(events: Events, density: Tensor, settings: DensitySettings, seen: int,
           origin: int | float) -> Events:
     """The events whose draw is below ``s * density``, downsampled."""
-    index = torch.arange(seen, seen + events.num_events, device=events.device)
-    draws = event_uniforms(events, settings.seed, index=index, origin=origin)
+    draws = chunk_uniforms(events, settings.seed, seen=seen, origin=origin)
     kept = events.select(draws < density.mul_(settings.s))
     return to_regions(kept, settings.factor)
 
@@ -398,8 +397,7 @@ def _compiled_step(events: Events, state: DensityState, settings: DensitySetting
     from evdown_torch.transforms.functional.compiled import density as compiled
 
     n = events.num_events
-    index = torch.arange(state.seen, state.seen + n, device=events.device)
-    draws = event_uniforms(events, settings.seed, index=index, origin=state.origin)
+    draws = chunk_uniforms(events, settings.seed, seen=state.seen, origin=state.origin)
     padded_width, _, radius = _padded(settings)
     shifts, weights = _patch_columns(settings.k, padded_width)
     result = compiled.decide_in_order(

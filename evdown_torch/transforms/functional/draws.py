@@ -17,7 +17,7 @@ from evdown_torch.checks import check_non_negative_int
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled import use_compiled
 
-__all__ = ["content_digest", "event_uniforms", "mixed_seed", "recording_seed"]
+__all__ = ["chunk_uniforms", "content_digest", "event_uniforms", "mixed_seed", "recording_seed"]
 
 _MASK32 = 0xFFFFFFFF
 
@@ -131,3 +131,19 @@ def event_uniforms(
         chains.append(h)
     high, low = chains
     return ((high << 21) | (low >> 11)).to(torch.float64).mul_(2.0 ** -53)
+
+
+def chunk_uniforms(events: Events, seed: int, *, seen: int, origin: int | float) -> Tensor:
+    """:func:`event_uniforms` of a chunk whose first event is the stream's ``seen``-th.
+
+    What a subsampler's step draws: its events sit at ``seen, seen + 1, ...`` in the stream
+    that started at ``origin``.
+
+    Example:
+        >>> ev = Events.from_columns([0, 1, 1], [0, 0, 0], [5, 9, 9], [1, 0, 0])
+        >>> whole = event_uniforms(ev, 3, index=torch.arange(3), origin=5)
+        >>> bool(chunk_uniforms(ev.part(1, 3), 3, seen=1, origin=5).equal(whole[1:]))
+        True
+    """
+    index = torch.arange(seen, seen + events.num_events, device=events.device)
+    return event_uniforms(events, seed, index=index, origin=origin)

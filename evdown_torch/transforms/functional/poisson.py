@@ -54,7 +54,7 @@ from evdown_torch.checks import check_non_negative_int, check_positive_float
 from evdown_torch.events import Events
 from evdown_torch.transforms.functional.compiled import use_compiled
 from evdown_torch.transforms.functional.downsample import to_regions
-from evdown_torch.transforms.functional.draws import event_uniforms
+from evdown_torch.transforms.functional.draws import chunk_uniforms
 from evdown_torch.transforms.functional.protocol import Method, run_protocol, step_in_pieces
 from evdown_torch.transforms.functional.settings import RegionSettings
 from evdown_torch.transforms.functional.temporal import bin_index
@@ -338,8 +338,7 @@ def _step_sorted(
     key = (events.p.to(torch.int64) * height + events.y) * width + events.x
     probability, (distinct, search, total) = _probabilities(events, window, key, state,
                                                             settings)
-    index = torch.arange(state.seen, state.seen + n, device=events.device)
-    draws = event_uniforms(events, settings.seed, index=index, origin=state.origin)
+    draws = chunk_uniforms(events, settings.seed, seen=state.seen, origin=state.origin)
     keep = _capped(draws < probability, state.seen, state.kept, settings.alpha_fraction)
     kept = events.select(keep)
     # The entries of the last window and the one before it carry over.
@@ -383,8 +382,7 @@ def _compiled_step(events: Events, state: PoissonState, settings: PoissonSetting
         return None  # (the eager kernel says why)
     width, height, _ = settings.sensor_size
     window = bin_index(events.t, dt=settings.window, t_start=state.origin)
-    index = torch.arange(state.seen, state.seen + n, device=events.device)
-    draws = event_uniforms(events, settings.seed, index=index, origin=state.origin)
+    draws = chunk_uniforms(events, settings.seed, seen=state.seen, origin=state.origin)
     result = compiled.decide_in_order(
         events, window, draws, state.windows, state.keys, state.counts,
         sensor_size=settings.sensor_size, factor=settings.factor, alpha=settings.alpha,
