@@ -158,11 +158,14 @@ def test_a_call_that_stops_early_leaves_the_maps_as_the_next_call_needs(rng, mon
     maps = _poisson_maps()
     for name in ("current", "previous", "rows"):
         assert not maps[f"map poisson {name}"].any(), name
-    # A refused chunk (y = 7 on a 7-high sensor) loses the maps it held; the next call
-    # takes new ones and still gives the eager kernel's step.
+    # A refused chunk (y = 7 on a 7-high sensor) leaves them zeros too, and the next call
+    # still gives the eager kernel's step.
     outside = Events.from_columns([3, 2], [2, 7], [500, 501], [1, 0])
     with pytest.raises(ValueError, match="y"):
         poisson_kernel._compiled_step(outside, state, settings)
+    maps = _poisson_maps()
+    for name in ("current", "previous", "rows"):
+        assert not maps[f"map poisson {name}"].any(), name
     steps = both_paths(lambda: poisson_kernel.poisson_step(events.part(300, 600), state,
                                                            settings))
     assert_identical(steps[0][0], steps[1][0])

@@ -242,48 +242,15 @@ def decide_in_order(
     Raises:
         ValueError: for an event whose pixel lies outside the sensor.
     """
-    width, height, _ = sensor_size
-    planes = 2 * width * height
-    # Per-pixel maps kept from call to call as each call leaves them (a call touches its
-    # chunk's pixels only): the counts and the blur zero outside a call, each pixel's
-    # ``P`` and window number, the last number at the end of ``stamp``.
-    with kept_map("poisson current", planes, np.int64) as current, \
-            kept_map("poisson previous", planes, np.int64) as previous, \
-            kept_map("poisson rows", planes, np.float64) as rows, \
-            kept_map("poisson chances", planes, np.float64) as chances, \
-            kept_map("poisson stamp", planes + 1, np.int64) as stamp:
-        return _decide(events, window, draws, entry_windows, entry_keys, entry_counts,
-                       current, previous, rows, chances, stamp, sensor_size=sensor_size,
-                       factor=factor, alpha=alpha, fraction=fraction, seen=seen, kept=kept,
-                       blur=blur, edges=edges)
-
-
-def _decide(
-    events: Events, window: Tensor, draws: Tensor, entry_windows: Tensor, entry_keys: Tensor,
-    entry_counts: Tensor, current: np.ndarray, previous: np.ndarray, rows: np.ndarray,
-    chances: np.ndarray, stamp: np.ndarray, *, sensor_size: tuple[int, int, int],
-    factor: tuple[int, int], alpha: float, fraction: tuple[int, int], seen: int, kept: int,
-    blur: tuple[float, ...], edges: tuple[Tensor, Tensor, Tensor, Tensor],
-) -> tuple[Events, int, Tensor, Tensor, Tensor] | None:
-    """:func:`decide_in_order` on the maps it took, which it leaves as the next call takes them."""
     n = events.num_events
     width, height, _ = sensor_size
+    planes = 2 * width * height
     # A window's entries: the state's of that window, then at most one an event.
-    most = min(2 * width * height, n + entry_keys.shape[0])
+    most = min(planes, n + entry_keys.shape[0])
     cur_keys, prev_keys, blurred_from = (scratch_column(f"poisson {name}", most, np.int64)
                                          for name in ("current keys", "previous keys",
                                                       "blurred from"))
     first = int(window[0])
-
-    def seeded(counts: np.ndarray, keys: np.ndarray, chosen: np.ndarray) -> int:
-        """The state's entries ``chosen`` put in ``counts``, their keys in ``keys``."""
-        found = entry_keys.numpy()[chosen]
-        counts[found] = entry_counts.numpy()[chosen]
-        keys[:found.shape[0]] = found
-        return found.shape[0]
-
-    n_cur = seeded(current, cur_keys, entry_windows.numpy() == first)
-    n_prev = seeded(previous, prev_keys, entry_windows.numpy() == first - 1)
     a, b = fraction
     limit, remainder = divmod(a * seen, b)
     out_w, out_h, _ = output_size(sensor_size, factor)
@@ -293,19 +260,36 @@ def _decide(
     x, y, p = columns_of(events.x, events.y, events.p)
     norm_x, spread_x, norm_y, spread_y = (edge.numpy() for edge in edges)
     g = np.array(blur)
-    result = _poisson_loop(
-        x, y, p, window.numpy(), draws.numpy(), alpha, a, b, limit, remainder, kept, width,
-        height, g, norm_x, norm_y, spread_x, spread_y, current, previous, cur_keys, n_cur,
-        prev_keys, n_prev, first, rows, blurred_from, chances, stamp[:-1], int(stamp[-1]),
-        _doubt_bound(), column, row, out_x, out_y, out_index)
-    (status, n_out, kept_after, current, cur_keys, n_cur, previous, prev_keys, n_prev, last,
-     n_blurred, stamp[-1]) = result
-    # The new state: the entries of the last window and of the one before, by window, key.
-    before = np.sort(prev_keys[:n_prev])
-    after = np.sort(cur_keys[:n_cur])
-    counts = np.concatenate([previous[before], current[after]])
-    _restore(current, cur_keys, n_cur, previous, prev_keys, n_prev, rows, blurred_from,
-             n_blurred, width, g.shape[0] // 2)
+
+    def seeded(counts: np.ndarray, keys: np.ndarray, chosen: np.ndarray) -> int:
+        """The state's entries ``chosen`` put in ``counts``, their keys in ``keys``."""
+        found = entry_keys.numpy()[chosen]
+        counts[found] = entry_counts.numpy()[chosen]
+        keys[:found.shape[0]] = found
+        return found.shape[0]
+
+    # Per-pixel maps kept from call to call as each call leaves them (a call touches its
+    # chunk's pixels only): the counts and the blur zero outside a call, each pixel's
+    # ``P`` and window number, the last number at the end of ``stamp``.
+    with kept_map("poisson current", planes, np.int64) as current, \
+            kept_map("poisson previous", planes, np.int64) as previous, \
+            kept_map("poisson rows", planes, np.float64) as rows, \
+            kept_map("poisson chances", planes, np.float64) as chances, \
+            kept_map("poisson stamp", planes + 1, np.int64) as stamp:
+        n_cur = seeded(current, cur_keys, entry_windows.numpy() == first)
+        n_prev = seeded(previous, prev_keys, entry_windows.numpy() == first - 1)
+        (status, n_out, kept_after, last_current, cur_keys, n_cur, last_previous, prev_keys,
+         n_prev, last, n_blurred, stamp[-1]) = _poisson_loop(
+            x, y, p, window.numpy(), draws.numpy(), alpha, a, b, limit, remainder, kept, width,
+            height, g, norm_x, norm_y, spread_x, spread_y, current, previous, cur_keys, n_cur,
+            prev_keys, n_prev, first, rows, blurred_from, chances, stamp[:-1], int(stamp[-1]),
+            _doubt_bound(), column, row, out_x, out_y, out_index)
+        # The new state: the entries of the last window and of the one before, by window, key.
+        before = np.sort(prev_keys[:n_prev])
+        after = np.sort(cur_keys[:n_cur])
+        counts = np.concatenate([last_previous[before], last_current[after]])
+        _restore(last_current, cur_keys, n_cur, last_previous, prev_keys, n_prev, rows,
+                 blurred_from, n_blurred, width, g.shape[0] // 2)
     if status >= 0:
         return None
     if status < -1:
