@@ -1,4 +1,4 @@
-"""PoissonSubsampling's step compiled: one loop over the events, in stream order.
+"""PoissonSubsampling's step compiled: one pass over the events, in stream order.
 
 The eager kernel (:mod:`..poisson`) builds a sparse count table of the chunk's windows, blurs
 each previous window's map along rows for all its entries, gathers the columns at every
@@ -99,67 +99,35 @@ def _restore(
 
 
 @compiled_loop
-def _poisson_loop(
-    x: np.ndarray, y: np.ndarray, p: np.ndarray, window: np.ndarray, u: np.ndarray,
+def _window_events(
+    x: np.ndarray, y: np.ndarray, p: np.ndarray, window: np.ndarray, u: np.ndarray, i: int,
     alpha: float, a: int, b: int, limit: int, remainder: int, kept: int, width: int,
-    height: int, g: np.ndarray, norm_x: np.ndarray, norm_y: np.ndarray, spread_x: np.ndarray,
-    spread_y: np.ndarray, current: np.ndarray, previous: np.ndarray, cur_keys: np.ndarray,
-    n_cur: int, prev_keys: np.ndarray, n_prev: int, cur_window: int, rows: np.ndarray,
-    blurred_from: np.ndarray, chances: np.ndarray, stamp: np.ndarray, epoch: int,
-    relative: float, column: np.ndarray, row: np.ndarray, out_x: np.ndarray,
-    out_y: np.ndarray, out_index: np.ndarray,
-) -> tuple[int, int, int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, int, int, int,
-           int]:  # pragma: no cover - compiled
-    """Decide each time-sorted event: a candidate iff ``u < P``, kept iff the cap allows.
+    height: int, g: np.ndarray, norm_x: np.ndarray, norm_y: np.ndarray, mass: np.ndarray,
+    current: np.ndarray, cur_keys: np.ndarray, n_cur: int, rows: np.ndarray,
+    chances: np.ndarray, stamp: np.ndarray, epoch: int, bound: float, column: np.ndarray,
+    row: np.ndarray, out_x: np.ndarray, out_y: np.ndarray, out_index: np.ndarray, n_out: int,
+) -> tuple[int, int, int, int, int, int, int]:  # pragma: no cover - compiled
+    """Decide the events of one window, from event ``i`` to the window's last in the chunk.
 
-    ``current`` / ``previous``: dense counts of window ``cur_window`` and of the one before,
-    their keys in ``cur_keys[:n_cur]`` and ``prev_keys[:n_prev]``; swapped as windows
-    start. ``limit``, ``remainder``: ``divmod(a * seen, b)``, moved on an event at a time;
-    ``kept``: the cap's count. ``chances``: each pixel's ``P`` in the window it was last
-    computed in, whose number is the pixel's ``stamp``; ``epoch``: the largest number in
-    ``stamp`` (each window of the call takes the next one, so no ``stamp`` is cleared).
-    The kept events' regions and places go to ``out_*``.
+    A function of its own, not the body of :func:`_poisson_loop`'s loop: there the maps
+    are swapped as windows start, and an array variable assigned inside a loop made every
+    event's reads and writes of it about twice as slow (``_numba``, "No array assigned in
+    a hot loop"). ``mass``: the previous window's ``mean B`` numerators by polarity;
+    ``bound``: the window's doubt bound; the rest as :func:`_poisson_loop`'s.
 
     Returns:
-        ``(status, kept events, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
-        cur_window, n_blurred, epoch)``: status -1 after the last event, ``i >= 0`` for an
-        event in doubt (the call goes to the eager kernel), ``-2 - i`` for an event outside
-        the sensor; the maps as they end (swapped as windows started), the entries whose
-        blur ``rows`` holds (``blurred_from[:n_blurred]``) and the last window's number.
+        ``(status, next event, limit, remainder, kept, n_cur, n_out)``: status -1 at the
+        window's end (or the chunk's), else as :func:`_poisson_loop`'s.
     """
     radius = g.shape[0] // 2
     area = float(width * height)
-    mass = np.zeros(2)
-    n_blurred = np.int64(0)  # (not a literal 0: one compile of _start_window, not two)
-    started = False
-    bound = 0.0
-    n_out = 0
-    for i in range(window.shape[0]):
+    w = window[i]
+    n = window.shape[0]
+    while i < n and window[i] == w:
         xi = np.int64(x[i])
         yi = np.int64(y[i])
         if xi < 0 or xi >= width or yi < 0 or yi >= height:
-            return (-2 - i, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
-                    cur_window, n_blurred, epoch)
-        w = window[i]
-        if w != cur_window:  # a new window: the current one becomes the previous, or none
-            for m in range(n_prev):
-                previous[np.uint64(prev_keys[m])] = 0
-            if w == cur_window + 1:
-                current, previous = previous, current
-                cur_keys, prev_keys = prev_keys, cur_keys
-                n_prev, n_cur = n_cur, 0
-            else:
-                for m in range(n_cur):
-                    current[np.uint64(cur_keys[m])] = 0
-                n_prev, n_cur = 0, 0
-            cur_window = w
-            started = False
-        if not started:  # the previous window's blur and mean, once a window
-            n_blurred = _start_window(previous, prev_keys, n_prev, width, height, g, spread_x,
-                                      spread_y, rows, blurred_from, n_blurred, mass)
-            bound = relative * (n_prev + 64)
-            epoch += 1
-            started = True
+            return -2 - i, i, limit, remainder, kept, n_cur, n_out
         key = ((1 if p[i] else 0) * height + yi) * width + xi
         at = np.uint64(key)
         if stamp[at] != epoch:  # the pixel's P in this window, once
@@ -177,8 +145,7 @@ def _poisson_loop(
         chance = chances[at]
         ui = u[i]
         if abs(ui - chance) <= chance * bound + 1e-300:
-            return (i, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
-                    cur_window, n_blurred, epoch)
+            return i, i, limit, remainder, kept, n_cur, n_out
         # the cap: floor(a * seen / b) after this event, one step of a <= b at a time
         remainder += a
         if remainder >= b:
@@ -194,7 +161,69 @@ def _poisson_loop(
             cur_keys[n_cur] = key
             n_cur += 1
         current[at] += 1
-    return (-1, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
+        i += 1
+    return -1, i, limit, remainder, kept, n_cur, n_out
+
+
+@compiled_loop
+def _poisson_loop(
+    x: np.ndarray, y: np.ndarray, p: np.ndarray, window: np.ndarray, u: np.ndarray,
+    alpha: float, a: int, b: int, limit: int, remainder: int, kept: int, width: int,
+    height: int, g: np.ndarray, norm_x: np.ndarray, norm_y: np.ndarray, spread_x: np.ndarray,
+    spread_y: np.ndarray, current: np.ndarray, previous: np.ndarray, cur_keys: np.ndarray,
+    n_cur: int, prev_keys: np.ndarray, n_prev: int, cur_window: int, rows: np.ndarray,
+    blurred_from: np.ndarray, chances: np.ndarray, stamp: np.ndarray, epoch: int,
+    relative: float, column: np.ndarray, row: np.ndarray, out_x: np.ndarray,
+    out_y: np.ndarray, out_index: np.ndarray,
+) -> tuple[int, int, int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, int, int, int,
+           int]:  # pragma: no cover - compiled
+    """Decide each time-sorted event: a candidate iff ``u < P``, kept iff the cap allows.
+
+    Window by window: the previous window's blur and mean when one starts, then its
+    events (:func:`_window_events`). ``current`` / ``previous``: dense counts of window
+    ``cur_window`` and of the one before, their keys in ``cur_keys[:n_cur]`` and
+    ``prev_keys[:n_prev]``; swapped as windows start. ``limit``, ``remainder``:
+    ``divmod(a * seen, b)``, moved on an event at a time; ``kept``: the cap's count.
+    ``chances``: each pixel's ``P`` in the window it was last computed in, whose number is
+    the pixel's ``stamp``; ``epoch``: the largest number in ``stamp`` (each window of the
+    call takes the next one, so no ``stamp`` is cleared). The kept events' regions and
+    places go to ``out_*``.
+
+    Returns:
+        ``(status, kept events, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
+        cur_window, n_blurred, epoch)``: status -1 after the last event, ``i >= 0`` for an
+        event in doubt (the call goes to the eager kernel), ``-2 - i`` for an event outside
+        the sensor; the maps as they end (swapped as windows started), the entries whose
+        blur ``rows`` holds (``blurred_from[:n_blurred]``) and the last window's number.
+    """
+    mass = np.zeros(2)
+    n_blurred = np.int64(0)  # (not a literal 0: one compile of _start_window, not two)
+    n_out = 0
+    status = -1
+    i = 0
+    while i < window.shape[0] and status == -1:
+        w = window[i]
+        if w != cur_window:  # a new window: the current one becomes the previous, or none
+            for m in range(n_prev):
+                previous[np.uint64(prev_keys[m])] = 0
+            if w == cur_window + 1:
+                current, previous = previous, current
+                cur_keys, prev_keys = prev_keys, cur_keys
+                n_prev, n_cur = n_cur, 0
+            else:
+                for m in range(n_cur):
+                    current[np.uint64(cur_keys[m])] = 0
+                n_prev, n_cur = 0, 0
+            cur_window = w
+        # the previous window's blur and mean, once a window
+        n_blurred = _start_window(previous, prev_keys, n_prev, width, height, g, spread_x,
+                                  spread_y, rows, blurred_from, n_blurred, mass)
+        epoch += 1
+        status, i, limit, remainder, kept, n_cur, n_out = _window_events(
+            x, y, p, window, u, i, alpha, a, b, limit, remainder, kept, width, height, g,
+            norm_x, norm_y, mass, current, cur_keys, n_cur, rows, chances, stamp, epoch,
+            relative * (n_prev + 64), column, row, out_x, out_y, out_index, n_out)
+    return (status, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
             cur_window, n_blurred, epoch)
 
 
