@@ -37,7 +37,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from fractions import Fraction
-from functools import cache
+from functools import cache, lru_cache
 from typing import NamedTuple
 
 import torch
@@ -142,8 +142,9 @@ def _blur_weights() -> tuple[float, ...]:
                                                                         BLUR_RADIUS + 1))
 
 
+@lru_cache(maxsize=16)
 def _edge_factors(size: int, device: torch.device) -> tuple[Tensor, Tensor]:
-    """Per coordinate along one axis of ``size`` pixels: ``(norm, spread)``.
+    """Per coordinate along one axis of ``size`` pixels: ``(norm, spread)`` (shared, never written).
 
     ``norm[j]``: the weight inside the sensor of the window around ``j`` (what ``B(j)`` is
     divided by); ``spread[i] = sum_j g(j - i) / norm[j]``: what pixel ``i`` adds to the sum of
