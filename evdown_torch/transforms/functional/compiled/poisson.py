@@ -41,11 +41,26 @@ __all__ = ["decide_in_order"]
 #: Relative rounding of one float64 operation.
 EPS = 2.0**-53
 
+#: :func:`_clear_blur` clears the whole blur map where it has at most this many entries per
+#: entry the blur wrote: on the live replay's 128x128 sensor, the scattered zeros of two
+#: windows' blur took about 0.6 ms of a 4.4 ms call.
+WHOLE_CLEAR = 4
+
+#: Counts below this take ``1 - exp(-n)`` from a table (:func:`_start_window`).
+_TABLED = 64
+
 
 @inlined_helper
 def _clear_blur(rows: np.ndarray, blurred_from: np.ndarray, n_blurred: int, width: int,
                 radius: int) -> None:  # pragma: no cover - compiled
-    """Zeros in ``rows`` where the blur of the entries ``blurred_from[:n_blurred]`` wrote."""
+    """Zeros in ``rows`` where the blur of the entries ``blurred_from[:n_blurred]`` wrote.
+
+    The whole map at once where that is at most :data:`WHOLE_CLEAR` times the entries'
+    writes (a map of a small sensor): one pass in order rather than scattered writes.
+    """
+    if WHOLE_CLEAR * n_blurred * (2 * radius + 1) >= rows.shape[0]:
+        rows[:] = 0.0
+        return
     for m in range(n_blurred):
         key = blurred_from[m]
         x = key % width
@@ -72,10 +87,14 @@ def _start_window(
     _clear_blur(rows, blurred_from, n_blurred, width, radius)
     mass[0] = 0.0
     mass[1] = 0.0
+    tabled = np.empty(_TABLED)  # 1 - exp(-n) of the small counts, as below
+    for n in range(_TABLED):
+        tabled[n] = -math.expm1(-np.float64(n))
     for m in range(n_entries):
         key = entries[m]
         blurred_from[m] = key
-        value = -math.expm1(-np.float64(counts[np.uint64(key)]))
+        count = counts[np.uint64(key)]
+        value = tabled[count] if count < _TABLED else -math.expm1(-np.float64(count))
         x = key % width
         y = (key // width) % height
         mass[key // (width * height)] += value * spread_x[x] * spread_y[y]
