@@ -125,7 +125,8 @@ def _window_events(
     height: int, g: np.ndarray, norm_x: np.ndarray, norm_y: np.ndarray, mass: np.ndarray,
     current: np.ndarray, cur_keys: np.ndarray, n_cur: int, rows: np.ndarray,
     chances: np.ndarray, stamp: np.ndarray, epoch: int, bound: float, column: np.ndarray,
-    row: np.ndarray, out_x: np.ndarray, out_y: np.ndarray, out_index: np.ndarray, n_out: int,
+    row: np.ndarray, t: np.ndarray, out_x: np.ndarray, out_y: np.ndarray, out_t: np.ndarray,
+    out_p: np.ndarray, n_out: int,
 ) -> tuple[int, int, int, int, int, int, int]:  # pragma: no cover - compiled
     """Decide the events of one window, from event ``i`` to the window's last in the chunk.
 
@@ -175,7 +176,8 @@ def _window_events(
             kept += 1
             out_x[n_out] = column[np.uint64(xi)]
             out_y[n_out] = row[np.uint64(yi)]
-            out_index[n_out] = i
+            out_t[n_out] = t[i]
+            out_p[n_out] = p[i]
             n_out += 1
         if current[at] == 0:
             cur_keys[n_cur] = key
@@ -193,8 +195,8 @@ def _poisson_loop(
     spread_y: np.ndarray, current: np.ndarray, previous: np.ndarray, cur_keys: np.ndarray,
     n_cur: int, prev_keys: np.ndarray, n_prev: int, cur_window: int, rows: np.ndarray,
     blurred_from: np.ndarray, chances: np.ndarray, stamp: np.ndarray, epoch: int,
-    relative: float, column: np.ndarray, row: np.ndarray, out_x: np.ndarray,
-    out_y: np.ndarray, out_index: np.ndarray,
+    relative: float, column: np.ndarray, row: np.ndarray, t: np.ndarray, out_x: np.ndarray,
+    out_y: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
 ) -> tuple[int, int, int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray, int, int, int,
            int]:  # pragma: no cover - compiled
     """Decide each time-sorted event: a candidate iff ``u < P``, kept iff the cap allows.
@@ -206,8 +208,8 @@ def _poisson_loop(
     ``divmod(a * seen, b)``, moved on an event at a time; ``kept``: the cap's count.
     ``chances``: each pixel's ``P`` in the window it was last computed in, whose number is
     the pixel's ``stamp``; ``epoch``: the largest number in ``stamp`` (each window of the
-    call takes the next one, so no ``stamp`` is cleared). The kept events' regions and
-    places go to ``out_*``.
+    call takes the next one, so no ``stamp`` is cleared). The kept events' regions, ``t``
+    and ``p`` go to ``out_*``.
 
     Returns:
         ``(status, kept events, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
@@ -242,7 +244,7 @@ def _poisson_loop(
         status, i, limit, remainder, kept, n_cur, n_out = _window_events(
             x, y, p, window, u, i, alpha, a, b, limit, remainder, kept, width, height, g,
             norm_x, norm_y, mass, current, cur_keys, n_cur, rows, chances, stamp, epoch,
-            relative * (n_prev + 64), column, row, out_x, out_y, out_index, n_out)
+            relative * (n_prev + 64), column, row, t, out_x, out_y, out_t, out_p, n_out)
     return (status, n_out, kept, current, cur_keys, n_cur, previous, prev_keys, n_prev,
             cur_window, n_blurred, epoch)
 
@@ -313,9 +315,9 @@ def decide_in_order(
     limit, remainder = divmod(a * seen, b)
     out_w, out_h, _ = output_size(sensor_size, factor)
     column, row = region_tables(factor, out_w, out_h)
-    out_x, out_y, out_index = (scratch_column(f"poisson {name}", n, np.int64)
-                               for name in ("x", "y", "index"))
-    x, y, p = columns_of(events.x, events.y, events.p)
+    x, y, p, t = columns_of(events.x, events.y, events.p, events.t)
+    out_x, out_y = (scratch_column(f"poisson {name}", n, np.int64) for name in ("x", "y"))
+    out_t, out_p = scratch_column("poisson t", n, t.dtype), scratch_column("poisson p", n, p.dtype)
     norm_x, spread_x, norm_y, spread_y = (edge.numpy() for edge in edges)
     g = np.array(blur)
 
@@ -341,7 +343,7 @@ def decide_in_order(
             x, y, p, window.numpy(), draws.numpy(), alpha, a, b, limit, remainder, kept, width,
             height, g, norm_x, norm_y, spread_x, spread_y, current, previous, cur_keys, n_cur,
             prev_keys, n_prev, first, rows, blurred_from, chances, stamp[:-1], int(stamp[-1]),
-            _doubt_bound(), column, row, out_x, out_y, out_index)
+            _doubt_bound(), column, row, t, out_x, out_y, out_t, out_p)
         # The new state: the entries of the last window and of the one before, by window, key.
         before = _sorted(prev_keys[:n_prev])
         after = _sorted(cur_keys[:n_cur])
@@ -353,9 +355,7 @@ def decide_in_order(
     if status < -1:
         raise outside_error(-2 - status, x, y, np.empty(width, np.int8),
                             np.empty(height, np.int8))
-    index = torch.from_numpy(out_index[:n_out])
-    output = Events(torch.from_numpy(out_x[:n_out]), torch.from_numpy(out_y[:n_out]),
-                    events.t.index_select(0, index), events.p.index_select(0, index))
+    output = Events(*(torch.from_numpy(column[:n_out]) for column in (out_x, out_y, out_t, out_p)))
     keys = np.concatenate([before, after])
     windows = np.concatenate([np.full(before.shape[0], last - 1, dtype=np.int64),
                               np.full(after.shape[0], last, dtype=np.int64)])
