@@ -18,7 +18,7 @@ from evdown_torch import (
     eager_kernels,
 )
 from evdown_torch.transforms.functional.funnelling import drop_repeats, funnelling_sorted
-from evdown_torch.transforms.functional.temporal import bin_start
+from evdown_torch.transforms.functional.temporal import bin_index, bin_start
 from tests.helpers import (
     FLOAT_DTYPE,
     assert_identical,
@@ -172,18 +172,23 @@ def test_bin_starts_equal_eager_and_python_integers(dt, origin, monkeypatch, rng
     offsets = [o for o in offsets if origin + o <= 2**63 - 1]
     for order in (offsets, sorted(offsets)):
         t = torch.tensor([origin + o for o in order], dtype=torch.int64)
-        calls = spy(monkeypatch, TEMPORAL, "_bin_start_loop")
+        calls = spy(monkeypatch, TEMPORAL, "_bins_loop")
         compiled, eager = both_paths(lambda t=t: bin_start(t, dt=dt, t_start=origin))
         assert len(calls) == 1  # the compiled loop ran (once: the eager path has none)
         assert_identical(compiled, eager)
         assert compiled.tolist() == [origin + (o // dt) * dt for o in order]
+        compiled, eager = both_paths(lambda t=t: bin_index(t, dt=dt, t_start=origin))
+        assert len(calls) == 2
+        assert_identical(compiled, eager)
+        assert compiled.tolist() == [o // dt for o in order]
 
 
 def test_bin_starts_refuse_offsets_past_int64_on_both_paths():
     t = torch.tensor([-5, 2**63 - 1], dtype=torch.int64)  # 2**63 + 4 from the origin
     for forced in (False, True):
-        with eager_kernels(forced), pytest.raises(ValueError, match="span 2\\*\\*63 or more"):
-            bin_start(t, dt=10, t_start=-5)
+        for bins in (bin_start, bin_index):
+            with eager_kernels(forced), pytest.raises(ValueError, match="span 2\\*\\*63 or more"):
+                bins(t, dt=10, t_start=-5)
 
 
 def test_bin_starts_of_other_integer_dtypes_keep_their_dtype_on_both_paths():

@@ -71,6 +71,13 @@ def bin_index(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
             f"dt must be a whole number for integer timestamps (bin starts must stay "
             f"integers), got {dt!r}"
         )
+    if t.dtype == torch.int64 and use_compiled(t) and int(dt) <= _INT64_MAX:
+        from evdown_torch.transforms.functional.compiled.temporal import bin_indices
+
+        indices = bin_indices(t.numpy(), int(t_start), int(dt))
+        if indices is None:
+            raise _span_error(t, int(t_start))
+        return torch.from_numpy(indices)
     origin = int(t_start)
     offset = t - origin
     if bool((offset < 0).any()):  # t >= t_start, so only a wrap past 2**63 - 1 is negative
