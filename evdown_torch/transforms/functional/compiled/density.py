@@ -216,6 +216,7 @@ def _subsample_loop(
     moved = 0.0  # the relative rounding the origin's moves add
     kept = 0
     m = shifts.shape[0]
+    rise, fall = 1.0, 1.0
     for i in range(t.shape[0]):
         xi = np.int64(x[i])
         yi = np.int64(y[i])
@@ -239,8 +240,12 @@ def _subsample_loop(
             moved += (3 * min(elapsed, 745.0) + 4) * EPS
             origin = ti
             elapsed = 0.0
-        rise = math.exp(elapsed)
-        fall = 1.0 / rise
+        # exp((t - o) / tau) and its inverse, once a time: events of one time come in runs
+        # (about 25 a microsecond at 25 M events/s), and the origin never moves inside one
+        # (its first event moves it to their time, if any does)
+        if i == 0 or ti != t[i - 1]:
+            rise = math.exp(elapsed)
+            fall = 1.0 / rise
         key = _padded_key(xi, yi, p[i], wp, hp, r)
         at = np.uint64(key)
         if listed[at] != call:
