@@ -219,10 +219,9 @@ def _poisson_loop(
         blur ``rows`` holds (``blurred_from[:n_blurred]``) and the last window's number.
     """
     mass = np.zeros(2)
-    n_blurred = np.int64(0)  # (not a literal 0: one compile of _start_window, not two)
-    n_out = 0
+    # (np.int64, not a literal 0: one compile of each loop called, not two)
+    n_blurred, n_out, i = np.int64(0), np.int64(0), np.int64(0)
     status = -1
-    i = 0
     while i < window.shape[0] and status == -1:
         w = window[i]
         if w != cur_window:  # a new window: the current one becomes the previous, or none
