@@ -159,9 +159,46 @@ def test_a_clock_near_the_int64_limits():
     assert_identical(*both_paths(lambda: transform(wide)))
 
 
-def test_the_doubt_bound_grows_with_the_call_and_stays_far_below_one_draw_in_a_million():
-    small, large = compiled._doubt_bound(10, 3, 1.0), compiled._doubt_bound(250_000, 7, 1e4)
+@pytest.mark.parametrize("by_rows", [False, True])
+def test_the_doubt_bound_grows_with_the_call_and_stays_far_below_one_draw_in_a_million(by_rows):
+    small = compiled._doubt_bound(10, 3, 1.0, by_rows)
+    large = compiled._doubt_bound(250_000, 7, 1e4, by_rows)
     assert 0 < small < large < 1e-9
+
+
+def test_a_chunk_is_summed_by_rows_where_making_every_row_sum_costs_less():
+    # 2 k planes <= n (k^2 - 2 k): at k = 7, planes <= 2.5 n
+    assert compiled._by_rows(1_000, 7, 2_500) and not compiled._by_rows(1_000, 7, 2_501)
+    assert not compiled._by_rows(10**6, 1, 4)  # a 1 x 1 patch: nothing to save
+
+
+@pytest.mark.parametrize(("tau", "k"), [(150.0, 5), (1.0, 3), (math.inf, 7), (0.05, 5)])
+def test_summing_by_rows_gives_the_neighbours_sums_steps_bit_for_bit(tau, k, rng, monkeypatch):
+    """The patch summed by rows or by its k x k neighbours: the same events and states (the
+    counts are the same; the densities round otherwise, within the doubt bound), and the
+    eager kernel's events. tau = 0.05 moves the clock's origin often (the rows made again)."""
+    arr = random_stream(rng, 1_200, LARGE, t_max=20_000)
+    events = sort_by_time(to_events(arr, LARGE)[0])
+    settings = density_kernel.DensitySettings(LARGE, (2, 3), tau, k, 0.3, 1)
+    cuts = [3, 40, 41, 300, 900]
+    transform = DensitySubsampling(LARGE, (2, 3), tau=tau, k=k, s=0.3, seed=1)
+    results = []
+    for by_rows in (True, False):
+        with monkeypatch.context() as patched:
+            patched.setattr(compiled, "_by_rows", lambda *_, by_rows=by_rows: by_rows)
+            state = density_kernel.density_init(settings, events)
+            outputs = []
+            for start, stop in zip([0, *cuts], [*cuts, events.num_events], strict=True):
+                result = density_kernel._compiled_step(events.part(start, stop), state,
+                                                       settings)
+                assert result is not None
+                outputs.append(result[0])
+                state = result[1]
+            results.append((Events.cat(outputs), state.decayed, state.last_t))
+            assert_identical(*both_paths(lambda: run_in_chunks(transform, arr, cuts)))
+    assert_identical(results[0][0], results[1][0])
+    assert torch.equal(results[0][1], results[1][1]) and torch.equal(results[0][2],
+                                                                     results[1][2])
 
 
 LARGE = (60, 40, 2)

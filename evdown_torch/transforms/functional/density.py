@@ -71,6 +71,7 @@ __all__ = [
     "DENSITY",
     "DensitySettings",
     "DensityState",
+    "axis_weights",
     "density_init",
     "density_step",
     "density_subsampling",
@@ -127,6 +128,23 @@ def patch_offsets(k: int) -> list[tuple[int, int, float]]:
     r = k // 2
     return [(dx, dy, math.exp(-(dx * dx + dy * dy) / (2 * sigma * sigma)))
             for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+
+
+@functools.cache
+def axis_weights(k: int) -> Tensor:
+    """The patch's weights along one axis, ``g(d) = exp(-d^2 / (2 sigma^2))`` at ``d = -r..r``.
+
+    ``w = g(dx) * g(dy)`` (exactly, for the exact exponentials): the compiled loop sums a
+    patch as rows (:mod:`.compiled.density`). ``(k,)`` float64, shared, never written.
+
+    Example:
+        >>> [round(w, 4) for w in axis_weights(3).tolist()]
+        [0.2494, 1.0, 0.2494]
+    """
+    sigma = k / 5
+    r = k // 2
+    return torch.tensor([math.exp(-(d * d) / (2 * sigma * sigma)) for d in range(-r, r + 1)],
+                        dtype=torch.float64)
 
 
 class DensityState(NamedTuple):
@@ -403,7 +421,7 @@ def _compiled_step(events: Events, state: DensityState, settings: DensitySetting
     result = compiled.decide_in_order(
         events, state.decayed, state.last_t, draws, sensor_size=settings.sensor_size,
         factor=settings.factor, tau=settings.tau, s=settings.s, radius=radius,
-        shifts=shifts, weights=weights, clock_start=state.origin)
+        shifts=shifts, weights=weights, axis=axis_weights(settings.k), clock_start=state.origin)
     if result is None:
         return None
     kept, decayed, last_t = result

@@ -17,7 +17,10 @@ starts, for the pixels of its events' patches only where those cover less than t
 call on a large sensor scales no more than it reads, though it still copies the state's two
 columns). An event at ``t`` adds
 ``exp((t - o) / tau)`` to its pixel's ``A``, and its density is
-``sum_j w_j A_j / exp((t - o) / tau)``: one ``exp`` an event. The origin moves to the event's
+``sum_j w_j A_j / exp((t - o) / tau)``: one ``exp`` an event. The Gaussian is separable
+(``w = g(dx) g(dy)``), so the loop keeps each position's row sum ``sum_dx g(dx) A``, adds an
+event's ``g(dx) exp((t - o) / tau)`` to the ``k`` row sums around it and reads the ``k`` of
+its column: ``2 k`` terms an event, not ``k * k``. The origin moves to the event's
 time whenever ``(t - o) / tau`` would pass :data:`SPAN_LIMIT` (every ``A`` then shrinks by
 ``exp(-(t - o) / tau)``), so nothing overflows. This rounds otherwise than the eager kernel's
 doubling scan and per-neighbour decays: the loop bounds both roundings, relative to the exact
@@ -184,14 +187,37 @@ def _scaled_patches(
     return n_live, largest
 
 
+@inlined_helper
+def _row_sum(scaled: np.ndarray, at: int, r: int,
+             g: np.ndarray) -> float:  # pragma: no cover - compiled
+    """``sum_e g[e] * scaled[at - r + e]``: a patch row's weighted counts, in ``e`` order.
+
+    Positions outside the map are skipped (they hold no count: the sensor is padded by ``r``).
+    """
+    total = 0.0
+    for e in range(g.shape[0]):
+        near = at - r + e
+        if 0 <= near < scaled.shape[0]:
+            total += g[e] * scaled[np.uint64(near)]
+    return total
+
+
+@compiled_loop
+def _all_row_sums(scaled: np.ndarray, r: int, g: np.ndarray,
+                  rows: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Every position's row sum (:func:`_row_sum`) into ``rows``."""
+    for at in range(scaled.shape[0]):
+        rows[at] = _row_sum(scaled, at, r, g)
+
+
 @compiled_loop
 def _subsample_loop(
     x: np.ndarray, y: np.ndarray, p: np.ndarray, t: np.ndarray, u: np.ndarray, s: float,
     rate: float, width: int, height: int, r: int, shifts: np.ndarray, weights: np.ndarray,
     scaled: np.ndarray, live: np.ndarray, n_live: int, listed: np.ndarray, call: int,
-    decayed: np.ndarray, last_t: np.ndarray, origin: float, relative: float,
-    column: np.ndarray, row: np.ndarray, out_x: np.ndarray, out_y: np.ndarray,
-    out_t: np.ndarray, out_p: np.ndarray,
+    by_rows: bool, g: np.ndarray, rows: np.ndarray, decayed: np.ndarray,
+    last_t: np.ndarray, origin: float, relative: float, column: np.ndarray, row: np.ndarray,
+    out_x: np.ndarray, out_y: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """Decide each time-sorted event, in stream order: kept iff ``u[i] < s * density``.
 
@@ -200,7 +226,11 @@ def _subsample_loop(
     loop reads), updated; ``live[:n_live]``: the pixels where it is not 0 (``call`` at their
     ``listed``), the only ones a move of the origin shrinks (each
     drops out once its count underflows, at most three moves after its last event: a move
-    costs its live pixels, not the sensor); ``decayed`` and ``last_t``: the state's
+    costs its live pixels, not the sensor). The patch sum: with ``by_rows``, by the row sums
+    ``rows`` (each position's, :func:`_all_row_sums`, ``g`` the weights along one axis:
+    ``w = g(dx) g(dy)``), updated as counts grow and made again when the origin moves; else
+    the ``k * k`` neighbours at ``shifts`` with their ``weights``. ``decayed`` and
+    ``last_t``: the state's
     columns, updated at each event's pixel. ``relative``: the relative bound of both paths'
     roundings (:func:`_doubt_bound`), to which each move of the origin adds its own. The
     kept events' regions (by the tables ``column`` and ``row``), ``t`` and ``p`` are written
@@ -237,6 +267,8 @@ def _subsample_loop(
                 else:
                     listed[pixel] = 0
             n_live = n_kept
+            if by_rows:  # the row sums again, from the shrunk counts
+                _all_row_sums(scaled, r, g, rows)
             moved += (3 * min(elapsed, 745.0) + 4) * EPS
             origin = ti
             elapsed = 0.0
@@ -256,20 +288,28 @@ def _subsample_loop(
         scaled[at] = own
         decayed[at] = own * fall
         last_t[at] = ti
-        # The patch sum in four chains of additions (each a fixed order), not one: the
-        # additions of one chain wait for each other, those of four overlap.
-        a0, a1, a2, a3 = 0.0, 0.0, 0.0, 0.0
-        d = 0
-        while d + 4 <= m:
-            a0 += weights[d] * scaled[np.uint64(key + shifts[d])]
-            a1 += weights[d + 1] * scaled[np.uint64(key + shifts[d + 1])]
-            a2 += weights[d + 2] * scaled[np.uint64(key + shifts[d + 2])]
-            a3 += weights[d + 3] * scaled[np.uint64(key + shifts[d + 3])]
-            d += 4
-        while d < m:
-            a0 += weights[d] * scaled[np.uint64(key + shifts[d])]
-            d += 1
-        bar = s * (((a0 + a1) + (a2 + a3)) * fall)
+        total = 0.0
+        if by_rows:  # this event's count enters the k row sums around it; the density
+            # reads the k row sums of its column (w = g(dx) g(dy))
+            for e in range(g.shape[0]):
+                rows[np.uint64(key - r + e)] += g[e] * rise
+            for e in range(g.shape[0]):
+                total += g[e] * rows[np.uint64(key + (e - r) * wp)]
+        else:  # the k * k neighbours in four chains of additions (each a fixed order): the
+            # additions of one chain wait for each other, those of four overlap
+            a0, a1, a2, a3 = 0.0, 0.0, 0.0, 0.0
+            d = 0
+            while d + 4 <= m:
+                a0 += weights[d] * scaled[np.uint64(key + shifts[d])]
+                a1 += weights[d + 1] * scaled[np.uint64(key + shifts[d + 1])]
+                a2 += weights[d + 2] * scaled[np.uint64(key + shifts[d + 2])]
+                a3 += weights[d + 3] * scaled[np.uint64(key + shifts[d + 3])]
+                d += 4
+            while d < m:
+                a0 += weights[d] * scaled[np.uint64(key + shifts[d])]
+                d += 1
+            total = (a0 + a1) + (a2 + a3)
+        bar = s * (total * fall)
         if abs(u[i] - bar) <= bar * (relative + moved) + _LOST:
             return i, kept
         # Every event is written at ``kept``, which moves on past a kept one only.
@@ -290,7 +330,18 @@ def _patches_only(n: int, patch: int, planes: int) -> bool:
     return n * patch < planes
 
 
-def _doubt_bound(n: int, k: int, largest_count: float) -> float:
+def _by_rows(n: int, k: int, planes: int) -> bool:
+    """Whether ``n`` events' patches of ``k x k`` are summed by rows (:func:`_subsample_loop`).
+
+    Making every position's row sum costs ``k`` terms a position; the rows save an event
+    ``k * k - 2 * k`` terms, each about half a row sum's (read at random, not in order). So
+    the rows where ``2 k * planes <= n * (k * k - 2 k)``: a live chunk of a small sensor,
+    not a few events on a large one (where the patches' ``k * k`` neighbours cost less).
+    """
+    return 2 * k * planes <= n * (k * k - 2 * k)
+
+
+def _doubt_bound(n: int, k: int, largest_count: float, by_rows: bool) -> float:
     """Twice the two paths' relative roundings of ``s * density`` in a call of ``n`` events.
 
     Relative to the exact density of the call's events from the state it starts from, in
@@ -300,9 +351,14 @@ def _doubt_bound(n: int, k: int, largest_count: float) -> float:
       rounded twice, ``exp`` and the product once each; older counts are lost, ``_LOST``),
       ``exp((t - o) / tau)`` twice (``3 * 500 + 3`` each: its exponent, at most
       :data:`SPAN_LIMIT`, is rounded three times, as ``(t - o) * (1 / tau)``; then its
-      inverse), one addition an event at a pixel (``n``), the patch's ``k * k`` additions and
-      products, the products by the inverse and by ``s``; each move of the origin adds its
-      own (in the loop);
+      inverse), one addition an event at a pixel (``n``), the patch sum, the products by
+      the inverse and by ``s``; each move of the origin adds its own (in the loop). The
+      patch sum: by the ``k * k`` neighbours, their additions and products (``k * k``, and
+      10 for the rest); by rows (``by_rows``), a row sum's ``k`` products and additions when
+      made, one product and addition an event in the row (``k + n + 1``; a move of the
+      origin makes it again from the shrunk counts), the column's ``k`` products and
+      additions (``k + 1``), the weights ``g(dx) g(dy)`` against the exact ``w`` (4: each
+      ``g`` within an ulp), and 10 for the rest;
     * the eager kernel: its doubling scan, ``(2 L + 2)`` times one plus the terms'
       size-weighted mean age in units of ``tau`` (docs/semantics.md; ``L`` the scan's
       passes, ``ceil(log2 n) + 1`` with the carried count; the mean age is below
@@ -310,7 +366,8 @@ def _doubt_bound(n: int, k: int, largest_count: float) -> float:
       1), each neighbour's decay to the event (``2 * 745 + 4``), its patch sums and ``s``.
     """
     passes = math.ceil(math.log2(n + 1)) + 1
-    loop = (2 * 745 + 4) + 2 * (3 * SPAN_LIMIT + 3) + n + k * k + 10
+    patch = n + 2 * k + 16 if by_rows else k * k + 10
+    loop = (2 * 745 + 4) + 2 * (3 * SPAN_LIMIT + 3) + n + patch
     eager = (2 * passes + 2) * (1 + (n + largest_count) / math.e) + (2 * 745 + 4) + k * k + 8
     return 2 * (loop + eager) * EPS
 
@@ -318,7 +375,7 @@ def _doubt_bound(n: int, k: int, largest_count: float) -> float:
 def decide_in_order(
     events: Events, decayed: Tensor, last_t: Tensor, draws: Tensor, *,
     sensor_size: tuple[int, int, int], factor: tuple[int, int], tau: float, s: float,
-    radius: int, shifts: Tensor, weights: Tensor, clock_start: int | float,
+    radius: int, shifts: Tensor, weights: Tensor, axis: Tensor, clock_start: int | float,
 ) -> tuple[Events, Tensor, Tensor] | None:
     """:func:`~..density.density_step`'s decisions of ``N >= 1`` time-sorted events on the CPU.
 
@@ -336,6 +393,8 @@ def decide_in_order(
         radius: the patch's radius ``r`` (the state's sensor is padded by it on every side).
         shifts: ``(k * k,)`` int64 the patch's key offsets on the padded sensor.
         weights: ``(k * k,)`` float64 their weights (:func:`~..density.patch_offsets`).
+        axis: ``(k,)`` float64 the patch's weights along one axis
+            (:func:`~..density.axis_weights`: ``w = g(dx) * g(dy)``).
         clock_start: the stream's first timestamp.
 
     Returns:
@@ -360,6 +419,9 @@ def decide_in_order(
     # call): the scaled counts, and the number of the call that listed a pixel as live
     # (``listed``, the last call's number at its end) or scaled it (``ready``), so none is
     # cleared.
+    by_rows = _by_rows(n, 2 * radius + 1, planes)
+    # each position's row sum, made anew each call (:func:`_all_row_sums`)
+    rows = scratch_column("density rows", planes if by_rows else 0, np.float64)
     with kept_map("density scaled", planes, np.float64) as scaled, \
             kept_map("density listed", planes + 1, np.int64) as listed, \
             kept_map("density ready", planes, np.int64) as ready:
@@ -367,6 +429,7 @@ def decide_in_order(
         listed[-1] = call
         origin = t.numpy()[0]
         x, y, p = columns_of(events.x, events.y, events.p)
+        g = axis.numpy()
         if _patches_only(n, patch, planes):
             live = scratch_column("density live", n * patch, np.int64)
             n_live, largest = _scaled_patches(
@@ -377,6 +440,8 @@ def decide_in_order(
             n_live = _scaled_counts(counts, times, origin, tau, scaled, live, listed[:-1],
                                     call)
             largest = float(counts.max())
+        if by_rows:
+            _all_row_sums(scaled, radius, g, rows)
         out_w, out_h, _ = output_size(sensor_size, factor)
         column, row = region_tables(factor, out_w, out_h)
         out_x, out_y = (scratch_column(f"density {name}", n, np.int64) for name in ("x", "y"))
@@ -384,9 +449,9 @@ def decide_in_order(
         out_p = scratch_column("density p", n, np.bool_)
         status, kept = _subsample_loop(
             x, y, p, t.numpy(), draws.numpy(), s, 1.0 / tau, width, height, radius,
-            shifts.numpy(), weights.numpy(), scaled, live, n_live, listed[:-1], call, counts,
-            times, origin, _doubt_bound(n, 2 * radius + 1, largest), column, row, out_x,
-            out_y, out_t, out_p)
+            shifts.numpy(), weights.numpy(), scaled, live, n_live, listed[:-1], call, by_rows,
+            g, rows, counts, times, origin, _doubt_bound(n, 2 * radius + 1, largest, by_rows),
+            column, row, out_x, out_y, out_t, out_p)
     if status >= 0:
         return None
     if status < -1:
