@@ -172,36 +172,30 @@ def test_a_chunk_is_summed_by_rows_where_making_every_row_sum_costs_less():
     assert not compiled._by_rows(10**6, 1, 4)  # a 1 x 1 patch: nothing to save
 
 
-@pytest.mark.parametrize(("tau", "k"), [(150.0, 5), (1.0, 3), (math.inf, 7), (0.05, 5)])
-def test_summing_by_rows_gives_the_neighbours_sums_steps_bit_for_bit(tau, k, rng, monkeypatch):
-    """The patch summed by rows or by its k x k neighbours: the same events and states (the
-    counts are the same; the densities round otherwise, within the doubt bound), and the
-    eager kernel's events. tau = 0.05 moves the clock's origin often (the rows made again)."""
-    arr = random_stream(rng, 1_200, LARGE, t_max=20_000)
+LARGE = (60, 40, 2)
+CUTS = [3, 40, 41, 300, 900]  # chunks of 1 to 600 events: patches from few to all
+
+
+def _both_ways_alike(monkeypatch, rule, arr, settings):
+    """The compiled steps of ``arr`` cut at CUTS with ``compiled.<rule>`` forced true, then
+    false: the same events and the same states, bit for bit."""
     events = sort_by_time(to_events(arr, LARGE)[0])
-    settings = density_kernel.DensitySettings(LARGE, (2, 3), tau, k, 0.3, 1)
-    cuts = [3, 40, 41, 300, 900]
-    transform = DensitySubsampling(LARGE, (2, 3), tau=tau, k=k, s=0.3, seed=1)
     results = []
-    for by_rows in (True, False):
+    for forced in (True, False):
         with monkeypatch.context() as patched:
-            patched.setattr(compiled, "_by_rows", lambda *_, by_rows=by_rows: by_rows)
+            patched.setattr(compiled, rule, lambda *_, forced=forced: forced)
             state = density_kernel.density_init(settings, events)
             outputs = []
-            for start, stop in zip([0, *cuts], [*cuts, events.num_events], strict=True):
+            for start, stop in zip([0, *CUTS], [*CUTS, events.num_events], strict=True):
                 result = density_kernel._compiled_step(events.part(start, stop), state,
                                                        settings)
                 assert result is not None
                 outputs.append(result[0])
                 state = result[1]
             results.append((Events.cat(outputs), state.decayed, state.last_t))
-            assert_identical(*both_paths(lambda: run_in_chunks(transform, arr, cuts)))
     assert_identical(results[0][0], results[1][0])
     assert torch.equal(results[0][1], results[1][1]) and torch.equal(results[0][2],
                                                                      results[1][2])
-
-
-LARGE = (60, 40, 2)
 
 
 @pytest.mark.parametrize(("tau", "k"), [(150.0, 5), (1.0, 3), (math.inf, 7)])
@@ -210,30 +204,28 @@ def test_scaling_the_patches_only_gives_the_whole_sensors_steps_bit_for_bit(tau,
     """A chunk whose patches cover less than the sensor scales those pixels only: the same
     events and the same state as scaling every pixel, and the eager kernel's events."""
     arr = random_stream(rng, 1_200, LARGE, t_max=20_000)
-    events = sort_by_time(to_events(arr, LARGE)[0])
     settings = density_kernel.DensitySettings(LARGE, (2, 3), tau, k, 0.3, 1)
-    cuts = [3, 40, 41, 300, 900]  # chunks of 1 to 600 events: patches from few to all
-    planes = density_kernel.density_init(settings, events).decayed.shape[0]
-    assert compiled._patches_only(37, k * k, planes)  # the chunks below take both ways
+    planes = density_kernel.density_init(settings, to_events(arr, LARGE)[0]).decayed.shape[0]
+    assert compiled._patches_only(37, k * k, planes)  # the chunks take both ways
     assert not compiled._patches_only(600, k * k, planes)
-    results = []
-    for only in (True, False):
-        with monkeypatch.context() as patched:
-            patched.setattr(compiled, "_patches_only", lambda *_, only=only: only)
-            state = density_kernel.density_init(settings, events)
-            outputs = []
-            for start, stop in zip([0, *cuts], [*cuts, events.num_events], strict=True):
-                result = density_kernel._compiled_step(events.part(start, stop), state,
-                                                       settings)
-                assert result is not None
-                outputs.append(result[0])
-                state = result[1]
-            results.append((Events.cat(outputs), state.decayed, state.last_t))
-    assert_identical(results[0][0], results[1][0])
-    assert torch.equal(results[0][1], results[1][1]) and torch.equal(results[0][2],
-                                                                     results[1][2])
+    _both_ways_alike(monkeypatch, "_patches_only", arr, settings)
     transform = DensitySubsampling(LARGE, (2, 3), tau=tau, k=k, s=0.3, seed=1)
-    assert_identical(*both_paths(lambda: run_in_chunks(transform, arr, cuts)))
+    assert_identical(*both_paths(lambda: run_in_chunks(transform, arr, CUTS)))
+
+
+@pytest.mark.parametrize(("tau", "k"), [(150.0, 5), (1.0, 3), (math.inf, 7), (0.05, 5)])
+def test_summing_by_rows_gives_the_neighbours_sums_steps_bit_for_bit(tau, k, rng, monkeypatch):
+    """The patch summed by rows or by its k x k neighbours: the same events and states (the
+    counts are the same; the densities round otherwise, within the doubt bound), and the
+    eager kernel's events. tau = 0.05 moves the clock's origin often (the rows made again)."""
+    arr = random_stream(rng, 1_200, LARGE, t_max=20_000)
+    settings = density_kernel.DensitySettings(LARGE, (2, 3), tau, k, 0.3, 1)
+    _both_ways_alike(monkeypatch, "_by_rows", arr, settings)
+    transform = DensitySubsampling(LARGE, (2, 3), tau=tau, k=k, s=0.3, seed=1)
+    for by_rows in (True, False):
+        with monkeypatch.context() as patched:
+            patched.setattr(compiled, "_by_rows", lambda *_, by_rows=by_rows: by_rows)
+            assert_identical(*both_paths(lambda: run_in_chunks(transform, arr, CUTS)))
 
 
 def test_sessions_alternating_in_a_thread_do_not_share_their_kept_maps(rng):
