@@ -43,6 +43,24 @@ def _span_error(t: Tensor, origin: int) -> ValueError:
     )
 
 
+def _compiled_bins(t: Tensor, dt: int | float, t_start: int | float, *,
+                   starts: bool) -> Tensor | None:
+    """The bins (or their starts) of int64 ``t`` by the compiled loop on the CPU, else ``None``.
+
+    ``None`` where the loop does not take them: other dtypes, no compiled path, a ``dt``
+    that is not a whole number or exceeds int64. Raises the span error as the eager path.
+    """
+    if not (t.dtype == torch.int64 and use_compiled(t) and _whole(dt)
+            and int(dt) <= _INT64_MAX):
+        return None
+    from evdown_torch.transforms.functional.compiled.temporal import bins
+
+    out = bins(t.numpy(), int(t_start), int(dt), starts=starts)
+    if out is None:
+        raise _span_error(t, int(t_start))
+    return torch.from_numpy(out)
+
+
 def bin_index(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
     """``floor((t - t_start) / dt)``: the bin of each timestamp, bins of ``dt`` from ``t_start``.
 
@@ -71,13 +89,9 @@ def bin_index(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
             f"dt must be a whole number for integer timestamps (bin starts must stay "
             f"integers), got {dt!r}"
         )
-    if t.dtype == torch.int64 and use_compiled(t) and int(dt) <= _INT64_MAX:
-        from evdown_torch.transforms.functional.compiled.temporal import bin_indices
-
-        indices = bin_indices(t.numpy(), int(t_start), int(dt))
-        if indices is None:
-            raise _span_error(t, int(t_start))
-        return torch.from_numpy(indices)
+    compiled = _compiled_bins(t, dt, t_start, starts=False)
+    if compiled is not None:
+        return compiled
     origin = int(t_start)
     offset = t - origin
     if bool((offset < 0).any()):  # t >= t_start, so only a wrap past 2**63 - 1 is negative
@@ -115,13 +129,9 @@ def bin_start(t: Tensor, *, dt: int | float, t_start: int | float) -> Tensor:
     """
     if t.is_floating_point():
         return (torch.floor((t - t_start) / dt) * dt).add_(t_start)
-    if t.dtype == torch.int64 and use_compiled(t) and _whole(dt) and int(dt) <= _INT64_MAX:
-        from evdown_torch.transforms.functional.compiled.temporal import bin_starts
-
-        starts = bin_starts(t.numpy(), int(t_start), int(dt))
-        if starts is None:
-            raise _span_error(t, int(t_start))
-        return torch.from_numpy(starts)
+    compiled = _compiled_bins(t, dt, t_start, starts=True)
+    if compiled is not None:
+        return compiled
     index = bin_index(t, dt=dt, t_start=t_start)
     step = int(dt)
     if step > _INT64_MAX:  # one bin, starting at t_start

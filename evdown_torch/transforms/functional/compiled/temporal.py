@@ -16,7 +16,7 @@ import numpy as np
 from evdown_torch.transforms.functional.compiled._numba import compiled_loop
 from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 
-__all__ = ["bin_indices", "bin_starts"]
+__all__ = ["bins"]
 
 
 @compiled_loop
@@ -43,19 +43,15 @@ def _bins_loop(
     return -1
 
 
-def _bins(t: np.ndarray, origin: int, step: int, starts: bool) -> np.ndarray | None:
-    out = scratch_column("temporal bins", t.shape[0], np.int64)
-    return out if _bins_loop(t, origin, step, starts, out) < 0 else None
-
-
-def bin_starts(t: np.ndarray, origin: int, step: int) -> np.ndarray | None:
-    """Each int64 ``t``'s bin start, bins of ``step`` from ``origin``; ``None`` on a wrap.
+def bins(t: np.ndarray, origin: int, step: int, *, starts: bool) -> np.ndarray | None:
+    """Each int64 ``t``'s bin (``floor((t - origin) / step)``) or, with ``starts``, its start.
 
     Args:
         t: ``(N,)`` int64 timestamps ``>= origin``, in any order (time order costs one
             division a bin).
         origin: the first bin's start.
         step: the bin length, ``1 <= step <= 2**63 - 1``.
+        starts: the bins' starts (``origin + bin * step``), else their numbers.
 
     Returns:
         An ``(N,)`` int64 column, this thread's scratch column
@@ -64,19 +60,10 @@ def bin_starts(t: np.ndarray, origin: int, step: int) -> np.ndarray | None:
         raises its error).
 
     Example:
-        >>> bin_starts(np.array([3, 9, 10, 25, 4]), 3, 10).tolist()
+        >>> bins(np.array([3, 9, 10, 25, 4]), 3, 10, starts=True).tolist()
         [3, 3, 3, 23, 3]
-    """
-    return _bins(t, origin, step, True)
-
-
-def bin_indices(t: np.ndarray, origin: int, step: int) -> np.ndarray | None:
-    """Each int64 ``t``'s bin, ``floor((t - origin) / step)``; ``None`` on a wrap.
-
-    Args, returns and costs as :func:`bin_starts`'.
-
-    Example:
-        >>> bin_indices(np.array([3, 9, 10, 25, 4]), 3, 10).tolist()
+        >>> bins(np.array([3, 9, 10, 25, 4]), 3, 10, starts=False).tolist()
         [0, 0, 0, 2, 0]
     """
-    return _bins(t, origin, step, False)
+    out = scratch_column("temporal bins", t.shape[0], np.int64)
+    return out if _bins_loop(t, origin, step, starts, out) < 0 else None
