@@ -115,6 +115,12 @@ class DensitySettings(RegionSettings):
         object.__setattr__(self, "seed", check_non_negative_int("seed", self.seed))
 
 
+def _weight(squared: int, k: int) -> float:
+    """The patch's weight at ``squared`` distance: ``exp(-squared / (2 sigma^2))``, sigma k / 5."""
+    sigma = k / 5
+    return math.exp(-squared / (2 * sigma * sigma))
+
+
 def patch_offsets(k: int) -> list[tuple[int, int, float]]:
     """The ``k x k`` patch: ``(dx, dy, w)`` in row-major order, ``w = exp(-r^2 / (2 sigma^2))``.
 
@@ -124,9 +130,8 @@ def patch_offsets(k: int) -> list[tuple[int, int, float]]:
         >>> [(dx, dy, round(w, 4)) for dx, dy, w in patch_offsets(3)][:2]
         [(-1, -1, 0.0622), (0, -1, 0.2494)]
     """
-    sigma = k / 5
     r = k // 2
-    return [(dx, dy, math.exp(-(dx * dx + dy * dy) / (2 * sigma * sigma)))
+    return [(dx, dy, _weight(dx * dx + dy * dy, k))
             for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
 
 
@@ -141,10 +146,8 @@ def axis_weights(k: int) -> Tensor:
         >>> [round(w, 4) for w in axis_weights(3).tolist()]
         [0.2494, 1.0, 0.2494]
     """
-    sigma = k / 5
     r = k // 2
-    return torch.tensor([math.exp(-(d * d) / (2 * sigma * sigma)) for d in range(-r, r + 1)],
-                        dtype=torch.float64)
+    return torch.tensor([_weight(d * d, k) for d in range(-r, r + 1)], dtype=torch.float64)
 
 
 class DensityState(NamedTuple):
