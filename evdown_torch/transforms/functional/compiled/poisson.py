@@ -51,6 +51,13 @@ _TABLED = 64
 
 
 @inlined_helper
+def _clear_keys(counts: np.ndarray, keys: np.ndarray, n: int) -> None:  # pragma: no cover
+    """Zeros in ``counts`` at ``keys[:n]``: a window's map as the next window takes it."""
+    for m in range(n):
+        counts[np.uint64(keys[m])] = 0
+
+
+@inlined_helper
 def _clear_blur(rows: np.ndarray, blurred_from: np.ndarray, n_blurred: int, width: int,
                 radius: int) -> None:  # pragma: no cover - compiled
     """Zeros in ``rows`` where the blur of the entries ``blurred_from[:n_blurred]`` wrote.
@@ -111,10 +118,8 @@ def _restore(
     n_blurred: int, width: int, radius: int,
 ) -> None:  # pragma: no cover - compiled
     """The maps as the next call takes them (:func:`decide_in_order`): zeros where a call wrote."""
-    for m in range(n_cur):
-        current[np.uint64(cur_keys[m])] = 0
-    for m in range(n_prev):
-        previous[np.uint64(prev_keys[m])] = 0
+    _clear_keys(current, cur_keys, n_cur)
+    _clear_keys(previous, prev_keys, n_prev)
     _clear_blur(rows, blurred_from, n_blurred, width, radius)
 
 
@@ -225,15 +230,13 @@ def _poisson_loop(
     while i < window.shape[0] and status == -1:
         w = window[i]
         if w != cur_window:  # a new window: the current one becomes the previous, or none
-            for m in range(n_prev):
-                previous[np.uint64(prev_keys[m])] = 0
+            _clear_keys(previous, prev_keys, n_prev)
             if w == cur_window + 1:
                 current, previous = previous, current
                 cur_keys, prev_keys = prev_keys, cur_keys
                 n_prev, n_cur = n_cur, 0
             else:
-                for m in range(n_cur):
-                    current[np.uint64(cur_keys[m])] = 0
+                _clear_keys(current, cur_keys, n_cur)
                 n_prev, n_cur = 0, 0
             cur_window = w
         # the previous window's blur and mean, once a window
@@ -354,7 +357,7 @@ def decide_in_order(
     if status < -1:
         raise outside_error(-2 - status, x, y, np.empty(width, np.int8),
                             np.empty(height, np.int8))
-    output = Events(*(torch.from_numpy(column[:n_out]) for column in (out_x, out_y, out_t, out_p)))
+    output = Events(*(torch.from_numpy(part[:n_out]) for part in (out_x, out_y, out_t, out_p)))
     keys = np.concatenate([before, after])
     windows = np.concatenate([np.full(before.shape[0], last - 1, dtype=np.int64),
                               np.full(after.shape[0], last, dtype=np.int64)])
