@@ -414,14 +414,14 @@ def decide_in_order(
     counts = decayed.numpy().copy()
     times = last_t.numpy().copy()
     planes = counts.shape[0]
-    patch = shifts.shape[0]
+    k = 2 * radius + 1
+    by_rows = _by_rows(n, k, planes)
+    # each position's row sum, made anew each call (:func:`_all_row_sums`)
+    rows = scratch_column("density rows", planes if by_rows else 0, np.float64)
     # Per-pixel maps kept from call to call (taking them new would cost the sensor's area a
     # call): the scaled counts, and the number of the call that listed a pixel as live
     # (``listed``, the last call's number at its end) or scaled it (``ready``), so none is
     # cleared.
-    by_rows = _by_rows(n, 2 * radius + 1, planes)
-    # each position's row sum, made anew each call (:func:`_all_row_sums`)
-    rows = scratch_column("density rows", planes if by_rows else 0, np.float64)
     with kept_map("density scaled", planes, np.float64) as scaled, \
             kept_map("density listed", planes + 1, np.int64) as listed, \
             kept_map("density ready", planes, np.int64) as ready:
@@ -430,8 +430,8 @@ def decide_in_order(
         origin = t.numpy()[0]
         x, y, p = columns_of(events.x, events.y, events.p)
         g = axis.numpy()
-        if _patches_only(n, patch, planes):
-            live = scratch_column("density live", n * patch, np.int64)
+        if _patches_only(n, k * k, planes):
+            live = scratch_column("density live", n * k * k, np.int64)
             n_live, largest = _scaled_patches(
                 x, y, p, width, height, radius, shifts.numpy(), counts, times, origin, tau,
                 scaled, live, listed[:-1], ready, call)
@@ -450,7 +450,7 @@ def decide_in_order(
         status, kept = _subsample_loop(
             x, y, p, t.numpy(), draws.numpy(), s, 1.0 / tau, width, height, radius,
             shifts.numpy(), weights.numpy(), scaled, live, n_live, listed[:-1], call, by_rows,
-            g, rows, counts, times, origin, _doubt_bound(n, 2 * radius + 1, largest, by_rows),
+            g, rows, counts, times, origin, _doubt_bound(n, k, largest, by_rows),
             column, row, out_x, out_y, out_t, out_p)
     if status >= 0:
         return None
