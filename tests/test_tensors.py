@@ -9,6 +9,7 @@ import torch
 from evdown_torch import _tensors
 from evdown_torch._tensors import (
     changes,
+    correctly_rounded_sqrt,
     distinct_in_range,
     divide,
     run_max,
@@ -148,3 +149,26 @@ def test_distinct_in_range_is_torch_unique(n, low, high, numpy_on_cpu, rng, devi
     assert torch.equal(distinct.cpu(), want.cpu())
     assert torch.equal(inverse.cpu(), want_inverse.cpu())
     assert torch.equal(distinct[inverse].cpu(), values.cpu())
+
+
+def _nearest_to_sqrt(d: float, y: float) -> bool:
+    """Whether ``y`` is the float nearest to ``sqrt(d)``: ``d`` lies between the squares of the
+    midpoints to ``y``'s neighbours (exactly, in rationals; no float is a tie)."""
+    from fractions import Fraction
+
+    low = (Fraction(np.nextafter(y, 0.0)) + Fraction(y)) / 2 if y > 0 else Fraction(0)
+    high = (Fraction(y) + Fraction(np.nextafter(y, np.inf))) / 2
+    return low * low <= Fraction(d) <= high * high
+
+
+def test_correctly_rounded_sqrt_gives_the_nearest_float(rng):
+    values = np.concatenate([
+        [6.167086359879541, 0.0, 1.0, 2.0, 5e-324, 1.7976931348623157e308],
+        rng.uniform(0, 1000, 3000), np.exp(rng.uniform(-700, 700, 3000)),
+    ])
+    out = correctly_rounded_sqrt(torch.from_numpy(values))
+    assert out.dtype == torch.float64 and out.shape == (values.size,)
+    assert all(_nearest_to_sqrt(d, y) for d, y in zip(values.tolist(), out.tolist()))
+    assert out[0].item() == 2.483361906746486  # torch 2.13.0's CPU sqrt: 2.4833619067464854
+    negative = correctly_rounded_sqrt(torch.tensor([-1.0, -0.0], dtype=torch.float64))
+    assert np.isnan(negative[0].item()) and negative[1].item() == 0.0

@@ -193,6 +193,21 @@ def test_the_cubic_loop_rounds_its_multiply_adds_as_torch_does(monkeypatch, rng)
     assert len(other) != len(eager) or (other["t"] != eager["t"]).any()
 
 
+def test_the_cubic_derivative_roots_take_a_correctly_rounded_sqrt():
+    # Found by a differential search: torch's CPU sqrt rounds sqrt(6.167086359879541), a
+    # piece's discriminant here, one unit below the nearest float; the derivative root that
+    # bounds the piece's Newton search moved by one unit, and with it the first crossing's
+    # float time (7855.437806798385 eager against ...387 compiled).
+    arr = np.array([(19, 31, 203.0, True), (11, 13, 9593.0, False), (8, 15, 10783.0, False),
+                    (8, 15, 19467.0, True), (8, 12, 31391.0, True), (10, 14, 57428.0, False),
+                    (11, 14, 99010.0, True), (10, 0, 99888.0, False)],
+                   dtype=[("x", "<i2"), ("y", "<i2"), ("t", "<f8"), ("p", "?")])
+    transform = CubicEstimation((22, 35, 2), factor=4, threshold=0.1)
+    compiled, eager = both_paths(lambda: transform(arr))
+    assert_identical(compiled, eager)
+    assert eager["t"].tolist()[:1] == [7855.437806798387]
+
+
 def test_without_torchs_rounding_known_the_cubic_method_stays_eager(monkeypatch, rng):
     monkeypatch.setattr(compiled_cubic, "addcmul_is_fused", lambda: None)
     loops = spy(monkeypatch, compiled_estimation, "_window_loop_of")

@@ -5,7 +5,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import CHUNK_EVENTS, run_index, take, where_true
+from evdown_torch._tensors import (
+    CHUNK_EVENTS,
+    correctly_rounded_sqrt,
+    run_index,
+    take,
+    where_true,
+)
 from evdown_torch.transforms.functional.estimation.knots import Knots, piece_time, region_pixels
 from evdown_torch.transforms.functional.estimation.solver import (
     CurveCrossings,
@@ -235,7 +241,8 @@ def _derivative_roots(c1: Tensor, c2: Tensor, c3: Tensor) -> tuple[Tensor, Tenso
     """
     square = c2 * c2
     disc = torch.addcmul(square, c1, c3, value=-3.0)
-    q = torch.sqrt(disc).copysign_(c2).add_(c2).neg_()  # NaN where disc < 0
+    # NaN where disc < 0; correctly rounded, as the compiled solver's (torch's CPU sqrt is not)
+    q = correctly_rounded_sqrt(disc).copysign_(c2).add_(c2).neg_()
     # A double root is no sign change; within float noise of one, the curve cannot move by a
     # visible amount between the two roots (PCHIP pieces such as 1 - (1 - s)^3 have one).
     noise = square.addcmul_(c1, c3, value=3.0).abs_().mul_(DOUBLE_ROOT)
