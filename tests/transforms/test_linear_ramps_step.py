@@ -109,6 +109,27 @@ def test_a_transform_session_moving_between_paths_gives_the_batch_events(ramp_ca
     np.testing.assert_array_equal(np.concatenate(parts), expected)
 
 
+def test_a_seeded_session_counts_every_ramp_of_a_merged_knot(ramp_calls):
+    # Found by a differential search. Pixel (0, 10)'s first knot merges two events (a change
+    # of -2) and starts at t_start; the eager state holds it as one knot. The ramps' session
+    # seeded from that state put one entry in its starts ring, which the sweep counted as one
+    # active ramp while the knot's end took two away: the ramp from t = 2 to 12 then counted
+    # none, its rounding went unbounded, and a crossing at t = 7 came out twice.
+    arr = np.array([(10, 7, 1, True), (0, 10, 2, False), (0, 10, 2, False), (0, 10, 12, False),
+                    (9, 15, 25, True)],
+                   dtype=[("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "?")])
+    transform = LinearEstimation((19, 23, 2), factor=1, threshold=0.05, max_delay=17)
+    with eager_kernels(True):
+        expected = transform(arr)
+    session = transform.session()
+    with eager_kernels(True):
+        parts = [session(arr[:4])]
+    parts += [session(arr[4:]), session.flush()]
+    assert len(ramp_calls) == 1  # the second chunk, seeded from the eager state
+    assert_identical(np.concatenate(parts), expected)
+    assert [int(t) for t in expected["t"][expected["x"] == 0]].count(7) == 2
+
+
 def test_a_state_stepped_twice_gives_the_same_events_both_times(ramp_calls):
     # The ramps' session kept beside a state is taken by the first step on it; a second step
     # on the same state seeds a session from the state's tensors.

@@ -158,8 +158,8 @@ def _seed(
     one: int, slopes: np.ndarray, deltas: np.ndarray, pixels: np.ndarray, e_t: np.ndarray,
     e_region: np.ndarray, e_slope: np.ndarray, e_jump: np.ndarray, e_active: np.ndarray,
     e_delta: np.ndarray, s_t: np.ndarray, s_region: np.ndarray, s_slope: np.ndarray,
-    s_delta: np.ndarray, value: np.ndarray, slope_sum: np.ndarray, since: np.ndarray,
-    active: np.ndarray, error: np.ndarray, error_slope: np.ndarray,
+    s_delta: np.ndarray, s_active: np.ndarray, value: np.ndarray, slope_sum: np.ndarray,
+    since: np.ndarray, active: np.ndarray, error: np.ndarray, error_slope: np.ndarray,
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """A ramps' session from a state's knots ``(pixel, t, change)`` (time order).
 
@@ -225,7 +225,8 @@ def _seed(
             e_active[j] += count
         else:  # at t_start, the horizon (a stream shorter than D)
             j = starts & mask
-            s_t[j], s_region[j], s_slope[j], s_delta[j] = h, r, slope, delta
+            # One entry for the knot's |c| ramps (their events merged): |c| active ramps.
+            s_t[j], s_region[j], s_slope[j], s_delta[j], s_active[j] = h, r, slope, delta, count
             starts += 1
     for pixel in range(pixel_t.shape[0]):
         i = last[pixel]
