@@ -62,8 +62,7 @@ def _ramps(
     deltas: np.ndarray, t_start: int, pixels: np.ndarray, ends: int, e_t: np.ndarray,
     e_region: np.ndarray, e_slope: np.ndarray, e_jump: np.ndarray, e_active: np.ndarray,
     e_delta: np.ndarray, starts: int, s_t: np.ndarray, s_region: np.ndarray,
-    s_slope: np.ndarray, s_delta: np.ndarray, s_active: np.ndarray, mask: int, head_e: int,
-    head_s: int,
+    s_slope: np.ndarray, s_delta: np.ndarray, mask: int, head_e: int, head_s: int,
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """Each event's ramp: its end, and its start as a change of its own or added to one.
 
@@ -77,9 +76,8 @@ def _ramps(
     division an event); ``deltas``: ``slopes - 2**K / length`` (float64), the slope's
     rounding, whose sums the sweep keeps (``e_delta``, ``s_delta``). ``pixels``:
     ``(W * H, 5)``, each pixel's last knot time, the one before, their ends' places in
-    the ring (-1: none) and the pixel's level. ``e_active``, ``s_active``: the change of
-    the region's count of active ramps (here one ramp an event: a seeded session's start
-    may stand for a knot of several, :func:`~.linear_ramps_state.ramp_session`).
+    the ring (-1: none) and the pixel's level. ``e_active``: the change of the region's
+    count of active ramps (a start ring entry is one ramp).
 
     Returns the rings' new tails ``(ends, starts)``.
 
@@ -123,7 +121,7 @@ def _ramps(
                 raise ValueError("the ramps' starts ring is full (RampSession.reserve not called)")
             k = np.uint64(starts & mask)
             s_t[k], s_region[k] = max(t - delay, t_start), r
-            s_slope[k], s_delta[k], s_active[k] = slope, delta, 1
+            s_slope[k], s_delta[k] = slope, delta
             starts += 1
     return ends, starts
 
@@ -132,9 +130,9 @@ def _ramps(
 def _sweep(
     head_e: int, tail_e: int, e_t: np.ndarray, e_region: np.ndarray, e_slope: np.ndarray,
     e_jump: np.ndarray, e_active: np.ndarray, e_delta: np.ndarray, head_s: int, tail_s: int,
-    s_t: np.ndarray, s_region: np.ndarray, s_slope: np.ndarray, s_delta: np.ndarray,
-    s_active: np.ndarray, mask: int, horizon: int, value: np.ndarray, slope_sum: np.ndarray,
-    since: np.ndarray, pending: np.ndarray, q: np.ndarray, active: np.ndarray, error: np.ndarray,
+    s_t: np.ndarray, s_region: np.ndarray, s_slope: np.ndarray, s_delta: np.ndarray, mask: int,
+    horizon: int, value: np.ndarray, slope_sum: np.ndarray, since: np.ndarray,
+    pending: np.ndarray, q: np.ndarray, active: np.ndarray, error: np.ndarray,
     error_slope: np.ndarray, q_change: np.ndarray, t_change: np.ndarray, t_start: int,
     delay: int, levels: np.ndarray, b: int, out_r: np.ndarray, out_t: np.ndarray,
     out_on: np.ndarray, counts: np.ndarray, headroom: int,
@@ -177,7 +175,7 @@ def _sweep(
             else:
                 k = np.uint64(head_s & mask)
                 t, r, d_slope, d_jump = next_start, s_region[k], s_slope[k], 0
-                d_active, d_delta = s_active[k], s_delta[k]
+                d_active, d_delta = 1, s_delta[k]
                 head_s += 1
                 next_start = s_t[np.uint64(head_s & mask)] if head_s < tail_s else horizon
         else:
@@ -367,9 +365,9 @@ class RampSession:
         size = 1 << int(4 * max_events).bit_length()  # a chunk's changes and those ahead
         self.mask = size - 1
         # Written now, not on first use: a page fault in a timed chunk is no loop's cost.
-        # ends: t, region, slope, jump, active, delta; starts: t, region, slope, delta, active.
+        # ends: t, region, slope, jump, active, delta; starts: t, region, slope, delta.
         self.ends = [np.full(size, 0, np.float64 if k == 5 else np.int64) for k in range(6)]
-        self.starts = [np.full(size, 0, np.float64 if k == 3 else np.int64) for k in range(5)]
+        self.starts = [np.full(size, 0, np.float64 if k == 3 else np.int64) for k in range(4)]
         self.regions = [np.empty(regions, np.float64 if k in (6, 7) else np.int64)
                         for k in range(10)]
         # value, slope, since, pending jump, q, active ramps, error, error's slope, q after

@@ -158,8 +158,8 @@ def _seed(
     one: int, slopes: np.ndarray, deltas: np.ndarray, pixels: np.ndarray, e_t: np.ndarray,
     e_region: np.ndarray, e_slope: np.ndarray, e_jump: np.ndarray, e_active: np.ndarray,
     e_delta: np.ndarray, s_t: np.ndarray, s_region: np.ndarray, s_slope: np.ndarray,
-    s_delta: np.ndarray, s_active: np.ndarray, value: np.ndarray, slope_sum: np.ndarray,
-    since: np.ndarray, active: np.ndarray, error: np.ndarray, error_slope: np.ndarray,
+    s_delta: np.ndarray, value: np.ndarray, slope_sum: np.ndarray, since: np.ndarray,
+    active: np.ndarray, error: np.ndarray, error_slope: np.ndarray,
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """A ramps' session from a state's knots ``(pixel, t, change)`` (time order).
 
@@ -223,11 +223,14 @@ def _seed(
             e_slope[j] += slope
             e_delta[j] += delta
             e_active[j] += count
-        else:  # at t_start, the horizon (a stream shorter than D)
-            j = starts & mask
-            # One entry for the knot's |c| ramps (their events merged): |c| active ramps.
-            s_t[j], s_region[j], s_slope[j], s_delta[j], s_active[j] = h, r, slope, delta, count
-            starts += 1
+        else:  # at t_start, the horizon (a stream shorter than D): an entry a ramp, as the
+            # knot's |c| events would have made them (the sweep counts an entry as one ramp)
+            unit = 1 if c > 0 else -1
+            for _ in range(count):
+                j = starts & mask
+                s_t[j], s_region[j] = h, r
+                s_slope[j], s_delta[j] = unit * slopes[length], unit * deltas[length]
+                starts += 1
     for pixel in range(pixel_t.shape[0]):
         i = last[pixel]
         if i < 0:
@@ -295,6 +298,8 @@ def ramp_session(state: WindowState, settings: RampSettings, max_events: int) ->
     session = RampSession(t_start, max_events + knots.num_events // 4 + 1, settings)
     pixel = (knots.y.to(torch.int64) * settings.width + knots.x).numpy()
     t, change = knots.t.numpy(), state.change.numpy()
+    # An end for each knot from F on, and at most a start for each of their events.
+    session.reserve(max(knots.num_events, int(np.abs(change[t >= horizon]).sum())))
     value, slope_sum, since, _, q, active, error, error_slope, q_change, t_change = (
         session.regions)
     session.tail_e, session.tail_s = _seed(
