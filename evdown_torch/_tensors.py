@@ -73,8 +73,8 @@ def correctly_rounded_sqrt(values: Tensor) -> Tensor:
     values one unit off, whatever its CPU capability (AVX-512, AVX2 or none), even for one
     value alone; the compiled loops' ``sqrt`` is the CPU's instruction, correctly rounded. A
     kernel whose compiled twin must give the same bits (CubicEstimation's derivative roots)
-    takes this one: NumPy's ``sqrt`` on the CPU (the instruction), torch's elsewhere (CUDA's
-    double and single ``sqrt`` are correctly rounded). Negative values give NaN, without a
+    takes this one: NumPy's ``sqrt`` on the CPU (the instruction), torch's elsewhere (CUDA
+    documents its float64 ``sqrt`` as correctly rounded). Negative values give NaN, without a
     warning.
 
     Example:
