@@ -61,7 +61,11 @@ class RampArrays:
         return self.session.counts
 
     def __call__(self, chunk: np.ndarray) -> np.ndarray:
-        x, y, t, on = self.session(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
+        decided = self.session(chunk["x"], chunk["y"], chunk["t"], chunk["p"])
+        if decided is None:
+            raise RuntimeError("the ramps' outputs outgrew their buffer (the package's session "
+                               "solves such a chunk as a window; this twin does not)")
+        x, y, t, on = decided
         out = np.empty(len(t), chunk.dtype if chunk.dtype.names else DVS_DTYPE)
         out["x"], out["y"], out["t"], out["p"] = x, y, t, on
         return out

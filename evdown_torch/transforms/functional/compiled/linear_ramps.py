@@ -153,11 +153,11 @@ def _sweep(
     region's last breakpoint before the horizon, which a
     :class:`~evdown_torch.transforms.functional.estimation.stream.WindowState` keeps).
 
-    Returns the rings' new heads and the outputs' count.
+    Returns the rings' new heads and the outputs' count, -1 where the outputs' buffer is
+    full (the session is then spent: :meth:`RampSession.__call__`).
 
     Raises:
-        ValueError: when a region's value leaves the headroom, or the outputs' buffer is
-            full.
+        ValueError: when a region's value leaves the headroom.
     """
     n_out = 0
     regions = value.shape[0]
@@ -220,7 +220,7 @@ def _sweep(
                     d = 1 if q_new > qr else -1
                     qr += d
                     if n_out == out_t.shape[0]:
-                        raise ValueError("the output buffer is too small")
+                        return head_e, head_s, -1  # (the buffer's size: the caller's bound)
                     out_t[n_out], out_r[n_out], out_on[n_out] = t_end, r, d > 0
                     n_out += 1
                     if piece == 0 or (on and qr == q_new):
@@ -411,7 +411,7 @@ class RampSession:
         self.mask = mask
 
     def __call__(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray,
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """The events decided by a chunk, as ``(x, y, t, on)`` columns sorted by ``t``.
 
         Args:
@@ -422,7 +422,11 @@ class RampSession:
 
         Returns:
             ``(x, y, t, on)``: int64, int64, int64 and bool, sorted by ``t`` (a tie in
-            region order, as the windowed session).
+            region order, as the windowed session); ``None`` where the crossings outgrew the
+            outputs' buffer (the session is then spent; the caller solves the chunk as a
+            window instead). The buffer holds the bound below, which holds where each change
+            of the rings is one ramp; changes that merge many events of a pixel and time
+            (hundreds a microsecond) or a seeded state's whole levels can pass it.
 
         Raises:
             ValueError: when a region's value leaves the headroom (the session is then spent).
@@ -448,6 +452,8 @@ class RampSession:
             self.head_e, self.tail_e, *self.ends, self.head_s, self.tail_s, *self.starts,
             self.mask, self.horizon, *self.regions, self.t_start, settings.delay,
             settings.levels, settings.b, *self.out, self.counts, settings.headroom)
+        if n_out < 0:
+            return None
         out_r, out_t, out_on = (column[:n_out] for column in self.out)
         # Crossings at the horizon itself are returned once the horizon passes them, as the
         # package's session returns them (only events earlier than its horizon are decided);

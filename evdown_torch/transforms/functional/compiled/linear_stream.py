@@ -172,7 +172,10 @@ def ramps_step(events: Events, state: WindowState, settings: EstimationSettings,
     if session is None:
         session = (RampSession(t_start, events.num_events, ramps) if first
                    else ramp_session(state, ramps, events.num_events))
-    out_x, out_y, out_t, out_on = session(x, y, events.t.numpy(), events.p.numpy())
+    decided = session(x, y, events.t.numpy(), events.p.numpy())
+    if decided is None:  # more crossings than the ramps' buffer: the window solves the chunk
+        return None  # (from ``state``, which the ramps never write; their session is dropped)
+    out_x, out_y, out_t, out_on = decided
     check_output_count(out_t.shape[0])
     new_state = window_state(session)
     _keep(new_state, session)
