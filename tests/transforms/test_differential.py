@@ -85,6 +85,7 @@ def _session(transform, chunks, paths):
 
 def _same_events_within_ulps(a: np.ndarray, b: np.ndarray, ulps: int) -> None:
     """The same events as multisets, each time within ``ulps`` units in the last place."""
+    assert len(a) == len(b)
     a, b = (np.sort(x, order=["x", "y", "p", "t"]) for x in (a, b))
     assert all((a[f] == b[f]).all() for f in ("x", "y", "p"))
     assert (np.abs(a["t"] - b["t"]) <= ulps * np.spacing(np.abs(a["t"]))).all()
