@@ -109,6 +109,23 @@ def test_a_transform_session_moving_between_paths_gives_the_batch_events(ramp_ca
     np.testing.assert_array_equal(np.concatenate(parts), expected)
 
 
+#: A Tonic array's fields with int64 timestamps.
+INT_DTYPE = np.dtype([("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "?")])
+
+
+def _batch_and_session(transform, arr: np.ndarray, cut: int, *, first_eager: bool):
+    """The eager batch call on ``arr``, and a session over ``arr[:cut]`` on the eager path (or
+    the compiled one) then ``arr[cut:]`` and the flush on the compiled path, concatenated."""
+    with eager_kernels(True):
+        expected = transform(arr)
+    session = transform.session()
+    with eager_kernels(first_eager):
+        parts = [session(arr[:cut])]
+    with eager_kernels(False):
+        parts += [session(arr[cut:]), session.flush()]
+    return expected, np.concatenate(parts)
+
+
 def test_a_seeded_session_counts_every_ramp_of_a_merged_knot(ramp_calls):
     # Found by a differential search. Pixel (0, 10)'s first knot merges two events (a change
     # of -2) and starts at t_start; the eager state holds it as one knot. The ramps' session
@@ -116,17 +133,11 @@ def test_a_seeded_session_counts_every_ramp_of_a_merged_knot(ramp_calls):
     # active ramp while the knot's end took two away: the ramp from t = 2 to 12 then counted
     # none, its rounding went unbounded, and a crossing at t = 7 came out twice.
     arr = np.array([(10, 7, 1, True), (0, 10, 2, False), (0, 10, 2, False), (0, 10, 12, False),
-                    (9, 15, 25, True)],
-                   dtype=[("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "?")])
+                    (9, 15, 25, True)], dtype=INT_DTYPE)
     transform = LinearEstimation((19, 23, 2), factor=1, threshold=0.05, max_delay=17)
-    with eager_kernels(True):
-        expected = transform(arr)
-    session = transform.session()
-    with eager_kernels(True):
-        parts = [session(arr[:4])]
-    parts += [session(arr[4:]), session.flush()]
+    expected, out = _batch_and_session(transform, arr, 4, first_eager=True)
     assert len(ramp_calls) == 1  # the second chunk, seeded from the eager state
-    assert_identical(np.concatenate(parts), expected)
+    assert_identical(out, expected)
     assert [int(t) for t in expected["t"][expected["x"] == 0]].count(7) == 2
 
 
@@ -137,17 +148,11 @@ def test_more_crossings_than_the_ramps_buffer_take_the_window(first_eager, ramp_
     # events of one pixel at one time (a knot of change 200, over a threshold of 0.05) cross
     # 1,340-odd levels at once. That chunk used to raise "the output buffer is too small";
     # now the windowed step solves it, from the state the ramps never wrote.
-    arr = np.array([(0, 0, 0, True)] * 200 + [(3, 3, 10, False)],
-                   dtype=[("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "?")])
+    arr = np.array([(0, 0, 0, True)] * 200 + [(3, 3, 10, False)], dtype=INT_DTYPE)
     transform = LinearEstimation((4, 4, 2), factor=(1, 3), threshold=0.05, max_delay=3)
-    with eager_kernels(True):
-        expected = transform(arr)
-    session = transform.session()
-    with eager_kernels(first_eager):
-        parts = [session(arr[:200])]
-    parts += [session(arr[200:]), session.flush()]
+    expected, out = _batch_and_session(transform, arr, 200, first_eager=first_eager)
     assert ramp_calls  # the ramps took a chunk and gave it up
-    assert_identical(np.concatenate(parts), expected)
+    assert_identical(out, expected)
     assert len(expected) > 1300
 
 
