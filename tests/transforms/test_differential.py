@@ -24,7 +24,7 @@ import pytest
 
 from evdown_torch import eager_kernels
 from evdown_torch.transforms.registry import METHODS, make_method
-from tests.helpers import FLOAT_DTYPE, assert_identical, both_paths, random_stream
+from tests.helpers import DVS_DTYPE, FLOAT_DTYPE, assert_identical, both_paths, random_stream
 
 #: Valid values of each method's settings (the defaults fill the rest).
 SETTINGS: dict[str, dict[str, list]] = {
@@ -42,8 +42,6 @@ SETTINGS: dict[str, dict[str, list]] = {
     "decimation": {"n": [1, 2, 7]},
 }
 
-INT_DTYPE = np.dtype([("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "?")])
-
 
 def _case(seed: int, max_events: int):
     """The seed's transform, stream and cuts."""
@@ -58,7 +56,7 @@ def _case(seed: int, max_events: int):
     t_max = int(rng.choice([5, 1000, 100_000]))
     kind = ("near zero", "near the limit", "float")[rng.integers(3)]
     arr = random_stream(rng, n, sensor, t_max=t_max,
-                        dtype=FLOAT_DTYPE if kind == "float" else INT_DTYPE)
+                        dtype=FLOAT_DTYPE if kind == "float" else DVS_DTYPE)
     if kind == "near the limit":
         arr["t"] += 2**63 - t_max - 10
     elif kind == "float":
