@@ -164,10 +164,10 @@ def _solve_window(events: Events, change: torch.Tensor,
     found = estimation_window(
         events.x, events.y, events.t, change, t_start=events.t[0], t_end=events.t[-1],
         sensor_size=SENSOR, factor=(4, 4), out_size=(9, 9), fraction=Fraction(1, 2),
-        resume_cut=None, resume_q=None, next_cut=None, chunk_events=1 << 17, cubic=cubic,
-        front_at_rest=False)
+        resume_cut=None, resume_q=None, resume_returned=None, next_cut=None,
+        chunk_events=1 << 17, cubic=cubic, front_at_rest=False)
     assert found is not None
-    region, t, on, _ = found
+    region, t, on, _, _ = found
     return region, t, on
 
 

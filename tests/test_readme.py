@@ -40,5 +40,5 @@ def test_the_streaming_promise_states_its_exceptions_where_it_is_made():
                                                                      text.index("### Streaming"))]
     promise = " ".join(promise.split())
     assert "LinearEstimation on float timestamps" in promise and "last place" in promise
-    assert "known bug" in promise  # a crossing at a chunk's edge (docs/guide.md)
+    assert "the same events" in promise  # a crossing at a chunk's edge once (docs/guide.md)
     assert "compiled int64 session" in promise and "docs/guide.md#streaming" in promise

@@ -111,11 +111,16 @@ def _window_loop_of(cubic: bool) -> Any:
         out_h: int,
         width: int, height: int, a: int, b: int, level_scale: float, divides: bool,
         integer_time: bool, front_at_rest: bool, fused: bool, q: np.ndarray,
-        has_cut: bool, cut: np.ndarray, has_next: bool, next_cut: np.ndarray, limit: int,
+        returned: np.ndarray, has_cut: bool, cut: np.ndarray, has_next: bool,
+        next_cut: np.ndarray, limit: int,
         chunk_events: int, work: tuple[np.ndarray, ...], work_t: tuple[np.ndarray, ...],
         work_on: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:  # pragma: no cover - compiled
-        """The crossings of every region of a window, in region order; ``q`` moved to ``next_cut``.
+        """A window's crossings to return, in region order; ``q``, ``returned`` at ``next_cut``.
+
+        Of a resumed window, the crossings not returned before (``resumed_crossings``: the
+        first ``returned[r]`` of the piece that crosses the cut dropped, the rest no earlier
+        than the cut), up to each region's first at or after ``next_cut``.
 
         Returns ``(region, t, on, over)``: ``over`` is -1, or the count the eager driver would
         report when the output exceeds ``limit`` (the crossings are then not all written),
@@ -205,25 +210,43 @@ def _window_loop_of(cubic: bool) -> Any:
             q_start = q[r] if q.shape[0] else 0
             crossed = reference_walk(floor_u, on_level, n_moves, q_start, q_after)
             total += crossed
+            # Breakpoints before the cut and before the next cut; the crossings of the piece
+            # that crosses the cut returned before, and of the one that crosses the next cut.
+            n_cut = 0
+            while has_cut and n_cut < nbp and bp_t[n_cut] < cut[0]:
+                n_cut += 1
+            n_next = 0
+            while has_next and n_next < nbp and bp_t[n_next] < next_cut[0]:
+                n_next += 1
+            old = returned[r] if n_cut > 0 else 0
+            count = old if n_next > 0 and n_next == n_cut else 0
             if has_next:  # q after the region's last move ending before the next cut
                 for e in range(n_moves - 1, -1, -1):
                     if bp_t[move_bp[e]] < next_cut[0]:
                         q[r] = q_after[e]
                         break
             if crossed == 0 or (limit >= 0 and total > limit):
+                if has_next:
+                    returned[r] = count
                 continue
             if written + crossed > capacity:
                 capacity = max(2 * capacity, written + crossed)
                 out_region = _grown(out_region, written, capacity)
                 out_t = _grown(out_t, written, capacity)
                 out_on = _grown(out_on, written, capacity)
+            late = False  # a crossing at or after the next cut: the region's rest waits
             for e in range(n_moves):
                 q_before = q_after[e - 1] if e else q_start
                 delta = q_after[e] - q_before
                 i = move_bp[e]
+                if i < n_cut or late:  # a piece that ends before the cut: returned before
+                    continue
                 begin = i - 1 if i else i  # the piece ending at i; a jump at the first
                 s_low = move_s[e - 1] if e and move_bp[e - 1] == i else 0.0
                 for step in range(abs(delta)):
+                    if n_cut > 0 and i == n_cut and old > 0:  # returned before
+                        old -= 1
+                        continue
                     level = q_before + 1 + step if delta > 0 else q_before - 1 - step
                     s = move_s[e]
                     if i and not (on_level[e] and level == floor_u[e]):
@@ -235,13 +258,23 @@ def _window_loop_of(cubic: bool) -> Any:
                         else:
                             s = linear_position(target, whole[begin], part[begin], whole[i],
                                                 part[i])
+                    # (written, then read: one variable for both would be typed float64)
                     if integer_time:
                         out_t[written] = integer_piece_time(bp_t[begin], bp_t[i], s)
                     else:
                         out_t[written] = float_piece_time(bp_t[begin], bp_t[i], s)
+                    if n_cut > 0 and i == n_cut and out_t[written] < cut[0]:
+                        out_t[written] = cut[0]
+                    if has_next and out_t[written] >= next_cut[0]:
+                        late = True
+                        break
+                    if i == n_next and n_next > 0:
+                        count += 1
                     out_region[written] = r
                     out_on[written] = delta > 0
                     written += 1
+            if has_next:
+                returned[r] = count
         if limit >= 0 and total > limit:
             return out_region[:0], out_t[:0], out_on[:0], total
         return out_region[:written], out_t[:written], out_on[:written], -1
@@ -264,9 +297,9 @@ def estimation_window(
     events_x: Tensor, events_y: Tensor, events_t: Tensor, change: Tensor, *,
     t_start: Tensor, t_end: Tensor, sensor_size: tuple[int, int, int],
     factor: tuple[int, int], out_size: tuple[int, int], fraction: Fraction,
-    resume_cut: Tensor | None, resume_q: Tensor | None, next_cut: Tensor | None,
-    chunk_events: int, cubic: bool, front_at_rest: bool,
-) -> tuple[Tensor, Tensor, Tensor, Tensor | None] | None:
+    resume_cut: Tensor | None, resume_q: Tensor | None, resume_returned: Tensor | None,
+    next_cut: Tensor | None, chunk_events: int, cubic: bool, front_at_rest: bool,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None] | None:
     """The crossings of a window, as the eager driver's chunks of regions find them.
 
     Args:
@@ -283,6 +316,8 @@ def estimation_window(
         resume_cut: ``()`` cut of a resumed window, or ``None``.
         resume_q: ``(Wo * Ho,)`` int64 reference index of each region at the cut, or
             ``None`` (a window from ``t_start``, every region at 0).
+        resume_returned: ``(Wo * Ho,)`` int64 count of each region's crossings after the
+            cut's breakpoint returned already (with ``resume_q``).
         next_cut: ``()`` next cut (with ``resume_q``), or ``None``.
         chunk_events: the eager driver's events per chunk of regions (its limit checks).
         cubic: the cubic curve (PCHIP; needs :func:`~.cubic.addcmul_is_fused` not ``None``),
@@ -290,11 +325,12 @@ def estimation_window(
         front_at_rest: a bounded delay: each pixel's cubic slope at its first knot is 0.
 
     Returns:
-        ``(region, t, on, q)``: the crossings' ``(C,)`` int64 regions, times (the events'
-        dtype) and polarities in region order (views of this thread's scratch columns,
+        ``(region, t, on, q, returned)``: the crossings' ``(C,)`` int64 regions, times (the
+        events' dtype) and polarities in region order (views of this thread's scratch columns,
         :func:`~.scratch.scratch_column`, while the output fits them), and with ``next_cut``
         the ``(Wo * Ho,)`` int64 reference index after each region's last breakpoint earlier
-        than it; ``None`` for a window with a level change of 2**31 or more (a pixel's whole
+        than it and the count of its crossings since that are returned (else ``None``, twice);
+        ``None`` for a window with a level change of 2**31 or more (a pixel's whole
         level, carried by a session's first knot of it), which the loop does not pack: the
         eager driver's.
 
@@ -311,6 +347,8 @@ def estimation_window(
     start_of = np.ascontiguousarray(t_start.reshape(-1).numpy())
     end_of = np.ascontiguousarray(t_end.reshape(-1).numpy())
     q = np.zeros(0, np.int64) if resume_q is None else resume_q.numpy().copy()
+    returned = (np.zeros(0, np.int64) if resume_returned is None
+                else resume_returned.numpy().copy())
     has_cut = resume_cut is not None
     has_next = next_cut is not None and resume_q is not None
     cut = np.zeros(1, t.dtype) if resume_cut is None else resume_cut.reshape(1).numpy()
@@ -324,8 +362,9 @@ def estimation_window(
     region, out_t, on, over = _window_loop_of(cubic)(
         x, y, t, change_np, column, row, start_of, end_of, fx, fy, out_size[0], out_size[1],
         width, height, a, b, b / (fx * fy * a), divides, not t_dtype.is_floating_point,
-        front_at_rest, fused, q, has_cut, cut, has_next, after, -1 if limit is None else limit,
-        chunk_events, work, work_t, scratch_column("window on", size, np.bool_),
+        front_at_rest, fused, q, returned, has_cut, cut, has_next, after,
+        -1 if limit is None else limit, chunk_events, work, work_t,
+        scratch_column("window on", size, np.bool_),
     )
     if over == TOO_WIDE_CALL:
         return None
@@ -334,4 +373,5 @@ def estimation_window(
     if over >= 0:
         check_output_count(over)
     return (torch.from_numpy(region), torch.from_numpy(out_t), torch.from_numpy(on),
-            torch.from_numpy(q) if has_next else None)
+            torch.from_numpy(q) if has_next else None,
+            torch.from_numpy(returned) if has_next else None)

@@ -263,10 +263,14 @@ def window_state(session: RampSession) -> WindowState:
     knots = Events(torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(t),
                    torch.from_numpy(change > 0))
     t_start = torch.tensor(session.t_start, dtype=torch.int64)
+    # The crossings returned since each region's last change swept: the sweep moved q from
+    # q_change to the horizon along one ramp (one way), less those held at the horizon.
+    held = np.bincount(session.at_horizon[0], minlength=q_change.shape[0])
+    returned = np.abs(session.regions[4] - q_change) - held
     return WindowState(
         t_start, torch.tensor(session.t_last, dtype=torch.int64), session.horizon, knots,
         torch.from_numpy(change), torch.from_numpy(pixels[:, 0].copy()),
-        torch.from_numpy(q_change.copy()))
+        torch.from_numpy(q_change.copy()), torch.from_numpy(returned))
 
 
 def ramp_session(state: WindowState, settings: RampSettings, max_events: int) -> RampSession:
@@ -283,7 +287,9 @@ def ramp_session(state: WindowState, settings: RampSettings, max_events: int) ->
     Returns:
         A session whose chunks give the package's events after the ones returned so far:
         each region starts at its last breakpoint before the horizon with the state's
-        reference index, and what it finds before the horizon is not returned again.
+        reference index, and what it finds before the horizon is not returned again (by
+        time: the ramps' int64 times are exact, so these are the state's ``returned``
+        crossings but at the edge docs/semantics.md, "Bounded delay", names).
 
     Raises:
         ValueError: for a state that has read no chunk, or of other than int64 timestamps,

@@ -33,6 +33,7 @@ from evdown_torch.transforms.functional.estimation.solver import (
     RegionJob,
     RegionSolver,
     Resume,
+    resumed_crossings,
 )
 from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
 
@@ -109,7 +110,7 @@ def estimate_window(
     resume: Resume | None = None,
     next_cut: Tensor | None = None,
     front_at_rest: bool = True,
-) -> tuple[Events, Tensor | None]:
+) -> tuple[Events, Resume | None]:
     """The driver the estimation kernels share: knots of each chunk of regions, then output.
 
     Batch (:func:`estimate`): the whole stream, or a batch of stacked recordings. Streaming
@@ -126,16 +127,18 @@ def estimate_window(
         resume: where a window picks up
             (:class:`~.solver.Resume`), or
             ``None`` (from ``t_start``).
-        next_cut: with ``resume``, the next window's cut: the returned ``q`` is each region's
-            reference index after its last breakpoint earlier than it.
+        next_cut: with ``resume``, the next window's cut: only the crossings before it are
+            returned (:func:`~.solver.resumed_crossings`), and the next window's
+            :class:`~.solver.Resume` at it.
         front_at_rest: a bounded delay (always so in a streaming window): the pixels are at
             rest before their first knot (docs/semantics.md, "Bounded delay"; the cubic
             slope there is 0).
 
     Returns:
-        ``(events, q)``: output events sorted by ``t`` (``t`` of the input's dtype; with
-        ``resume``, only crossings after its cut), and with ``resume`` the ``(Wo * Ho,)``
-        int64 ``q`` at ``next_cut`` (``None`` without).
+        ``(events, resume)``: output events sorted by ``t`` (``t`` of the input's dtype; with
+        ``resume``, only those not returned before it, :func:`~.solver.resumed_crossings`),
+        and with ``resume`` and ``next_cut`` the next window's :class:`~.solver.Resume`
+        (``None`` without).
     """
     n = events.num_events
     # Every curve stays within its knots' levels, at most sum |change| in size (PCHIP is
@@ -152,14 +155,17 @@ def estimate_window(
             t_start=t_start, t_end=t_end, sensor_size=sensor_size, factor=factor,
             out_size=(out_w, out_h), fraction=fraction,
             resume_cut=None if resume is None else resume.cut,
-            resume_q=None if resume is None else resume.q, next_cut=next_cut,
+            resume_q=None if resume is None else resume.q,
+            resume_returned=None if resume is None else resume.returned, next_cut=next_cut,
             chunk_events=REGION_CHUNK_EVENTS, cubic=settings.curve == "cubic",
             front_at_rest=front_at_rest,
         )
         if found is not None:  # else a level change too wide for the loop: the eager path
-            region, t, on, q = found
-            return emit(region, t, on, out_w), q
+            region, t, on, q, returned = found
+            after = None if q is None or returned is None else Resume(next_cut, q, returned)
+            return emit(region, t, on, out_w), after
     q = None if resume is None else resume.q.clone()
+    returned = None if resume is None else resume.returned.clone()
     outputs = []
     emitted = 0
     for chunk in region_chunks(events, factor=factor, out_width=out_w, change=change,
@@ -170,16 +176,23 @@ def estimate_window(
             start, end = take(t_start, recording), take(t_end, recording)
         knots = pixel_knots(chunk, factor=factor, t_start=start, t_end=end)
         job = RegionJob(sensor_size, factor, fraction, emitted, resume, front_at_rest)
-        region, t, on, bp = solver(knots, job)
-        outputs.append((region, t, on))
+        crossings = solver(knots, job)
+        region, t, on, bp = crossings
         emitted += region.shape[0]
         if q is not None and next_cut is not None:
             decided = where_true(take(knots.bp_t, bp) < next_cut)
             sign = polarity_sign(take(on, decided), torch.int64)
             q.index_add_(0, take(region, decided), sign)
+        if resume is not None and returned is not None:
+            index, t = resumed_crossings(knots, crossings, resume, next_cut, returned)
+            region, on = take(region, index), take(on, index)
+        outputs.append((region, t, on))
     region, t, on = outputs[0] if len(outputs) == 1 else (
         torch.cat(column) for column in zip(*outputs, strict=True))
-    return emit(region, t, on, out_w), q
+    after = None
+    if q is not None and returned is not None and next_cut is not None:
+        after = Resume(next_cut, q, returned)
+    return emit(region, t, on, out_w), after
 
 
 def compiled_curve(curve: Curve) -> bool:

@@ -26,6 +26,7 @@ __all__ = [
     "Resume",
     "breakpoint_levels",
     "resume_moves",
+    "resumed_crossings",
 ]
 
 
@@ -36,16 +37,20 @@ class Resume(NamedTuple):
     after ``cut`` still need (the last one, or the last two for PCHIP slopes) and every knot
     since. Each region resumes at its last breakpoint earlier than ``cut`` with the reference
     index it had there; the pieces before are not solved (the window's curves are not the
-    stream's there).
+    stream's there). The first ``returned`` crossings of the piece that crosses ``cut``
+    were returned by the windows before (``resumed_crossings``, below).
 
     Attributes:
         cut: ``()`` time, or ``None`` for a window that starts at ``t_start`` (from ``q = 0``).
         q: ``(Wo * Ho,)`` int64 reference index of every output region after its last
             breakpoint earlier than ``cut`` (0 for a region without one).
+        returned: ``(Wo * Ho,)`` int64 count of every region's crossings after that
+            breakpoint returned already (0 for a region without one).
     """
 
     cut: Tensor | None
     q: Tensor
+    returned: Tensor
 
 
 def resume_moves(
@@ -160,3 +165,69 @@ class CurveCrossings(NamedTuple):
 
 #: A curve's solver: the crossings of the regions of one chunk of knots.
 RegionSolver = Callable[[Knots, RegionJob], CurveCrossings]
+
+
+def resumed_crossings(
+    knots: Knots, found: CurveCrossings, resume: Resume, next_cut: Tensor | None,
+    returned: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """The crossings of a resumed window that it returns, and their times.
+
+    A window recomputes the piece of each region that crosses its ``cut`` (from the region's
+    last breakpoint earlier than ``cut``), from other knots than the window before: a float
+    time may round to the other side of ``cut``. So the window before counts the crossings
+    of that piece it returned (``resume.returned``), and this one drops as many, by their
+    order along the piece, not by their times; the others come out no earlier than ``cut``
+    (a time rounded below it is raised to it, so the output stays in time order). The
+    crossings of the pieces that end before ``cut`` were returned before.
+
+    With ``next_cut`` (a session's step), a region's crossings are returned in their order
+    up to the first at or after ``next_cut``, and ``returned`` is set, for the window's
+    regions, to the count of those returned of the piece that crosses ``next_cut``
+    (``resume.returned``'s too, where the piece is the same). Without (the flush), all.
+
+    Args:
+        knots: the window's :class:`Knots` (one chunk of regions).
+        found: the solver's crossings of these knots, in region order (``(C,)``).
+        resume: where the window picks up.
+        next_cut: ``()`` the next window's cut, or ``None``.
+        returned: ``(Wo * Ho,)`` int64, written in place at the window's regions (with
+            ``next_cut``).
+
+    Returns:
+        ``(index, t)``: ``(C',)`` int64 index of the crossings returned, ascending, and their
+        ``(C',)`` times.
+    """
+    device = found.t.device
+    n_regions = knots.regions.shape[0]
+    bp_rank = run_index(knots.bp_first)
+    rank = take(bp_rank, found.breakpoint)  # (C,) each crossing's region, ranked
+    position = torch.arange(rank.shape[0], device=device)
+    position -= torch.searchsorted(rank, rank)  # its order in its region
+    end = found.breakpoint - take(knots.region_first_bp, rank)  # its piece's end, in region
+    zeros = torch.zeros(n_regions, dtype=torch.int64, device=device)
+    n_cut = zeros.clone()
+    if resume.cut is not None:
+        n_cut.index_add_(0, bp_rank, (knots.bp_t < resume.cut).to(torch.int64))
+    old = take(resume.returned, knots.regions).masked_fill_(n_cut == 0, 0)
+    cut_of = take(n_cut, rank)
+    before = end < cut_of  # a piece that ends before the cut
+    crossing = (cut_of > 0) & (end == cut_of)  # the piece that crosses the cut
+    n_before = zeros.clone().index_add_(0, rank, before.to(torch.int64))
+    keep = ~before & ~(crossing & (position - take(n_before, rank) < take(old, rank)))
+    t = found.t
+    if resume.cut is not None:
+        t = torch.where(crossing, torch.maximum(t, resume.cut), t)
+    if next_cut is not None:
+        late = where_true(keep & (t >= next_cut))
+        stop = torch.full((n_regions,), rank.shape[0], dtype=torch.int64, device=device)
+        stop.scatter_reduce_(0, take(rank, late), take(position, late), "amin")
+        keep &= position < take(stop, rank)
+        n_next = zeros.clone().index_add_(0, bp_rank, (knots.bp_t < next_cut).to(torch.int64))
+        next_of = take(n_next, rank)
+        counted = keep & (next_of > 0) & (end == next_of)
+        count = zeros.clone().index_add_(0, rank, counted.to(torch.int64))
+        count += old.masked_fill_((n_next == 0) | (n_next != n_cut), 0)
+        returned[knots.regions] = count
+    index = where_true(keep)
+    return index, take(t, index)

@@ -12,7 +12,9 @@ future needs (:class:`WindowState`):
 * the knot events the curves after ``F`` still need: of each pixel that has fired, its last
   knot earlier than ``F`` (the last two for the cubic method: PCHIP slopes look one knot
   back), with its whole level as its change, and all its knots since (held knots included);
-* each output region's reference index after its last breakpoint earlier than ``F``;
+* each output region's reference index after its last breakpoint earlier than ``F``, and
+  how many of its crossings since have been returned (the next window drops as many of them
+  by their order: :func:`~.solver.resumed_crossings`);
 * each pixel's last knot time (where the next chunk's held knots start from).
 
 Its size follows the sensor's active pixels and the last ``lag * D`` of input, not the
@@ -196,6 +198,7 @@ def estimation_init(settings: EstimationSettings, events: Events) -> WindowState
         torch.zeros(0, dtype=torch.int64, device=device),
         torch.full((width * height,), t_start.item(), dtype=t_dtype, device=device),
         torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
+        torch.zeros(out_w * out_h, dtype=torch.int64, device=device),
     )
 
 
@@ -274,21 +277,19 @@ def estimation_step(
     ])
 
     next_cut = torch.tensor(horizon, dtype=t_dtype, device=device)
-    out, q = estimate_window(
+    out, after = estimate_window(
         window, change=window_change, t_start=state.t_start, t_end=tau, settings=settings,
-        resume=Resume(cut, state.q), next_cut=next_cut,
+        resume=Resume(cut, state.q, state.returned), next_cut=next_cut,
     )
-    decided = out.t < next_cut
-    if cut is not None:
-        decided &= out.t >= cut
     kept, kept_change = upkeep.next_knots(window, window_change, before=next_cut,
                                           keep=settings.lag, width=width)
     outside = where_true(~in_window)
     knots, change = upkeep.merge_by_time([
         (state.knots.select(outside), take(state.change, outside)), (kept, kept_change)])
-    q = cast(Tensor, q)  # estimate_window returns q with a resume
-    new_state = WindowState(state.t_start, tau, horizon, knots, change, pixel_t, q)
-    return out.select(where_true(decided)), new_state
+    after = cast(Resume, after)  # estimate_window returns it with a resume and a next cut
+    new_state = WindowState(state.t_start, tau, horizon, knots, change, pixel_t, after.q,
+                            after.returned)
+    return out, new_state
 
 
 def estimation_finish(state: WindowState, settings: EstimationSettings) -> Events | None:
@@ -308,6 +309,7 @@ def estimation_finish(state: WindowState, settings: EstimationSettings) -> Event
         return None
     out, _ = estimate_window(
         state.knots.select(in_window), change=take(state.change, in_window),
-        t_start=state.t_start, t_end=state.t_last, settings=settings, resume=Resume(cut, state.q),
+        t_start=state.t_start, t_end=state.t_last, settings=settings,
+        resume=Resume(cut, state.q, state.returned),
     )
-    return out.select(where_true(out.t >= cut))
+    return out

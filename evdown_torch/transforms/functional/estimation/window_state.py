@@ -30,6 +30,11 @@ class WindowState(NamedTuple):
         pixel_t: ``(W * H,)`` time of each pixel's last knot (``t_start`` before its first).
         q: ``(Wo * Ho,)`` int64 reference index of each output region after its last
             breakpoint earlier than ``horizon``.
+        returned: ``(Wo * Ho,)`` int64 count of each region's crossings after that
+            breakpoint that have been returned (the first of its piece that crosses the
+            horizon). The next window drops as many of that piece's crossings, by their
+            order, not by their times: a float time computed in another window may fall on
+            the other side of the horizon.
     """
 
     t_start: Tensor
@@ -39,3 +44,4 @@ class WindowState(NamedTuple):
     change: Tensor
     pixel_t: Tensor
     q: Tensor
+    returned: Tensor
