@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.abc
 import json
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -163,6 +164,59 @@ COMPILED_METHODS = ["downsample", "funnelling", "event_count", "photocurrent", "
                     "cubic", "density", "poisson"]
 COLD_SETTINGS = {"lif": {"dt": 10, "tau": 40.0}, "density": {"tau": 40.0, "s": 0.2},
                  "poisson": {"window": 40, "alpha": 0.3}}
+
+
+#: Both estimators on a fixed stream of int64 (or, with ``float``, float64) timestamps, as
+#: JSON (a fresh process; the package from the ``PYTHONPATH`` the test gives).
+ESTIMATORS_SCRIPT = """
+import json, sys
+import numpy as np
+from evdown_torch.transforms.registry import make_method
+
+rng = np.random.default_rng(3)
+arr = np.zeros(3000, [("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "?")])
+arr["x"], arr["y"] = rng.integers(0, 12, 3000), rng.integers(0, 9, 3000)
+arr["t"], arr["p"] = np.sort(rng.integers(0, 5000, 3000)), rng.random(3000) < 0.5
+out = {}
+for kind in sys.argv[1].split(","):
+    stream = arr.astype([("x", "<i2"), ("y", "<i2"), ("t", "<f8"), ("p", "?")]) \\
+        if kind == "float" else arr
+    for name in sys.argv[2:]:
+        result = make_method(name, (12, 9, 2), (3, 2), max_delay=50)(stream)
+        out[f"{name} {kind}"] = [list(map(float, row)) for row in result.tolist()]
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.slow
+def test_the_estimators_cached_by_other_processes_load_together(with_numba, tmp_path):
+    # The sequence that failed, on a copy of the package: both window loops cached for int64
+    # and float64 times by one process; the loops' source changed (an upgrade, an edit);
+    # LinearEstimation's loop compiled again by a process, CubicEstimation's by one that read
+    # the first from the cache; a fourth process that read both failed on the second (a
+    # SystemError from the dispatcher, "NRT_adapt_ndarray_to_python: descr is NULL"). Both
+    # loops had one qualified name; each has its own now.
+    shutil.copytree(ROOT / "evdown_torch", tmp_path / "evdown_torch",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONPATH": str(tmp_path)}
+    env.pop(EAGER_VARIABLE, None)
+
+    def run(kinds: str, *names: str) -> dict:
+        done = subprocess.run([sys.executable, "-c", ESTIMATORS_SCRIPT, kinds, *names],
+                              capture_output=True, text=True, cwd=tmp_path, env=env)
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout)
+
+    before = run("int,float", "linear", "cubic")
+    loops = tmp_path / "evdown_torch" / "transforms" / "functional" / "compiled" / "estimation.py"
+    with loops.open("a", encoding="utf-8") as source:
+        source.write("# changed\n")
+    run("int", "linear")
+    run("int", "linear", "cubic")
+    after = run("int", "linear", "cubic")
+    assert after == {key: before[key] for key in after}
+    assert after["linear int"] and after["cubic int"]
 
 
 @pytest.mark.slow

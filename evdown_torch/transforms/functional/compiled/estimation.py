@@ -102,7 +102,8 @@ def _window_loop_of(cubic: bool) -> Any:
     ``cubic`` is a constant of the loop's closure: Numba drops the other curve's branches
     before typing them, so a LinearEstimation's first call compiles none of the cubic
     pieces (3 to 4 s of its cold first call, docs/benchmarks.md) and a CubicEstimation's
-    none of the linear ones. Numba's disk cache keys each loop by its closure's values.
+    none of the linear ones. Numba's disk cache keys each loop by its closure's values,
+    and each loop has a name of its own (below).
     """
 
     def window_loop(
@@ -279,6 +280,13 @@ def _window_loop_of(cubic: bool) -> Any:
             return out_region[:0], out_t[:0], out_on[:0], total
         return out_region[:written], out_t[:written], out_on[:written], -1
 
+    # A name of its own for each curve's loop: Numba names a compiled function's symbols after
+    # its qualified name and a counter of its process, so both loops, compiled in two
+    # processes under one name, got the same symbols, and a process that loaded both from the
+    # disk cache failed on the second ("NRT_adapt_ndarray_to_python: descr is NULL"). Their
+    # cache files are apart too.
+    window_loop.__name__ = f"window_loop_{'cubic' if cubic else 'linear'}"
+    window_loop.__qualname__ = f"_window_loop_of.<locals>.{window_loop.__name__}"
     return compiled_loop(window_loop)
 
 
