@@ -344,6 +344,22 @@ def _by_time_then_region(region: np.ndarray, t: np.ndarray, on: np.ndarray, regi
     return region[order], t[order], on[order]
 
 
+def _after_returned(region: np.ndarray, returned: np.ndarray) -> np.ndarray:
+    """``(C,)`` bool: the crossings, each region's in time order, after its first ``returned``.
+
+    Example:
+        >>> _after_returned(np.array([3, 1, 3, 3, 1]), np.array([0, 1, 0, 2])).tolist()
+        [False, False, False, True, True]
+    """
+    order = np.argsort(region, kind="stable")
+    by_region = region[order]
+    first = np.flatnonzero(np.r_[True, by_region[1:] != by_region[:-1]])
+    rank = np.arange(region.shape[0]) - np.repeat(first, np.diff(np.r_[first, region.shape[0]]))
+    after = np.empty(region.shape[0], np.bool_)
+    after[order] = rank >= returned[by_region]
+    return after
+
+
 class RampSession:
     """A bounded-delay stream as ramps: ``__call__(chunk)`` returns the decided events.
 
@@ -384,9 +400,10 @@ class RampSession:
         for k, column in enumerate(self.regions):
             column[:] = t_start if k in (2, 9) else 0
         self.horizon = self.t_last = t_start
-        # Found before this time, returned already (a session carrying on from the package's
-        # state: :func:`~.linear_ramps_state.ramp_session`).
-        self.returned_before = t_start
+        # A session carrying on from the package's state
+        # (:func:`~.linear_ramps_state.ramp_session`): the state's horizon, and how many
+        # crossings of each region's piece across it its steps returned (its ``returned``).
+        self.returned: tuple[int, np.ndarray] | None = None
         self.at_horizon = tuple(np.empty(0, dtype) for dtype in (np.int64, np.int64, np.bool_))
         self.recent = tuple(np.empty(0, np.int64) for _ in range(4))
 
@@ -455,14 +472,20 @@ class RampSession:
         if n_out < 0:
             return None
         out_r, out_t, out_on = (column[:n_out] for column in self.out)
+        if self.returned is not None:  # the first chunk after a state: as the package drops
+            # the crossings it returned, by their count, and raises the rest to the horizon
+            # (the sweep found them all: it went from each region's last change before that
+            # horizon to this one, no earlier)
+            seeded_at, returned = self.returned
+            new = _after_returned(out_r, returned)
+            out_r, out_t, out_on = out_r[new], np.maximum(out_t[new], seeded_at), out_on[new]
+            self.returned = None
         # Crossings at the horizon itself are returned once the horizon passes them, as the
-        # package's session returns them (only events earlier than its horizon are decided);
-        # those found before ``returned_before`` were returned already.
-        new = out_t >= self.returned_before
+        # package's session returns them (only events earlier than its horizon are decided).
         held_r, held_t, held_on = self.at_horizon
-        out_r = np.concatenate([held_r, out_r[new]])
-        out_t = np.concatenate([held_t, out_t[new]])
-        out_on = np.concatenate([held_on, out_on[new]])
+        out_r = np.concatenate([held_r, out_r])
+        out_t = np.concatenate([held_t, out_t])
+        out_on = np.concatenate([held_on, out_on])
         out_r, out_t, out_on = _by_time_then_region(out_r, out_t, out_on, len(settings.pixels))
         cut = int(np.searchsorted(out_t, self.horizon))
         self.at_horizon = (out_r[cut:], out_t[cut:], out_on[cut:])

@@ -287,9 +287,8 @@ def ramp_session(state: WindowState, settings: RampSettings, max_events: int) ->
     Returns:
         A session whose chunks give the package's events after the ones returned so far:
         each region starts at its last breakpoint before the horizon with the state's
-        reference index, and what it finds before the horizon is not returned again (by
-        time: the ramps' int64 times are exact, so these are the state's ``returned``
-        crossings but at the edge docs/semantics.md, "Bounded delay", names).
+        reference index, and of the crossings it finds after it, the first ``returned`` are
+        not returned again (by their count, as the windowed step drops them).
 
     Raises:
         ValueError: for a state that has read no chunk, or of other than int64 timestamps,
@@ -316,7 +315,7 @@ def ramp_session(state: WindowState, settings: RampSettings, max_events: int) ->
     q[:] = q_change[:] = state.q.numpy()
     t_change[:] = since
     session.horizon, session.t_last = horizon, int(state.t_last)
-    session.returned_before = horizon
+    session.returned = (horizon, state.returned.numpy().copy())
     recent = np.searchsorted(t, horizon - settings.delay)
     session.recent = (pixel[recent:] % settings.width, pixel[recent:] // settings.width,
                       t[recent:].copy(), change[recent:].copy())
