@@ -202,28 +202,29 @@ def _window_loop_of(cubic: bool) -> Any:
             for e in range(n_moves):
                 floor_u[e], on_level[e] = _level_index(move_whole[e], move_part[e], pixels, a, b,
                                                        level_scale, divides)
-            if has_cut:  # a resumed window: the moves before the cut take the cut's value
-                done = 0
-                while done < n_moves and bp_t[move_bp[done]] < cut[0]:
-                    done += 1
-                for e in range(done - 1):
-                    floor_u[e], on_level[e] = floor_u[done - 1], on_level[done - 1]
-            q_start = q[r] if q.shape[0] else 0
-            crossed = reference_walk(floor_u, on_level, n_moves, q_start, q_after)
-            total += crossed
-            # Breakpoints before the cut and before the next cut; the crossings of the piece
-            # that crosses the cut returned before, and of the one that crosses the next cut.
+            # The region's breakpoints before the cut and before the next cut.
             n_cut = 0
             while has_cut and n_cut < nbp and bp_t[n_cut] < cut[0]:
                 n_cut += 1
             n_next = 0
             while has_next and n_next < nbp and bp_t[n_next] < next_cut[0]:
                 n_next += 1
+            if has_cut:  # a resumed window: the moves before the cut take the cut's value
+                done = 0
+                while done < n_moves and move_bp[done] < n_cut:
+                    done += 1
+                for e in range(done - 1):
+                    floor_u[e], on_level[e] = floor_u[done - 1], on_level[done - 1]
+            q_start = q[r] if q.shape[0] else 0
+            crossed = reference_walk(floor_u, on_level, n_moves, q_start, q_after)
+            total += crossed
+            # The crossings of the piece that crosses the cut returned before, and of the one
+            # that crosses the next cut returned so far.
             old = returned[r] if n_cut > 0 else 0
             count = old if n_next > 0 and n_next == n_cut else 0
             if has_next:  # q after the region's last move ending before the next cut
                 for e in range(n_moves - 1, -1, -1):
-                    if bp_t[move_bp[e]] < next_cut[0]:
+                    if move_bp[e] < n_next:
                         q[r] = q_after[e]
                         break
             if crossed == 0 or (limit >= 0 and total > limit):

@@ -90,8 +90,7 @@ def resume_moves(
     if resume.cut is None:
         return floor_u, on_level, q_start
     done = knots.bp_t < resume.cut  # a prefix of each region's breakpoints
-    n_done = torch.zeros_like(knots.regions).index_add_(0, bp_rank, done.to(torch.int64))
-    cut_bp = knots.region_first_bp + n_done - 1
+    cut_bp = knots.region_first_bp + breakpoints_before(knots, bp_rank, resume.cut) - 1
     if move_bp is None:
         cut_move, at = cut_bp, where_true(done)
     else:
@@ -102,6 +101,15 @@ def resume_moves(
     floor_u[at] = take(floor_u, source)
     on_level[at] = take(on_level, source)
     return floor_u, on_level, q_start
+
+
+def breakpoints_before(knots: Knots, bp_rank: Tensor, time: Tensor) -> Tensor:
+    """``(R,)`` int64 count of each region's breakpoints earlier than ``time`` (a prefix).
+
+    ``bp_rank``: ``(B,)`` rank of each breakpoint's region among ``knots.regions``.
+    """
+    before = (knots.bp_t < time).to(torch.int64)
+    return torch.zeros_like(knots.regions).index_add_(0, bp_rank, before)
 
 
 def breakpoint_levels(knots: Knots, bp_first_at: Tensor, region: Tensor) -> Tensor:
@@ -206,9 +214,7 @@ def resumed_crossings(
     position -= torch.searchsorted(rank, rank)  # its order in its region
     end = found.breakpoint - take(knots.region_first_bp, rank)  # its piece's end, in region
     zeros = torch.zeros(n_regions, dtype=torch.int64, device=device)
-    n_cut = zeros.clone()
-    if resume.cut is not None:
-        n_cut.index_add_(0, bp_rank, (knots.bp_t < resume.cut).to(torch.int64))
+    n_cut = zeros if resume.cut is None else breakpoints_before(knots, bp_rank, resume.cut)
     old = take(resume.returned, knots.regions).masked_fill_(n_cut == 0, 0)
     cut_of = take(n_cut, rank)
     before = end < cut_of  # a piece that ends before the cut
@@ -223,7 +229,7 @@ def resumed_crossings(
         stop = torch.full((n_regions,), rank.shape[0], dtype=torch.int64, device=device)
         stop.scatter_reduce_(0, take(rank, late), take(position, late), "amin")
         keep &= position < take(stop, rank)
-        n_next = zeros.clone().index_add_(0, bp_rank, (knots.bp_t < next_cut).to(torch.int64))
+        n_next = breakpoints_before(knots, bp_rank, next_cut)
         next_of = take(n_next, rank)
         counted = keep & (next_of > 0) & (end == next_of)
         count = zeros.clone().index_add_(0, rank, counted.to(torch.int64))
