@@ -146,8 +146,9 @@ def _window_loop_of(cubic: bool) -> Any:
         m = 0
         for k in range(regions.shape[0]):
             m = max(m, first_of[k + 1] - first_of[k])
-        event_bp, by_pixel = np.empty(m, np.int64), np.empty(m, np.int64)
-        pixel_count = np.zeros(min(per_region, 4 * m + 64) + 1, np.int64)  # see region_knots
+        event_bp = np.empty(m, np.int64)
+        pixel_ends = np.zeros(min(per_region, 4 * m + 64) + 1, np.int64)  # see region_knots
+        by_pixel = np.empty(m, np.int64), np.empty(m, t.dtype), np.empty(m, np.int64)
         k_t, k_level = np.empty(3 * m, t.dtype), np.empty(3 * m, np.int64)
         k_bp, k_first = np.empty(3 * m, np.int64), np.empty(3 * m, np.bool_)
         slope, k_width, k_rise = (np.empty(3 * m, np.float64), np.empty(3 * m, np.float64),
@@ -182,7 +183,7 @@ def _window_loop_of(cubic: bool) -> Any:
                 origin = start_of[rec]
             previous_start = lo
             nbp, nk = region_knots(packed, t, lo, hi, start_of[rec], end_of[rec], per_region,
-                                   bp_t, event_bp, by_pixel, pixel_count, k_t, k_level, k_bp,
+                                   bp_t, event_bp, pixel_ends, by_pixel, k_t, k_level, k_bp,
                                    k_first)
             rx, ry = r % out_w, (r // out_w) % out_h
             pixels = min(width - rx * fx, fx) * min(height - ry * fy, fy)
@@ -193,15 +194,17 @@ def _window_loop_of(cubic: bool) -> Any:
                             integer_time, origin, fused, part, derivative)
                 n_moves = monotone_moves(bp_t, nbp, whole, part, derivative, fused, c1, c2, c3,
                                          move_bp, move_s, move_whole, move_part)
-            else:
+                for e in range(n_moves):
+                    floor_u[e], on_level[e] = _level_index(move_whole[e], move_part[e], pixels, a,
+                                                           b, level_scale, divides)
+            else:  # a move at each breakpoint, to its end
                 linear_sums(k_t, k_level, k_bp, k_first, nk, bp_t, nbp, per_region, slope, high_bp,
                             low_bp, count_bp, whole, part)
                 n_moves = nbp
-                for i in range(nbp):
-                    move_bp[i], move_s[i], move_whole[i], move_part[i] = i, 1.0, whole[i], part[i]
-            for e in range(n_moves):
-                floor_u[e], on_level[e] = _level_index(move_whole[e], move_part[e], pixels, a, b,
-                                                       level_scale, divides)
+                for e in range(nbp):
+                    move_bp[e], move_s[e] = e, 1.0
+                    floor_u[e], on_level[e] = _level_index(whole[e], part[e], pixels, a, b,
+                                                           level_scale, divides)
             # The region's breakpoints before the cut and before the next cut.
             n_cut = 0
             while has_cut and n_cut < nbp and bp_t[n_cut] < cut[0]:

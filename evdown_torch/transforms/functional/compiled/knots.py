@@ -126,8 +126,8 @@ def unpack_change(packed: int) -> int:  # pragma: no cover - compiled
 def region_knots(
     packed: np.ndarray, t: np.ndarray, lo: int, hi: int,
     t_start: float, t_end: float, per_region: int, bp_t: np.ndarray, event_bp: np.ndarray,
-    by_pixel: np.ndarray, pixel_count: np.ndarray, k_t: np.ndarray, k_level: np.ndarray,
-    k_bp: np.ndarray, k_first: np.ndarray,
+    pixel_ends: np.ndarray, by_pixel: tuple[np.ndarray, np.ndarray, np.ndarray],
+    k_t: np.ndarray, k_level: np.ndarray, k_bp: np.ndarray, k_first: np.ndarray,
 ) -> tuple[int, int]:  # pragma: no cover - compiled
     """The breakpoints and knots of the region whose events are ``[lo, hi)`` of the columns.
 
@@ -135,61 +135,77 @@ def region_knots(
     order inside a region).
     Writes the region's ``nbp`` breakpoint times into ``bp_t`` and its ``nk`` knots, in pixel
     order, into ``k_t`` (time), ``k_level`` (level), ``k_bp`` (breakpoint index) and
-    ``k_first`` (a pixel's first knot); ``event_bp``, ``by_pixel`` and ``pixel_count`` are
-    scratch. Returns ``(nbp, nk)``.
+    ``k_first`` (a pixel's first knot). Scratch: ``event_bp`` (each event's breakpoint),
+    ``pixel_ends`` (``min(per_region, 4 * m + 64) + 1`` entries for ``m`` events: where each
+    pixel's events end) and ``by_pixel`` (the events' level change, time and breakpoint in
+    pixel order, so that the knots are built in one pass over contiguous columns). Returns
+    ``(nbp, nk)``.
     """
+    m = hi - lo
+    # A counting sort by pixel unless the region has far fewer events than pixels.
+    counted = per_region <= 4 * m + 64
+    if counted:
+        pixel_ends[:per_region + 1] = 0
     nbp = 0
     if t[lo] > t_start:
         bp_t[0] = t_start
         nbp = 1
-    for j in range(lo, hi):
-        if j == lo or t[j] != t[j - 1]:
-            bp_t[nbp] = t[j]
+    previous = t[lo]
+    for j in range(np.uint64(lo), np.uint64(hi)):
+        if j == lo or t[j] != previous:
+            previous = t[j]
+            bp_t[np.uint64(nbp)] = previous
             nbp += 1
         event_bp[j - lo] = nbp - 1
+        if counted:
+            pixel_ends[np.uint64(unpack_local(packed[j]) + 1)] += 1
     if t[hi - 1] < t_end:
         bp_t[nbp] = t_end
         nbp += 1
-    # The region's events by pixel (stable: time order inside a pixel); a counting sort
-    # unless the region has far fewer events than pixels.
-    if per_region > 4 * (hi - lo) + 64:
-        by_local = merge_order(packed[lo:hi] >> 32)
-        for j in range(hi - lo):
-            by_pixel[j] = lo + by_local[j]
-    else:
-        pixel_count[:per_region + 1] = 0
-        for j in range(lo, hi):
-            pixel_count[unpack_local(packed[j]) + 1] += 1
+    # The region's events by pixel (stable: time order inside a pixel).
+    by_change, by_t, by_bp = by_pixel
+    pixels = 0
+    if counted:
         for p in range(per_region):
-            pixel_count[p + 1] += pixel_count[p]
-        for j in range(lo, hi):
-            p = unpack_local(packed[j])
-            by_pixel[pixel_count[p]] = j
-            pixel_count[p] += 1
+            pixel_ends[p + 1] += pixel_ends[p]
+        for j in range(np.uint64(lo), np.uint64(hi)):
+            p = np.uint64(unpack_local(packed[j]))
+            d = np.uint64(pixel_ends[p])
+            pixel_ends[p] = d + 1
+            by_change[d], by_t[d], by_bp[d] = unpack_change(packed[j]), t[j], event_bp[j - lo]
+        pixels = per_region  # pixel_ends[p]: where pixel p's events end (some have none)
+    else:
+        by_local = merge_order(packed[lo:hi] >> 32)
+        for d in range(m):
+            j = np.uint64(lo + by_local[d])
+            by_change[d], by_t[d], by_bp[d] = unpack_change(packed[j]), t[j], event_bp[j - lo]
+            if d + 1 == m or packed[lo + by_local[d + 1]] >> 32 != packed[j] >> 32:
+                pixel_ends[pixels] = d + 1
+                pixels += 1
     # One knot per (pixel, t), after all its events; a front and a back knot where needed.
     nk = 0
-    j = 0
-    m = hi - lo
-    while j < m:
-        p = unpack_local(packed[by_pixel[j]])
+    begin = 0
+    for p in range(pixels):
+        end = pixel_ends[p]
+        if end == begin:
+            continue
         level = 0
         pixel_first = nk
-        while j < m and unpack_local(packed[by_pixel[j]]) == p:
-            e = by_pixel[j]
-            level += unpack_change(packed[e])
-            te = t[e]
-            j += 1
-            if j < m and unpack_local(packed[by_pixel[j]]) == p and t[by_pixel[j]] == te:
+        for j in range(np.uint64(begin), np.uint64(end)):
+            level += by_change[j]
+            te = by_t[j]
+            if j + 1 < end and by_t[j + 1] == te:
                 continue
             if nk == pixel_first and te > t_start:
                 k_t[nk], k_level[nk], k_bp[nk], k_first[nk] = t_start, 0, 0, True
                 nk += 1
-            k_t[nk], k_level[nk], k_bp[nk] = te, level, event_bp[e - lo]
+            k_t[nk], k_level[nk], k_bp[nk] = te, level, by_bp[j]
             k_first[nk] = nk == pixel_first
             nk += 1
         if k_t[nk - 1] < t_end:
             k_t[nk], k_level[nk], k_bp[nk], k_first[nk] = t_end, level, nbp - 1, False
             nk += 1
+        begin = end
     return nbp, nk
 
 

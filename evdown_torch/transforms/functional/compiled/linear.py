@@ -54,7 +54,7 @@ def linear_sums(
         high_f = np.rint(slope[k] * scale)
         low = slope[k] - high_f / scale
         high = np.int64(high_f)
-        i = k_bp[k]
+        i = np.uint64(k_bp[k])  # (``_numba``, "Unsigned indices")
         if k_first[k]:
             high_previous, low_previous, level_previous = 0, 0.0, 0
             high_bp[i] += high
