@@ -220,6 +220,41 @@ def test_the_estimators_cached_by_other_processes_load_together(with_numba, tmp_
 
 
 @pytest.mark.slow
+def test_a_change_to_a_function_a_loop_calls_from_another_file_reaches_the_cached_loop(
+        with_numba, tmp_path):
+    # Numba's cache checks only the file that defines a loop: LinearEstimation's window loop
+    # (estimation.py) cached, then a function it calls changed in knots.py alone (every level
+    # change read as 0: no crossings), ran the old code from the cache. On a copy of the
+    # package, with its own in-tree cache (the default place).
+    shutil.copytree(ROOT / "evdown_torch", tmp_path / "evdown_torch",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    env.pop(EAGER_VARIABLE, None)
+    env.pop("NUMBA_CACHE_DIR", None)
+    compiled = tmp_path / "evdown_torch" / "transforms" / "functional" / "compiled"
+
+    def run() -> list:
+        done = subprocess.run([sys.executable, "-c", ESTIMATORS_SCRIPT, "float", "linear"],
+                              capture_output=True, text=True, cwd=tmp_path, env=env)
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout)["linear float"]
+
+    def cached() -> set[str]:
+        return {path.name for path in (compiled / "__pycache__").glob("*.nb[ic]")}
+
+    assert run()  # crossings, and the window loop cached
+    first = cached()
+    assert any("window_loop_linear" in name for name in first)
+    knots = compiled / "knots.py"
+    source = knots.read_text(encoding="utf-8")
+    changed = source.replace("    return (packed << 32) >> 32\n", "    return 0 * packed\n")
+    assert changed != source
+    knots.write_text(changed, encoding="utf-8")
+    assert run() == []
+    assert not first & cached()  # the files of the sources before were removed
+
+
+@pytest.mark.slow
 def test_a_fresh_process_with_a_cold_cache_gives_the_same_events(with_numba, tmp_path):
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
            "PYTHONPATH": str(ROOT)}
