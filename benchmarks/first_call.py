@@ -111,6 +111,8 @@ def _literal_copies(compiles: list[tuple[float, Any]], literal: type) -> set[str
     that constant's literal type, and compiles a copy of the callee for it beside the one for
     ``int64``: first-call time for nothing (``np.int64(0)`` gives the counter its type).
     """
+    from evdown_torch.transforms.functional.compiled._numba import written_name
+
     found = set()
     for _, event in compiles:
         function = getattr(event.data.get("dispatcher"), "py_func", None)
@@ -118,7 +120,7 @@ def _literal_copies(compiles: list[tuple[float, Any]], literal: type) -> set[str
         if (event.is_start and function is not None
                 and function.__module__.startswith("evdown_torch")
                 and any(isinstance(arg, literal) for arg in args)):
-            found.add(f"{function.__module__}.{function.__qualname__}")
+            found.add(f"{function.__module__}.{written_name(function)}")
     return found
 
 

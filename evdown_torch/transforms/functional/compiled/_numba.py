@@ -42,7 +42,7 @@ import numba
 from numba.core import types
 from numba.extending import intrinsic
 
-__all__ = ["SOURCES_DIGEST", "compiled_loop", "fma", "inlined_helper"]
+__all__ = ["SOURCES_DIGEST", "compiled_loop", "fma", "inlined_helper", "written_name"]
 
 #: This package's directory, and the directory of ``evdown_torch``.
 _HERE = Path(__file__).resolve().parent
@@ -97,6 +97,11 @@ def _named_for_sources(function: Callable[..., Any]) -> Callable[..., Any]:
     """``function``, its qualified name (the cache files' name) ending in the digest."""
     function.__qualname__ = f"{function.__qualname__}__{SOURCES_DIGEST}"
     return function
+
+
+def written_name(function: Callable[..., Any]) -> str:
+    """A loop's qualified name as its module writes it (without the digest)."""
+    return function.__qualname__.removesuffix(f"__{SOURCES_DIGEST}")
 
 
 def compiled_loop(function: Callable[..., Any]) -> Any:
