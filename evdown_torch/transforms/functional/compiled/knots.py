@@ -179,7 +179,8 @@ def region_knots(
         for d in range(m):
             j = np.uint64(lo + by_local[d])
             by_change[d], by_t[d], by_bp[d] = unpack_change(packed[j]), t[j], event_bp[j - lo]
-            if d + 1 == m or packed[lo + by_local[d + 1]] >> 32 != packed[j] >> 32:
+            if d + 1 == m or (unpack_local(packed[lo + by_local[d + 1]])
+                              != unpack_local(packed[j])):
                 pixel_ends[pixels] = d + 1
                 pixels += 1
     # One knot per (pixel, t), after all its events; a front and a back knot where needed.
