@@ -108,6 +108,22 @@ def test_sessions_in_odd_chunks_and_moving_between_paths(name, rng):
     assert_sessions_on_both_paths(transform, arr, whole)
 
 
+@pytest.mark.parametrize("factor", [(1, 1), (2, 4), (4, 1), (8, 8), (3, 2), (4, 3)])
+def test_downsample_floors_coordinates_beyond_the_sensor(factor):
+    # A stacked batch's rows lie far past one sensor: shifts and tables both floor them.
+    from evdown_torch.transforms.functional.compiled.downsample import downsample_step
+    from evdown_torch.transforms.functional.settings import RegionSettings
+
+    x = [0, 9, 10, 4095, 4096, 70_001, -1, -9, 2**40 + 3]
+    y = [6, 7, 8191, 8192, 123_457, 5, -2, -8, 2**50 + 1]
+    events = Events.from_columns(x, y, list(range(len(x))), [True] * len(x))
+    out = downsample_step(events, RegionSettings((16, 16, 2), factor))
+    fx, fy = factor
+    assert out.x.tolist() == [v // fx for v in x]
+    assert out.y.tolist() == [v // fy for v in y]
+    assert out.t.tolist() == events.t.tolist() and out.p.tolist() == events.p.tolist()
+
+
 @pytest.mark.parametrize("cls", [Downsample, EventFunnelling])
 def test_batches_sorted_stacked_and_with_empty_recordings(cls, rng):
     transform = cls(SENSOR, factor=(3, 2))
