@@ -27,6 +27,7 @@ from evdown_torch.transforms.functional.compiled.regions import (
     outside_error,
     power_of_two_shifts,
     region_tables,
+    region_xy,
 )
 from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 from evdown_torch.transforms.functional.reference import capped_threshold, threshold_fraction
@@ -92,12 +93,7 @@ def _event_count_loop(
             if xj < 0 or xj >= width or yj < 0 or yj >= height:
                 stop = -1 - np.int64(j)
                 break
-            if shift_x >= 0:
-                rx = xj >> shift_x
-                ry = yj >> shift_y
-            else:
-                rx = column[xj]
-                ry = row[yj]
+            rx, ry = region_xy(xj, yj, shift_x, shift_y, column, row)
             r = np.uint64(offset + ry * out_w + rx)
             s = state[r, 0] + (1 if p[j] else -1)
             state[r, 0] = s

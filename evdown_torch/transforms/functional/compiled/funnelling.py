@@ -18,6 +18,7 @@ from evdown_torch.transforms.functional.compiled.regions import (
     outside_error,
     power_of_two_shifts,
     region_tables,
+    region_xy,
 )
 from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 
@@ -67,12 +68,7 @@ def _funnel_loop(
         yi = y[i]
         if xi < 0 or xi >= width or yi < 0 or yi >= height:
             return -1 - i
-        if shift_x >= 0:
-            rx = xi >> shift_x
-            ry = yi >> shift_y
-        else:
-            rx = column[xi]
-            ry = row[yi]
+        rx, ry = region_xy(xi, yi, shift_x, shift_y, column, row)
         key = (ry * out_w + rx) * 2 + (1 if p[i] else 0)
         # Every event is written at k, and k moves on past a kept one only: no branch on the
         # key's test, which no predictor guesses (4 to 30 % of the loop on a live chunk).

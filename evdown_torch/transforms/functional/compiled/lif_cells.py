@@ -29,6 +29,7 @@ from evdown_torch.transforms.functional.compiled.regions import (
     columns_of,
     power_of_two_shifts,
     region_tables,
+    region_xy,
 )
 from evdown_torch.transforms.functional.compiled.scratch import scratch_column
 from evdown_torch.transforms.functional.lif.steps import StepRuns, Steps, each_step
@@ -70,10 +71,8 @@ def _count_loop(
             step = (steps[i] if each else first + r) - low
             if xi < 0 or xi >= width or yi < 0 or yi >= height or step < 0 or step >= span:
                 return np.int64(i)
-            if shift_x >= 0:
-                region = (xi >> shift_x) + (yi >> shift_y) * wo
-            else:
-                region = column[xi] + row[yi] * wo
+            rx, ry = region_xy(xi, yi, shift_x, shift_y, column, row)
+            region = rx + ry * wo
             counts[np.uint64(2 * (region * span + step) + (1 if p[i] else 0))] += 1
         start = stop
     return -1

@@ -16,10 +16,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from evdown_torch.transforms.functional.compiled._numba import inlined_helper
 from evdown_torch.transforms.functional.compiled.scratch import scratch_column, scratch_copy
 
 __all__ = ["columns_of", "crossing_columns", "crossing_tensors", "grown_columns", "outside_error",
-           "power_of_two_shifts", "region_tables"]
+           "power_of_two_shifts", "region_tables", "region_xy"]
 
 
 @functools.lru_cache(maxsize=64)
@@ -51,6 +52,20 @@ def power_of_two_shifts(factor: tuple[int, int]) -> tuple[int, int]:
     if fx & (fx - 1) or fy & (fy - 1):
         return -1, -1
     return fx.bit_length() - 1, fy.bit_length() - 1
+
+
+@inlined_helper
+def region_xy(x: int, y: int, shift_x: int, shift_y: int, column: np.ndarray,
+              row: np.ndarray) -> tuple[int, int]:  # pragma: no cover - compiled
+    """The region ``(column, row)`` of a pixel ``(x, y)`` inside the tables, in a loop.
+
+    By two shifts where both factors are powers of two (``shift_x >= 0``,
+    :func:`power_of_two_shifts`: cheaper than the lookups), else by the tables of
+    :func:`region_tables`.
+    """
+    if shift_x >= 0:
+        return x >> shift_x, y >> shift_y
+    return column[x], row[y]
 
 
 def columns_of(*columns: Tensor) -> tuple[np.ndarray, ...]:
