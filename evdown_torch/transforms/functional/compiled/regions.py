@@ -4,8 +4,9 @@ The loops that emit level crossings (EventCount's, PhotocurrentPooling's) write 
 :func:`crossing_columns`, grown by :func:`grown_columns`, returned by :func:`crossing_tensors`.
 
 A loop finds an event's region by two table lookups (``column[x]``, ``row[y]``) instead of
-two integer divisions per event, and checks the pixel against the tables' extent, so a
-coordinate outside the sensor is an error (:func:`outside_error`), never a read out of bounds.
+two integer divisions per event, or by two shifts where both factors are powers of two
+(:func:`region_xy`), and checks the pixel against the tables' extent, so a coordinate outside
+the sensor is an error (:func:`outside_error`), never a read out of bounds.
 """
 
 from __future__ import annotations
