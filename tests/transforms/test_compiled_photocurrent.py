@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import decimal
 import importlib
+import inspect
 import math
 
 import numpy as np
@@ -323,6 +324,7 @@ def test_each_region_sum_is_its_pixels_intensities_exactly(contrast, threshold, 
     # The loop moves a region's sum by each event's change of intensity; after the call each
     # anchored region's sum must equal its pixels' intensities above its anchor, rounded one
     # by one (the module's telescoping), whatever path each event took.
+    parameters = inspect.signature(COMPILED._photocurrent_loop.py_func)
     seen = argument_spy(monkeypatch, COMPILED, "_photocurrent_loop")
     if stream == "below":
         sensor, factor, arr = (2, 1, 2), (2, 1), _one_pixel_falling_below_the_table(200)
@@ -332,9 +334,9 @@ def test_each_region_sum_is_its_pixels_intensities_exactly(contrast, threshold, 
     with eager_kernels(False):
         PhotocurrentPooling(sensor, factor=factor, contrast=contrast, threshold=threshold)(arr)
     assert len(seen) == 1  # the compiled loop decided the call
-    args = seen[0]
-    level, anchor, total, ready = args[14], args[16], args[17], args[18]
-    table, lo, scale = args[21], args[22], args[27]
+    args = parameters.bind(*seen[0]).arguments
+    level, anchor, total, ready = args["level"], args["anchor"], args["total"], args["ready"]
+    table, lo, scale = args["table"], args["lo"], args["scale"]
 
     def intensity(j: int) -> int:
         if j < lo:
