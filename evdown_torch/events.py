@@ -42,7 +42,7 @@ import numpy.typing as npt
 import torch
 from torch import Tensor
 
-from evdown_torch._tensors import time_order, where_true
+from evdown_torch._tensors import note_time_order, time_order, where_true
 from evdown_torch.checks import check_has_values, swapped_sensor_hint
 
 if TYPE_CHECKING:
@@ -344,6 +344,8 @@ def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat, ColumnFacts
     if loops is not None:  # one compiled pass: the columns and what the checks need
         (x, y, t_values, p), facts = loops.read_columns(data, t_dtype)
         t = torch.from_numpy(t_values)
+        if facts.t_sorted:  # a kernel's sort_by_time then takes it as it is, without a pass
+            note_time_order(t)
         _warn_if_time_lost_precision(t, kinds["t"].name)
         encoding = _polarity_encoding_of(facts) if kinds["p"] != np.bool_ else "bool"
         if encoding is None:  # the checks' own error, from the values

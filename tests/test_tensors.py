@@ -12,11 +12,13 @@ from evdown_torch._tensors import (
     correctly_rounded_sqrt,
     distinct_in_range,
     divide,
+    note_time_order,
     run_max,
     runs_of,
     searchsorted_ascending,
     stable_sort_small,
     time_order,
+    time_order_notes,
     where_true,
 )
 
@@ -129,6 +131,58 @@ def test_time_order_is_none_exactly_for_a_sorted_stream(n, dtype, numpy_on_cpu, 
         with_nan = t.clone()
         with_nan[n // 2] = float("nan")
         assert time_order(with_nan) is not None
+
+
+def test_a_noted_tensor_is_taken_as_in_order_until_it_changes():
+    # The note is trusted for that tensor object as it is (here on purpose an unsorted one, to
+    # see it), and for nothing else: a change in place, a view or a copy is looked at again;
+    # and only inside a span of notes (one transform's call).
+    t = torch.tensor([5, 3, 4, 1])
+    order = torch.sort(t, stable=True).indices
+    note_time_order(t)  # outside every span: not taken
+    assert torch.equal(time_order(t), order)
+    with time_order_notes():
+        note_time_order(t)
+        assert time_order(t) is None
+        assert torch.equal(time_order(t[:]), order) and torch.equal(time_order(t.clone()), order)
+        t[0] = 5  # the same value, written in place
+        assert torch.equal(time_order(t), order)
+        note_time_order(t)
+        note_time_order(torch.tensor([2, 1]))  # one tensor a thread: the last noted
+        assert torch.equal(time_order(t), order)
+        note_time_order(t)
+        with torch.inference_mode():  # no version counter: never noted
+            frozen = torch.tensor([2, 1])
+            note_time_order(frozen)
+            assert torch.equal(time_order(frozen), torch.tensor([1, 0]))
+        assert time_order(t) is None
+    assert torch.equal(time_order(t), order)  # the span's end drops the note
+
+
+def test_the_compiled_read_notes_the_time_order_it_finds_inside_a_call(monkeypatch):
+    pytest.importorskip("numba")
+    from evdown_torch import EventCount, eager_kernels
+    from evdown_torch.events import DVS_DTYPE, to_events
+
+    arr = np.zeros(6, dtype=DVS_DTYPE)
+    arr["x"], arr["t"], arr["p"] = [0, 1, 2, 3, 0, 1], [1, 2, 2, 5, 7, 9], True
+    with eager_kernels(False):
+        assert not _tensors._noted_in_order(to_events(arr)[0].t)  # a user's own read
+        with time_order_notes():
+            assert _tensors._noted_in_order(to_events(arr)[0].t)
+            arr["t"][3] = 0
+            events = to_events(arr)[0]
+            assert not _tensors._noted_in_order(events.t) and time_order(events.t) is not None
+        with torch.inference_mode():  # a transform's call there: read, not noted, the same
+            out = EventCount((4, 2, 2), factor=2, threshold=0.5)(arr)
+        arr.sort(order="t", kind="stable")
+        answers = []
+        noted = _tensors._noted_in_order
+        monkeypatch.setattr(_tensors, "_noted_in_order",
+                            lambda t: answers.append(noted(t)) or answers[-1])
+        sorted_out = EventCount((4, 2, 2), factor=2, threshold=0.5)(arr)
+        assert True in answers  # the kernel's check took the read's note
+    assert out.tolist() == sorted_out.tolist() and len(out) > 0
 
 
 @pytest.mark.parametrize("numpy_on_cpu", [True, False])

@@ -9,6 +9,7 @@ from typing import Any, ClassVar, overload
 
 import torch
 
+from evdown_torch._tensors import time_order_notes
 from evdown_torch.checks import check_factor, check_output_count, check_sensor_size
 from evdown_torch.collate import EventBatch, from_batch, to_batch
 from evdown_torch.events import (
@@ -144,9 +145,11 @@ class Streaming:
                 microseconds its time settings are in
                 (:func:`~evdown_torch.time_units.check_first_call`).
         """
-        ev, fmt = to_events(events, self.sensor_size)
-        check_first_call(self, ev.t)
-        return from_events(self.kernel(ev), fmt)
+        with time_order_notes():  # the read's time order, for the kernel's (this call only)
+            ev, fmt = to_events(events, self.sensor_size)
+            check_first_call(self, ev.t)
+            out = self.kernel(ev)
+        return from_events(out, fmt)
 
     @overload
     def batch(self, recordings: EventBatch) -> EventBatch: ...
