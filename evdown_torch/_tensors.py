@@ -33,7 +33,6 @@ __all__ = [
     "last_of_runs",
     "narrow_dtype",
     "note_time_order",
-    "time_order_notes",
     "run_index",
     "run_max",
     "runs_of",
@@ -43,6 +42,7 @@ __all__ = [
     "take",
     "telescoped_cumsum",
     "time_order",
+    "time_order_notes",
     "where_true",
 ]
 
