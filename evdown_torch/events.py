@@ -344,8 +344,6 @@ def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat, ColumnFacts
     if loops is not None:  # one compiled pass: the columns and what the checks need
         (x, y, t_values, p), facts = loops.read_columns(data, t_dtype)
         t = torch.from_numpy(t_values)
-        if facts.t_sorted:  # a kernel's sort_by_time then takes it as it is, without a pass
-            note_time_order(t)
         _warn_if_time_lost_precision(t, kinds["t"].name)
         encoding = _polarity_encoding_of(facts) if kinds["p"] != np.bool_ else "bool"
         if encoding is None:  # the checks' own error, from the values
@@ -482,7 +480,9 @@ def to_events(
             f"(N, 4) or evdown_torch.Events, got {type(data).__name__}"
         )
     _validate(events, sensor_size, facts)
-    if in_time_order and not (facts is not None and facts.t_sorted):
+    if facts is not None and facts.t_sorted:
+        note_time_order(events.t)  # (in a transform's call: its kernel's sort takes it as is)
+    elif in_time_order:
         events = sort_by_time(events)
     return events, fmt
 
