@@ -17,7 +17,10 @@ events/s, 10 ms chunks, factor 4, one thread), beside the floor and the package'
   coordinate columns in place of int64 ones;
 * ``records EventCount``: the package's own EventCount loop given the record fields in place
   (strided int16 and bool views), the time order checked by a loop of its own, and the
-  crossings written into the output's records.
+  crossings written into the output's records;
+* ``records EventFunnelling``: the package's funnelling loop given the record fields in place
+  likewise, with the session's memory of the last instant's kept events (as
+  :func:`~evdown_torch.transforms.functional.funnelling.last_instant` keeps them).
 
 Every variant's output is checked, chunk by chunk, to be the package session's, byte for
 byte (the script stops with an error otherwise). Nothing here is part of the package: the
@@ -124,10 +127,12 @@ class _Columns:
 def _variants(loops: dict) -> dict:
     """Each variant as a session: a call per chunk returning its structured output."""
     from evdown_torch.transforms.functional.compiled.event_count import _event_count_loop
+    from evdown_torch.transforms.functional.compiled.funnelling import _funnel_loop
     from evdown_torch.transforms.functional.compiled.regions import region_tables
 
     columns = _Columns()
-    last = {"records Downsample": -(2**62), "records EventCount": -(2**62)}
+    last = {"records Downsample": -(2**62), "records EventCount": -(2**62),
+            "records EventFunnelling": -(2**62)}
 
     def records_downsample(chunk: np.ndarray) -> np.ndarray:
         out = np.empty(len(chunk), DVS_DTYPE)
@@ -180,9 +185,39 @@ def _variants(loops: dict) -> dict:
                               out["x"], out["y"], out["t"], out["p"])
         return out
 
+    seen: list[np.ndarray] = []  # the kept events at the latest instant so far (records)
+    no_index = np.empty(0, np.int64)
+
+    def records_funnelling(chunk: np.ndarray) -> np.ndarray:
+        n = len(chunk)
+        if loops["unordered_from"](chunk["t"], last["records EventFunnelling"]):
+            raise ValueError("an event out of time order")
+        kept_in = np.full(2 * regions, -1, np.int64)
+        if seen and chunk["t"][0] <= seen[0]["t"][-1]:  # the first run shares seen's instant
+            kept_in[(seen[0]["y"].astype(np.int64) * REGIONS_WIDE + seen[0]["x"]) * 2
+                    + (seen[0]["p"] > 0)] = 0
+        out_x, out_y = columns("ef x", n, np.int64), columns("ef y", n, np.int64)
+        out_t, out_p = columns("ef t", n, np.int64), columns("ef p", n, np.bool_)
+        k = _funnel_loop(chunk["x"], chunk["y"], chunk["t"], chunk["p"], column, row, SHIFT,
+                         SHIFT, REGIONS_WIDE, np.array([n], np.int64), kept_in, no_index,
+                         out_x, out_y, out_t, out_p)
+        if k < 0:
+            raise ValueError("an event outside the sensor")
+        last["records EventFunnelling"] = int(chunk["t"][-1])
+        out = np.empty(k, DVS_DTYPE)
+        loops["fields_write"](out_x[:k], out_y[:k], out_t[:k], out_p[:k], out["x"], out["y"],
+                              out["t"], out["p"])
+        if k:
+            tail = out[np.searchsorted(out["t"], out["t"][-1], side="left"):]
+            if tail is out and seen and seen[0]["t"][-1] == out["t"][-1]:
+                tail = np.concatenate([seen[0], tail])
+            seen[:] = [tail.copy()]
+        return out
+
     return {"records Downsample": records_downsample,
             "int32 columns Downsample": narrow_downsample,
-            "records EventCount": records_event_count}
+            "records EventCount": records_event_count,
+            "records EventFunnelling": records_funnelling}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -198,10 +233,14 @@ def main(argv: list[str] | None = None) -> int:
                 "int32 columns Downsample": variants["int32 columns Downsample"],
                 "EventCount session (package)": make_method("event_count", SENSOR,
                                                             FACTOR).session(),
-                "records EventCount": variants["records EventCount"]}
+                "records EventCount": variants["records EventCount"],
+                "EventFunnelling session (package)": make_method("funnelling", SENSOR,
+                                                                 FACTOR).session(),
+                "records EventFunnelling": variants["records EventFunnelling"]}
     peers = {"records Downsample": "Downsample session (package)",
              "int32 columns Downsample": "Downsample session (package)",
-             "records EventCount": "EventCount session (package)"}
+             "records EventCount": "EventCount session (package)",
+             "records EventFunnelling": "EventFunnelling session (package)"}
     seconds: dict[str, list[float]] = {name: [] for name in sessions}
     events_out = dict.fromkeys(sessions, 0)
     names = list(sessions)

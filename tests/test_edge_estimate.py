@@ -30,6 +30,9 @@ def test_each_variant_makes_its_package_sessions_events(capsys):
     event_count = rows["EventCount session (package)"][-1]
     assert int(event_count.replace(",", "")) > 0
     assert rows["records EventCount"][-1] == event_count
+    funnelled = rows["EventFunnelling session (package)"][-1]
+    assert int(funnelled.replace(",", "")) > 0
+    assert rows["records EventFunnelling"][-1] == funnelled
     assert float(rows["floor"][2]) == 1.0
 
 
