@@ -52,8 +52,8 @@ def _funnel_loop(
     """
     # Measured on live chunks of the replay (about 20 % of the loop, at factors 1 and 4): the
     # shifts instead of the tables, and no index written where the caller drops it; the last
-    # time and the recording's end held in locals, not read again from ``t`` and ``ends``
-    # each event (the outputs' stores could alias them, as far as the compiler knows): 5 %.
+    # time and the recording's end held in locals, not read again from ``t`` (``t[i - 1]``, a
+    # signed index Numba wraps) and ``ends`` each event: 5 % of the loop on captured chunks.
     width = column.shape[0]
     height = row.shape[0]
     indexed = out_index.shape[0] > 0
