@@ -1,11 +1,12 @@
 """What reading Tonic's records in place would save the fastest methods: an estimate for a decision.
 
-Issue 38's goal 2 asks Downsample and EventCount for a quarter of the floor's rate in the live
-replay. The floor (:mod:`evdown_torch.bench.floor`) reads the chunk's ``x`` and ``y`` fields
-where they lie. A method reads the chunk into the kernels' columns (int64 ``x``, ``y`` and
-``t``, bool ``p``: :mod:`evdown_torch.transforms.functional.compiled.columns`), runs its loop
-and writes the result into a new structured array: for these two methods the read and the
-write take half the chunk or more (docs/benchmarks.md, "Third session of 2026-12-05").
+Issue 38's goal 2 asks Downsample, EventFunnelling and EventCount for a quarter of the floor's
+rate in the live replay. The floor (:mod:`evdown_torch.bench.floor`) reads the chunk's ``x``
+and ``y`` fields where they lie. A method reads the chunk into the kernels' columns (int64
+``x``, ``y`` and ``t``, bool ``p``: :mod:`evdown_torch.transforms.functional.compiled.columns`),
+runs its loop and writes the result into a new structured array: for Downsample and EventCount
+the read and the write take half the chunk or more (docs/benchmarks.md, "Third session of
+2026-12-05").
 
 This script times, on the replay's chunks (the synthetic gesture recording retimed to 25 M
 events/s, 10 ms chunks, factor 4, one thread), beside the floor and the package's sessions:
