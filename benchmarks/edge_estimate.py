@@ -74,31 +74,6 @@ def compile_loops() -> dict:
         return outside, unordered
 
     @numba.njit(nogil=True)
-    def narrow_read(x, y, t, p, ox, oy, ot, op):
-        n = x.shape[0]
-        x_lo, x_hi, y_lo, y_hi = np.int32(0), np.int32(-1), np.int32(0), np.int32(-1)
-        if n:
-            x_lo, x_hi, y_lo, y_hi = np.int32(x[0]), np.int32(x[0]), np.int32(y[0]), np.int32(y[0])
-        for i in range(n):
-            ox[i], oy[i], ot[i], op[i] = x[i], y[i], t[i], p[i]
-            x_lo, x_hi = min(x_lo, ox[i]), max(x_hi, ox[i])
-            y_lo, y_hi = min(y_lo, oy[i]), max(y_hi, oy[i])
-        unordered = 0
-        for i in range(1, n):
-            unordered += not ot[i] >= ot[i - 1]
-        return x_lo, x_hi, y_lo, y_hi, unordered
-
-    @numba.njit(nogil=True)
-    def narrow_shift(x, y, shift, ox, oy):
-        for i in range(x.shape[0]):
-            ox[i], oy[i] = x[i] >> shift, y[i] >> shift
-
-    @numba.njit(nogil=True)
-    def fields_write(x, y, t, p, ox, oy, ot, op):
-        for i in range(x.shape[0]):
-            ox[i], oy[i], ot[i], op[i] = x[i], y[i], t[i], p[i]
-
-    @numba.njit(nogil=True)
     def unordered_from(t, last_t):
         unordered = 0
         previous = last_t
@@ -107,9 +82,7 @@ def compile_loops() -> dict:
             previous = t[i]
         return unordered
 
-    return {"records_downsample": records_downsample, "narrow_read": narrow_read,
-            "narrow_shift": narrow_shift, "fields_write": fields_write,
-            "unordered_from": unordered_from}
+    return {"records_downsample": records_downsample, "unordered_from": unordered_from}
 
 
 class _Columns:
@@ -126,7 +99,14 @@ class _Columns:
 
 
 def _variants(loops: dict) -> dict:
-    """Each variant as a session: a call per chunk returning its structured output."""
+    """Each variant as a session: a call per chunk returning its structured output.
+
+    Beside the one pass of ``records Downsample``, they run the package's own loops: the
+    read and write of :mod:`~evdown_torch.transforms.functional.compiled.columns`,
+    Downsample's, EventCount's and the funnelling loop.
+    """
+    from evdown_torch.transforms.functional.compiled.columns import _read_loop, _write_loop
+    from evdown_torch.transforms.functional.compiled.downsample import _downsample_loop
     from evdown_torch.transforms.functional.compiled.event_count import _event_count_loop
     from evdown_torch.transforms.functional.compiled.funnelling import _funnel_loop
     from evdown_torch.transforms.functional.compiled.regions import region_tables
@@ -149,16 +129,16 @@ def _variants(loops: dict) -> dict:
         n = len(chunk)
         x, y = columns("x", n, np.int32), columns("y", n, np.int32)
         t, p = columns("t", n, np.int64), columns("p", n, np.bool_)
-        x_lo, x_hi, y_lo, y_hi, unordered = loops["narrow_read"](
-            chunk["x"], chunk["y"], chunk["t"], chunk["p"], x, y, t, p)
-        if x_lo < 0 or x_hi >= SENSOR[0] or y_lo < 0 or y_hi >= SENSOR[1] or unordered:
+        x_lo, x_hi, y_lo, y_hi, _, in_order, *_ = _read_loop(
+            chunk["x"], chunk["y"], chunk["t"], chunk["p"], False, x, y, t, p)
+        if x_lo < 0 or x_hi >= SENSOR[0] or y_lo < 0 or y_hi >= SENSOR[1] or not in_order:
             raise ValueError("an event outside the sensor or out of time order")
         out_x, out_y = columns("out x", n, np.int32), columns("out y", n, np.int32)
-        loops["narrow_shift"](x, y, SHIFT, out_x, out_y)
+        _downsample_loop(x, y, FACTOR, FACTOR, column, row, SHIFT, SHIFT, out_x, out_y)
         out_t, out_p = columns("out t", n, np.int64), columns("out p", n, np.bool_)
         out_t[:], out_p[:] = t, p  # a step's result has columns of its own, as the package's
         out = np.empty(n, DVS_DTYPE)
-        loops["fields_write"](out_x, out_y, out_t, out_p, out["x"], out["y"], out["t"], out["p"])
+        _write_loop(out_x, out_y, out_t, out_p, 0, out["x"], out["y"], out["t"], out["p"])
         return out
 
     # EventCount at its default threshold 1 on 4x4 regions: levels every 16 (a * n_r), at most
@@ -182,8 +162,8 @@ def _variants(loops: dict) -> dict:
             raise ValueError("an event outside the sensor")
         last["records EventCount"] = int(chunk["t"][-1])
         out = np.empty(k, DVS_DTYPE)
-        loops["fields_write"](out_x[:k], out_y[:k], np.take(chunk["t"], source[:k]), on[:k],
-                              out["x"], out["y"], out["t"], out["p"])
+        _write_loop(out_x[:k], out_y[:k], np.take(chunk["t"], source[:k]), on[:k], 0, out["x"],
+                    out["y"], out["t"], out["p"])
         return out
 
     seen: list[np.ndarray] = []  # the kept events at the latest instant so far (records)
@@ -206,8 +186,8 @@ def _variants(loops: dict) -> dict:
             raise ValueError("an event outside the sensor")
         last["records EventFunnelling"] = int(chunk["t"][-1])
         out = np.empty(k, DVS_DTYPE)
-        loops["fields_write"](out_x[:k], out_y[:k], out_t[:k], out_p[:k], out["x"], out["y"],
-                              out["t"], out["p"])
+        _write_loop(out_x[:k], out_y[:k], out_t[:k], out_p[:k], 0, out["x"], out["y"],
+                    out["t"], out["p"])
         if k:
             tail = out[np.searchsorted(out["t"], out["t"][-1], side="left"):]
             if tail is out and seen and seen[0]["t"][-1] == out["t"][-1]:
