@@ -174,3 +174,39 @@ def test_a_call_that_stops_early_leaves_the_maps_as_the_next_call_needs(rng, mon
             assert torch.equal(got, want)
         else:
             assert got == want
+
+
+def test_a_window_s_keys_sorted_from_an_ordered_head_are_the_sort_of_all(rng):
+    from evdown_torch.transforms.functional.compiled import poisson as compiled
+
+    for _ in range(30):
+        keys = rng.permutation(200)[:rng.integers(0, 60)].astype(np.int64)
+        head = int(rng.integers(0, keys.shape[0] + 1))
+        keys[:head] = np.sort(keys[:head])
+        assert np.array_equal(compiled._sorted_after(keys, head), np.sort(keys))
+    # A head out of order (a state not in the state's order) is sorted with the rest.
+    keys = np.array([5, 3, 9, 1, 4], dtype=np.int64)
+    assert compiled._sorted_after(keys, 3).tolist() == [1, 3, 4, 5, 9]
+    assert compiled._sorted_after(keys[:2], 2).tolist() == [3, 5]
+
+
+def test_a_session_merges_each_window_s_ordered_keys_without_sorting_them_again(rng,
+                                                                                monkeypatch):
+    """Chunks inside a window and across one window's end: each window's state keys come first
+    and in order, so the merge never finds them out of order (no full sort again)."""
+    from evdown_torch.transforms.functional.compiled import poisson as compiled
+
+    merges = []
+    real = compiled._merge_loop
+    monkeypatch.setattr(compiled, "_merge_loop",
+                        lambda head, tail, out: merges.append((head.shape[0],
+                                                               real(head, tail, out)))
+                        or merges[-1][1])
+    arr = random_stream(rng, 3_000, SENSOR, t_max=3_000)
+    transform = PoissonSubsampling(SENSOR, (2, 3), window=400, alpha=0.3, seed=5)
+    session = transform.session()
+    got = [session(arr[lo:lo + 100]) for lo in range(0, 3_000, 100)] + [session.flush()]
+    with eager_kernels():
+        np.testing.assert_array_equal(np.concatenate(got), transform(arr))
+    assert len(merges) > 30 and all(ordered for _, ordered in merges)
+    assert max(head for head, _ in merges) > 10

@@ -260,6 +260,42 @@ def _sorted(keys: np.ndarray) -> np.ndarray:
     return keys[stable_order(keys)]
 
 
+@compiled_loop
+def _merge_loop(head: np.ndarray, tail: np.ndarray, out: np.ndarray) -> bool:  # pragma: no cover
+    """The merge of increasing ``head`` and increasing ``tail``, written into ``out``.
+
+    Returns:
+        ``True``; ``False`` (``out`` not all written) where ``head`` is not increasing.
+    """
+    i, j = 0, 0
+    for k in range(out.shape[0]):
+        if i < head.shape[0] and i > 0 and head[i] <= head[i - 1]:
+            return False
+        if j == tail.shape[0] or (i < head.shape[0] and head[i] <= tail[j]):
+            out[k] = head[i]
+            i += 1
+        else:
+            out[k] = tail[j]
+            j += 1
+    return True
+
+
+def _sorted_after(keys: np.ndarray, head: int) -> np.ndarray:
+    """:func:`_sorted` of ``keys``, whose first ``head`` are increasing already (else sorted).
+
+    A window's entries are the state's of that window (increasing: the state's order), then
+    the keys its events added: only those are sorted, and merged. On a large sensor a window
+    can hold every pixel: sorting them all again at every call took 13 ms for 921,600 keys on
+    1280x720, where the merge is one pass.
+    """
+    if head == 0:
+        return _sorted(keys)
+    out = np.empty(keys.shape[0], np.int64)
+    if _merge_loop(keys[:head], _sorted(keys[head:]), out):
+        return out
+    return _sorted(keys)  # (a state whose entries are not in order: sorted like the eager)
+
+
 def _doubt_bound() -> float:
     """Twice both paths' relative roundings of ``P``, per entry of the previous window.
 
@@ -338,8 +374,8 @@ def decide_in_order(
             kept_map("poisson rows", planes, np.float64) as rows, \
             kept_map("poisson chances", planes, np.float64) as chances, \
             kept_map("poisson stamp", planes + 1, np.int64) as stamp:
-        n_cur = seeded(current, cur_keys, entry_windows.numpy() == first)
-        n_prev = seeded(previous, prev_keys, entry_windows.numpy() == first - 1)
+        n_cur = seeded_cur = seeded(current, cur_keys, entry_windows.numpy() == first)
+        n_prev = seeded_prev = seeded(previous, prev_keys, entry_windows.numpy() == first - 1)
         (status, n_out, kept_after, last_current, cur_keys, n_cur, last_previous, prev_keys,
          n_prev, last, n_blurred, stamp[-1]) = _poisson_loop(
             x, y, p, window.numpy(), draws.numpy(), alpha, a, b, limit, remainder, kept, width,
@@ -347,8 +383,12 @@ def decide_in_order(
             prev_keys, n_prev, first, rows, blurred_from, chances, stamp[:-1], int(stamp[-1]),
             _doubt_bound(), column, row, t, out_x, out_y, out_t, out_p)
         # The new state: the entries of the last window and of the one before, by window, key.
-        before = _sorted(prev_keys[:n_prev])
-        after = _sorted(cur_keys[:n_cur])
+        # Each window's keys start with the state's of that window, in order: a window that
+        # the call started in keeps its seeded keys first, also once it became the previous.
+        head_prev, head_cur = {0: (seeded_prev, seeded_cur), 1: (seeded_cur, 0)}.get(
+            last - first, (0, 0))
+        before = _sorted_after(prev_keys[:n_prev], head_prev)
+        after = _sorted_after(cur_keys[:n_cur], head_cur)
         counts = np.concatenate([last_previous[before], last_current[after]])
         _restore(last_current, cur_keys, n_cur, last_previous, prev_keys, n_prev, rows,
                  blurred_from, n_blurred, width, g.shape[0] // 2)
