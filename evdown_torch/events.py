@@ -30,6 +30,7 @@ converts a result back to the caller's kind.
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from collections.abc import Sequence
@@ -315,8 +316,13 @@ def _column_loops(dtype: np.dtype | None) -> ModuleType | None:
     return columns if columns.compiled_fields(dtype) else None
 
 
-def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat, ColumnFacts | None]:
-    names = data.dtype.names or ()
+# The checks of a structured array's dtype, made once per dtype (a live session's chunks share
+# one): they took about 14 µs of each call's fixed cost (docs/benchmarks.md, "Session of
+# 2026-12-05 (evening)"). Errors are not cached: a bad dtype raises at every call.
+@functools.lru_cache(maxsize=64)
+def _check_field_names(dtype: np.dtype) -> None:
+    """Refuse a structured ``dtype`` without each of :data:`FIELDS`, or with another field."""
+    names = dtype.names or ()
     missing = [f for f in FIELDS if f not in names]
     if missing:
         raise ValueError(
@@ -329,9 +335,16 @@ def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat, ColumnFacts
             f"events have field(s) {extra} that a downscaler cannot carry over; "
             f"expected only {list(FIELDS)}"
         )
-    if data.ndim != 1:
-        raise ValueError(f"a structured event array must be 1-D, got shape {data.shape}")
-    kinds = {f: data.dtype[f] for f in FIELDS}
+
+
+@functools.lru_cache(maxsize=64)
+def _field_kinds(dtype: np.dtype) -> tuple[type[np.integer] | type[np.floating], str, bool]:
+    """``(t's column dtype, t's field dtype name, p is bool)`` of a structured ``dtype``.
+
+    Raises:
+        TypeError: for a field whose dtype the events cannot take.
+    """
+    kinds = {f: dtype[f] for f in FIELDS}
     for f in ("x", "y"):
         if not np.issubdtype(kinds[f], np.integer):
             raise TypeError(f"event field {f} must have an integer dtype, got {kinds[f]}")
@@ -340,18 +353,26 @@ def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat, ColumnFacts
     if not (kinds["p"] == np.bool_ or np.issubdtype(kinds["p"], np.number)):
         raise TypeError(f"event field p must be bool, integer or float, got {kinds['p']}")
     t_dtype = np.float64 if np.issubdtype(kinds["t"], np.floating) else np.int64
+    return t_dtype, kinds["t"].name, bool(kinds["p"] == np.bool_)
+
+
+def _from_structured(data: np.ndarray) -> tuple[Events, EventFormat, ColumnFacts | None]:
+    _check_field_names(data.dtype)
+    if data.ndim != 1:
+        raise ValueError(f"a structured event array must be 1-D, got shape {data.shape}")
+    t_dtype, t_name, p_bool = _field_kinds(data.dtype)
     loops = _column_loops(data.dtype)
     if loops is not None:  # one compiled pass: the columns and what the checks need
         (x, y, t_values, p), facts = loops.read_columns(data, t_dtype)
         t = torch.from_numpy(t_values)
-        _warn_if_time_lost_precision(t, kinds["t"].name)
-        encoding = _polarity_encoding_of(facts) if kinds["p"] != np.bool_ else "bool"
+        _warn_if_time_lost_precision(t, t_name)
+        encoding = _polarity_encoding_of(facts) if not p_bool else "bool"
         if encoding is None:  # the checks' own error, from the values
             encoding = _polarity_encoding(torch.from_numpy(np.array(data["p"])))
         events = Events(torch.from_numpy(x), torch.from_numpy(y), t, torch.from_numpy(p))
         return events, EventFormat("numpy", data.dtype, encoding, torch.device("cpu")), facts
     t = torch.from_numpy(np.array(data["t"], dtype=t_dtype))  # always a copy
-    _warn_if_time_lost_precision(t, kinds["t"].name)
+    _warn_if_time_lost_precision(t, t_name)
     p_raw = torch.from_numpy(np.array(data["p"]))
     encoding = _polarity_encoding(p_raw)
     p = p_raw if encoding == "bool" else p_raw > 0

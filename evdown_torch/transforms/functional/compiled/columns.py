@@ -18,6 +18,7 @@ Numba reads native-endian fields of integer, float32/float64 and bool dtypes
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -31,6 +32,7 @@ __all__ = ["ColumnFacts", "compiled_fields", "read_columns", "write_columns"]
 _KINDS = {"b": (1,), "i": (1, 2, 4, 8), "u": (1, 2, 4, 8), "f": (4, 8)}
 
 
+@functools.lru_cache(maxsize=64)  # (asked at every call; a stream's chunks share a dtype)
 def compiled_fields(dtype: np.dtype) -> bool:
     """Whether every field of a structured ``dtype`` is one the loops take.
 
