@@ -269,9 +269,9 @@ def _merge_loop(head: np.ndarray, tail: np.ndarray, out: np.ndarray) -> bool:  #
     """
     i, j = 0, 0
     for k in range(out.shape[0]):
-        if i < head.shape[0] and i > 0 and head[i] <= head[i - 1]:
-            return False
         if j == tail.shape[0] or (i < head.shape[0] and head[i] <= tail[j]):
+            if i > 0 and head[i] <= head[i - 1]:  # (each head key checked as it is taken)
+                return False
             out[k] = head[i]
             i += 1
         else:
